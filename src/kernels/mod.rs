@@ -1,0 +1,18 @@
+//! Numeric building blocks on row-major `f32` slices: GEMM (on `matrixmultiply`, split across the
+//! current rayon pool by output rows), attention, normalisation, activations and embeddings.
+//!
+//! Kernels know nothing about transformers or models. Weights use PyTorch's layout (`Linear.weight`
+//! is `[out, in]`). Parallel work is only ever split over independent outputs (rows, heads), never
+//! over a reduction, so results are bit-identical for every thread count.
+
+mod activation;
+mod attention;
+mod embedding;
+mod gemm;
+mod norm;
+
+pub use activation::{gelu_erf, quick_gelu, relu, silu, softmax_rows, tanh};
+pub use attention::multi_head_attention;
+pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};
+pub use gemm::{linear, matmul_nn, matmul_nt};
+pub use norm::{add_layer_norm, layer_norm};

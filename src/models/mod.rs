@@ -1,0 +1,1 @@
+//! Denoiser networks, one file per architecture, named after its paper.

@@ -1,0 +1,1 @@
+//! The in-crate seeded Gaussian generator.
