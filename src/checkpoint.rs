@@ -1,1 +1,406 @@
-//! checkpoint
+//! The model file: a `.safetensors` file opened by memory-mapping (or from caller bytes),
+//! validated, and read out as typed `f32` tensors.
+//!
+//! A libflame model file carries, in the safetensors metadata, `format = "libflame"`, the model
+//! configuration as JSON under `flame.config` (see [`crate::config`]) and the tokenizer.json text
+//! under `flame.tokenizer`. Plain safetensors files (for example a Hugging Face text encoder)
+//! open too; only [`ModelFile::config`] needs the metadata.
+//!
+//! f32 tensors are borrowed straight from the mapping (one copy of the weights, in the page
+//! cache); f16 and bf16 tensors are widened to f32 once at load, so their mapped pages are read
+//! once and can be dropped by the OS.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::path::Path;
+use std::sync::Arc;
+
+use half::{bf16, f16};
+use memmap2::Mmap;
+use safetensors::tensor::{Dtype, Metadata, SafeTensorError};
+use safetensors::SafeTensors;
+
+use crate::error::{bad_file, Error, Result};
+
+/// Metadata key holding the JSON configuration.
+pub const CONFIG_KEY: &str = "flame.config";
+/// Metadata key holding the tokenizer.json text.
+pub const TOKENIZER_KEY: &str = "flame.tokenizer";
+/// Metadata key whose value `libflame` marks a libflame model file.
+pub const FORMAT_KEY: &str = "format";
+
+/// Where the file's bytes live.
+enum Backing {
+    Mapped(Mmap),
+    /// Caller bytes copied into 8-byte-aligned storage so f32 data can be borrowed in place.
+    Heap { words: Vec<u64>, len: usize },
+}
+
+impl Backing {
+    fn bytes(&self) -> &[u8] {
+        match self {
+            Backing::Mapped(m) => m,
+            // SAFETY: `words` owns at least `len` initialised bytes; u8 has no alignment needs.
+            Backing::Heap { words, len } => unsafe {
+                std::slice::from_raw_parts(words.as_ptr() as *const u8, *len)
+            },
+        }
+    }
+}
+
+/// Element type of a stored tensor, as far as libflame reads it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StoredDtype {
+    F32,
+    F16,
+    Bf16,
+}
+
+impl StoredDtype {
+    pub fn name(self) -> &'static str {
+        match self {
+            StoredDtype::F32 => "f32",
+            StoredDtype::F16 => "f16",
+            StoredDtype::Bf16 => "bf16",
+        }
+    }
+}
+
+struct Entry {
+    dtype: Dtype,
+    shape: Vec<usize>,
+    /// Absolute byte range in the backing.
+    start: usize,
+    end: usize,
+}
+
+/// An opened, header-validated safetensors file.
+pub struct ModelFile {
+    backing: Arc<Backing>,
+    entries: HashMap<String, Entry>,
+    metadata: HashMap<String, String>,
+    source: String,
+}
+
+/// A read-only `f32` tensor: borrowed from the file's mapping or owned after widening.
+pub struct Tensor {
+    data: TensorData,
+    shape: Vec<usize>,
+}
+
+enum TensorData {
+    Borrowed { backing: Arc<Backing>, offset: usize, len: usize },
+    Owned(Vec<f32>),
+}
+
+impl Tensor {
+    /// An owned tensor (used for derived weights and in tests).
+    pub fn from_vec(shape: Vec<usize>, data: Vec<f32>) -> Tensor {
+        assert_eq!(shape.iter().product::<usize>(), data.len(), "shape does not match data");
+        Tensor { data: TensorData::Owned(data), shape }
+    }
+
+    pub fn data(&self) -> &[f32] {
+        match &self.data {
+            TensorData::Owned(v) => v,
+            TensorData::Borrowed { backing, offset, len } => {
+                let bytes = &backing.bytes()[*offset..*offset + *len * 4];
+                // SAFETY: alignment to 4 was checked when the tensor was created, the range lies
+                // inside the backing (validated header), and any bit pattern is a valid f32.
+                unsafe { std::slice::from_raw_parts(bytes.as_ptr() as *const f32, *len) }
+            }
+        }
+    }
+
+    pub fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+
+    /// Whether the data is read in place from the file (no copy).
+    pub fn is_mapped(&self) -> bool {
+        matches!(self.data, TensorData::Borrowed { .. })
+    }
+}
+
+impl std::fmt::Debug for Tensor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Tensor{:?}", self.shape)
+    }
+}
+
+impl ModelFile {
+    /// Memory-maps and validates `path`.
+    pub fn open(path: &Path) -> Result<ModelFile> {
+        let io = |source| Error::Io { path: path.display().to_string(), source };
+        let file = File::open(path).map_err(io)?;
+        // SAFETY: the mapping is read-only; a file truncated by another process while mapped is
+        // outside what any mmap-based loader can defend against and is documented as such.
+        let map = unsafe { Mmap::map(&file) }.map_err(io)?;
+        Self::from_backing(Backing::Mapped(map), path.display().to_string())
+    }
+
+    /// Copies `bytes` (the whole file) and validates them.
+    pub fn from_bytes(bytes: &[u8]) -> Result<ModelFile> {
+        let mut words = vec![0u64; bytes.len().div_ceil(8)];
+        // SAFETY: `words` has room for `bytes.len()` bytes and the regions do not overlap.
+        unsafe {
+            std::ptr::copy_nonoverlapping(bytes.as_ptr(), words.as_mut_ptr() as *mut u8, bytes.len())
+        };
+        Self::from_backing(Backing::Heap { words, len: bytes.len() }, "<memory>".into())
+    }
+
+    fn from_backing(backing: Backing, source: String) -> Result<ModelFile> {
+        let bytes = backing.bytes();
+        let (header_len, meta) = parse_header(bytes)?;
+        let data_start = 8 + header_len;
+        let mut entries = HashMap::new();
+        for (name, info) in meta.tensors() {
+            let (s, e) = info.data_offsets;
+            entries.insert(
+                name,
+                Entry {
+                    dtype: info.dtype,
+                    shape: info.shape.clone(),
+                    start: data_start + s,
+                    end: data_start + e,
+                },
+            );
+        }
+        let metadata = meta.metadata().clone().unwrap_or_default();
+        Ok(ModelFile { backing: Arc::new(backing), entries, metadata, source })
+    }
+
+    /// Where the file came from (a path, or `<memory>`).
+    pub fn source(&self) -> &str {
+        &self.source
+    }
+
+    /// A metadata value of the safetensors header.
+    pub fn metadata(&self, key: &str) -> Option<&str> {
+        self.metadata.get(key).map(String::as_str)
+    }
+
+    /// The tensor names, sorted.
+    pub fn names(&self) -> Vec<&str> {
+        let mut v: Vec<&str> = self.entries.keys().map(String::as_str).collect();
+        v.sort_unstable();
+        v
+    }
+
+    /// Whether a tensor of that name is stored.
+    pub fn contains(&self, name: &str) -> bool {
+        self.entries.contains_key(name)
+    }
+
+    /// The stored dtype of a tensor, or an error naming it when missing or unsupported.
+    pub fn dtype(&self, name: &str) -> Result<StoredDtype> {
+        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        stored_dtype(name, e.dtype)
+    }
+
+    /// The stored dtype most tensors use (for reporting).
+    pub fn dominant_dtype(&self) -> Option<StoredDtype> {
+        let mut counts = [0usize; 3];
+        for e in self.entries.values() {
+            match e.dtype {
+                Dtype::F32 => counts[0] += e.end - e.start,
+                Dtype::F16 => counts[1] += e.end - e.start,
+                Dtype::BF16 => counts[2] += e.end - e.start,
+                _ => {}
+            }
+        }
+        let (i, &n) = counts.iter().enumerate().max_by_key(|(_, n)| **n)?;
+        (n > 0).then(|| [StoredDtype::F32, StoredDtype::F16, StoredDtype::Bf16][i])
+    }
+
+    /// Reads tensor `name`, checking that its shape is exactly `shape`.
+    pub fn tensor(&self, name: &str, shape: &[usize]) -> Result<Tensor> {
+        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        if e.shape != shape {
+            return Err(bad_file!(
+                "tensor `{name}` has shape {:?}, expected {:?}",
+                e.shape,
+                shape
+            ));
+        }
+        self.read(name, e)
+    }
+
+    /// Reads tensor `name` whatever its shape (the caller checks what it needs).
+    pub fn tensor_any_shape(&self, name: &str) -> Result<Tensor> {
+        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        self.read(name, e)
+    }
+
+    /// The stored shape of a tensor.
+    pub fn shape(&self, name: &str) -> Result<&[usize]> {
+        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        Ok(&e.shape)
+    }
+
+    fn read(&self, name: &str, e: &Entry) -> Result<Tensor> {
+        let bytes = &self.backing.bytes()[e.start..e.end];
+        let shape = e.shape.clone();
+        let data = match stored_dtype(name, e.dtype)? {
+            StoredDtype::F32 => {
+                let aligned = (bytes.as_ptr() as usize) % 4 == 0;
+                if aligned && cfg!(target_endian = "little") {
+                    TensorData::Borrowed {
+                        backing: Arc::clone(&self.backing),
+                        offset: e.start,
+                        len: bytes.len() / 4,
+                    }
+                } else {
+                    TensorData::Owned(
+                        bytes
+                            .chunks_exact(4)
+                            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                            .collect(),
+                    )
+                }
+            }
+            StoredDtype::F16 => TensorData::Owned(
+                bytes
+                    .chunks_exact(2)
+                    .map(|b| f16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32())
+                    .collect(),
+            ),
+            StoredDtype::Bf16 => TensorData::Owned(
+                bytes
+                    .chunks_exact(2)
+                    .map(|b| bf16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32())
+                    .collect(),
+            ),
+        };
+        Ok(Tensor { data, shape })
+    }
+}
+
+fn stored_dtype(name: &str, d: Dtype) -> Result<StoredDtype> {
+    match d {
+        Dtype::F32 => Ok(StoredDtype::F32),
+        Dtype::F16 => Ok(StoredDtype::F16),
+        Dtype::BF16 => Ok(StoredDtype::Bf16),
+        other => Err(bad_file!(
+            "tensor `{name}` has unsupported dtype {other:?} (supported: F32, F16, BF16)"
+        )),
+    }
+}
+
+/// Parses and validates the safetensors header, turning the crate's terse errors into messages
+/// that say what is wrong with the file.
+fn parse_header(bytes: &[u8]) -> Result<(usize, Metadata)> {
+    if bytes.len() < 8 {
+        return Err(bad_file!(
+            "file is {} bytes long, too short for a safetensors header (truncated or not a model file)",
+            bytes.len()
+        ));
+    }
+    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes"));
+    if n > (bytes.len() as u64).saturating_sub(8) {
+        return Err(bad_file!(
+            "header length {n} exceeds the file size {} (truncated or not a safetensors file)",
+            bytes.len()
+        ));
+    }
+    let header = &bytes[8..8 + n as usize];
+    if header.first() != Some(&b'{') {
+        return Err(bad_file!("header does not start with '{{' (not a safetensors file)"));
+    }
+    if std::str::from_utf8(header).is_err() {
+        return Err(bad_file!("header is not valid UTF-8"));
+    }
+    SafeTensors::read_metadata(bytes).map_err(|e| match e {
+        SafeTensorError::InvalidHeaderDeserialization | SafeTensorError::JsonError(_) => {
+            match serde_json::from_slice::<serde_json::Value>(header) {
+                Err(j) => bad_file!("header is not valid JSON: {j}"),
+                Ok(_) => bad_file!("header JSON does not describe safetensors tensors"),
+            }
+        }
+        SafeTensorError::MetadataIncompleteBuffer => bad_file!(
+            "tensor data does not match the file size (truncated or padded file)"
+        ),
+        SafeTensorError::InvalidOffset(t) => bad_file!("tensor `{t}` has invalid data offsets"),
+        SafeTensorError::TensorInvalidInfo => {
+            bad_file!("a tensor's byte size does not match its dtype and shape")
+        }
+        SafeTensorError::HeaderTooLarge => bad_file!("header is too large"),
+        other => bad_file!("invalid safetensors header: {other:?}"),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use safetensors::tensor::TensorView;
+
+    fn write(tensors: &[(&str, Dtype, Vec<usize>, Vec<u8>)], meta: Option<HashMap<String, String>>) -> Vec<u8> {
+        let views: Vec<(String, TensorView)> = tensors
+            .iter()
+            .map(|(n, d, s, b)| (n.to_string(), TensorView::new(*d, s.clone(), b).unwrap()))
+            .collect();
+        safetensors::serialize(views, &meta).unwrap()
+    }
+
+    fn f32_bytes(v: &[f32]) -> Vec<u8> {
+        v.iter().flat_map(|x| x.to_le_bytes()).collect()
+    }
+
+    #[test]
+    fn reads_f32_in_place_and_widens_half_types() {
+        let vals = [1.5f32, -2.0, 0.25, 3.0];
+        let h: Vec<u8> = vals.iter().flat_map(|x| f16::from_f32(*x).to_bits().to_le_bytes()).collect();
+        let b: Vec<u8> = vals.iter().flat_map(|x| bf16::from_f32(*x).to_bits().to_le_bytes()).collect();
+        let bytes = write(
+            &[
+                ("a", Dtype::F32, vec![2, 2], f32_bytes(&vals)),
+                ("h", Dtype::F16, vec![4], h),
+                ("b", Dtype::BF16, vec![4], b),
+            ],
+            None,
+        );
+        let f = ModelFile::from_bytes(&bytes).unwrap();
+        let a = f.tensor("a", &[2, 2]).unwrap();
+        assert!(a.is_mapped());
+        assert_eq!(a.data(), &vals);
+        assert_eq!(f.tensor("h", &[4]).unwrap().data(), &vals);
+        assert_eq!(f.tensor("b", &[4]).unwrap().data(), &vals);
+        assert_eq!(f.dtype("h").unwrap(), StoredDtype::F16);
+    }
+
+    #[test]
+    fn names_the_bad_tensor() {
+        let bytes = write(
+            &[
+                ("w", Dtype::F32, vec![2], f32_bytes(&[1.0, 2.0])),
+                ("i", Dtype::I64, vec![1], vec![0; 8]),
+            ],
+            None,
+        );
+        let f = ModelFile::from_bytes(&bytes).unwrap();
+        let e = f.tensor("w", &[3]).unwrap_err().to_string();
+        assert_eq!(e, "bad model file: tensor `w` has shape [2], expected [3]");
+        let e = f.tensor("x", &[3]).unwrap_err().to_string();
+        assert_eq!(e, "bad model file: tensor `x` is missing");
+        let e = f.tensor("i", &[1]).unwrap_err().to_string();
+        assert!(e.contains("tensor `i` has unsupported dtype I64"), "{e}");
+    }
+
+    #[test]
+    fn rejects_broken_headers() {
+        let good = write(&[("w", Dtype::F32, vec![2], f32_bytes(&[1.0, 2.0]))], None);
+        let msg = |b: &[u8]| ModelFile::from_bytes(b).err().expect("must fail").to_string();
+        assert!(msg(&good[..5]).contains("too short"));
+        assert!(msg(&good[..good.len() - 1]).contains("truncated"));
+        let mut huge = good.clone();
+        huge[..8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        assert!(msg(&huge).contains("exceeds the file size"));
+        let mut not_json = good.clone();
+        not_json[9] = b'#';
+        assert!(msg(&not_json).contains("not valid JSON"), "{}", msg(&not_json));
+        let mut not_st = good.clone();
+        not_st[8] = b'[';
+        assert!(msg(&not_st).contains("does not start"));
+        assert!(msg(b"hello world, this is text").contains("exceeds the file size"));
+    }
+}

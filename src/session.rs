@@ -1,1 +1,314 @@
-//! session
+//! One generation's state: prompt conditioning, sampler, current sample and clean-motion
+//! estimate, noise source and thread pool. A session is cheap next to its [`Model`], which it
+//! shares; one thread uses a session at a time.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use crate::diffusion::{self, DiffusionSampler, SamplerKind};
+use crate::error::{invalid_arg, Error, Result};
+use crate::models::{Condition, Model, Workspace};
+use crate::rng::{GaussianRng, NoiseSource};
+
+/// Which reverse process a session runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sampler {
+    /// Ancestral DDPM with the model's variance type.
+    Ddpm,
+    /// DDIM with the session's `eta`.
+    Ddim,
+}
+
+impl std::str::FromStr for Sampler {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Sampler> {
+        match s {
+            "ddpm" => Ok(Sampler::Ddpm),
+            "ddim" => Ok(Sampler::Ddim),
+            _ => Err(invalid_arg!("unknown sampler `{s}` (expected ddpm or ddim)")),
+        }
+    }
+}
+
+/// Settings of one generation. `None` means "the model file's default".
+#[derive(Clone, Debug, Default)]
+pub struct SessionParams {
+    pub frames: Option<usize>,
+    pub steps: Option<usize>,
+    pub sampler: Option<Sampler>,
+    pub eta: Option<f32>,
+    pub guidance: Option<f32>,
+    pub seed: u64,
+    /// Worker threads for this session's kernels; 0 = one per core.
+    pub threads: usize,
+}
+
+/// One generation over a shared [`Model`].
+pub struct Session {
+    model: Arc<Model>,
+    frames: usize,
+    guidance: f32,
+    seed: u64,
+    sampler: DiffusionSampler,
+    cond: Option<Condition>,
+    pool: Arc<rayon::ThreadPool>,
+    noise: Box<dyn NoiseSource>,
+    initial_noise: Option<Vec<f32>>,
+    /// Steps not yet taken; the next step runs at spaced index `remaining - 1`.
+    remaining: usize,
+    started: bool,
+    stepped: bool,
+    x: Vec<f32>,
+    x0: Vec<f32>,
+    bufs: StepBuffers,
+    cancel: Arc<AtomicBool>,
+}
+
+/// Per-step scratch, sized once per session.
+#[derive(Default)]
+struct StepBuffers {
+    batch_x: Vec<f32>,
+    out: Vec<f32>,
+    pred: Vec<f32>,
+    pred_uncond: Vec<f32>,
+    var: Vec<f32>,
+    noise: Vec<f32>,
+    x_prev: Vec<f32>,
+    ws: Workspace,
+}
+
+impl Session {
+    /// Starts a session; validates the parameters against the model.
+    pub fn new(model: Arc<Model>, params: &SessionParams) -> Result<Session> {
+        let cfg = model.config();
+        let d = &cfg.defaults;
+        let frames = params.frames.unwrap_or(d.frames.min(model.max_frames()));
+        if frames == 0 || frames > model.max_frames() {
+            return Err(invalid_arg!("frames {frames} outside 1..={}", model.max_frames()));
+        }
+        let guidance = params.guidance.unwrap_or(d.guidance);
+        if !guidance.is_finite() {
+            return Err(invalid_arg!("guidance must be finite"));
+        }
+        let sampler = build_sampler(&model, params)?;
+        let threads = if params.threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            params.threads
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("flame-worker-{i}"))
+            .build()
+            .map_err(|e| invalid_arg!("cannot start {threads} threads: {e}"))?;
+        let pool = Arc::new(pool);
+        let n = sampler.num_steps();
+        let len = frames * model.motion_dim();
+        Ok(Session {
+            model,
+            frames,
+            guidance,
+            seed: params.seed,
+            sampler,
+            cond: None,
+            pool,
+            noise: Box::new(GaussianRng::new(params.seed)),
+            initial_noise: None,
+            remaining: n,
+            started: false,
+            stepped: false,
+            x: vec![0.0; len],
+            x0: vec![0.0; len],
+            bufs: StepBuffers::default(),
+            cancel: Arc::new(AtomicBool::new(false)),
+        })
+    }
+
+    pub fn model(&self) -> &Arc<Model> {
+        &self.model
+    }
+
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Total sampler steps of this generation.
+    pub fn num_steps(&self) -> usize {
+        self.sampler.num_steps()
+    }
+
+    pub fn steps_left(&self) -> usize {
+        self.remaining
+    }
+
+    /// Encodes and sets the prompt. Allowed between steps: it takes effect at the next step.
+    pub fn set_prompt(&mut self, prompt: &str) -> Result<()> {
+        let model = Arc::clone(&self.model);
+        let cond = self.pool.install(|| model.encode_prompt(prompt))?;
+        self.cond = Some(cond);
+        Ok(())
+    }
+
+    /// Sets x_T explicitly (`[frames, motion_dim]`); only before the first step.
+    pub fn set_initial_noise(&mut self, x_t: &[f32]) -> Result<()> {
+        if self.started {
+            return Err(Error::WrongState("initial noise can only be set before the first step (reset first)".into()));
+        }
+        if x_t.len() != self.x.len() {
+            return Err(invalid_arg!(
+                "initial noise has {} values, expected {} (frames {} × {})",
+                x_t.len(),
+                self.x.len(),
+                self.frames,
+                self.model.motion_dim()
+            ));
+        }
+        if x_t.iter().any(|v| !v.is_finite()) {
+            return Err(invalid_arg!("initial noise contains NaN or infinity"));
+        }
+        self.initial_noise = Some(x_t.to_vec());
+        Ok(())
+    }
+
+    /// Replaces where per-step (and, unless set explicitly, initial) noise comes from.
+    pub fn set_noise_source(&mut self, source: Box<dyn NoiseSource>) {
+        self.noise = source;
+    }
+
+    /// Back to before the first step: same prompt, same settings, the seeded generator restarted.
+    pub fn reset(&mut self) {
+        self.remaining = self.sampler.num_steps();
+        self.started = false;
+        self.stepped = false;
+        self.noise = Box::new(GaussianRng::new(self.seed));
+        self.cancel.store(false, Ordering::SeqCst);
+    }
+
+    /// A flag another thread may set to abandon the current or next step.
+    pub fn cancel_flag(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.cancel)
+    }
+
+    /// The current sample x_t (x_T before the first step once started; the result at the end).
+    pub fn sample(&self) -> Option<&[f32]> {
+        self.started.then_some(&self.x[..])
+    }
+
+    /// The model's latest estimate of the clean motion x0 (after at least one step).
+    pub fn x0_estimate(&self) -> Option<&[f32]> {
+        self.stepped.then_some(&self.x0[..])
+    }
+
+    /// Advances one sampler step; returns the number of steps left.
+    pub fn step(&mut self) -> Result<usize> {
+        if self.cond.is_none() {
+            return Err(Error::WrongState("set a prompt before stepping".into()));
+        }
+        if self.remaining == 0 {
+            return Err(Error::WrongState("the generation is finished; reset to start again".into()));
+        }
+        if self.cancel.swap(false, Ordering::SeqCst) {
+            return Err(Error::Cancelled);
+        }
+        let pool = Arc::clone(&self.pool);
+        pool.install(|| self.step_inner())
+    }
+
+    /// Runs every remaining step and returns the final sample.
+    pub fn run(&mut self) -> Result<&[f32]> {
+        while self.remaining > 0 {
+            self.step()?;
+        }
+        Ok(&self.x)
+    }
+
+    fn step_inner(&mut self) -> Result<usize> {
+        let model = Arc::clone(&self.model);
+        let d = model.motion_dim();
+        let od = model.output_dim();
+        let len = self.frames * d;
+        if !self.started {
+            match &self.initial_noise {
+                Some(x) => self.x.copy_from_slice(x),
+                None => self.noise.fill(&mut self.x),
+            }
+            self.started = true;
+        }
+        let guided = self.guidance != 1.0;
+        let uncond = if guided { Some(model.uncond()?) } else { None };
+        let cond = self.cond.as_ref().expect("checked in step");
+        let batch = if guided { 2 } else { 1 };
+        let t = self.remaining - 1;
+        let b = &mut self.bufs;
+
+        b.batch_x.clear();
+        for _ in 0..batch {
+            b.batch_x.extend_from_slice(&self.x);
+        }
+        b.out.resize(batch * self.frames * od, 0.0);
+        let conds: Vec<&Condition> = std::iter::once(cond).chain(uncond).collect();
+        model.forward(&b.batch_x, self.frames, self.sampler.model_timestep(t), &conds, &mut b.out, &mut b.ws)?;
+        if self.cancel.swap(false, Ordering::SeqCst) {
+            return Err(Error::Cancelled);
+        }
+
+        // Split the per-frame output into the prediction and (if present) the variance value.
+        split_channels(&b.out[..self.frames * od], d, od, &mut b.pred, &mut b.var);
+        if guided {
+            let mut unused = Vec::new();
+            split_channels(&b.out[self.frames * od..], d, od, &mut b.pred_uncond, &mut unused);
+            diffusion::guide(&mut b.pred, &b.pred_uncond, self.guidance);
+        }
+        let noise = if self.sampler.needs_noise(t) {
+            b.noise.resize(len, 0.0);
+            self.noise.fill(&mut b.noise);
+            Some(&b.noise[..])
+        } else {
+            None
+        };
+        b.x_prev.resize(len, 0.0);
+        let var = (od > d).then_some(&b.var[..]);
+        self.sampler.step(t, &self.x, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
+        std::mem::swap(&mut self.x, &mut b.x_prev);
+        self.remaining -= 1;
+        self.stepped = true;
+        Ok(self.remaining)
+    }
+}
+
+/// Builds the respaced sampler the parameters ask for.
+fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampler> {
+    let cfg = model.config();
+    let dc = &cfg.diffusion;
+    let steps = params.steps.unwrap_or(cfg.defaults.steps);
+    if steps == 0 || steps > dc.num_timesteps {
+        return Err(invalid_arg!("steps {steps} outside 1..={}", dc.num_timesteps));
+    }
+    let kind = match params.sampler.map_or_else(|| cfg.defaults.sampler.parse(), Ok)? {
+        Sampler::Ddpm => SamplerKind::Ddpm,
+        Sampler::Ddim => {
+            let eta = params.eta.unwrap_or(cfg.defaults.eta);
+            if !(eta.is_finite() && eta >= 0.0) {
+                return Err(invalid_arg!("eta must be a finite value >= 0"));
+            }
+            SamplerKind::Ddim { eta }
+        }
+    };
+    let bad = |what: &str, v: &str| crate::error::bad_file!("config diffusion.{what} `{v}` is not supported");
+    let schedule = dc.schedule.parse().map_err(|_| bad("schedule", &dc.schedule))?;
+    let param = dc.parameterization.parse().map_err(|_| bad("parameterization", &dc.parameterization))?;
+    let variance = dc.variance.parse().map_err(|_| bad("variance", &dc.variance))?;
+    let betas = diffusion::betas(schedule, dc.num_timesteps);
+    let kept = diffusion::space_timesteps(dc.num_timesteps, &[steps])?;
+    DiffusionSampler::new(&betas, &kept, kind, param, variance, dc.clip_denoised)
+}
+
+/// Splits rows of `od` channels into the first `d` (prediction) and the rest (variance value).
+fn split_channels(out: &[f32], d: usize, od: usize, pred: &mut Vec<f32>, var: &mut Vec<f32>) {
+    pred.clear();
+    var.clear();
+    for row in out.chunks_exact(od) {
+        pred.extend_from_slice(&row[..d]);
+        var.extend_from_slice(&row[d..]);
+    }
+}

@@ -10,6 +10,8 @@ mod attention;
 mod embedding;
 mod gemm;
 mod norm;
+#[cfg(test)]
+mod testutil;
 
 pub use activation::{gelu_erf, quick_gelu, relu, silu, softmax_rows, tanh};
 pub use attention::multi_head_attention;

@@ -1,0 +1,238 @@
+//! Timestep respacing: which of the T training steps a shorter sampling run keeps
+//! (guided-diffusion `respace.py`, REFERENCE 1.9). The respaced schedule itself is built by
+//! [`super::DiffusionSampler::new`] via [`respaced_betas`].
+
+use crate::error::{invalid_arg, Result};
+
+/// The section rule: split `0..num_timesteps` into `sections.len()` nearly equal parts (the first
+/// `T % n` parts one step longer) and take `sections[i]` evenly spread steps from part `i`,
+/// rounding the running float position half-to-even as Python's `round` does. Sorted ascending.
+///
+/// Errors on T = 0, no sections, a zero count, or a section asked for more steps than it has.
+pub fn space_timesteps(num_timesteps: usize, sections: &[usize]) -> Result<Vec<usize>> {
+    if num_timesteps == 0 {
+        return Err(invalid_arg!("space_timesteps: num_timesteps is 0"));
+    }
+    if sections.is_empty() {
+        return Err(invalid_arg!("space_timesteps: no section counts"));
+    }
+    let size_per = num_timesteps / sections.len();
+    let extra = num_timesteps % sections.len();
+    let mut start = 0usize;
+    let mut steps = Vec::with_capacity(sections.iter().sum());
+    for (i, &count) in sections.iter().enumerate() {
+        let size = size_per + usize::from(i < extra);
+        if count == 0 {
+            return Err(invalid_arg!(
+                "space_timesteps: section {i} asks for 0 steps"
+            ));
+        }
+        if size < count {
+            return Err(invalid_arg!(
+                "space_timesteps: cannot take {count} steps from section {i} of {size} steps"
+            ));
+        }
+        let stride = if count <= 1 {
+            1.0
+        } else {
+            (size - 1) as f64 / (count - 1) as f64
+        };
+        // Accumulate as a Python float does; the rounding of the running sum is part of the rule.
+        let mut cur = 0.0f64;
+        for _ in 0..count {
+            steps.push(start + cur.round_ties_even() as usize);
+            cur += stride;
+        }
+        start += size;
+    }
+    steps.sort_unstable();
+    steps.dedup();
+    Ok(steps)
+}
+
+/// The "ddimN" rule: `{0, k, 2k, …}` for the smallest stride k in 1..T whose `range(0, T, k)` has
+/// exactly `n` elements (T = 1000: ddim50 → k = 20). Errors when no such stride exists.
+pub fn space_timesteps_ddim_stride(num_timesteps: usize, n: usize) -> Result<Vec<usize>> {
+    (1..num_timesteps)
+        .find(|&k| num_timesteps.div_ceil(k) == n)
+        .map(|k| (0..num_timesteps).step_by(k).collect())
+        .ok_or_else(|| {
+            invalid_arg!(
+                "cannot create exactly {n} steps with an integer stride over {num_timesteps}"
+            )
+        })
+}
+
+/// Parses a guided-diffusion `timestep_respacing` string: `""` keeps all steps, `"ddimN"` uses
+/// the stride rule, otherwise a comma list of section counts (`"250"`, `"10,15,20"`).
+pub fn parse_timestep_respacing(num_timesteps: usize, spec: &str) -> Result<Vec<usize>> {
+    let spec = spec.trim();
+    if spec.is_empty() {
+        return space_timesteps(num_timesteps, &[num_timesteps]);
+    }
+    if let Some(n) = spec.strip_prefix("ddim") {
+        let n: usize = n
+            .parse()
+            .map_err(|_| invalid_arg!("timestep respacing {spec:?}: bad ddim count"))?;
+        return space_timesteps_ddim_stride(num_timesteps, n);
+    }
+    let sections = spec
+        .split(',')
+        .map(|p| p.trim().parse::<usize>())
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|_| {
+            invalid_arg!(
+                "timestep respacing {spec:?}: expected \"ddimN\" or comma-separated counts"
+            )
+        })?;
+    space_timesteps(num_timesteps, &sections)
+}
+
+/// Betas of the respaced process: walking the original ᾱ in increasing t, each kept step gets
+/// β = 1 − ᾱ_t/ᾱ_last (ᾱ_last starting at 1), so the respaced ᾱ equal the original ones at the
+/// kept steps. Returns `(betas, timestep_map)`; `use_timesteps` may be unsorted or repeat values
+/// (it is a set in the reference), but every entry must be < T.
+pub fn respaced_betas(
+    base_alphas_cumprod: &[f64],
+    use_timesteps: &[usize],
+) -> Result<(Vec<f64>, Vec<usize>)> {
+    let t = base_alphas_cumprod.len();
+    if use_timesteps.is_empty() {
+        return Err(invalid_arg!("use_timesteps: no timesteps kept"));
+    }
+    if let Some(bad) = use_timesteps.iter().find(|&&s| s >= t) {
+        return Err(invalid_arg!(
+            "use_timesteps: step {bad} is out of range for T = {t}"
+        ));
+    }
+    let mut keep = vec![false; t];
+    for &s in use_timesteps {
+        keep[s] = true;
+    }
+    let mut last = 1.0f64;
+    let mut betas = Vec::new();
+    let mut map = Vec::new();
+    for (i, &ac) in base_alphas_cumprod.iter().enumerate() {
+        if keep[i] {
+            betas.push(1.0 - ac / last);
+            last = ac;
+            map.push(i);
+        }
+    }
+    Ok((betas, map))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn single_section_of_ten_over_1000() {
+        // stride 999/9 = 111 exactly.
+        let s = space_timesteps(1000, &[10]).unwrap();
+        assert_eq!(s, [0, 111, 222, 333, 444, 555, 666, 777, 888, 999]);
+    }
+
+    #[test]
+    fn all_steps_and_single_step() {
+        assert_eq!(
+            space_timesteps(1000, &[1000]).unwrap(),
+            (0..1000).collect::<Vec<_>>()
+        );
+        assert_eq!(space_timesteps(1000, &[1]).unwrap(), [0]);
+    }
+
+    #[test]
+    fn three_sections_worked_by_hand() {
+        // T = 300, sections [10, 15, 20]: three sections of 100 steps starting at 0, 100, 200.
+        // Section 0: stride 99/9 = 11 → 0, 11, …, 99.
+        // Section 1: stride 99/14 = 7.0714…; running sums round to 0 7 14 21 28 35 42, then
+        //   7·stride = 49.5 exactly in real arithmetic, but the accumulated float is
+        //   49.49999999999999 → 49 (this is why the sum must be accumulated, not multiplied),
+        //   then 57 64 71 78 85 92 99.
+        // Section 2: stride 99/19 = 5.2105…; sums 0 5.21 10.42 15.63 20.84 26.05 31.26 36.47
+        //   41.68 46.89 52.11 57.32 62.53 67.74 72.95 78.16 83.37 88.58 93.79 99.0 round to
+        //   0 5 10 16 21 26 31 36 42 47 52 57 63 68 73 78 83 89 94 99.
+        let s = space_timesteps(300, &[10, 15, 20]).unwrap();
+        let mut want: Vec<usize> = (0..10).map(|k| 11 * k).collect();
+        want.extend(
+            [0, 7, 14, 21, 28, 35, 42, 49, 57, 64, 71, 78, 85, 92, 99]
+                .iter()
+                .map(|x| 100 + x),
+        );
+        want.extend(
+            [
+                0, 5, 10, 16, 21, 26, 31, 36, 42, 47, 52, 57, 63, 68, 73, 78, 83, 89, 94, 99,
+            ]
+            .iter()
+            .map(|x| 200 + x),
+        );
+        assert_eq!(s, want);
+    }
+
+    #[test]
+    fn uneven_sections_give_first_sections_the_extra_steps() {
+        // T = 10, [3, 2, 1]: sizes 4, 3, 3 at 0, 4, 7. Strides 3/2 = 1.5 → 0, 1.5→2, 3;
+        // 2/1 = 2 → 4, 6; single step → 7.
+        assert_eq!(space_timesteps(10, &[3, 2, 1]).unwrap(), [0, 2, 3, 4, 6, 7]);
+    }
+
+    #[test]
+    fn half_rounds_to_even() {
+        // T = 5, [3]: stride 4/2 = 2 → 0, 2, 4 (no tie); T = 4, [3]: stride 1.5 → 0, 1.5 → 2, 3.
+        assert_eq!(space_timesteps(4, &[3]).unwrap(), [0, 2, 3]);
+        // T = 6, [3]: stride 2.5 → 0, 2.5 → 2 (even), 5.
+        assert_eq!(space_timesteps(6, &[3]).unwrap(), [0, 2, 5]);
+    }
+
+    #[test]
+    fn section_errors() {
+        assert!(space_timesteps(10, &[11]).is_err());
+        assert!(space_timesteps(10, &[3, 6]).is_err()); // second section has 5 steps
+        assert!(space_timesteps(10, &[0]).is_err());
+        assert!(space_timesteps(10, &[]).is_err());
+        assert!(space_timesteps(0, &[1]).is_err());
+    }
+
+    #[test]
+    fn ddim_stride_rule() {
+        let s50 = space_timesteps_ddim_stride(1000, 50).unwrap();
+        assert_eq!(s50, (0..1000).step_by(20).collect::<Vec<_>>());
+        let s100 = space_timesteps_ddim_stride(1000, 100).unwrap();
+        assert_eq!(s100, (0..1000).step_by(10).collect::<Vec<_>>());
+        // ddim1000 → stride 1 (all steps).
+        assert_eq!(space_timesteps_ddim_stride(1000, 1000).unwrap().len(), 1000);
+        // 1000/k never rounds up to exactly 999 for any integer k.
+        assert!(space_timesteps_ddim_stride(1000, 999).is_err());
+        assert!(space_timesteps_ddim_stride(1000, 1).is_err());
+    }
+
+    #[test]
+    fn parse_spec_strings() {
+        assert_eq!(parse_timestep_respacing(50, "").unwrap().len(), 50);
+        assert_eq!(
+            parse_timestep_respacing(1000, "ddim50").unwrap(),
+            space_timesteps_ddim_stride(1000, 50).unwrap()
+        );
+        assert_eq!(
+            parse_timestep_respacing(300, "10, 15,20").unwrap(),
+            space_timesteps(300, &[10, 15, 20]).unwrap()
+        );
+        assert!(parse_timestep_respacing(1000, "ddimx").is_err());
+        assert!(parse_timestep_respacing(1000, "fast").is_err());
+    }
+
+    #[test]
+    fn respaced_betas_reproduce_kept_alpha_bars() {
+        let ac = [0.9, 0.72, 0.504, 0.3];
+        let (b, map) = respaced_betas(&ac, &[3, 0, 2, 2]).unwrap();
+        assert_eq!(map, [0, 2, 3]);
+        // β = 1 − 0.9/1, 1 − 0.504/0.9, 1 − 0.3/0.504.
+        let want = [0.1, 1.0 - 0.504 / 0.9, 1.0 - 0.3 / 0.504];
+        for (g, w) in b.iter().zip(want) {
+            assert!((g - w).abs() < 1e-15);
+        }
+        assert!(respaced_betas(&ac, &[4]).is_err());
+        assert!(respaced_betas(&ac, &[]).is_err());
+    }
+}

@@ -1,0 +1,346 @@
+//! FLAME (Kim et al., AAAI 2023): a transformer decoder that denoises a motion conditioned on a
+//! language model's token states (REFERENCE.md section 1.3).
+//!
+//! The target sequence is `[ML, TS, CLS, motion frames]` plus sinusoidal positions; the
+//! cross-attention memory is `[ML, TS, CLS, text tokens]` without positions. `ML` is the
+//! motion-length embedding, `TS` the raw sinusoidal timestep, `CLS` the projected pooler output.
+//! The decoder is post-LN with ReLU feed-forward and no final norm; the output splits into the
+//! predicted noise ε and the variance interpolation value v.
+
+use crate::checkpoint::{ModelFile, Tensor};
+use crate::config::FlameConfig;
+use crate::error::{invalid_arg, Result};
+use crate::kernels;
+use crate::text::TextOutput;
+
+/// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
+const AUX_TOKENS: usize = 3;
+
+/// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
+struct Linear {
+    weight: Tensor,
+    bias: Tensor,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Linear {
+    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
+        Ok(Linear {
+            weight: file.tensor(&format!("{name}.weight"), &[n_out, n_in])?,
+            bias: file.tensor(&format!("{name}.bias"), &[n_out])?,
+            n_in,
+            n_out,
+        })
+    }
+
+    /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
+    fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
+        kernels::linear(x, self.weight.data(), Some(self.bias.data()), y, rows, self.n_in, self.n_out);
+    }
+}
+
+/// `nn.MultiheadAttention` with packed `in_proj_weight` `[3E, E]` (rows q, k, v).
+struct Attention {
+    in_proj_weight: Tensor,
+    in_proj_bias: Tensor,
+    out_proj: Linear,
+}
+
+impl Attention {
+    fn load(file: &ModelFile, name: &str, e: usize) -> Result<Attention> {
+        Ok(Attention {
+            in_proj_weight: file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
+            in_proj_bias: file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
+            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e)?,
+        })
+    }
+}
+
+struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl LayerNorm {
+    fn load(file: &ModelFile, name: &str, e: usize) -> Result<LayerNorm> {
+        Ok(LayerNorm {
+            weight: file.tensor(&format!("{name}.weight"), &[e])?,
+            bias: file.tensor(&format!("{name}.bias"), &[e])?,
+        })
+    }
+}
+
+/// One `nn.TransformerDecoderLayer` (post-LN).
+struct DecoderLayer {
+    self_attn: Attention,
+    multihead_attn: Attention,
+    linear1: Linear,
+    linear2: Linear,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+    norm3: LayerNorm,
+}
+
+/// The conditioning FLAME derives from one text, computed once per prompt.
+#[derive(Clone, Debug)]
+pub struct FlameCondition {
+    /// `text_pooler_proj(pooler_output)`: the CLS token, `[C]`.
+    cls_token: Vec<f32>,
+    /// `text_h_proj(last_hidden_state)`: `[text_len, C]`.
+    text_tokens: Vec<f32>,
+    text_len: usize,
+}
+
+/// Reusable buffers for one forward pass, so steps after the first do not allocate.
+#[derive(Default)]
+pub struct Workspace {
+    x: Vec<f32>,
+    memory: Vec<f32>,
+    qkv: Vec<f32>,
+    kv: Vec<f32>,
+    attn: Vec<f32>,
+    proj: Vec<f32>,
+    hidden: Vec<f32>,
+    frames_in: Vec<f32>,
+}
+
+fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}
+
+/// FLAME's `Text2MotionTransformer`, inference only.
+pub struct FlameDenoiser {
+    cfg: FlameConfig,
+    text_hidden: usize,
+    motion_length_emb: Tensor,
+    input_projection: Linear,
+    text_pooler_proj: Linear,
+    text_h_proj: Linear,
+    layers: Vec<DecoderLayer>,
+    last_projection: Linear,
+    /// Sinusoidal positions for every target position the model can see, `[max_len + 3, C]`.
+    positions: Vec<f32>,
+}
+
+impl FlameDenoiser {
+    /// Reads the denoiser's tensors (official FLAME names, no prefix), in module order so the
+    /// first bad tensor is the one reported.
+    pub fn load(file: &ModelFile, cfg: &FlameConfig, text_hidden: usize) -> Result<FlameDenoiser> {
+        let c = cfg.model_channels;
+        let d = cfg.motion_dim;
+        let motion_length_emb = file.tensor("motion_length_emb.weight", &[cfg.max_motion_length, c])?;
+        let input_projection = Linear::load(file, "input_projection", d, c)?;
+        let text_pooler_proj = Linear::load(file, "text_pooler_proj", text_hidden, c)?;
+        let text_h_proj = Linear::load(file, "text_h_proj", text_hidden, c)?;
+        let mut layers = Vec::with_capacity(cfg.num_layers);
+        for n in 0..cfg.num_layers {
+            let p = format!("tf_decoder.layers.{n}");
+            layers.push(DecoderLayer {
+                self_attn: Attention::load(file, &format!("{p}.self_attn"), c)?,
+                multihead_attn: Attention::load(file, &format!("{p}.multihead_attn"), c)?,
+                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.dim_feedforward)?,
+                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.dim_feedforward, c)?,
+                norm1: LayerNorm::load(file, &format!("{p}.norm1"), c)?,
+                norm2: LayerNorm::load(file, &format!("{p}.norm2"), c)?,
+                norm3: LayerNorm::load(file, &format!("{p}.norm3"), c)?,
+            });
+        }
+        let last_projection = Linear::load(file, "last_projection", c, 2 * d)?;
+        let rows = cfg.max_motion_length + AUX_TOKENS;
+        let mut positions = vec![0.0; rows * c];
+        for (p, row) in positions.chunks_exact_mut(c).enumerate() {
+            kernels::sinusoid_cos_first(p as f32, row);
+        }
+        Ok(FlameDenoiser {
+            cfg: cfg.clone(),
+            text_hidden,
+            motion_length_emb,
+            input_projection,
+            text_pooler_proj,
+            text_h_proj,
+            layers,
+            last_projection,
+            positions,
+        })
+    }
+
+    /// Feature channels per frame (147 for FLAME's SMPL format).
+    pub fn motion_dim(&self) -> usize {
+        self.cfg.motion_dim
+    }
+
+    /// Output channels per frame: ε then the variance value.
+    pub fn output_dim(&self) -> usize {
+        2 * self.cfg.motion_dim
+    }
+
+    /// The largest frame count the motion-length embedding covers.
+    pub fn max_frames(&self) -> usize {
+        self.cfg.max_motion_length - 1
+    }
+
+    /// Projects a text encoding into FLAME's conditioning (once per prompt, not per step).
+    pub fn condition(&self, text: &TextOutput) -> Result<FlameCondition> {
+        let c = self.cfg.model_channels;
+        if text.pooled.len() != self.text_hidden || text.hidden.len() != text.len * self.text_hidden {
+            return Err(invalid_arg!(
+                "text encoding has hidden size {}, the denoiser expects {}",
+                text.pooled.len(),
+                self.text_hidden
+            ));
+        }
+        let mut cls_token = vec![0.0; c];
+        self.text_pooler_proj.forward(&text.pooled, 1, &mut cls_token);
+        let mut text_tokens = vec![0.0; text.len * c];
+        self.text_h_proj.forward(&text.hidden, text.len, &mut text_tokens);
+        Ok(FlameCondition { cls_token, text_tokens, text_len: text.len })
+    }
+
+    /// One forward pass over a batch: row `b` denoises `x[b]` (`[frames, motion_dim]`) under
+    /// `conds[b]` at model timestep `t`, writing `[frames, 2·motion_dim]` into `out[b]`.
+    /// Every frame is valid (sampling never pads), so no key-padding mask is needed.
+    pub fn forward(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&FlameCondition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let c = self.cfg.model_channels;
+        let d = self.cfg.motion_dim;
+        let batch = conds.len();
+        if frames == 0 || frames > self.max_frames() {
+            return Err(invalid_arg!("frames {frames} outside 1..={}", self.max_frames()));
+        }
+        if x.len() != batch * frames * d || out.len() != batch * frames * 2 * d {
+            return Err(invalid_arg!("forward buffers do not match batch {batch} × {frames} frames"));
+        }
+        let seq = frames + AUX_TOKENS;
+        let mem_len = conds.first().map_or(0, |k| k.text_len) + AUX_TOKENS;
+        if conds.iter().any(|k| k.text_len + AUX_TOKENS != mem_len) {
+            return Err(invalid_arg!("all conditions in a batch must have the same text length"));
+        }
+
+        // Motion tokens for the whole batch in one GEMM.
+        let motion = sized(&mut ws.frames_in, batch * frames * c);
+        self.input_projection.forward(x, batch * frames, motion);
+
+        let ml = &self.motion_length_emb.data()[frames * c..(frames + 1) * c];
+        let mut ts = vec![0.0; c];
+        kernels::sinusoid_cos_first(t, &mut ts);
+
+        let h = sized(&mut ws.x, batch * seq * c);
+        let memory = sized(&mut ws.memory, batch * mem_len * c);
+        for (b, cond) in conds.iter().enumerate() {
+            let tgt = &mut h[b * seq * c..(b + 1) * seq * c];
+            tgt[..c].copy_from_slice(ml);
+            tgt[c..2 * c].copy_from_slice(&ts);
+            tgt[2 * c..3 * c].copy_from_slice(&cond.cls_token);
+            tgt[3 * c..].copy_from_slice(&motion[b * frames * c..(b + 1) * frames * c]);
+            for (v, p) in tgt.iter_mut().zip(&self.positions[..seq * c]) {
+                *v += p;
+            }
+            let mem = &mut memory[b * mem_len * c..(b + 1) * mem_len * c];
+            mem[..c].copy_from_slice(ml);
+            mem[c..2 * c].copy_from_slice(&ts);
+            mem[2 * c..3 * c].copy_from_slice(&cond.cls_token);
+            mem[3 * c..].copy_from_slice(&cond.text_tokens);
+        }
+
+        for layer in &self.layers {
+            self.decoder_layer(layer, batch, seq, mem_len, ws);
+        }
+
+        // Keep the motion positions and project to ε and v.
+        let h = &ws.x;
+        let motion_out = sized(&mut ws.frames_in, batch * frames * c);
+        for b in 0..batch {
+            let src = &h[(b * seq + AUX_TOKENS) * c..(b + 1) * seq * c];
+            motion_out[b * frames * c..(b + 1) * frames * c].copy_from_slice(src);
+        }
+        self.last_projection.forward(motion_out, batch * frames, out);
+        Ok(())
+    }
+
+    fn decoder_layer(&self, layer: &DecoderLayer, batch: usize, seq: usize, mem_len: usize, ws: &mut Workspace) {
+        let c = self.cfg.model_channels;
+        let heads = self.cfg.num_heads;
+        let hd = c / heads;
+        let eps = self.cfg.layer_norm_eps;
+        let rows = batch * seq;
+
+        // Self-attention: x ← norm1(x + SelfAttn(x)).
+        let qkv = sized(&mut ws.qkv, rows * 3 * c);
+        let sa = &layer.self_attn;
+        kernels::linear(&ws.x, sa.in_proj_weight.data(), Some(sa.in_proj_bias.data()), qkv, rows, c, 3 * c);
+        let attn = sized(&mut ws.attn, rows * c);
+        for b in 0..batch {
+            let q = &qkv[b * seq * 3 * c..];
+            kernels::multi_head_attention(
+                q,
+                3 * c,
+                &q[c..],
+                3 * c,
+                &q[2 * c..],
+                3 * c,
+                seq,
+                seq,
+                heads,
+                hd,
+                None,
+                false,
+                &mut attn[b * seq * c..(b + 1) * seq * c],
+            );
+        }
+        let proj = sized(&mut ws.proj, rows * c);
+        sa.out_proj.forward(attn, rows, proj);
+        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm1.weight.data(), layer.norm1.bias.data(), eps);
+
+        // Cross-attention to the memory: x ← norm2(x + CrossAttn(x, memory)).
+        let ca = &layer.multihead_attn;
+        let (w, bias) = (ca.in_proj_weight.data(), ca.in_proj_bias.data());
+        let q = sized(&mut ws.qkv, rows * c);
+        kernels::linear(&ws.x, &w[..c * c], Some(&bias[..c]), q, rows, c, c);
+        let kv = sized(&mut ws.kv, batch * mem_len * 2 * c);
+        kernels::linear(&ws.memory, &w[c * c..], Some(&bias[c..]), kv, batch * mem_len, c, 2 * c);
+        let attn = sized(&mut ws.attn, rows * c);
+        for b in 0..batch {
+            let kvb = &kv[b * mem_len * 2 * c..];
+            kernels::multi_head_attention(
+                &q[b * seq * c..],
+                c,
+                kvb,
+                2 * c,
+                &kvb[c..],
+                2 * c,
+                seq,
+                mem_len,
+                heads,
+                hd,
+                None,
+                false,
+                &mut attn[b * seq * c..(b + 1) * seq * c],
+            );
+        }
+        let proj = sized(&mut ws.proj, rows * c);
+        ca.out_proj.forward(attn, rows, proj);
+        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm2.weight.data(), layer.norm2.bias.data(), eps);
+
+        // Feed-forward: x ← norm3(x + linear2(act(linear1(x)))).
+        let f = self.cfg.dim_feedforward;
+        let hidden = sized(&mut ws.hidden, rows * f);
+        layer.linear1.forward(&ws.x, rows, hidden);
+        if self.cfg.activation == "gelu" {
+            kernels::gelu_erf(hidden);
+        } else {
+            kernels::relu(hidden);
+        }
+        let proj = sized(&mut ws.proj, rows * c);
+        layer.linear2.forward(hidden, rows, proj);
+        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm3.weight.data(), layer.norm3.bias.data(), eps);
+    }
+}

@@ -1,0 +1,374 @@
+//! The BERT-family text encoder (BERT, MiniLM, RoBERTa): embeddings, post-LN transformer
+//! layers and the tanh pooler, run on the crate's kernels (REFERENCE 6a, 6b, 1.7).
+//!
+//! BERT and RoBERTa differ here only in position ids; the tensor names are Hugging Face's,
+//! under a caller-given prefix. Sentence-transformers' mean pooling lives on [`TextOutput`].
+
+use crate::checkpoint::{ModelFile, Tensor};
+use crate::config::TextEncoderConfig;
+use crate::error::{bad_file, invalid_arg, Result};
+use crate::kernels::{add_layer_norm, embedding, gelu_erf, layer_norm, linear, multi_head_attention, tanh};
+
+use super::tokenizer::{TextTokenizer, Tokens};
+
+/// Which position-id rule the encoder follows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EncoderKind {
+    /// Positions 0..n−1.
+    Bert,
+    /// Positions counted over non-pad ids, offset by the pad id (see [`roberta_position_ids`]).
+    Roberta,
+}
+
+/// RoBERTa's position ids: with m = (id ≠ pad), pos = cumsum(m)·m + pad, so real tokens get
+/// pad+1, pad+2, … and pad tokens get `pad` (the position table's padding row).
+pub fn roberta_position_ids(ids: &[u32], pad: u32) -> Vec<u32> {
+    let mut count = 0u32;
+    ids.iter()
+        .map(|&id| {
+            if id == pad {
+                pad
+            } else {
+                count += 1;
+                count + pad
+            }
+        })
+        .collect()
+}
+
+/// Per-token hidden states of one text, with the pooler output and the mask they were run with.
+#[derive(Clone, Debug)]
+pub struct TextOutput {
+    /// Number of tokens (padding included).
+    pub len: usize,
+    /// `last_hidden_state`, `[len, hidden]` row-major.
+    pub hidden: Vec<f32>,
+    /// `tanh(dense(hidden[0]))`, `[hidden]` (what FLAME conditions on).
+    pub pooled: Vec<f32>,
+    /// The attention mask, `[len]`.
+    pub mask: Vec<u8>,
+}
+
+impl TextOutput {
+    pub fn hidden_size(&self) -> usize {
+        self.pooled.len()
+    }
+
+    /// Sentence-transformers' embedding: the mean of `hidden` over mask-1 tokens (divided by
+    /// max(count, 1e-9)), then divided by max(‖·‖₂, 1e-12) (REFERENCE 6b).
+    pub fn mean_pooled_normalized(&self) -> Vec<f32> {
+        let e = self.hidden_size();
+        let mut sum = vec![0f32; e];
+        let mut count = 0f32;
+        for (row, _) in self.hidden.chunks_exact(e).zip(&self.mask).filter(|(_, &m)| m != 0) {
+            sum.iter_mut().zip(row).for_each(|(s, &h)| *s += h);
+            count += 1.0;
+        }
+        let count = count.max(1e-9);
+        sum.iter_mut().for_each(|s| *s /= count);
+        let norm = sum.iter().map(|s| s * s).sum::<f32>().sqrt().max(1e-12);
+        sum.iter_mut().for_each(|s| *s /= norm);
+        sum
+    }
+}
+
+/// A Linear layer in PyTorch layout (`weight [out, in]`).
+struct Dense {
+    w: Tensor,
+    b: Tensor,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Dense {
+    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Dense> {
+        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
+        let b = file.tensor(&format!("{name}.bias"), &[n_out])?;
+        Ok(Dense { w, b, n_in, n_out })
+    }
+
+    /// `x [rows, n_in]` → `[rows, n_out]`.
+    fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
+        let mut y = vec![0f32; rows * self.n_out];
+        linear(x, self.w.data(), Some(self.b.data()), &mut y, rows, self.n_in, self.n_out);
+        y
+    }
+}
+
+struct Norm {
+    gamma: Tensor,
+    beta: Tensor,
+}
+
+impl Norm {
+    fn load(file: &ModelFile, name: &str, dim: usize) -> Result<Norm> {
+        let gamma = file.tensor(&format!("{name}.weight"), &[dim])?;
+        let beta = file.tensor(&format!("{name}.bias"), &[dim])?;
+        Ok(Norm { gamma, beta })
+    }
+}
+
+/// One post-LN encoder layer.
+struct Layer {
+    query: Dense,
+    key: Dense,
+    value: Dense,
+    attn_out: Dense,
+    attn_norm: Norm,
+    intermediate: Dense,
+    output: Dense,
+    out_norm: Norm,
+}
+
+/// Sizes shared by every layer.
+#[derive(Clone, Copy)]
+struct Dims {
+    hidden: usize,
+    heads: usize,
+    intermediate: usize,
+    eps: f32,
+}
+
+impl Layer {
+    fn load(file: &ModelFile, p: &str, d: Dims) -> Result<Layer> {
+        let (e, i) = (d.hidden, d.intermediate);
+        Ok(Layer {
+            query: Dense::load(file, &format!("{p}attention.self.query"), e, e)?,
+            key: Dense::load(file, &format!("{p}attention.self.key"), e, e)?,
+            value: Dense::load(file, &format!("{p}attention.self.value"), e, e)?,
+            attn_out: Dense::load(file, &format!("{p}attention.output.dense"), e, e)?,
+            attn_norm: Norm::load(file, &format!("{p}attention.output.LayerNorm"), e)?,
+            intermediate: Dense::load(file, &format!("{p}intermediate.dense"), e, i)?,
+            output: Dense::load(file, &format!("{p}output.dense"), i, e)?,
+            out_norm: Norm::load(file, &format!("{p}output.LayerNorm"), e)?,
+        })
+    }
+
+    /// a = LN(dense(attn(x)) + x); returns LN(W2·GELU(W1·a) + a).
+    fn forward(&self, x: &[f32], n: usize, key_padding: Option<&[bool]>, d: Dims) -> Vec<f32> {
+        let e = d.hidden;
+        let (q, k, v) = (self.query.apply(x, n), self.key.apply(x, n), self.value.apply(x, n));
+        let mut ctx = vec![0f32; n * e];
+        let head_dim = e / d.heads;
+        multi_head_attention(&q, e, &k, e, &v, e, n, n, d.heads, head_dim, key_padding, false, &mut ctx);
+        let mut a = self.attn_out.apply(&ctx, n);
+        add_layer_norm(&mut a, x, e, self.attn_norm.gamma.data(), self.attn_norm.beta.data(), d.eps);
+        let mut h = self.intermediate.apply(&a, n);
+        gelu_erf(&mut h);
+        let mut out = self.output.apply(&h, n);
+        add_layer_norm(&mut out, &a, e, self.out_norm.gamma.data(), self.out_norm.beta.data(), d.eps);
+        out
+    }
+}
+
+/// A loaded BERT or RoBERTa encoder with its tokenizer. Immutable after load, so one instance
+/// can serve many threads.
+pub struct TextEncoder {
+    kind: EncoderKind,
+    dims: Dims,
+    vocab_size: usize,
+    max_positions: usize,
+    pad_id: u32,
+    max_length: usize,
+    tokenizer: TextTokenizer,
+    word: Tensor,
+    position: Tensor,
+    token_type: Tensor,
+    emb_norm: Norm,
+    layers: Vec<Layer>,
+    pooler: Dense,
+}
+
+impl TextEncoder {
+    /// Loads the encoder whose tensors are named `{prefix}embeddings.…`, `{prefix}encoder.layer.N.…`
+    /// and `{prefix}pooler.dense.…` (prefix `"text."` in libflame files, `""` in a bare Hugging
+    /// Face BertModel/RobertaModel file). Tensors are requested embeddings → layers → pooler, so
+    /// a bad file's error names the first bad tensor.
+    pub fn load(file: &ModelFile, prefix: &str, cfg: &TextEncoderConfig, tokenizer_json: &str) -> Result<TextEncoder> {
+        let kind = check_config(cfg)?;
+        let dims = Dims {
+            hidden: cfg.hidden_size,
+            heads: cfg.num_heads,
+            intermediate: cfg.intermediate_size,
+            eps: cfg.layer_norm_eps,
+        };
+        let e = dims.hidden;
+        let p = prefix;
+        let word = file.tensor(&format!("{p}embeddings.word_embeddings.weight"), &[cfg.vocab_size, e])?;
+        let position =
+            file.tensor(&format!("{p}embeddings.position_embeddings.weight"), &[cfg.max_position_embeddings, e])?;
+        let token_type =
+            file.tensor(&format!("{p}embeddings.token_type_embeddings.weight"), &[cfg.type_vocab_size, e])?;
+        let emb_norm = Norm::load(file, &format!("{p}embeddings.LayerNorm"), e)?;
+        let layers = (0..cfg.num_layers)
+            .map(|i| Layer::load(file, &format!("{p}encoder.layer.{i}."), dims))
+            .collect::<Result<Vec<_>>>()?;
+        let pooler = Dense::load(file, &format!("{p}pooler.dense"), e, e)?;
+        let tokenizer = TextTokenizer::from_json(tokenizer_json, cfg.vocab_size, cfg.pad_token_id)?;
+        if cfg.max_length < tokenizer.num_special_tokens() + 1 {
+            return Err(bad_file!(
+                "text_encoder.max_length {} leaves no room for text besides the {} special tokens",
+                cfg.max_length,
+                tokenizer.num_special_tokens()
+            ));
+        }
+        Ok(TextEncoder {
+            kind,
+            dims,
+            vocab_size: cfg.vocab_size,
+            max_positions: cfg.max_position_embeddings,
+            pad_id: cfg.pad_token_id,
+            max_length: cfg.max_length,
+            tokenizer,
+            word,
+            position,
+            token_type,
+            emb_norm,
+            layers,
+            pooler,
+        })
+    }
+
+    pub fn kind(&self) -> EncoderKind {
+        self.kind
+    }
+
+    pub fn hidden_size(&self) -> usize {
+        self.dims.hidden
+    }
+
+    /// The configured prompt length (FLAME: 20), special tokens and padding included.
+    pub fn max_length(&self) -> usize {
+        self.max_length
+    }
+
+    /// The longest token sequence [`TextEncoder::encode_tokens`] accepts (the position table
+    /// minus RoBERTa's pad offset).
+    pub fn max_sequence_length(&self) -> usize {
+        match self.kind {
+            EncoderKind::Bert => self.max_positions,
+            EncoderKind::Roberta => self.max_positions - self.pad_id as usize - 1,
+        }
+    }
+
+    pub fn tokenizer(&self) -> &TextTokenizer {
+        &self.tokenizer
+    }
+
+    /// Tokenize (truncate to `max_length`; pad to `max_length` when `pad` is true).
+    pub fn tokenize(&self, text: &str, max_length: usize, pad: bool) -> Result<Tokens> {
+        self.tokenizer.encode(text, max_length, pad)
+    }
+
+    /// Per-token hidden states and pooler output for one text, FLAME semantics: padded to
+    /// `cfg.max_length`, padded keys masked out.
+    pub fn encode(&self, text: &str) -> Result<TextOutput> {
+        let tokens = self.tokenize(text, self.max_length, true)?;
+        self.encode_tokens(&tokens)
+    }
+
+    /// Runs the encoder on given tokens (any length up to [`TextEncoder::max_sequence_length`]).
+    /// Keys with mask 0 get zero attention weight; their own rows are still computed, as in
+    /// Hugging Face. A mask of all zeros gives zero attention output rather than HF's uniform
+    /// average.
+    pub fn encode_tokens(&self, tokens: &Tokens) -> Result<TextOutput> {
+        let n = tokens.ids.len();
+        self.check_tokens(tokens)?;
+        let e = self.dims.hidden;
+        let positions = match self.kind {
+            EncoderKind::Bert => (0..n as u32).collect(),
+            EncoderKind::Roberta => roberta_position_ids(&tokens.ids, self.pad_id),
+        };
+        let mut x = vec![0f32; n * e];
+        embedding(self.word.data(), e, &tokens.ids, &mut x);
+        let mut pos = vec![0f32; n * e];
+        embedding(self.position.data(), e, &positions, &mut pos);
+        let type0 = &self.token_type.data()[..e];
+        for (row, prow) in x.chunks_exact_mut(e).zip(pos.chunks_exact(e)) {
+            for ((v, &p), &t) in row.iter_mut().zip(prow).zip(type0) {
+                *v += p + t;
+            }
+        }
+        layer_norm(&mut x, e, self.emb_norm.gamma.data(), self.emb_norm.beta.data(), self.dims.eps);
+
+        let key_padding: Vec<bool> = tokens.mask.iter().map(|&m| m == 0).collect();
+        let key_padding = key_padding.iter().any(|&p| p).then_some(&key_padding[..]);
+        for layer in &self.layers {
+            x = layer.forward(&x, n, key_padding, self.dims);
+        }
+        let mut pooled = self.pooler.apply(&x[..e], 1);
+        tanh(&mut pooled);
+        Ok(TextOutput { len: n, hidden: x, pooled, mask: tokens.mask.clone() })
+    }
+
+    fn check_tokens(&self, tokens: &Tokens) -> Result<()> {
+        let n = tokens.ids.len();
+        if n == 0 {
+            return Err(invalid_arg!("tokens: empty sequence (at least the first special token is needed)"));
+        }
+        if tokens.mask.len() != n {
+            return Err(invalid_arg!("tokens: {n} ids but {} mask values", tokens.mask.len()));
+        }
+        if n > self.max_sequence_length() {
+            return Err(invalid_arg!(
+                "tokens: {n} tokens, more than the encoder's {} positions allow",
+                self.max_sequence_length()
+            ));
+        }
+        if let Some((i, id)) = tokens.ids.iter().enumerate().find(|(_, &id)| id as usize >= self.vocab_size) {
+            return Err(invalid_arg!("tokens: id {id} at index {i} is not below vocab_size {}", self.vocab_size));
+        }
+        Ok(())
+    }
+}
+
+/// Checks what the tensor shapes cannot (the config may come from a caller, not a checked file).
+fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
+    let kind = match cfg.kind.as_str() {
+        "bert" => EncoderKind::Bert,
+        "roberta" => EncoderKind::Roberta,
+        other => return Err(bad_file!("unknown text_encoder.kind `{other}` (supported: bert, roberta)")),
+    };
+    let positive = [
+        ("vocab_size", cfg.vocab_size),
+        ("hidden_size", cfg.hidden_size),
+        ("num_heads", cfg.num_heads),
+        ("intermediate_size", cfg.intermediate_size),
+        ("max_position_embeddings", cfg.max_position_embeddings),
+        ("type_vocab_size", cfg.type_vocab_size),
+        ("max_length", cfg.max_length),
+    ];
+    if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
+        return Err(bad_file!("text_encoder.{name} must be positive"));
+    }
+    if cfg.hidden_size % cfg.num_heads != 0 {
+        return Err(bad_file!(
+            "text_encoder.hidden_size {} is not divisible by num_heads {}",
+            cfg.hidden_size,
+            cfg.num_heads
+        ));
+    }
+    if cfg.hidden_act != "gelu" {
+        return Err(bad_file!("text_encoder.hidden_act `{}` is not supported (only exact `gelu`)", cfg.hidden_act));
+    }
+    if cfg.pad_token_id as usize >= cfg.vocab_size {
+        return Err(bad_file!(
+            "text_encoder.pad_token_id {} is not below vocab_size {}",
+            cfg.pad_token_id,
+            cfg.vocab_size
+        ));
+    }
+    // RoBERTa's positions run from pad+1 to pad+max_length.
+    let offset = match kind {
+        EncoderKind::Bert => 0,
+        EncoderKind::Roberta => cfg.pad_token_id as usize + 1,
+    };
+    if cfg.max_length + offset > cfg.max_position_embeddings {
+        return Err(bad_file!(
+            "text_encoder.max_length {} (+{offset} position offset) exceeds max_position_embeddings {}",
+            cfg.max_length,
+            cfg.max_position_embeddings
+        ));
+    }
+    Ok(kind)
+}

@@ -1,0 +1,136 @@
+//! Tokenization for the BERT-family encoders: a wrapper over the `tokenizers` crate that reads a
+//! Hugging Face tokenizer.json (BERT WordPiece, RoBERTa byte-level BPE) and yields ids plus an
+//! attention mask with Hugging Face's `truncation=True` semantics and optional fixed-length
+//! padding. It holds no model weights.
+
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::str::FromStr;
+
+use tokenizers::{Encoding, Tokenizer, TruncationDirection};
+
+use crate::error::{bad_file, invalid_arg, Error, Result};
+
+/// Token ids and their attention mask (1 = real token, 0 = padding), of equal length.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Tokens {
+    pub ids: Vec<u32>,
+    pub mask: Vec<u8>,
+}
+
+impl Tokens {
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+}
+
+/// A tokenizer.json tokenizer whose ids are known to fit the encoder's vocabulary.
+///
+/// The inner tokenizer is never reconfigured after load, so one instance serves many threads;
+/// lengths are applied per call instead.
+#[derive(Clone)]
+pub struct TextTokenizer {
+    inner: Tokenizer,
+    /// Special tokens the post-processor puts around one sequence (`[CLS]`/`[SEP]`, `<s>`/`</s>`).
+    num_special: usize,
+    pad_id: u32,
+}
+
+impl std::fmt::Debug for TextTokenizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TextTokenizer")
+            .field("vocab", &self.inner.get_vocab_size(true))
+            .field("num_special", &self.num_special)
+            .field("pad_id", &self.pad_id)
+            .finish()
+    }
+}
+
+fn tok_err(context: &str) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -> Error + '_ {
+    move |e| Error::Tokenizer(format!("{context}: {e}"))
+}
+
+impl TextTokenizer {
+    /// Builds the tokenizer from tokenizer.json text and checks that every id it can produce
+    /// (vocabulary, added tokens, post-processor specials, `pad_id`) is below `vocab_size`, so an
+    /// embedding lookup can never go out of bounds.
+    pub fn from_json(json: &str, vocab_size: usize, pad_id: u32) -> Result<TextTokenizer> {
+        let mut inner = Tokenizer::from_str(json)
+            .map_err(tok_err("cannot build a tokenizer from the tokenizer.json text"))?;
+        // Files carry their own truncation/padding (all-MiniLM-L6-v2's pads every text to 128);
+        // lengths are the caller's choice here, so both are switched off once, at load.
+        inner
+            .with_truncation(None)
+            .map_err(tok_err("cannot switch off the tokenizer's truncation"))?;
+        inner.with_padding(None);
+
+        let specials = inner
+            .post_process(Encoding::default(), None, true)
+            .map_err(tok_err("the tokenizer's post-processor failed on an empty text"))?;
+        let num_special = specials.get_ids().len();
+
+        let mut produced: Vec<(u32, String)> = inner.get_vocab(true).into_iter().map(|(t, i)| (i, t)).collect();
+        produced.extend(specials.get_ids().iter().zip(specials.get_tokens()).map(|(&i, t)| (i, t.clone())));
+        produced.push((pad_id, "<padding>".into()));
+        if let Some((id, token)) = produced.iter().max_by_key(|(i, _)| *i) {
+            if *id as usize >= vocab_size {
+                return Err(bad_file!(
+                    "the tokenizer produces id {id} (`{token}`) but the text encoder's vocab_size is {vocab_size}"
+                ));
+            }
+        }
+        Ok(TextTokenizer { inner, num_special, pad_id })
+    }
+
+    /// How many special tokens a single text gets (2 for BERT and RoBERTa).
+    pub fn num_special_tokens(&self) -> usize {
+        self.num_special
+    }
+
+    pub fn pad_id(&self) -> u32 {
+        self.pad_id
+    }
+
+    /// Tokenizes `text`: content tokens are cut so that, with the special tokens, at most
+    /// `max_length` remain (Hugging Face `truncation=True`); with `pad`, `pad_id` fills up to
+    /// `max_length` with mask 0. Any text is accepted; only a `max_length` too small for the
+    /// special tokens is an error.
+    pub fn encode(&self, text: &str, max_length: usize, pad: bool) -> Result<Tokens> {
+        let budget = max_length.checked_sub(self.num_special).ok_or_else(|| {
+            invalid_arg!(
+                "max_length {max_length} leaves no room for the {} special tokens",
+                self.num_special
+            )
+        })?;
+        // The tokenizers crate is not known to panic on text, but a C caller must never see an
+        // unwind, so a panic becomes an error like any other tokenizer failure.
+        let enc = catch_unwind(AssertUnwindSafe(|| self.encode_truncated(text, budget)))
+            .map_err(|_| Error::Tokenizer("the tokenizer panicked on this text".into()))??;
+        let mut ids = enc.get_ids().to_vec();
+        let mut mask: Vec<u8> = enc.get_attention_mask().iter().map(|&m| u8::from(m != 0)).collect();
+        if ids.len() > max_length {
+            return Err(Error::Tokenizer(format!(
+                "the post-processor produced {} tokens, more than max_length {max_length}",
+                ids.len()
+            )));
+        }
+        if pad {
+            ids.resize(max_length, self.pad_id);
+            mask.resize(max_length, 0);
+        }
+        Ok(Tokens { ids, mask })
+    }
+
+    fn encode_truncated(&self, text: &str, budget: usize) -> Result<Encoding> {
+        let mut enc = self.inner.encode(text, false).map_err(tok_err("cannot tokenize the text"))?;
+        enc.truncate(budget, 0, TruncationDirection::Right);
+        // The cut-off tail would otherwise be post-processed too, for nothing.
+        drop(enc.take_overflowing());
+        self.inner
+            .post_process(enc, None, true)
+            .map_err(tok_err("the tokenizer's post-processor failed"))
+    }
+}
