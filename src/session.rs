@@ -62,6 +62,17 @@ pub struct Session {
     x0: Vec<f32>,
     bufs: StepBuffers,
     cancel: Arc<AtomicBool>,
+    edit: Edit,
+}
+
+/// A reference motion and which of its values to keep (FLAME's editing, REFERENCE 1.12).
+#[derive(Default)]
+struct Edit {
+    reference: Option<Vec<f32>>,
+    /// One flag per feature value, `true` = keep the reference.
+    keep: Option<Vec<bool>>,
+    noised: Vec<f32>,
+    noise: Vec<f32>,
 }
 
 /// Per-step scratch, sized once per session.
@@ -121,6 +132,7 @@ impl Session {
             x0: vec![0.0; len],
             bufs: StepBuffers::default(),
             cancel: Arc::new(AtomicBool::new(false)),
+            edit: Edit::default(),
         })
     }
 
@@ -199,6 +211,74 @@ impl Session {
         self.stepped.then_some(&self.x0[..])
     }
 
+    /// Sets the reference motion (`[frames, motion_dim]`, the session's frame count) whose kept
+    /// values (see [`Session::set_mask`]) are imposed at every step. May change between steps.
+    pub fn set_reference(&mut self, features: &[f32]) -> Result<()> {
+        let dim = self.model.motion_dim();
+        if features.len() != self.x.len() {
+            return Err(invalid_arg!(
+                "reference has {} values, expected {} (frames {} × {dim}); a shorter reference must be padded by the caller",
+                features.len(),
+                self.x.len(),
+                self.frames
+            ));
+        }
+        if let Some(i) = features.iter().position(|v| !v.is_finite()) {
+            return Err(invalid_arg!("reference value {i} (frame {}, channel {}) is NaN or infinite", i / dim, i % dim));
+        }
+        self.edit.reference = Some(features.to_vec());
+        Ok(())
+    }
+
+    /// Sets the keep-mask, one entry per feature value (`[frames, motion_dim]`, nonzero = keep
+    /// the reference). An all-zero mask edits nothing; an all-keep mask reproduces the
+    /// reference. May change between steps: it takes effect at the next step.
+    pub fn set_mask(&mut self, mask: &[u8]) -> Result<()> {
+        if mask.len() != self.x.len() {
+            return Err(invalid_arg!(
+                "mask has {} values, expected {} (frames {} × {})",
+                mask.len(),
+                self.x.len(),
+                self.frames,
+                self.model.motion_dim()
+            ));
+        }
+        self.edit.keep = Some(mask.iter().map(|&m| m != 0).collect());
+        Ok(())
+    }
+
+    /// Removes the reference and the mask: plain generation from the next step on.
+    pub fn clear_edit(&mut self) {
+        self.edit.reference = None;
+        self.edit.keep = None;
+    }
+
+    /// The current keep-mask, if any.
+    pub fn mask(&self) -> Option<&[bool]> {
+        self.edit.keep.as_deref()
+    }
+
+    /// Imposes the kept reference values on x_t, diffused to step `t` with fresh noise, as
+    /// FLAME's editing loop does before every denoising step.
+    fn impose_reference(&mut self, t: usize) -> Result<()> {
+        let Edit { reference: Some(reference), keep: Some(keep), noised, noise } = &mut self.edit else {
+            return Ok(());
+        };
+        if !keep.iter().any(|&k| k) {
+            return Ok(());
+        }
+        noise.resize(reference.len(), 0.0);
+        noised.resize(reference.len(), 0.0);
+        self.noise.fill(noise);
+        self.sampler.try_q_sample(t, reference, noise, noised)?;
+        for ((x, &k), &r) in self.x.iter_mut().zip(keep.iter()).zip(noised.iter()) {
+            if k {
+                *x = r;
+            }
+        }
+        Ok(())
+    }
+
     /// Advances one sampler step; returns the number of steps left.
     pub fn step(&mut self) -> Result<usize> {
         if self.cond.is_none() {
@@ -234,11 +314,12 @@ impl Session {
             }
             self.started = true;
         }
+        let t = self.remaining - 1;
+        self.impose_reference(t)?;
         let guided = self.guidance != 1.0;
         let uncond = if guided { Some(model.uncond()?) } else { None };
         let cond = self.cond.as_ref().expect("checked in step");
         let batch = if guided { 2 } else { 1 };
-        let t = self.remaining - 1;
         let b = &mut self.bufs;
 
         b.batch_x.clear();

@@ -18,7 +18,10 @@ Other architectures (mdm, motionfm) are meant to be added as further subcommands
 import argparse
 import json
 import os
+import pickle
 import sys
+import time
+import types
 
 import torch
 
@@ -41,8 +44,45 @@ def warn(msg):
 
 # -- reading ------------------------------------------------------------------------------------
 
+class _Stub:
+    """Stand-in for a pickled object whose class cannot be imported (e.g. FLAME's own net class
+    pickled into Lightning's `hyper_parameters`); keeps whatever state it is given."""
+
+    def __init__(self, *args, **kwargs):
+        self._args = args
+
+    def __setstate__(self, state):
+        self.__dict__["_state"] = state
+
+
+_SAFE_MODULES = ("torch", "collections", "builtins", "numpy", "_codecs", "copyreg")
+
+
+class _StubbingUnpickler(pickle.Unpickler):
+    def find_class(self, module, name):
+        if module.split(".")[0] in _SAFE_MODULES:
+            return super().find_class(module, name)
+        return type(name, (_Stub,), {"__module__": "stub." + module})
+
+
+_stubbing_pickle = types.SimpleNamespace(
+    __name__="stubbing_pickle", Unpickler=_StubbingUnpickler,
+    load=lambda f, **kw: _StubbingUnpickler(f, **kw).load())
+
+
 def load_state_dict(path):
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if not os.path.isfile(path):
+        raise ConvertError(f"{path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure gets the stubbing retry
+        # The official checkpoint pickles FLAME's net object (and config objects) in
+        # hyper_parameters; without FLAME's source those classes cannot be imported. Only the
+        # tensors matter here, so replace every non-torch class by an inert stub.
+        warn(f"{path}: plain unpickling failed ({type(e).__name__}: {e}); retrying with "
+             f"non-torch classes stubbed out")
+        ckpt = torch.load(path, map_location="cpu", weights_only=False,
+                          pickle_module=_stubbing_pickle)
     if isinstance(ckpt, dict) and isinstance(ckpt.get("state_dict"), dict):
         return ckpt["state_dict"]
     if isinstance(ckpt, dict) and ckpt and all(torch.is_tensor(v) for v in ckpt.values()):
@@ -262,7 +302,9 @@ def cast(t, dtype, name):
 # -- flame --------------------------------------------------------------------------------------
 
 def convert_flame(args):
+    t0 = time.perf_counter()
     state = load_state_dict(args.ckpt)
+    t_load = time.perf_counter() - t0
     net = select_net(state, args.ckpt)
     text_cfg = read_text_config(args.text_model, args.max_text_length)
     tokenizer = read_tokenizer_json(args.text_model, text_cfg["kind"])
@@ -314,7 +356,8 @@ def convert_flame(args):
     print(f"wrote {args.out}: {len(tensors)} tensors, {n / 1e6:.2f} M values ({args.dtype}); "
           f"C={denoiser_cfg['model_channels']} layers={denoiser_cfg['num_layers']} "
           f"heads={args.heads} ff={denoiser_cfg['dim_feedforward']} text={text_cfg['kind']} "
-          f"{text_cfg['num_layers']}x{text_cfg['hidden_size']}")
+          f"{text_cfg['num_layers']}x{text_cfg['hidden_size']}; "
+          f"load {t_load:.1f} s, total {time.perf_counter() - t0:.1f} s")
     return 0
 
 

@@ -21,8 +21,13 @@ fn map_inplace(x: &mut [f32], f: impl Fn(f32) -> f32 + Sync) {
 }
 
 pub fn relu(x: &mut [f32]) {
-    // Memory-bound: never worth a fork.
-    x.iter_mut().for_each(|v| *v = v.max(0.0));
+    // Memory-bound: never worth a fork. A comparison (not `f32::max`) so NaN propagates as in
+    // PyTorch.
+    x.iter_mut().for_each(|v| {
+        if *v < 0.0 {
+            *v = 0.0
+        }
+    });
 }
 
 /// Exact GELU, `x · Φ(x)` with the error function.
@@ -39,11 +44,11 @@ pub fn gelu_erf(x: &mut [f32]) {
 /// CLIP's `x · sigmoid(1.702 x)`.
 pub fn quick_gelu(x: &mut [f32]) {
     // exp overflowing to +inf for very negative x gives x / inf = -0, the correct limit.
-    map_inplace(x, |v| v / (1.0 + (-1.702 * v).exp()));
+    map_inplace(x, |v| v / (1.0 + exp_fast(-1.702 * v)));
 }
 
 pub fn silu(x: &mut [f32]) {
-    map_inplace(x, |v| v / (1.0 + (-v).exp()));
+    map_inplace(x, |v| v / (1.0 + exp_fast(-v)));
 }
 
 pub fn tanh(x: &mut [f32]) {
@@ -81,22 +86,72 @@ pub(crate) fn softmax_row(row: &mut [f32]) -> bool {
         row.fill(0.0);
         return false;
     }
-    let mut sum = 0.0f32;
-    for v in row.iter_mut() {
-        *v = (*v - max).exp();
-        sum += *v;
-    }
-    let inv = 1.0 / sum;
+    // -inf (masked) entries map to exactly 0.
+    row.iter_mut().for_each(|v| *v = exp_fast(*v - max));
+    let inv = 1.0 / sum_lanes(row);
     row.iter_mut().for_each(|v| *v *= inv);
     true
 }
 
+/// Sum over eight independent lanes: a fixed order (so still deterministic) that the compiler
+/// can vectorise, unlike a strict left-to-right f32 sum.
+fn sum_lanes(x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let chunks = x.chunks_exact(8);
+    let tail: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for (a, &v) in acc.iter_mut().zip(c) {
+            *a += v;
+        }
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
+/// `e^x` in f32 within 1 ulp, branch-free so loops over it vectorise (libm's `expf` is a call
+/// per element and dominated softmax).
+///
+/// Cephes' range reduction `x = n·ln2 + r` (ln2 split so `n·LN2_HI` is exact) with its degree-7
+/// polynomial for `e^r`, then `2^n` built directly in the exponent bits. Results below
+/// `e^-87.3` (the smallest normal) are exactly 0, so `-inf` gives 0; above 88.37 (where `2^n`
+/// would overflow the exponent field, true value > 2.4e38) it returns `+inf`; NaN stays NaN.
+#[inline(always)]
+pub(crate) fn exp_fast(x: f32) -> f32 {
+    const LO: f32 = -87.3;
+    const HI: f32 = 88.37;
+    // Adding 1.5·2²³ rounds to an integer in the low mantissa bits; the +127 pre-biases it so
+    // those bits shifted left by 23 are the exponent field of 2^n.
+    const SHIFT: f32 = 12_582_912.0 + 127.0;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    const P: [f32; 6] = [
+        1.987_569_2e-4,
+        1.398_199_9e-3,
+        8.333_452e-3,
+        4.166_579_6e-2,
+        1.666_666_5e-1,
+        0.5,
+    ];
+    let t = x * std::f32::consts::LOG2_E + SHIFT;
+    let n = t - SHIFT;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let p = P[1..].iter().fold(P[0], |acc, &c| acc * r + c);
+    let y = p * (r * r) + r + 1.0;
+    let e = y * f32::from_bits(t.to_bits() << 23);
+    if x < LO {
+        0.0
+    } else if x > HI {
+        f32::INFINITY
+    } else {
+        e
+    }
+}
+
 /// Error function, max abs. error ≈ 6.5e-8 over the reals.
 ///
-/// The branch-free odd rational fit on [-4, 4] used by Eigen and XLA for f32 erf (beyond ±4
-/// erf is 1 to within 1.6e-8). Evaluated in f64 it is ~7× more accurate than in f32 and still
-/// needs no `exp`, which keeps GELU cheap next to the GEMMs around it.
-pub fn erf(x: f64) -> f64 {
+/// The odd rational fit on [-4, 4] used by Eigen and XLA for f32 erf (beyond ±4 erf is 1 to
+/// within 1.6e-8). Evaluated in f64 it is ~7× more accurate than in f32; it needs no `exp`
+/// and has no branches (clamps lower to selects), so GELU loops vectorise.
+pub(crate) fn erf(x: f64) -> f64 {
     const ALPHA: [f64; 7] = [
         -2.726_142_258_013_06e-10,
         2.770_681_424_959_02e-08,
@@ -117,12 +172,14 @@ pub fn erf(x: f64) -> f64 {
     let t2 = t * t;
     let p = ALPHA.iter().fold(0.0, |acc, &c| acc * t2 + c);
     let q = BETA.iter().fold(0.0, |acc, &c| acc * t2 + c);
+    let r = t * p / q;
+    let r = r.clamp(-1.0, 1.0);
     // Exactly ±1 outside the fit, so GELU's `x·(1+erf)` is exactly 0 for very negative x
     // instead of x times the fit's residual.
     if x.abs() >= 4.0 {
         1f64.copysign(x)
     } else {
-        (t * p / q).clamp(-1.0, 1.0)
+        r
     }
 }
 
@@ -183,6 +240,29 @@ mod tests {
             worst = worst.max((erf(x) - erf_ref(x)).abs());
         }
         assert!(worst < 7e-8, "max erf error {worst:e}");
+    }
+
+    #[test]
+    fn exp_fast_within_one_ulp() {
+        let mut worst = 0.0f64;
+        let mut check = |x: f32| {
+            let (got, want) = (exp_fast(x) as f64, (x as f64).exp());
+            if want >= f32::MIN_POSITIVE as f64 && want <= f32::MAX as f64 {
+                let ulp = (want as f32).abs() * f32::EPSILON; // >= one ulp at `want`
+                worst = worst.max((got - want).abs() / ulp as f64);
+            }
+        };
+        for i in 0..=2_000_000 {
+            check((-87.3 + i as f64 * (88.36 + 87.3) / 2e6) as f32);
+            check(-1.0 + i as f32 * 1e-6);
+        }
+        assert!(worst <= 1.0, "exp_fast error {worst} ulp");
+        assert_eq!(exp_fast(0.0), 1.0);
+        assert_eq!(exp_fast(f32::NEG_INFINITY), 0.0);
+        assert_eq!(exp_fast(-100.0), 0.0);
+        assert_eq!(exp_fast(89.0), f32::INFINITY);
+        assert_eq!(exp_fast(f32::INFINITY), f32::INFINITY);
+        assert!(exp_fast(f32::NAN).is_nan());
     }
 
     fn gelu_ref(x: f64) -> f64 {
@@ -258,6 +338,9 @@ mod tests {
                 v[0]
             );
         }
+        let mut v = [f32::NAN, -0.5, 0.5];
+        relu(&mut v);
+        assert!(v[0].is_nan() && v[1..] == [0.0, 0.5]);
         for f in [quick_gelu as fn(&mut [f32]), silu] {
             let mut v = [-200.0f32, 0.0, 200.0];
             f(&mut v);

@@ -1,16 +1,18 @@
-//! GEMM wrappers over `matrixmultiply::sgemm`, split by output rows across the current rayon pool.
+//! GEMM wrappers over `matrixmultiply::sgemm`, split by output rows or columns across the
+//! current rayon pool, one single-threaded sgemm call per chunk.
 //!
-//! Every output element is produced by one sgemm call whose k-blocking does not depend on how
-//! many rows that call covers, so any row split gives the same bits as a single call.
+//! sgemm computes every output element as the same k-ordered chain of multiply-adds (its k
+//! blocking does not depend on m or n, and edge tiles run the same micro-kernel), so any
+//! split of the output gives the same bits as a single call.
 
 use rayon::prelude::*;
 
-/// Row granularity of a parallel chunk: a multiple of every sgemm micro-kernel height (8 or 16)
-/// so only the last chunk ends in a partial panel.
-const ROW_BLOCK: usize = 32;
+/// Split granularity: the AVX/FMA micro-kernel's tile edge, so chunks are whole tiles (with the
+/// 16-wide AVX-512 kernel a chunk may end in one partial tile).
+const SPLIT_UNIT: usize = 8;
 
-/// Below this many multiply-adds (m·k·n) the fork/join and the extra packing of `b` cost more
-/// than a second core saves.
+/// Below this many multiply-adds (m·k·n) the fork/join and the repeated packing cost more than
+/// a second core saves.
 const PAR_MIN_MACS: usize = 1 << 20;
 
 /// `y[m, n] = x[m, k] · w[n, k]ᵀ + bias[n]` (PyTorch `Linear`). `y` is overwritten.
@@ -83,37 +85,39 @@ pub(crate) fn gemm(
     if m == 0 || n == 0 {
         return;
     }
-    let c = &mut c[..m * n];
+    let c_ptr = SharedMut(c.as_mut_ptr());
 
-    // One chunk of output rows starting at `row0`; `c` holds exactly those rows.
-    let run = |row0: usize, c: &mut [f32]| {
-        let rows = c.len() / n;
+    // C[r0..r1, c0..c1] = A[r0..r1, :] · B[:, c0..c1] (+ bias[c0..c1]).
+    let block = |r0: usize, r1: usize, c0: usize, c1: usize| {
+        let c = c_ptr.get();
         let beta = match bias {
             Some(bias) => {
-                for row in c.chunks_exact_mut(n) {
-                    row.copy_from_slice(&bias[..n]);
+                for r in r0..r1 {
+                    // SAFETY: row r, columns c0..c1 of c, inside the checked m×n; no other
+                    // task touches this block.
+                    unsafe { std::slice::from_raw_parts_mut(c.add(r * n + c0), c1 - c0) }
+                        .copy_from_slice(&bias[c0..c1]);
                 }
                 1.0
             }
             None => 0.0,
         };
-        let a = &a[row0 * rsa..];
-        // SAFETY: `a[row0..row0+rows]`, `b` and `c` were bounds-checked above for the full
-        // extent the strides reach; sgemm reads only those elements and writes only `c`.
+        // SAFETY: the a, b and c extents were bounds-checked above; the offsets select a
+        // sub-block of each, and this block of c is written by this call only.
         unsafe {
             matrixmultiply::sgemm(
-                rows,
+                r1 - r0,
                 k,
-                n,
+                c1 - c0,
                 1.0,
-                a.as_ptr(),
+                a.as_ptr().add(r0 * rsa),
                 rsa as isize,
                 csa as isize,
-                b.as_ptr(),
+                b.as_ptr().add(c0 * csb),
                 rsb as isize,
                 csb as isize,
                 beta,
-                c.as_mut_ptr(),
+                c.add(r0 * n + c0),
                 n as isize,
                 1,
             );
@@ -121,16 +125,41 @@ pub(crate) fn gemm(
     };
 
     let threads = rayon::current_num_threads();
-    if threads <= 1 || m < 2 * ROW_BLOCK || m.saturating_mul(k).saturating_mul(n) < PAR_MIN_MACS {
-        run(0, c);
+    let macs = m.saturating_mul(k).saturating_mul(n);
+    // Each chunk packs its own slice of the split operand and all of the other one, so split
+    // the larger output dimension: rows when m ≥ n, else columns (which is also what gives
+    // short inputs like a 20-token text encoder any parallelism).
+    let by_rows = m >= n;
+    let len = if by_rows { m } else { n };
+    let units = len.div_ceil(SPLIT_UNIT);
+    if threads <= 1 || macs < PAR_MIN_MACS || units < 2 {
+        block(0, m, 0, n);
         return;
     }
-    // One chunk per thread: every sgemm call packs all of `b`, so more chunks only repeat work.
-    let tasks = threads.min(m.div_ceil(ROW_BLOCK));
-    let rows_per_task = m.div_ceil(tasks).next_multiple_of(ROW_BLOCK);
-    c.par_chunks_mut(rows_per_task * n)
-        .enumerate()
-        .for_each(|(i, chunk)| run(i * rows_per_task, chunk));
+    // One chunk per thread, equal to within a tile: more chunks would only repeat packing.
+    let tasks = threads.min(units);
+    let edge = |t: usize| (units * t / tasks * SPLIT_UNIT).min(len);
+    (0..tasks).into_par_iter().for_each(|t| {
+        let (lo, hi) = (edge(t), edge(t + 1));
+        if by_rows {
+            block(lo, hi, 0, n);
+        } else {
+            block(0, m, lo, hi);
+        }
+    });
+}
+
+/// Output pointer shared by tasks that write disjoint blocks.
+#[derive(Clone, Copy)]
+struct SharedMut(*mut f32);
+// SAFETY: only used to hand disjoint output blocks to parallel tasks.
+unsafe impl Send for SharedMut {}
+unsafe impl Sync for SharedMut {}
+impl SharedMut {
+    // A method (not field access) so closures capture the whole Send + Sync wrapper.
+    fn get(self) -> *mut f32 {
+        self.0
+    }
 }
 
 #[cfg(test)]
@@ -249,7 +278,14 @@ mod tests {
     #[test]
     fn bit_identical_across_thread_counts() {
         let mut rng = Rng::new(4);
-        for &(m, k, n) in &[(197, 300, 70), (400, 768, 97), (65, 1030, 48)] {
+        for &(m, k, n) in &[
+            (197, 300, 70),
+            (400, 768, 97),
+            (65, 1030, 48),
+            (20, 384, 1536),
+            (33, 768, 96),
+            (1, 3072, 768),
+        ] {
             let x = rng.vec(m * k);
             let w = rng.vec(n * k);
             let bias = rng.vec(n);

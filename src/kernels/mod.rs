@@ -1,12 +1,18 @@
-//! Numeric building blocks on row-major `f32` slices: GEMM (on `matrixmultiply`, split across the
-//! current rayon pool by output rows), attention, normalisation, activations and embeddings.
+//! Numeric building blocks on row-major `f32` slices: GEMM (on `matrixmultiply`, split across
+//! the current rayon pool by output rows or columns), attention, normalisation, activations and
+//! embeddings.
 //!
 //! Kernels know nothing about transformers or models. Weights use PyTorch's layout (`Linear.weight`
-//! is `[out, in]`). Parallel work is only ever split over independent outputs (rows, heads), never
-//! over a reduction, so results are bit-identical for every thread count.
+//! is `[out, in]`). Parallel work is only ever split over independent outputs (rows, columns,
+//! heads), never over a reduction, so results are bit-identical for every thread count.
+//!
+//! Where a kernel takes explicit sizes (GEMM, attention, embedding), inputs may be longer than it
+//! reads and the output at least as long as the result (nothing past it is written), so scratch
+//! buffers and strided views pass straight in; in-place kernels act on the whole slice.
 
 mod activation;
 mod attention;
+mod elementwise;
 mod embedding;
 mod gemm;
 mod norm;
@@ -15,6 +21,7 @@ mod testutil;
 
 pub use activation::{gelu_erf, quick_gelu, relu, silu, softmax_rows, tanh};
 pub use attention::multi_head_attention;
+pub use elementwise::{add_bias, add_inplace, scale_inplace};
 pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};
 pub use gemm::{linear, matmul_nn, matmul_nt};
 pub use norm::{add_layer_norm, layer_norm};

@@ -372,3 +372,147 @@ fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
     }
     Ok(kind)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::text::tokenizer::tests::WORDPIECE;
+    use safetensors::tensor::{Dtype, TensorView};
+
+    const _: () = {
+        const fn send_sync<T: Send + Sync>() {}
+        send_sync::<TextEncoder>();
+    };
+
+    #[test]
+    fn roberta_positions_skip_padding() {
+        assert_eq!(roberta_position_ids(&[0, 5, 7, 2, 1, 1], 1), [2, 3, 4, 5, 1, 1]);
+        // A pad id inside the text (a literal "<pad>") is a padding position in HF too.
+        assert_eq!(roberta_position_ids(&[0, 1, 7, 2], 1), [2, 1, 3, 4]);
+    }
+
+    #[test]
+    fn mean_pooling_ignores_padding_and_normalises() {
+        let out = TextOutput { len: 3, hidden: vec![1.0, 0.0, 3.0, 4.0, 100.0, -7.0], pooled: vec![0.0; 2], mask: vec![1, 1, 0] };
+        let v = out.mean_pooled_normalized();
+        assert!((v[0] - 0.5f32.sqrt()).abs() < 1e-7 && (v[1] - 0.5f32.sqrt()).abs() < 1e-7, "{v:?}");
+        let zero = TextOutput { len: 1, hidden: vec![0.0, 0.0], pooled: vec![0.0; 2], mask: vec![0] };
+        assert_eq!(zero.mean_pooled_normalized(), [0.0, 0.0]);
+    }
+
+    fn tiny_config() -> TextEncoderConfig {
+        TextEncoderConfig {
+            kind: "bert".into(),
+            vocab_size: 9,
+            hidden_size: 4,
+            num_layers: 2,
+            num_heads: 2,
+            intermediate_size: 8,
+            max_position_embeddings: 8,
+            type_vocab_size: 2,
+            layer_norm_eps: 1e-12,
+            pad_token_id: 0,
+            max_length: 8,
+            hidden_act: "gelu".into(),
+        }
+    }
+
+    /// Every tensor of the tiny config under prefix `text.`, minus `skip`, with `resize` shaped [1].
+    fn tiny_file(skip: &[&str], resize: &str) -> ModelFile {
+        let (e, i) = (4, 8);
+        let mut shapes: Vec<(String, Vec<usize>)> = vec![
+            ("embeddings.word_embeddings.weight".into(), vec![9, e]),
+            ("embeddings.position_embeddings.weight".into(), vec![8, e]),
+            ("embeddings.token_type_embeddings.weight".into(), vec![2, e]),
+            ("embeddings.LayerNorm.weight".into(), vec![e]),
+            ("embeddings.LayerNorm.bias".into(), vec![e]),
+            ("pooler.dense.weight".into(), vec![e, e]),
+            ("pooler.dense.bias".into(), vec![e]),
+        ];
+        for l in 0..2 {
+            for (name, out, inp) in [
+                ("attention.self.query", e, e),
+                ("attention.self.key", e, e),
+                ("attention.self.value", e, e),
+                ("attention.output.dense", e, e),
+                ("intermediate.dense", i, e),
+                ("output.dense", e, i),
+            ] {
+                shapes.push((format!("encoder.layer.{l}.{name}.weight"), vec![out, inp]));
+                shapes.push((format!("encoder.layer.{l}.{name}.bias"), vec![out]));
+            }
+            for name in ["attention.output.LayerNorm", "output.LayerNorm"] {
+                shapes.push((format!("encoder.layer.{l}.{name}.weight"), vec![e]));
+                shapes.push((format!("encoder.layer.{l}.{name}.bias"), vec![e]));
+            }
+        }
+        let data: Vec<(String, Vec<usize>, Vec<u8>)> = shapes
+            .into_iter()
+            .filter(|(n, _)| !skip.contains(&n.as_str()))
+            .map(|(n, s)| {
+                let s = if n == resize { vec![1] } else { s };
+                let bytes = vec![0u8; 4 * s.iter().product::<usize>()];
+                (format!("text.{n}"), s, bytes)
+            })
+            .collect();
+        let views: Vec<(String, TensorView)> =
+            data.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F32, s.clone(), b).unwrap())).collect();
+        ModelFile::from_bytes(&safetensors::serialize(views, &None).unwrap()).unwrap()
+    }
+
+    fn load_err(file: &ModelFile, cfg: &TextEncoderConfig) -> String {
+        TextEncoder::load(file, "text.", cfg, WORDPIECE).err().expect("load must fail").to_string()
+    }
+
+    #[test]
+    fn loads_a_complete_file() {
+        let enc = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), WORDPIECE).unwrap();
+        assert_eq!((enc.hidden_size(), enc.max_length(), enc.max_sequence_length()), (4, 8, 8));
+        assert_eq!(enc.tokenize("a person", 8, false).unwrap().ids, [2, 4, 5, 3]);
+    }
+
+    #[test]
+    fn names_the_first_bad_tensor() {
+        let cfg = tiny_config();
+        let skip = ["encoder.layer.1.output.dense.bias", "encoder.layer.0.attention.self.key.weight", "pooler.dense.weight"];
+        assert_eq!(
+            load_err(&tiny_file(&skip, ""), &cfg),
+            "bad model file: tensor `text.encoder.layer.0.attention.self.key.weight` is missing"
+        );
+        assert_eq!(
+            load_err(&tiny_file(&["pooler.dense.bias"], "embeddings.LayerNorm.bias"), &cfg),
+            "bad model file: tensor `text.embeddings.LayerNorm.bias` has shape [1], expected [4]"
+        );
+    }
+
+    #[test]
+    fn rejects_inconsistent_configs() {
+        let file = tiny_file(&[], "");
+        let with = |f: fn(&mut TextEncoderConfig)| {
+            let mut c = tiny_config();
+            f(&mut c);
+            load_err(&file, &c)
+        };
+        assert!(with(|c| c.max_length = 9).contains("max_length 9 (+0 position offset) exceeds max_position_embeddings 8"));
+        let roberta = with(|c| {
+            c.kind = "roberta".into();
+            c.pad_token_id = 1;
+            c.max_length = 7;
+        });
+        assert!(roberta.contains("max_length 7 (+2 position offset) exceeds"), "{roberta}");
+        assert!(with(|c| c.kind = "gpt".into()).contains("unknown text_encoder.kind `gpt`"));
+        assert!(with(|c| c.num_heads = 3).contains("not divisible"));
+        assert!(with(|c| c.hidden_act = "relu".into()).contains("hidden_act `relu`"));
+        assert!(with(|c| c.max_length = 2).contains("leaves no room for text"));
+    }
+
+    #[test]
+    fn tokenizer_ids_must_fit_the_vocabulary() {
+        let json = WORDPIECE.replace(r#"".":8}"#, r#"".":8,"run":40}"#);
+        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), &json).err().unwrap();
+        assert!(matches!(e, crate::Error::BadModelFile(_)));
+        assert!(e.to_string().contains("produces id 40 (`run`) but the text encoder's vocab_size is 9"), "{e}");
+        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), "{oops").err().unwrap();
+        assert!(matches!(e, crate::Error::Tokenizer(_)), "{e}");
+    }
+}

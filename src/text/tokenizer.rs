@@ -134,3 +134,93 @@ impl TextTokenizer {
             .map_err(tok_err("the tokenizer's post-processor failed"))
     }
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A minimal BERT-style tokenizer.json: WordPiece over 9 tokens, `[CLS] … [SEP]` around a text.
+    pub(crate) const WORDPIECE: &str = r###"{"version":"1.0","truncation":null,"padding":null,
+      "added_tokens":[
+        {"id":0,"content":"[PAD]","single_word":false,"lstrip":false,"rstrip":false,"normalized":false,"special":true},
+        {"id":1,"content":"[UNK]","single_word":false,"lstrip":false,"rstrip":false,"normalized":false,"special":true},
+        {"id":2,"content":"[CLS]","single_word":false,"lstrip":false,"rstrip":false,"normalized":false,"special":true},
+        {"id":3,"content":"[SEP]","single_word":false,"lstrip":false,"rstrip":false,"normalized":false,"special":true}],
+      "normalizer":{"type":"BertNormalizer","clean_text":true,"handle_chinese_chars":true,"strip_accents":null,"lowercase":true},
+      "pre_tokenizer":{"type":"BertPreTokenizer"},
+      "post_processor":{"type":"BertProcessing","sep":["[SEP]",3],"cls":["[CLS]",2]},
+      "decoder":null,
+      "model":{"type":"WordPiece","unk_token":"[UNK]","continuing_subword_prefix":"##","max_input_chars_per_word":100,
+        "vocab":{"[PAD]":0,"[UNK]":1,"[CLS]":2,"[SEP]":3,"a":4,"person":5,"walk":6,"##s":7,".":8}}}"###;
+
+    fn tok() -> TextTokenizer {
+        TextTokenizer::from_json(WORDPIECE, 9, 0).unwrap()
+    }
+
+    #[test]
+    fn adds_specials_truncates_and_pads() {
+        let t = tok();
+        assert_eq!(t.num_special_tokens(), 2);
+        let full = t.encode("A Person walks.", 16, false).unwrap();
+        assert_eq!(full, Tokens { ids: vec![2, 4, 5, 6, 7, 8, 3], mask: vec![1; 7] });
+        let cut = t.encode("A Person walks.", 4, false).unwrap();
+        assert_eq!(cut.ids, [2, 4, 5, 3]);
+        let padded = t.encode("a person", 6, true).unwrap();
+        assert_eq!(padded, Tokens { ids: vec![2, 4, 5, 3, 0, 0], mask: vec![1, 1, 1, 1, 0, 0] });
+        let exact = t.encode("a person", 2, true).unwrap();
+        assert_eq!(exact.ids, [2, 3]);
+    }
+
+    #[test]
+    fn any_text_tokenizes() {
+        let t = tok();
+        let long = "walks ".repeat(100_000);
+        for text in ["", "   ", "!?!", "🙂", "Une personne saute 🙂 très haut", "\u{0}\u{200b}", &long] {
+            let out = t.encode(text, 8, true).unwrap();
+            assert_eq!((out.ids.len(), out.ids[0]), (8, 2), "{text:?}");
+        }
+        assert_eq!(t.encode("", 8, false).unwrap().ids, [2, 3]);
+        assert_eq!(t.encode("🙂", 8, false).unwrap().ids, [2, 1, 3]);
+    }
+
+    #[test]
+    fn max_length_must_fit_the_specials() {
+        let e = tok().encode("a", 1, false).unwrap_err();
+        assert!(matches!(e, Error::InvalidArgument(_)), "{e}");
+        assert!(e.to_string().contains("max_length 1 leaves no room for the 2 special tokens"), "{e}");
+    }
+
+    #[test]
+    fn file_padding_and_truncation_are_ignored() {
+        // all-MiniLM-L6-v2's tokenizer.json pads and truncates to 128 by itself.
+        let json = WORDPIECE.replace(
+            r#""truncation":null,"padding":null"#,
+            r#""truncation":{"max_length":3,"strategy":"LongestFirst","stride":0},
+               "padding":{"strategy":{"Fixed":128},"direction":"Right","pad_to_multiple_of":null,
+                          "pad_id":0,"pad_type_id":0,"pad_token":"[PAD]"}"#,
+        );
+        let t = TextTokenizer::from_json(&json, 9, 0).unwrap();
+        assert_eq!(t.encode("a person walks", 16, false).unwrap().ids, [2, 4, 5, 6, 7, 3]);
+    }
+
+    #[test]
+    fn garbage_is_a_tokenizer_error() {
+        for json in ["", "not json", "{}", r#"{"model":{"type":"Nonsense"}}"#] {
+            let e = TextTokenizer::from_json(json, 9, 0).unwrap_err();
+            assert!(matches!(e, Error::Tokenizer(_)), "{json:?}: {e}");
+            assert!(e.to_string().starts_with("tokenizer: cannot build a tokenizer from the tokenizer.json text: "), "{e}");
+        }
+    }
+
+    #[test]
+    fn ids_beyond_the_vocabulary_are_rejected() {
+        let msg = |json: &str, vocab, pad| TextTokenizer::from_json(json, vocab, pad).unwrap_err().to_string();
+        assert_eq!(
+            msg(WORDPIECE, 8, 0),
+            "bad model file: the tokenizer produces id 8 (`.`) but the text encoder's vocab_size is 8"
+        );
+        let sep50 = WORDPIECE.replace(r#""sep":["[SEP]",3]"#, r#""sep":["[SEP]",50]"#);
+        assert!(msg(&sep50, 9, 0).contains("produces id 50 (`[SEP]`)"), "{}", msg(&sep50, 9, 0));
+        assert!(msg(WORDPIECE, 9, 9).contains("produces id 9 (`<padding>`)"));
+    }
+}
