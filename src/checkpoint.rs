@@ -33,7 +33,10 @@ pub const FORMAT_KEY: &str = "format";
 enum Backing {
     Mapped(Mmap),
     /// Caller bytes copied into 8-byte-aligned storage so f32 data can be borrowed in place.
-    Heap { words: Vec<u64>, len: usize },
+    Heap {
+        words: Vec<u64>,
+        len: usize,
+    },
 }
 
 impl Backing {
@@ -89,21 +92,36 @@ pub struct Tensor {
 }
 
 enum TensorData {
-    Borrowed { backing: Arc<Backing>, offset: usize, len: usize },
+    Borrowed {
+        backing: Arc<Backing>,
+        offset: usize,
+        len: usize,
+    },
     Owned(Vec<f32>),
 }
 
 impl Tensor {
     /// An owned tensor (used for derived weights and in tests).
     pub fn from_vec(shape: Vec<usize>, data: Vec<f32>) -> Tensor {
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "shape does not match data");
-        Tensor { data: TensorData::Owned(data), shape }
+        assert_eq!(
+            shape.iter().product::<usize>(),
+            data.len(),
+            "shape does not match data"
+        );
+        Tensor {
+            data: TensorData::Owned(data),
+            shape,
+        }
     }
 
     pub fn data(&self) -> &[f32] {
         match &self.data {
             TensorData::Owned(v) => v,
-            TensorData::Borrowed { backing, offset, len } => {
+            TensorData::Borrowed {
+                backing,
+                offset,
+                len,
+            } => {
                 let bytes = &backing.bytes()[*offset..*offset + *len * 4];
                 // SAFETY: alignment to 4 was checked when the tensor was created, the range lies
                 // inside the backing (validated header), and any bit pattern is a valid f32.
@@ -131,7 +149,10 @@ impl std::fmt::Debug for Tensor {
 impl ModelFile {
     /// Memory-maps and validates `path`.
     pub fn open(path: &Path) -> Result<ModelFile> {
-        let io = |source| Error::Io { path: path.display().to_string(), source };
+        let io = |source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        };
         let file = File::open(path).map_err(io)?;
         // SAFETY: the mapping is read-only; a file truncated by another process while mapped is
         // outside what any mmap-based loader can defend against and is documented as such.
@@ -144,9 +165,19 @@ impl ModelFile {
         let mut words = vec![0u64; bytes.len().div_ceil(8)];
         // SAFETY: `words` has room for `bytes.len()` bytes and the regions do not overlap.
         unsafe {
-            std::ptr::copy_nonoverlapping(bytes.as_ptr(), words.as_mut_ptr() as *mut u8, bytes.len())
+            std::ptr::copy_nonoverlapping(
+                bytes.as_ptr(),
+                words.as_mut_ptr() as *mut u8,
+                bytes.len(),
+            )
         };
-        Self::from_backing(Backing::Heap { words, len: bytes.len() }, "<memory>".into())
+        Self::from_backing(
+            Backing::Heap {
+                words,
+                len: bytes.len(),
+            },
+            "<memory>".into(),
+        )
     }
 
     fn from_backing(backing: Backing, source: String) -> Result<ModelFile> {
@@ -167,7 +198,12 @@ impl ModelFile {
             );
         }
         let metadata = meta.metadata().clone().unwrap_or_default();
-        Ok(ModelFile { backing: Arc::new(backing), entries, metadata, source })
+        Ok(ModelFile {
+            backing: Arc::new(backing),
+            entries,
+            metadata,
+            source,
+        })
     }
 
     /// Where the file came from (a path, or `<memory>`).
@@ -194,7 +230,10 @@ impl ModelFile {
 
     /// The stored dtype of a tensor, or an error naming it when missing or unsupported.
     pub fn dtype(&self, name: &str) -> Result<StoredDtype> {
-        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        let e = self
+            .entries
+            .get(name)
+            .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
         stored_dtype(name, e.dtype)
     }
 
@@ -215,7 +254,10 @@ impl ModelFile {
 
     /// Reads tensor `name`, checking that its shape is exactly `shape`.
     pub fn tensor(&self, name: &str, shape: &[usize]) -> Result<Tensor> {
-        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        let e = self
+            .entries
+            .get(name)
+            .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
         if e.shape != shape {
             return Err(bad_file!(
                 "tensor `{name}` has shape {:?}, expected {:?}",
@@ -228,13 +270,19 @@ impl ModelFile {
 
     /// Reads tensor `name` whatever its shape (the caller checks what it needs).
     pub fn tensor_any_shape(&self, name: &str) -> Result<Tensor> {
-        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        let e = self
+            .entries
+            .get(name)
+            .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
         self.read(name, e)
     }
 
     /// The stored shape of a tensor.
     pub fn shape(&self, name: &str) -> Result<&[usize]> {
-        let e = self.entries.get(name).ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        let e = self
+            .entries
+            .get(name)
+            .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
         Ok(&e.shape)
     }
 
@@ -305,7 +353,9 @@ fn parse_header(bytes: &[u8]) -> Result<(usize, Metadata)> {
     }
     let header = &bytes[8..8 + n as usize];
     if header.first() != Some(&b'{') {
-        return Err(bad_file!("header does not start with '{{' (not a safetensors file)"));
+        return Err(bad_file!(
+            "header does not start with '{{' (not a safetensors file)"
+        ));
     }
     if std::str::from_utf8(header).is_err() {
         return Err(bad_file!("header is not valid UTF-8"));
@@ -317,9 +367,9 @@ fn parse_header(bytes: &[u8]) -> Result<(usize, Metadata)> {
                 Ok(_) => bad_file!("header JSON does not describe safetensors tensors"),
             }
         }
-        SafeTensorError::MetadataIncompleteBuffer => bad_file!(
-            "tensor data does not match the file size (truncated or padded file)"
-        ),
+        SafeTensorError::MetadataIncompleteBuffer => {
+            bad_file!("tensor data does not match the file size (truncated or padded file)")
+        }
         SafeTensorError::InvalidOffset(t) => bad_file!("tensor `{t}` has invalid data offsets"),
         SafeTensorError::TensorInvalidInfo => {
             bad_file!("a tensor's byte size does not match its dtype and shape")
@@ -334,7 +384,10 @@ mod tests {
     use super::*;
     use safetensors::tensor::TensorView;
 
-    fn write(tensors: &[(&str, Dtype, Vec<usize>, Vec<u8>)], meta: Option<HashMap<String, String>>) -> Vec<u8> {
+    fn write(
+        tensors: &[(&str, Dtype, Vec<usize>, Vec<u8>)],
+        meta: Option<HashMap<String, String>>,
+    ) -> Vec<u8> {
         let views: Vec<(String, TensorView)> = tensors
             .iter()
             .map(|(n, d, s, b)| (n.to_string(), TensorView::new(*d, s.clone(), b).unwrap()))
@@ -349,8 +402,14 @@ mod tests {
     #[test]
     fn reads_f32_in_place_and_widens_half_types() {
         let vals = [1.5f32, -2.0, 0.25, 3.0];
-        let h: Vec<u8> = vals.iter().flat_map(|x| f16::from_f32(*x).to_bits().to_le_bytes()).collect();
-        let b: Vec<u8> = vals.iter().flat_map(|x| bf16::from_f32(*x).to_bits().to_le_bytes()).collect();
+        let h: Vec<u8> = vals
+            .iter()
+            .flat_map(|x| f16::from_f32(*x).to_bits().to_le_bytes())
+            .collect();
+        let b: Vec<u8> = vals
+            .iter()
+            .flat_map(|x| bf16::from_f32(*x).to_bits().to_le_bytes())
+            .collect();
         let bytes = write(
             &[
                 ("a", Dtype::F32, vec![2, 2], f32_bytes(&vals)),
@@ -389,7 +448,12 @@ mod tests {
     #[test]
     fn rejects_broken_headers() {
         let good = write(&[("w", Dtype::F32, vec![2], f32_bytes(&[1.0, 2.0]))], None);
-        let msg = |b: &[u8]| ModelFile::from_bytes(b).err().expect("must fail").to_string();
+        let msg = |b: &[u8]| {
+            ModelFile::from_bytes(b)
+                .err()
+                .expect("must fail")
+                .to_string()
+        };
         assert!(msg(&good[..5]).contains("too short"));
         assert!(msg(&good[..good.len() - 1]).contains("truncated"));
         let mut huge = good.clone();
@@ -397,7 +461,11 @@ mod tests {
         assert!(msg(&huge).contains("exceeds the file size"));
         let mut not_json = good.clone();
         not_json[9] = b'#';
-        assert!(msg(&not_json).contains("not valid JSON"), "{}", msg(&not_json));
+        assert!(
+            msg(&not_json).contains("not valid JSON"),
+            "{}",
+            msg(&not_json)
+        );
         let mut not_st = good.clone();
         not_st[8] = b'[';
         assert!(msg(&not_st).contains("does not start"));

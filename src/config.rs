@@ -151,7 +151,11 @@ impl Config {
             }
             None => return Err(bad_file!("`{CONFIG_KEY}` has no integer `format_version`")),
         }
-        let arch = v.get("architecture").and_then(|x| x.as_str()).unwrap_or("").to_string();
+        let arch = v
+            .get("architecture")
+            .and_then(|x| x.as_str())
+            .unwrap_or("")
+            .to_string();
         if !ARCHITECTURES.contains(&arch.as_str()) {
             return Err(bad_file!(
                 "unknown architecture `{arch}` (supported: {})",
@@ -193,7 +197,9 @@ impl Config {
             ));
         }
         if d.model_channels % 2 != 0 {
-            return Err(bad_file!("config denoiser.model_channels must be even (sinusoidal embedding)"));
+            return Err(bad_file!(
+                "config denoiser.model_channels must be even (sinusoidal embedding)"
+            ));
         }
         if t.hidden_size % t.num_heads != 0 {
             return Err(bad_file!(
@@ -203,7 +209,10 @@ impl Config {
             ));
         }
         if !matches!(t.kind.as_str(), "bert" | "roberta") {
-            return Err(bad_file!("unknown text_encoder.kind `{}` (supported: bert, roberta)", t.kind));
+            return Err(bad_file!(
+                "unknown text_encoder.kind `{}` (supported: bert, roberta)",
+                t.kind
+            ));
         }
         if d.activation != "relu" && d.activation != "gelu" {
             return Err(bad_file!("unknown denoiser.activation `{}`", d.activation));
@@ -212,7 +221,10 @@ impl Config {
             return Err(bad_file!("config motion.fps must be positive"));
         }
         if !matches!(self.diffusion.uncond.as_str(), "empty_prompt" | "zeros") {
-            return Err(bad_file!("unknown diffusion.uncond `{}`", self.diffusion.uncond));
+            return Err(bad_file!(
+                "unknown diffusion.uncond `{}`",
+                self.diffusion.uncond
+            ));
         }
         Ok(())
     }
@@ -246,11 +258,17 @@ mod tests {
     fn clear_errors() {
         let e = Config::from_json("{not json").unwrap_err().to_string();
         assert!(e.contains("is not valid JSON"), "{e}");
-        let e = Config::from_json(&EXAMPLE.replace("\"flame\"", "\"unet\"")).unwrap_err().to_string();
-        assert_eq!(e, "bad model file: unknown architecture `unet` (supported: flame)");
-        let e = Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
+        let e = Config::from_json(&EXAMPLE.replace("\"flame\"", "\"unet\""))
             .unwrap_err()
             .to_string();
+        assert_eq!(
+            e,
+            "bad model file: unknown architecture `unet` (supported: flame)"
+        );
+        let e =
+            Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
+                .unwrap_err()
+                .to_string();
         assert!(e.contains("format_version 9 is not supported"), "{e}");
         let e = Config::from_json(&EXAMPLE.replace("\"num_heads\": 4,\n", "\"num_heads\": 5,\n"))
             .unwrap_err()

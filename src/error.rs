@@ -7,7 +7,10 @@ use std::fmt;
 #[derive(Debug)]
 pub enum Error {
     /// Reading a file failed (`path` says which).
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
     /// The model file is not a valid libflame file: bad header, bad JSON config, a missing or
     /// mis-shaped tensor, an unsupported dtype. The message names the first offending item.
     BadModelFile(String),

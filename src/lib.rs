@@ -9,6 +9,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod diffusion;
 pub mod error;
+pub mod ffi;
 pub mod kernels;
 pub mod models;
 pub mod motion;

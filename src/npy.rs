@@ -7,7 +7,11 @@ use crate::error::{invalid_arg, Error, Result};
 
 /// Encodes `data` with `shape` as a version 1.0 `.npy` file.
 pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
-    assert_eq!(shape.iter().product::<usize>(), data.len(), "shape does not match data");
+    assert_eq!(
+        shape.iter().product::<usize>(),
+        data.len(),
+        "shape does not match data"
+    );
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let shape_txt = match dims.len() {
         1 => format!("({},)", dims[0]),
@@ -30,14 +34,18 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
 
 /// Writes an `f32` array to `path`.
 pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
-    std::fs::write(path, encode_f32(shape, data))
-        .map_err(|source| Error::Io { path: path.display().to_string(), source })
+    std::fs::write(path, encode_f32(shape, data)).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
 }
 
 /// Reads an array of `<f4` or `<f8` values (C order) from `path`, as `f32`.
 pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
-    let bytes =
-        std::fs::read(path).map_err(|source| Error::Io { path: path.display().to_string(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
     decode_f32(&bytes).map_err(|e| match e {
         Error::InvalidArgument(m) => invalid_arg!("{}: {m}", path.display()),
         other => other,
@@ -51,9 +59,10 @@ pub fn decode_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
     }
     let (header_len, start) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => {
-            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
-        }
+        2 | 3 if bytes.len() >= 12 => (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        ),
         v => return Err(invalid_arg!("unsupported .npy version {v}")),
     };
     let header = bytes
@@ -71,18 +80,25 @@ pub fn decode_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
     } else if descr.starts_with("'<f8'") {
         8
     } else {
-        return Err(invalid_arg!(".npy dtype must be little-endian float32 or float64"));
+        return Err(invalid_arg!(
+            ".npy dtype must be little-endian float32 or float64"
+        ));
     };
     if field("fortran_order").is_some_and(|v| v.starts_with("True")) {
         return Err(invalid_arg!(".npy array must be in C order"));
     }
     let shape_txt = field("shape").ok_or_else(|| invalid_arg!(".npy header has no shape"))?;
-    let close = shape_txt.find(')').ok_or_else(|| invalid_arg!(".npy shape is malformed"))?;
+    let close = shape_txt
+        .find(')')
+        .ok_or_else(|| invalid_arg!(".npy shape is malformed"))?;
     let shape: Vec<usize> = shape_txt[1..close]
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| invalid_arg!(".npy shape is malformed")))
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| invalid_arg!(".npy shape is malformed"))
+        })
         .collect::<Result<_>>()?;
     let count = shape
         .iter()
@@ -90,10 +106,16 @@ pub fn decode_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
         .ok_or_else(|| invalid_arg!(".npy shape is too large"))?;
     let data = &bytes[start + header_len..];
     if data.len() != count.saturating_mul(width) {
-        return Err(invalid_arg!(".npy holds {} data bytes, its shape needs {}", data.len(), count * width));
+        return Err(invalid_arg!(
+            ".npy holds {} data bytes, its shape needs {}",
+            data.len(),
+            count * width
+        ));
     }
     let values = if width == 4 {
-        data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+        data.chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect()
     } else {
         data.chunks_exact(8)
             .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")) as f32)
@@ -138,6 +160,9 @@ mod tests {
         assert!(decode_f32(b"hello").is_err());
         let mut b = encode_f32(&[2], &[1.0, 2.0]);
         b.pop();
-        assert!(decode_f32(&b).unwrap_err().to_string().contains("data bytes"));
+        assert!(decode_f32(&b)
+            .unwrap_err()
+            .to_string()
+            .contains("data bytes"));
     }
 }

@@ -25,7 +25,9 @@ impl std::str::FromStr for Sampler {
         match s {
             "ddpm" => Ok(Sampler::Ddpm),
             "ddim" => Ok(Sampler::Ddim),
-            _ => Err(invalid_arg!("unknown sampler `{s}` (expected ddpm or ddim)")),
+            _ => Err(invalid_arg!(
+                "unknown sampler `{s}` (expected ddpm or ddim)"
+            )),
         }
     }
 }
@@ -95,7 +97,10 @@ impl Session {
         let d = &cfg.defaults;
         let frames = params.frames.unwrap_or(d.frames.min(model.max_frames()));
         if frames == 0 || frames > model.max_frames() {
-            return Err(invalid_arg!("frames {frames} outside 1..={}", model.max_frames()));
+            return Err(invalid_arg!(
+                "frames {frames} outside 1..={}",
+                model.max_frames()
+            ));
         }
         let guidance = params.guidance.unwrap_or(d.guidance);
         if !guidance.is_finite() {
@@ -164,7 +169,9 @@ impl Session {
     /// Sets x_T explicitly (`[frames, motion_dim]`); only before the first step.
     pub fn set_initial_noise(&mut self, x_t: &[f32]) -> Result<()> {
         if self.started {
-            return Err(Error::WrongState("initial noise can only be set before the first step (reset first)".into()));
+            return Err(Error::WrongState(
+                "initial noise can only be set before the first step (reset first)".into(),
+            ));
         }
         if x_t.len() != self.x.len() {
             return Err(invalid_arg!(
@@ -224,7 +231,11 @@ impl Session {
             ));
         }
         if let Some(i) = features.iter().position(|v| !v.is_finite()) {
-            return Err(invalid_arg!("reference value {i} (frame {}, channel {}) is NaN or infinite", i / dim, i % dim));
+            return Err(invalid_arg!(
+                "reference value {i} (frame {}, channel {}) is NaN or infinite",
+                i / dim,
+                i % dim
+            ));
         }
         self.edit.reference = Some(features.to_vec());
         Ok(())
@@ -261,7 +272,13 @@ impl Session {
     /// Imposes the kept reference values on x_t, diffused to step `t` with fresh noise, as
     /// FLAME's editing loop does before every denoising step.
     fn impose_reference(&mut self, t: usize) -> Result<()> {
-        let Edit { reference: Some(reference), keep: Some(keep), noised, noise } = &mut self.edit else {
+        let Edit {
+            reference: Some(reference),
+            keep: Some(keep),
+            noised,
+            noise,
+        } = &mut self.edit
+        else {
             return Ok(());
         };
         if !keep.iter().any(|&k| k) {
@@ -285,7 +302,9 @@ impl Session {
             return Err(Error::WrongState("set a prompt before stepping".into()));
         }
         if self.remaining == 0 {
-            return Err(Error::WrongState("the generation is finished; reset to start again".into()));
+            return Err(Error::WrongState(
+                "the generation is finished; reset to start again".into(),
+            ));
         }
         if self.cancel.swap(false, Ordering::SeqCst) {
             return Err(Error::Cancelled);
@@ -328,7 +347,14 @@ impl Session {
         }
         b.out.resize(batch * self.frames * od, 0.0);
         let conds: Vec<&Condition> = std::iter::once(cond).chain(uncond).collect();
-        model.forward(&b.batch_x, self.frames, self.sampler.model_timestep(t), &conds, &mut b.out, &mut b.ws)?;
+        model.forward(
+            &b.batch_x,
+            self.frames,
+            self.sampler.model_timestep(t),
+            &conds,
+            &mut b.out,
+            &mut b.ws,
+        )?;
         if self.cancel.swap(false, Ordering::SeqCst) {
             return Err(Error::Cancelled);
         }
@@ -337,7 +363,13 @@ impl Session {
         split_channels(&b.out[..self.frames * od], d, od, &mut b.pred, &mut b.var);
         if guided {
             let mut unused = Vec::new();
-            split_channels(&b.out[self.frames * od..], d, od, &mut b.pred_uncond, &mut unused);
+            split_channels(
+                &b.out[self.frames * od..],
+                d,
+                od,
+                &mut b.pred_uncond,
+                &mut unused,
+            );
             diffusion::guide(&mut b.pred, &b.pred_uncond, self.guidance);
         }
         let noise = if self.sampler.needs_noise(t) {
@@ -349,7 +381,8 @@ impl Session {
         };
         b.x_prev.resize(len, 0.0);
         let var = (od > d).then_some(&b.var[..]);
-        self.sampler.step(t, &self.x, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
+        self.sampler
+            .step(t, &self.x, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
         std::mem::swap(&mut self.x, &mut b.x_prev);
         self.remaining -= 1;
         self.stepped = true;
@@ -363,9 +396,15 @@ fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampl
     let dc = &cfg.diffusion;
     let steps = params.steps.unwrap_or(cfg.defaults.steps);
     if steps == 0 || steps > dc.num_timesteps {
-        return Err(invalid_arg!("steps {steps} outside 1..={}", dc.num_timesteps));
+        return Err(invalid_arg!(
+            "steps {steps} outside 1..={}",
+            dc.num_timesteps
+        ));
     }
-    let kind = match params.sampler.map_or_else(|| cfg.defaults.sampler.parse(), Ok)? {
+    let kind = match params
+        .sampler
+        .map_or_else(|| cfg.defaults.sampler.parse(), Ok)?
+    {
         Sampler::Ddpm => SamplerKind::Ddpm,
         Sampler::Ddim => {
             let eta = params.eta.unwrap_or(cfg.defaults.eta);
@@ -375,10 +414,21 @@ fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampl
             SamplerKind::Ddim { eta }
         }
     };
-    let bad = |what: &str, v: &str| crate::error::bad_file!("config diffusion.{what} `{v}` is not supported");
-    let schedule = dc.schedule.parse().map_err(|_| bad("schedule", &dc.schedule))?;
-    let param = dc.parameterization.parse().map_err(|_| bad("parameterization", &dc.parameterization))?;
-    let variance = dc.variance.parse().map_err(|_| bad("variance", &dc.variance))?;
+    let bad = |what: &str, v: &str| {
+        crate::error::bad_file!("config diffusion.{what} `{v}` is not supported")
+    };
+    let schedule = dc
+        .schedule
+        .parse()
+        .map_err(|_| bad("schedule", &dc.schedule))?;
+    let param = dc
+        .parameterization
+        .parse()
+        .map_err(|_| bad("parameterization", &dc.parameterization))?;
+    let variance = dc
+        .variance
+        .parse()
+        .map_err(|_| bad("variance", &dc.variance))?;
     let betas = diffusion::betas(schedule, dc.num_timesteps);
     let kept = diffusion::space_timesteps(dc.num_timesteps, &[steps])?;
     DiffusionSampler::new(&betas, &kept, kind, param, variance, dc.clip_denoised)

@@ -18,7 +18,9 @@ use safetensors::tensor::{Dtype, TensorView};
 const TOL: f32 = 1e-4;
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
 }
 
 struct Expected {
@@ -30,7 +32,10 @@ impl Expected {
     fn load() -> Expected {
         let file = ModelFile::open(&fixture("flame_tiny_expected.safetensors")).unwrap();
         let text = std::fs::read_to_string(fixture("flame_tiny_expected.json")).unwrap();
-        Expected { file, json: serde_json::from_str(&text).unwrap() }
+        Expected {
+            file,
+            json: serde_json::from_str(&text).unwrap(),
+        }
     }
     fn get(&self, name: &str) -> Vec<f32> {
         self.file.tensor_any_shape(name).unwrap().data().to_vec()
@@ -52,7 +57,10 @@ fn model() -> Arc<Model> {
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len(), "length mismatch");
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f32) {
@@ -68,8 +76,18 @@ fn text_encoder_matches_transformers() {
     assert_close("cond hidden", &cond.hidden, &e.get("text_cond_hidden"), TOL);
     assert_close("cond pooled", &cond.pooled, &e.get("text_cond_pooled"), TOL);
     let unc = m.text_encoder().encode("").unwrap();
-    assert_close("uncond hidden", &unc.hidden, &e.get("text_uncond_hidden"), TOL);
-    assert_close("uncond pooled", &unc.pooled, &e.get("text_uncond_pooled"), TOL);
+    assert_close(
+        "uncond hidden",
+        &unc.hidden,
+        &e.get("text_uncond_hidden"),
+        TOL,
+    );
+    assert_close(
+        "uncond pooled",
+        &unc.pooled,
+        &e.get("text_uncond_pooled"),
+        TOL,
+    );
 }
 
 #[test]
@@ -84,7 +102,15 @@ fn one_forward_with_guidance_matches_reference() {
     xb.extend_from_slice(&x);
     let od = m.output_dim();
     let mut out = vec![0.0; 2 * frames * od];
-    m.forward(&xb, frames, t, &[&cond, uncond], &mut out, &mut Workspace::default()).unwrap();
+    m.forward(
+        &xb,
+        frames,
+        t,
+        &[&cond, uncond],
+        &mut out,
+        &mut Workspace::default(),
+    )
+    .unwrap();
     let (oc, ou) = out.split_at(frames * od);
     assert_close("forward cond", oc, &e.get("forward_out_cond"), TOL);
     assert_close("forward uncond", ou, &e.get("forward_out_uncond"), TOL);
@@ -117,7 +143,8 @@ fn session(m: &Arc<Model>, e: &Expected, sampler: Sampler, threads: usize) -> Se
 fn check_trajectory(sampler: Sampler, prefix: &str) {
     let (m, e) = (model(), Expected::load());
     let mut s = session(&m, &e, sampler, 2);
-    s.set_initial_noise(&e.get(&format!("{prefix}_x_T"))).unwrap();
+    s.set_initial_noise(&e.get(&format!("{prefix}_x_T")))
+        .unwrap();
     if sampler == Sampler::Ddpm {
         s.set_noise_source(Box::new(ReplayNoise::new(e.get("ddpm_noise"))));
     }
@@ -128,8 +155,18 @@ fn check_trajectory(sampler: Sampler, prefix: &str) {
     for k in 0..10 {
         let left = s.step().unwrap();
         assert_eq!(left, 9 - k);
-        assert_close(&format!("{prefix} x0 at step {k}"), s.x0_estimate().unwrap(), &x0s[k * n..(k + 1) * n], TOL);
-        assert_close(&format!("{prefix} x at step {k}"), s.sample().unwrap(), &xs[k * n..(k + 1) * n], TOL);
+        assert_close(
+            &format!("{prefix} x0 at step {k}"),
+            s.x0_estimate().unwrap(),
+            &x0s[k * n..(k + 1) * n],
+            TOL,
+        );
+        assert_close(
+            &format!("{prefix} x at step {k}"),
+            s.sample().unwrap(),
+            &xs[k * n..(k + 1) * n],
+            TOL,
+        );
     }
 }
 
@@ -167,7 +204,11 @@ fn seeded_generation_is_bit_identical_across_runs_and_thread_counts() {
     other.set_prompt("a person jumps twice").unwrap();
     let first = other.run().unwrap().to_vec();
     other.reset();
-    assert_eq!(first, other.run().unwrap(), "reset restarts the seeded stream");
+    assert_eq!(
+        first,
+        other.run().unwrap(),
+        "reset restarts the seeded stream"
+    );
 }
 
 #[test]
@@ -184,10 +225,23 @@ fn f16_file_matches_reference_with_f16_rounded_weights() {
     let od = m16.output_dim();
     let mut out = vec![0.0; 2 * frames * od];
     let t = e.get("forward_t")[0];
-    m16.forward(&xb, frames, t, &[&cond, m16.uncond().unwrap()], &mut out, &mut Workspace::default()).unwrap();
+    m16.forward(
+        &xb,
+        frames,
+        t,
+        &[&cond, m16.uncond().unwrap()],
+        &mut out,
+        &mut Workspace::default(),
+    )
+    .unwrap();
     let (oc, ou) = out.split_at(frames * od);
     assert_close("f16 forward cond", oc, &e.get("f16w_forward_out_cond"), TOL);
-    assert_close("f16 forward uncond", ou, &e.get("f16w_forward_out_uncond"), TOL);
+    assert_close(
+        "f16 forward uncond",
+        ou,
+        &e.get("f16w_forward_out_uncond"),
+        TOL,
+    );
     // And it is a different model from the f32 one, by about f16's rounding.
     let d = max_abs_diff(oc, &e.get("forward_out_cond"));
     assert!(d > 1e-6 && d < 1e-2, "f16 vs f32 forward differ by {d:e}");
@@ -198,16 +252,43 @@ fn wrong_order_and_bad_arguments_are_errors() {
     let (m, e) = (model(), Expected::load());
     let mut s = session(&m, &e, Sampler::Ddim, 1);
     assert!(s.sample().is_none() && s.x0_estimate().is_none());
-    assert_eq!(s.step().unwrap_err().to_string(), "wrong state: set a prompt before stepping");
-    assert!(s.set_initial_noise(&[0.0; 3]).unwrap_err().to_string().contains("expected"));
+    assert_eq!(
+        s.step().unwrap_err().to_string(),
+        "wrong state: set a prompt before stepping"
+    );
+    assert!(s
+        .set_initial_noise(&[0.0; 3])
+        .unwrap_err()
+        .to_string()
+        .contains("expected"));
     let mut nan = vec![0.0; s.frames() * m.motion_dim()];
     nan[5] = f32::NAN;
-    assert!(s.set_initial_noise(&nan).unwrap_err().to_string().contains("NaN"));
+    assert!(s
+        .set_initial_noise(&nan)
+        .unwrap_err()
+        .to_string()
+        .contains("NaN"));
     let bad = |p: SessionParams| Session::new(Arc::clone(&m), &p).err().unwrap().to_string();
-    assert!(bad(SessionParams { frames: Some(0), ..Default::default() }).contains("frames 0 outside"));
-    assert!(bad(SessionParams { frames: Some(471), ..Default::default() }).contains("frames 471 outside 1..=470"));
-    assert!(bad(SessionParams { steps: Some(1001), ..Default::default() }).contains("steps 1001 outside"));
-    assert!(bad(SessionParams { guidance: Some(f32::NAN), ..Default::default() }).contains("guidance"));
+    assert!(bad(SessionParams {
+        frames: Some(0),
+        ..Default::default()
+    })
+    .contains("frames 0 outside"));
+    assert!(bad(SessionParams {
+        frames: Some(471),
+        ..Default::default()
+    })
+    .contains("frames 471 outside 1..=470"));
+    assert!(bad(SessionParams {
+        steps: Some(1001),
+        ..Default::default()
+    })
+    .contains("steps 1001 outside"));
+    assert!(bad(SessionParams {
+        guidance: Some(f32::NAN),
+        ..Default::default()
+    })
+    .contains("guidance"));
     s.set_prompt("walk").unwrap();
     s.run().unwrap();
     assert!(s.step().unwrap_err().to_string().contains("finished"));
@@ -264,18 +345,25 @@ fn bad_model_files_get_clear_errors() {
     let e = load_err(b"GIF89a this is not a model file at all");
     assert!(e.starts_with("bad model file:"), "{e}");
 
-    let e = load_err(&rewrite(|m| drop(m.insert("flame.config".into(), "{\"format_version\": 1,".into())), |_| {}));
+    let e = load_err(&rewrite(
+        |m| drop(m.insert("flame.config".into(), "{\"format_version\": 1,".into())),
+        |_| {},
+    ));
     assert!(e.contains("`flame.config` is not valid JSON"), "{e}");
     let e = load_err(&rewrite(|m| drop(m.remove("flame.config")), |_| {}));
     assert!(e.contains("not a libflame model file"), "{e}");
     let e = load_err(&rewrite(
         |m| {
-            let c = m["flame.config"].replace("\"architecture\": \"flame\"", "\"architecture\": \"unet\"");
+            let c = m["flame.config"]
+                .replace("\"architecture\": \"flame\"", "\"architecture\": \"unet\"");
             m.insert("flame.config".into(), c);
         },
         |_| {},
     ));
-    assert_eq!(e, "bad model file: unknown architecture `unet` (supported: flame)");
+    assert_eq!(
+        e,
+        "bad model file: unknown architecture `unet` (supported: flame)"
+    );
     let e = load_err(&rewrite(|m| drop(m.remove("flame.tokenizer")), |_| {}));
     assert!(e.contains("flame.tokenizer"), "{e}");
 
@@ -283,21 +371,39 @@ fn bad_model_files_get_clear_errors() {
     let e = load_err(&rewrite(
         |_| {},
         |l| {
-            let t = l.iter_mut().find(|t| t.0 == "input_projection.bias").unwrap();
+            let t = l
+                .iter_mut()
+                .find(|t| t.0 == "input_projection.bias")
+                .unwrap();
             t.1 = Dtype::I32;
         },
     ));
-    assert!(e.contains("tensor `input_projection.bias` has unsupported dtype I32"), "{e}");
+    assert!(
+        e.contains("tensor `input_projection.bias` has unsupported dtype I32"),
+        "{e}"
+    );
     // A wrong shape: the message names the tensor and both shapes.
     let e = load_err(&rewrite(
         |_| {},
         |l| {
-            let t = l.iter_mut().find(|t| t.0 == "tf_decoder.layers.1.linear1.bias").unwrap();
+            let t = l
+                .iter_mut()
+                .find(|t| t.0 == "tf_decoder.layers.1.linear1.bias")
+                .unwrap();
             t.2 = vec![t.2[0] / 2, 2];
         },
     ));
-    assert!(e.contains("tensor `tf_decoder.layers.1.linear1.bias` has shape ["), "{e}");
+    assert!(
+        e.contains("tensor `tf_decoder.layers.1.linear1.bias` has shape ["),
+        "{e}"
+    );
     // A missing tensor.
-    let e = load_err(&rewrite(|_| {}, |l| l.retain(|t| t.0 != "last_projection.weight")));
-    assert_eq!(e, "bad model file: tensor `last_projection.weight` is missing");
+    let e = load_err(&rewrite(
+        |_| {},
+        |l| l.retain(|t| t.0 != "last_projection.weight"),
+    ));
+    assert_eq!(
+        e,
+        "bad model file: tensor `last_projection.weight` is missing"
+    );
 }

@@ -18,7 +18,9 @@ const TOL: f32 = 1e-4;
 const ST_MAX_LENGTH: usize = 256;
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
 }
 
 fn model_dir() -> Option<PathBuf> {
@@ -40,7 +42,10 @@ fn model_dir() -> Option<PathBuf> {
 fn config_from_hf(dir: &Path) -> TextEncoderConfig {
     let text = std::fs::read_to_string(dir.join("config.json")).expect("config.json");
     let v: serde_json::Value = serde_json::from_str(&text).expect("config.json is JSON");
-    let n = |k: &str| v[k].as_u64().unwrap_or_else(|| panic!("config.json: no integer `{k}`")) as usize;
+    let n = |k: &str| {
+        v[k].as_u64()
+            .unwrap_or_else(|| panic!("config.json: no integer `{k}`")) as usize
+    };
     TextEncoderConfig {
         kind: v["model_type"].as_str().expect("model_type").to_string(),
         vocab_size: n("vocab_size"),
@@ -60,32 +65,55 @@ fn config_from_hf(dir: &Path) -> TextEncoderConfig {
 fn load(dir: &Path) -> TextEncoder {
     let file = ModelFile::open(&dir.join("model.safetensors")).expect("model.safetensors opens");
     // sentence-transformers saves a bare BertModel: names have no prefix.
-    assert!(file.contains("embeddings.word_embeddings.weight"), "unexpected tensor names: {:?}", &file.names()[..5]);
+    assert!(
+        file.contains("embeddings.word_embeddings.weight"),
+        "unexpected tensor names: {:?}",
+        &file.names()[..5]
+    );
     let tok = std::fs::read_to_string(dir.join("tokenizer.json")).expect("tokenizer.json");
     TextEncoder::load(&file, "", &config_from_hf(dir), &tok).expect("MiniLM loads")
 }
 
 fn f32s(st: &SafeTensors, name: &str) -> Vec<f32> {
-    let t = st.tensor(name).unwrap_or_else(|e| panic!("fixture tensor {name}: {e:?}"));
+    let t = st
+        .tensor(name)
+        .unwrap_or_else(|e| panic!("fixture tensor {name}: {e:?}"));
     assert_eq!(t.dtype(), Dtype::F32, "{name}");
-    t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    t.data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
 }
 
 fn ids(st: &SafeTensors, name: &str) -> Vec<u32> {
-    let t = st.tensor(name).unwrap_or_else(|e| panic!("fixture tensor {name}: {e:?}"));
+    let t = st
+        .tensor(name)
+        .unwrap_or_else(|e| panic!("fixture tensor {name}: {e:?}"));
     assert_eq!(t.dtype(), Dtype::I64, "{name}");
-    t.data().chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap()) as u32).collect()
+    t.data()
+        .chunks_exact(8)
+        .map(|b| i64::from_le_bytes(b.try_into().unwrap()) as u32)
+        .collect()
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len(), "length mismatch");
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 fn sentences(key: &str) -> Vec<String> {
-    let text = std::fs::read_to_string(fixture("minilm_sentences.json")).expect("minilm_sentences.json");
+    let text =
+        std::fs::read_to_string(fixture("minilm_sentences.json")).expect("minilm_sentences.json");
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-    v[key].as_array().unwrap().iter().map(|s| s["text"].as_str().unwrap().to_string()).collect()
+    v[key]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["text"].as_str().unwrap().to_string())
+        .collect()
 }
 
 /// Worst errors over all sentences: (hidden, pooled, sentence embedding).
@@ -104,15 +132,24 @@ fn minilm_matches_transformers_and_sentence_transformers() {
     assert!(texts.len() >= 24);
     for (i, text) in texts.iter().enumerate() {
         let tokens = enc.tokenize(text, ST_MAX_LENGTH, false).unwrap();
-        assert_eq!(tokens.ids, ids(&st, &format!("s{i}.ids")), "ids of sentence {i} {text:?}");
+        assert_eq!(
+            tokens.ids,
+            ids(&st, &format!("s{i}.ids")),
+            "ids of sentence {i} {text:?}"
+        );
         assert!(tokens.mask.iter().all(|&m| m == 1));
         let out = enc.encode_tokens(&tokens).unwrap();
         let h = max_abs(&out.hidden, &f32s(&st, &format!("s{i}.hidden")));
         let p = max_abs(&out.pooled, &f32s(&st, &format!("s{i}.pooled")));
-        let e = max_abs(&out.mean_pooled_normalized(), &f32s(&st, &format!("s{i}.embedding")));
+        let e = max_abs(
+            &out.mean_pooled_normalized(),
+            &f32s(&st, &format!("s{i}.embedding")),
+        );
         worst = Worst(worst.0.max(h), worst.1.max(p), worst.2.max(e));
         if h > TOL || p > TOL || e > TOL {
-            failures.push(format!("sentence {i} {text:?}: hidden {h:.2e} pooled {p:.2e} embedding {e:.2e}"));
+            failures.push(format!(
+                "sentence {i} {text:?}: hidden {h:.2e} pooled {p:.2e} embedding {e:.2e}"
+            ));
         }
     }
     println!(
@@ -122,7 +159,11 @@ fn minilm_matches_transformers_and_sentence_transformers() {
         worst.1,
         worst.2
     );
-    assert!(failures.is_empty(), "beyond {TOL}:\n{}", failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "beyond {TOL}:\n{}",
+        failures.join("\n")
+    );
 }
 
 #[test]
@@ -134,14 +175,27 @@ fn minilm_padded_to_20_masks_the_padding() {
     let mut worst = Worst::default();
     for (j, text) in sentences("padded").iter().enumerate() {
         let tokens = enc.tokenize(text, 20, true).unwrap();
-        assert_eq!(tokens.ids, ids(&st, &format!("p{j}.ids")), "ids of padded sentence {j} {text:?}");
-        let mask: Vec<u8> = ids(&st, &format!("p{j}.mask")).iter().map(|&m| m as u8).collect();
+        assert_eq!(
+            tokens.ids,
+            ids(&st, &format!("p{j}.ids")),
+            "ids of padded sentence {j} {text:?}"
+        );
+        let mask: Vec<u8> = ids(&st, &format!("p{j}.mask"))
+            .iter()
+            .map(|&m| m as u8)
+            .collect();
         assert_eq!(tokens.mask, mask, "mask of padded sentence {j}");
         let out = enc.encode_tokens(&tokens).unwrap();
         let h = max_abs(&out.hidden, &f32s(&st, &format!("p{j}.hidden")));
         let p = max_abs(&out.pooled, &f32s(&st, &format!("p{j}.pooled")));
-        assert!(h <= TOL && p <= TOL, "padded sentence {j} {text:?}: hidden {h:.2e} pooled {p:.2e}");
+        assert!(
+            h <= TOL && p <= TOL,
+            "padded sentence {j} {text:?}: hidden {h:.2e} pooled {p:.2e}"
+        );
         worst = Worst(worst.0.max(h), worst.1.max(p), 0.0);
     }
-    println!("minilm padded to 20: max abs error hidden {:.2e}, pooled {:.2e}", worst.0, worst.1);
+    println!(
+        "minilm padded to 20: max abs error hidden {:.2e}, pooled {:.2e}",
+        worst.0, worst.1
+    );
 }

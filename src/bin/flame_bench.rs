@@ -45,7 +45,10 @@ fn main() {
 
     let t = Instant::now();
     let model = Arc::new(Model::load(&path).unwrap_or_else(|e| panic!("cannot load {path}: {e}")));
-    println!("model {path}: loaded in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
+    println!(
+        "model {path}: loaded in {:.0} ms",
+        t.elapsed().as_secs_f64() * 1e3
+    );
     let params = SessionParams {
         frames: Some(frames),
         steps: Some(steps),

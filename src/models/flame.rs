@@ -36,7 +36,15 @@ impl Linear {
 
     /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
     fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        kernels::linear(x, self.weight.data(), Some(self.bias.data()), y, rows, self.n_in, self.n_out);
+        kernels::linear(
+            x,
+            self.weight.data(),
+            Some(self.bias.data()),
+            y,
+            rows,
+            self.n_in,
+            self.n_out,
+        );
     }
 }
 
@@ -130,7 +138,8 @@ impl FlameDenoiser {
     pub fn load(file: &ModelFile, cfg: &FlameConfig, text_hidden: usize) -> Result<FlameDenoiser> {
         let c = cfg.model_channels;
         let d = cfg.motion_dim;
-        let motion_length_emb = file.tensor("motion_length_emb.weight", &[cfg.max_motion_length, c])?;
+        let motion_length_emb =
+            file.tensor("motion_length_emb.weight", &[cfg.max_motion_length, c])?;
         let input_projection = Linear::load(file, "input_projection", d, c)?;
         let text_pooler_proj = Linear::load(file, "text_pooler_proj", text_hidden, c)?;
         let text_h_proj = Linear::load(file, "text_h_proj", text_hidden, c)?;
@@ -184,7 +193,8 @@ impl FlameDenoiser {
     /// Projects a text encoding into FLAME's conditioning (once per prompt, not per step).
     pub fn condition(&self, text: &TextOutput) -> Result<FlameCondition> {
         let c = self.cfg.model_channels;
-        if text.pooled.len() != self.text_hidden || text.hidden.len() != text.len * self.text_hidden {
+        if text.pooled.len() != self.text_hidden || text.hidden.len() != text.len * self.text_hidden
+        {
             return Err(invalid_arg!(
                 "text encoding has hidden size {}, the denoiser expects {}",
                 text.pooled.len(),
@@ -192,10 +202,16 @@ impl FlameDenoiser {
             ));
         }
         let mut cls_token = vec![0.0; c];
-        self.text_pooler_proj.forward(&text.pooled, 1, &mut cls_token);
+        self.text_pooler_proj
+            .forward(&text.pooled, 1, &mut cls_token);
         let mut text_tokens = vec![0.0; text.len * c];
-        self.text_h_proj.forward(&text.hidden, text.len, &mut text_tokens);
-        Ok(FlameCondition { cls_token, text_tokens, text_len: text.len })
+        self.text_h_proj
+            .forward(&text.hidden, text.len, &mut text_tokens);
+        Ok(FlameCondition {
+            cls_token,
+            text_tokens,
+            text_len: text.len,
+        })
     }
 
     /// One forward pass over a batch: row `b` denoises `x[b]` (`[frames, motion_dim]`) under
@@ -214,15 +230,22 @@ impl FlameDenoiser {
         let d = self.cfg.motion_dim;
         let batch = conds.len();
         if frames == 0 || frames > self.max_frames() {
-            return Err(invalid_arg!("frames {frames} outside 1..={}", self.max_frames()));
+            return Err(invalid_arg!(
+                "frames {frames} outside 1..={}",
+                self.max_frames()
+            ));
         }
         if x.len() != batch * frames * d || out.len() != batch * frames * 2 * d {
-            return Err(invalid_arg!("forward buffers do not match batch {batch} × {frames} frames"));
+            return Err(invalid_arg!(
+                "forward buffers do not match batch {batch} × {frames} frames"
+            ));
         }
         let seq = frames + AUX_TOKENS;
         let mem_len = conds.first().map_or(0, |k| k.text_len) + AUX_TOKENS;
         if conds.iter().any(|k| k.text_len + AUX_TOKENS != mem_len) {
-            return Err(invalid_arg!("all conditions in a batch must have the same text length"));
+            return Err(invalid_arg!(
+                "all conditions in a batch must have the same text length"
+            ));
         }
 
         // Motion tokens for the whole batch in one GEMM.
@@ -262,11 +285,19 @@ impl FlameDenoiser {
             let src = &h[(b * seq + AUX_TOKENS) * c..(b + 1) * seq * c];
             motion_out[b * frames * c..(b + 1) * frames * c].copy_from_slice(src);
         }
-        self.last_projection.forward(motion_out, batch * frames, out);
+        self.last_projection
+            .forward(motion_out, batch * frames, out);
         Ok(())
     }
 
-    fn decoder_layer(&self, layer: &DecoderLayer, batch: usize, seq: usize, mem_len: usize, ws: &mut Workspace) {
+    fn decoder_layer(
+        &self,
+        layer: &DecoderLayer,
+        batch: usize,
+        seq: usize,
+        mem_len: usize,
+        ws: &mut Workspace,
+    ) {
         let c = self.cfg.model_channels;
         let heads = self.cfg.num_heads;
         let hd = c / heads;
@@ -276,7 +307,15 @@ impl FlameDenoiser {
         // Self-attention: x ← norm1(x + SelfAttn(x)).
         let qkv = sized(&mut ws.qkv, rows * 3 * c);
         let sa = &layer.self_attn;
-        kernels::linear(&ws.x, sa.in_proj_weight.data(), Some(sa.in_proj_bias.data()), qkv, rows, c, 3 * c);
+        kernels::linear(
+            &ws.x,
+            sa.in_proj_weight.data(),
+            Some(sa.in_proj_bias.data()),
+            qkv,
+            rows,
+            c,
+            3 * c,
+        );
         let attn = sized(&mut ws.attn, rows * c);
         for b in 0..batch {
             let q = &qkv[b * seq * 3 * c..];
@@ -298,7 +337,14 @@ impl FlameDenoiser {
         }
         let proj = sized(&mut ws.proj, rows * c);
         sa.out_proj.forward(attn, rows, proj);
-        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm1.weight.data(), layer.norm1.bias.data(), eps);
+        kernels::add_layer_norm(
+            &mut ws.x,
+            proj,
+            c,
+            layer.norm1.weight.data(),
+            layer.norm1.bias.data(),
+            eps,
+        );
 
         // Cross-attention to the memory: x ← norm2(x + CrossAttn(x, memory)).
         let ca = &layer.multihead_attn;
@@ -306,7 +352,15 @@ impl FlameDenoiser {
         let q = sized(&mut ws.qkv, rows * c);
         kernels::linear(&ws.x, &w[..c * c], Some(&bias[..c]), q, rows, c, c);
         let kv = sized(&mut ws.kv, batch * mem_len * 2 * c);
-        kernels::linear(&ws.memory, &w[c * c..], Some(&bias[c..]), kv, batch * mem_len, c, 2 * c);
+        kernels::linear(
+            &ws.memory,
+            &w[c * c..],
+            Some(&bias[c..]),
+            kv,
+            batch * mem_len,
+            c,
+            2 * c,
+        );
         let attn = sized(&mut ws.attn, rows * c);
         for b in 0..batch {
             let kvb = &kv[b * mem_len * 2 * c..];
@@ -328,7 +382,14 @@ impl FlameDenoiser {
         }
         let proj = sized(&mut ws.proj, rows * c);
         ca.out_proj.forward(attn, rows, proj);
-        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm2.weight.data(), layer.norm2.bias.data(), eps);
+        kernels::add_layer_norm(
+            &mut ws.x,
+            proj,
+            c,
+            layer.norm2.weight.data(),
+            layer.norm2.bias.data(),
+            eps,
+        );
 
         // Feed-forward: x ← norm3(x + linear2(act(linear1(x)))).
         let f = self.cfg.dim_feedforward;
@@ -341,6 +402,13 @@ impl FlameDenoiser {
         }
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
-        kernels::add_layer_norm(&mut ws.x, proj, c, layer.norm3.weight.data(), layer.norm3.bias.data(), eps);
+        kernels::add_layer_norm(
+            &mut ws.x,
+            proj,
+            c,
+            layer.norm3.weight.data(),
+            layer.norm3.bias.data(),
+            eps,
+        );
     }
 }

@@ -57,11 +57,21 @@ impl Model {
             .ok_or_else(|| bad_file!("no `{TOKENIZER_KEY}` metadata (the tokenizer.json text)"))?;
         let text = TextEncoder::load(&file, TEXT_PREFIX, &config.text_encoder, tokenizer)?;
         let denoiser = match config.architecture.as_str() {
-            "flame" => Denoiser::Flame(FlameDenoiser::load(&file, &config.denoiser, text.hidden_size())?),
+            "flame" => Denoiser::Flame(FlameDenoiser::load(
+                &file,
+                &config.denoiser,
+                text.hidden_size(),
+            )?),
             other => return Err(bad_file!("unknown architecture `{other}`")),
         };
         let dtype = file.dominant_dtype();
-        Ok(Model { config, text, denoiser, dtype, uncond: OnceLock::new() })
+        Ok(Model {
+            config,
+            text,
+            denoiser,
+            dtype,
+            uncond: OnceLock::new(),
+        })
     }
 
     pub fn config(&self) -> &Config {

@@ -7,7 +7,9 @@
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::config::TextEncoderConfig;
 use crate::error::{bad_file, invalid_arg, Result};
-use crate::kernels::{add_layer_norm, embedding, gelu_erf, layer_norm, linear, multi_head_attention, tanh};
+use crate::kernels::{
+    add_layer_norm, embedding, gelu_erf, layer_norm, linear, multi_head_attention, tanh,
+};
 
 use super::tokenizer::{TextTokenizer, Tokens};
 
@@ -60,7 +62,12 @@ impl TextOutput {
         let e = self.hidden_size();
         let mut sum = vec![0f32; e];
         let mut count = 0f32;
-        for (row, _) in self.hidden.chunks_exact(e).zip(&self.mask).filter(|(_, &m)| m != 0) {
+        for (row, _) in self
+            .hidden
+            .chunks_exact(e)
+            .zip(&self.mask)
+            .filter(|(_, &m)| m != 0)
+        {
             sum.iter_mut().zip(row).for_each(|(s, &h)| *s += h);
             count += 1.0;
         }
@@ -90,7 +97,15 @@ impl Dense {
     /// `x [rows, n_in]` → `[rows, n_out]`.
     fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
         let mut y = vec![0f32; rows * self.n_out];
-        linear(x, self.w.data(), Some(self.b.data()), &mut y, rows, self.n_in, self.n_out);
+        linear(
+            x,
+            self.w.data(),
+            Some(self.b.data()),
+            &mut y,
+            rows,
+            self.n_in,
+            self.n_out,
+        );
         y
     }
 }
@@ -147,16 +162,48 @@ impl Layer {
     /// a = LN(dense(attn(x)) + x); returns LN(W2·GELU(W1·a) + a).
     fn forward(&self, x: &[f32], n: usize, key_padding: Option<&[bool]>, d: Dims) -> Vec<f32> {
         let e = d.hidden;
-        let (q, k, v) = (self.query.apply(x, n), self.key.apply(x, n), self.value.apply(x, n));
+        let (q, k, v) = (
+            self.query.apply(x, n),
+            self.key.apply(x, n),
+            self.value.apply(x, n),
+        );
         let mut ctx = vec![0f32; n * e];
         let head_dim = e / d.heads;
-        multi_head_attention(&q, e, &k, e, &v, e, n, n, d.heads, head_dim, key_padding, false, &mut ctx);
+        multi_head_attention(
+            &q,
+            e,
+            &k,
+            e,
+            &v,
+            e,
+            n,
+            n,
+            d.heads,
+            head_dim,
+            key_padding,
+            false,
+            &mut ctx,
+        );
         let mut a = self.attn_out.apply(&ctx, n);
-        add_layer_norm(&mut a, x, e, self.attn_norm.gamma.data(), self.attn_norm.beta.data(), d.eps);
+        add_layer_norm(
+            &mut a,
+            x,
+            e,
+            self.attn_norm.gamma.data(),
+            self.attn_norm.beta.data(),
+            d.eps,
+        );
         let mut h = self.intermediate.apply(&a, n);
         gelu_erf(&mut h);
         let mut out = self.output.apply(&h, n);
-        add_layer_norm(&mut out, &a, e, self.out_norm.gamma.data(), self.out_norm.beta.data(), d.eps);
+        add_layer_norm(
+            &mut out,
+            &a,
+            e,
+            self.out_norm.gamma.data(),
+            self.out_norm.beta.data(),
+            d.eps,
+        );
         out
     }
 }
@@ -184,7 +231,12 @@ impl TextEncoder {
     /// and `{prefix}pooler.dense.…` (prefix `"text."` in libflame files, `""` in a bare Hugging
     /// Face BertModel/RobertaModel file). Tensors are requested embeddings → layers → pooler, so
     /// a bad file's error names the first bad tensor.
-    pub fn load(file: &ModelFile, prefix: &str, cfg: &TextEncoderConfig, tokenizer_json: &str) -> Result<TextEncoder> {
+    pub fn load(
+        file: &ModelFile,
+        prefix: &str,
+        cfg: &TextEncoderConfig,
+        tokenizer_json: &str,
+    ) -> Result<TextEncoder> {
         let kind = check_config(cfg)?;
         let dims = Dims {
             hidden: cfg.hidden_size,
@@ -194,11 +246,18 @@ impl TextEncoder {
         };
         let e = dims.hidden;
         let p = prefix;
-        let word = file.tensor(&format!("{p}embeddings.word_embeddings.weight"), &[cfg.vocab_size, e])?;
-        let position =
-            file.tensor(&format!("{p}embeddings.position_embeddings.weight"), &[cfg.max_position_embeddings, e])?;
-        let token_type =
-            file.tensor(&format!("{p}embeddings.token_type_embeddings.weight"), &[cfg.type_vocab_size, e])?;
+        let word = file.tensor(
+            &format!("{p}embeddings.word_embeddings.weight"),
+            &[cfg.vocab_size, e],
+        )?;
+        let position = file.tensor(
+            &format!("{p}embeddings.position_embeddings.weight"),
+            &[cfg.max_position_embeddings, e],
+        )?;
+        let token_type = file.tensor(
+            &format!("{p}embeddings.token_type_embeddings.weight"),
+            &[cfg.type_vocab_size, e],
+        )?;
         let emb_norm = Norm::load(file, &format!("{p}embeddings.LayerNorm"), e)?;
         let layers = (0..cfg.num_layers)
             .map(|i| Layer::load(file, &format!("{p}encoder.layer.{i}."), dims))
@@ -289,7 +348,13 @@ impl TextEncoder {
                 *v += p + t;
             }
         }
-        layer_norm(&mut x, e, self.emb_norm.gamma.data(), self.emb_norm.beta.data(), self.dims.eps);
+        layer_norm(
+            &mut x,
+            e,
+            self.emb_norm.gamma.data(),
+            self.emb_norm.beta.data(),
+            self.dims.eps,
+        );
 
         let key_padding: Vec<bool> = tokens.mask.iter().map(|&m| m == 0).collect();
         let key_padding = key_padding.iter().any(|&p| p).then_some(&key_padding[..]);
@@ -298,16 +363,26 @@ impl TextEncoder {
         }
         let mut pooled = self.pooler.apply(&x[..e], 1);
         tanh(&mut pooled);
-        Ok(TextOutput { len: n, hidden: x, pooled, mask: tokens.mask.clone() })
+        Ok(TextOutput {
+            len: n,
+            hidden: x,
+            pooled,
+            mask: tokens.mask.clone(),
+        })
     }
 
     fn check_tokens(&self, tokens: &Tokens) -> Result<()> {
         let n = tokens.ids.len();
         if n == 0 {
-            return Err(invalid_arg!("tokens: empty sequence (at least the first special token is needed)"));
+            return Err(invalid_arg!(
+                "tokens: empty sequence (at least the first special token is needed)"
+            ));
         }
         if tokens.mask.len() != n {
-            return Err(invalid_arg!("tokens: {n} ids but {} mask values", tokens.mask.len()));
+            return Err(invalid_arg!(
+                "tokens: {n} ids but {} mask values",
+                tokens.mask.len()
+            ));
         }
         if n > self.max_sequence_length() {
             return Err(invalid_arg!(
@@ -315,8 +390,16 @@ impl TextEncoder {
                 self.max_sequence_length()
             ));
         }
-        if let Some((i, id)) = tokens.ids.iter().enumerate().find(|(_, &id)| id as usize >= self.vocab_size) {
-            return Err(invalid_arg!("tokens: id {id} at index {i} is not below vocab_size {}", self.vocab_size));
+        if let Some((i, id)) = tokens
+            .ids
+            .iter()
+            .enumerate()
+            .find(|(_, &id)| id as usize >= self.vocab_size)
+        {
+            return Err(invalid_arg!(
+                "tokens: id {id} at index {i} is not below vocab_size {}",
+                self.vocab_size
+            ));
         }
         Ok(())
     }
@@ -327,7 +410,11 @@ fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
     let kind = match cfg.kind.as_str() {
         "bert" => EncoderKind::Bert,
         "roberta" => EncoderKind::Roberta,
-        other => return Err(bad_file!("unknown text_encoder.kind `{other}` (supported: bert, roberta)")),
+        other => {
+            return Err(bad_file!(
+                "unknown text_encoder.kind `{other}` (supported: bert, roberta)"
+            ))
+        }
     };
     let positive = [
         ("vocab_size", cfg.vocab_size),
@@ -349,7 +436,10 @@ fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
         ));
     }
     if cfg.hidden_act != "gelu" {
-        return Err(bad_file!("text_encoder.hidden_act `{}` is not supported (only exact `gelu`)", cfg.hidden_act));
+        return Err(bad_file!(
+            "text_encoder.hidden_act `{}` is not supported (only exact `gelu`)",
+            cfg.hidden_act
+        ));
     }
     if cfg.pad_token_id as usize >= cfg.vocab_size {
         return Err(bad_file!(
@@ -386,17 +476,33 @@ mod tests {
 
     #[test]
     fn roberta_positions_skip_padding() {
-        assert_eq!(roberta_position_ids(&[0, 5, 7, 2, 1, 1], 1), [2, 3, 4, 5, 1, 1]);
+        assert_eq!(
+            roberta_position_ids(&[0, 5, 7, 2, 1, 1], 1),
+            [2, 3, 4, 5, 1, 1]
+        );
         // A pad id inside the text (a literal "<pad>") is a padding position in HF too.
         assert_eq!(roberta_position_ids(&[0, 1, 7, 2], 1), [2, 1, 3, 4]);
     }
 
     #[test]
     fn mean_pooling_ignores_padding_and_normalises() {
-        let out = TextOutput { len: 3, hidden: vec![1.0, 0.0, 3.0, 4.0, 100.0, -7.0], pooled: vec![0.0; 2], mask: vec![1, 1, 0] };
+        let out = TextOutput {
+            len: 3,
+            hidden: vec![1.0, 0.0, 3.0, 4.0, 100.0, -7.0],
+            pooled: vec![0.0; 2],
+            mask: vec![1, 1, 0],
+        };
         let v = out.mean_pooled_normalized();
-        assert!((v[0] - 0.5f32.sqrt()).abs() < 1e-7 && (v[1] - 0.5f32.sqrt()).abs() < 1e-7, "{v:?}");
-        let zero = TextOutput { len: 1, hidden: vec![0.0, 0.0], pooled: vec![0.0; 2], mask: vec![0] };
+        assert!(
+            (v[0] - 0.5f32.sqrt()).abs() < 1e-7 && (v[1] - 0.5f32.sqrt()).abs() < 1e-7,
+            "{v:?}"
+        );
+        let zero = TextOutput {
+            len: 1,
+            hidden: vec![0.0, 0.0],
+            pooled: vec![0.0; 2],
+            mask: vec![0],
+        };
         assert_eq!(zero.mean_pooled_normalized(), [0.0, 0.0]);
     }
 
@@ -455,32 +561,60 @@ mod tests {
                 (format!("text.{n}"), s, bytes)
             })
             .collect();
-        let views: Vec<(String, TensorView)> =
-            data.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F32, s.clone(), b).unwrap())).collect();
+        let views: Vec<(String, TensorView)> = data
+            .iter()
+            .map(|(n, s, b)| {
+                (
+                    n.clone(),
+                    TensorView::new(Dtype::F32, s.clone(), b).unwrap(),
+                )
+            })
+            .collect();
         ModelFile::from_bytes(&safetensors::serialize(views, &None).unwrap()).unwrap()
     }
 
     fn load_err(file: &ModelFile, cfg: &TextEncoderConfig) -> String {
-        TextEncoder::load(file, "text.", cfg, WORDPIECE).err().expect("load must fail").to_string()
+        TextEncoder::load(file, "text.", cfg, WORDPIECE)
+            .err()
+            .expect("load must fail")
+            .to_string()
     }
 
     #[test]
     fn loads_a_complete_file() {
-        let enc = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), WORDPIECE).unwrap();
-        assert_eq!((enc.hidden_size(), enc.max_length(), enc.max_sequence_length()), (4, 8, 8));
-        assert_eq!(enc.tokenize("a person", 8, false).unwrap().ids, [2, 4, 5, 3]);
+        let enc =
+            TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), WORDPIECE).unwrap();
+        assert_eq!(
+            (
+                enc.hidden_size(),
+                enc.max_length(),
+                enc.max_sequence_length()
+            ),
+            (4, 8, 8)
+        );
+        assert_eq!(
+            enc.tokenize("a person", 8, false).unwrap().ids,
+            [2, 4, 5, 3]
+        );
     }
 
     #[test]
     fn names_the_first_bad_tensor() {
         let cfg = tiny_config();
-        let skip = ["encoder.layer.1.output.dense.bias", "encoder.layer.0.attention.self.key.weight", "pooler.dense.weight"];
+        let skip = [
+            "encoder.layer.1.output.dense.bias",
+            "encoder.layer.0.attention.self.key.weight",
+            "pooler.dense.weight",
+        ];
         assert_eq!(
             load_err(&tiny_file(&skip, ""), &cfg),
             "bad model file: tensor `text.encoder.layer.0.attention.self.key.weight` is missing"
         );
         assert_eq!(
-            load_err(&tiny_file(&["pooler.dense.bias"], "embeddings.LayerNorm.bias"), &cfg),
+            load_err(
+                &tiny_file(&["pooler.dense.bias"], "embeddings.LayerNorm.bias"),
+                &cfg
+            ),
             "bad model file: tensor `text.embeddings.LayerNorm.bias` has shape [1], expected [4]"
         );
     }
@@ -493,13 +627,17 @@ mod tests {
             f(&mut c);
             load_err(&file, &c)
         };
-        assert!(with(|c| c.max_length = 9).contains("max_length 9 (+0 position offset) exceeds max_position_embeddings 8"));
+        assert!(with(|c| c.max_length = 9)
+            .contains("max_length 9 (+0 position offset) exceeds max_position_embeddings 8"));
         let roberta = with(|c| {
             c.kind = "roberta".into();
             c.pad_token_id = 1;
             c.max_length = 7;
         });
-        assert!(roberta.contains("max_length 7 (+2 position offset) exceeds"), "{roberta}");
+        assert!(
+            roberta.contains("max_length 7 (+2 position offset) exceeds"),
+            "{roberta}"
+        );
         assert!(with(|c| c.kind = "gpt".into()).contains("unknown text_encoder.kind `gpt`"));
         assert!(with(|c| c.num_heads = 3).contains("not divisible"));
         assert!(with(|c| c.hidden_act = "relu".into()).contains("hidden_act `relu`"));
@@ -509,10 +647,18 @@ mod tests {
     #[test]
     fn tokenizer_ids_must_fit_the_vocabulary() {
         let json = WORDPIECE.replace(r#"".":8}"#, r#"".":8,"run":40}"#);
-        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), &json).err().unwrap();
+        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), &json)
+            .err()
+            .unwrap();
         assert!(matches!(e, crate::Error::BadModelFile(_)));
-        assert!(e.to_string().contains("produces id 40 (`run`) but the text encoder's vocab_size is 9"), "{e}");
-        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), "{oops").err().unwrap();
+        assert!(
+            e.to_string()
+                .contains("produces id 40 (`run`) but the text encoder's vocab_size is 9"),
+            "{e}"
+        );
+        let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), "{oops")
+            .err()
+            .unwrap();
         assert!(matches!(e, crate::Error::Tokenizer(_)), "{e}");
     }
 }

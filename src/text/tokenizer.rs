@@ -58,8 +58,9 @@ impl TextTokenizer {
     /// (vocabulary, added tokens, post-processor specials, `pad_id`) is below `vocab_size`, so an
     /// embedding lookup can never go out of bounds.
     pub fn from_json(json: &str, vocab_size: usize, pad_id: u32) -> Result<TextTokenizer> {
-        let mut inner = Tokenizer::from_str(json)
-            .map_err(tok_err("cannot build a tokenizer from the tokenizer.json text"))?;
+        let mut inner = Tokenizer::from_str(json).map_err(tok_err(
+            "cannot build a tokenizer from the tokenizer.json text",
+        ))?;
         // Files carry their own truncation/padding (all-MiniLM-L6-v2's pads every text to 128);
         // lengths are the caller's choice here, so both are switched off once, at load.
         inner
@@ -69,11 +70,23 @@ impl TextTokenizer {
 
         let specials = inner
             .post_process(Encoding::default(), None, true)
-            .map_err(tok_err("the tokenizer's post-processor failed on an empty text"))?;
+            .map_err(tok_err(
+                "the tokenizer's post-processor failed on an empty text",
+            ))?;
         let num_special = specials.get_ids().len();
 
-        let mut produced: Vec<(u32, String)> = inner.get_vocab(true).into_iter().map(|(t, i)| (i, t)).collect();
-        produced.extend(specials.get_ids().iter().zip(specials.get_tokens()).map(|(&i, t)| (i, t.clone())));
+        let mut produced: Vec<(u32, String)> = inner
+            .get_vocab(true)
+            .into_iter()
+            .map(|(t, i)| (i, t))
+            .collect();
+        produced.extend(
+            specials
+                .get_ids()
+                .iter()
+                .zip(specials.get_tokens())
+                .map(|(&i, t)| (i, t.clone())),
+        );
         produced.push((pad_id, "<padding>".into()));
         if let Some((id, token)) = produced.iter().max_by_key(|(i, _)| *i) {
             if *id as usize >= vocab_size {
@@ -82,7 +95,11 @@ impl TextTokenizer {
                 ));
             }
         }
-        Ok(TextTokenizer { inner, num_special, pad_id })
+        Ok(TextTokenizer {
+            inner,
+            num_special,
+            pad_id,
+        })
     }
 
     /// How many special tokens a single text gets (2 for BERT and RoBERTa).
@@ -110,7 +127,11 @@ impl TextTokenizer {
         let enc = catch_unwind(AssertUnwindSafe(|| self.encode_truncated(text, budget)))
             .map_err(|_| Error::Tokenizer("the tokenizer panicked on this text".into()))??;
         let mut ids = enc.get_ids().to_vec();
-        let mut mask: Vec<u8> = enc.get_attention_mask().iter().map(|&m| u8::from(m != 0)).collect();
+        let mut mask: Vec<u8> = enc
+            .get_attention_mask()
+            .iter()
+            .map(|&m| u8::from(m != 0))
+            .collect();
         if ids.len() > max_length {
             return Err(Error::Tokenizer(format!(
                 "the post-processor produced {} tokens, more than max_length {max_length}",
@@ -125,7 +146,10 @@ impl TextTokenizer {
     }
 
     fn encode_truncated(&self, text: &str, budget: usize) -> Result<Encoding> {
-        let mut enc = self.inner.encode(text, false).map_err(tok_err("cannot tokenize the text"))?;
+        let mut enc = self
+            .inner
+            .encode(text, false)
+            .map_err(tok_err("cannot tokenize the text"))?;
         enc.truncate(budget, 0, TruncationDirection::Right);
         // The cut-off tail would otherwise be post-processed too, for nothing.
         drop(enc.take_overflowing());
@@ -162,11 +186,23 @@ pub(crate) mod tests {
         let t = tok();
         assert_eq!(t.num_special_tokens(), 2);
         let full = t.encode("A Person walks.", 16, false).unwrap();
-        assert_eq!(full, Tokens { ids: vec![2, 4, 5, 6, 7, 8, 3], mask: vec![1; 7] });
+        assert_eq!(
+            full,
+            Tokens {
+                ids: vec![2, 4, 5, 6, 7, 8, 3],
+                mask: vec![1; 7]
+            }
+        );
         let cut = t.encode("A Person walks.", 4, false).unwrap();
         assert_eq!(cut.ids, [2, 4, 5, 3]);
         let padded = t.encode("a person", 6, true).unwrap();
-        assert_eq!(padded, Tokens { ids: vec![2, 4, 5, 3, 0, 0], mask: vec![1, 1, 1, 1, 0, 0] });
+        assert_eq!(
+            padded,
+            Tokens {
+                ids: vec![2, 4, 5, 3, 0, 0],
+                mask: vec![1, 1, 1, 1, 0, 0]
+            }
+        );
         let exact = t.encode("a person", 2, true).unwrap();
         assert_eq!(exact.ids, [2, 3]);
     }
@@ -175,7 +211,15 @@ pub(crate) mod tests {
     fn any_text_tokenizes() {
         let t = tok();
         let long = "walks ".repeat(100_000);
-        for text in ["", "   ", "!?!", "🙂", "Une personne saute 🙂 très haut", "\u{0}\u{200b}", &long] {
+        for text in [
+            "",
+            "   ",
+            "!?!",
+            "🙂",
+            "Une personne saute 🙂 très haut",
+            "\u{0}\u{200b}",
+            &long,
+        ] {
             let out = t.encode(text, 8, true).unwrap();
             assert_eq!((out.ids.len(), out.ids[0]), (8, 2), "{text:?}");
         }
@@ -187,7 +231,11 @@ pub(crate) mod tests {
     fn max_length_must_fit_the_specials() {
         let e = tok().encode("a", 1, false).unwrap_err();
         assert!(matches!(e, Error::InvalidArgument(_)), "{e}");
-        assert!(e.to_string().contains("max_length 1 leaves no room for the 2 special tokens"), "{e}");
+        assert!(
+            e.to_string()
+                .contains("max_length 1 leaves no room for the 2 special tokens"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -200,7 +248,10 @@ pub(crate) mod tests {
                           "pad_id":0,"pad_type_id":0,"pad_token":"[PAD]"}"#,
         );
         let t = TextTokenizer::from_json(&json, 9, 0).unwrap();
-        assert_eq!(t.encode("a person walks", 16, false).unwrap().ids, [2, 4, 5, 6, 7, 3]);
+        assert_eq!(
+            t.encode("a person walks", 16, false).unwrap().ids,
+            [2, 4, 5, 6, 7, 3]
+        );
     }
 
     #[test]
@@ -208,19 +259,32 @@ pub(crate) mod tests {
         for json in ["", "not json", "{}", r#"{"model":{"type":"Nonsense"}}"#] {
             let e = TextTokenizer::from_json(json, 9, 0).unwrap_err();
             assert!(matches!(e, Error::Tokenizer(_)), "{json:?}: {e}");
-            assert!(e.to_string().starts_with("tokenizer: cannot build a tokenizer from the tokenizer.json text: "), "{e}");
+            assert!(
+                e.to_string().starts_with(
+                    "tokenizer: cannot build a tokenizer from the tokenizer.json text: "
+                ),
+                "{e}"
+            );
         }
     }
 
     #[test]
     fn ids_beyond_the_vocabulary_are_rejected() {
-        let msg = |json: &str, vocab, pad| TextTokenizer::from_json(json, vocab, pad).unwrap_err().to_string();
+        let msg = |json: &str, vocab, pad| {
+            TextTokenizer::from_json(json, vocab, pad)
+                .unwrap_err()
+                .to_string()
+        };
         assert_eq!(
             msg(WORDPIECE, 8, 0),
             "bad model file: the tokenizer produces id 8 (`.`) but the text encoder's vocab_size is 8"
         );
         let sep50 = WORDPIECE.replace(r#""sep":["[SEP]",3]"#, r#""sep":["[SEP]",50]"#);
-        assert!(msg(&sep50, 9, 0).contains("produces id 50 (`[SEP]`)"), "{}", msg(&sep50, 9, 0));
+        assert!(
+            msg(&sep50, 9, 0).contains("produces id 50 (`[SEP]`)"),
+            "{}",
+            msg(&sep50, 9, 0)
+        );
         assert!(msg(WORDPIECE, 9, 9).contains("produces id 9 (`<padding>`)"));
     }
 }

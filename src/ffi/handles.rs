@@ -1,0 +1,259 @@
+//! The two opaque handles behind the C ABI and the per-session state the entry points reach
+//! through a lock (which also turns concurrent misuse of one session into an error).
+
+use std::ffi::{c_char, c_void, CString};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex, TryLockError};
+
+use super::errors::Fail;
+use super::{FlameModelInfo, FlameProgressCallback, FlameSampler, FlameWhich};
+use crate::error::{invalid_arg, Error};
+use crate::models::Model;
+use crate::session::Session;
+
+/// A loaded model: immutable, shareable by any number of sessions and threads.
+pub struct FlameModel {
+    model: Arc<Model>,
+    architecture: CString,
+    motion_format: CString,
+    text_encoder: CString,
+    /// Keeps the strings `joint_name_ptrs` points into alive.
+    _joint_names: Vec<CString>,
+    joint_name_ptrs: Vec<*const c_char>,
+    joint_parents: Vec<i32>,
+}
+
+// SAFETY: the raw pointers point into strings this struct owns and never mutates.
+unsafe impl Send for FlameModel {}
+unsafe impl Sync for FlameModel {}
+
+fn cstring(s: &str) -> CString {
+    CString::new(s.replace('\0', " ")).unwrap_or_default()
+}
+
+impl FlameModel {
+    pub(crate) fn new(model: Arc<Model>) -> FlameModel {
+        let cfg = model.config();
+        let (names, parents) = super::poses::skeleton(&cfg.motion.format);
+        let names: Vec<CString> = names.iter().map(|n| cstring(n)).collect();
+        FlameModel {
+            architecture: cstring(&cfg.architecture),
+            motion_format: cstring(&cfg.motion.format),
+            text_encoder: cstring(&cfg.text_encoder.kind),
+            joint_name_ptrs: names.iter().map(|n| n.as_ptr()).collect(),
+            _joint_names: names,
+            joint_parents: parents,
+            model,
+        }
+    }
+
+    pub(crate) fn model(&self) -> &Arc<Model> {
+        &self.model
+    }
+
+    pub(crate) fn info(&self) -> FlameModelInfo {
+        let m = &self.model;
+        let c = m.config();
+        let sampler = match c.defaults.sampler.as_str() {
+            "ddpm" => FlameSampler::Ddpm,
+            "ddim" => FlameSampler::Ddim,
+            _ => FlameSampler::Default,
+        };
+        FlameModelInfo {
+            struct_size: std::mem::size_of::<FlameModelInfo>() as u32,
+            feature_dim: m.motion_dim() as u32,
+            joint_count: self.joint_parents.len() as u32,
+            max_frames: m.max_frames() as u32,
+            default_frames: c.defaults.frames.min(m.max_frames()) as u32,
+            default_steps: c.defaults.steps as u32,
+            num_timesteps: c.diffusion.num_timesteps as u32,
+            default_sampler: sampler as i32,
+            fps: c.motion.fps,
+            default_guidance: c.defaults.guidance,
+            default_eta: c.defaults.eta,
+            architecture: self.architecture.as_ptr(),
+            motion_format: self.motion_format.as_ptr(),
+            text_encoder: self.text_encoder.as_ptr(),
+            joint_names: if self.joint_name_ptrs.is_empty() {
+                std::ptr::null()
+            } else {
+                self.joint_name_ptrs.as_ptr()
+            },
+            joint_parents: if self.joint_parents.is_empty() {
+                std::ptr::null()
+            } else {
+                self.joint_parents.as_ptr()
+            },
+        }
+    }
+}
+
+/// One generation. Used by one thread at a time; only `flame_session_cancel` may run
+/// concurrently with another call.
+pub struct FlameSession {
+    pub(crate) cancel: Arc<AtomicBool>,
+    state: Mutex<SessionState>,
+}
+
+/// The caller's progress callback and its opaque data.
+struct Progress {
+    callback: unsafe extern "C" fn(*mut c_void, u32, u32),
+    user_data: *mut c_void,
+}
+
+pub(crate) struct SessionState {
+    pub(crate) session: Session,
+    progress: Option<Progress>,
+}
+
+// SAFETY: `user_data` is the caller's and only handed back to the caller's callback, on the
+// thread that calls step; the caller promises it may be used from that thread.
+unsafe impl Send for SessionState {}
+
+impl FlameSession {
+    pub(crate) fn new(session: Session) -> FlameSession {
+        FlameSession {
+            cancel: session.cancel_flag(),
+            state: Mutex::new(SessionState {
+                session,
+                progress: None,
+            }),
+        }
+    }
+
+    /// Runs `f` on the session state; a session busy on another thread is an error, not a wait.
+    pub(crate) fn with<R>(
+        &self,
+        f: impl FnOnce(&mut SessionState) -> Result<R, Fail>,
+    ) -> Result<R, Fail> {
+        let mut st = match self.state.try_lock() {
+            Ok(g) => g,
+            Err(TryLockError::WouldBlock) => {
+                return Err(
+                    Error::WrongState("the session is in use by another thread".into()).into(),
+                )
+            }
+            Err(TryLockError::Poisoned(_)) => {
+                return Err(Error::WrongState(
+                    "the session is unusable after an internal error; free it".into(),
+                )
+                .into())
+            }
+        };
+        f(&mut st)
+    }
+}
+
+pub(crate) unsafe fn model_ref<'a>(model: *const FlameModel) -> Result<&'a FlameModel, Fail> {
+    model
+        .as_ref()
+        .ok_or_else(|| invalid_arg!("`model` is NULL").into())
+}
+
+pub(crate) unsafe fn session_ref<'a>(
+    session: *const FlameSession,
+) -> Result<&'a FlameSession, Fail> {
+    session
+        .as_ref()
+        .ok_or_else(|| invalid_arg!("`session` is NULL").into())
+}
+
+impl SessionState {
+    pub(crate) fn check_shape(&self, frames: u32, dim: u32) -> Result<(), Fail> {
+        let (f, d) = (self.session.frames(), self.session.model().motion_dim());
+        if frames as usize != f || dim as usize != d {
+            return Err(invalid_arg!(
+                "shape {frames} × {dim} does not match the session's {f} frames × {d} features"
+            )
+            .into());
+        }
+        Ok(())
+    }
+
+    fn mask_or_empty(&self) -> Vec<u8> {
+        let n = self.session.frames() * self.session.model().motion_dim();
+        self.session
+            .mask()
+            .map_or(vec![0; n], |m| m.iter().map(|&k| k as u8).collect())
+    }
+
+    pub(crate) fn keep_frames(&mut self, start: usize, end: usize) -> Result<(), Fail> {
+        let frames = self.session.frames();
+        if start >= end || end > frames {
+            return Err(
+                invalid_arg!("frame range {start}..{end} is empty or outside 0..{frames}").into(),
+            );
+        }
+        let d = self.session.model().motion_dim();
+        let mut mask = self.mask_or_empty();
+        mask[start * d..end * d].fill(1);
+        Ok(self.session.set_mask(&mask)?)
+    }
+
+    pub(crate) fn keep_joints(&mut self, joints: &[i32]) -> Result<(), Fail> {
+        let model = Arc::clone(self.session.model());
+        let d = model.motion_dim();
+        let mut ranges = Vec::with_capacity(joints.len());
+        for &j in joints {
+            ranges.push(super::poses::joint_channels(
+                &model.config().motion.format,
+                j,
+            )?);
+        }
+        let mut mask = self.mask_or_empty();
+        for frame in mask.chunks_exact_mut(d) {
+            for r in &ranges {
+                frame[r.clone()].fill(1);
+            }
+        }
+        Ok(self.session.set_mask(&mask)?)
+    }
+
+    pub(crate) fn set_progress(&mut self, callback: FlameProgressCallback, user_data: *mut c_void) {
+        self.progress = callback.map(|callback| Progress {
+            callback,
+            user_data,
+        });
+    }
+
+    pub(crate) fn step(&mut self) -> Result<usize, Fail> {
+        let left = self.session.step()?;
+        if let Some(p) = &self.progress {
+            let n = self.session.num_steps();
+            // SAFETY: the caller registered this callback and its data for this session.
+            unsafe { (p.callback)(p.user_data, (n - left) as u32, n as u32) };
+        }
+        Ok(left)
+    }
+
+    pub(crate) fn read(
+        &self,
+        which: i32,
+        layout: i32,
+        convention: i32,
+        flags: u32,
+    ) -> Result<Vec<f32>, Fail> {
+        let which = match which {
+            w if w == FlameWhich::Sample as i32 => FlameWhich::Sample,
+            w if w == FlameWhich::Estimate as i32 => FlameWhich::Estimate,
+            w => return Err(invalid_arg!("unknown `which` {w} (0 sample, 1 estimate)").into()),
+        };
+        let features = match which {
+            FlameWhich::Sample => self.session.sample().ok_or_else(|| {
+                Error::WrongState("no sample yet: the first step draws x_T".into())
+            })?,
+            FlameWhich::Estimate => self.session.x0_estimate().ok_or_else(|| {
+                Error::WrongState("no clean-motion estimate yet: run a step first".into())
+            })?,
+        };
+        let model = self.session.model();
+        Ok(super::poses::read(
+            &model.config().motion.format,
+            features,
+            self.session.frames(),
+            layout,
+            convention,
+            flags,
+        )?)
+    }
+}

@@ -1,0 +1,681 @@
+//! The C ABI: thin functions over the Rust API, and nothing else.
+//!
+//! Conventions (also in the README): every handle has a `_new`/`_load` and a `_free` that accepts
+//! NULL; a `const` pointer parameter is not mutated; outputs go only through out-pointers and are
+//! written only on success; every buffer comes with its length; every fallible call returns a
+//! [`FlameStatus`] and leaves a message for [`flame_last_error`]. Every entry point checks its
+//! pointers and catches panics, so no panic crosses into the host.
+
+mod errors;
+mod handles;
+mod poses;
+
+use std::ffi::{c_char, c_void, CStr};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use crate::error::{invalid_arg, Error};
+use crate::models::Model;
+use crate::session::{Sampler, Session, SessionParams};
+
+pub use errors::{flame_last_error, flame_status_string, FlameStatus};
+use errors::{guard, Fail};
+use handles::{model_ref, session_ref};
+pub use handles::{FlameModel, FlameSession};
+
+/// The ABI version: bumped whenever a function's signature or a struct's layout changes.
+pub const FLAME_ABI_VERSION: u32 = 1;
+/// libflame's version, major part.
+pub const FLAME_VERSION_MAJOR: u32 = 0;
+/// libflame's version, minor part.
+pub const FLAME_VERSION_MINOR: u32 = 1;
+/// libflame's version, patch part.
+pub const FLAME_VERSION_PATCH: u32 = 0;
+/// Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
+pub const FLAME_ROOT_TRANSLATION: i32 = -1;
+
+/// Sampler choice in [`FlameSessionParams`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameSampler {
+    /// The model file's default.
+    Default = 0,
+    Ddpm = 1,
+    Ddim = 2,
+}
+
+/// Which motion [`flame_session_read`] returns.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameWhich {
+    /// The current sample x_t (the final motion once every step has run).
+    Sample = 0,
+    /// The model's current estimate of the clean motion x0 (a preview while stepping).
+    Estimate = 1,
+}
+
+/// Options of [`flame_model_load`]. Initialise with [`flame_model_params_default`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameModelParams {
+    /// `sizeof(FlameModelParams)`: lets later versions add fields.
+    pub struct_size: u32,
+    /// Threads for work done at load (encoding the guidance prompt); 0 = one per core.
+    pub threads: u32,
+}
+
+/// Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
+/// negative `eta`/`guidance`) means "the model file's default".
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameSessionParams {
+    /// `sizeof(FlameSessionParams)`.
+    pub struct_size: u32,
+    /// Frames to generate; 0 = model default.
+    pub frames: u32,
+    /// Sampler steps (respaced from the trained schedule); 0 = model default.
+    pub steps: u32,
+    /// A [`FlameSampler`] value.
+    pub sampler: i32,
+    /// DDIM eta; negative = model default.
+    pub eta: f32,
+    /// Classifier-free guidance scale; negative = model default.
+    pub guidance: f32,
+    /// Seed of the session's noise generator.
+    pub seed: u64,
+    /// Worker threads this session creates and owns; 0 = one per core.
+    pub threads: u32,
+}
+
+/// What [`flame_model_info`] reports. Strings and arrays belong to the model and stay valid
+/// until it is freed.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameModelInfo {
+    /// Set by the caller to `sizeof(FlameModelInfo)`.
+    pub struct_size: u32,
+    /// Feature channels per frame (147 for FLAME).
+    pub feature_dim: u32,
+    /// Joints of the motion format's skeleton.
+    pub joint_count: u32,
+    /// The largest frame count a session may ask for.
+    pub max_frames: u32,
+    pub default_frames: u32,
+    pub default_steps: u32,
+    /// Steps of the trained diffusion schedule (the most a session may ask for).
+    pub num_timesteps: u32,
+    /// A [`FlameSampler`] value.
+    pub default_sampler: i32,
+    pub fps: f32,
+    pub default_guidance: f32,
+    pub default_eta: f32,
+    /// For example `"flame"`.
+    pub architecture: *const c_char,
+    /// For example `"smpl24_6d"`.
+    pub motion_format: *const c_char,
+    /// For example `"roberta"`.
+    pub text_encoder: *const c_char,
+    /// `joint_count` joint names.
+    pub joint_names: *const *const c_char,
+    /// `joint_count` parent indices, -1 for the root.
+    pub joint_parents: *const i32,
+}
+
+/// Called after every step with the caller's `user_data`, the steps done and the total.
+/// NULL (no callback) is allowed wherever one is passed.
+pub type FlameProgressCallback =
+    Option<unsafe extern "C" fn(user_data: *mut c_void, steps_done: u32, steps_total: u32)>;
+
+fn check_size(struct_size: u32, needed: usize, what: &str) -> Result<(), Fail> {
+    if (struct_size as usize) < needed {
+        return Err(invalid_arg!(
+            "{what}.struct_size is {struct_size}, expected at least {needed}"
+        )
+        .into());
+    }
+    Ok(())
+}
+
+/// Writes through an out-pointer after checking it.
+unsafe fn write_out<T>(out: *mut T, value: T, name: &str) -> Result<(), Fail> {
+    if out.is_null() {
+        return Err(invalid_arg!("`{name}` is NULL").into());
+    }
+    out.write(value);
+    Ok(())
+}
+
+/// Borrows a caller buffer of `len` elements (NULL is allowed only when `len` is 0).
+unsafe fn slice_arg<'a, T>(ptr: *const T, len: usize, name: &str) -> Result<&'a [T], Fail> {
+    if len == 0 {
+        return Ok(&[]);
+    }
+    if ptr.is_null() {
+        return Err(invalid_arg!("`{name}` is NULL but its length is {len}").into());
+    }
+    if len > isize::MAX as usize / std::mem::size_of::<T>().max(1) {
+        return Err(invalid_arg!("`{name}` length {len} is too large").into());
+    }
+    Ok(std::slice::from_raw_parts(ptr, len))
+}
+
+unsafe fn str_arg<'a>(ptr: *const c_char, name: &str) -> Result<&'a str, Fail> {
+    if ptr.is_null() {
+        return Err(invalid_arg!("`{name}` is NULL").into());
+    }
+    CStr::from_ptr(ptr)
+        .to_str()
+        .map_err(|_| invalid_arg!("`{name}` is not valid UTF-8").into())
+}
+
+/// The ABI version this library implements ([`FLAME_ABI_VERSION`]).
+#[no_mangle]
+pub extern "C" fn flame_abi_version() -> u32 {
+    FLAME_ABI_VERSION
+}
+
+/// The library version as a static NUL-terminated string, e.g. `"0.1.0"`.
+#[no_mangle]
+pub extern "C" fn flame_version_string() -> *const c_char {
+    concat!(env!("CARGO_PKG_VERSION"), "\0").as_ptr() as *const c_char
+}
+
+/// Fills `*params` with the defaults.
+///
+/// # Safety
+/// `params` is NULL or points to writable memory for a `FlameModelParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_model_params_default(params: *mut FlameModelParams) -> FlameStatus {
+    guard(|| {
+        let p = FlameModelParams {
+            struct_size: std::mem::size_of::<FlameModelParams>() as u32,
+            threads: 0,
+        };
+        write_out(params, p, "params")
+    })
+}
+
+unsafe fn model_params(params: *const FlameModelParams) -> Result<FlameModelParams, Fail> {
+    if params.is_null() {
+        return Ok(FlameModelParams {
+            struct_size: 0,
+            threads: 0,
+        });
+    }
+    let p = *params;
+    check_size(
+        p.struct_size,
+        std::mem::size_of::<FlameModelParams>(),
+        "params",
+    )?;
+    Ok(p)
+}
+
+/// Finishes a load: encodes the guidance prompt once, with the requested threads.
+fn finish_load(model: Model, params: &FlameModelParams) -> Result<Box<FlameModel>, Fail> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(params.threads as usize)
+        .build()
+        .map_err(|e| invalid_arg!("cannot start threads: {e}"))?;
+    pool.install(|| model.uncond().map(|_| ()))?;
+    Ok(Box::new(FlameModel::new(Arc::new(model))))
+}
+
+/// Loads a model file. `params` may be NULL for the defaults. On success `*model` owns the
+/// new model; free it with [`flame_model_free`].
+///
+/// # Safety
+/// `path` is a NUL-terminated string; `params` is NULL or a valid `FlameModelParams`;
+/// `model` points to writable memory for a pointer.
+#[no_mangle]
+pub unsafe extern "C" fn flame_model_load(
+    path: *const c_char,
+    params: *const FlameModelParams,
+    model: *mut *mut FlameModel,
+) -> FlameStatus {
+    guard(|| {
+        if model.is_null() {
+            return Err(invalid_arg!("`model` is NULL").into());
+        }
+        let p = model_params(params)?;
+        let path = str_arg(path, "path")?;
+        let m = finish_load(Model::load(path)?, &p)?;
+        write_out(model, Box::into_raw(m), "model")
+    })
+}
+
+/// Loads a model from the bytes of a model file, which are copied (the caller keeps its buffer).
+///
+/// # Safety
+/// `bytes` points to `len` readable bytes; `params` and `model` as in [`flame_model_load`].
+#[no_mangle]
+pub unsafe extern "C" fn flame_model_load_from_memory(
+    bytes: *const u8,
+    len: usize,
+    params: *const FlameModelParams,
+    model: *mut *mut FlameModel,
+) -> FlameStatus {
+    guard(|| {
+        if model.is_null() {
+            return Err(invalid_arg!("`model` is NULL").into());
+        }
+        let p = model_params(params)?;
+        let bytes = slice_arg(bytes, len, "bytes")?;
+        let m = finish_load(Model::from_bytes(bytes)?, &p)?;
+        write_out(model, Box::into_raw(m), "model")
+    })
+}
+
+/// Releases the caller's reference to a model; NULL is ignored. Sessions keep their model
+/// alive, so a model may be freed while its sessions still run.
+///
+/// # Safety
+/// `model` is NULL or a pointer returned by a load function and not yet freed.
+#[no_mangle]
+pub unsafe extern "C" fn flame_model_free(model: *mut FlameModel) {
+    let _ = std::panic::catch_unwind(|| {
+        if !model.is_null() {
+            drop(Box::from_raw(model));
+        }
+    });
+}
+
+/// Describes a model. Set `info->struct_size = sizeof(FlameModelInfo)` first.
+///
+/// # Safety
+/// `model` is a live model; `info` points to a writable `FlameModelInfo`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_model_info(
+    model: *const FlameModel,
+    info: *mut FlameModelInfo,
+) -> FlameStatus {
+    guard(|| {
+        let m = model_ref(model)?;
+        if info.is_null() {
+            return Err(invalid_arg!("`info` is NULL").into());
+        }
+        check_size(
+            (*info).struct_size,
+            std::mem::size_of::<FlameModelInfo>(),
+            "info",
+        )?;
+        info.write(m.info());
+        Ok(())
+    })
+}
+
+/// Fills `*params` with the defaults (every setting taken from the model file, seed 0, one
+/// thread per core).
+///
+/// # Safety
+/// `params` points to writable memory for a `FlameSessionParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_params_default(
+    params: *mut FlameSessionParams,
+) -> FlameStatus {
+    guard(|| {
+        let p = FlameSessionParams {
+            struct_size: std::mem::size_of::<FlameSessionParams>() as u32,
+            frames: 0,
+            steps: 0,
+            sampler: FlameSampler::Default as i32,
+            eta: -1.0,
+            guidance: -1.0,
+            seed: 0,
+            threads: 0,
+        };
+        write_out(params, p, "params")
+    })
+}
+
+fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
+    let nonzero = |v: u32| (v != 0).then_some(v as usize);
+    let default_if_negative = |v: f32, name: &str| -> Result<Option<f32>, Fail> {
+        if v.is_nan() {
+            return Err(invalid_arg!("`{name}` is NaN").into());
+        }
+        Ok((v >= 0.0).then_some(v))
+    };
+    let sampler = match p.sampler {
+        0 => None,
+        1 => Some(Sampler::Ddpm),
+        2 => Some(Sampler::Ddim),
+        s => return Err(invalid_arg!("unknown sampler {s} (0 default, 1 DDPM, 2 DDIM)").into()),
+    };
+    Ok(SessionParams {
+        frames: nonzero(p.frames),
+        steps: nonzero(p.steps),
+        sampler,
+        eta: default_if_negative(p.eta, "eta")?,
+        guidance: default_if_negative(p.guidance, "guidance")?,
+        seed: p.seed,
+        threads: p.threads as usize,
+    })
+}
+
+/// Starts a generation on `model`. `params` may be NULL for the defaults. The session keeps
+/// the model alive; free it with [`flame_session_free`].
+///
+/// # Safety
+/// `model` is a live model; `params` is NULL or a valid `FlameSessionParams`; `session` points
+/// to writable memory for a pointer.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_new(
+    model: *const FlameModel,
+    params: *const FlameSessionParams,
+    session: *mut *mut FlameSession,
+) -> FlameStatus {
+    guard(|| {
+        let m = model_ref(model)?;
+        if session.is_null() {
+            return Err(invalid_arg!("`session` is NULL").into());
+        }
+        let p = if params.is_null() {
+            SessionParams::default()
+        } else {
+            check_size(
+                (*params).struct_size,
+                std::mem::size_of::<FlameSessionParams>(),
+                "params",
+            )?;
+            session_params(&*params)?
+        };
+        let s = Session::new(Arc::clone(m.model()), &p)?;
+        write_out(
+            session,
+            Box::into_raw(Box::new(FlameSession::new(s))),
+            "session",
+        )
+    })
+}
+
+/// Frees a session and joins its worker threads; NULL is ignored.
+///
+/// # Safety
+/// `session` is NULL or a live session not in use by another thread.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_free(session: *mut FlameSession) {
+    let _ = std::panic::catch_unwind(|| {
+        if !session.is_null() {
+            drop(Box::from_raw(session));
+        }
+    });
+}
+
+/// Starts the generation over: same prompt, settings, reference and mask; the seeded noise
+/// generator restarts, so the same output follows.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_reset(session: *mut FlameSession) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.with(|s| {
+            s.session.reset();
+            Ok(())
+        })
+    })
+}
+
+/// Sets the prompt (UTF-8, NUL-terminated). It is encoded once here, not at every step; it may
+/// be changed between steps.
+///
+/// # Safety
+/// `session` is a live session; `prompt` a NUL-terminated string.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_prompt(
+    session: *mut FlameSession,
+    prompt: *const c_char,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let text = str_arg(prompt, "prompt")?;
+        s.with(|st| Ok(st.session.set_prompt(text)?))
+    })
+}
+
+/// Sets the initial noise x_T explicitly: `len` = frames × feature_dim values, frame-major.
+/// Only before the first step (or after a reset).
+///
+/// # Safety
+/// `session` is a live session; `noise` points to `len` floats.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_noise(
+    session: *mut FlameSession,
+    noise: *const f32,
+    len: usize,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let x = slice_arg(noise, len, "noise")?;
+        s.with(|st| Ok(st.session.set_initial_noise(x)?))
+    })
+}
+
+/// Sets the reference motion for editing: `frames` × `dim` features, frame-major; `frames`
+/// must equal the session's and `dim` the model's feature dim. May change between steps.
+///
+/// # Safety
+/// `session` is a live session; `features` points to `frames * dim` floats.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_reference(
+    session: *mut FlameSession,
+    features: *const f32,
+    frames: u32,
+    dim: u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let n = (frames as usize)
+            .checked_mul(dim as usize)
+            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+        let x = slice_arg(features, n, "features")?;
+        s.with(|st| {
+            st.check_shape(frames, dim)?;
+            Ok(st.session.set_reference(x)?)
+        })
+    })
+}
+
+/// Sets the keep-mask: `frames` × `dim` bytes, 1 = keep the reference value, 0 = generate it.
+/// May change between steps; it takes effect at the next step.
+///
+/// # Safety
+/// `session` is a live session; `mask` points to `frames * dim` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_mask(
+    session: *mut FlameSession,
+    mask: *const u8,
+    frames: u32,
+    dim: u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let n = (frames as usize)
+            .checked_mul(dim as usize)
+            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+        let m = slice_arg(mask, n, "mask")?;
+        s.with(|st| {
+            st.check_shape(frames, dim)?;
+            Ok(st.session.set_mask(m)?)
+        })
+    })
+}
+
+/// Marks every feature of frames `start..end` (end exclusive) as kept, adding to the current
+/// mask (an absent mask starts all-generate).
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_keep_frames(
+    session: *mut FlameSession,
+    start: u32,
+    end: u32,
+) -> FlameStatus {
+    guard(|| session_ref(session)?.with(|st| st.keep_frames(start as usize, end as usize)))
+}
+
+/// Marks the channels of the given joints as kept in every frame, adding to the current mask.
+/// A joint index is a skeleton joint of the model's motion format, or
+/// [`FLAME_ROOT_TRANSLATION`] for the root translation (the root path).
+///
+/// # Safety
+/// `session` is a live session; `joints` points to `count` integers.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_keep_joints(
+    session: *mut FlameSession,
+    joints: *const i32,
+    count: usize,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let j = slice_arg(joints, count, "joints")?;
+        s.with(|st| st.keep_joints(j))
+    })
+}
+
+/// Removes the reference and the mask.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_clear_edit(session: *mut FlameSession) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.with(|st| {
+            st.session.clear_edit();
+            Ok(())
+        })
+    })
+}
+
+/// Sets (or, with NULL, removes) a callback run on the stepping thread after every step.
+///
+/// # Safety
+/// `session` is a live session; `callback` and `user_data` stay valid while set.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_progress_callback(
+    session: *mut FlameSession,
+    callback: FlameProgressCallback,
+    user_data: *mut c_void,
+) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.with(|st| {
+            st.set_progress(callback, user_data);
+            Ok(())
+        })
+    })
+}
+
+/// Advances one sampler step. `*steps_left` (may be NULL) receives the steps still to run.
+/// Errors: no prompt yet, the generation finished (`WRONG_STATE`), or cancelled (`CANCELLED`;
+/// the step is abandoned and may be retried).
+///
+/// # Safety
+/// `session` is a live session used by no other thread; `steps_left` is NULL or writable.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_step(
+    session: *mut FlameSession,
+    steps_left: *mut u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let left = s.with(|st| st.step())?;
+        if !steps_left.is_null() {
+            steps_left.write(left as u32);
+        }
+        Ok(())
+    })
+}
+
+/// Asks the session to abandon its current step (or its next one). Safe to call from any
+/// thread while another thread is inside [`flame_session_step`].
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_cancel(session: *const FlameSession) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.cancel.store(true, Ordering::SeqCst);
+        Ok(())
+    })
+}
+
+/// Reports steps done and the total (either pointer may be NULL).
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_progress(
+    session: *const FlameSession,
+    steps_done: *mut u32,
+    steps_total: *mut u32,
+) -> FlameStatus {
+    guard(|| {
+        let (done, total) = session_ref(session)?.with(|st| {
+            let n = st.session.num_steps();
+            Ok((n - st.session.steps_left(), n))
+        })?;
+        if !steps_done.is_null() {
+            steps_done.write(done as u32);
+        }
+        if !steps_total.is_null() {
+            steps_total.write(total as u32);
+        }
+        Ok(())
+    })
+}
+
+/// Reads the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) in a pose
+/// `layout`, converted to `convention`, with post-processing `flags`.
+///
+/// With `out` NULL, `*out_len` receives the required number of floats and nothing else is
+/// done. Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len`
+/// set to the required length) and `*out_len` receives the number written. Reading the sample
+/// before the first step, or the estimate before a step has run, is `WRONG_STATE`.
+///
+/// # Safety
+/// `session` is a live session; `out` is NULL or points to `len` writable floats; `out_len`
+/// points to a writable `size_t`.
+#[no_mangle]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn flame_session_read(
+    session: *const FlameSession,
+    which: i32,
+    layout: i32,
+    convention: i32,
+    flags: u32,
+    out: *mut f32,
+    len: usize,
+    out_len: *mut usize,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if out_len.is_null() {
+            return Err(invalid_arg!("`out_len` is NULL").into());
+        }
+        s.with(|st| {
+            let values = st.read(which, layout, convention, flags)?;
+            if out.is_null() {
+                out_len.write(values.len());
+                return Ok(());
+            }
+            if len < values.len() {
+                out_len.write(values.len());
+                return Err(Fail::BufferTooSmall {
+                    needed: values.len(),
+                    given: len,
+                });
+            }
+            std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
+            out_len.write(values.len());
+            Ok(())
+        })
+    })
+}
+
+impl From<Error> for Fail {
+    fn from(e: Error) -> Fail {
+        Fail::Core(e)
+    }
+}

@@ -1,0 +1,135 @@
+//! Decoding HumanML3D's 263 features (REFERENCE 4), de-normalised already: joint positions by
+//! the official `recover_from_ric`, rotations from the cont6d (COLUMN convention) features by the
+//! official `recover_from_rot` chain product, hung on the 22-joint hierarchy, and foot contacts.
+//!
+//! Why rotations need "hanging": HumanML3D stores, at each joint j, a rotation that turns the
+//! bone ENDING at j, accumulated per kinematic chain from the root's rotation (even the arm
+//! chains that leave the spine at joint 9 restart from the root), and its root rotation
+//! `q_root = (cos θ, 0, sin θ, 0)` maps world to facing frame (positions use `qinv(q_root)`). A
+//! parent-relative hierarchy needs one world rotation per joint, so libflame defines:
+//!
+//! - `B(j)`: the official chain product at j, `R(q_root) · R(c₁) ⋯ R(j)` — the world rotation of
+//!   the bone ending at j;
+//! - `global(0) = R(q_root)ᵀ`: the body's facing yaw, the same one positions use;
+//! - `global(j) = B(next)`, where `next` follows j in its kinematic chain (9 → 12, the neck);
+//!   the leaves (feet 10/11, head 15, wrists 20/21) have no bone of their own and take their
+//!   parent's rotation;
+//! - `local(0) = global(0)`, `local(j) = global(parent)ᵀ · global(j)`.
+//!
+//! The rotations come from an IK without twist and are not SMPL rotations (REFERENCE 4.5): the
+//! positions from `recover_from_ric` are the format's reliable output, and posing the rest
+//! skeleton with these rotations only approximates them.
+
+use super::format::Format;
+use super::poses::Poses;
+use super::rotation::{self, Mat3};
+use super::skeleton::{Skeleton, HUMANML22_CHAINS};
+
+const RIC: usize = 4;
+const ROT: usize = 67;
+const CONTACTS: usize = 259;
+
+/// Decodes de-normalised `[frames, 263]` features in the native (Y-up) frame.
+pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
+    let skel = Skeleton::humanml22();
+    let joints = skel.joint_count();
+    let dim = Format::HumanMl263.feature_dim();
+    let next = next_in_chain(joints);
+    let mut poses = Poses::empty(Format::HumanMl263, frames);
+
+    // recover_root_rot_pos: θ is the exclusive cumulative sum of dim 0 (half the yaw change),
+    // the root's planar velocity of frame t−1 is rotated by qinv(q_root[t]) and accumulated.
+    let (mut theta, mut planar) = (0.0f64, [0.0f64; 2]);
+    for t in 0..frames {
+        let row = &x[t * dim..(t + 1) * dim];
+        if t > 0 {
+            let prev = &x[(t - 1) * dim..t * dim];
+            theta += prev[0];
+        }
+        let r_root = rotation::quat_to_matrix(&[theta.cos(), 0.0, theta.sin(), 0.0]);
+        let to_world = rotation::transpose(&r_root);
+        if t > 0 {
+            let prev = &x[(t - 1) * dim..t * dim];
+            let v = rotation::apply(&to_world, &[prev[1], 0.0, prev[2]]);
+            planar[0] += v[0];
+            planar[1] += v[2];
+        }
+        let root = [planar[0], row[3], planar[1]];
+        poses.root[t] = root;
+
+        // recover_from_ric: joints 1..21 relative to the root's x, z (y kept), in the facing frame.
+        let base = t * joints;
+        poses.positions[base] = root;
+        for (j, p) in row[RIC..RIC + 63].chunks_exact(3).enumerate() {
+            let w = rotation::apply(&to_world, &[p[0], p[1], p[2]]);
+            poses.positions[base + j + 1] = [w[0] + root[0], w[1], w[2] + root[2]];
+        }
+
+        let stored: Vec<Mat3> = row[ROT..ROT + 126]
+            .chunks_exact(6)
+            .map(|d| rotation::from_6d_columns(&[d[0], d[1], d[2], d[3], d[4], d[5]]))
+            .collect();
+        let mut bone = [rotation::IDENTITY; 22];
+        for chain in HUMANML22_CHAINS {
+            let mut m = r_root;
+            for &j in &chain[1..] {
+                m = rotation::mul(&m, &stored[j - 1]);
+                bone[j] = m;
+            }
+        }
+        let global = &mut poses.global[base..base + joints];
+        global[0] = to_world;
+        for j in 1..joints {
+            global[j] = match next[j] {
+                Some(n) => bone[n],
+                None => global[skel.parent(j).unwrap_or(0)],
+            };
+        }
+        poses.local[base] = global[0];
+        for j in 1..joints {
+            let parent = global[skel.parent(j).unwrap_or(0)];
+            poses.local[base + j] = rotation::mul(&rotation::transpose(&parent), &global[j]);
+        }
+        poses.contacts.push([
+            row[CONTACTS],
+            row[CONTACTS + 1],
+            row[CONTACTS + 2],
+            row[CONTACTS + 3],
+        ]);
+    }
+    poses
+}
+
+/// For each joint, the joint after it in its kinematic chain (`None` for the root, whose bones
+/// all start chains, and for the leaves).
+fn next_in_chain(joints: usize) -> Vec<Option<usize>> {
+    let mut next = vec![None; joints];
+    for chain in HUMANML22_CHAINS {
+        for pair in chain[1..].windows(2) {
+            next[pair[0]] = Some(pair[1]);
+        }
+    }
+    next
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_inner_joint_has_a_next_bone() {
+        let next = next_in_chain(22);
+        assert_eq!(next[0], None);
+        assert_eq!(next[9], Some(12));
+        assert_eq!(next[14], Some(17));
+        for leaf in [10, 11, 15, 20, 21] {
+            assert_eq!(next[leaf], None);
+        }
+        let skel = Skeleton::humanml22();
+        for (j, n) in next.iter().enumerate() {
+            if let Some(n) = n {
+                assert_eq!(skel.parent(*n), Some(j));
+            }
+        }
+    }
+}
