@@ -31,6 +31,14 @@
 // Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
 #define FLAME_ROOT_TRANSLATION -1
 
+// Read flag: temporal Gaussian smoothing (σ = 1 frame) of the features before posing, as
+// FLAME's official output does.
+#define FLAME_READ_SMOOTH 1
+
+// Read flag: keep each quaternion's sign as computed (w ≥ 0) instead of making every joint's
+// track sign-continuous between frames.
+#define FLAME_READ_RAW_SIGNS 2
+
 // What every fallible call returns.
 typedef enum FlameStatus {
   FLAME_STATUS_OK = 0,
@@ -52,93 +60,6 @@ typedef enum FlameStatus {
   FLAME_STATUS_INTERNAL = 8,
 } FlameStatus;
 
-// A named coordinate convention, with a stable integer value for the C ABI.
-enum Convention
-#if defined(__cplusplus) || __STDC_VERSION__ >= 202311L
-  : uint32_t
-#endif // defined(__cplusplus) || __STDC_VERSION__ >= 202311L
- {
-  // The format's own frame, data untouched (see the module doc).
-  CONVENTION_NATIVE = 0,
-  // Left-handed, +Y up, +Z forward, +X right, metres.
-  CONVENTION_UNITY = 1,
-  // Left-handed, +Z up, +X forward, +Y right, centimetres.
-  CONVENTION_UNREAL = 2,
-  // Right-handed, +Z up, +X forward, +Y left, metres (REP 103).
-  CONVENTION_ROS = 3,
-  // Right-handed, +Z up, −Y forward, +X left, metres.
-  CONVENTION_BLENDER = 4,
-  // Right-handed, +Y up, +Z forward, +X left, metres.
-  CONVENTION_GLTF = 5,
-};
-#ifndef __cplusplus
-#if __STDC_VERSION__ >= 202311L
-typedef enum Convention Convention;
-#else
-typedef uint32_t Convention;
-#endif // __STDC_VERSION__ >= 202311L
-#endif // __cplusplus
-
-// A feature layout, with a stable integer value for the C ABI.
-enum Format
-#if defined(__cplusplus) || __STDC_VERSION__ >= 202311L
-  : uint32_t
-#endif // defined(__cplusplus) || __STDC_VERSION__ >= 202311L
- {
-  // `smpl24_6d` — FLAME: 147 = root translation (AMASS's Z-up world, metres) + 24 SMPL joints
-  // × 6D local rotation in pytorch3d's ROW convention; 20 fps; not normalised.
-  FORMAT_SMPL24_ROT6D = 0,
-  // `humanml263` — HumanML3D: 263 = root yaw velocity, root planar velocity, root height, 21
-  // root-relative joint positions, 21 cont6d (COLUMN convention) rotations, 22 joint velocities,
-  // 4 foot contacts; Y-up, metres, 20 fps; normalised by the model's mean/std.
-  FORMAT_HUMAN_ML263 = 1,
-};
-#ifndef __cplusplus
-#if __STDC_VERSION__ >= 202311L
-typedef enum Format Format;
-#else
-typedef uint32_t Format;
-#endif // __STDC_VERSION__ >= 202311L
-#endif // __cplusplus
-
-// One per-frame quantity, laid out frame-major as `f32`. `J` is the format's joint count
-// (smpl24_6d 24, humanml263 22). Rotations are parent-relative ("local") or world ("global");
-// both follow the skeleton's hierarchy, so `global(j) = global(parent) · local(j)`.
-enum Layout
-#if defined(__cplusplus) || __STDC_VERSION__ >= 202311L
-  : uint32_t
-#endif // defined(__cplusplus) || __STDC_VERSION__ >= 202311L
- {
-  // `[frames, 3]` the root joint's (pelvis's) world position.
-  LAYOUT_ROOT_TRANSLATION = 0,
-  // `[frames, J, 4]` local rotations as quaternions, x y z w.
-  LAYOUT_LOCAL_QUAT_XYZW = 1,
-  // `[frames, J, 4]` local rotations as quaternions, w x y z.
-  LAYOUT_LOCAL_QUAT_WXYZ = 2,
-  // `[frames, J, 3, 3]` local rotation matrices, row-major, acting on column vectors.
-  LAYOUT_LOCAL_MATRIX = 3,
-  // `[frames, J, 6]` local rotations as the first two ROWS of the matrix,
-  // `[R00,R01,R02,R10,R11,R12]` (pytorch3d's `matrix_to_rotation_6d`, FLAME's own 6D).
-  LAYOUT_LOCAL6D = 4,
-  // `[frames, J, 3]` world joint positions.
-  LAYOUT_GLOBAL_POSITIONS = 5,
-  // `[frames, J, 4]` world rotations as quaternions, x y z w.
-  LAYOUT_GLOBAL_QUAT_XYZW = 6,
-  // `[frames, J, 4]` world rotations as quaternions, w x y z.
-  LAYOUT_GLOBAL_QUAT_WXYZ = 7,
-  // `[frames, 4]` foot contacts as the model gives them (≈0 or 1; threshold at 0.5), in the
-  // order left ankle, left foot, right ankle, right foot. Only formats that carry them
-  // (humanml263).
-  LAYOUT_FOOT_CONTACTS = 8,
-};
-#ifndef __cplusplus
-#if __STDC_VERSION__ >= 202311L
-typedef enum Layout Layout;
-#else
-typedef uint32_t Layout;
-#endif // __STDC_VERSION__ >= 202311L
-#endif // __cplusplus
-
 // Sampler choice in [`FlameSessionParams`].
 typedef enum FlameSampler {
   // The model file's default.
@@ -154,6 +75,48 @@ typedef enum FlameWhich {
   // The model's current estimate of the clean motion x0 (a preview while stepping).
   FLAME_WHICH_ESTIMATE = 1,
 } FlameWhich;
+
+// What [`crate::ffi::flame_session_read`] writes per frame. `J` is the skeleton's joint count
+// (`FlameModelInfo.joint_count`).
+typedef enum FlameLayout {
+  // `[frames, feature_dim]` the model's raw features (convention and flags ignored).
+  FLAME_LAYOUT_FEATURES = 0,
+  // `[frames, 3]` the root joint's world position.
+  FLAME_LAYOUT_ROOT_TRANSLATION = 1,
+  // `[frames, J, 4]` parent-relative rotations as quaternions x, y, z, w.
+  FLAME_LAYOUT_LOCAL_QUAT_XYZW = 2,
+  // `[frames, J, 4]` parent-relative rotations as quaternions w, x, y, z.
+  FLAME_LAYOUT_LOCAL_QUAT_WXYZ = 3,
+  // `[frames, J, 3, 3]` parent-relative rotation matrices, row-major.
+  FLAME_LAYOUT_LOCAL_MATRIX = 4,
+  // `[frames, J, 6]` parent-relative rotations as the first two matrix rows.
+  FLAME_LAYOUT_LOCAL6D = 5,
+  // `[frames, J, 3]` world joint positions.
+  FLAME_LAYOUT_GLOBAL_POSITIONS = 6,
+  // `[frames, J, 4]` world rotations as quaternions x, y, z, w.
+  FLAME_LAYOUT_GLOBAL_QUAT_XYZW = 7,
+  // `[frames, J, 4]` world rotations as quaternions w, x, y, z.
+  FLAME_LAYOUT_GLOBAL_QUAT_WXYZ = 8,
+  // `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot); only
+  // formats that carry them (humanml263).
+  FLAME_LAYOUT_FOOT_CONTACTS = 9,
+} FlameLayout;
+
+// The coordinate frame poses are expressed in (README: "Poses").
+typedef enum FlameConvention {
+  // The motion format's own frame, untouched.
+  FLAME_CONVENTION_NATIVE = 0,
+  // Left-handed, Y up, Z forward, metres.
+  FLAME_CONVENTION_UNITY = 1,
+  // Left-handed, Z up, X forward, centimetres.
+  FLAME_CONVENTION_UNREAL = 2,
+  // Right-handed, Z up, X forward, metres.
+  FLAME_CONVENTION_ROS = 3,
+  // Right-handed, Z up, -Y forward, metres.
+  FLAME_CONVENTION_BLENDER = 4,
+  // Right-handed, Y up, Z forward, metres.
+  FLAME_CONVENTION_GLTF = 5,
+} FlameConvention;
 
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
@@ -230,14 +193,11 @@ typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint
 // A row-major 3×3 matrix acting on column vectors.
 typedef double Mat3[3][3];
 
-// Every convention, in integer order.
-#define Convention_ALL { Convention_Native, Convention_Unity, Convention_Unreal, Convention_Ros, Convention_Blender, Convention_Gltf, }
 
-// Every format, in integer order.
-#define Format_ALL { Format_Smpl24Rot6d, Format_HumanMl263, }
 
-// Every layout, in integer order.
-#define Layout_ALL { Layout_RootTranslation, Layout_LocalQuatXyzw, Layout_LocalQuatWxyz, Layout_LocalMatrix, Layout_Local6d, Layout_GlobalPositions, Layout_GlobalQuatXyzw, Layout_GlobalQuatWxyz, Layout_FootContacts, }
+
+
+
 
 // The identity matrix.
 #define IDENTITY { { 1.0, 0.0, 0.0, }, { 0.0, 1.0, 0.0, }, { 0.0, 0.0, 1.0, }, }
@@ -412,8 +372,9 @@ enum FlameStatus flame_session_progress(const struct FlameSession *session,
                                         uint32_t *steps_done,
                                         uint32_t *steps_total);
 
-// Reads the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) in a pose
-// `layout`, converted to `convention`, with post-processing `flags`.
+// Reads the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) in a
+// [`FlameLayout`], converted to a [`FlameConvention`], with post-processing `flags`
+// ([`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]).
 //
 // With `out` NULL, `*out_len` receives the required number of floats and nothing else is
 // done. Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len`

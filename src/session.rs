@@ -40,6 +40,8 @@ pub struct SessionParams {
     pub sampler: Option<Sampler>,
     pub eta: Option<f32>,
     pub guidance: Option<f32>,
+    /// Clamp the x0 estimate to [-1, 1] at every step (the official FLAME sampling does).
+    pub clip_denoised: Option<bool>,
     pub seed: u64,
     /// Worker threads for this session's kernels; 0 = one per core.
     pub threads: usize,
@@ -431,7 +433,8 @@ fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampl
         .map_err(|_| bad("variance", &dc.variance))?;
     let betas = diffusion::betas(schedule, dc.num_timesteps);
     let kept = diffusion::space_timesteps(dc.num_timesteps, &[steps])?;
-    DiffusionSampler::new(&betas, &kept, kind, param, variance, dc.clip_denoised)
+    let clip = params.clip_denoised.unwrap_or(dc.clip_denoised);
+    DiffusionSampler::new(&betas, &kept, kind, param, variance, clip)
 }
 
 /// Splits rows of `od` channels into the first `d` (prediction) and the rest (variance value).

@@ -134,6 +134,7 @@ fn session(m: &Arc<Model>, e: &Expected, sampler: Sampler, threads: usize) -> Se
         sampler: Some(sampler),
         eta: Some(0.0),
         guidance: Some(e.guidance()),
+        clip_denoised: None,
         seed: 7,
         threads,
     };

@@ -35,15 +35,16 @@ joint j, B(j) = M. A standard parent-relative hierarchy needs one world rotation
   local(0) = G(0), local(j) = G(parent)^T G(j).
 
 Usage: python3 tools/motion_reference.py [--out tests/fixtures/motion_reference.safetensors]
-Deterministic (seeded); needs numpy, scipy and safetensors.
+Byte-for-byte reproducible (seeded; the safetensors file is written here with sorted keys);
+needs numpy and scipy.
 """
 import argparse
 import json
 import os
+import struct
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from safetensors.numpy import save_file
 
 # ---------------------------------------------------------------- skeletons (REFERENCE 5, 4.6)
 
@@ -355,6 +356,23 @@ def synth_hml(T=30, fps=20.0, seed=11):
 # ---------------------------------------------------------------- fixture
 
 
+def save_safetensors(tensors, path, metadata):
+    """float32 tensors in the safetensors layout (8-byte header length, JSON header, data), keys
+    sorted so the file is the same on every run."""
+    header, blobs, offset = {"__metadata__": metadata}, [], 0
+    for name in sorted(tensors):
+        blob = np.ascontiguousarray(tensors[name], dtype="<f4").tobytes()
+        header[name] = {"dtype": "F32", "shape": list(tensors[name].shape),
+                        "data_offsets": [offset, offset + len(blob)]}
+        blobs.append(blob)
+        offset += len(blob)
+    text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    with open(path, "wb") as f:
+        f.write(struct.pack("<Q", len(text)) + text + b"".join(blobs))
+
+
+
 def main():
     ap = argparse.ArgumentParser()
     here = os.path.dirname(os.path.abspath(__file__))
@@ -396,7 +414,7 @@ def main():
         "notes": json.dumps("float64 decoding of the float32 features; tensors stored as float32"),
     }
     tensors = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
-    save_file(tensors, args.out, metadata=meta)
+    save_safetensors(tensors, args.out, meta)
     print(f"wrote {args.out}: " + ", ".join(f"{k} {list(v.shape)}" for k, v in tensors.items()))
     print(f"smpl root travel {travel:.3f} m; hml root travel "
           f"{np.linalg.norm(href['root'][-1] - href['root'][0]):.3f} m")

@@ -55,6 +55,7 @@ fn main() {
         sampler: Some(sampler),
         eta: Some(0.0),
         guidance: None,
+        clip_denoised: None,
         seed: 1,
         threads,
     };

@@ -34,7 +34,7 @@ fn cstring(s: &str) -> CString {
 impl FlameModel {
     pub(crate) fn new(model: Arc<Model>) -> FlameModel {
         let cfg = model.config();
-        let (names, parents) = super::poses::skeleton(&cfg.motion.format);
+        let (names, parents) = super::poses::skeleton(model.motion_format());
         let names: Vec<CString> = names.iter().map(|n| cstring(n)).collect();
         FlameModel {
             architecture: cstring(&cfg.architecture),
@@ -195,10 +195,7 @@ impl SessionState {
         let d = model.motion_dim();
         let mut ranges = Vec::with_capacity(joints.len());
         for &j in joints {
-            ranges.push(super::poses::joint_channels(
-                &model.config().motion.format,
-                j,
-            )?);
+            ranges.push(super::poses::joint_channels(model.motion_format(), j)?);
         }
         let mut mask = self.mask_or_empty();
         for frame in mask.chunks_exact_mut(d) {
@@ -248,7 +245,7 @@ impl SessionState {
         };
         let model = self.session.model();
         Ok(super::poses::read(
-            &model.config().motion.format,
+            model,
             features,
             self.session.frames(),
             layout,

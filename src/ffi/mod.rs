@@ -22,6 +22,7 @@ pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use errors::{guard, Fail};
 use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
+pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
 pub const FLAME_ABI_VERSION: u32 = 1;
@@ -348,6 +349,7 @@ fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
         sampler,
         eta: default_if_negative(p.eta, "eta")?,
         guidance: default_if_negative(p.guidance, "guidance")?,
+        clip_denoised: None,
         seed: p.seed,
         threads: p.threads as usize,
     })
@@ -626,8 +628,9 @@ pub unsafe extern "C" fn flame_session_progress(
     })
 }
 
-/// Reads the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) in a pose
-/// `layout`, converted to `convention`, with post-processing `flags`.
+/// Reads the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) in a
+/// [`FlameLayout`], converted to a [`FlameConvention`], with post-processing `flags`
+/// ([`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]).
 ///
 /// With `out` NULL, `*out_len` receives the required number of floats and nothing else is
 /// done. Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len`

@@ -1,21 +1,101 @@
-//! What the C ABI needs from the motion formats: skeleton tables, which feature channels a
-//! joint owns (for keep-masks), and pose layouts for `flame_session_read`.
+//! The C ABI's view of motion: its own layout and convention enums (raw features are layout 0,
+//! so the motion module's Rust enums stay out of the header), read flags, skeleton tables and
+//! the feature channels a joint owns (for keep-masks).
 
 use std::ops::Range;
 
 use crate::error::{invalid_arg, Result};
+use crate::models::Model;
+use crate::motion::{self, Convention, Format, Layout};
 
-/// Joint names and parents of a motion format's skeleton (empty when the format has none).
-pub(crate) fn skeleton(format: &str) -> (Vec<String>, Vec<i32>) {
-    let _ = format;
-    (Vec::new(), Vec::new())
+/// What [`crate::ffi::flame_session_read`] writes per frame. `J` is the skeleton's joint count
+/// (`FlameModelInfo.joint_count`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameLayout {
+    /// `[frames, feature_dim]` the model's raw features (convention and flags ignored).
+    Features = 0,
+    /// `[frames, 3]` the root joint's world position.
+    RootTranslation = 1,
+    /// `[frames, J, 4]` parent-relative rotations as quaternions x, y, z, w.
+    LocalQuatXyzw = 2,
+    /// `[frames, J, 4]` parent-relative rotations as quaternions w, x, y, z.
+    LocalQuatWxyz = 3,
+    /// `[frames, J, 3, 3]` parent-relative rotation matrices, row-major.
+    LocalMatrix = 4,
+    /// `[frames, J, 6]` parent-relative rotations as the first two matrix rows.
+    Local6d = 5,
+    /// `[frames, J, 3]` world joint positions.
+    GlobalPositions = 6,
+    /// `[frames, J, 4]` world rotations as quaternions x, y, z, w.
+    GlobalQuatXyzw = 7,
+    /// `[frames, J, 4]` world rotations as quaternions w, x, y, z.
+    GlobalQuatWxyz = 8,
+    /// `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot); only
+    /// formats that carry them (humanml263).
+    FootContacts = 9,
+}
+
+/// The coordinate frame poses are expressed in (README: "Poses").
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameConvention {
+    /// The motion format's own frame, untouched.
+    Native = 0,
+    /// Left-handed, Y up, Z forward, metres.
+    Unity = 1,
+    /// Left-handed, Z up, X forward, centimetres.
+    Unreal = 2,
+    /// Right-handed, Z up, X forward, metres.
+    Ros = 3,
+    /// Right-handed, Z up, -Y forward, metres.
+    Blender = 4,
+    /// Right-handed, Y up, Z forward, metres.
+    Gltf = 5,
+}
+
+/// Read flag: temporal Gaussian smoothing (σ = 1 frame) of the features before posing, as
+/// FLAME's official output does.
+pub const FLAME_READ_SMOOTH: u32 = 1;
+/// Read flag: keep each quaternion's sign as computed (w ≥ 0) instead of making every joint's
+/// track sign-continuous between frames.
+pub const FLAME_READ_RAW_SIGNS: u32 = 2;
+
+const LAYOUTS: [Layout; 9] = [
+    Layout::RootTranslation,
+    Layout::LocalQuatXyzw,
+    Layout::LocalQuatWxyz,
+    Layout::LocalMatrix,
+    Layout::Local6d,
+    Layout::GlobalPositions,
+    Layout::GlobalQuatXyzw,
+    Layout::GlobalQuatWxyz,
+    Layout::FootContacts,
+];
+
+const CONVENTIONS: [Convention; 6] = [
+    Convention::Native,
+    Convention::Unity,
+    Convention::Unreal,
+    Convention::Ros,
+    Convention::Blender,
+    Convention::Gltf,
+];
+
+/// Joint names and parents of the model's skeleton.
+pub(crate) fn skeleton(format: Format) -> (Vec<String>, Vec<i32>) {
+    let s = format.skeleton();
+    (
+        s.joint_names().iter().map(|n| n.to_string()).collect(),
+        s.parents().to_vec(),
+    )
 }
 
 /// The feature channels joint `joint` owns in `format`; -1 is the root translation.
-pub(crate) fn joint_channels(format: &str, joint: i32) -> Result<Range<usize>> {
+pub(crate) fn joint_channels(format: Format, joint: i32) -> Result<Range<usize>> {
     match format {
-        // REFERENCE 1.14: channels 0..3 root translation, then 6D rotations of 24 joints.
-        "smpl24_6d" => match joint {
+        // REFERENCE 1.14: channels 0..3 root translation, then the 6D rotations of 24 joints.
+        Format::Smpl24Rot6d => match joint {
             -1 => Ok(0..3),
             0..=23 => {
                 let j = joint as usize;
@@ -26,23 +106,46 @@ pub(crate) fn joint_channels(format: &str, joint: i32) -> Result<Range<usize>> {
             )),
         },
         other => Err(invalid_arg!(
-            "keeping joints is not supported for the `{other}` motion format"
+            "keeping joints is not supported yet for the `{other}` motion format"
         )),
     }
 }
 
-/// Features in the requested layout. Layout 0 is the raw features (frames × feature_dim).
+/// The features in the requested layout, convention and flags.
 pub(crate) fn read(
-    format: &str,
+    model: &Model,
     features: &[f32],
     frames: usize,
     layout: i32,
     convention: i32,
     flags: u32,
 ) -> Result<Vec<f32>> {
-    let _ = (format, frames, convention, flags);
-    match layout {
-        0 => Ok(features.to_vec()),
-        other => Err(invalid_arg!("unknown layout {other}")),
+    if flags & !(FLAME_READ_SMOOTH | FLAME_READ_RAW_SIGNS) != 0 {
+        return Err(invalid_arg!("unknown read flags {flags:#x}"));
     }
+    let convention = usize::try_from(convention)
+        .ok()
+        .and_then(|c| CONVENTIONS.get(c).copied())
+        .ok_or_else(|| invalid_arg!("unknown convention {convention} (0..=5)"))?;
+    if layout == FlameLayout::Features as i32 {
+        return Ok(features.to_vec());
+    }
+    let layout = usize::try_from(layout - 1)
+        .ok()
+        .and_then(|l| LAYOUTS.get(l).copied())
+        .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=9)"))?;
+    let smooth = if flags & FLAME_READ_SMOOTH != 0 {
+        1.0
+    } else {
+        0.0
+    };
+    let opts = model.read_options(smooth, flags & FLAME_READ_RAW_SIGNS == 0);
+    motion::read_layout(
+        model.motion_format(),
+        features,
+        frames,
+        layout,
+        convention,
+        &opts,
+    )
 }

@@ -7,9 +7,10 @@ pub mod flame;
 use std::path::Path;
 use std::sync::OnceLock;
 
-use crate::checkpoint::{ModelFile, StoredDtype, TOKENIZER_KEY};
+use crate::checkpoint::{ModelFile, StoredDtype, Tensor, TOKENIZER_KEY};
 use crate::config::Config;
 use crate::error::{bad_file, Result};
+use crate::motion::{Format, Normalization, ReadOptions};
 use crate::text::TextEncoder;
 
 pub use flame::{FlameCondition, FlameDenoiser, Workspace};
@@ -34,6 +35,9 @@ pub struct Model {
     text: TextEncoder,
     denoiser: Denoiser,
     dtype: Option<StoredDtype>,
+    format: Format,
+    /// `motion.mean` / `motion.std`: what the denoiser's features are normalised with, if anything.
+    stats: Option<(Tensor, Tensor)>,
     /// The unconditional input of classifier-free guidance, computed once per model.
     uncond: OnceLock<Condition>,
 }
@@ -64,12 +68,36 @@ impl Model {
             )?),
             other => return Err(bad_file!("unknown architecture `{other}`")),
         };
+        let format: Format = config
+            .motion
+            .format
+            .parse()
+            .map_err(|_| bad_file!("unknown motion.format `{}`", config.motion.format))?;
+        let dim = match &denoiser {
+            Denoiser::Flame(f) => f.motion_dim(),
+        };
+        if format.feature_dim() != dim {
+            return Err(bad_file!(
+                "motion.format `{format}` has {} features per frame, the denoiser {dim}",
+                format.feature_dim()
+            ));
+        }
+        let stats = if file.contains("motion.mean") || format.is_normalized() {
+            Some((
+                file.tensor("motion.mean", &[dim])?,
+                file.tensor("motion.std", &[dim])?,
+            ))
+        } else {
+            None
+        };
         let dtype = file.dominant_dtype();
         Ok(Model {
             config,
             text,
             denoiser,
             dtype,
+            format,
+            stats,
             uncond: OnceLock::new(),
         })
     }
@@ -84,6 +112,24 @@ impl Model {
 
     pub fn denoiser(&self) -> &Denoiser {
         &self.denoiser
+    }
+
+    /// The motion format of the denoiser's features.
+    pub fn motion_format(&self) -> Format {
+        self.format
+    }
+
+    /// Options for decoding this model's features into poses: its normalisation statistics, a
+    /// temporal smoothing σ in frames (0 = none) and quaternion sign continuity.
+    pub fn read_options(&self, smooth_sigma: f32, continuous: bool) -> ReadOptions<'_> {
+        ReadOptions {
+            smooth_sigma,
+            continuous,
+            normalization: self.stats.as_ref().map(|(m, s)| Normalization {
+                mean: m.data(),
+                std: s.data(),
+            }),
+        }
     }
 
     /// The dtype most of the file's weights are stored in.

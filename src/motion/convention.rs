@@ -345,10 +345,8 @@ mod tests {
         for c in &Convention::ALL[1..] {
             let ch = Change::new(Format::Smpl24Rot6d, *c);
             let wt = rotation::mul(&ch.world, &tilt);
-            for r in 0..3 {
-                for k in 0..3 {
-                    assert!((wt[r][k] - ch.body[r][k]).abs() < 1e-15, "{c}");
-                }
+            for (a, b) in wt.iter().flatten().zip(ch.body.iter().flatten()) {
+                assert!((a - b).abs() < 1e-15, "{c}");
             }
         }
     }

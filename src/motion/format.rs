@@ -61,6 +61,12 @@ impl Format {
         }
     }
 
+    /// Whether models of this format work on z-normalised features (their model files carry
+    /// `motion.mean` / `motion.std`): HumanML3D's are, FLAME's are not (REFERENCE 1.14, 2.7).
+    pub fn is_normalized(self) -> bool {
+        matches!(self, Format::HumanMl263)
+    }
+
     /// Whether the features carry foot contacts.
     pub fn has_foot_contacts(self) -> bool {
         matches!(self, Format::HumanMl263)

@@ -22,7 +22,7 @@
 
 use super::format::Format;
 use super::poses::Poses;
-use super::rotation::{self, Mat3};
+use super::rotation::{self, Mat3, Vec3};
 use super::skeleton::{Skeleton, HUMANML22_CHAINS};
 
 const RIC: usize = 4;
@@ -31,73 +31,97 @@ const CONTACTS: usize = 259;
 
 /// Decodes de-normalised `[frames, 263]` features in the native (Y-up) frame.
 pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
-    let skel = Skeleton::humanml22();
-    let joints = skel.joint_count();
+    let joints = Skeleton::humanml22().joint_count();
     let dim = Format::HumanMl263.feature_dim();
     let next = next_in_chain(joints);
     let mut poses = Poses::empty(Format::HumanMl263, frames);
+    let (r_root, root) = root_track(x, dim);
+    for (t, row) in x.chunks_exact(dim).enumerate() {
+        let span = t * joints..(t + 1) * joints;
+        poses.root[t] = root[t];
+        ric_positions(
+            row,
+            &r_root[t],
+            &root[t],
+            &mut poses.positions[span.clone()],
+        );
+        hung_rotations(
+            row,
+            &r_root[t],
+            &next,
+            &mut poses.global[span.clone()],
+            &mut poses.local[span],
+        );
+        let c = &row[CONTACTS..CONTACTS + 4];
+        poses.contacts.push([c[0], c[1], c[2], c[3]]);
+    }
+    poses
+}
 
-    // recover_root_rot_pos: θ is the exclusive cumulative sum of dim 0 (half the yaw change),
-    // the root's planar velocity of frame t−1 is rotated by qinv(q_root[t]) and accumulated.
+/// `recover_root_rot_pos`: per frame, `R(q_root)` (world → facing frame) and the root position.
+/// θ is the exclusive cumulative sum of dim 0 (half the yaw change); the planar velocity of frame
+/// t−1 is rotated into the world by `qinv(q_root[t])` and accumulated; the height is dim 3.
+fn root_track(x: &[f64], dim: usize) -> (Vec<Mat3>, Vec<Vec3>) {
     let (mut theta, mut planar) = (0.0f64, [0.0f64; 2]);
-    for t in 0..frames {
-        let row = &x[t * dim..(t + 1) * dim];
-        if t > 0 {
-            let prev = &x[(t - 1) * dim..t * dim];
-            theta += prev[0];
+    let (mut rots, mut positions) = (Vec::new(), Vec::new());
+    let mut prev: Option<&[f64]> = None;
+    for row in x.chunks_exact(dim) {
+        if let Some(p) = prev {
+            theta += p[0];
         }
-        let r_root = rotation::quat_to_matrix(&[theta.cos(), 0.0, theta.sin(), 0.0]);
-        let to_world = rotation::transpose(&r_root);
-        if t > 0 {
-            let prev = &x[(t - 1) * dim..t * dim];
-            let v = rotation::apply(&to_world, &[prev[1], 0.0, prev[2]]);
+        let r = rotation::quat_to_matrix(&[theta.cos(), 0.0, theta.sin(), 0.0]);
+        if let Some(p) = prev {
+            let v = rotation::apply(&rotation::transpose(&r), &[p[1], 0.0, p[2]]);
             planar[0] += v[0];
             planar[1] += v[2];
         }
-        let root = [planar[0], row[3], planar[1]];
-        poses.root[t] = root;
-
-        // recover_from_ric: joints 1..21 relative to the root's x, z (y kept), in the facing frame.
-        let base = t * joints;
-        poses.positions[base] = root;
-        for (j, p) in row[RIC..RIC + 63].chunks_exact(3).enumerate() {
-            let w = rotation::apply(&to_world, &[p[0], p[1], p[2]]);
-            poses.positions[base + j + 1] = [w[0] + root[0], w[1], w[2] + root[2]];
-        }
-
-        let stored: Vec<Mat3> = row[ROT..ROT + 126]
-            .chunks_exact(6)
-            .map(|d| rotation::from_6d_columns(&[d[0], d[1], d[2], d[3], d[4], d[5]]))
-            .collect();
-        let mut bone = [rotation::IDENTITY; 22];
-        for chain in HUMANML22_CHAINS {
-            let mut m = r_root;
-            for &j in &chain[1..] {
-                m = rotation::mul(&m, &stored[j - 1]);
-                bone[j] = m;
-            }
-        }
-        let global = &mut poses.global[base..base + joints];
-        global[0] = to_world;
-        for j in 1..joints {
-            global[j] = match next[j] {
-                Some(n) => bone[n],
-                None => global[skel.parent(j).unwrap_or(0)],
-            };
-        }
-        poses.local[base] = global[0];
-        for j in 1..joints {
-            let parent = global[skel.parent(j).unwrap_or(0)];
-            poses.local[base + j] = rotation::mul(&rotation::transpose(&parent), &global[j]);
-        }
-        poses.contacts.push([
-            row[CONTACTS],
-            row[CONTACTS + 1],
-            row[CONTACTS + 2],
-            row[CONTACTS + 3],
-        ]);
+        rots.push(r);
+        positions.push([planar[0], row[3], planar[1]]);
+        prev = Some(row);
     }
-    poses
+    (rots, positions)
+}
+
+/// `recover_from_ric` for one frame: joints 1..21 are stored in the facing frame relative to the
+/// root's x and z (y absolute); joint 0 is the root.
+fn ric_positions(row: &[f64], r_root: &Mat3, root: &Vec3, out: &mut [Vec3]) {
+    let to_world = rotation::transpose(r_root);
+    out[0] = *root;
+    for (j, p) in row[RIC..RIC + 63].chunks_exact(3).enumerate() {
+        let w = rotation::apply(&to_world, &[p[0], p[1], p[2]]);
+        out[j + 1] = [w[0] + root[0], w[1], w[2] + root[2]];
+    }
+}
+
+/// One frame's cont6d rotations hung on the hierarchy (module doc): the official chain products
+/// give each bone's world rotation, each joint takes the rotation of the bone leaving it.
+fn hung_rotations(
+    row: &[f64],
+    r_root: &Mat3,
+    next: &[Option<usize>],
+    global: &mut [Mat3],
+    local: &mut [Mat3],
+) {
+    let skel = Skeleton::humanml22();
+    let stored: Vec<Mat3> = row[ROT..ROT + 126]
+        .chunks_exact(6)
+        .map(|d| rotation::from_6d_columns(&[d[0], d[1], d[2], d[3], d[4], d[5]]))
+        .collect();
+    let mut bone = [rotation::IDENTITY; 22];
+    for chain in HUMANML22_CHAINS {
+        let mut m = *r_root;
+        for &j in &chain[1..] {
+            m = rotation::mul(&m, &stored[j - 1]);
+            bone[j] = m;
+        }
+    }
+    global[0] = rotation::transpose(r_root);
+    local[0] = global[0];
+    for j in 1..global.len() {
+        let parent = global[skel.parent(j).unwrap_or(0)];
+        global[j] = next[j].map_or(parent, |n| bone[n]);
+        local[j] = rotation::mul(&rotation::transpose(&parent), &global[j]);
+    }
 }
 
 /// For each joint, the joint after it in its kinematic chain (`None` for the root, whose bones

@@ -10,11 +10,11 @@
 //! | 0 | `smpl24_6d` (FLAME) | 147 = translation + 24 × 6D (ROW convention) | SMPL-24 | Z up, −Y forward, +X left, m |
 //! | 1 | `humanml263` (HumanML3D) | 263, normalised by the model's mean/std | HumanML3D-22 | Y up, +Z forward, +X left, m |
 //!
-//! Both run at 20 fps. `smpl24_6d` poses come from SMPL forward kinematics (pelvis = translation
-//! + rest pelvis); `humanml263` positions from `recover_from_ric`, rotations from the cont6d
-//! features hung on the hierarchy as `humanml263`'s module doc explains. The HumanML3D skeleton's
-//! bone lengths are not published; each bone takes the length of the same SMPL-24 joint's rest
-//! offset (see [`Skeleton::humanml22`]).
+//! Both run at 20 fps. `smpl24_6d` poses come from SMPL forward kinematics (the pelvis sits at
+//! the translation plus the rest pelvis); `humanml263` positions from `recover_from_ric`,
+//! rotations from the cont6d features hung on the hierarchy as `humanml263`'s module doc
+//! explains. The HumanML3D skeleton's bone lengths are not published; each bone takes the length
+//! of the same SMPL-24 joint's rest offset (see [`Skeleton::humanml22`]).
 //!
 //! # Layouts ([`Layout`], per frame, `f32`, frame-major; J = 24 or 22)
 //!

@@ -100,7 +100,7 @@ impl Poses {
         }
         postprocess::gaussian_smooth(&mut x, frames, dim, sigma as f64);
         let mut poses = match format {
-            Format::Smpl24Rot6d => smpl24_6d::decode(&x, frames),
+            Format::Smpl24Rot6d => smpl24_6d::decode(&x, frames)?,
             Format::HumanMl263 => humanml263::decode(&x, frames),
         };
         poses.continuous = opts.continuous;

@@ -6,6 +6,7 @@
 use std::sync::OnceLock;
 
 use super::rotation::{self, Mat3, Vec3};
+use crate::error::{invalid_arg, Result};
 
 /// A joint hierarchy: names, parents (every parent listed before its children) and rest offsets.
 #[derive(Clone, Debug)]
@@ -198,9 +199,9 @@ impl Skeleton {
         self.parents
     }
 
-    /// The parent of joint `j`, `None` for the root.
+    /// The parent of joint `j`, `None` for the root (and for a joint that does not exist).
     pub fn parent(&self, j: usize) -> Option<usize> {
-        usize::try_from(self.parents[j]).ok()
+        self.parents.get(j).and_then(|&p| usize::try_from(p).ok())
     }
 
     /// Rest offsets in the body frame, metres: joint − parent; row 0 is the root's rest position
@@ -217,7 +218,8 @@ impl Skeleton {
 
 /// Forward kinematics of one frame: `world(j) = world(parent) · local(j)` and
 /// `p(j) = p(parent) + world(parent) · offset(j)`, with `p(0) = root`. `offsets[0]` is not used:
-/// the root's position is given. Fills `positions` and `world` (both one entry per joint).
+/// the root's position is given. Fills `positions` and `world` (one entry per joint); every
+/// slice must have one entry per joint and every parent must come before its children.
 pub fn forward_kinematics(
     parents: &[i32],
     offsets: &[Vec3],
@@ -225,20 +227,44 @@ pub fn forward_kinematics(
     local: &[Mat3],
     positions: &mut [Vec3],
     world: &mut [Mat3],
-) {
-    for j in 0..parents.len() {
+) -> Result<()> {
+    let n = parents.len();
+    if [offsets.len(), local.len(), positions.len(), world.len()]
+        .iter()
+        .any(|&l| l != n)
+    {
+        return Err(invalid_arg!(
+            "forward kinematics of {n} joints got {} offsets, {} rotations, {} positions, {} world slots",
+            offsets.len(),
+            local.len(),
+            positions.len(),
+            world.len()
+        ));
+    }
+    for j in 0..n {
         match usize::try_from(parents[j]) {
-            Ok(p) => {
+            Ok(p) if p < j => {
                 world[j] = rotation::mul(&world[p], &local[j]);
                 positions[j] =
                     rotation::add(&positions[p], &rotation::apply(&world[p], &offsets[j]));
             }
-            Err(_) => {
+            Ok(p) => {
+                return Err(invalid_arg!(
+                    "joint {j}'s parent {p} does not come before it"
+                ))
+            }
+            Err(_) if j == 0 => {
                 world[j] = local[j];
                 positions[j] = *root;
             }
+            Err(_) => {
+                return Err(invalid_arg!(
+                    "joint {j} has no parent; only joint 0 may be the root"
+                ))
+            }
         }
     }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -270,7 +296,8 @@ mod tests {
             &vec![rotation::IDENTITY; n],
             &mut p,
             &mut w,
-        );
+        )
+        .unwrap();
         for (j, want) in [
             (7, [0.0884, -1.0879, -0.0268]),
             (20, [0.6813, 0.2222, -0.0436]),
@@ -279,6 +306,25 @@ mod tests {
                 assert!((p[j][k] - want[k]).abs() < 1e-4, "joint {j}: {:?}", p[j]);
             }
         }
+    }
+
+    #[test]
+    fn forward_kinematics_rejects_bad_hierarchies() {
+        let (o, r) = ([[0.0; 3]; 2], [rotation::IDENTITY; 2]);
+        let (mut p, mut w) = ([[0.0; 3]; 2], [rotation::IDENTITY; 2]);
+        let e = forward_kinematics(&[-1, 1], &o, &[0.0; 3], &r, &mut p, &mut w).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("joint 1's parent 1 does not come before it"),
+            "{e}"
+        );
+        let e = forward_kinematics(&[-1, -1], &o, &[0.0; 3], &r, &mut p, &mut w).unwrap_err();
+        assert!(
+            e.to_string().contains("only joint 0 may be the root"),
+            "{e}"
+        );
+        let e = forward_kinematics(&[-1, 0], &o[..1], &[0.0; 3], &r, &mut p, &mut w).unwrap_err();
+        assert!(e.to_string().contains("got 1 offsets"), "{e}");
     }
 
     #[test]

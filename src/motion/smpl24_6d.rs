@@ -6,9 +6,10 @@ use super::format::Format;
 use super::poses::Poses;
 use super::rotation::{self, Mat3};
 use super::skeleton::{forward_kinematics, Skeleton};
+use crate::error::Result;
 
 /// Decodes `[frames, 147]` features (already smoothed if asked) in the native frame.
-pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
+pub(crate) fn decode(x: &[f64], frames: usize) -> Result<Poses> {
     let skel = Skeleton::smpl24();
     let joints = skel.joint_count();
     let dim = Format::Smpl24Rot6d.feature_dim();
@@ -29,9 +30,9 @@ pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
             &local,
             &mut poses.positions[span.clone()],
             &mut poses.global[span.clone()],
-        );
+        )?;
         poses.local[span].copy_from_slice(&local);
         poses.root[t] = pelvis;
     }
-    poses
+    Ok(poses)
 }

@@ -1,0 +1,390 @@
+// libflame for C++17: a header-only RAII wrapper over the C ABI (flame.h).
+//
+//   flame::Model model = flame::Model::load("flame_hml3d.safetensors");
+//   flame::SessionParams params;            // the model file's defaults
+//   params.frames = 120;
+//   params.steps = 50;
+//   params.sampler = FLAME_SAMPLER_DDIM;
+//   flame::Session session = model.session(params);
+//   session.set_prompt("a person jumps twice");
+//   while (session.step() > 0) {
+//       std::vector<float> preview = session.read(FLAME_WHICH_ESTIMATE);
+//   }
+//   std::vector<float> motion = session.read();  // frames x feature_dim
+//
+// Ownership: Model and Session own their C handle and are move-only. A Session keeps its model
+// alive on the C side, so it stays usable after the Model object that made it is destroyed.
+// A moved-from object is empty: its calls throw flame::Error(FLAME_STATUS_INVALID_ARGUMENT).
+//
+// Errors: every failing call throws flame::Error, carrying the FlameStatus and the library's
+// message (flame_last_error() at the time of the failure).
+//
+// Threads: a Model may be shared by any number of threads and sessions; a Session is used by
+// one thread at a time, except Session::cancel(), which any thread may call while another is
+// inside step().
+
+#ifndef FLAME_HPP
+#define FLAME_HPP
+
+#include <cstddef>
+#include <cstdint>
+#include <exception>
+#include <functional>
+#include <initializer_list>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "flame.h"
+
+namespace flame {
+
+// flame_session_read's layout 0: the raw features, frames x feature_dim.
+constexpr int32_t kRawFeatures = 0;
+
+// A failed libflame call: its status and the library's message.
+class Error : public std::runtime_error {
+public:
+    Error(FlameStatus status, const std::string& message)
+        : std::runtime_error(std::string(flame_status_string(status)) + ": " + message),
+          status_(status),
+          message_(message) {}
+
+    FlameStatus status() const noexcept { return status_; }
+    // The library's message alone (what() prefixes the status name).
+    const std::string& message() const noexcept { return message_; }
+
+private:
+    FlameStatus status_;
+    std::string message_;
+};
+
+namespace detail {
+
+// Throws for a failing status, with this thread's last error message.
+inline void check(FlameStatus status) {
+    if (status != FLAME_STATUS_OK) {
+        // Copy the message before anything else can call into libflame.
+        std::string message = flame_last_error();
+        throw Error(status, message);
+    }
+}
+
+}  // namespace detail
+
+// The library's ABI version; compare with FLAME_ABI_VERSION (the header's) at startup.
+inline uint32_t abi_version() noexcept { return flame_abi_version(); }
+
+// The library's version, e.g. "0.1.0".
+inline std::string version() { return flame_version_string(); }
+
+// Options of Model::load; the defaults come from flame_model_params_default.
+struct ModelParams : FlameModelParams {
+    ModelParams() : FlameModelParams() { detail::check(flame_model_params_default(this)); }
+};
+
+// Settings of one generation; the defaults come from flame_session_params_default (every
+// setting from the model file, seed 0, one thread per core).
+struct SessionParams : FlameSessionParams {
+    SessionParams() : FlameSessionParams() { detail::check(flame_session_params_default(this)); }
+};
+
+// What Model::info reports, copied: it stays valid after the model is gone.
+struct ModelInfo {
+    uint32_t feature_dim = 0;
+    uint32_t joint_count = 0;
+    uint32_t max_frames = 0;
+    uint32_t default_frames = 0;
+    uint32_t default_steps = 0;
+    uint32_t num_timesteps = 0;
+    FlameSampler default_sampler = FLAME_SAMPLER_DEFAULT;
+    float fps = 0.0f;
+    float default_guidance = 0.0f;
+    float default_eta = 0.0f;
+    std::string architecture;
+    std::string motion_format;
+    std::string text_encoder;
+    std::vector<std::string> joint_names;
+    std::vector<int32_t> joint_parents;
+};
+
+// Steps done and the total of a generation.
+struct Progress {
+    uint32_t done = 0;
+    uint32_t total = 0;
+};
+
+class Session;
+
+// A loaded model: immutable, shareable by threads; move-only owner of a FlameModel.
+class Model {
+public:
+    // An empty model (as after a move).
+    Model() noexcept = default;
+    // Takes ownership of a handle from flame_model_load (NULL makes an empty model).
+    explicit Model(FlameModel* owned) noexcept : handle_(owned) {}
+
+    static Model load(const std::string& path, const ModelParams& params = ModelParams()) {
+        FlameModel* handle = nullptr;
+        detail::check(flame_model_load(path.c_str(), &params, &handle));
+        return Model(handle);
+    }
+
+    // The bytes are copied: the caller's buffer may go as soon as this returns.
+    static Model load_from_memory(const void* bytes, std::size_t len,
+                                  const ModelParams& params = ModelParams()) {
+        FlameModel* handle = nullptr;
+        detail::check(flame_model_load_from_memory(static_cast<const uint8_t*>(bytes), len,
+                                                   &params, &handle));
+        return Model(handle);
+    }
+
+    static Model load_from_memory(const std::vector<uint8_t>& bytes,
+                                  const ModelParams& params = ModelParams()) {
+        return load_from_memory(bytes.data(), bytes.size(), params);
+    }
+
+    Model(const Model&) = delete;
+    Model& operator=(const Model&) = delete;
+    Model(Model&& other) noexcept : handle_(std::exchange(other.handle_, nullptr)) {}
+    Model& operator=(Model&& other) noexcept {
+        if (this != &other) {
+            flame_model_free(handle_);
+            handle_ = std::exchange(other.handle_, nullptr);
+        }
+        return *this;
+    }
+    // Releases this reference; sessions made from the model keep it alive.
+    ~Model() { flame_model_free(handle_); }
+
+    ModelInfo info() const {
+        FlameModelInfo c{};
+        c.struct_size = sizeof c;
+        detail::check(flame_model_info(handle_, &c));
+        ModelInfo info;
+        info.feature_dim = c.feature_dim;
+        info.joint_count = c.joint_count;
+        info.max_frames = c.max_frames;
+        info.default_frames = c.default_frames;
+        info.default_steps = c.default_steps;
+        info.num_timesteps = c.num_timesteps;
+        info.default_sampler = static_cast<FlameSampler>(c.default_sampler);
+        info.fps = c.fps;
+        info.default_guidance = c.default_guidance;
+        info.default_eta = c.default_eta;
+        info.architecture = c.architecture ? c.architecture : "";
+        info.motion_format = c.motion_format ? c.motion_format : "";
+        info.text_encoder = c.text_encoder ? c.text_encoder : "";
+        for (uint32_t j = 0; j < c.joint_count; ++j) {
+            info.joint_names.emplace_back(c.joint_names && c.joint_names[j] ? c.joint_names[j]
+                                                                           : "");
+            info.joint_parents.push_back(c.joint_parents ? c.joint_parents[j] : -1);
+        }
+        return info;
+    }
+
+    // A new generation on this model (see Session).
+    Session session(const SessionParams& params = SessionParams()) const;
+
+    const FlameModel* get() const noexcept { return handle_; }
+    // Gives up ownership: the caller frees the handle with flame_model_free.
+    FlameModel* release() noexcept { return std::exchange(handle_, nullptr); }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    FlameModel* handle_ = nullptr;
+};
+
+// One generation; move-only owner of a FlameSession (and of its worker threads).
+class Session {
+public:
+    // Called on the stepping thread after every step with (steps done, steps total).
+    using ProgressFn = std::function<void(uint32_t done, uint32_t total)>;
+
+    // An empty session (as after a move).
+    Session() noexcept = default;
+
+    explicit Session(const Model& model, const SessionParams& params = SessionParams()) {
+        detail::check(flame_session_new(model.get(), &params, &handle_));
+    }
+
+    Session(const Session&) = delete;
+    Session& operator=(const Session&) = delete;
+    // The progress hook lives on the heap, so the pointer the C side holds survives moves.
+    Session(Session&& other) noexcept
+        : handle_(std::exchange(other.handle_, nullptr)), hook_(std::move(other.hook_)) {}
+    Session& operator=(Session&& other) noexcept {
+        if (this != &other) {
+            flame_session_free(handle_);
+            handle_ = std::exchange(other.handle_, nullptr);
+            hook_ = std::move(other.hook_);
+        }
+        return *this;
+    }
+    // Frees the session (joining its worker threads), then the progress hook it used.
+    ~Session() { flame_session_free(handle_); }
+
+    // Encoded once, here. The prompt may change between steps.
+    void set_prompt(const std::string& prompt) {
+        if (prompt.find('\0') != std::string::npos) {
+            throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`prompt` contains a NUL byte");
+        }
+        detail::check(flame_session_set_prompt(handle_, prompt.c_str()));
+    }
+
+    // x_T, frames x feature_dim; only before the first step (or after reset()).
+    void set_noise(const float* noise, std::size_t len) {
+        detail::check(flame_session_set_noise(handle_, noise, len));
+    }
+    void set_noise(const std::vector<float>& noise) { set_noise(noise.data(), noise.size()); }
+
+    // The reference motion for editing, frames x dim (the session's frames, the model's dim).
+    void set_reference(const float* features, uint32_t frames, uint32_t dim) {
+        detail::check(flame_session_set_reference(handle_, features, frames, dim));
+    }
+    void set_reference(const std::vector<float>& features, uint32_t frames, uint32_t dim) {
+        check_size(features.size(), frames, dim, "features");
+        set_reference(features.data(), frames, dim);
+    }
+
+    // The keep-mask, frames x dim bytes (1 keeps the reference value).
+    void set_mask(const uint8_t* mask, uint32_t frames, uint32_t dim) {
+        detail::check(flame_session_set_mask(handle_, mask, frames, dim));
+    }
+    void set_mask(const std::vector<uint8_t>& mask, uint32_t frames, uint32_t dim) {
+        check_size(mask.size(), frames, dim, "mask");
+        set_mask(mask.data(), frames, dim);
+    }
+
+    // Keeps every feature of frames [start, end).
+    void keep_frames(uint32_t start, uint32_t end) {
+        detail::check(flame_session_keep_frames(handle_, start, end));
+    }
+
+    // Keeps the channels of these joints (FLAME_ROOT_TRANSLATION for the root path).
+    void keep_joints(const int32_t* joints, std::size_t count) {
+        detail::check(flame_session_keep_joints(handle_, joints, count));
+    }
+    void keep_joints(const std::vector<int32_t>& joints) {
+        keep_joints(joints.data(), joints.size());
+    }
+    void keep_joints(std::initializer_list<int32_t> joints) {
+        keep_joints(joints.begin(), joints.size());
+    }
+
+    void clear_edit() { detail::check(flame_session_clear_edit(handle_)); }
+
+    // Runs after every step on the stepping thread; an empty function removes it. An exception
+    // it throws is caught at the C boundary and rethrown by the step() that ran it (the step
+    // itself has completed by then).
+    void on_progress(ProgressFn fn) {
+        if (!fn) {
+            detail::check(flame_session_set_progress_callback(handle_, nullptr, nullptr));
+            hook_.reset();
+            return;
+        }
+        auto hook = std::make_unique<Hook>();
+        hook->fn = std::move(fn);
+        detail::check(flame_session_set_progress_callback(handle_, &Session::trampoline,
+                                                          hook.get()));
+        hook_ = std::move(hook);
+    }
+
+    // One sampler step; returns the steps still to run.
+    uint32_t step() {
+        uint32_t left = 0;
+        detail::check(flame_session_step(handle_, &left));
+        if (hook_ && hook_->error) {
+            std::rethrow_exception(std::exchange(hook_->error, nullptr));
+        }
+        return left;
+    }
+
+    // Asks the step running on another thread (or the next step) to stop; it then throws
+    // Error(FLAME_STATUS_CANCELLED) and may be retried.
+    void cancel() const { detail::check(flame_session_cancel(handle_)); }
+
+    // Back to before the first step, with the same prompt, settings and edits.
+    void reset() { detail::check(flame_session_reset(handle_)); }
+
+    Progress progress() const {
+        Progress p;
+        detail::check(flame_session_progress(handle_, &p.done, &p.total));
+        return p;
+    }
+
+    // The sample (or estimate) in a layout, converted to a convention.
+    std::vector<float> read(FlameWhich which = FLAME_WHICH_SAMPLE, int32_t layout = kRawFeatures,
+                            int32_t convention = 0, uint32_t flags = 0) const {
+        std::size_t len = 0;
+        detail::check(flame_session_read(handle_, which, layout, convention, flags, nullptr, 0,
+                                         &len));
+        std::vector<float> out(len);
+        detail::check(flame_session_read(handle_, which, layout, convention, flags, out.data(),
+                                         out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // Into a caller buffer; returns the count written (throws BUFFER_TOO_SMALL when `len` is
+    // short; read_len() tells the length needed).
+    std::size_t read(float* out, std::size_t len, FlameWhich which = FLAME_WHICH_SAMPLE,
+                     int32_t layout = kRawFeatures, int32_t convention = 0,
+                     uint32_t flags = 0) const {
+        std::size_t written = 0;
+        detail::check(
+            flame_session_read(handle_, which, layout, convention, flags, out, len, &written));
+        return written;
+    }
+
+    std::size_t read_len(FlameWhich which = FLAME_WHICH_SAMPLE, int32_t layout = kRawFeatures,
+                         int32_t convention = 0, uint32_t flags = 0) const {
+        std::size_t len = 0;
+        detail::check(
+            flame_session_read(handle_, which, layout, convention, flags, nullptr, 0, &len));
+        return len;
+    }
+
+    FlameSession* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    struct Hook {
+        ProgressFn fn;
+        std::exception_ptr error;
+    };
+
+    // No exception may unwind into libflame: park it for step() to rethrow.
+    static void trampoline(void* user_data, uint32_t done, uint32_t total) noexcept {
+        Hook* hook = static_cast<Hook*>(user_data);
+        try {
+            hook->fn(done, total);
+        } catch (...) {
+            if (!hook->error) {
+                hook->error = std::current_exception();
+            }
+        }
+    }
+
+    static void check_size(std::size_t size, uint32_t frames, uint32_t dim, const char* name) {
+        if (size != static_cast<std::size_t>(frames) * dim) {
+            throw Error(FLAME_STATUS_INVALID_ARGUMENT,
+                        std::string("`") + name + "` has " + std::to_string(size) +
+                            " values, expected frames x dim = " +
+                            std::to_string(static_cast<std::size_t>(frames) * dim));
+        }
+    }
+
+    FlameSession* handle_ = nullptr;
+    std::unique_ptr<Hook> hook_;
+};
+
+inline Session Model::session(const SessionParams& params) const {
+    return Session(*this, params);
+}
+
+}  // namespace flame
+
+#endif  // FLAME_HPP

@@ -1,0 +1,666 @@
+// C# bindings of libflame (text-to-motion diffusion on the CPU) for Unity (Mono and IL2CPP) and
+// .NET: P/Invoke declarations mirroring include/flame.h, SafeHandles for the two handles, and a
+// small managed API over them.
+//
+//   using (var model = FlameModel.Load(path))
+//   using (var session = model.NewSession(p))   // p from FlameSessionParams.Default()
+//   {
+//       session.SetPrompt("a person jumps twice");
+//       while (session.Step() > 0) { }          // one step per call; Cancel() from any thread
+//       float[] motion = session.Read(FlameWhich.Sample, FlameLayout.Features,
+//                                     FlameConvention.Native, 0);
+//   }
+//
+// Written for C# 7.3 (Unity 2018.3+, mcs) and without UTF-8 marshalling attributes, which not
+// every runtime supports: strings cross as NUL-terminated UTF-8 byte arrays.
+//
+// Threads: a FlameModel may be shared by any number of threads; a FlameSession is used by one
+// thread at a time (libflame answers WRONG_STATE to a second thread), except Cancel(). Disposing
+// a session while another thread is inside Step() is safe: the SafeHandle defers the free until
+// that call returns (cancel first so it returns soon).
+
+using System;
+using System.Runtime.InteropServices;
+using System.Text;
+
+namespace Flame
+{
+    /// <summary>What every fallible call returns (enum FlameStatus).</summary>
+    public enum FlameStatus
+    {
+        Ok = 0,
+        InvalidArgument = 1,
+        Io = 2,
+        BadModelFile = 3,
+        WrongState = 4,
+        Cancelled = 5,
+        Tokenizer = 6,
+        BufferTooSmall = 7,
+        Internal = 8,
+    }
+
+    /// <summary>FlameSessionParams.sampler values.</summary>
+    public enum FlameSampler
+    {
+        Default = 0,
+        Ddpm = 1,
+        Ddim = 2,
+    }
+
+    /// <summary>Which motion FlameSession.Read returns.</summary>
+    public enum FlameWhich
+    {
+        /// <summary>The current sample x_t (the final motion once every step has run).</summary>
+        Sample = 0,
+        /// <summary>The model's current estimate of the clean motion (a preview).</summary>
+        Estimate = 1,
+    }
+
+    /// <summary>Pose layouts of FlameSession.Read. Plain integers, passed through unchanged, so a
+    /// layout the library adds works before it is named here.</summary>
+    public static class FlameLayout
+    {
+        /// <summary>The model's raw features: frames × feature_dim.</summary>
+        public const int Features = 0;
+    }
+
+    /// <summary>Coordinate conventions of FlameSession.Read (plain integers, like FlameLayout).</summary>
+    public static class FlameConvention
+    {
+        /// <summary>The motion format's own frame, data untouched.</summary>
+        public const int Native = 0;
+    }
+
+    /// <summary>Mirror of the C struct FlameModelParams.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameModelParams
+    {
+        public uint struct_size;
+        /// <summary>Threads for work done at load; 0 = one per core.</summary>
+        public uint threads;
+
+        /// <summary>The library's defaults (struct_size set).</summary>
+        public static FlameModelParams Default()
+        {
+            var p = new FlameModelParams();
+            FlameException.Check(FlameNative.flame_model_params_default(out p));
+            return p;
+        }
+    }
+
+    /// <summary>Mirror of the C struct FlameModelInfo. The pointers belong to the model and are
+    /// valid until it is freed: use the helpers, or FlameModel.Info (a managed copy).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameModelInfo
+    {
+        public uint struct_size;
+        public uint feature_dim;
+        public uint joint_count;
+        public uint max_frames;
+        public uint default_frames;
+        public uint default_steps;
+        public uint num_timesteps;
+        public int default_sampler;
+        public float fps;
+        public float default_guidance;
+        public float default_eta;
+        public IntPtr architecture;
+        public IntPtr motion_format;
+        public IntPtr text_encoder;
+        /// <summary>joint_count pointers to NUL-terminated UTF-8 names (may be NULL if 0).</summary>
+        public IntPtr joint_names;
+        /// <summary>joint_count int32 parent indices, -1 for the root (may be NULL if 0).</summary>
+        public IntPtr joint_parents;
+
+        public string Architecture { get { return FlameNative.Utf8(architecture); } }
+        public string MotionFormat { get { return FlameNative.Utf8(motion_format); } }
+        public string TextEncoder { get { return FlameNative.Utf8(text_encoder); } }
+
+        public string[] JointNames()
+        {
+            var names = new string[joint_names == IntPtr.Zero ? 0 : (int)joint_count];
+            for (int i = 0; i < names.Length; i++)
+                names[i] = FlameNative.Utf8(Marshal.ReadIntPtr(joint_names, i * IntPtr.Size));
+            return names;
+        }
+
+        public int[] JointParents()
+        {
+            var parents = new int[joint_parents == IntPtr.Zero ? 0 : (int)joint_count];
+            if (parents.Length > 0)
+                Marshal.Copy(joint_parents, parents, 0, parents.Length);
+            return parents;
+        }
+    }
+
+    /// <summary>Mirror of the C struct FlameSessionParams. Start from Default(): zero frames or
+    /// steps, sampler Default and a negative eta or guidance mean "the model file's default".</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameSessionParams
+    {
+        public uint struct_size;
+        public uint frames;
+        public uint steps;
+        /// <summary>A FlameSampler value.</summary>
+        public int sampler;
+        public float eta;
+        public float guidance;
+        public ulong seed;
+        /// <summary>Worker threads the session creates and owns; 0 = one per core.</summary>
+        public uint threads;
+
+        public static FlameSessionParams Default()
+        {
+            var p = new FlameSessionParams();
+            FlameException.Check(FlameNative.flame_session_params_default(out p));
+            return p;
+        }
+    }
+
+    /// <summary>Called after every step, on the stepping thread (FlameProgressCallback).</summary>
+    [UnmanagedFunctionPointer(CallingConvention.Cdecl)]
+    public delegate void ProgressCallback(IntPtr userData, uint stepsDone, uint stepsTotal);
+
+    /// <summary>Owns a FlameModel*; releasing it calls flame_model_free.</summary>
+    public sealed class FlameModelHandle : SafeHandle
+    {
+        public FlameModelHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_model_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameSession*; releasing it calls flame_session_free (which joins the
+    /// session's worker threads).</summary>
+    public sealed class FlameSessionHandle : SafeHandle
+    {
+        /// <summary>The progress callback's user_data (a weak GCHandle to the FlameSession). Freed
+        /// only after the native session, so no callback can find it freed.</summary>
+        internal GCHandle CallbackTarget;
+
+        public FlameSessionHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_session_free(handle);
+            if (CallbackTarget.IsAllocated)
+                CallbackTarget.Free();
+            return true;
+        }
+    }
+
+    /// <summary>Every function of include/flame.h. Status-returning functions return the raw
+    /// status; wrap them in FlameException.Check right away (the message is per thread and valid
+    /// only until the next libflame call on it).</summary>
+    public static class FlameNative
+    {
+#if UNITY_IOS && !UNITY_EDITOR
+        public const string Lib = "__Internal";
+#else
+        public const string Lib = "flame";
+#endif
+        /// <summary>FLAME_ABI_VERSION of the header these declarations mirror.</summary>
+        public const uint AbiVersion = 1;
+        /// <summary>FLAME_ROOT_TRANSLATION: the root translation in flame_session_keep_joints.</summary>
+        public const int RootTranslation = -1;
+
+        const CallingConvention Cdecl = CallingConvention.Cdecl;
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern uint flame_abi_version();
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern IntPtr flame_version_string();
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_model_params_default(out FlameModelParams p);
+
+        /// <param name="path">NUL-terminated UTF-8 (see Utf8Z).</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_model_load(byte[] path, ref FlameModelParams p, out FlameModelHandle model);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_model_load_from_memory(byte[] bytes, UIntPtr len, ref FlameModelParams p, out FlameModelHandle model);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_model_free(IntPtr model);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_model_info(FlameModelHandle model, ref FlameModelInfo info);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_params_default(out FlameSessionParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_new(FlameModelHandle model, ref FlameSessionParams p, out FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_session_free(IntPtr session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_reset(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_prompt(FlameSessionHandle session, byte[] prompt);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_noise(FlameSessionHandle session, float[] noise, UIntPtr len);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_reference(FlameSessionHandle session, float[] features, uint frames, uint dim);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_mask(FlameSessionHandle session, byte[] mask, uint frames, uint dim);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_keep_frames(FlameSessionHandle session, uint start, uint end);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_keep_joints(FlameSessionHandle session, int[] joints, UIntPtr count);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_clear_edit(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_progress_callback(FlameSessionHandle session, ProgressCallback callback, IntPtr userData);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_step(FlameSessionHandle session, out uint stepsLeft);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_cancel(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_progress(FlameSessionHandle session, out uint stepsDone, out uint stepsTotal);
+
+        /// <param name="output">NULL (null) to query the length into outLen.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_read(FlameSessionHandle session, int which, int layout, int convention, uint flags,
+                                                            [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern IntPtr flame_last_error();
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern IntPtr flame_status_string(int status);
+
+        /// <summary>A NUL-terminated UTF-8 copy of s (null stays null, i.e. NULL).</summary>
+        public static byte[] Utf8Z(string s)
+        {
+            if (s == null)
+                return null;
+            var bytes = new byte[Encoding.UTF8.GetByteCount(s) + 1];
+            Encoding.UTF8.GetBytes(s, 0, s.Length, bytes, 0);
+            return bytes;
+        }
+
+        /// <summary>Decodes a NUL-terminated UTF-8 string (NULL gives "").</summary>
+        public static string Utf8(IntPtr p)
+        {
+            if (p == IntPtr.Zero)
+                return "";
+            int n = 0;
+            while (Marshal.ReadByte(p, n) != 0)
+                n++;
+            var bytes = new byte[n];
+            Marshal.Copy(p, bytes, 0, n);
+            return Encoding.UTF8.GetString(bytes);
+        }
+    }
+
+    /// <summary>A failed libflame call: its status and flame_last_error()'s message.</summary>
+    public class FlameException : Exception
+    {
+        public FlameStatus Status { get; private set; }
+        /// <summary>flame_last_error() as it was right after the failing call.</summary>
+        public string NativeMessage { get; private set; }
+
+        public FlameException(FlameStatus status, string message)
+            : base(FlameNative.Utf8(FlameNative.flame_status_string((int)status)) + ": " + message)
+        {
+            Status = status;
+            NativeMessage = message;
+        }
+
+        /// <summary>Throws for a non-OK status. Call it on the thread that made the call, before
+        /// any other libflame call there: the message is per thread and is overwritten.</summary>
+        public static void Check(FlameStatus status)
+        {
+            if (status != FlameStatus.Ok)
+                throw new FlameException(status, FlameNative.Utf8(FlameNative.flame_last_error()));
+        }
+    }
+
+    /// <summary>The library as a whole.</summary>
+    public static class FlameLibrary
+    {
+        public static string Version { get { return FlameNative.Utf8(FlameNative.flame_version_string()); } }
+
+        /// <summary>Throws when the loaded library's ABI is not the one these bindings mirror.</summary>
+        public static void CheckAbi()
+        {
+            uint abi = FlameNative.flame_abi_version();
+            if (abi != FlameNative.AbiVersion)
+                throw new InvalidOperationException("libflame ABI version " + abi + " does not match the bindings' " + FlameNative.AbiVersion);
+        }
+    }
+
+    /// <summary>A managed copy of FlameModelInfo.</summary>
+    public sealed class ModelInfo
+    {
+        public int FeatureDim, JointCount, MaxFrames, DefaultFrames, DefaultSteps, NumTimesteps;
+        public FlameSampler DefaultSampler;
+        public float Fps, DefaultGuidance, DefaultEta;
+        public string Architecture, MotionFormat, TextEncoder;
+        public string[] JointNames;
+        public int[] JointParents;
+
+        internal ModelInfo(FlameModelInfo i)
+        {
+            FeatureDim = (int)i.feature_dim;
+            JointCount = (int)i.joint_count;
+            MaxFrames = (int)i.max_frames;
+            DefaultFrames = (int)i.default_frames;
+            DefaultSteps = (int)i.default_steps;
+            NumTimesteps = (int)i.num_timesteps;
+            DefaultSampler = (FlameSampler)i.default_sampler;
+            Fps = i.fps;
+            DefaultGuidance = i.default_guidance;
+            DefaultEta = i.default_eta;
+            Architecture = i.Architecture;
+            MotionFormat = i.MotionFormat;
+            TextEncoder = i.TextEncoder;
+            JointNames = i.JointNames();
+            JointParents = i.JointParents();
+        }
+    }
+
+    /// <summary>A loaded model: immutable, shareable by any number of sessions and threads.
+    /// Sessions keep it alive natively, so disposing it does not invalidate them.</summary>
+    public sealed class FlameModel : IDisposable
+    {
+        public FlameModelHandle Handle { get; private set; }
+        /// <summary>Copied at load.</summary>
+        public ModelInfo Info { get; private set; }
+
+        FlameModel(FlameModelHandle handle)
+        {
+            Handle = handle;
+            var raw = new FlameModelInfo();
+            raw.struct_size = (uint)Marshal.SizeOf(typeof(FlameModelInfo));
+            FlameException.Check(FlameNative.flame_model_info(handle, ref raw));
+            Info = new ModelInfo(raw);
+        }
+
+        /// <summary>Loads a model file; threads are for work at load (0 = one per core).</summary>
+        public static FlameModel Load(string path, uint threads = 0)
+        {
+            if (path == null)
+                throw new ArgumentNullException("path");
+            FlameLibrary.CheckAbi();
+            var p = FlameModelParams.Default();
+            p.threads = threads;
+            FlameModelHandle h;
+            FlameException.Check(FlameNative.flame_model_load(FlameNative.Utf8Z(path), ref p, out h));
+            return new FlameModel(h);
+        }
+
+        /// <summary>Loads a model from the bytes of a model file (copied; e.g. a TextAsset's bytes).</summary>
+        public static FlameModel LoadFromMemory(byte[] bytes, uint threads = 0)
+        {
+            if (bytes == null)
+                throw new ArgumentNullException("bytes");
+            FlameLibrary.CheckAbi();
+            var p = FlameModelParams.Default();
+            p.threads = threads;
+            FlameModelHandle h;
+            FlameException.Check(FlameNative.flame_model_load_from_memory(bytes, (UIntPtr)bytes.Length, ref p, out h));
+            return new FlameModel(h);
+        }
+
+        /// <summary>Starts a generation with the model file's defaults.</summary>
+        public FlameSession NewSession()
+        {
+            return NewSession(FlameSessionParams.Default());
+        }
+
+        /// <summary>Starts a generation; start p from FlameSessionParams.Default().</summary>
+        public FlameSession NewSession(FlameSessionParams p)
+        {
+            FlameSessionHandle h;
+            FlameException.Check(FlameNative.flame_session_new(Handle, ref p, out h));
+            int frames = p.frames != 0 ? (int)p.frames : Info.DefaultFrames;
+            return new FlameSession(h, frames, Info.FeatureDim);
+        }
+
+        public void Dispose()
+        {
+            Handle.Dispose();
+        }
+    }
+
+    /// <summary>One generation. See the file's header for the threading rules.</summary>
+    public sealed class FlameSession : IDisposable
+    {
+        // One static delegate for every session (IL2CPP needs a static, attributed method; the
+        // field keeps the delegate alive); user_data names the session through a weak GCHandle.
+        static readonly ProgressCallback Trampoline = OnProgress;
+
+        public FlameSessionHandle Handle { get; private set; }
+        /// <summary>Frames this session generates.</summary>
+        public int Frames { get; private set; }
+        /// <summary>Feature channels per frame.</summary>
+        public int FeatureDim { get; private set; }
+
+        Action<int, int> progress;
+        Exception callbackError;
+
+        internal FlameSession(FlameSessionHandle handle, int frames, int featureDim)
+        {
+            Handle = handle;
+            Frames = frames;
+            FeatureDim = featureDim;
+        }
+
+        public void SetPrompt(string prompt)
+        {
+            if (prompt == null)
+                throw new ArgumentNullException("prompt");
+            FlameException.Check(FlameNative.flame_session_set_prompt(Handle, FlameNative.Utf8Z(prompt)));
+        }
+
+        /// <summary>Sets x_T (Frames × FeatureDim floats); before the first step only.</summary>
+        public void SetNoise(float[] noise)
+        {
+            if (noise == null)
+                throw new ArgumentNullException("noise");
+            FlameException.Check(FlameNative.flame_session_set_noise(Handle, noise, (UIntPtr)noise.Length));
+        }
+
+        /// <summary>The reference motion for editing, Frames × FeatureDim floats.</summary>
+        public void SetReference(float[] features)
+        {
+            SetReference(features, Frames, FeatureDim);
+        }
+
+        public void SetReference(float[] features, int frames, int dim)
+        {
+            CheckLength(features, features == null ? 0 : features.Length, frames, dim, "features");
+            FlameException.Check(FlameNative.flame_session_set_reference(Handle, features, (uint)frames, (uint)dim));
+        }
+
+        /// <summary>The keep-mask, Frames × FeatureDim values: true keeps the reference value.</summary>
+        public void SetMask(bool[] mask)
+        {
+            if (mask == null)
+                throw new ArgumentNullException("mask");
+            var bytes = new byte[mask.Length];
+            for (int i = 0; i < mask.Length; i++)
+                bytes[i] = mask[i] ? (byte)1 : (byte)0;
+            SetMask(bytes, Frames, FeatureDim);
+        }
+
+        public void SetMask(byte[] mask, int frames, int dim)
+        {
+            CheckLength(mask, mask == null ? 0 : mask.Length, frames, dim, "mask");
+            FlameException.Check(FlameNative.flame_session_set_mask(Handle, mask, (uint)frames, (uint)dim));
+        }
+
+        /// <summary>Keeps every feature of frames start..end (end exclusive), adding to the mask.</summary>
+        public void KeepFrames(int start, int end)
+        {
+            if (start < 0 || end < 0)
+                throw new ArgumentOutOfRangeException(start < 0 ? "start" : "end");
+            FlameException.Check(FlameNative.flame_session_keep_frames(Handle, (uint)start, (uint)end));
+        }
+
+        /// <summary>Keeps these joints' channels in every frame (FlameNative.RootTranslation for
+        /// the root path), adding to the mask.</summary>
+        public void KeepJoints(params int[] joints)
+        {
+            if (joints == null)
+                throw new ArgumentNullException("joints");
+            FlameException.Check(FlameNative.flame_session_keep_joints(Handle, joints, (UIntPtr)joints.Length));
+        }
+
+        public void ClearEdit()
+        {
+            FlameException.Check(FlameNative.flame_session_clear_edit(Handle));
+        }
+
+        /// <summary>Starts over: same prompt, settings and edit, so the same output follows.</summary>
+        public void Reset()
+        {
+            FlameException.Check(FlameNative.flame_session_reset(Handle));
+        }
+
+        /// <summary>Runs one step; returns the steps left. Throws FlameException with status
+        /// Cancelled when cancelled (the step may be retried).</summary>
+        public int Step()
+        {
+            callbackError = null;
+            uint left;
+            FlameException.Check(FlameNative.flame_session_step(Handle, out left));
+            var e = callbackError;
+            if (e != null)
+            {
+                callbackError = null;
+                throw new InvalidOperationException("the progress callback threw", e);
+            }
+            return (int)left;
+        }
+
+        /// <summary>Asks the step running on another thread (or the next one) to stop. Any thread.</summary>
+        public void Cancel()
+        {
+            FlameException.Check(FlameNative.flame_session_cancel(Handle));
+        }
+
+        public int StepsDone { get { uint d, t; Progress(out d, out t); return (int)d; } }
+        public int StepsTotal { get { uint d, t; Progress(out d, out t); return (int)t; } }
+        public int StepsLeft { get { uint d, t; Progress(out d, out t); return (int)(t - d); } }
+
+        void Progress(out uint done, out uint total)
+        {
+            FlameException.Check(FlameNative.flame_session_progress(Handle, out done, out total));
+        }
+
+        /// <summary>Floats Read would return.</summary>
+        public int ReadLength(FlameWhich which, int layout, int convention, uint flags)
+        {
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_session_read(Handle, (int)which, layout, convention, flags, null, UIntPtr.Zero, out n));
+            return (int)n;
+        }
+
+        /// <summary>The sample or clean-motion estimate in a layout and convention, frame-major.</summary>
+        public float[] Read(FlameWhich which, int layout, int convention, uint flags)
+        {
+            var output = new float[ReadLength(which, layout, convention, flags)];
+            ReadInto(output, which, layout, convention, flags);
+            return output;
+        }
+
+        /// <summary>The final motion's raw features.</summary>
+        public float[] Read()
+        {
+            return Read(FlameWhich.Sample, FlameLayout.Features, FlameConvention.Native, 0);
+        }
+
+        /// <summary>Reads into a caller buffer (no allocation); returns the floats written.
+        /// Throws with status BufferTooSmall when it is shorter than ReadLength.</summary>
+        public int ReadInto(float[] output, FlameWhich which, int layout, int convention, uint flags)
+        {
+            if (output == null)
+                throw new ArgumentNullException("output");
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_session_read(Handle, (int)which, layout, convention, flags, output, (UIntPtr)output.Length, out n));
+            return (int)n;
+        }
+
+        /// <summary>Calls callback(stepsDone, stepsTotal) after every step, on the stepping
+        /// thread (not Unity's main thread when stepping on a worker). An exception it throws is
+        /// rethrown by Step. null removes it.</summary>
+        public void SetProgressCallback(Action<int, int> callback)
+        {
+            if (callback == null)
+            {
+                FlameException.Check(FlameNative.flame_session_set_progress_callback(Handle, null, IntPtr.Zero));
+                progress = null;
+                return;
+            }
+            if (!Handle.CallbackTarget.IsAllocated)
+                Handle.CallbackTarget = GCHandle.Alloc(this, GCHandleType.Weak);
+            progress = callback;
+            FlameException.Check(FlameNative.flame_session_set_progress_callback(Handle, Trampoline, GCHandle.ToIntPtr(Handle.CallbackTarget)));
+        }
+
+        [AOT.MonoPInvokeCallback(typeof(ProgressCallback))]
+        static void OnProgress(IntPtr userData, uint stepsDone, uint stepsTotal)
+        {
+            // No exception may unwind into native code: keep it for Step to rethrow.
+            FlameSession s = null;
+            try
+            {
+                s = GCHandle.FromIntPtr(userData).Target as FlameSession;
+                if (s != null && s.progress != null)
+                    s.progress((int)stepsDone, (int)stepsTotal);
+            }
+            catch (Exception e)
+            {
+                if (s != null)
+                    s.callbackError = e;
+            }
+        }
+
+        static void CheckLength(Array a, int length, int frames, int dim, string name)
+        {
+            if (a == null)
+                throw new ArgumentNullException(name);
+            if (frames < 0 || dim < 0 || (long)frames * dim != length)
+                throw new ArgumentException(name + " has " + length + " values, expected " + frames + " × " + dim, name);
+        }
+
+        /// <summary>Frees the session (deferred until a Step running on another thread returns).</summary>
+        public void Dispose()
+        {
+            Handle.Dispose();
+        }
+    }
+}
+
+#if !UNITY_5_3_OR_NEWER
+namespace AOT
+{
+    /// <summary>Unity's marker for native-callable static methods (IL2CPP needs it); defined
+    /// here for builds outside Unity.</summary>
+    [AttributeUsage(AttributeTargets.Method)]
+    public sealed class MonoPInvokeCallbackAttribute : Attribute
+    {
+        public MonoPInvokeCallbackAttribute(Type type) { }
+    }
+}
+#endif

@@ -1,0 +1,625 @@
+"""Python bindings of libflame (text-to-motion diffusion on the CPU) over its C ABI, via ctypes.
+
+    import flame
+    with flame.Model.load("flame_tiny.safetensors") as model:
+        with model.session(frames=120, steps=50, sampler="ddim", seed=1) as s:
+            s.set_prompt("a person jumps twice")
+            motion = s.run()                     # numpy float32 [frames, feature_dim]
+
+The shared library is found through, in order: the environment variable FLAME_LIBRARY (a path to
+the file), a copy next to this package, the repository's target/release and target/debug (for a
+checkout), and the system's library search path.
+
+Threads: a Model is immutable and may be shared; a Session is used by one thread at a time, except
+`cancel()`, which any thread may call while another is inside `step()`. The C calls release the
+GIL, so sessions in different Python threads run in parallel.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence, Union
+
+import numpy as np
+
+__all__ = [
+    "ABI_VERSION",
+    "FlameError",
+    "Model",
+    "ModelInfo",
+    "Session",
+    "Status",
+    "Sampler",
+    "Which",
+    "Layout",
+    "Convention",
+    "ROOT_TRANSLATION",
+    "library_path",
+    "version",
+]
+
+# The ABI version these bindings were written against (FLAME_ABI_VERSION in flame.h).
+ABI_VERSION = 1
+
+# Passed to Session.keep_joints to keep the root translation channels (FLAME_ROOT_TRANSLATION).
+ROOT_TRANSLATION = -1
+
+
+class Status:
+    """FlameStatus values."""
+
+    OK = 0
+    INVALID_ARGUMENT = 1
+    IO = 2
+    BAD_MODEL_FILE = 3
+    WRONG_STATE = 4
+    CANCELLED = 5
+    TOKENIZER = 6
+    BUFFER_TOO_SMALL = 7
+    INTERNAL = 8
+
+
+class Sampler:
+    """FlameSampler values (FlameSessionParams.sampler)."""
+
+    DEFAULT = 0
+    DDPM = 1
+    DDIM = 2
+
+
+class Which:
+    """FlameWhich values: which motion Session.read returns."""
+
+    SAMPLE = 0
+    ESTIMATE = 1
+
+
+class Layout:
+    """Pose layouts for Session.read. Passed to the library as plain integers, so values the
+    library adds later work before they are named here."""
+
+    FEATURES = 0  # the model's raw features, [frames, feature_dim]
+
+
+class Convention:
+    """Coordinate conventions for Session.read (plain integers, like Layout)."""
+
+    NATIVE = 0  # the motion format's own frame, data untouched
+
+
+# --- the shared library ------------------------------------------------------------------------
+
+
+def _library_names() -> List[str]:
+    if sys.platform == "win32":
+        return ["flame.dll"]
+    if sys.platform == "darwin":
+        return ["libflame.dylib"]
+    return ["libflame.so"]
+
+
+def _candidate_paths() -> List[Path]:
+    here = Path(__file__).resolve().parent
+    found = [here / n for n in _library_names()]
+    # A checkout: bindings/python/flame/ -> the repository root is three levels up.
+    root = here.parents[2] if len(here.parents) > 2 else here
+    for profile in ("release", "debug"):
+        found += [root / "target" / profile / n for n in _library_names()]
+    return found
+
+
+def library_path() -> str:
+    """Where the shared library is loaded from (see the module doc for the search order)."""
+    env = os.environ.get("FLAME_LIBRARY")
+    if env:
+        if not Path(env).is_file():
+            raise OSError(f"FLAME_LIBRARY={env!r} is not a file")
+        return env
+    for p in _candidate_paths():
+        if p.is_file():
+            return str(p)
+    system = ctypes.util.find_library("flame")
+    if system:
+        return system
+    tried = ", ".join(str(p) for p in _candidate_paths())
+    raise OSError(
+        "libflame not found: set FLAME_LIBRARY to the library's path, or build it with "
+        f"`cargo build --release` (tried {tried} and the system library path)"
+    )
+
+
+class _ModelParams(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_uint32), ("threads", ctypes.c_uint32)]
+
+
+class _ModelInfo(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("feature_dim", ctypes.c_uint32),
+        ("joint_count", ctypes.c_uint32),
+        ("max_frames", ctypes.c_uint32),
+        ("default_frames", ctypes.c_uint32),
+        ("default_steps", ctypes.c_uint32),
+        ("num_timesteps", ctypes.c_uint32),
+        ("default_sampler", ctypes.c_int32),
+        ("fps", ctypes.c_float),
+        ("default_guidance", ctypes.c_float),
+        ("default_eta", ctypes.c_float),
+        ("architecture", ctypes.c_char_p),
+        ("motion_format", ctypes.c_char_p),
+        ("text_encoder", ctypes.c_char_p),
+        ("joint_names", ctypes.POINTER(ctypes.c_char_p)),
+        ("joint_parents", ctypes.POINTER(ctypes.c_int32)),
+    ]
+
+
+class _SessionParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("frames", ctypes.c_uint32),
+        ("steps", ctypes.c_uint32),
+        ("sampler", ctypes.c_int32),
+        ("eta", ctypes.c_float),
+        ("guidance", ctypes.c_float),
+        ("seed", ctypes.c_uint64),
+        ("threads", ctypes.c_uint32),
+    ]
+
+
+_ProgressCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32)
+
+_P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
+_status = ctypes.c_int  # enum FlameStatus
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    u32, i32, size_t = ctypes.c_uint32, ctypes.c_int32, ctypes.c_size_t
+    pu32 = ctypes.POINTER(u32)
+    pf32 = ctypes.POINTER(ctypes.c_float)
+    signatures = {
+        "flame_abi_version": (u32, []),
+        "flame_version_string": (ctypes.c_char_p, []),
+        "flame_model_params_default": (_status, [ctypes.POINTER(_ModelParams)]),
+        "flame_model_load": (
+            _status,
+            [ctypes.c_char_p, ctypes.POINTER(_ModelParams), ctypes.POINTER(_P)],
+        ),
+        "flame_model_load_from_memory": (
+            _status,
+            [ctypes.c_void_p, size_t, ctypes.POINTER(_ModelParams), ctypes.POINTER(_P)],
+        ),
+        "flame_model_free": (None, [_P]),
+        "flame_model_info": (_status, [_P, ctypes.POINTER(_ModelInfo)]),
+        "flame_session_params_default": (_status, [ctypes.POINTER(_SessionParams)]),
+        "flame_session_new": (
+            _status,
+            [_P, ctypes.POINTER(_SessionParams), ctypes.POINTER(_P)],
+        ),
+        "flame_session_free": (None, [_P]),
+        "flame_session_reset": (_status, [_P]),
+        "flame_session_set_prompt": (_status, [_P, ctypes.c_char_p]),
+        "flame_session_set_noise": (_status, [_P, pf32, size_t]),
+        "flame_session_set_reference": (_status, [_P, pf32, u32, u32]),
+        "flame_session_set_mask": (_status, [_P, ctypes.POINTER(ctypes.c_uint8), u32, u32]),
+        "flame_session_keep_frames": (_status, [_P, u32, u32]),
+        "flame_session_keep_joints": (_status, [_P, ctypes.POINTER(i32), size_t]),
+        "flame_session_clear_edit": (_status, [_P]),
+        "flame_session_set_progress_callback": (_status, [_P, _ProgressCallback, ctypes.c_void_p]),
+        "flame_session_step": (_status, [_P, pu32]),
+        "flame_session_cancel": (_status, [_P]),
+        "flame_session_progress": (_status, [_P, pu32, pu32]),
+        "flame_session_read": (
+            _status,
+            [_P, i32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
+        ),
+        "flame_last_error": (ctypes.c_char_p, []),
+        "flame_status_string": (ctypes.c_char_p, [i32]),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        fn = getattr(lib, name)
+        fn.restype = restype
+        fn.argtypes = argtypes
+    return lib
+
+
+_lib_lock = threading.Lock()
+_lib_handle: Optional[ctypes.CDLL] = None
+
+
+def _lib() -> ctypes.CDLL:
+    """The bound library, loaded on first use (so importing never fails for a missing library)."""
+    global _lib_handle
+    with _lib_lock:
+        if _lib_handle is None:
+            lib = _bind(ctypes.CDLL(library_path()))
+            abi = lib.flame_abi_version()
+            if abi != ABI_VERSION:
+                raise OSError(
+                    f"libflame ABI version {abi} does not match these bindings' {ABI_VERSION}"
+                )
+            _lib_handle = lib
+        return _lib_handle
+
+
+def version() -> str:
+    """The library's version string, e.g. "0.1.0"."""
+    return _lib().flame_version_string().decode()
+
+
+# --- errors ------------------------------------------------------------------------------------
+
+
+class FlameError(Exception):
+    """A failed libflame call: `status` is a Status value, `message` flame_last_error()."""
+
+    def __init__(self, status: int, message: str):
+        self.status = status
+        self.message = message
+        name = _lib().flame_status_string(status).decode()
+        self.status_name = name
+        super().__init__(f"{name}: {message}")
+
+
+def _check(status: int) -> None:
+    # flame_last_error is per OS thread and valid until the next call on it: read it right away,
+    # on the thread that made the failing call (the one running this function).
+    if status != Status.OK:
+        raw = _lib().flame_last_error()
+        raise FlameError(status, raw.decode("utf-8", "replace") if raw else "")
+
+
+# --- numpy helpers -----------------------------------------------------------------------------
+
+
+def _f32(array, name: str) -> np.ndarray:
+    a = np.ascontiguousarray(array, dtype=np.float32)
+    if a.ndim == 0:
+        raise ValueError(f"{name} must be an array, not a scalar")
+    return a
+
+
+def _frames_by_dim(a: np.ndarray, dim: int, name: str):
+    """(frames, dim) of a 2-D array, or of a flat one whose length is a multiple of dim."""
+    if a.ndim == 2:
+        return a.shape[0], a.shape[1]
+    if a.ndim == 1 and dim and a.size % dim == 0:
+        return a.size // dim, dim
+    raise ValueError(f"{name} must be shaped [frames, {dim}], got {a.shape}")
+
+
+def _ptr(a: np.ndarray, ctype):
+    return a.ctypes.data_as(ctypes.POINTER(ctype))
+
+
+# --- model -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What flame_model_info reports, copied into Python values."""
+
+    feature_dim: int
+    joint_count: int
+    max_frames: int
+    default_frames: int
+    default_steps: int
+    num_timesteps: int
+    default_sampler: int
+    fps: float
+    default_guidance: float
+    default_eta: float
+    architecture: str
+    motion_format: str
+    text_encoder: str
+    joint_names: List[str]
+    joint_parents: List[int]
+
+
+def _text(p: Optional[bytes]) -> str:
+    return p.decode("utf-8", "replace") if p else ""
+
+
+def _model_params(threads: int) -> _ModelParams:
+    p = _ModelParams()
+    _check(_lib().flame_model_params_default(ctypes.byref(p)))
+    p.threads = threads
+    return p
+
+
+class Model:
+    """A loaded model: immutable, shareable by any number of sessions and threads. Close it (or
+    use `with`) to release it early; its sessions keep it alive natively, so closing a model does
+    not invalidate them."""
+
+    def __init__(self, handle: int):
+        if not handle:
+            raise ValueError("Model() takes a handle; use Model.load or Model.from_bytes")
+        self._handle: Optional[int] = handle
+        self._info: Optional[ModelInfo] = None
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike], threads: int = 0) -> "Model":
+        """Loads a model file. `threads` is for work done at load (0 = one per core)."""
+        out = _P()
+        params = _model_params(threads)
+        _check(_lib().flame_model_load(os.fsencode(path), ctypes.byref(params), ctypes.byref(out)))
+        return cls(out.value)
+
+    @classmethod
+    def from_bytes(cls, data: Union[bytes, bytearray, memoryview], threads: int = 0) -> "Model":
+        """Loads a model from the bytes of a model file (libflame copies them)."""
+        buf = np.frombuffer(data, dtype=np.uint8)
+        out = _P()
+        params = _model_params(threads)
+        _check(
+            _lib().flame_model_load_from_memory(
+                buf.ctypes.data if buf.size else None,
+                buf.size,
+                ctypes.byref(params),
+                ctypes.byref(out),
+            )
+        )
+        return cls(out.value)
+
+    def _h(self) -> int:
+        if self._handle is None:
+            raise ValueError("the model is closed")
+        return self._handle
+
+    @property
+    def info(self) -> ModelInfo:
+        if self._info is None:
+            raw = _ModelInfo()
+            raw.struct_size = ctypes.sizeof(_ModelInfo)
+            _check(_lib().flame_model_info(self._h(), ctypes.byref(raw)))
+            n = raw.joint_count
+            names = [_text(raw.joint_names[i]) for i in range(n)] if raw.joint_names else []
+            parents = [int(raw.joint_parents[i]) for i in range(n)] if raw.joint_parents else []
+            self._info = ModelInfo(
+                feature_dim=raw.feature_dim,
+                joint_count=n,
+                max_frames=raw.max_frames,
+                default_frames=raw.default_frames,
+                default_steps=raw.default_steps,
+                num_timesteps=raw.num_timesteps,
+                default_sampler=raw.default_sampler,
+                fps=raw.fps,
+                default_guidance=raw.default_guidance,
+                default_eta=raw.default_eta,
+                architecture=_text(raw.architecture),
+                motion_format=_text(raw.motion_format),
+                text_encoder=_text(raw.text_encoder),
+                joint_names=names,
+                joint_parents=parents,
+            )
+        return self._info
+
+    def session(
+        self,
+        frames: Optional[int] = None,
+        steps: Optional[int] = None,
+        sampler: Union[None, str, int] = None,
+        eta: Optional[float] = None,
+        guidance: Optional[float] = None,
+        seed: int = 0,
+        threads: int = 0,
+    ) -> "Session":
+        """Starts a generation. None takes the model file's default; `sampler` is "ddpm",
+        "ddim" or a Sampler value; `threads` 0 = one per core (the session owns its threads)."""
+        return Session(self, frames, steps, sampler, eta, guidance, seed, threads)
+
+    def close(self) -> None:
+        handle, self._handle = self._handle, None
+        if handle is not None:
+            _lib().flame_model_free(handle)
+
+    def __enter__(self) -> "Model":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the library may already be gone
+            pass
+
+
+# --- session -----------------------------------------------------------------------------------
+
+_SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM}
+_WHICH = {"sample": Which.SAMPLE, "estimate": Which.ESTIMATE}
+
+ProgressFn = Callable[[int, int], None]
+
+
+class Session:
+    """One generation on a model. Methods raise FlameError when libflame reports a failure."""
+
+    def __init__(self, model: Model, frames, steps, sampler, eta, guidance, seed, threads):
+        info = model.info
+        p = _SessionParams()
+        _check(_lib().flame_session_params_default(ctypes.byref(p)))
+        p.frames = frames or 0
+        p.steps = steps or 0
+        if isinstance(sampler, str) or sampler is None:
+            key = sampler.lower() if isinstance(sampler, str) else None
+            if key not in _SAMPLERS:
+                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim)")
+            p.sampler = _SAMPLERS[key]
+        else:
+            p.sampler = int(sampler)
+        p.eta = -1.0 if eta is None else eta
+        p.guidance = -1.0 if guidance is None else guidance
+        p.seed = seed
+        p.threads = threads
+        out = _P()
+        _check(_lib().flame_session_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
+        self._handle: Optional[int] = out.value
+        self.frames = frames or info.default_frames
+        self.feature_dim = info.feature_dim
+        # Held by every call but cancel(), so close() from another thread waits for a running
+        # step instead of freeing the session under it. Reentrant: a progress callback may call
+        # back into the session (libflame then answers WRONG_STATE for most calls).
+        self._lock = threading.RLock()
+        self._callback = None  # the CFUNCTYPE object must outlive its registration
+        self._callback_error: Optional[BaseException] = None
+
+    def _h(self) -> int:
+        if self._handle is None:
+            raise ValueError("the session is closed")
+        return self._handle
+
+    def _call(self, fn, *args) -> None:
+        with self._lock:
+            _check(fn(self._h(), *args))
+
+    def set_prompt(self, prompt: str) -> None:
+        self._call(_lib().flame_session_set_prompt, prompt.encode("utf-8"))
+
+    def set_noise(self, noise) -> None:
+        """Sets x_T explicitly ([frames, feature_dim] or flat); before the first step only."""
+        a = _f32(noise, "noise")
+        self._call(_lib().flame_session_set_noise, _ptr(a, ctypes.c_float), a.size)
+
+    def set_reference(self, features) -> None:
+        """The reference motion for editing, [frames, feature_dim] float32."""
+        a = _f32(features, "features")
+        frames, dim = _frames_by_dim(a, self.feature_dim, "features")
+        self._call(_lib().flame_session_set_reference, _ptr(a, ctypes.c_float), frames, dim)
+
+    def set_mask(self, mask) -> None:
+        """The keep-mask, [frames, feature_dim]; nonzero/True = keep the reference value."""
+        m = np.asarray(mask)
+        if m.dtype != np.uint8:
+            m = (m != 0).astype(np.uint8)
+        m = np.ascontiguousarray(m)
+        frames, dim = _frames_by_dim(m, self.feature_dim, "mask")
+        self._call(_lib().flame_session_set_mask, _ptr(m, ctypes.c_uint8), frames, dim)
+
+    def keep_frames(self, start: int, end: int) -> None:
+        """Keeps every feature of frames start..end (end exclusive), adding to the mask."""
+        self._call(_lib().flame_session_keep_frames, start, end)
+
+    def keep_joints(self, joints: Sequence[int]) -> None:
+        """Keeps the channels of these joints (ROOT_TRANSLATION for the root path) in every frame."""
+        j = np.ascontiguousarray(list(joints), dtype=np.int32)
+        self._call(_lib().flame_session_keep_joints, _ptr(j, ctypes.c_int32) if j.size else None, j.size)
+
+    def clear_edit(self) -> None:
+        self._call(_lib().flame_session_clear_edit)
+
+    def set_progress(self, callback: Optional[ProgressFn]) -> None:
+        """Calls `callback(steps_done, steps_total)` after every step, on the stepping thread.
+        An exception it raises is re-raised by the step() that ran it. None removes it."""
+        if callback is None:
+            self._call(_lib().flame_session_set_progress_callback, _ProgressCallback(), None)
+            self._callback = None
+            return
+
+        def trampoline(_user_data, done, total):
+            try:
+                callback(done, total)
+            except BaseException as e:  # ctypes would only print it; keep it for step()
+                self._callback_error = e
+
+        c_fn = _ProgressCallback(trampoline)
+        self._call(_lib().flame_session_set_progress_callback, c_fn, None)
+        self._callback = c_fn
+
+    def step(self) -> int:
+        """Runs one sampler step; returns the steps left. A cancelled step raises FlameError with
+        status CANCELLED and may be retried."""
+        left = ctypes.c_uint32()
+        with self._lock:
+            self._callback_error = None
+            _check(_lib().flame_session_step(self._h(), ctypes.byref(left)))
+            err, self._callback_error = self._callback_error, None
+        if err is not None:
+            raise err
+        return left.value
+
+    def run(self) -> np.ndarray:
+        """Runs every remaining step and returns the final sample's features."""
+        while self.steps_left > 0:
+            self.step()
+        return self.read()
+
+    def cancel(self) -> None:
+        """Abandons the step running on another thread (or the next one). Thread-safe."""
+        handle = self._handle
+        if handle is not None:
+            _check(_lib().flame_session_cancel(handle))
+
+    def reset(self) -> None:
+        """Starts over with the same prompt, settings and edit; the same output follows."""
+        self._call(_lib().flame_session_reset)
+
+    @property
+    def progress(self):
+        """(steps_done, steps_total)."""
+        done, total = ctypes.c_uint32(), ctypes.c_uint32()
+        self._call(_lib().flame_session_progress, ctypes.byref(done), ctypes.byref(total))
+        return done.value, total.value
+
+    @property
+    def steps_left(self) -> int:
+        done, total = self.progress
+        return total - done
+
+    def read(
+        self,
+        which: Union[str, int] = "sample",
+        layout: int = Layout.FEATURES,
+        convention: int = Convention.NATIVE,
+        flags: int = 0,
+    ) -> np.ndarray:
+        """The current sample ("sample") or clean-motion estimate ("estimate") as float32,
+        shaped [frames, -1] (for Layout.FEATURES [frames, feature_dim]). `layout`, `convention`
+        and `flags` go to libflame as integers."""
+        w = _WHICH[which] if isinstance(which, str) else int(which)
+        lib = _lib()
+        n = ctypes.c_size_t()
+        with self._lock:
+            h = self._h()
+            _check(lib.flame_session_read(h, w, layout, convention, flags, None, 0, ctypes.byref(n)))
+            out = np.empty(n.value, dtype=np.float32)
+            _check(
+                lib.flame_session_read(
+                    h, w, layout, convention, flags, _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)
+                )
+            )
+        out = out[: n.value]
+        if self.frames and out.size % self.frames == 0:
+            return out.reshape(self.frames, -1)
+        return out
+
+    def close(self) -> None:
+        """Frees the session (cancelling and waiting for a step running on another thread)."""
+        if self._handle is None:
+            return
+        self.cancel()
+        with self._lock:
+            handle, self._handle = self._handle, None
+            if handle is not None:
+                _lib().flame_session_free(handle)
+            self._callback = None
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass

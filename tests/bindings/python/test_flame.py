@@ -1,0 +1,398 @@
+"""The Python bindings (bindings/python/flame) against libflame's C ABI.
+
+Reference: the `flame generate` CLI (the Rust API) — the features it writes for REF_PROMPT with
+REF_SETTINGS must equal, bit for bit, what the bindings generate. Fixture:
+tests/fixtures/flame_tiny.safetensors (147 features per frame, at most 470 frames, defaults
+ddpm / 1000 steps / guidance 8).
+
+Environment (all optional; tests/bindings/run_python.sh sets them):
+  FLAME_LIBRARY   the shared library (else the bindings' own search: target/release, target/debug)
+  FLAME_CLI       the `flame` executable (else next to the library)
+  FLAME_MODEL     the model file (else the fixture)
+"""
+
+import os
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flame
+from flame import Convention, FlameError, Layout, Status
+
+ROOT = Path(__file__).resolve().parents[3]
+MODEL = os.environ.get("FLAME_MODEL", str(ROOT / "tests/fixtures/flame_tiny.safetensors"))
+REF_PROMPT = "a person walks forward and waves."
+REF_SETTINGS = dict(frames=24, steps=10, sampler="ddim", seed=3, threads=1)
+DIM = 147
+
+
+def cli_path() -> str:
+    env = os.environ.get("FLAME_CLI")
+    if env:
+        return env
+    exe = Path(flame.library_path()).with_name("flame")
+    if not exe.is_file():
+        pytest.skip(f"no flame CLI next to {flame.library_path()} (set FLAME_CLI)")
+    return str(exe)
+
+
+def cli_generate(out: Path, noise: Path = None) -> np.ndarray:
+    s = REF_SETTINGS
+    cmd = [cli_path(), "generate", "--model", MODEL, "--prompt", REF_PROMPT,
+           "--frames", str(s["frames"]), "--steps", str(s["steps"]), "--sampler", s["sampler"],
+           "--seed", str(s["seed"]), "--threads", str(s["threads"]), "--out", str(out)]
+    if noise is not None:
+        cmd += ["--noise", str(noise)]
+    subprocess.run(cmd, check=True, capture_output=True)
+    return np.load(out)
+
+
+@pytest.fixture(scope="module")
+def model():
+    with flame.Model.load(MODEL) as m:
+        yield m
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    return cli_generate(tmp_path_factory.mktemp("cli") / "ref.npy")
+
+
+def ref_session(model, **overrides):
+    s = model.session(**{**REF_SETTINGS, **overrides})
+    s.set_prompt(REF_PROMPT)
+    return s
+
+
+def expect_error(status, fragment, fn, *args, **kwargs):
+    with pytest.raises(FlameError) as e:
+        fn(*args, **kwargs)
+    assert e.value.status == status, str(e.value)
+    assert fragment in e.value.message, e.value.message
+    return e.value
+
+
+# --- library and model ------------------------------------------------------------------------
+
+
+def test_version_and_abi():
+    assert flame.version().count(".") == 2
+    assert flame._lib().flame_abi_version() == flame.ABI_VERSION
+
+
+def test_info(model):
+    i = model.info
+    assert (i.feature_dim, i.max_frames, i.num_timesteps) == (DIM, 470, 1000)
+    assert (i.default_steps, i.default_sampler, i.default_guidance) == (1000, flame.Sampler.DDPM, 8.0)
+    assert 1 <= i.default_frames <= i.max_frames
+    assert (i.architecture, i.motion_format, i.text_encoder) == ("flame", "smpl24_6d", "roberta")
+    assert i.fps == 20.0
+    assert len(i.joint_names) == len(i.joint_parents) == i.joint_count
+    for j, p in enumerate(i.joint_parents):
+        assert (p == -1) if j == 0 else (0 <= p < j), (j, p)
+    assert all(i.joint_names), i.joint_names
+
+
+def test_load_errors(tmp_path):
+    expect_error(Status.IO, "no_such_model.safetensors", flame.Model.load, tmp_path / "no_such_model.safetensors")
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a model")
+    expect_error(Status.BAD_MODEL_FILE, "bad model file", flame.Model.load, bad)
+    expect_error(Status.BAD_MODEL_FILE, "too short", flame.Model.from_bytes, b"")
+    truncated = Path(MODEL).read_bytes()[:5000]
+    expect_error(Status.BAD_MODEL_FILE, "bad model file", flame.Model.from_bytes, truncated)
+
+
+def test_error_has_status_name():
+    e = expect_error(Status.IO, "cannot read", flame.Model.load, "/nonexistent/x.safetensors")
+    assert e.status_name == "FLAME_STATUS_IO"
+    assert str(e).startswith("FLAME_STATUS_IO: ")
+
+
+# --- generation -------------------------------------------------------------------------------
+
+
+def test_matches_cli_bit_for_bit(model, reference):
+    with ref_session(model) as s:
+        out = s.run()
+    assert out.dtype == np.float32 and out.shape == (24, DIM)
+    assert out.tobytes() == reference.tobytes()
+
+
+def test_from_bytes_matches_cli(reference):
+    with flame.Model.from_bytes(Path(MODEL).read_bytes()) as m, ref_session(m) as s:
+        assert s.run().tobytes() == reference.tobytes()
+
+
+def test_steps_left_estimate_and_reset(model, reference):
+    with ref_session(model) as s:
+        assert s.progress == (0, 10)
+        assert s.step() == 9
+        est = s.read("estimate")
+        assert est.shape == (24, DIM) and np.isfinite(est).all()
+        assert not np.array_equal(est, s.read("sample"))
+        lefts = [s.step() for _ in range(9)]
+        assert lefts == list(range(8, -1, -1))
+        assert s.read(flame.Which.SAMPLE, Layout.FEATURES, Convention.NATIVE, 0).tobytes() == reference.tobytes()
+        expect_error(Status.WRONG_STATE, "finished", s.step)
+        s.reset()
+        assert s.run().tobytes() == reference.tobytes()
+
+
+def test_set_noise_matches_cli(model, tmp_path):
+    noise = np.random.default_rng(7).standard_normal((24, DIM)).astype(np.float32)
+    np.save(tmp_path / "noise.npy", noise)
+    expected = cli_generate(tmp_path / "out.npy", noise=tmp_path / "noise.npy")
+    with ref_session(model) as s:
+        s.set_noise(noise.astype(np.float64))  # converted to float32 by the bindings
+        s.step()
+        s.set_prompt(REF_PROMPT)  # the prompt may change between steps
+        assert s.run().tobytes() == expected.tobytes()
+        expect_error(Status.WRONG_STATE, "before the first step", s.set_noise, noise)
+    with ref_session(model) as s:
+        s.set_noise(np.asfortranarray(noise))  # non-contiguous input is copied
+        assert s.run().tobytes() == expected.tobytes()
+
+
+def test_session_errors(model):
+    with model.session(**REF_SETTINGS) as s:
+        expect_error(Status.WRONG_STATE, "set a prompt", s.step)
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read)
+        s.set_prompt(REF_PROMPT)
+        expect_error(Status.WRONG_STATE, "no clean-motion estimate", s.read, "estimate")
+        expect_error(Status.INVALID_ARGUMENT, "initial noise has 10 values", s.set_noise, np.zeros(10))
+        expect_error(Status.INVALID_ARGUMENT, "NaN", s.set_noise, np.full((24, DIM), np.nan))
+        s.step()
+        expect_error(Status.INVALID_ARGUMENT, "unknown layout 999", s.read, "sample", 999)
+        expect_error(Status.INVALID_ARGUMENT, "unknown `which` 5", s.read, 5)
+        expect_error(Status.INVALID_ARGUMENT, "frame range 5..5", s.keep_frames, 5, 5)
+        expect_error(Status.INVALID_ARGUMENT, "outside 0..24", s.keep_frames, 0, 25)
+        expect_error(Status.INVALID_ARGUMENT, "joint 24", s.keep_joints, [24])
+        expect_error(Status.INVALID_ARGUMENT, "does not match", s.set_reference, np.zeros((23, DIM)))
+        expect_error(Status.INVALID_ARGUMENT, "does not match", s.set_mask, np.zeros((24, 146)))
+    for kwargs, fragment in [
+        (dict(frames=471), "frames 471 outside 1..=470"),
+        (dict(steps=1001), "steps 1001 outside 1..=1000"),
+        (dict(sampler=7), "unknown sampler 7"),
+        (dict(guidance=float("nan")), "`guidance` is NaN"),
+        (dict(eta=float("nan")), "`eta` is NaN"),
+    ]:
+        expect_error(Status.INVALID_ARGUMENT, fragment, model.session, **kwargs)
+    with pytest.raises(ValueError):
+        model.session(sampler="euler")
+
+
+def test_raw_read_buffer_too_small(model):
+    """The NULL-buffer length query and BUFFER_TOO_SMALL, through the raw C functions."""
+    import ctypes
+
+    lib = flame._lib()
+    with ref_session(model) as s:
+        s.step()
+        n = ctypes.c_size_t()
+        assert lib.flame_session_read(s._h(), 0, 0, 0, 0, None, 0, ctypes.byref(n)) == Status.OK
+        assert n.value == 24 * DIM
+        small = (ctypes.c_float * 10)()
+        n.value = 0
+        st = lib.flame_session_read(s._h(), 0, 0, 0, 0, small, 10, ctypes.byref(n))
+        assert st == Status.BUFFER_TOO_SMALL and n.value == 24 * DIM
+        assert "buffer too small" in lib.flame_last_error().decode()
+        st = lib.flame_session_read(s._h(), 0, 0, 0, 0, None, 0, None)
+        assert st == Status.INVALID_ARGUMENT and b"out_len" in lib.flame_last_error()
+        assert lib.flame_session_step(None, None) == Status.INVALID_ARGUMENT
+        assert b"`session` is NULL" in lib.flame_last_error()
+        assert lib.flame_session_set_prompt(s._h(), None) == Status.INVALID_ARGUMENT
+        assert b"`prompt` is NULL" in lib.flame_last_error()
+        assert lib.flame_session_set_prompt(s._h(), b"\xff\xfe") == Status.INVALID_ARGUMENT
+        assert b"UTF-8" in lib.flame_last_error()
+        assert lib.flame_session_progress(s._h(), None, None) == Status.OK
+        assert lib.flame_last_error() == b"", "a successful call clears the message"
+    lib.flame_model_free(None)
+    lib.flame_session_free(None)
+
+
+def test_closed_handles(model):
+    s = ref_session(model)
+    s.close()
+    s.close()  # twice is fine
+    with pytest.raises(ValueError):
+        s.step()
+    s.cancel()  # a no-op on a closed session
+    m = flame.Model.load(MODEL)
+    s = ref_session(m)
+    m.close()  # the session keeps the model alive natively
+    s.step()
+    s.close()
+    assert m.info.feature_dim == DIM, "info was copied while the model was open"
+    with pytest.raises(ValueError):
+        m.session()
+
+
+# --- progress and cancel ----------------------------------------------------------------------
+
+
+def test_progress_callback(model, reference):
+    seen = []
+    with ref_session(model) as s:
+        s.set_progress(lambda done, total: seen.append((done, total, threading.get_ident())))
+        out = s.run()
+        assert [(d, t) for d, t, _ in seen] == [(i, 10) for i in range(1, 11)]
+        assert {tid for *_, tid in seen} == {threading.get_ident()}, "runs on the stepping thread"
+        assert out.tobytes() == reference.tobytes()
+        s.set_progress(None)
+        s.reset()
+        s.step()
+        assert len(seen) == 10
+
+
+def test_progress_callback_exception_is_raised_by_step(model):
+    def boom(done, total):
+        raise RuntimeError(f"boom at {done}")
+
+    with ref_session(model) as s:
+        s.set_progress(boom)
+        with pytest.raises(RuntimeError, match="boom at 1"):
+            s.step()
+        assert s.progress == (1, 10), "the step itself completed"
+
+
+def test_cancel_from_callback_then_retry_is_bit_identical(model, reference):
+    """A cancel raised between steps fails the next step with CANCELLED; retrying it continues the
+    same generation."""
+    with ref_session(model) as s:
+        s.set_progress(lambda done, total: s.cancel() if done in (3, 7) else None)
+        cancelled = 0
+        while s.steps_left:
+            try:
+                s.step()
+            except FlameError as e:
+                assert e.status == Status.CANCELLED and e.message == "cancelled"
+                cancelled += 1
+        assert cancelled == 2
+        assert s.read().tobytes() == reference.tobytes()
+
+
+def test_cancel_from_another_thread(model):
+    """A long generation stepped on a worker thread, cancelled from this one."""
+    with model.session(frames=470, steps=1000, seed=1, threads=1) as s:
+        s.set_prompt(REF_PROMPT)
+        started = threading.Event()
+        s.set_progress(lambda done, total: started.set())
+        result = {}
+
+        def worker():
+            try:
+                while s.steps_left:
+                    s.step()
+                result["finished"] = True
+            except FlameError as e:
+                result["error"] = e
+
+        t = threading.Thread(target=worker)
+        t.start()
+        assert started.wait(30)
+        t0 = time.perf_counter()
+        s.cancel()
+        t.join(30)
+        assert not t.is_alive()
+        assert result["error"].status == Status.CANCELLED, result
+        assert time.perf_counter() - t0 < 5
+        done, total = s.progress
+        assert 1 <= done < total == 1000
+        assert s.step() == total - done - 1, "a cancelled session keeps stepping"
+
+
+def test_close_from_another_thread_waits_for_step(model):
+    s = model.session(frames=470, steps=1000, seed=1, threads=1)
+    s.set_prompt(REF_PROMPT)
+    started = threading.Event()
+    s.set_progress(lambda done, total: started.set())
+    errors = []
+
+    def worker():
+        try:
+            while True:
+                s.step()
+        except (FlameError, ValueError) as e:
+            errors.append(e)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    assert started.wait(30)
+    s.close()  # cancels, waits for the running step, frees
+    t.join(30)
+    assert not t.is_alive() and errors
+
+
+# --- editing ----------------------------------------------------------------------------------
+
+
+def test_editing(model, reference):
+    motion = reference.copy()
+    with ref_session(model) as s:
+        s.set_reference(motion)
+        s.set_mask(np.zeros((24, DIM), dtype=bool))  # keeps nothing: plain generation
+        assert s.run().tobytes() == reference.tobytes()
+
+        s.reset()
+        s.keep_frames(0, 6)
+        edited = s.run()
+        assert not np.array_equal(edited, reference)
+        s.reset()
+        assert s.run().tobytes() == edited.tobytes(), "editing is deterministic"
+
+        s.clear_edit()
+        s.reset()
+        assert s.run().tobytes() == reference.tobytes()
+
+        s.set_reference(motion.ravel())  # flat input is accepted
+        s.keep_joints([flame.ROOT_TRANSLATION, 0])
+        s.reset()
+        joints = s.run()
+        assert not np.array_equal(joints, reference)
+        s.keep_joints([])  # adds nothing
+
+        mask = np.zeros((24, DIM), dtype=np.uint8)
+        mask[:, 0:3] = 1
+        mask[:, 3:9] = 1
+        s.clear_edit()
+        s.set_reference(motion)
+        s.set_mask(mask)
+        s.reset()
+        assert s.run().tobytes() == joints.tobytes(), "keep_joints([-1, 0]) = that mask"
+
+
+# --- threads ----------------------------------------------------------------------------------
+
+
+def test_two_sessions_in_two_threads_match_sequential(model):
+    jobs = [("a person walks forward and waves.", 3), ("a person jumps twice.", 11)]
+
+    def generate(prompt, seed):
+        with model.session(frames=48, steps=20, sampler="ddpm", seed=seed, threads=1) as s:
+            s.set_prompt(prompt)
+            return s.run()
+
+    sequential = [generate(*j) for j in jobs]
+    results = [None, None]
+
+    def worker(i):
+        results[i] = generate(*jobs[i])
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for seq, par in zip(sequential, results):
+        assert par is not None and par.tobytes() == seq.tobytes()
+    assert not np.array_equal(sequential[0], sequential[1])
+
+
+def test_thread_count_does_not_change_output(model, reference):
+    with ref_session(model, threads=2) as s:
+        assert s.run().tobytes() == reference.tobytes()

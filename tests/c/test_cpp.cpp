@@ -1,0 +1,362 @@
+// The C++17 wrapper (bindings/cpp/flame.hpp): the happy path, errors as exceptions with the
+// library's message, move-only ownership, sessions outliving their Model object, progress
+// callbacks (including one that throws), cancel from another thread, and bit-equality with the
+// C API and the CLI.
+//
+// usage: test_cpp MODEL REFERENCE_NPY
+
+#include <atomic>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <type_traits>
+#include <vector>
+
+#include "flame.hpp"
+
+#include "check.h"
+#include "util.h"
+
+static_assert(!std::is_copy_constructible<flame::Model>::value, "Model is move-only");
+static_assert(!std::is_copy_assignable<flame::Model>::value, "Model is move-only");
+static_assert(std::is_nothrow_move_constructible<flame::Model>::value, "");
+static_assert(std::is_nothrow_move_assignable<flame::Model>::value, "");
+static_assert(!std::is_copy_constructible<flame::Session>::value, "Session is move-only");
+static_assert(!std::is_copy_assignable<flame::Session>::value, "Session is move-only");
+static_assert(std::is_nothrow_move_constructible<flame::Session>::value, "");
+static_assert(std::is_nothrow_move_assignable<flame::Session>::value, "");
+
+static std::string g_model_path;
+static std::vector<float> g_cli;  // the CLI's features
+static std::vector<float> g_c;    // the same generation through the C API
+
+// `expr` must throw flame::Error with `status` and a message containing `needle`.
+#define CHECK_THROWS(expr, want, needle)                                                  \
+    do {                                                                                    \
+        bool thrown_ = false;                                                               \
+        try {                                                                               \
+            (void)(expr);                                                                   \
+        } catch (const flame::Error& e_) {                                                  \
+            thrown_ = true;                                                                 \
+            bool ok_ = e_.status() == (want) &&                                           \
+                       e_.message().find(needle) != std::string::npos &&                    \
+                       std::string(e_.what()).find(flame_status_string(want)) == 0;       \
+            check_record(ok_, __FILE__, __LINE__, #expr " throws " #want " about " needle, \
+                         e_.what());                                                        \
+        }                                                                                   \
+        if (!thrown_) {                                                                     \
+            check_record(0, __FILE__, __LINE__, #expr " throws flame::Error", "");          \
+        }                                                                                   \
+    } while (0)
+
+// No exception expected; one is a failure with its message.
+#define CHECK_NOTHROW(stmt)                                                              \
+    do {                                                                                 \
+        try {                                                                            \
+            stmt;                                                                        \
+            check_record(1, __FILE__, __LINE__, #stmt, "");                              \
+        } catch (const std::exception& e_) {                                             \
+            check_record(0, __FILE__, __LINE__, #stmt " threw", e_.what());              \
+        }                                                                                \
+    } while (0)
+
+static flame::SessionParams reference_params() {
+    flame::SessionParams p;
+    ref_params(&p);
+    return p;
+}
+
+static std::vector<float> run(flame::Session& s, const char* prompt = REF_PROMPT) {
+    s.set_prompt(prompt);
+    while (s.step() > 0) {
+    }
+    return s.read();
+}
+
+static bool same(const std::vector<float>& a, const std::vector<float>& b) {
+    return same_bits(a.data(), a.size(), b.data(), b.size());
+}
+
+static void test_versions() {
+    CHECK(flame::abi_version() == FLAME_ABI_VERSION);
+    CHECK(flame::version() == flame_version_string());
+}
+
+static void test_happy_path() {
+    flame::Model model = flame::Model::load(g_model_path);
+    CHECK(static_cast<bool>(model));
+    flame::ModelInfo info = model.info();
+    CHECK(info.feature_dim == FLAME_TINY_DIM && info.max_frames == FLAME_TINY_MAX_FRAMES);
+    CHECK(info.architecture == "flame" && info.motion_format == "smpl24_6d");
+    CHECK(info.fps == 20.0f && info.default_sampler == FLAME_SAMPLER_DDPM);
+    CHECK(info.joint_names.size() == info.joint_count);
+
+    flame::Session s = model.session(reference_params());
+    std::vector<uint32_t> seen;
+    s.on_progress([&seen](uint32_t done, uint32_t total) {
+        seen.push_back(done);
+        (void)total;
+    });
+    s.set_prompt(REF_PROMPT);
+    CHECK(s.progress().done == 0 && s.progress().total == 10);
+    uint32_t left = s.step();
+    CHECK(left == 9);
+    std::vector<float> preview = s.read(FLAME_WHICH_ESTIMATE);
+    CHECK(preview.size() == 24u * FLAME_TINY_DIM);
+    while (left > 0) {
+        left = s.step();
+    }
+    std::vector<float> x = s.read();
+    CHECK(same(x, g_cli));
+    CHECK(same(x, g_c));
+    CHECK(seen.size() == 10 && seen.front() == 1 && seen.back() == 10);
+
+    // The buffer overload and its length query.
+    std::vector<float> buf(s.read_len());
+    CHECK(s.read(buf.data(), buf.size()) == buf.size());
+    CHECK(same(buf, x));
+
+    // reset reproduces; the prompt is kept.
+    s.reset();
+    while (s.step() > 0) {
+    }
+    CHECK(same(s.read(), g_cli));
+    CHECK(seen.size() == 20);
+
+    // Removing the callback.
+    s.on_progress(nullptr);
+    s.reset();
+    s.step();
+    CHECK(seen.size() == 20);
+}
+
+static void test_load_from_memory() {
+    size_t len = 0;
+    unsigned char* bytes = read_file(g_model_path.c_str(), &len);
+    std::vector<uint8_t> v(bytes, bytes + len);
+    free(bytes);
+    flame::ModelParams mp;
+    mp.threads = 1;
+    flame::Model model = flame::Model::load_from_memory(v, mp);
+    v.assign(v.size(), 0);  // copied: the buffer is no longer needed
+    flame::Session s = model.session(reference_params());
+    CHECK(same(run(s), g_cli));
+}
+
+static void test_errors() {
+    CHECK_THROWS(flame::Model::load("/nonexistent/flame.safetensors"), FLAME_STATUS_IO,
+                 "/nonexistent/flame.safetensors");
+    std::vector<uint8_t> garbage(1000, 0x42);
+    CHECK_THROWS(flame::Model::load_from_memory(garbage), FLAME_STATUS_BAD_MODEL_FILE, "");
+
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::SessionParams p = reference_params();
+    p.frames = 471;
+    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "frames 471");
+    p = reference_params();
+    p.sampler = 7;
+    CHECK_THROWS(flame::Session(model, p), FLAME_STATUS_INVALID_ARGUMENT, "sampler 7");
+
+    flame::Session s = model.session(reference_params());
+    CHECK_THROWS(s.step(), FLAME_STATUS_WRONG_STATE, "prompt");
+    CHECK_THROWS(s.read(), FLAME_STATUS_WRONG_STATE, "no sample");
+    CHECK_THROWS(s.set_prompt(std::string("a\0b", 3)), FLAME_STATUS_INVALID_ARGUMENT, "NUL");
+    CHECK_THROWS(s.set_noise(std::vector<float>(10)), FLAME_STATUS_INVALID_ARGUMENT, "3528");
+    CHECK_THROWS(s.set_reference(std::vector<float>(10), 24, FLAME_TINY_DIM),
+                 FLAME_STATUS_INVALID_ARGUMENT, "features");
+    CHECK_THROWS(s.set_mask(std::vector<uint8_t>(24 * 147), 23, FLAME_TINY_DIM),
+                 FLAME_STATUS_INVALID_ARGUMENT, "mask");
+    CHECK_THROWS(s.keep_frames(3, 3), FLAME_STATUS_INVALID_ARGUMENT, "3..3");
+    CHECK_THROWS(s.keep_joints({0, 24}), FLAME_STATUS_INVALID_ARGUMENT, "joint 24");
+    s.set_prompt(REF_PROMPT);
+    s.step();
+    float small[4];
+    CHECK_THROWS(s.read(small, 4), FLAME_STATUS_BUFFER_TOO_SMALL, "3528");
+    CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, 99), FLAME_STATUS_INVALID_ARGUMENT, "layout 99");
+
+    // flame::Error is a std::runtime_error whose what() starts with the status name.
+    try {
+        flame::Model::load("");
+        CHECK(!"unreachable");
+    } catch (const std::runtime_error& e) {
+        CHECK(std::strncmp(e.what(), "FLAME_STATUS_IO: ", 17) == 0);
+    }
+}
+
+static void test_editing() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::Session s = model.session(reference_params());
+    std::vector<float> r(24 * FLAME_TINY_DIM, 0.25f);
+    std::vector<uint8_t> mask(24 * FLAME_TINY_DIM, 0);
+    CHECK_NOTHROW(s.set_reference(r, 24, FLAME_TINY_DIM));
+    CHECK_NOTHROW(s.set_mask(mask, 24, FLAME_TINY_DIM));
+    // An all-zero mask keeps nothing: the plain generation.
+    CHECK(same(run(s), g_cli));
+    s.reset();
+    CHECK_NOTHROW(s.keep_joints({FLAME_ROOT_TRANSLATION}));
+    CHECK_NOTHROW(s.keep_frames(0, 2));
+    while (s.step() > 0) {
+    }
+    CHECK(!same(s.read(), g_cli));
+    s.reset();
+    CHECK_NOTHROW(s.clear_edit());
+    while (s.step() > 0) {
+    }
+    CHECK(same(s.read(), g_cli));
+    std::vector<float> noise(24 * FLAME_TINY_DIM, 0.5f);
+    s.reset();
+    CHECK_NOTHROW(s.set_noise(noise));
+    CHECK_NOTHROW(s.step());
+}
+
+static void test_moves() {
+    flame::Model a = flame::Model::load(g_model_path);
+    flame::Model b = std::move(a);
+    CHECK(!a && b);
+    CHECK_THROWS(a.info(), FLAME_STATUS_INVALID_ARGUMENT, "model");
+    CHECK_THROWS(a.session(), FLAME_STATUS_INVALID_ARGUMENT, "model");
+    flame::Model c;
+    c = std::move(b);
+    CHECK(!b && c);
+
+    // A session moved mid-generation keeps its state and its progress callback.
+    flame::Session s1 = c.session(reference_params());
+    int calls = 0;
+    s1.on_progress([&calls](uint32_t, uint32_t) { ++calls; });
+    s1.set_prompt(REF_PROMPT);
+    s1.step();
+    s1.step();
+    flame::Session s2 = std::move(s1);
+    CHECK(!s1 && s2);
+    CHECK_THROWS(s1.step(), FLAME_STATUS_INVALID_ARGUMENT, "session");
+    CHECK(s2.progress().done == 2);
+    while (s2.step() > 0) {
+    }
+    CHECK(calls == 10);
+    CHECK(same(s2.read(), g_cli));
+
+    // Move assignment onto a live session frees the old one.
+    flame::Session s3 = c.session(reference_params());
+    s3.set_prompt("a person jumps.");
+    s3 = std::move(s2);
+    CHECK(same(s3.read(), g_cli));
+    flame::Session empty;
+    CHECK_THROWS(empty.progress(), FLAME_STATUS_INVALID_ARGUMENT, "session");
+}
+
+// The session keeps the model alive after the Model object is gone.
+static void test_session_outlives_model() {
+    flame::Session s;
+    {
+        flame::Model model = flame::Model::load(g_model_path);
+        s = model.session(reference_params());
+    }
+    CHECK(same(run(s), g_cli));
+}
+
+static void test_progress_exception() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::Session s = model.session(reference_params());
+    s.on_progress([](uint32_t done, uint32_t) {
+        if (done == 3) {
+            throw std::logic_error("stop at 3");
+        }
+    });
+    s.set_prompt(REF_PROMPT);
+    s.step();
+    s.step();
+    bool thrown = false;
+    try {
+        s.step();
+    } catch (const std::logic_error& e) {
+        thrown = std::string(e.what()) == "stop at 3";
+    }
+    CHECK(thrown);
+    // The step itself completed, and the session goes on.
+    CHECK(s.progress().done == 3);
+    while (s.step() > 0) {
+    }
+    CHECK(same(s.read(), g_cli));
+}
+
+static void test_cancel() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::SessionParams p;
+    p.frames = quick_mode() ? 120 : 300;
+    p.steps = quick_mode() ? 40 : 200;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.threads = 1;
+    flame::Session s = model.session(p);
+    std::atomic<uint32_t> done{0};
+    s.on_progress([&done](uint32_t d, uint32_t) { done = d; });
+    s.set_prompt(REF_PROMPT);
+    std::thread canceller([&s, &done] {
+        while (done < 2) {
+            std::this_thread::yield();
+        }
+        s.cancel();
+    });
+    FlameStatus status = FLAME_STATUS_OK;
+    try {
+        while (s.step() > 0) {
+        }
+    } catch (const flame::Error& e) {
+        status = e.status();
+    }
+    canceller.join();
+    CHECK(status == FLAME_STATUS_CANCELLED);
+    CHECK_NOTHROW(s.step());  // retried
+}
+
+int main(int argc, char** argv) {
+    if (argc != 3) {
+        std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY\n", argv[0]);
+        return 2;
+    }
+    g_model_path = argv[1];
+    size_t rows = 0, cols = 0;
+    float* ref = read_npy_f32(argv[2], &rows, &cols);
+    if (!ref || rows != 24 || cols != FLAME_TINY_DIM) {
+        std::fprintf(stderr, "cannot read a 24 x 147 float32 array from %s\n", argv[2]);
+        return 2;
+    }
+    g_cli.assign(ref, ref + rows * cols);
+    free(ref);
+
+    // The same generation through the C API alone.
+    FlameModel* m = nullptr;
+    CHECK_OK(flame_model_load(g_model_path.c_str(), nullptr, &m));
+    FlameSessionParams p;
+    ref_params(&p);
+    FlameStatus st;
+    size_t n = 0;
+    float* x = generate(m, &p, REF_PROMPT, &n, &st);
+    CHECK_OK(st);
+    if (x) {
+        g_c.assign(x, x + n);
+    }
+    free(x);
+    flame_model_free(m);
+    CHECK(same(g_c, g_cli));
+
+    double t0 = now_seconds();
+    try {
+        test_versions();
+        test_happy_path();
+        test_load_from_memory();
+        test_errors();
+        test_editing();
+        test_moves();
+        test_session_outlives_model();
+        test_progress_exception();
+        test_cancel();
+    } catch (const std::exception& e) {
+        check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
+    }
+    std::printf("test_cpp: %.2f s\n", now_seconds() - t0);
+    return check_summary();
+}

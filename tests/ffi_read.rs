@@ -1,0 +1,163 @@
+//! `flame_session_read` through the C ABI returns exactly what the Rust API's motion module
+//! gives for every layout and convention (the C tests in tests/c/ cover the rest of the ABI).
+
+use std::ffi::CString;
+use std::sync::Arc;
+
+use flame::ffi::*;
+use flame::models::Model;
+use flame::motion::{self, Convention, Layout};
+use flame::session::{Session, SessionParams};
+
+const MODEL: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/tests/fixtures/flame_tiny.safetensors"
+);
+
+fn read(
+    s: *const FlameSession,
+    layout: i32,
+    convention: i32,
+    flags: u32,
+) -> (FlameStatus, Vec<f32>) {
+    let mut n = 0usize;
+    let st = unsafe {
+        flame_session_read(
+            s,
+            0,
+            layout,
+            convention,
+            flags,
+            std::ptr::null_mut(),
+            0,
+            &mut n,
+        )
+    };
+    if st != FlameStatus::Ok {
+        return (st, Vec::new());
+    }
+    let mut out = vec![0.0f32; n];
+    let st =
+        unsafe { flame_session_read(s, 0, layout, convention, flags, out.as_mut_ptr(), n, &mut n) };
+    (st, out)
+}
+
+#[test]
+fn every_layout_and_convention_matches_the_motion_module() {
+    let path = CString::new(MODEL).unwrap();
+    let mut model: *mut FlameModel = std::ptr::null_mut();
+    let mut session: *mut FlameSession = std::ptr::null_mut();
+    let mut params = unsafe { std::mem::zeroed::<FlameSessionParams>() };
+    unsafe {
+        assert_eq!(
+            flame_model_load(path.as_ptr(), std::ptr::null(), &mut model),
+            FlameStatus::Ok
+        );
+        assert_eq!(flame_session_params_default(&mut params), FlameStatus::Ok);
+    }
+    params.frames = 12;
+    params.steps = 3;
+    params.sampler = FlameSampler::Ddim as i32;
+    params.seed = 5;
+    params.threads = 1;
+    let prompt = CString::new("a person waves").unwrap();
+    unsafe {
+        assert_eq!(
+            flame_session_new(model, &params, &mut session),
+            FlameStatus::Ok
+        );
+        assert_eq!(
+            flame_session_set_prompt(session, prompt.as_ptr()),
+            FlameStatus::Ok
+        );
+        while flame_session_step(session, std::ptr::null_mut()) == FlameStatus::Ok {}
+    }
+
+    // The same generation through the Rust API.
+    let m = Arc::new(Model::load(MODEL).unwrap());
+    let p = SessionParams {
+        frames: Some(12),
+        steps: Some(3),
+        sampler: Some(flame::session::Sampler::Ddim),
+        seed: 5,
+        threads: 1,
+        ..Default::default()
+    };
+    let mut s = Session::new(Arc::clone(&m), &p).unwrap();
+    s.set_prompt("a person waves").unwrap();
+    let features = s.run().unwrap().to_vec();
+
+    let (st, raw) = read(session, FlameLayout::Features as i32, 0, 0);
+    assert_eq!(st, FlameStatus::Ok);
+    assert_eq!(
+        raw, features,
+        "raw features equal the Rust API's bit for bit"
+    );
+
+    let layouts = [
+        (FlameLayout::RootTranslation, Layout::RootTranslation),
+        (FlameLayout::LocalQuatXyzw, Layout::LocalQuatXyzw),
+        (FlameLayout::LocalQuatWxyz, Layout::LocalQuatWxyz),
+        (FlameLayout::LocalMatrix, Layout::LocalMatrix),
+        (FlameLayout::Local6d, Layout::Local6d),
+        (FlameLayout::GlobalPositions, Layout::GlobalPositions),
+        (FlameLayout::GlobalQuatXyzw, Layout::GlobalQuatXyzw),
+        (FlameLayout::GlobalQuatWxyz, Layout::GlobalQuatWxyz),
+    ];
+    let conventions = [
+        (FlameConvention::Native, Convention::Native),
+        (FlameConvention::Unity, Convention::Unity),
+        (FlameConvention::Unreal, Convention::Unreal),
+        (FlameConvention::Ros, Convention::Ros),
+        (FlameConvention::Blender, Convention::Blender),
+        (FlameConvention::Gltf, Convention::Gltf),
+    ];
+    for (fl, l) in layouts {
+        for (fc, c) in conventions {
+            for (flags, smooth, continuous) in [
+                (0, 0.0, true),
+                (FLAME_READ_SMOOTH, 1.0, true),
+                (FLAME_READ_RAW_SIGNS, 0.0, false),
+            ] {
+                let want = motion::read_layout(
+                    m.motion_format(),
+                    &features,
+                    12,
+                    l,
+                    c,
+                    &m.read_options(smooth, continuous),
+                )
+                .unwrap();
+                let (st, got) = read(session, fl as i32, fc as i32, flags);
+                assert_eq!(st, FlameStatus::Ok, "{fl:?} {fc:?}");
+                assert_eq!(got, want, "{fl:?} {fc:?} flags {flags}");
+            }
+        }
+    }
+    // FLAME's format has no foot contacts; unknown values are errors.
+    assert_eq!(
+        read(session, FlameLayout::FootContacts as i32, 0, 0).0,
+        FlameStatus::InvalidArgument
+    );
+    assert_eq!(read(session, 10, 0, 0).0, FlameStatus::InvalidArgument);
+    assert_eq!(read(session, 1, 6, 0).0, FlameStatus::InvalidArgument);
+    assert_eq!(read(session, 1, 0, 4).0, FlameStatus::InvalidArgument);
+
+    let mut info = unsafe { std::mem::zeroed::<FlameModelInfo>() };
+    info.struct_size = std::mem::size_of::<FlameModelInfo>() as u32;
+    unsafe {
+        assert_eq!(flame_model_info(model, &mut info), FlameStatus::Ok);
+        assert_eq!(info.joint_count, 24);
+        let names = std::slice::from_raw_parts(info.joint_names, 24);
+        assert_eq!(
+            std::ffi::CStr::from_ptr(names[20]).to_str().unwrap(),
+            motion::Format::Smpl24Rot6d.skeleton().joint_names()[20]
+        );
+        assert_eq!(
+            std::slice::from_raw_parts(info.joint_parents, 24)[..4],
+            [-1, 0, 0, 0]
+        );
+        flame_session_free(session);
+        flame_model_free(model);
+    }
+}

@@ -1,0 +1,135 @@
+"""Imports a libflame BVH into Blender and compares every frame's bone head world positions with
+the joint positions libflame expects.
+
+    blender -b --factory-startup --python tools/blender_bvh_check.py -- FILE.bvh EXPECTED.npy [TOL_M]
+
+- FILE.bvh must be written with `--convention gltf` (Y up, right-handed, metres): Blender's BVH
+  importer, with its default axis settings (forward -Z, up Y), turns Y-up into its Z-up world by
+  (x, y, z) -> (x, -z, y), which is exactly libflame's `blender` convention (Z up, -Y forward).
+- EXPECTED.npy holds float32 [frames, joints, 3] positions in convention `blender`, joints in
+  libflame's order (for both skeletons that is the breadth-first order of the BVH hierarchy,
+  children in file order; tests/motion_bvh.rs checks it).
+- Prints the largest error over all frames and joints (metres) and exits 1 if it exceeds TOL_M
+  (default 0.001), 2 on a usage or import problem.
+
+Debian's Blender 3.4 importer opens files with mode 'rU', which its Python 3.11 rejects; the mode
+is mapped to 'r' around the import.
+"""
+import builtins
+import struct
+import sys
+import time
+import traceback
+
+
+def load_npy_f32(path):
+    """A float32 C-order .npy as (shape, flat list): Debian's Blender Python has no NumPy."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if data[:6] != b"\x93NUMPY":
+        raise ValueError(f"{path} is not a .npy file")
+    if data[6] == 1:
+        hlen, start = struct.unpack("<H", data[8:10])[0], 10
+    else:
+        hlen, start = struct.unpack("<I", data[8:12])[0], 12
+    header = eval(data[start:start + hlen].decode("latin1"), {}, {})  # a dict literal
+    if header["descr"] != "<f4" or header["fortran_order"]:
+        raise ValueError(f"{path}: expected little-endian float32 in C order")
+    shape = tuple(header["shape"])
+    count = 1
+    for d in shape:
+        count *= d
+    values = struct.unpack(f"<{count}f", data[start + hlen:start + hlen + 4 * count])
+    return shape, values
+
+
+def bfs_order(bvh_path):
+    """Joint names of the BVH in breadth-first order of its hierarchy (children in file order)."""
+    children, names, stack, in_end = {}, [], [], False
+    with open(bvh_path) as f:
+        for line in f:
+            w = line.split()
+            if not w:
+                continue
+            if w[0] in ("ROOT", "JOINT"):
+                parent = next((s for s in reversed(stack) if s is not None), None)
+                names.append(w[1])
+                children.setdefault(parent, []).append(w[1])
+                pending = w[1]
+            elif w[0] == "End":
+                in_end = True
+            elif w[0] == "{":
+                stack.append(None if in_end else pending)
+            elif w[0] == "}":
+                if stack.pop() is None:
+                    in_end = False
+            elif w[0] == "MOTION":
+                break
+    order, i = list(children[None]), 0
+    while i < len(order):
+        order.extend(children.get(order[i], []))
+        i += 1
+    return order
+
+
+def main():
+    argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+    if len(argv) not in (2, 3):
+        print(__doc__)
+        sys.exit(2)
+    bvh_path, expected_path = argv[0], argv[1]
+    tol = float(argv[2]) if len(argv) == 3 else 1e-3
+
+    import bpy
+
+    (frames, joints, _), flat = load_npy_f32(expected_path)
+    real_open = builtins.open
+
+    def open_without_u(file, mode="r", *args, **kwargs):
+        if isinstance(mode, str) and "U" in mode:
+            mode = mode.replace("U", "") or "r"
+        return real_open(file, mode, *args, **kwargs)
+
+    t0 = time.time()
+    builtins.open = open_without_u
+    try:
+        # Defaults spelled out: axis_forward '-Z', axis_up 'Y', scale 1, native Euler order,
+        # first BVH frame on scene frame 1.
+        result = bpy.ops.import_anim.bvh(filepath=bvh_path, axis_forward="-Z", axis_up="Y",
+                                         global_scale=1.0, rotate_mode="NATIVE", frame_start=1,
+                                         use_fps_scale=False)
+    finally:
+        builtins.open = real_open
+    if "FINISHED" not in result:
+        print(f"import failed: {result}")
+        sys.exit(2)
+    arm = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+    order = bfs_order(bvh_path)
+    if len(order) != joints:
+        print(f"{bvh_path} has {len(order)} joints, {expected_path} {joints}")
+        sys.exit(2)
+    scene = bpy.context.scene
+    worst, where = 0.0, None
+    for t in range(frames):
+        scene.frame_set(1 + t)
+        mw = arm.matrix_world
+        for j, name in enumerate(order):
+            head = mw @ arm.pose.bones[name].head
+            err = max(abs(head[k] - flat[(t * joints + j) * 3 + k]) for k in range(3))
+            if err > worst:
+                worst, where = err, (t, name)
+    print(f"blender {bpy.app.version_string}: {frames} frames x {joints} joints, "
+          f"max error {worst * 1000:.4f} mm (frame {where[0]}, {where[1]}) "
+          f"[import + evaluation {time.time() - t0:.2f} s]")
+    sys.exit(0 if worst <= tol else 1)
+
+
+if __name__ == "__main__":
+    # Blender exits 0 after an uncaught exception in a --python script: make failures visible.
+    try:
+        main()
+    except SystemExit:
+        raise
+    except Exception:
+        traceback.print_exc()
+        sys.exit(2)

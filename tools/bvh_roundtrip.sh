@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# BVH round trip through a real consumer: libflame writes BVH files and the joint positions they
+# must produce (tests/motion_bvh.rs, ignored test write_blender_check_files: a walk with root
+# travel and turning, smpl24_6d and humanml263), Blender imports them with its default settings
+# and every frame's bone heads must match within 1 mm (tools/blender_bvh_check.py).
+#
+#   bash tools/bvh_roundtrip.sh            # Blender if it runs, else the `bvh` PyPI fallback
+#   FLAME_BVH_CHECKER=blender bash tools/bvh_roundtrip.sh   # require Blender (CI)
+#   FLAME_BVH_CHECKER=pypi bash tools/bvh_roundtrip.sh      # force the fallback
+#
+# Blender comes from Debian: apt-get update && apt-get install -y blender (3.4.1 on bookworm).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+out="${FLAME_BVH_OUT:-$(mktemp -d)}"
+mkdir -p "$out"
+FLAME_BVH_OUT="$out" cargo test --quiet --test motion_bvh -- --ignored write_blender_check_files >/dev/null
+
+checker="${FLAME_BVH_CHECKER:-auto}"
+if [[ "$checker" == auto ]]; then
+    if command -v blender >/dev/null && blender -b --factory-startup --version >/dev/null 2>&1; then
+        checker=blender
+    else
+        echo "bvh_roundtrip: Blender does not run here; using the bvh PyPI fallback" >&2
+        checker=pypi
+    fi
+fi
+
+for motion in smpl_walk hml_walk; do
+    bvh="$out/$motion.bvh"
+    expected="$out/${motion}_blender.npy"
+    case "$checker" in
+        blender)
+            # Keep only the script's verdict from Blender's chatter; pipefail keeps its exit code.
+            blender -b --factory-startup --python-exit-code 2 --python tools/blender_bvh_check.py \
+                -- "$bvh" "$expected" 2>&1 | grep -E '^(blender [0-9]|import failed|Traceback|.*Error)'
+            ;;
+        pypi)
+            python3 -c 'import bvh' 2>/dev/null ||
+                python3 -m pip install --quiet --disable-pip-version-check bvh==0.3
+            python3 tools/bvh_pypi_check.py "$bvh" "$expected"
+            ;;
+        *)
+            echo "bvh_roundtrip: FLAME_BVH_CHECKER must be auto, blender or pypi" >&2
+            exit 2
+            ;;
+    esac
+done
+echo "bvh_roundtrip: ok ($checker, files in $out)"
