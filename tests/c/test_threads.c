@@ -49,8 +49,8 @@ static void job_init(struct job *j, int i) {
     memset(j, 0, sizeof *j);
     j->index = i;
     flame_session_params_default(&j->params);
-    j->params.frames = (uint32_t)(16 + 4 * i);
-    j->params.steps = (uint32_t)(quick_mode() ? 3 + i % 3 : 6 + i % 5);
+    j->params.frames = (uint32_t)(quick_mode() ? 4 + i : 16 + 4 * i);
+    j->params.steps = (uint32_t)(quick_mode() ? 2 + i % 2 : 6 + i % 5);
     j->params.sampler = i % 2 ? FLAME_SAMPLER_DDPM : FLAME_SAMPLER_DDIM;
     j->params.eta = i % 4 == 2 ? 0.5f : -1.0f;
     j->params.seed = 1000u + (uint64_t)i * 7919u;

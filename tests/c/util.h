@@ -20,12 +20,16 @@
 #define FLAME_TINY_MAX_FRAMES 470
 #define REF_PROMPT "a person walks forward and waves."
 
-/* The settings of the CLI reference run (tests/c/run.sh): frames 24, steps 10, DDIM, seed 3,
- * one thread. */
+/* The frames and steps of the CLI reference run (tests/c/run.sh): 24 and 10, or fewer for the
+ * valgrind runs; the tests set them from the reference file and their arguments. */
+static uint32_t ref_frames = 24;
+static uint32_t ref_steps = 10;
+
+/* The settings of the CLI reference run: ref_frames, ref_steps, DDIM, seed 3, one thread. */
 static inline void ref_params(FlameSessionParams *p) {
     flame_session_params_default(p);
-    p->frames = 24;
-    p->steps = 10;
+    p->frames = ref_frames;
+    p->steps = ref_steps;
     p->sampler = FLAME_SAMPLER_DDIM;
     p->seed = 3;
     p->threads = 1;

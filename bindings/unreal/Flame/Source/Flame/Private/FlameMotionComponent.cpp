@@ -1,0 +1,315 @@
+#include "FlameMotionComponent.h"
+
+#include "Async/Async.h"
+#include "FlameModule.h"
+#include "HAL/CriticalSection.h"
+#include "Misc/Paths.h"
+#include "Misc/ScopeLock.h"
+
+// Last: the C header defines a few unprefixed names.
+#include "flame.h"
+
+/** A loaded model; freed when the last holder (component or worker) lets go. */
+struct FFlameModelRef
+{
+	FlameModel* Handle;
+	FString Path;
+
+	FFlameModelRef(FlameModel* InHandle, const FString& InPath) : Handle(InHandle), Path(InPath) {}
+	~FFlameModelRef() { flame_model_free(Handle); }
+};
+
+/** libflame's status name and message; call right after the failing call, on its thread. */
+static FString FlameFailure(FlameStatus Status)
+{
+	return FString::Printf(TEXT("%s: %s"), UTF8_TO_TCHAR(flame_status_string((int32_t)Status)), UTF8_TO_TCHAR(flame_last_error()));
+}
+
+/**
+ * One generation, shared by the component (game thread) and its worker. The worker owns the
+ * session: it creates, steps and frees it. The game thread only cancels it, under Lock, which
+ * the worker also holds whenever it publishes or changes Session, so the session is never
+ * cancelled after it was freed. The worker never holds Lock while stepping.
+ */
+struct FFlameJob
+{
+	// Inputs, fixed before the worker starts.
+	FString Path;
+	FString Prompt;
+	FlameSessionParams Params;
+	int32 Layout = 0;
+	int32 Convention = 0;
+	bool bPreviewEstimate = true;
+
+	FCriticalSection Lock;
+	// Guarded by Lock:
+	TSharedPtr<FFlameModelRef, ESPMode::ThreadSafe> Model; // in: a cached model or null; out: the model used
+	FlameSession* Session = nullptr;
+	bool bStop = false;
+	TArray<float> Latest;
+	bool bLatestIsNew = false;
+	int32 Frames = 0;
+	int32 StepsDone = 0;
+	int32 StepsTotal = 0;
+	bool bFinished = false;
+	bool bSucceeded = false;
+	FString Error;
+	TArray<FString> JointNames;
+	TArray<int32> JointParents;
+
+	FFlameJob() { FFlameModule::ActiveWorkers.Increment(); }
+	~FFlameJob() { FFlameModule::ActiveWorkers.Decrement(); }
+
+	void Cancel()
+	{
+		FScopeLock Guard(&Lock);
+		bStop = true;
+		if (Session != nullptr)
+		{
+			flame_session_cancel(Session);
+		}
+	}
+
+	void Run()
+	{
+		FString Failure;
+		const bool bOk = Generate(Failure);
+		FScopeLock Guard(&Lock);
+		bFinished = true;
+		bSucceeded = bOk;
+		Error = Failure;
+	}
+
+private:
+	bool Generate(FString& Failure)
+	{
+		TSharedPtr<FFlameModelRef, ESPMode::ThreadSafe> M;
+		{
+			FScopeLock Guard(&Lock);
+			M = Model;
+		}
+		if (!M.IsValid())
+		{
+			FlameModel* Handle = nullptr;
+			const FlameStatus Status = flame_model_load(TCHAR_TO_UTF8(*Path), nullptr, &Handle);
+			if (Status != FLAME_STATUS_OK)
+			{
+				Failure = FlameFailure(Status);
+				return false;
+			}
+			M = MakeShared<FFlameModelRef, ESPMode::ThreadSafe>(Handle, Path);
+		}
+
+		FlameModelInfo Info;
+		FMemory::Memzero(Info);
+		Info.struct_size = sizeof(Info);
+		FlameStatus Status = flame_model_info(M->Handle, &Info);
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		FlameSession* S = nullptr;
+		Status = flame_session_new(M->Handle, &Params, &S);
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		{
+			FScopeLock Guard(&Lock);
+			Model = M;
+			Frames = Params.frames != 0 ? (int32)Params.frames : (int32)Info.default_frames;
+			for (uint32 J = 0; Info.joint_names != nullptr && J < Info.joint_count; J++)
+			{
+				JointNames.Add(UTF8_TO_TCHAR(Info.joint_names[J]));
+				JointParents.Add(Info.joint_parents != nullptr ? Info.joint_parents[J] : -1);
+			}
+			if (bStop)
+			{
+				flame_session_free(S);
+				Failure = TEXT("cancelled");
+				return false;
+			}
+			Session = S;
+		}
+		const bool bOk = Step(S, Failure);
+		{
+			FScopeLock Guard(&Lock);
+			Session = nullptr;
+		}
+		flame_session_free(S);
+		return bOk;
+	}
+
+	bool Step(FlameSession* S, FString& Failure)
+	{
+		FlameStatus Status = flame_session_set_prompt(S, TCHAR_TO_UTF8(*Prompt));
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		TArray<float> Buffer;
+		uint32 Left = 1;
+		while (Left > 0)
+		{
+			Status = flame_session_step(S, &Left);
+			if (Status != FLAME_STATUS_OK)
+			{
+				// CANCELLED included: Cancel() only runs when the generation is to stop.
+				Failure = FlameFailure(Status);
+				return false;
+			}
+			const int32 Which = (bPreviewEstimate && Left > 0) ? FLAME_WHICH_ESTIMATE : FLAME_WHICH_SAMPLE;
+			size_t Needed = 0;
+			Status = flame_session_read(S, Which, Layout, Convention, 0, nullptr, 0, &Needed);
+			if (Status == FLAME_STATUS_OK)
+			{
+				Buffer.SetNumUninitialized((int32)Needed);
+				Status = flame_session_read(S, Which, Layout, Convention, 0, Buffer.GetData(), Needed, &Needed);
+			}
+			if (Status != FLAME_STATUS_OK)
+			{
+				Failure = FlameFailure(Status);
+				return false;
+			}
+			uint32 Done = 0, Total = 0;
+			flame_session_progress(S, &Done, &Total);
+
+			FScopeLock Guard(&Lock);
+			Swap(Latest, Buffer); // the worker refills the game thread's previous buffer
+			bLatestIsNew = true;
+			StepsDone = (int32)Done;
+			StepsTotal = (int32)Total;
+			if (bStop)
+			{
+				Failure = TEXT("cancelled");
+				return false;
+			}
+		}
+		return true;
+	}
+};
+
+UFlameMotionComponent::UFlameMotionComponent()
+{
+	PrimaryComponentTick.bCanEverTick = true;
+}
+
+bool UFlameMotionComponent::Generate()
+{
+	if (Job.IsValid())
+	{
+		LastError = TEXT("a generation is already running");
+		return false;
+	}
+	if (!FFlameModule::Get().IsAvailable())
+	{
+		LastError = TEXT("libflame is not available (see the log)");
+		return false;
+	}
+	const FString Path = FPaths::IsRelative(ModelPath) ? FPaths::Combine(FPaths::ProjectContentDir(), ModelPath) : ModelPath;
+
+	TSharedPtr<FFlameJob, ESPMode::ThreadSafe> NewJob = MakeShared<FFlameJob, ESPMode::ThreadSafe>();
+	NewJob->Path = FPaths::ConvertRelativePathToFull(Path);
+	NewJob->Prompt = Prompt;
+	flame_session_params_default(&NewJob->Params);
+	NewJob->Params.frames = (uint32)FMath::Max(Frames, 0);
+	NewJob->Params.steps = (uint32)FMath::Max(Steps, 0);
+	NewJob->Params.sampler = bUseDdim ? FLAME_SAMPLER_DDIM : FLAME_SAMPLER_DEFAULT;
+	NewJob->Params.guidance = Guidance;
+	NewJob->Params.seed = (uint64)FMath::Max(Seed, 0);
+	NewJob->Params.threads = (uint32)FMath::Max(Threads, 0);
+	NewJob->Layout = Layout;
+	NewJob->Convention = Convention;
+	NewJob->bPreviewEstimate = bPreviewEstimate;
+	if (Model.IsValid() && Model->Path == NewJob->Path)
+	{
+		NewJob->Model = Model;
+	}
+
+	LastError.Reset();
+	StepsDone = 0;
+	StepsTotal = 0;
+	Job = NewJob;
+	// A dedicated thread, not a task-graph worker: a generation may run for seconds. The
+	// lambda holds the job, never the component, so the component may go away first.
+	Async(EAsyncExecution::Thread, [NewJob]() { NewJob->Run(); });
+	return true;
+}
+
+void UFlameMotionComponent::Cancel()
+{
+	if (Job.IsValid())
+	{
+		Job->Cancel();
+	}
+}
+
+TArray<float> UFlameMotionComponent::GetFramePose(int32 Frame) const
+{
+	const int32 PerFrame = GetValuesPerFrame();
+	TArray<float> Values;
+	if (Frame >= 0 && Frame < PoseFrames && PerFrame > 0)
+	{
+		Values.Append(Pose.GetData() + (int64)Frame * PerFrame, PerFrame);
+	}
+	return Values;
+}
+
+void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction)
+{
+	Super::TickComponent(DeltaTime, TickType, ThisTickFunction);
+	if (!Job.IsValid())
+	{
+		return;
+	}
+	bool bNewPose = false, bFinished = false, bSucceeded = false;
+	{
+		FScopeLock Guard(&Job->Lock);
+		if (Job->bLatestIsNew)
+		{
+			Swap(Pose, Job->Latest);
+			PoseFrames = Job->Frames;
+			Job->bLatestIsNew = false;
+			bNewPose = true;
+		}
+		if (JointNames.Num() == 0 && Job->JointNames.Num() > 0)
+		{
+			JointNames = Job->JointNames;
+			JointParents = Job->JointParents;
+		}
+		StepsDone = Job->StepsDone;
+		StepsTotal = Job->StepsTotal;
+		if (Job->bFinished)
+		{
+			bFinished = true;
+			bSucceeded = Job->bSucceeded;
+			LastError = Job->Error;
+			Model = Job->Model;
+		}
+	}
+	// Broadcast outside the lock: a handler may call Generate or Cancel.
+	if (bNewPose)
+	{
+		OnProgress.Broadcast(StepsDone, StepsTotal);
+	}
+	if (bFinished)
+	{
+		Job.Reset();
+		if (!bSucceeded)
+		{
+			UE_LOG(LogFlame, Warning, TEXT("generation ended: %s"), *LastError);
+		}
+		OnFinished.Broadcast(bSucceeded);
+	}
+}
+
+void UFlameMotionComponent::EndPlay(const EEndPlayReason::Type EndPlayReason)
+{
+	// No wait: the worker notices within one step, frees its session and exits by itself.
+	Cancel();
+	Job.Reset();
+	Super::EndPlay(EndPlayReason);
+}

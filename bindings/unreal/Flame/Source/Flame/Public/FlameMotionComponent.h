@@ -1,0 +1,131 @@
+// A component that generates a motion from a prompt with libflame on a background thread and
+// exposes its poses on the game thread: every step publishes the current pose buffer (the
+// clean-motion estimate as a preview, the final sample at the end), copied into Pose at the
+// next tick.
+
+#pragma once
+
+#include "CoreMinimal.h"
+#include "Components/ActorComponent.h"
+
+#include "FlameMotionComponent.generated.h"
+
+struct FFlameJob;
+struct FFlameModelRef;
+
+DECLARE_DYNAMIC_MULTICAST_DELEGATE_TwoParams(FFlameProgressSignature, int32, StepsDone, int32, StepsTotal);
+DECLARE_DYNAMIC_MULTICAST_DELEGATE_OneParam(FFlameFinishedSignature, bool, bSucceeded);
+
+UCLASS(ClassGroup = (Animation), meta = (BlueprintSpawnableComponent))
+class FLAME_API UFlameMotionComponent : public UActorComponent
+{
+	GENERATED_BODY()
+
+public:
+	UFlameMotionComponent();
+
+	/** The model file: absolute, or relative to the project's Content directory. Packaged
+	 *  builds need its folder in Project Settings > Packaging > Additional Non-Asset
+	 *  Directories to Copy. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	FString ModelPath = TEXT("Flame/flame_tiny.safetensors");
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	FString Prompt = TEXT("a person walks forward and waves.");
+
+	/** Frames to generate; 0 = the model's default. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
+	int32 Frames = 0;
+
+	/** Sampler steps; 0 = the model's default (often 1000: set a small number with DDIM). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
+	int32 Steps = 50;
+
+	/** DDIM (few steps) instead of the model's default sampler. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	bool bUseDdim = true;
+
+	/** Classifier-free guidance scale; negative = the model's default. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	float Guidance = -1.f;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
+	int32 Seed = 0;
+
+	/** Worker threads of the generation; 0 = one per core. Leave some for the game. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
+	int32 Threads = 2;
+
+	/** Publish the clean-motion estimate while stepping (a preview) rather than the noisy sample. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	bool bPreviewEstimate = true;
+
+	/** flame_session_read's pose layout and coordinate convention, passed through as integers:
+	 *  0 / 0 = the model's raw features in its native frame. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	int32 Layout = 0;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	int32 Convention = 0;
+
+	/** Starts a generation on a background thread (the model is loaded there once and kept).
+	 *  False if one is already running or libflame is unavailable (see LastError). */
+	UFUNCTION(BlueprintCallable, Category = "Flame")
+	bool Generate();
+
+	/** Stops the running generation within one step; OnFinished(false) follows. */
+	UFUNCTION(BlueprintCallable, Category = "Flame")
+	void Cancel();
+
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	bool IsGenerating() const { return Job.IsValid(); }
+
+	/** The latest pose buffer, frame-major: GetFrameCount() × GetValuesPerFrame() floats. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	TArray<float> Pose;
+
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	int32 GetFrameCount() const { return PoseFrames; }
+
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	int32 GetValuesPerFrame() const { return PoseFrames > 0 ? Pose.Num() / PoseFrames : 0; }
+
+	/** One frame's values of Pose (empty when out of range). */
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	TArray<float> GetFramePose(int32 Frame) const;
+
+	/** The model's skeleton (from flame_model_info), filled once the model is loaded. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	TArray<FString> JointNames;
+
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	TArray<int32> JointParents;
+
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	int32 StepsDone = 0;
+
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	int32 StepsTotal = 0;
+
+	/** libflame's status name and message of the last failure ("" if none). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	FString LastError;
+
+	/** After every step, on the game thread. */
+	UPROPERTY(BlueprintAssignable, Category = "Flame")
+	FFlameProgressSignature OnProgress;
+
+	/** When a generation ends: true = Pose holds the final motion. */
+	UPROPERTY(BlueprintAssignable, Category = "Flame")
+	FFlameFinishedSignature OnFinished;
+
+	virtual void TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction) override;
+	virtual void EndPlay(const EEndPlayReason::Type EndPlayReason) override;
+
+private:
+	/** The running generation, shared with its worker thread (null when idle). */
+	TSharedPtr<FFlameJob, ESPMode::ThreadSafe> Job;
+	/** The loaded model, reused while ModelPath stays the same. */
+	TSharedPtr<FFlameModelRef, ESPMode::ThreadSafe> Model;
+	int32 PoseFrames = 0;
+};

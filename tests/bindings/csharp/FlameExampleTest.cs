@@ -1,0 +1,105 @@
+// Drives the Unity example (bindings/csharp/FlameExample.cs) outside Unity, with UnityStubs.cs
+// standing in for UnityEngine: Start / Update / OnDestroy called as Unity would, on this thread.
+//
+// usage: mono FlameExampleTest.exe MODEL REFERENCE_NPY   (as for FlameTest.exe)
+// Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
+
+using System;
+using System.Diagnostics;
+using System.IO;
+using System.Reflection;
+using System.Threading;
+using Flame;
+
+static class FlameExampleTest
+{
+    static int passed, failed;
+
+    static void Check(bool ok, string what)
+    {
+        if (ok) { passed++; return; }
+        failed++;
+        Console.Error.WriteLine("  check failed: " + what);
+    }
+
+    static void Call(FlameExample c, string method)
+    {
+        typeof(FlameExample).GetMethod(method, BindingFlags.Instance | BindingFlags.NonPublic).Invoke(c, null);
+    }
+
+    static int Main(string[] args)
+    {
+        string model = Path.GetFullPath(args[0]);
+        var reference = File.ReadAllBytes(args[1]);
+
+        // The CLI's settings: the final pose must be its output.
+        var c = new FlameExample { modelFile = model, frames = 24, steps = 10, sampler = FlameSampler.Ddim, seed = 3, threads = 1 };
+        Call(c, "Start");
+        var watch = Stopwatch.StartNew();
+        while ((c.StepsDone < 10 || c.Pose == null) && c.Error == null && watch.ElapsedMilliseconds < 30000)
+        {
+            Call(c, "Update");   // as every rendered frame would
+            Thread.Sleep(1);
+        }
+        Thread.Sleep(50);
+        Call(c, "Update");
+        Check(c.Error == null, "no error: " + c.Error);
+        Check(c.StepsDone == 10 && c.StepsTotal == 10, "progress " + c.StepsDone + "/" + c.StepsTotal);
+        Check(c.Pose != null && c.Pose.Length == 24 * 147, "pose length");
+        if (c.Pose != null)
+        {
+            var bytes = new byte[c.Pose.Length * 4];
+            Buffer.BlockCopy(c.Pose, 0, bytes, 0, bytes.Length);
+            bool equal = true;
+            for (int i = 0; i < bytes.Length; i++)
+                equal &= bytes[i] == reference[reference.Length - bytes.Length + i];
+            Check(equal, "final pose = CLI features bit for bit");
+        }
+        Call(c, "OnDestroy");
+        ConsoleOk("finished generation");
+
+        // Destroyed mid-generation: OnDestroy returns promptly and frees everything.
+        c = new FlameExample { modelFile = model, frames = 470, steps = 1000, threads = 1 };
+        Call(c, "Start");
+        watch = Stopwatch.StartNew();
+        while (c.StepsDone < 2 && watch.ElapsedMilliseconds < 30000)
+            Thread.Sleep(1);
+        Check(c.StepsDone >= 2, "stepping started");
+        watch = Stopwatch.StartNew();
+        Call(c, "OnDestroy");
+        Check(watch.ElapsedMilliseconds < 1000, "OnDestroy took " + watch.ElapsedMilliseconds + " ms");
+        int done = c.StepsDone;
+        Thread.Sleep(300);
+        Check(c.StepsDone == done && done < 1000, "no step after OnDestroy");
+        ConsoleOk("destroyed while stepping");
+
+        // Destroyed before the model is even loaded: the worker frees what it creates.
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, threads = 1 };
+        Call(c, "Start");
+        Call(c, "OnDestroy");
+        Thread.Sleep(300);
+        Check(c.StepsDone < 10 && c.Error == null, "stopped after an immediate OnDestroy");
+        ConsoleOk("destroyed while loading");
+
+        // A missing model reaches Error on the main thread.
+        c = new FlameExample { modelFile = "/nonexistent/model.safetensors" };
+        Call(c, "Start");
+        watch = Stopwatch.StartNew();
+        while (c.Error == null && watch.ElapsedMilliseconds < 10000)
+        {
+            Call(c, "Update");
+            Thread.Sleep(1);
+        }
+        Check(c.Error != null && c.Error.Contains("FLAME_STATUS_IO"), "error surfaced: " + c.Error);
+        Call(c, "OnDestroy");
+        ConsoleOk("missing model");
+
+        Console.WriteLine(passed + " passed, " + failed + " failed");
+        return failed == 0 ? 0 : 1;
+    }
+
+    static void ConsoleOk(string name)
+    {
+        Console.WriteLine("---- example: " + name);
+    }
+}

@@ -1,0 +1,714 @@
+// The C# bindings (bindings/csharp/Flame.cs) against libflame, under Mono.
+//
+// usage: mono FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR
+//   MODEL          tests/fixtures/flame_tiny.safetensors
+//   REFERENCE_NPY  `flame generate` output for RefPrompt with the settings of RefParams()
+//   FLAME_CLI      the `flame` executable (for the --noise comparison)
+//   TMPDIR         a writable directory
+//
+// Reference: the `flame` CLI (the Rust API); its features must equal the bindings' bit for bit.
+// Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
+
+using System;
+using System.Collections.Generic;
+using System.Diagnostics;
+using System.IO;
+using System.Runtime.InteropServices;
+using System.Text;
+using System.Threading;
+using Flame;
+
+static class FlameTest
+{
+    const string RefPrompt = "a person walks forward and waves.";
+    const int Dim = 147;
+    const int RefFrames = 24;
+
+    static string modelPath, cliPath, tmpDir;
+    static float[] reference;
+    static FlameModel model;
+    static int passed, failed;
+
+    static int Main(string[] args)
+    {
+        if (args.Length != 4)
+        {
+            Console.Error.WriteLine("usage: FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR");
+            return 2;
+        }
+        modelPath = args[0];
+        cliPath = args[2];
+        tmpDir = args[3];
+        int[] shape;
+        reference = Npy.Read(args[1], out shape);
+        Check(shape.Length == 2 && shape[0] == RefFrames && shape[1] == Dim, "reference shape " + string.Join("x", shape));
+
+        Run("Version", TestVersion);
+        Run("StructLayouts", TestStructLayouts);
+        Run("LoadErrors", TestLoadErrors);
+        using (model = FlameModel.Load(modelPath, 1))
+        {
+            Run("Info", TestInfo);
+            Run("MatchesCli", TestMatchesCli);
+            Run("LoadFromMemory", TestLoadFromMemory);
+            Run("StepsEstimateReset", TestStepsEstimateReset);
+            Run("SessionErrors", TestSessionErrors);
+            Run("NullArguments", TestNullArguments);
+            Run("ReadInto", TestReadInto);
+            Run("SetNoiseMatchesCli", TestSetNoiseMatchesCli);
+            Run("ProgressCallback", TestProgressCallback);
+            Run("ProgressCallbackException", TestProgressCallbackException);
+            Run("CancelFromCallback", TestCancelFromCallback);
+            Run("CancelFromAnotherThread", TestCancelFromAnotherThread);
+            Run("DisposeWhileStepping", TestDisposeWhileStepping);
+            Run("Editing", TestEditing);
+            Run("TwoThreads", TestTwoThreads);
+            Run("DisposedHandles", TestDisposedHandles);
+        }
+        Console.WriteLine(passed + " passed, " + failed + " failed");
+        return failed == 0 ? 0 : 1;
+    }
+
+    // --- a tiny harness ---------------------------------------------------------------------
+
+    static void Run(string name, Action test)
+    {
+        int before = failed;
+        try
+        {
+            test();
+        }
+        catch (Exception e)
+        {
+            failed++;
+            Console.Error.WriteLine("FAIL " + name + ": unexpected " + e);
+        }
+        Console.WriteLine((failed == before ? "ok   " : "FAIL ") + name);
+    }
+
+    static void Check(bool ok, string what)
+    {
+        if (ok)
+        {
+            passed++;
+            return;
+        }
+        failed++;
+        Console.Error.WriteLine("  check failed: " + what + "\n" + new StackTrace(1, true).GetFrame(0));
+    }
+
+    /// <summary>Runs action and checks that it throws a FlameException with this status and a
+    /// message containing fragment.</summary>
+    static void Throws(FlameStatus status, string fragment, Action action)
+    {
+        try
+        {
+            action();
+        }
+        catch (FlameException e)
+        {
+            Check(e.Status == status && e.NativeMessage.Contains(fragment),
+                  "expected " + status + " containing \"" + fragment + "\", got " + e.Status + " \"" + e.NativeMessage + "\"");
+            return;
+        }
+        catch (Exception e)
+        {
+            Check(false, "expected FlameException " + status + ", got " + e.GetType().Name + ": " + e.Message);
+            return;
+        }
+        Check(false, "expected FlameException " + status + " containing \"" + fragment + "\", nothing thrown");
+    }
+
+    static void ThrowsManaged<T>(Action action) where T : Exception
+    {
+        try
+        {
+            action();
+        }
+        catch (T)
+        {
+            Check(true, "");
+            return;
+        }
+        catch (Exception e)
+        {
+            Check(false, "expected " + typeof(T).Name + ", got " + e.GetType().Name + ": " + e.Message);
+            return;
+        }
+        Check(false, "expected " + typeof(T).Name + ", nothing thrown");
+    }
+
+    static bool BitEqual(float[] a, float[] b)
+    {
+        if (a == null || b == null || a.Length != b.Length)
+            return false;
+        for (int i = 0; i < a.Length; i++)
+            if (BitConverter.ToInt32(BitConverter.GetBytes(a[i]), 0) != BitConverter.ToInt32(BitConverter.GetBytes(b[i]), 0))
+                return false;
+        return true;
+    }
+
+    static FlameSessionParams RefParams()
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = RefFrames;
+        p.steps = 10;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.seed = 3;
+        p.threads = 1;
+        return p;
+    }
+
+    static FlameSession RefSession()
+    {
+        var s = model.NewSession(RefParams());
+        s.SetPrompt(RefPrompt);
+        return s;
+    }
+
+    static float[] RunAll(FlameSession s)
+    {
+        while (s.StepsLeft > 0)
+            s.Step();
+        return s.Read();
+    }
+
+    // --- tests --------------------------------------------------------------------------------
+
+    static void TestVersion()
+    {
+        Check(FlameNative.flame_abi_version() == FlameNative.AbiVersion, "ABI version");
+        Check(FlameLibrary.Version.Split('.').Length == 3, "version " + FlameLibrary.Version);
+        Check(FlameNative.Utf8(FlameNative.flame_status_string(3)) == "FLAME_STATUS_BAD_MODEL_FILE", "status string");
+        Check(FlameNative.Utf8(FlameNative.flame_status_string(99)) == "FLAME_STATUS_UNKNOWN", "unknown status string");
+    }
+
+    static void TestStructLayouts()
+    {
+        // The library writes sizeof(struct) into struct_size: the C# mirrors must agree.
+        Check(FlameModelParams.Default().struct_size == Marshal.SizeOf(typeof(FlameModelParams)), "sizeof FlameModelParams");
+        var sp = FlameSessionParams.Default();
+        Check(sp.struct_size == Marshal.SizeOf(typeof(FlameSessionParams)), "sizeof FlameSessionParams " + sp.struct_size + " vs " + Marshal.SizeOf(typeof(FlameSessionParams)));
+        Check(sp.frames == 0 && sp.steps == 0 && sp.sampler == 0 && sp.eta < 0 && sp.guidance < 0 && sp.seed == 0 && sp.threads == 0, "session defaults");
+        Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
+    }
+
+    static void TestLoadErrors()
+    {
+        string missing = Path.Combine(tmpDir, "no_such_model.safetensors");
+        Throws(FlameStatus.Io, "no_such_model.safetensors", () => FlameModel.Load(missing));
+        string bad = Path.Combine(tmpDir, "bad.safetensors");
+        File.WriteAllBytes(bad, Encoding.ASCII.GetBytes("not a model"));
+        Throws(FlameStatus.BadModelFile, "bad model file", () => FlameModel.Load(bad));
+        Throws(FlameStatus.BadModelFile, "too short", () => FlameModel.LoadFromMemory(new byte[0]));
+        var truncated = new byte[5000];
+        Array.Copy(File.ReadAllBytes(modelPath), truncated, truncated.Length);
+        Throws(FlameStatus.BadModelFile, "bad model file", () => FlameModel.LoadFromMemory(truncated));
+        ThrowsManaged<ArgumentNullException>(() => FlameModel.Load(null));
+        // The exception's text carries the status name.
+        try
+        {
+            FlameModel.Load(missing);
+        }
+        catch (FlameException e)
+        {
+            Check(e.Message.StartsWith("FLAME_STATUS_IO: cannot read "), e.Message);
+        }
+    }
+
+    static void TestInfo()
+    {
+        var i = model.Info;
+        Check(i.FeatureDim == Dim && i.MaxFrames == 470 && i.NumTimesteps == 1000, "dims");
+        Check(i.DefaultSteps == 1000 && i.DefaultSampler == FlameSampler.Ddpm && i.DefaultGuidance == 8f, "defaults");
+        Check(i.DefaultFrames >= 1 && i.DefaultFrames <= i.MaxFrames, "default frames");
+        Check(i.Architecture == "flame" && i.MotionFormat == "smpl24_6d" && i.TextEncoder == "roberta",
+              i.Architecture + " " + i.MotionFormat + " " + i.TextEncoder);
+        Check(i.Fps == 20f, "fps");
+        Check(i.JointNames.Length == i.JointCount && i.JointParents.Length == i.JointCount, "joint arrays");
+        for (int j = 0; j < i.JointCount; j++)
+        {
+            int p = i.JointParents[j];
+            Check(j == 0 ? p == -1 : (p >= 0 && p < j), "parent of joint " + j + " is " + p);
+            Check(!string.IsNullOrEmpty(i.JointNames[j]), "name of joint " + j);
+        }
+    }
+
+    static void TestMatchesCli()
+    {
+        using (var s = RefSession())
+        {
+            var output = RunAll(s);
+            Check(output.Length == RefFrames * Dim, "length " + output.Length);
+            Check(BitEqual(output, reference), "features equal the CLI's bit for bit");
+        }
+        var p = RefParams();
+        p.threads = 2;
+        using (var s = model.NewSession(p))
+        {
+            s.SetPrompt(RefPrompt);
+            Check(BitEqual(RunAll(s), reference), "two threads give the same bits");
+        }
+    }
+
+    static void TestLoadFromMemory()
+    {
+        using (var m = FlameModel.LoadFromMemory(File.ReadAllBytes(modelPath)))
+        using (var s = m.NewSession(RefParams()))
+        {
+            s.SetPrompt(RefPrompt);
+            Check(BitEqual(RunAll(s), reference), "from memory = CLI");
+        }
+    }
+
+    static void TestStepsEstimateReset()
+    {
+        using (var s = RefSession())
+        {
+            Check(s.StepsDone == 0 && s.StepsTotal == 10 && s.StepsLeft == 10, "progress before");
+            Check(s.Step() == 9, "steps left after one step");
+            var est = s.Read(FlameWhich.Estimate, FlameLayout.Features, FlameConvention.Native, 0);
+            Check(est.Length == RefFrames * Dim, "estimate length");
+            Check(!BitEqual(est, s.Read()), "estimate differs from x_t mid-way");
+            int last = -1;
+            for (int k = 0; k < 9; k++)
+                last = s.Step();
+            Check(last == 0, "last step leaves 0");
+            Check(BitEqual(s.Read(), reference), "final = CLI");
+            Throws(FlameStatus.WrongState, "finished", () => s.Step());
+            s.Reset();
+            Check(s.StepsLeft == 10, "reset restarts");
+            Check(BitEqual(RunAll(s), reference), "reset reproduces");
+        }
+    }
+
+    static void TestSessionErrors()
+    {
+        using (var s = model.NewSession(RefParams()))
+        {
+            Throws(FlameStatus.WrongState, "set a prompt", () => s.Step());
+            Throws(FlameStatus.WrongState, "no sample yet", () => s.Read());
+            s.SetPrompt(RefPrompt);
+            Throws(FlameStatus.WrongState, "no clean-motion estimate", () => s.Read(FlameWhich.Estimate, 0, 0, 0));
+            Throws(FlameStatus.InvalidArgument, "initial noise has 10 values", () => s.SetNoise(new float[10]));
+            var nan = new float[RefFrames * Dim];
+            nan[5] = float.NaN;
+            Throws(FlameStatus.InvalidArgument, "NaN", () => s.SetNoise(nan));
+            s.Step();
+            Throws(FlameStatus.InvalidArgument, "unknown layout 999", () => s.Read(FlameWhich.Sample, 999, FlameConvention.Native, 0));
+            Throws(FlameStatus.InvalidArgument, "unknown `which` 5", () => s.Read((FlameWhich)5, 0, 0, 0));
+            Throws(FlameStatus.InvalidArgument, "frame range 5..5", () => s.KeepFrames(5, 5));
+            Throws(FlameStatus.InvalidArgument, "outside 0..24", () => s.KeepFrames(0, 25));
+            Throws(FlameStatus.InvalidArgument, "joint 24", () => s.KeepJoints(24));
+            Throws(FlameStatus.InvalidArgument, "does not match", () => s.SetReference(new float[23 * Dim], 23, Dim));
+            Throws(FlameStatus.InvalidArgument, "does not match", () => s.SetMask(new byte[RefFrames * 146], RefFrames, 146));
+            Throws(FlameStatus.WrongState, "before the first step", () => s.SetNoise(new float[RefFrames * Dim]));
+            ThrowsManaged<ArgumentException>(() => s.SetReference(new float[10]));   // checked before native code
+            ThrowsManaged<ArgumentException>(() => s.SetMask(new bool[10]));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPrompt(null));
+        }
+        var p = RefParams();
+        p.frames = 471;
+        Throws(FlameStatus.InvalidArgument, "frames 471 outside 1..=470", () => model.NewSession(p).Dispose());
+        p = RefParams();
+        p.steps = 1001;
+        Throws(FlameStatus.InvalidArgument, "steps 1001 outside 1..=1000", () => model.NewSession(p).Dispose());
+        p = RefParams();
+        p.sampler = 7;
+        Throws(FlameStatus.InvalidArgument, "unknown sampler 7", () => model.NewSession(p).Dispose());
+        p = RefParams();
+        p.guidance = float.NaN;
+        Throws(FlameStatus.InvalidArgument, "`guidance` is NaN", () => model.NewSession(p).Dispose());
+        p = RefParams();
+        p.struct_size = 8;
+        Throws(FlameStatus.InvalidArgument, "params.struct_size is 8", () => model.NewSession(p).Dispose());
+    }
+
+    static void TestNullArguments()
+    {
+        // NULL handles and pointers through the raw declarations: INVALID_ARGUMENT, not a crash.
+        using (var none = new FlameSessionHandle())
+        {
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_reset(none)));
+            uint left;
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_step(none, out left)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_cancel(none)));
+        }
+        using (var none = new FlameModelHandle())
+        {
+            var sp = FlameSessionParams.Default();
+            FlameSessionHandle h;
+            Throws(FlameStatus.InvalidArgument, "`model` is NULL", () => FlameException.Check(FlameNative.flame_session_new(none, ref sp, out h)));
+        }
+        var mp = FlameModelParams.Default();
+        FlameModelHandle mh;
+        Throws(FlameStatus.InvalidArgument, "`path` is NULL", () => FlameException.Check(FlameNative.flame_model_load(null, ref mp, out mh)));
+        Throws(FlameStatus.InvalidArgument, "`bytes` is NULL", () => FlameException.Check(FlameNative.flame_model_load_from_memory(null, (UIntPtr)10, ref mp, out mh)));
+        using (var s = model.NewSession(RefParams()))
+        {
+            Throws(FlameStatus.InvalidArgument, "`prompt` is NULL", () => FlameException.Check(FlameNative.flame_session_set_prompt(s.Handle, null)));
+            Throws(FlameStatus.InvalidArgument, "not valid UTF-8", () => FlameException.Check(FlameNative.flame_session_set_prompt(s.Handle, new byte[] { 0xff, 0xfe, 0 })));
+            Throws(FlameStatus.InvalidArgument, "`noise` is NULL", () => FlameException.Check(FlameNative.flame_session_set_noise(s.Handle, null, (UIntPtr)5)));
+            Throws(FlameStatus.InvalidArgument, "`joints` is NULL", () => FlameException.Check(FlameNative.flame_session_keep_joints(s.Handle, null, (UIntPtr)2)));
+            // A successful call clears the message.
+            FlameException.Check(FlameNative.flame_session_clear_edit(s.Handle));
+            Check(FlameNative.Utf8(FlameNative.flame_last_error()) == "", "message cleared after success");
+        }
+    }
+
+    static void TestReadInto()
+    {
+        using (var s = RefSession())
+        {
+            s.Step();
+            int n = s.ReadLength(FlameWhich.Sample, FlameLayout.Features, FlameConvention.Native, 0);
+            Check(n == RefFrames * Dim, "length query " + n);
+            var small = new float[10];
+            Throws(FlameStatus.BufferTooSmall, "3528 floats needed, 10 given",
+                   () => s.ReadInto(small, FlameWhich.Sample, FlameLayout.Features, FlameConvention.Native, 0));
+            UIntPtr needed;
+            var st = FlameNative.flame_session_read(s.Handle, 0, 0, 0, 0, small, (UIntPtr)small.Length, out needed);
+            Check(st == FlameStatus.BufferTooSmall && (int)needed == n, "BUFFER_TOO_SMALL writes the required length");
+            var big = new float[n + 5];
+            Check(s.ReadInto(big, FlameWhich.Sample, FlameLayout.Features, FlameConvention.Native, 0) == n, "ReadInto count");
+            var exact = s.Read();
+            bool same = true;
+            for (int i = 0; i < n; i++)
+                same &= big[i] == exact[i];
+            Check(same, "ReadInto = Read");
+        }
+    }
+
+    static void TestSetNoiseMatchesCli()
+    {
+        var rng = new Random(7);
+        var noise = new float[RefFrames * Dim];
+        for (int i = 0; i < noise.Length; i++)   // Box–Muller: any fixed values would do
+            noise[i] = (float)(Math.Sqrt(-2 * Math.Log(1 - rng.NextDouble())) * Math.Cos(2 * Math.PI * rng.NextDouble()));
+        string noisePath = Path.Combine(tmpDir, "noise.npy"), outPath = Path.Combine(tmpDir, "noise_out.npy");
+        Npy.Write(noisePath, noise, RefFrames, Dim);
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + modelPath + "\" --prompt \"" + RefPrompt + "\" --frames 24 --steps 10 --sampler ddim --seed 3 --threads 1 " +
+            "--noise \"" + noisePath + "\" --out \"" + outPath + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI with --noise exit code " + proc.ExitCode);
+        }
+        int[] shape;
+        var expected = Npy.Read(outPath, out shape);
+        using (var s = RefSession())
+        {
+            s.SetNoise(noise);
+            Check(BitEqual(RunAll(s), expected), "SetNoise = CLI --noise");
+            Check(!BitEqual(expected, reference), "the noise mattered");
+        }
+    }
+
+    static void TestProgressCallback()
+    {
+        var seen = new List<int[]>();
+        int thread = Thread.CurrentThread.ManagedThreadId;
+        bool sameThread = true;
+        using (var s = RefSession())
+        {
+            s.SetProgressCallback((done, total) =>
+            {
+                seen.Add(new[] { done, total });
+                sameThread &= Thread.CurrentThread.ManagedThreadId == thread;
+            });
+            var output = RunAll(s);
+            Check(seen.Count == 10, "10 calls, got " + seen.Count);
+            for (int i = 0; i < seen.Count; i++)
+                Check(seen[i][0] == i + 1 && seen[i][1] == 10, "call " + i + ": " + seen[i][0] + "/" + seen[i][1]);
+            Check(sameThread, "runs on the stepping thread");
+            Check(BitEqual(output, reference), "a callback does not change the output");
+            s.SetProgressCallback(null);
+            s.Reset();
+            s.Step();
+            Check(seen.Count == 10, "removed callback is not called");
+        }
+        GC.Collect();   // the trampoline delegate must survive collections
+        GC.WaitForPendingFinalizers();
+        int calls = 0;
+        using (var s = RefSession())
+        {
+            s.SetProgressCallback((d, t) => calls++);
+            GC.Collect();
+            RunAll(s);
+        }
+        Check(calls == 10, "callback after GC: " + calls);
+    }
+
+    static void TestProgressCallbackException()
+    {
+        using (var s = RefSession())
+        {
+            s.SetProgressCallback((done, total) => { throw new ApplicationException("boom at " + done); });
+            try
+            {
+                s.Step();
+                Check(false, "Step should rethrow the callback's exception");
+            }
+            catch (InvalidOperationException e)
+            {
+                Check(e.InnerException is ApplicationException && e.InnerException.Message == "boom at 1", e.ToString());
+            }
+            Check(s.StepsDone == 1, "the step itself completed");
+        }
+    }
+
+    static void TestCancelFromCallback()
+    {
+        // A cancel raised between steps fails the next step; retrying continues the generation.
+        using (var s = RefSession())
+        {
+            s.SetProgressCallback((done, total) => { if (done == 3 || done == 7) s.Cancel(); });
+            int cancelled = 0;
+            while (s.StepsLeft > 0)
+            {
+                try
+                {
+                    s.Step();
+                }
+                catch (FlameException e)
+                {
+                    Check(e.Status == FlameStatus.Cancelled && e.NativeMessage == "cancelled", e.Message);
+                    cancelled++;
+                }
+            }
+            Check(cancelled == 2, "two cancelled steps, got " + cancelled);
+            Check(BitEqual(s.Read(), reference), "cancel + retry = CLI");
+        }
+    }
+
+    static FlameSession LongSession()
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = 470;
+        p.steps = 1000;
+        p.seed = 1;
+        p.threads = 1;
+        var s = model.NewSession(p);
+        s.SetPrompt(RefPrompt);
+        return s;
+    }
+
+    static void TestCancelFromAnotherThread()
+    {
+        using (var s = LongSession())
+        {
+            var started = new ManualResetEvent(false);
+            s.SetProgressCallback((d, t) => started.Set());
+            Exception error = null;
+            bool finished = false;
+            var worker = new Thread(() =>
+            {
+                try
+                {
+                    while (s.StepsLeft > 0)
+                        s.Step();
+                    finished = true;
+                }
+                catch (Exception e)
+                {
+                    error = e;
+                }
+            });
+            worker.Start();
+            Check(started.WaitOne(30000), "worker started stepping");
+            var watch = Stopwatch.StartNew();
+            s.Cancel();
+            Check(worker.Join(30000), "worker stopped");
+            Check(!finished && error is FlameException && ((FlameException)error).Status == FlameStatus.Cancelled,
+                  "CANCELLED on the worker, got " + error);
+            Check(watch.ElapsedMilliseconds < 5000, "cancel took " + watch.ElapsedMilliseconds + " ms");
+            int done = s.StepsDone;
+            Check(done >= 1 && done < 1000, "steps done " + done);
+            Check(s.Step() == 1000 - done - 1, "a cancelled session keeps stepping");
+        }
+    }
+
+    static void TestDisposeWhileStepping()
+    {
+        // Dispose from another thread while a step runs: the SafeHandle defers the free until
+        // the step returns, so there is no use-after-free; later calls see a disposed handle.
+        var s = LongSession();
+        var started = new ManualResetEvent(false);
+        s.SetProgressCallback((d, t) => started.Set());
+        Exception error = null;
+        var worker = new Thread(() =>
+        {
+            try
+            {
+                while (true)
+                    s.Step();
+            }
+            catch (Exception e)
+            {
+                error = e;
+            }
+        });
+        worker.Start();
+        Check(started.WaitOne(30000), "worker started stepping");
+        s.Cancel();
+        s.Dispose();
+        Check(worker.Join(30000), "worker stopped");
+        Check(error is FlameException || error is ObjectDisposedException, "worker saw " + error);
+    }
+
+    static void TestEditing()
+    {
+        using (var s = RefSession())
+        {
+            s.SetReference(reference);
+            s.SetMask(new bool[RefFrames * Dim]);   // keeps nothing: plain generation
+            Check(BitEqual(RunAll(s), reference), "empty mask = plain");
+
+            s.Reset();
+            s.KeepFrames(0, 6);
+            var edited = RunAll(s);
+            Check(!BitEqual(edited, reference), "keeping frames changes the output");
+            s.Reset();
+            Check(BitEqual(RunAll(s), edited), "editing is deterministic");
+
+            s.ClearEdit();
+            s.Reset();
+            Check(BitEqual(RunAll(s), reference), "ClearEdit = plain");
+
+            s.SetReference(reference);
+            s.KeepJoints(FlameNative.RootTranslation, 0);
+            s.Reset();
+            var joints = RunAll(s);
+            Check(!BitEqual(joints, reference), "keeping joints changes the output");
+            s.KeepJoints();   // adds nothing
+
+            var mask = new byte[RefFrames * Dim];
+            for (int f = 0; f < RefFrames; f++)
+                for (int c = 0; c < 9; c++)   // root translation 0..3 + joint 0's 6D 3..9
+                    mask[f * Dim + c] = 1;
+            s.ClearEdit();
+            s.SetReference(reference, RefFrames, Dim);
+            s.SetMask(mask, RefFrames, Dim);
+            s.Reset();
+            Check(BitEqual(RunAll(s), joints), "KeepJoints(-1, 0) = the equivalent mask");
+        }
+    }
+
+    static float[] Generate(string prompt, ulong seed)
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = 48;
+        p.steps = 20;
+        p.sampler = (int)FlameSampler.Ddpm;
+        p.seed = seed;
+        p.threads = 1;
+        using (var s = model.NewSession(p))
+        {
+            s.SetPrompt(prompt);
+            return RunAll(s);
+        }
+    }
+
+    static void TestTwoThreads()
+    {
+        string[] prompts = { RefPrompt, "a person jumps twice." };
+        ulong[] seeds = { 3, 11 };
+        var sequential = new float[2][];
+        for (int i = 0; i < 2; i++)
+            sequential[i] = Generate(prompts[i], seeds[i]);
+        var parallel = new float[2][];
+        var threads = new Thread[2];
+        for (int i = 0; i < 2; i++)
+        {
+            int k = i;
+            threads[k] = new Thread(() => parallel[k] = Generate(prompts[k], seeds[k]));
+            threads[k].Start();
+        }
+        foreach (var t in threads)
+            t.Join();
+        Check(BitEqual(parallel[0], sequential[0]) && BitEqual(parallel[1], sequential[1]), "two threads = sequential");
+        Check(!BitEqual(sequential[0], sequential[1]), "different prompts differ");
+    }
+
+    static void TestDisposedHandles()
+    {
+        var s = RefSession();
+        s.Dispose();
+        s.Dispose();   // twice is fine
+        ThrowsManaged<ObjectDisposedException>(() => s.Step());
+        var m = FlameModel.Load(modelPath);
+        var s2 = m.NewSession(RefParams());
+        m.Dispose();   // the session keeps the model alive natively
+        s2.SetPrompt(RefPrompt);
+        Check(BitEqual(RunAll(s2), reference), "session outlives its model's handle");
+        s2.Dispose();
+        ThrowsManaged<ObjectDisposedException>(() => m.NewSession());
+    }
+}
+
+/// <summary>Reads and writes little-endian float32 C-order .npy files (format 1.0–3.0).</summary>
+static class Npy
+{
+    public static float[] Read(string path, out int[] shape)
+    {
+        var bytes = File.ReadAllBytes(path);
+        if (bytes.Length < 10 || bytes[0] != 0x93 || Encoding.ASCII.GetString(bytes, 1, 5) != "NUMPY")
+            throw new InvalidDataException(path + " is not a .npy file");
+        int major = bytes[6];
+        int headerLen, start;
+        if (major == 1)
+        {
+            headerLen = bytes[8] | (bytes[9] << 8);
+            start = 10;
+        }
+        else
+        {
+            headerLen = BitConverter.ToInt32(bytes, 8);
+            start = 12;
+        }
+        string header = Encoding.UTF8.GetString(bytes, start, headerLen);
+        if (!header.Contains("'descr': '<f4'") || !header.Contains("'fortran_order': False"))
+            throw new InvalidDataException(path + ": only little-endian float32 C-order arrays: " + header);
+        int open = header.IndexOf('(', header.IndexOf("'shape'")), close = header.IndexOf(')', open);
+        var dims = new List<int>();
+        foreach (var part in header.Substring(open + 1, close - open - 1).Split(','))
+            if (part.Trim().Length > 0)
+                dims.Add(int.Parse(part.Trim()));
+        shape = dims.ToArray();
+        long count = 1;
+        foreach (var d in shape)
+            count *= d;
+        int offset = start + headerLen;
+        if (bytes.Length - offset != count * 4)
+            throw new InvalidDataException(path + ": " + (bytes.Length - offset) + " data bytes for " + count + " floats");
+        var data = new float[count];
+        Buffer.BlockCopy(bytes, offset, data, 0, (int)count * 4);   // little-endian host assumed
+        return data;
+    }
+
+    public static void Write(string path, float[] data, int rows, int cols)
+    {
+        string header = "{'descr': '<f4', 'fortran_order': False, 'shape': (" + rows + ", " + cols + "), }";
+        int total = 10 + header.Length + 1;
+        header += new string(' ', (64 - total % 64) % 64) + "\n";
+        using (var f = new BinaryWriter(File.Create(path)))
+        {
+            f.Write((byte)0x93);
+            f.Write(Encoding.ASCII.GetBytes("NUMPY"));
+            f.Write((byte)1);
+            f.Write((byte)0);
+            f.Write((ushort)header.Length);
+            f.Write(Encoding.ASCII.GetBytes(header));
+            var raw = new byte[data.Length * 4];
+            Buffer.BlockCopy(data, 0, raw, 0, raw.Length);
+            f.Write(raw);
+        }
+    }
+}
