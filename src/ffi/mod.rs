@@ -146,6 +146,27 @@ unsafe fn write_out<T>(out: *mut T, value: T, name: &str) -> Result<(), Fail> {
     Ok(())
 }
 
+/// Runs `f` on a live session with a caller buffer of `frames × dim` values, after checking
+/// that shape against the session's.
+unsafe fn with_frames_buffer<T>(
+    session: *mut FlameSession,
+    ptr: *const T,
+    frames: u32,
+    dim: u32,
+    name: &str,
+    f: impl FnOnce(&mut Session, &[T]) -> crate::Result<()>,
+) -> Result<(), Fail> {
+    let s = session_ref(session)?;
+    let n = (frames as usize)
+        .checked_mul(dim as usize)
+        .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+    let values = slice_arg(ptr, n, name)?;
+    s.with(|st| {
+        st.check_shape(frames, dim)?;
+        Ok(f(&mut st.session, values)?)
+    })
+}
+
 /// Borrows a caller buffer of `len` elements (NULL is allowed only when `len` is 0).
 unsafe fn slice_arg<'a, T>(ptr: *const T, len: usize, name: &str) -> Result<&'a [T], Fail> {
     if len == 0 {
@@ -467,14 +488,8 @@ pub unsafe extern "C" fn flame_session_set_reference(
     dim: u32,
 ) -> FlameStatus {
     guard(|| {
-        let s = session_ref(session)?;
-        let n = (frames as usize)
-            .checked_mul(dim as usize)
-            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
-        let x = slice_arg(features, n, "features")?;
-        s.with(|st| {
-            st.check_shape(frames, dim)?;
-            Ok(st.session.set_reference(x)?)
+        with_frames_buffer(session, features, frames, dim, "features", |s, v| {
+            s.set_reference(v)
         })
     })
 }
@@ -491,17 +506,7 @@ pub unsafe extern "C" fn flame_session_set_mask(
     frames: u32,
     dim: u32,
 ) -> FlameStatus {
-    guard(|| {
-        let s = session_ref(session)?;
-        let n = (frames as usize)
-            .checked_mul(dim as usize)
-            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
-        let m = slice_arg(mask, n, "mask")?;
-        s.with(|st| {
-            st.check_shape(frames, dim)?;
-            Ok(st.session.set_mask(m)?)
-        })
-    })
+    guard(|| with_frames_buffer(session, mask, frames, dim, "mask", |s, v| s.set_mask(v)))
 }
 
 /// Marks every feature of frames `start..end` (end exclusive) as kept, adding to the current

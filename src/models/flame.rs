@@ -100,6 +100,28 @@ pub struct FlameCondition {
     text_len: usize,
 }
 
+/// A batch of row blocks inside a strided buffer: batch row `b` holds `len` rows of `stride`
+/// values starting at `b * len * stride`; `at(col)` views the columns from `col` on.
+#[derive(Clone, Copy)]
+struct Rows<'a> {
+    data: &'a [f32],
+    stride: usize,
+    len: usize,
+}
+
+impl<'a> Rows<'a> {
+    fn at(self, col: usize) -> Rows<'a> {
+        Rows {
+            data: &self.data[col..],
+            ..self
+        }
+    }
+
+    fn row_block(&self, b: usize) -> &'a [f32] {
+        &self.data[b * self.len * self.stride..]
+    }
+}
+
 /// Reusable buffers for one forward pass, so steps after the first do not allocate.
 #[derive(Default)]
 pub struct Workspace {
@@ -290,6 +312,29 @@ impl FlameDenoiser {
         Ok(())
     }
 
+    /// Multi-head attention of every batch row's queries over that row's keys and values.
+    fn attend(&self, batch: usize, q: Rows, k: Rows, v: Rows, out: &mut [f32]) {
+        let c = self.cfg.model_channels;
+        let heads = self.cfg.num_heads;
+        for (b, out) in out.chunks_exact_mut(q.len * c).take(batch).enumerate() {
+            kernels::multi_head_attention(
+                q.row_block(b),
+                q.stride,
+                k.row_block(b),
+                k.stride,
+                v.row_block(b),
+                v.stride,
+                q.len,
+                k.len,
+                heads,
+                c / heads,
+                None,
+                false,
+                out,
+            );
+        }
+    }
+
     fn decoder_layer(
         &self,
         layer: &DecoderLayer,
@@ -299,8 +344,6 @@ impl FlameDenoiser {
         ws: &mut Workspace,
     ) {
         let c = self.cfg.model_channels;
-        let heads = self.cfg.num_heads;
-        let hd = c / heads;
         let eps = self.cfg.layer_norm_eps;
         let rows = batch * seq;
 
@@ -317,24 +360,12 @@ impl FlameDenoiser {
             3 * c,
         );
         let attn = sized(&mut ws.attn, rows * c);
-        for b in 0..batch {
-            let q = &qkv[b * seq * 3 * c..];
-            kernels::multi_head_attention(
-                q,
-                3 * c,
-                &q[c..],
-                3 * c,
-                &q[2 * c..],
-                3 * c,
-                seq,
-                seq,
-                heads,
-                hd,
-                None,
-                false,
-                &mut attn[b * seq * c..(b + 1) * seq * c],
-            );
-        }
+        let packed = Rows {
+            data: qkv,
+            stride: 3 * c,
+            len: seq,
+        };
+        self.attend(batch, packed.at(0), packed.at(c), packed.at(2 * c), attn);
         let proj = sized(&mut ws.proj, rows * c);
         sa.out_proj.forward(attn, rows, proj);
         kernels::add_layer_norm(
@@ -362,24 +393,17 @@ impl FlameDenoiser {
             2 * c,
         );
         let attn = sized(&mut ws.attn, rows * c);
-        for b in 0..batch {
-            let kvb = &kv[b * mem_len * 2 * c..];
-            kernels::multi_head_attention(
-                &q[b * seq * c..],
-                c,
-                kvb,
-                2 * c,
-                &kvb[c..],
-                2 * c,
-                seq,
-                mem_len,
-                heads,
-                hd,
-                None,
-                false,
-                &mut attn[b * seq * c..(b + 1) * seq * c],
-            );
-        }
+        let keys = Rows {
+            data: kv,
+            stride: 2 * c,
+            len: mem_len,
+        };
+        let queries = Rows {
+            data: q,
+            stride: c,
+            len: seq,
+        };
+        self.attend(batch, queries, keys.at(0), keys.at(c), attn);
         let proj = sized(&mut ws.proj, rows * c);
         ca.out_proj.forward(attn, rows, proj);
         kernels::add_layer_norm(
