@@ -190,17 +190,11 @@ typedef struct FlameSessionParams {
 // NULL (no callback) is allowed wherever one is passed.
 typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint32_t steps_total);
 
-// A row-major 3×3 matrix acting on column vectors.
-typedef double Mat3[3][3];
 
 
 
 
 
-
-
-// The identity matrix.
-#define IDENTITY { { 1.0, 0.0, 0.0, }, { 0.0, 1.0, 0.0, }, { 0.0, 0.0, 1.0, }, }
 
 #ifdef __cplusplus
 extern "C" {

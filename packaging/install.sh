@@ -47,6 +47,7 @@ fi
 
 # The same list for CMake: one element per library, "-framework X" kept together.
 CMAKE_LIBS=""
+# shellcheck disable=SC2086  # split into words on purpose
 set -- $NATIVE_LIBS
 while [ $# -gt 0 ]; do
     item="$1"
@@ -72,7 +73,8 @@ install -m 644 "$TARGET_DIR/release/libflame.a" "$DEST/$LIBDIR/"
 fill() {
     sed -e "s|@PREFIX@|$PREFIX|g" -e "s|@LIBDIR@|$LIBDIR|g" -e "s|@VERSION@|$VERSION|g" \
         -e "s|@VERSION_MAJOR@|$VERSION_MAJOR|g" -e "s|@VERSION_MINOR@|$VERSION_MINOR|g" \
-        -e "s|@NATIVE_STATIC_LIBS@|$NATIVE_LIBS|g" -e "s|@CMAKE_NATIVE_STATIC_LIBS@|\"$CMAKE_LIBS\"|g" \
+        -e "s|@NATIVE_STATIC_LIBS@|$NATIVE_LIBS|g" \
+        -e "s|@CMAKE_NATIVE_STATIC_LIBS@|\"$CMAKE_LIBS\"|g" \
         -e "s|@SIZEOF_VOID_P@|$POINTER_BYTES|g" "packaging/$1" >"$2"
     chmod 644 "$2"
 }

@@ -77,6 +77,11 @@ struct Edit {
     keep: Option<Vec<bool>>,
     noised: Vec<f32>,
     noise: Vec<f32>,
+    /// The step index `noise` was drawn for: a cancelled step retried reuses it, so the retry
+    /// gives the same result as an uninterrupted run.
+    noise_step: Option<usize>,
+    /// x_t with the kept values imposed; x_t itself changes only when a step completes.
+    x_in: Vec<f32>,
 }
 
 /// Per-step scratch, sized once per session.
@@ -202,6 +207,7 @@ impl Session {
         self.started = false;
         self.stepped = false;
         self.noise = Box::new(GaussianRng::new(self.seed));
+        self.edit.noise_step = None;
         self.cancel.store(false, Ordering::SeqCst);
     }
 
@@ -271,31 +277,40 @@ impl Session {
         self.edit.keep.as_deref()
     }
 
-    /// Imposes the kept reference values on x_t, diffused to step `t` with fresh noise, as
-    /// FLAME's editing loop does before every denoising step.
-    fn impose_reference(&mut self, t: usize) -> Result<()> {
+    /// Writes x_t with the kept reference values imposed (diffused to step `t` with fresh
+    /// noise, as FLAME's editing loop does before every denoising step) into `edit.x_in`.
+    /// Returns false, writing nothing, when there is nothing to impose.
+    fn impose_reference(&mut self, t: usize) -> Result<bool> {
         let Edit {
             reference: Some(reference),
             keep: Some(keep),
             noised,
             noise,
+            noise_step,
+            x_in,
         } = &mut self.edit
         else {
-            return Ok(());
+            return Ok(false);
         };
         if !keep.iter().any(|&k| k) {
-            return Ok(());
+            return Ok(false);
         }
-        noise.resize(reference.len(), 0.0);
+        if *noise_step != Some(t) {
+            noise.resize(reference.len(), 0.0);
+            self.noise.fill(noise);
+            *noise_step = Some(t);
+        }
         noised.resize(reference.len(), 0.0);
-        self.noise.fill(noise);
         self.sampler.try_q_sample(t, reference, noise, noised)?;
-        for ((x, &k), &r) in self.x.iter_mut().zip(keep.iter()).zip(noised.iter()) {
-            if k {
-                *x = r;
-            }
-        }
-        Ok(())
+        x_in.clear();
+        x_in.extend(
+            self.x
+                .iter()
+                .zip(keep.iter())
+                .zip(noised.iter())
+                .map(|((&x, &k), &r)| if k { r } else { x }),
+        );
+        Ok(true)
     }
 
     /// Advances one sampler step; returns the number of steps left.
@@ -336,7 +351,8 @@ impl Session {
             self.started = true;
         }
         let t = self.remaining - 1;
-        self.impose_reference(t)?;
+        let edited = self.impose_reference(t)?;
+        let x_t: &[f32] = if edited { &self.edit.x_in } else { &self.x };
         let guided = self.guidance != 1.0;
         let uncond = if guided { Some(model.uncond()?) } else { None };
         let cond = self.cond.as_ref().expect("checked in step");
@@ -345,7 +361,7 @@ impl Session {
 
         b.batch_x.clear();
         for _ in 0..batch {
-            b.batch_x.extend_from_slice(&self.x);
+            b.batch_x.extend_from_slice(x_t);
         }
         b.out.resize(batch * self.frames * od, 0.0);
         let conds: Vec<&Condition> = std::iter::once(cond).chain(uncond).collect();
@@ -384,7 +400,7 @@ impl Session {
         b.x_prev.resize(len, 0.0);
         let var = (od > d).then_some(&b.var[..]);
         self.sampler
-            .step(t, &self.x, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
+            .step(t, x_t, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
         std::mem::swap(&mut self.x, &mut b.x_prev);
         self.remaining -= 1;
         self.stepped = true;

@@ -41,3 +41,46 @@ fn version_macros_match_the_crate() {
         env!("CARGO_PKG_VERSION_PATCH")
     );
 }
+
+#[test]
+fn header_declares_only_prefixed_names() {
+    // Everything the header declares must carry the library's prefix, so including it cannot
+    // collide with a host's names (tests/header.rs keeps cbindgen.toml's exclude list honest).
+    let header =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("include/flame.h"))
+            .unwrap();
+    let mut bad = Vec::new();
+    for line in header.lines() {
+        let words: Vec<&str> = line
+            .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+            .filter(|w| !w.is_empty())
+            .collect();
+        let declared = match words.as_slice() {
+            ["define", name, ..] => Some(*name),
+            ["typedef", "struct", name, ..] | ["typedef", "enum", name, ..] => Some(*name),
+            ["typedef", _, name, ..] if !line.contains('(') => Some(*name),
+            _ if line.contains('(')
+                && !line.trim_start().starts_with("//")
+                && !line.starts_with(' ') =>
+            {
+                words
+                    .iter()
+                    .find(|w| line.contains(&format!("{w}(")))
+                    .copied()
+            }
+            _ => None,
+        };
+        if let Some(name) = declared {
+            let ok = name.starts_with("Flame")
+                || name.starts_with("flame_")
+                || name.starts_with("FLAME_");
+            if !ok && name != "FLAME_H" {
+                bad.push(name.to_string());
+            }
+        }
+    }
+    assert!(
+        bad.is_empty(),
+        "unprefixed names in include/flame.h: {bad:?}"
+    );
+}

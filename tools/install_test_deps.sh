@@ -24,13 +24,38 @@ apt_install() {
     pkgs="$(apt_missing "$@")"
     [ -z "$pkgs" ] && return 0
     echo "install_test_deps: apt-get install $pkgs"
-    # `apt-get update` only when something is missing, and once per run.
+    local log
+    log="$(mktemp)"
+    # `apt-get update` only when something is missing, and once per run. Output is shown only
+    # when a command fails.
     if [ -z "${APT_UPDATED:-}" ]; then
-        $SUDO apt-get update -qq >/dev/null
+        if ! $SUDO apt-get update -qq >"$log" 2>&1; then
+            cat "$log" >&2
+            rm -f "$log"
+            return 1
+        fi
         APT_UPDATED=1
     fi
     # shellcheck disable=SC2086  # the list is word-split on purpose
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $pkgs >/dev/null
+    if ! DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
+        $pkgs >"$log" 2>&1; then
+        cat "$log" >&2
+        rm -f "$log"
+        return 1
+    fi
+    rm -f "$log"
+}
+
+# Python packages whose module is missing: "module:requirement" pairs, installed with pip
+# (quiet, no version check). For the other suites below.
+pip_install() {
+    local pair missing=()
+    for pair in "$@"; do
+        python3 -c "import ${pair%%:*}" >/dev/null 2>&1 || missing+=("${pair#*:}")
+    done
+    [ ${#missing[@]} -eq 0 ] && return 0
+    echo "install_test_deps: pip install ${missing[*]}"
+    python3 -m pip install --quiet --disable-pip-version-check "${missing[@]}"
 }
 
 # --- C/C++ ABI tests and packaging (tests/c/run.sh) -------------------------------------------
@@ -39,6 +64,8 @@ apt_install() {
 apt_install gcc:gcc g++:g++ make:make valgrind:valgrind cmake:cmake pkg-config:pkg-config
 
 # --- Other test suites (C#/Mono, Python bindings): add their lines below -----------------------
-# (reserved for the engineer who owns those bindings; keep the apt_install / pip pattern)
+# Reserved for the engineers who own those bindings. Use the helpers above, e.g.
+#   apt_install mcs:mono-mcs mono:mono-runtime
+#   pip_install pytest:pytest numpy:numpy
 
 # --- end of other test suites -------------------------------------------------------------------

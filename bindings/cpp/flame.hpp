@@ -10,7 +10,9 @@
 //   while (session.step() > 0) {
 //       std::vector<float> preview = session.read(FLAME_WHICH_ESTIMATE);
 //   }
-//   std::vector<float> motion = session.read();  // frames x feature_dim
+//   std::vector<float> motion = session.read();  // raw features, frames x feature_dim
+//   std::vector<float> quats = session.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+//                                           FLAME_CONVENTION_UNITY);  // frames x joints x 4
 //
 // Ownership: Model and Session own their C handle and are move-only. A Session keeps its model
 // alive on the C side, so it stays usable after the Model object that made it is destroyed.
@@ -40,9 +42,6 @@
 #include "flame.h"
 
 namespace flame {
-
-// flame_session_read's layout 0: the raw features, frames x feature_dim.
-constexpr int32_t kRawFeatures = 0;
 
 // A failed libflame call: its status and the library's message.
 class Error : public std::runtime_error {
@@ -75,10 +74,14 @@ inline void check(FlameStatus status) {
 }  // namespace detail
 
 // The library's ABI version; compare with FLAME_ABI_VERSION (the header's) at startup.
-inline uint32_t abi_version() noexcept { return flame_abi_version(); }
+inline uint32_t abi_version() noexcept {
+    return flame_abi_version();
+}
 
 // The library's version, e.g. "0.1.0".
-inline std::string version() { return flame_version_string(); }
+inline std::string version() {
+    return flame_version_string();
+}
 
 // Options of Model::load; the defaults come from flame_model_params_default.
 struct ModelParams : FlameModelParams {
@@ -136,8 +139,8 @@ public:
     static Model load_from_memory(const void* bytes, std::size_t len,
                                   const ModelParams& params = ModelParams()) {
         FlameModel* handle = nullptr;
-        detail::check(flame_model_load_from_memory(static_cast<const uint8_t*>(bytes), len,
-                                                   &params, &handle));
+        detail::check(flame_model_load_from_memory(static_cast<const uint8_t*>(bytes), len, &params,
+                                                   &handle));
         return Model(handle);
     }
 
@@ -179,7 +182,7 @@ public:
         info.text_encoder = c.text_encoder ? c.text_encoder : "";
         for (uint32_t j = 0; j < c.joint_count; ++j) {
             info.joint_names.emplace_back(c.joint_names && c.joint_names[j] ? c.joint_names[j]
-                                                                           : "");
+                                                                            : "");
             info.joint_parents.push_back(c.joint_parents ? c.joint_parents[j] : -1);
         }
         return info;
@@ -278,7 +281,9 @@ public:
 
     // Runs after every step on the stepping thread; an empty function removes it. An exception
     // it throws is caught at the C boundary and rethrown by the step() that ran it (the step
-    // itself has completed by then).
+    // itself has completed by then). libflame 0.1 runs the callback with the session locked:
+    // other calls on this session from inside it throw WRONG_STATE (cancel() works); read the
+    // preview after step() returns instead.
     void on_progress(ProgressFn fn) {
         if (!fn) {
             detail::check(flame_session_set_progress_callback(handle_, nullptr, nullptr));
@@ -287,8 +292,8 @@ public:
         }
         auto hook = std::make_unique<Hook>();
         hook->fn = std::move(fn);
-        detail::check(flame_session_set_progress_callback(handle_, &Session::trampoline,
-                                                          hook.get()));
+        detail::check(
+            flame_session_set_progress_callback(handle_, &Session::trampoline, hook.get()));
         hook_ = std::move(hook);
     }
 
@@ -315,12 +320,15 @@ public:
         return p;
     }
 
-    // The sample (or estimate) in a layout, converted to a convention.
-    std::vector<float> read(FlameWhich which = FLAME_WHICH_SAMPLE, int32_t layout = kRawFeatures,
-                            int32_t convention = 0, uint32_t flags = 0) const {
+    // The sample (or estimate) in a layout, converted to a convention, with read flags
+    // (FLAME_READ_SMOOTH, FLAME_READ_RAW_SIGNS). The default is the raw features.
+    std::vector<float> read(FlameWhich which = FLAME_WHICH_SAMPLE,
+                            FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                            FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                            uint32_t flags = 0) const {
         std::size_t len = 0;
-        detail::check(flame_session_read(handle_, which, layout, convention, flags, nullptr, 0,
-                                         &len));
+        detail::check(
+            flame_session_read(handle_, which, layout, convention, flags, nullptr, 0, &len));
         std::vector<float> out(len);
         detail::check(flame_session_read(handle_, which, layout, convention, flags, out.data(),
                                          out.size(), &len));
@@ -331,7 +339,8 @@ public:
     // Into a caller buffer; returns the count written (throws BUFFER_TOO_SMALL when `len` is
     // short; read_len() tells the length needed).
     std::size_t read(float* out, std::size_t len, FlameWhich which = FLAME_WHICH_SAMPLE,
-                     int32_t layout = kRawFeatures, int32_t convention = 0,
+                     FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                     FlameConvention convention = FLAME_CONVENTION_NATIVE,
                      uint32_t flags = 0) const {
         std::size_t written = 0;
         detail::check(
@@ -339,8 +348,10 @@ public:
         return written;
     }
 
-    std::size_t read_len(FlameWhich which = FLAME_WHICH_SAMPLE, int32_t layout = kRawFeatures,
-                         int32_t convention = 0, uint32_t flags = 0) const {
+    std::size_t read_len(FlameWhich which = FLAME_WHICH_SAMPLE,
+                         FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                         FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                         uint32_t flags = 0) const {
         std::size_t len = 0;
         detail::check(
             flame_session_read(handle_, which, layout, convention, flags, nullptr, 0, &len));

@@ -56,19 +56,58 @@ namespace Flame
         Estimate = 1,
     }
 
-    /// <summary>Pose layouts of FlameSession.Read. Plain integers, passed through unchanged, so a
-    /// layout the library adds works before it is named here.</summary>
+    /// <summary>Pose layouts of FlameSession.Read (enum FlameLayout; J = joint count). Plain
+    /// integers, passed through unchanged, so a layout the library adds works before it is
+    /// named here.</summary>
     public static class FlameLayout
     {
-        /// <summary>The model's raw features: frames × feature_dim.</summary>
+        /// <summary>[frames, feature_dim] the model's raw features (convention and flags ignored).</summary>
         public const int Features = 0;
+        /// <summary>[frames, 3] the root joint's world position.</summary>
+        public const int RootTranslation = 1;
+        /// <summary>[frames, J, 4] parent-relative rotations, quaternions x, y, z, w.</summary>
+        public const int LocalQuatXyzw = 2;
+        /// <summary>[frames, J, 4] parent-relative rotations, quaternions w, x, y, z.</summary>
+        public const int LocalQuatWxyz = 3;
+        /// <summary>[frames, J, 3, 3] parent-relative rotation matrices, row-major.</summary>
+        public const int LocalMatrix = 4;
+        /// <summary>[frames, J, 6] parent-relative rotations as the first two matrix rows.</summary>
+        public const int Local6d = 5;
+        /// <summary>[frames, J, 3] world joint positions.</summary>
+        public const int GlobalPositions = 6;
+        /// <summary>[frames, J, 4] world rotations, quaternions x, y, z, w.</summary>
+        public const int GlobalQuatXyzw = 7;
+        /// <summary>[frames, J, 4] world rotations, quaternions w, x, y, z.</summary>
+        public const int GlobalQuatWxyz = 8;
+        /// <summary>[frames, 4] foot contacts (formats that carry them).</summary>
+        public const int FootContacts = 9;
     }
 
-    /// <summary>Coordinate conventions of FlameSession.Read (plain integers, like FlameLayout).</summary>
+    /// <summary>Coordinate conventions of FlameSession.Read (enum FlameConvention; plain
+    /// integers, like FlameLayout).</summary>
     public static class FlameConvention
     {
         /// <summary>The motion format's own frame, data untouched.</summary>
         public const int Native = 0;
+        /// <summary>Left-handed, Y up, Z forward, metres: new Quaternion(x, y, z, w) as localRotation.</summary>
+        public const int Unity = 1;
+        /// <summary>Left-handed, Z up, X forward, centimetres.</summary>
+        public const int Unreal = 2;
+        /// <summary>Right-handed, Z up, X forward, metres.</summary>
+        public const int Ros = 3;
+        /// <summary>Right-handed, Z up, -Y forward, metres.</summary>
+        public const int Blender = 4;
+        /// <summary>Right-handed, Y up, Z forward, metres.</summary>
+        public const int Gltf = 5;
+    }
+
+    /// <summary>Bits of FlameSession.Read's flags.</summary>
+    public static class FlameReadFlags
+    {
+        /// <summary>FLAME_READ_SMOOTH: FLAME's temporal smoothing (sigma = 1 frame) before posing.</summary>
+        public const uint Smooth = 1;
+        /// <summary>FLAME_READ_RAW_SIGNS: quaternions as computed (w >= 0), not sign-continuous.</summary>
+        public const uint RawSigns = 2;
     }
 
     /// <summary>Mirror of the C struct FlameModelParams.</summary>

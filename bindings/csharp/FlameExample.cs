@@ -1,12 +1,12 @@
-// A Unity example of the libflame bindings: generates a motion on a worker thread and hands the
-// latest pose buffer to the main thread. Put Flame.cs and this file under Assets/, the native
-// library under Assets/Plugins/ (see bindings/csharp/README.md), the model under
-// Assets/StreamingAssets/ (or assign it as a TextAsset renamed to .bytes).
+// A Unity example of the libflame bindings: generates a motion on a worker thread, hands the
+// latest poses to the main thread and plays them on a rig. Put Flame.cs and this file under
+// Assets/, the native library under Assets/Plugins/ (see bindings/csharp/README.md), the model
+// under Assets/StreamingAssets/ (or assign it as a TextAsset renamed to .bytes).
 //
 // Why it is shaped like this:
 // - The main thread never waits for libflame: loading and every step run on the worker.
 // - A FlameSession is used by one thread at a time, so the worker also reads the poses (between
-//   its steps) and publishes a copy under a lock; Update only copies that buffer.
+//   its steps) and publishes them under a lock; Update only copies them.
 // - Native statics survive domain reloads (entering play mode again keeps the library loaded):
 //   libflame keeps no global state to reset, and everything this component creates is freed in
 //   OnDestroy. Rebuilding the native library needs an Editor restart to be picked up.
@@ -34,15 +34,28 @@ namespace Flame
         public int threads = 2;
         [Tooltip("Show the clean-motion estimate while stepping (a preview), not the noisy sample.")]
         public bool previewEstimate = true;
+        [Tooltip("FlameLayout of Pose; bones are driven only with LocalQuatXyzw (2).")]
+        public int layout = FlameLayout.LocalQuatXyzw;
+        [Tooltip("FlameConvention of Pose and RootPositions; Unity is 1.")]
+        public int convention = FlameConvention.Unity;
+        [Tooltip("FlameReadFlags bits, e.g. 1 = FLAME's temporal smoothing.")]
+        public int readFlags = 0;
+        [Tooltip("One Transform per model joint, in the model's joint order (JointNames); optional.")]
+        public Transform[] bones;
 
         /// <summary>Steps done and total, for a progress bar (written by the worker).</summary>
         public int StepsDone { get { return Volatile.Read(ref stepsDone); } }
         public int StepsTotal { get { return Volatile.Read(ref stepsTotal); } }
         /// <summary>The last error on the worker, if any (read on the main thread).</summary>
         public string Error { get; private set; }
-        /// <summary>The latest features, frames × FeatureDim, copied in Update; null until the first step.</summary>
+        /// <summary>The latest poses in `layout`, frame-major; null until the first step.</summary>
         public float[] Pose { get; private set; }
-        public int FeatureDim { get; private set; }
+        /// <summary>The latest root positions, frames × 3, in `convention`.</summary>
+        public float[] RootPositions { get; private set; }
+        /// <summary>The model's skeleton, set with the first poses.</summary>
+        public string[] JointNames { get; private set; }
+        public float Fps { get; private set; }
+        public int FrameCount { get; private set; }
 
         // The handles are created on the worker and freed in OnDestroy; handlesLock makes sure a
         // worker still loading when the component is destroyed frees what it creates itself.
@@ -53,10 +66,12 @@ namespace Flame
         Thread worker;
         int stepsDone, stepsTotal;
 
+        // What the worker publishes, guarded by latestLock.
         readonly object latestLock = new object();
-        float[] latest;          // the worker's newest buffer, guarded by latestLock
-        bool latestIsNew;        // guarded by latestLock
-        string workerError;      // guarded by latestLock
+        float[] latestPose, latestRoot;
+        bool latestIsNew;
+        string workerError;
+        ModelInfo info;
 
         void Start()
         {
@@ -91,34 +106,13 @@ namespace Flame
                     model = m;
                     session = s;
                 }
-                FeatureDim = m.Info.FeatureDim;
                 s.SetProgressCallback((done, total) =>
                 {
                     Volatile.Write(ref stepsDone, done);
                     Volatile.Write(ref stepsTotal, total);
                 });
                 s.SetPrompt(prompt);
-
-                var buffer = new float[s.Frames * FeatureDim];
-                int left = s.StepsLeft;
-                while (left > 0)
-                {
-                    // OnDestroy cancels the running step; this catches a destroy between steps.
-                    lock (handlesLock)
-                        if (stopping)
-                            return;
-                    left = s.Step();
-                    var which = previewEstimate && left > 0 ? FlameWhich.Estimate : FlameWhich.Sample;
-                    s.ReadInto(buffer, which, FlameLayout.Features, FlameConvention.Native, 0);
-                    lock (latestLock)
-                    {
-                        // Swap instead of copying: the worker gets the old buffer back to fill.
-                        var published = buffer;
-                        buffer = latest ?? new float[published.Length];
-                        latest = published;
-                        latestIsNew = true;
-                    }
-                }
+                Publish(s, m.Info);
             }
             catch (FlameException e)
             {
@@ -135,6 +129,49 @@ namespace Flame
             }
         }
 
+        /// <summary>Steps to the end, publishing the poses after every step.</summary>
+        void Publish(FlameSession s, ModelInfo modelInfo)
+        {
+            uint flags = (uint)readFlags;
+            float[] pose = null, root = null;
+            int left = s.StepsLeft;
+            while (left > 0)
+            {
+                // OnDestroy cancels the running step; this catches a destroy between steps.
+                lock (handlesLock)
+                    if (stopping)
+                        return;
+                left = s.Step();
+                var which = previewEstimate && left > 0 ? FlameWhich.Estimate : FlameWhich.Sample;
+                pose = Fill(s, pose, which, layout, flags);
+                root = Fill(s, root, which, FlameLayout.RootTranslation, flags);
+                lock (latestLock)
+                {
+                    // Swap instead of copying: the worker gets the previous buffers back to fill.
+                    Swap(ref pose, ref latestPose);
+                    Swap(ref root, ref latestRoot);
+                    latestIsNew = true;
+                    info = modelInfo;
+                }
+            }
+        }
+
+        float[] Fill(FlameSession s, float[] buffer, FlameWhich which, int readLayout, uint flags)
+        {
+            int n = s.ReadLength(which, readLayout, convention, flags);
+            if (buffer == null || buffer.Length != n)
+                buffer = new float[n];
+            s.ReadInto(buffer, which, readLayout, convention, flags);
+            return buffer;
+        }
+
+        static void Swap(ref float[] a, ref float[] b)
+        {
+            var t = a;
+            a = b;
+            b = t;
+        }
+
         void Update()
         {
             lock (latestLock)
@@ -145,16 +182,43 @@ namespace Flame
                     workerError = null;
                     Debug.LogError("libflame: " + Error);
                 }
-                if (!latestIsNew)
-                    return;
-                if (Pose == null || Pose.Length != latest.Length)
-                    Pose = new float[latest.Length];
-                Array.Copy(latest, Pose, latest.Length);
-                latestIsNew = false;
+                if (latestIsNew)
+                {
+                    Pose = Copy(latestPose, Pose);
+                    RootPositions = Copy(latestRoot, RootPositions);
+                    JointNames = info.JointNames;
+                    Fps = info.Fps;
+                    FrameCount = RootPositions.Length / 3;
+                    latestIsNew = false;
+                }
             }
-            // Pose now holds frames × FeatureDim features for this frame's use (e.g. play back frame
-            // (int)(Time.time * model.Info.Fps) % frames). Joint rotations in a Unity convention
-            // will come from a pose layout / convention in Read, instead of FlameLayout.Features.
+            if (Pose != null && FrameCount > 0)
+                ApplyFrame((int)(Time.time * Fps) % FrameCount);
+        }
+
+        static float[] Copy(float[] source, float[] target)
+        {
+            if (target == null || target.Length != source.Length)
+                target = new float[source.Length];
+            Array.Copy(source, target, source.Length);
+            return target;
+        }
+
+        /// <summary>Poses the bones with one frame: local rotations from Pose (x, y, z, w, as
+        /// libflame's Unity convention gives them) and the root joint's position.</summary>
+        public void ApplyFrame(int frame)
+        {
+            if (bones == null || layout != FlameLayout.LocalQuatXyzw || JointNames == null || bones.Length != JointNames.Length)
+                return;
+            int joints = bones.Length;
+            for (int j = 0; j < joints; j++)
+            {
+                int q = (frame * joints + j) * 4;
+                if (bones[j] != null)
+                    bones[j].localRotation = new Quaternion(Pose[q], Pose[q + 1], Pose[q + 2], Pose[q + 3]);
+            }
+            if (bones[0] != null)
+                bones[0].localPosition = new Vector3(RootPositions[frame * 3], RootPositions[frame * 3 + 1], RootPositions[frame * 3 + 2]);
         }
 
         void OnDestroy()

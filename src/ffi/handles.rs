@@ -96,7 +96,8 @@ pub struct FlameSession {
 }
 
 /// The caller's progress callback and its opaque data.
-struct Progress {
+#[derive(Clone, Copy)]
+pub(crate) struct Progress {
     callback: unsafe extern "C" fn(*mut c_void, u32, u32),
     user_data: *mut c_void,
 }
@@ -109,6 +110,13 @@ pub(crate) struct SessionState {
 // SAFETY: `user_data` is the caller's and only handed back to the caller's callback, on the
 // thread that calls step; the caller promises it may be used from that thread.
 unsafe impl Send for SessionState {}
+
+impl Progress {
+    pub(crate) fn report(self, done: u32, total: u32) {
+        // SAFETY: the caller registered this callback and its data for this session.
+        unsafe { (self.callback)(self.user_data, done, total) }
+    }
+}
 
 impl FlameSession {
     pub(crate) fn new(session: Session) -> FlameSession {
@@ -213,14 +221,15 @@ impl SessionState {
         });
     }
 
-    pub(crate) fn step(&mut self) -> Result<usize, Fail> {
+    /// Runs one step; returns the steps left and the progress report to deliver once the
+    /// session's lock is released (so the callback may call back into the session).
+    pub(crate) fn step(&mut self) -> Result<(usize, Option<(Progress, u32, u32)>), Fail> {
         let left = self.session.step()?;
-        if let Some(p) = &self.progress {
-            let n = self.session.num_steps();
-            // SAFETY: the caller registered this callback and its data for this session.
-            unsafe { (p.callback)(p.user_data, (n - left) as u32, n as u32) };
-        }
-        Ok(left)
+        let n = self.session.num_steps();
+        Ok((
+            left,
+            self.progress.map(|p| (p, (n - left) as u32, n as u32)),
+        ))
     }
 
     pub(crate) fn read(

@@ -587,9 +587,13 @@ pub unsafe extern "C" fn flame_session_step(
 ) -> FlameStatus {
     guard(|| {
         let s = session_ref(session)?;
-        let left = s.with(|st| st.step())?;
+        let (left, progress) = s.with(|st| st.step())?;
         if !steps_left.is_null() {
             steps_left.write(left as u32);
+        }
+        // Outside the session's lock, so the callback may read the session.
+        if let Some((p, done, total)) = progress {
+            p.report(done, total);
         }
         Ok(())
     })

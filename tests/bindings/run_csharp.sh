@@ -45,7 +45,7 @@ cp "$FLAME_LIBRARY" "$work/libflame.so"
 export LD_LIBRARY_PATH="$work${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
 status=0
-mono --debug "$work/FlameTest.exe" "$model" "$work/reference.npy" "$FLAME_CLI" "$work" \
+mono --debug "$work/FlameTest.exe" "$model" "$work/reference.npy" "$FLAME_CLI" "$work" "$ROOT/include/flame.h" \
     | tee "$work/api.log" || status=1
 mono --debug "$work/FlameExampleTest.exe" "$model" "$work/reference.npy" \
     | tee "$work/example.log" || status=1

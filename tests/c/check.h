@@ -27,7 +27,8 @@ static inline void check_copy_last_error(char *buf, size_t size) {
     snprintf(buf, size, "%s", e ? e : "(NULL)");
 }
 
-static inline void check_record(int ok, const char *file, int line, const char *expr, const char *err) {
+static inline void check_record(int ok, const char *file, int line, const char *expr,
+                                const char *err) {
     if (ok) {
         check_passed++;
         return;
@@ -40,17 +41,18 @@ static inline void check_record(int ok, const char *file, int line, const char *
 }
 
 /* A plain condition; the last error is printed as context. */
-#define CHECK(cond)                                                                       \
-    do {                                                                                  \
-        char check_err_[512];                                                             \
-        int check_ok_ = (cond) ? 1 : 0;                                                   \
-        check_copy_last_error(check_err_, sizeof check_err_);                             \
-        check_record(check_ok_, __FILE__, __LINE__, #cond, check_err_);                   \
+#define CHECK(cond)                                                     \
+    do {                                                                \
+        char check_err_[512];                                           \
+        int check_ok_ = (cond) ? 1 : 0;                                 \
+        check_copy_last_error(check_err_, sizeof check_err_);           \
+        check_record(check_ok_, __FILE__, __LINE__, #cond, check_err_); \
     } while (0)
 
 /* A call that must return `expected`. A failing status must also leave a non-empty message;
  * FLAME_STATUS_OK must leave an empty one. */
-static inline int check_status_at(int got, int expected, const char *file, int line, const char *expr) {
+static inline int check_status_at(int got, int expected, const char *file, int line,
+                                  const char *expr) {
     char err[512], what[1024];
     check_copy_last_error(err, sizeof err);
     int ok = got == expected;
@@ -76,14 +78,14 @@ static inline int check_status_at(int got, int expected, const char *file, int l
 #define CHECK_OK(call) CHECK_STATUS(call, FLAME_STATUS_OK)
 
 /* A failing call whose message must mention `needle` (e.g. the parameter's name). */
-#define CHECK_ERROR_MENTIONS(call, expected, needle)                                      \
-    do {                                                                                  \
-        if (CHECK_STATUS(call, expected)) {                                               \
-            char check_err_[512];                                                         \
-            check_copy_last_error(check_err_, sizeof check_err_);                         \
-            check_record(strstr(check_err_, (needle)) != NULL, __FILE__, __LINE__,        \
-                         "flame_last_error() mentions " #needle, check_err_);             \
-        }                                                                                 \
+#define CHECK_ERROR_MENTIONS(call, expected, needle)                               \
+    do {                                                                           \
+        if (CHECK_STATUS(call, expected)) {                                        \
+            char check_err_[512];                                                  \
+            check_copy_last_error(check_err_, sizeof check_err_);                  \
+            check_record(strstr(check_err_, (needle)) != NULL, __FILE__, __LINE__, \
+                         "flame_last_error() mentions " #needle, check_err_);      \
+        }                                                                          \
     } while (0)
 
 /* Documented behaviour libflame does not have yet: a reported bug, named by `bug`. It prints
@@ -101,8 +103,8 @@ static inline void check_known_at(int ok, const char *file, int line, const char
     }
     if (ok) {
         check_passed++;
-        fprintf(stderr, "FIXED? %s:%d: %s now holds: turn CHECK_KNOWN_BUG into CHECK\n", file,
-                line, expr);
+        fprintf(stderr, "FIXED? %s:%d: %s now holds: turn CHECK_KNOWN_BUG into CHECK\n", file, line,
+                expr);
         return;
     }
     check_known++;

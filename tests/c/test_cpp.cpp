@@ -36,33 +36,32 @@ static std::vector<float> g_c;    // the same generation through the C API
 static std::size_t g_values;      // ref_frames x 147
 
 // `expr` must throw flame::Error with `status` and a message containing `needle`.
-#define CHECK_THROWS(expr, want, needle)                                                  \
-    do {                                                                                    \
-        bool thrown_ = false;                                                               \
-        try {                                                                               \
-            (void)(expr);                                                                   \
-        } catch (const flame::Error& e_) {                                                  \
-            thrown_ = true;                                                                 \
-            bool ok_ = e_.status() == (want) &&                                           \
-                       e_.message().find(needle) != std::string::npos &&                    \
-                       std::string(e_.what()).find(flame_status_string(want)) == 0;       \
-            std::string what_ = std::string(#expr " throws " #want " about ") + (needle);   \
-            check_record(ok_, __FILE__, __LINE__, what_.c_str(), e_.what());                \
-        }                                                                                   \
-        if (!thrown_) {                                                                     \
-            check_record(0, __FILE__, __LINE__, #expr " throws flame::Error", "");          \
-        }                                                                                   \
+#define CHECK_THROWS(expr, want, needle)                                                          \
+    do {                                                                                          \
+        bool thrown_ = false;                                                                     \
+        try {                                                                                     \
+            (void)(expr);                                                                         \
+        } catch (const flame::Error &e_) {                                                        \
+            thrown_ = true;                                                                       \
+            bool ok_ = e_.status() == (want) && e_.message().find(needle) != std::string::npos && \
+                       std::string(e_.what()).find(flame_status_string(want)) == 0;               \
+            std::string what_ = std::string(#expr " throws " #want " about ") + (needle);         \
+            check_record(ok_, __FILE__, __LINE__, what_.c_str(), e_.what());                      \
+        }                                                                                         \
+        if (!thrown_) {                                                                           \
+            check_record(0, __FILE__, __LINE__, #expr " throws flame::Error", "");                \
+        }                                                                                         \
     } while (0)
 
 // No exception expected; one is a failure with its message.
-#define CHECK_NOTHROW(stmt)                                                              \
-    do {                                                                                 \
-        try {                                                                            \
-            stmt;                                                                        \
-            check_record(1, __FILE__, __LINE__, #stmt, "");                              \
-        } catch (const std::exception& e_) {                                             \
-            check_record(0, __FILE__, __LINE__, #stmt " threw", e_.what());              \
-        }                                                                                \
+#define CHECK_NOTHROW(stmt)                                                 \
+    do {                                                                    \
+        try {                                                               \
+            stmt;                                                           \
+            check_record(1, __FILE__, __LINE__, #stmt, "");                 \
+        } catch (const std::exception &e_) {                                \
+            check_record(0, __FILE__, __LINE__, #stmt " threw", e_.what()); \
+        }                                                                   \
     } while (0)
 
 static flame::SessionParams reference_params() {
@@ -71,14 +70,14 @@ static flame::SessionParams reference_params() {
     return p;
 }
 
-static std::vector<float> run(flame::Session& s, const char* prompt = REF_PROMPT) {
+static std::vector<float> run(flame::Session &s, const char *prompt = REF_PROMPT) {
     s.set_prompt(prompt);
     while (s.step() > 0) {
     }
     return s.read();
 }
 
-static bool same(const std::vector<float>& a, const std::vector<float>& b) {
+static bool same(const std::vector<float> &a, const std::vector<float> &b) {
     return same_bits(a.data(), a.size(), b.data(), b.size());
 }
 
@@ -116,6 +115,13 @@ static void test_happy_path() {
     CHECK(same(x, g_c));
     CHECK(seen.size() == ref_steps && seen.front() == 1 && seen.back() == ref_steps);
 
+    // Pose layouts, conventions and flags.
+    std::vector<float> quats = s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                      FLAME_CONVENTION_UNITY, FLAME_READ_SMOOTH);
+    CHECK(quats.size() == ref_frames * info.joint_count * 4);
+    CHECK(s.read_len(FLAME_WHICH_ESTIMATE, FLAME_LAYOUT_GLOBAL_POSITIONS) ==
+          ref_frames * info.joint_count * 3);
+
     // The buffer overload and its length query.
     std::vector<float> buf(s.read_len());
     CHECK(s.read(buf.data(), buf.size()) == buf.size());
@@ -137,7 +143,7 @@ static void test_happy_path() {
 
 static void test_load_from_memory() {
     size_t len = 0;
-    unsigned char* bytes = read_file(g_model_path.c_str(), &len);
+    unsigned char *bytes = read_file(g_model_path.c_str(), &len);
     std::vector<uint8_t> v(bytes, bytes + len);
     free(bytes);
     flame::ModelParams mp;
@@ -178,13 +184,16 @@ static void test_errors() {
     s.step();
     float small[4];
     CHECK_THROWS(s.read(small, 4), FLAME_STATUS_BUFFER_TOO_SMALL, values);
-    CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, 99), FLAME_STATUS_INVALID_ARGUMENT, "layout 99");
+    CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, static_cast<FlameLayout>(99)),
+                 FLAME_STATUS_INVALID_ARGUMENT, "layout 99");
+    CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS),
+                 FLAME_STATUS_INVALID_ARGUMENT, "foot contacts");
 
     // flame::Error is a std::runtime_error whose what() starts with the status name.
     try {
         flame::Model::load("");
         CHECK(!"unreachable");
-    } catch (const std::runtime_error& e) {
+    } catch (const std::runtime_error &e) {
         CHECK(std::strncmp(e.what(), "FLAME_STATUS_IO: ", 17) == 0);
     }
 }
@@ -271,7 +280,7 @@ static void test_progress_exception() {
     bool thrown = false;
     try {
         s.step();
-    } catch (const std::logic_error& e) {
+    } catch (const std::logic_error &e) {
         thrown = std::string(e.what()) == "stop at 1";
     }
     CHECK(thrown);
@@ -303,7 +312,7 @@ static void test_cancel() {
     try {
         while (s.step() > 0) {
         }
-    } catch (const flame::Error& e) {
+    } catch (const flame::Error &e) {
         status = e.status();
     }
     canceller.join();
@@ -311,7 +320,7 @@ static void test_cancel() {
     CHECK_NOTHROW(s.step());  // retried
 }
 
-int main(int argc, char** argv) {
+int main(int argc, char **argv) {
     if (argc != 3 && argc != 4) {
         std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS]\n", argv[0]);
         return 2;
@@ -319,7 +328,7 @@ int main(int argc, char** argv) {
     ref_steps = argc == 4 ? static_cast<uint32_t>(std::strtoul(argv[3], nullptr, 10)) : 10;
     g_model_path = argv[1];
     size_t rows = 0, cols = 0;
-    float* ref = read_npy_f32(argv[2], &rows, &cols);
+    float *ref = read_npy_f32(argv[2], &rows, &cols);
     if (!ref || rows < 2 || cols != FLAME_TINY_DIM || ref_steps < 2) {
         std::fprintf(stderr, "cannot read a frames x 147 float32 array from %s (or STEPS < 2)\n",
                      argv[2]);
@@ -331,13 +340,13 @@ int main(int argc, char** argv) {
     free(ref);
 
     // The same generation through the C API alone.
-    FlameModel* m = nullptr;
+    FlameModel *m = nullptr;
     CHECK_OK(flame_model_load(g_model_path.c_str(), nullptr, &m));
     FlameSessionParams p;
     ref_params(&p);
     FlameStatus st;
     size_t n = 0;
-    float* x = generate(m, &p, REF_PROMPT, &n, &st);
+    float *x = generate(m, &p, REF_PROMPT, &n, &st);
     CHECK_OK(st);
     if (x) {
         g_c.assign(x, x + n);
@@ -357,7 +366,7 @@ int main(int argc, char** argv) {
         test_session_outlives_model();
         test_progress_exception();
         test_cancel();
-    } catch (const std::exception& e) {
+    } catch (const std::exception &e) {
         check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
     }
     std::printf("test_cpp: %.2f s\n", now_seconds() - t0);

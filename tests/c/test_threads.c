@@ -23,14 +23,10 @@
 #define JOBS 8
 
 static const char *const PROMPTS[JOBS] = {
-    "a person walks forward and waves.",
-    "a person jumps twice.",
-    "someone turns around slowly.",
-    "a man kicks with his right leg.",
-    "a person sits down on a chair.",
-    "a woman raises both arms.",
-    "a person runs in a circle.",
-    "somebody crouches and stands up.",
+    "a person walks forward and waves.", "a person jumps twice.",
+    "someone turns around slowly.",      "a man kicks with his right leg.",
+    "a person sits down on a chair.",    "a woman raises both arms.",
+    "a person runs in a circle.",        "somebody crouches and stands up.",
 };
 
 struct job {

@@ -13,9 +13,6 @@
 
 #include "flame.h"
 
-/* flame_session_read's layout 0: the raw features, frames × feature_dim (FLAME: 147). Note
- * that it is NOT the header's LAYOUT_ROOT_TRANSLATION, which is also 0 (see the test report). */
-#define RAW_FEATURES 0
 #define FLAME_TINY_DIM 147
 #define FLAME_TINY_MAX_FRAMES 470
 #define REF_PROMPT "a person walks forward and waves."
@@ -110,12 +107,12 @@ static inline float *read_npy_f32(const char *path, size_t *rows, size_t *cols) 
 static inline float *read_features(const FlameSession *s, int32_t which, size_t *n,
                                    FlameStatus *status) {
     size_t need = 0;
-    *status = flame_session_read(s, which, RAW_FEATURES, 0, 0, NULL, 0, &need);
+    *status = flame_session_read(s, which, FLAME_LAYOUT_FEATURES, 0, 0, NULL, 0, &need);
     if (*status != FLAME_STATUS_OK) {
         return NULL;
     }
     float *out = (float *)malloc(need * sizeof(float) + 1);
-    *status = flame_session_read(s, which, RAW_FEATURES, 0, 0, out, need, n);
+    *status = flame_session_read(s, which, FLAME_LAYOUT_FEATURES, 0, 0, out, need, n);
     if (*status != FLAME_STATUS_OK) {
         free(out);
         return NULL;

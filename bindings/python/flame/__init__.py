@@ -39,6 +39,7 @@ __all__ = [
     "Which",
     "Layout",
     "Convention",
+    "ReadFlags",
     "ROOT_TRANSLATION",
     "library_path",
     "version",
@@ -81,16 +82,38 @@ class Which:
 
 
 class Layout:
-    """Pose layouts for Session.read. Passed to the library as plain integers, so values the
-    library adds later work before they are named here."""
+    """FlameLayout values: what Session.read returns per frame (J = ModelInfo.joint_count).
+    Passed to the library as plain integers, so a layout it adds later works before it is
+    named here."""
 
-    FEATURES = 0  # the model's raw features, [frames, feature_dim]
+    FEATURES = 0  # [frames, feature_dim] the raw features (convention and flags ignored)
+    ROOT_TRANSLATION = 1  # [frames, 3]
+    LOCAL_QUAT_XYZW = 2  # [frames, J, 4] parent-relative
+    LOCAL_QUAT_WXYZ = 3  # [frames, J, 4]
+    LOCAL_MATRIX = 4  # [frames, J, 3, 3] row-major
+    LOCAL_6D = 5  # [frames, J, 6] first two matrix rows
+    GLOBAL_POSITIONS = 6  # [frames, J, 3]
+    GLOBAL_QUAT_XYZW = 7  # [frames, J, 4] world
+    GLOBAL_QUAT_WXYZ = 8  # [frames, J, 4]
+    FOOT_CONTACTS = 9  # [frames, 4] (humanml263 only)
 
 
 class Convention:
-    """Coordinate conventions for Session.read (plain integers, like Layout)."""
+    """FlameConvention values: the coordinate frame of Session.read (plain integers too)."""
 
-    NATIVE = 0  # the motion format's own frame, data untouched
+    NATIVE = 0  # the motion format's own frame, untouched
+    UNITY = 1  # left-handed, Y up, Z forward, metres
+    UNREAL = 2  # left-handed, Z up, X forward, centimetres
+    ROS = 3  # right-handed, Z up, X forward, metres
+    BLENDER = 4  # right-handed, Z up, -Y forward, metres
+    GLTF = 5  # right-handed, Y up, Z forward, metres
+
+
+class ReadFlags:
+    """Bits of Session.read's `flags`."""
+
+    SMOOTH = 1  # FLAME's temporal Gaussian smoothing (sigma = 1 frame) before posing
+    RAW_SIGNS = 2  # quaternions as computed (w >= 0), not made sign-continuous per track
 
 
 # --- the shared library ------------------------------------------------------------------------
@@ -178,11 +201,12 @@ _P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
 _status = ctypes.c_int  # enum FlameStatus
 
 
-def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+def _signatures():
+    """(restype, argtypes) of every function of flame.h, by name."""
     u32, i32, size_t = ctypes.c_uint32, ctypes.c_int32, ctypes.c_size_t
     pu32 = ctypes.POINTER(u32)
     pf32 = ctypes.POINTER(ctypes.c_float)
-    signatures = {
+    return {
         "flame_abi_version": (u32, []),
         "flame_version_string": (ctypes.c_char_p, []),
         "flame_model_params_default": (_status, [ctypes.POINTER(_ModelParams)]),
@@ -221,7 +245,10 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         "flame_last_error": (ctypes.c_char_p, []),
         "flame_status_string": (ctypes.c_char_p, [i32]),
     }
-    for name, (restype, argtypes) in signatures.items():
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    for name, (restype, argtypes) in _signatures().items():
         fn = getattr(lib, name)
         fn.restype = restype
         fn.argtypes = argtypes
@@ -434,6 +461,20 @@ class Model:
 
 # --- session -----------------------------------------------------------------------------------
 
+# Per-frame shape of each named layout, from (feature_dim, joint_count).
+_LAYOUT_SHAPES = {
+    Layout.FEATURES: lambda d, j: (d,),
+    Layout.ROOT_TRANSLATION: lambda d, j: (3,),
+    Layout.LOCAL_QUAT_XYZW: lambda d, j: (j, 4),
+    Layout.LOCAL_QUAT_WXYZ: lambda d, j: (j, 4),
+    Layout.LOCAL_MATRIX: lambda d, j: (j, 3, 3),
+    Layout.LOCAL_6D: lambda d, j: (j, 6),
+    Layout.GLOBAL_POSITIONS: lambda d, j: (j, 3),
+    Layout.GLOBAL_QUAT_XYZW: lambda d, j: (j, 4),
+    Layout.GLOBAL_QUAT_WXYZ: lambda d, j: (j, 4),
+    Layout.FOOT_CONTACTS: lambda d, j: (4,),
+}
+
 _SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM}
 _WHICH = {"sample": Which.SAMPLE, "estimate": Which.ESTIMATE}
 
@@ -444,6 +485,13 @@ class Session:
     """One generation on a model. Methods raise FlameError when libflame reports a failure."""
 
     def __init__(self, model: Model, frames, steps, sampler, eta, guidance, seed, threads):
+        self._handle: Optional[int] = None
+        # Held by every call but cancel(), so close() from another thread waits for a running
+        # step instead of freeing the session under it. Reentrant: a progress callback may call
+        # back into the session (libflame then answers WRONG_STATE for most calls).
+        self._lock = threading.RLock()
+        self._callback = None  # the CFUNCTYPE object must outlive its registration
+        self._callback_error: Optional[BaseException] = None
         info = model.info
         p = _SessionParams()
         _check(_lib().flame_session_params_default(ctypes.byref(p)))
@@ -462,15 +510,10 @@ class Session:
         p.threads = threads
         out = _P()
         _check(_lib().flame_session_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
-        self._handle: Optional[int] = out.value
+        self._handle = out.value
         self.frames = frames or info.default_frames
         self.feature_dim = info.feature_dim
-        # Held by every call but cancel(), so close() from another thread waits for a running
-        # step instead of freeing the session under it. Reentrant: a progress callback may call
-        # back into the session (libflame then answers WRONG_STATE for most calls).
-        self._lock = threading.RLock()
-        self._callback = None  # the CFUNCTYPE object must outlive its registration
-        self._callback_error: Optional[BaseException] = None
+        self.joint_count = info.joint_count
 
     def _h(self) -> int:
         if self._handle is None:
@@ -581,10 +624,16 @@ class Session:
         convention: int = Convention.NATIVE,
         flags: int = 0,
     ) -> np.ndarray:
-        """The current sample ("sample") or clean-motion estimate ("estimate") as float32,
-        shaped [frames, -1] (for Layout.FEATURES [frames, feature_dim]). `layout`, `convention`
-        and `flags` go to libflame as integers."""
-        w = _WHICH[which] if isinstance(which, str) else int(which)
+        """The current sample ("sample") or clean-motion estimate ("estimate") as float32 in a
+        Layout, Convention and ReadFlags, which go to libflame as plain integers. Shaped
+        [frames, ...] as the layout says (Layout.FEATURES: [frames, feature_dim]); a layout
+        not named in Layout comes back [frames, -1]."""
+        if isinstance(which, str):
+            if which not in _WHICH:
+                raise ValueError(f"unknown which {which!r} (sample, estimate)")
+            w = _WHICH[which]
+        else:
+            w = int(which)
         lib = _lib()
         n = ctypes.c_size_t()
         with self._lock:
@@ -596,10 +645,16 @@ class Session:
                     h, w, layout, convention, flags, _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)
                 )
             )
-        out = out[: n.value]
-        if self.frames and out.size % self.frames == 0:
-            return out.reshape(self.frames, -1)
-        return out
+        return self._shaped(out[: n.value], layout)
+
+    def _shaped(self, values: np.ndarray, layout: int) -> np.ndarray:
+        """[frames, ...] with the layout's trailing shape when the count agrees with it."""
+        trailing = _LAYOUT_SHAPES.get(layout, lambda d, j: (-1,))(self.feature_dim, self.joint_count)
+        if self.frames and values.size == self.frames * int(np.prod(trailing)) and -1 not in trailing:
+            return values.reshape((self.frames,) + trailing)
+        if self.frames and values.size % self.frames == 0:
+            return values.reshape(self.frames, -1)
+        return values
 
     def close(self) -> None:
         """Frees the session (cancelling and waiting for a step running on another thread)."""

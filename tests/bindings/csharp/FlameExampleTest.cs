@@ -32,8 +32,10 @@ static class FlameExampleTest
         string model = Path.GetFullPath(args[0]);
         var reference = File.ReadAllBytes(args[1]);
 
-        // The CLI's settings: the final pose must be its output.
-        var c = new FlameExample { modelFile = model, frames = 24, steps = 10, sampler = FlameSampler.Ddim, seed = 3, threads = 1 };
+        // The CLI's settings and raw features (layout and convention pass through): the final
+        // pose must be the CLI's output.
+        var c = new FlameExample { modelFile = model, frames = 24, steps = 10, sampler = FlameSampler.Ddim, seed = 3, threads = 1,
+                                   layout = FlameLayout.Features, convention = FlameConvention.Native };
         Call(c, "Start");
         var watch = Stopwatch.StartNew();
         while ((c.StepsDone < 10 || c.Pose == null) && c.Error == null && watch.ElapsedMilliseconds < 30000)
@@ -55,8 +57,36 @@ static class FlameExampleTest
                 equal &= bytes[i] == reference[reference.Length - bytes.Length + i];
             Check(equal, "final pose = CLI features bit for bit");
         }
+        Check(c.FrameCount == 24 && c.RootPositions != null && c.RootPositions.Length == 24 * 3, "root positions");
         Call(c, "OnDestroy");
         ConsoleOk("finished generation");
+
+        // The defaults: local quaternions in Unity's convention, played on a rig.
+        var bones = new UnityEngine.Transform[24];
+        for (int j = 0; j < bones.Length; j++)
+            bones[j] = new UnityEngine.Transform();
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, seed = 3, threads = 1, bones = bones };
+        Call(c, "Start");
+        watch = Stopwatch.StartNew();
+        while ((c.StepsDone < 10 || c.Pose == null) && c.Error == null && watch.ElapsedMilliseconds < 30000)
+        {
+            Call(c, "Update");
+            Thread.Sleep(1);
+        }
+        Thread.Sleep(50);
+        UnityEngine.Time.time = 0.5f;   // 20 fps: frame 10
+        Call(c, "Update");
+        Check(c.Error == null && c.Pose != null && c.Pose.Length == 24 * 24 * 4, "quaternion poses");
+        Check(c.JointNames != null && c.JointNames.Length == 24 && c.Fps == 20f, "skeleton and fps");
+        if (c.Pose != null)
+        {
+            int q = (10 * 24 + 5) * 4;
+            var r = bones[5].localRotation;
+            Check(r.x == c.Pose[q] && r.y == c.Pose[q + 1] && r.z == c.Pose[q + 2] && r.w == c.Pose[q + 3], "bone 5 posed with frame 10");
+            Check(bones[0].localPosition.z == c.RootPositions[10 * 3 + 2], "root posed with frame 10");
+        }
+        Call(c, "OnDestroy");
+        ConsoleOk("rig");
 
         // Destroyed mid-generation: OnDestroy returns promptly and frees everything.
         c = new FlameExample { modelFile = model, frames = 470, steps = 1000, threads = 1 };

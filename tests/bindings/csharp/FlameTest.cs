@@ -1,10 +1,11 @@
 // The C# bindings (bindings/csharp/Flame.cs) against libflame, under Mono.
 //
-// usage: mono FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR
+// usage: mono FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR HEADER
 //   MODEL          tests/fixtures/flame_tiny.safetensors
 //   REFERENCE_NPY  `flame generate` output for RefPrompt with the settings of RefParams()
 //   FLAME_CLI      the `flame` executable (for the --noise comparison)
 //   TMPDIR         a writable directory
+//   HEADER         include/flame.h, which the declarations must cover
 //
 // Reference: the `flame` CLI (the Rust API); its features must equal the bindings' bit for bit.
 // Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
@@ -13,8 +14,11 @@ using System;
 using System.Collections.Generic;
 using System.Diagnostics;
 using System.IO;
+using System.Linq;
+using System.Reflection;
 using System.Runtime.InteropServices;
 using System.Text;
+using System.Text.RegularExpressions;
 using System.Threading;
 using Flame;
 
@@ -24,18 +28,19 @@ static class FlameTest
     const int Dim = 147;
     const int RefFrames = 24;
 
-    static string modelPath, cliPath, tmpDir;
+    static string modelPath, cliPath, tmpDir, header;
     static float[] reference;
     static FlameModel model;
     static int passed, failed;
 
     static int Main(string[] args)
     {
-        if (args.Length != 4)
+        if (args.Length != 5)
         {
-            Console.Error.WriteLine("usage: FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR");
+            Console.Error.WriteLine("usage: FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR HEADER");
             return 2;
         }
+        header = File.ReadAllText(args[4]);
         modelPath = args[0];
         cliPath = args[2];
         tmpDir = args[3];
@@ -43,6 +48,7 @@ static class FlameTest
         reference = Npy.Read(args[1], out shape);
         Check(shape.Length == 2 && shape[0] == RefFrames && shape[1] == Dim, "reference shape " + string.Join("x", shape));
 
+        Run("HeaderCoverage", TestHeaderCoverage);
         Run("Version", TestVersion);
         Run("StructLayouts", TestStructLayouts);
         Run("LoadErrors", TestLoadErrors);
@@ -55,6 +61,7 @@ static class FlameTest
             Run("SessionErrors", TestSessionErrors);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
+            Run("PoseLayouts", TestPoseLayouts);
             Run("SetNoiseMatchesCli", TestSetNoiseMatchesCli);
             Run("ProgressCallback", TestProgressCallback);
             Run("ProgressCallbackException", TestProgressCallbackException);
@@ -174,6 +181,59 @@ static class FlameTest
     }
 
     // --- tests --------------------------------------------------------------------------------
+
+    static string Key(string name)
+    {
+        return name.Replace("_", "").ToLowerInvariant();
+    }
+
+    /// <summary>name → value of the header's PREFIX_NAME = value (or #define PREFIX_NAME value).</summary>
+    static Dictionary<string, long> HeaderValues(string prefix)
+    {
+        var values = new Dictionary<string, long>();
+        foreach (Match m in Regex.Matches(header, prefix + @"(\w+)\s*=?\s*(-?\d+)"))
+            values[Key(m.Groups[1].Value)] = long.Parse(m.Groups[2].Value);
+        return values;
+    }
+
+    static void CheckValues(string prefix, Dictionary<string, long> ours)
+    {
+        var theirs = HeaderValues(prefix);
+        bool same = theirs.Count > 0 && theirs.Count == ours.Count && theirs.All(kv => ours.ContainsKey(kv.Key) && ours[kv.Key] == kv.Value);
+        Check(same, prefix + "* values: header {" + string.Join(", ", theirs.Select(kv => kv.Key + "=" + kv.Value)) +
+                    "} vs bindings {" + string.Join(", ", ours.Select(kv => kv.Key + "=" + kv.Value)) + "}");
+    }
+
+    static Dictionary<string, long> EnumValues(Type t)
+    {
+        return Enum.GetNames(t).ToDictionary(n => Key(n), n => Convert.ToInt64(Enum.Parse(t, n)));
+    }
+
+    static Dictionary<string, long> ConstValues(Type t)
+    {
+        return t.GetFields(BindingFlags.Public | BindingFlags.Static).Where(f => f.IsLiteral)
+                .ToDictionary(f => Key(f.Name), f => Convert.ToInt64(f.GetRawConstantValue()));
+    }
+
+    static void TestHeaderCoverage()
+    {
+        // Every function of the header has a declaration, and the named values agree with it.
+        var declared = new HashSet<string>();
+        foreach (Match m in Regex.Matches(header, @"^[a-z][^;()]*?\b(flame_\w+)\(", RegexOptions.Multiline))
+            declared.Add(m.Groups[1].Value);
+        var bound = new HashSet<string>(typeof(FlameNative).GetMethods(BindingFlags.Public | BindingFlags.Static)
+                                        .Where(m => (m.Attributes & MethodAttributes.PinvokeImpl) != 0).Select(m => m.Name));
+        Check(declared.Count >= 25 && declared.SetEquals(bound),
+              "functions: missing {" + string.Join(", ", declared.Except(bound)) + "}, extra {" + string.Join(", ", bound.Except(declared)) + "}");
+        CheckValues("FLAME_STATUS_", EnumValues(typeof(FlameStatus)));
+        CheckValues("FLAME_SAMPLER_", EnumValues(typeof(FlameSampler)));
+        CheckValues("FLAME_WHICH_", EnumValues(typeof(FlameWhich)));
+        CheckValues("FLAME_LAYOUT_", ConstValues(typeof(FlameLayout)));
+        CheckValues("FLAME_CONVENTION_", ConstValues(typeof(FlameConvention)));
+        CheckValues("FLAME_READ_", ConstValues(typeof(FlameReadFlags)));
+        Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
+        Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
+    }
 
     static void TestVersion()
     {
@@ -377,6 +437,49 @@ static class FlameTest
             for (int i = 0; i < n; i++)
                 same &= big[i] == exact[i];
             Check(same, "ReadInto = Read");
+        }
+    }
+
+    static void TestPoseLayouts()
+    {
+        int J = model.Info.JointCount;
+        Check(J == 24 && model.Info.JointNames[0] == "Pelvis", "SMPL-24 skeleton");
+        using (var s = RefSession())
+        {
+            RunAll(s);
+            Check(BitEqual(s.Read(FlameWhich.Sample, FlameLayout.Features, FlameConvention.Unity, FlameReadFlags.Smooth), reference),
+                  "raw features ignore convention and flags");
+            // The tiny model's final motion saturates at ±1, where some 6D rotations are
+            // degenerate; the sample after one step is generic.
+            s.Reset();
+            s.Step();
+            var expected = new Dictionary<int, int>
+            {
+                { FlameLayout.RootTranslation, 3 }, { FlameLayout.LocalQuatXyzw, J * 4 }, { FlameLayout.LocalQuatWxyz, J * 4 },
+                { FlameLayout.LocalMatrix, J * 9 }, { FlameLayout.Local6d, J * 6 }, { FlameLayout.GlobalPositions, J * 3 },
+                { FlameLayout.GlobalQuatXyzw, J * 4 }, { FlameLayout.GlobalQuatWxyz, J * 4 },
+            };
+            foreach (var kv in expected)
+                Check(s.ReadLength(FlameWhich.Sample, kv.Key, FlameConvention.Unity, 0) == RefFrames * kv.Value, "length of layout " + kv.Key);
+            var xyzw = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0);
+            var wxyz = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatWxyz, FlameConvention.Unity, 0);
+            bool unit = true, permuted = true;
+            for (int q = 0; q < xyzw.Length; q += 4)
+            {
+                double n = Math.Sqrt(xyzw[q] * xyzw[q] + xyzw[q + 1] * xyzw[q + 1] + xyzw[q + 2] * xyzw[q + 2] + xyzw[q + 3] * xyzw[q + 3]);
+                unit &= Math.Abs(n - 1) < 1e-5;
+                permuted &= wxyz[q] == xyzw[q + 3] && wxyz[q + 1] == xyzw[q] && wxyz[q + 2] == xyzw[q + 1] && wxyz[q + 3] == xyzw[q + 2];
+            }
+            Check(unit, "unit quaternions");
+            Check(permuted, "wxyz is xyzw reordered");
+            var raw = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, FlameReadFlags.RawSigns);
+            bool positiveW = true;
+            for (int q = 0; q < raw.Length; q += 4)
+                positiveW &= raw[q + 3] >= 0;
+            Check(positiveW, "RawSigns keeps w >= 0");
+            Throws(FlameStatus.InvalidArgument, "no foot contacts", () => s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0));
+            Throws(FlameStatus.InvalidArgument, "unknown convention 9", () => s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, 9, 0));
+            Throws(FlameStatus.InvalidArgument, "unknown read flags", () => s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, 0, 4));
         }
     }
 

@@ -10,6 +10,22 @@ namespace UnityEngine
     public class MonoBehaviour : Behaviour { }
     public class TextAsset : Object { public byte[] bytes { get { return null; } } }
     public static class Application { public static string streamingAssetsPath { get { return ""; } } }
+    public static class Time { public static float time; }   // set by the test
+    public struct Quaternion
+    {
+        public float x, y, z, w;
+        public Quaternion(float x, float y, float z, float w) { this.x = x; this.y = y; this.z = z; this.w = w; }
+    }
+    public struct Vector3
+    {
+        public float x, y, z;
+        public Vector3(float x, float y, float z) { this.x = x; this.y = y; this.z = z; }
+    }
+    public class Transform : Component
+    {
+        public Quaternion localRotation;
+        public Vector3 localPosition;
+    }
     public static class Debug { public static void LogError(object message) { Console.Error.WriteLine("Debug.LogError: " + message); } }
     [AttributeUsage(AttributeTargets.Field)]
     public sealed class TooltipAttribute : Attribute { public TooltipAttribute(string tooltip) { } }

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import flame
-from flame import Convention, FlameError, Layout, Status
+from flame import Convention, FlameError, Layout, ReadFlags, Status
 
 ROOT = Path(__file__).resolve().parents[3]
 MODEL = os.environ.get("FLAME_MODEL", str(ROOT / "tests/fixtures/flame_tiny.safetensors"))
@@ -76,6 +76,41 @@ def expect_error(status, fragment, fn, *args, **kwargs):
     return e.value
 
 
+# --- the header ------------------------------------------------------------------------------
+
+HEADER = (ROOT / "include/flame.h").read_text()
+
+
+def _key(name):
+    return name.replace("_", "").lower()
+
+
+def test_every_header_function_is_bound():
+    import re
+
+    declared = set(re.findall(r"^[a-z][^;()]*?\b(flame_\w+)\(", HEADER, re.M))
+    assert len(declared) >= 25
+    assert declared == set(flame._signatures()), declared ^ set(flame._signatures())
+
+
+@pytest.mark.parametrize(
+    "prefix, names",
+    [("FLAME_STATUS_", Status), ("FLAME_SAMPLER_", flame.Sampler), ("FLAME_WHICH_", flame.Which),
+     ("FLAME_LAYOUT_", Layout), ("FLAME_CONVENTION_", Convention), ("FLAME_READ_", ReadFlags)],
+)
+def test_named_values_match_the_header(prefix, names):
+    import re
+
+    header = {_key(n): int(v) for n, v in re.findall(prefix + r"(\w+)\s*=?\s*(-?\d+)", HEADER)}
+    ours = {_key(n): v for n, v in vars(names).items() if n.isupper()}
+    assert header and ours == header
+
+
+def test_constants_match_the_header():
+    assert f"#define FLAME_ABI_VERSION {flame.ABI_VERSION}\n" in HEADER
+    assert f"#define FLAME_ROOT_TRANSLATION {flame.ROOT_TRANSLATION}\n" in HEADER
+
+
 # --- library and model ------------------------------------------------------------------------
 
 
@@ -91,6 +126,7 @@ def test_info(model):
     assert 1 <= i.default_frames <= i.max_frames
     assert (i.architecture, i.motion_format, i.text_encoder) == ("flame", "smpl24_6d", "roberta")
     assert i.fps == 20.0
+    assert i.joint_count == 24 and i.joint_names[0] == "Pelvis", i.joint_names  # SMPL-24
     assert len(i.joint_names) == len(i.joint_parents) == i.joint_count
     for j, p in enumerate(i.joint_parents):
         assert (p == -1) if j == 0 else (0 <= p < j), (j, p)
@@ -168,7 +204,10 @@ def test_session_errors(model):
         expect_error(Status.INVALID_ARGUMENT, "NaN", s.set_noise, np.full((24, DIM), np.nan))
         s.step()
         expect_error(Status.INVALID_ARGUMENT, "unknown layout 999", s.read, "sample", 999)
+        expect_error(Status.INVALID_ARGUMENT, "unknown layout -1", s.read, "sample", -1)
         expect_error(Status.INVALID_ARGUMENT, "unknown `which` 5", s.read, 5)
+        with pytest.raises(ValueError):
+            s.read("noisy")
         expect_error(Status.INVALID_ARGUMENT, "frame range 5..5", s.keep_frames, 5, 5)
         expect_error(Status.INVALID_ARGUMENT, "outside 0..24", s.keep_frames, 0, 25)
         expect_error(Status.INVALID_ARGUMENT, "joint 24", s.keep_joints, [24])
@@ -230,6 +269,54 @@ def test_closed_handles(model):
     assert m.info.feature_dim == DIM, "info was copied while the model was open"
     with pytest.raises(ValueError):
         m.session()
+
+
+# --- pose layouts -----------------------------------------------------------------------------
+
+
+def test_pose_layouts(model, reference):
+    J = model.info.joint_count
+    with ref_session(model) as s:
+        s.run()
+        # Raw features ignore convention and flags.
+        assert s.read("sample", Layout.FEATURES, Convention.UNITY, ReadFlags.SMOOTH).tobytes() == reference.tobytes()
+        # The tiny model's final motion saturates at ±1, where some 6D rotations are degenerate
+        # (parallel rows; libflame follows pytorch3d there and yields singular matrices). The
+        # sample after one step is generic, so the pose checks use it.
+        s.reset()
+        s.step()
+        shapes = {
+            Layout.ROOT_TRANSLATION: (24, 3),
+            Layout.LOCAL_QUAT_XYZW: (24, J, 4),
+            Layout.LOCAL_QUAT_WXYZ: (24, J, 4),
+            Layout.LOCAL_MATRIX: (24, J, 3, 3),
+            Layout.LOCAL_6D: (24, J, 6),
+            Layout.GLOBAL_POSITIONS: (24, J, 3),
+            Layout.GLOBAL_QUAT_XYZW: (24, J, 4),
+            Layout.GLOBAL_QUAT_WXYZ: (24, J, 4),
+        }
+        for convention in (Convention.NATIVE, Convention.UNITY, Convention.UNREAL, Convention.GLTF):
+            poses = {layout: s.read("sample", layout, convention) for layout in shapes}
+            for layout, shape in shapes.items():
+                assert poses[layout].shape == shape and np.isfinite(poses[layout]).all(), (layout, convention)
+            xyzw, wxyz = poses[Layout.LOCAL_QUAT_XYZW], poses[Layout.LOCAL_QUAT_WXYZ]
+            np.testing.assert_allclose(np.linalg.norm(xyzw, axis=-1), 1, atol=1e-5)
+            np.testing.assert_array_equal(wxyz, xyzw[..., [3, 0, 1, 2]])
+            np.testing.assert_array_equal(poses[Layout.LOCAL_6D], poses[Layout.LOCAL_MATRIX][..., :2, :].reshape(24, J, 6))
+        # Conventions move and scale positions but keep distances (centimetres in Unreal).
+        native = s.read("sample", Layout.GLOBAL_POSITIONS, Convention.NATIVE)
+        unreal = s.read("sample", Layout.GLOBAL_POSITIONS, Convention.UNREAL)
+        bone = lambda p: np.linalg.norm(p[:, 1:] - p[:, :1], axis=-1)  # noqa: E731
+        np.testing.assert_allclose(bone(unreal), 100 * bone(native), rtol=1e-4, atol=1e-3)
+        # Flags: smoothing changes the poses; raw signs keep w >= 0.
+        q = s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY)
+        assert not np.array_equal(q, s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY, ReadFlags.SMOOTH))
+        assert (s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY, ReadFlags.RAW_SIGNS)[..., 3] >= 0).all()
+        expect_error(Status.INVALID_ARGUMENT, "no foot contacts", s.read, "sample", Layout.FOOT_CONTACTS)
+        expect_error(Status.INVALID_ARGUMENT, "unknown convention 9", s.read, "sample", Layout.LOCAL_QUAT_XYZW, 9)
+        expect_error(Status.INVALID_ARGUMENT, "unknown read flags", s.read, "sample", Layout.LOCAL_QUAT_XYZW, 0, 4)
+        # The estimate reads in any layout too.
+        assert s.read("estimate", Layout.GLOBAL_QUAT_WXYZ, Convention.ROS).shape == (24, J, 4)
 
 
 # --- progress and cancel ----------------------------------------------------------------------
@@ -364,6 +451,36 @@ def test_editing(model, reference):
         s.set_mask(mask)
         s.reset()
         assert s.run().tobytes() == joints.tobytes(), "keep_joints([-1, 0]) = that mask"
+
+
+@pytest.mark.xfail(reason="libflame bug: with an edit, a step cancelled mid-way has already drawn "
+                   "the reference noise, so its retry continues differently", strict=False)
+def test_cancel_mid_step_with_edit_then_retry_is_bit_identical(model):
+    """Like test_cancel_from_callback_then_retry_is_bit_identical, but the cancel lands inside
+    the denoiser call of an editing step (470 frames: a step takes tens of milliseconds)."""
+
+    def generate(cancel_after_step=None):
+        with model.session(frames=470, steps=12, sampler="ddim", seed=5, threads=1) as s:
+            s.set_prompt(REF_PROMPT)
+            s.set_reference(np.zeros((470, DIM), np.float32))
+            s.keep_frames(0, 100)
+            stepped = threading.Event()
+            s.set_progress(lambda done, total: stepped.set() if done == cancel_after_step else None)
+            if cancel_after_step:
+                threading.Thread(target=lambda: (stepped.wait(), time.sleep(0.02), s.cancel())).start()
+            cancelled = 0
+            while s.steps_left:
+                try:
+                    s.step()
+                except FlameError as e:
+                    assert e.status == Status.CANCELLED
+                    cancelled += 1
+            return s.read(), cancelled
+
+    expected, _ = generate()
+    out, cancelled = generate(cancel_after_step=4)
+    assert cancelled == 1
+    assert out.tobytes() == expected.tobytes()
 
 
 # --- threads ----------------------------------------------------------------------------------

@@ -11,8 +11,7 @@ int main(void) {
     snprintf(expected, sizeof expected, "%d.%d.%d", FLAME_VERSION_MAJOR, FLAME_VERSION_MINOR,
              FLAME_VERSION_PATCH);
     printf("libflame %s (ABI %u)\n", flame_version_string(), flame_abi_version());
-    return flame_abi_version() == FLAME_ABI_VERSION &&
-                   strcmp(flame_version_string(), expected) == 0
+    return flame_abi_version() == FLAME_ABI_VERSION && strcmp(flame_version_string(), expected) == 0
                ? 0
                : 1;
 }

@@ -8,7 +8,7 @@ int main() {
     std::printf("libflame %s via flame.hpp\n", flame::version().c_str());
     try {
         flame::Model::load("/nonexistent.safetensors");
-    } catch (const flame::Error& e) {
+    } catch (const flame::Error &e) {
         return e.status() == FLAME_STATUS_IO ? 0 : 1;
     }
     return 1;

@@ -33,12 +33,21 @@ static FString FlameFailure(FlameStatus Status)
  */
 struct FFlameJob
 {
+	/** Counts this job in FFlameModule::ActiveWorkers. First member, so destroyed last: after
+	 *  Model, whose destructor may be the job's last libflame call. */
+	struct FWorkerCount
+	{
+		FWorkerCount() { FFlameModule::ActiveWorkers.Increment(); }
+		~FWorkerCount() { FFlameModule::ActiveWorkers.Decrement(); }
+	} WorkerCount;
+
 	// Inputs, fixed before the worker starts.
 	FString Path;
 	FString Prompt;
 	FlameSessionParams Params;
 	int32 Layout = 0;
 	int32 Convention = 0;
+	uint32 Flags = 0;
 	bool bPreviewEstimate = true;
 
 	FCriticalSection Lock;
@@ -47,6 +56,7 @@ struct FFlameJob
 	FlameSession* Session = nullptr;
 	bool bStop = false;
 	TArray<float> Latest;
+	TArray<float> LatestRoot;
 	bool bLatestIsNew = false;
 	int32 Frames = 0;
 	int32 StepsDone = 0;
@@ -56,9 +66,6 @@ struct FFlameJob
 	FString Error;
 	TArray<FString> JointNames;
 	TArray<int32> JointParents;
-
-	FFlameJob() { FFlameModule::ActiveWorkers.Increment(); }
-	~FFlameJob() { FFlameModule::ActiveWorkers.Decrement(); }
 
 	void Cancel()
 	{
@@ -150,7 +157,7 @@ private:
 			Failure = FlameFailure(Status);
 			return false;
 		}
-		TArray<float> Buffer;
+		TArray<float> Buffer, RootBuffer;
 		uint32 Left = 1;
 		while (Left > 0)
 		{
@@ -162,12 +169,10 @@ private:
 				return false;
 			}
 			const int32 Which = (bPreviewEstimate && Left > 0) ? FLAME_WHICH_ESTIMATE : FLAME_WHICH_SAMPLE;
-			size_t Needed = 0;
-			Status = flame_session_read(S, Which, Layout, Convention, 0, nullptr, 0, &Needed);
+			Status = Read(S, Which, Layout, Buffer);
 			if (Status == FLAME_STATUS_OK)
 			{
-				Buffer.SetNumUninitialized((int32)Needed);
-				Status = flame_session_read(S, Which, Layout, Convention, 0, Buffer.GetData(), Needed, &Needed);
+				Status = Read(S, Which, FLAME_LAYOUT_ROOT_TRANSLATION, RootBuffer);
 			}
 			if (Status != FLAME_STATUS_OK)
 			{
@@ -178,7 +183,8 @@ private:
 			flame_session_progress(S, &Done, &Total);
 
 			FScopeLock Guard(&Lock);
-			Swap(Latest, Buffer); // the worker refills the game thread's previous buffer
+			Swap(Latest, Buffer); // the worker refills the game thread's previous buffers
+			Swap(LatestRoot, RootBuffer);
 			bLatestIsNew = true;
 			StepsDone = (int32)Done;
 			StepsTotal = (int32)Total;
@@ -189,6 +195,19 @@ private:
 			}
 		}
 		return true;
+	}
+
+	/** One flame_session_read into Out, sized by a length query first. */
+	FlameStatus Read(FlameSession* S, int32 Which, int32 InLayout, TArray<float>& Out) const
+	{
+		size_t Needed = 0;
+		FlameStatus Status = flame_session_read(S, Which, InLayout, Convention, Flags, nullptr, 0, &Needed);
+		if (Status == FLAME_STATUS_OK)
+		{
+			Out.SetNumUninitialized((int32)Needed);
+			Status = flame_session_read(S, Which, InLayout, Convention, Flags, Out.GetData(), Needed, &Needed);
+		}
+		return Status;
 	}
 };
 
@@ -223,6 +242,7 @@ bool UFlameMotionComponent::Generate()
 	NewJob->Params.threads = (uint32)FMath::Max(Threads, 0);
 	NewJob->Layout = Layout;
 	NewJob->Convention = Convention;
+	NewJob->Flags = (uint32)FMath::Max(ReadFlags, 0);
 	NewJob->bPreviewEstimate = bPreviewEstimate;
 	if (Model.IsValid() && Model->Path == NewJob->Path)
 	{
@@ -258,6 +278,28 @@ TArray<float> UFlameMotionComponent::GetFramePose(int32 Frame) const
 	return Values;
 }
 
+FQuat UFlameMotionComponent::GetJointRotation(int32 Frame, int32 Joint) const
+{
+	const bool bQuatXyzw = Layout == FLAME_LAYOUT_LOCAL_QUAT_XYZW || Layout == FLAME_LAYOUT_GLOBAL_QUAT_XYZW;
+	const int32 Joints = GetValuesPerFrame() / 4;
+	if (!bQuatXyzw || Frame < 0 || Frame >= PoseFrames || Joint < 0 || Joint >= Joints)
+	{
+		return FQuat::Identity;
+	}
+	const float* Q = Pose.GetData() + ((int64)Frame * Joints + Joint) * 4;
+	return FQuat(Q[0], Q[1], Q[2], Q[3]);
+}
+
+FVector UFlameMotionComponent::GetRootLocation(int32 Frame) const
+{
+	if (Frame < 0 || (int64)Frame * 3 + 3 > RootLocations.Num())
+	{
+		return FVector::ZeroVector;
+	}
+	const float* P = RootLocations.GetData() + (int64)Frame * 3;
+	return FVector(P[0], P[1], P[2]);
+}
+
 void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction)
 {
 	Super::TickComponent(DeltaTime, TickType, ThisTickFunction);
@@ -271,12 +313,10 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		if (Job->bLatestIsNew)
 		{
 			Swap(Pose, Job->Latest);
+			Swap(RootLocations, Job->LatestRoot);
 			PoseFrames = Job->Frames;
 			Job->bLatestIsNew = false;
 			bNewPose = true;
-		}
-		if (JointNames.Num() == 0 && Job->JointNames.Num() > 0)
-		{
 			JointNames = Job->JointNames;
 			JointParents = Job->JointParents;
 		}

@@ -60,13 +60,21 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	bool bPreviewEstimate = true;
 
-	/** flame_session_read's pose layout and coordinate convention, passed through as integers:
-	 *  0 / 0 = the model's raw features in its native frame. */
+	/** Pose's layout, a FlameLayout value of flame.h passed through as an integer. The default,
+	 *  2 = FLAME_LAYOUT_LOCAL_QUAT_XYZW: parent-relative quaternions x, y, z, w per joint
+	 *  (GetJointRotation). 0 = the model's raw features. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
-	int32 Layout = 0;
+	int32 Layout = 2;
 
+	/** The coordinate convention of Pose and RootLocations, a FlameConvention value. The
+	 *  default, 2 = FLAME_CONVENTION_UNREAL: Z up, X forward, left-handed, centimetres. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
-	int32 Convention = 0;
+	int32 Convention = 2;
+
+	/** flame_session_read flags: 1 = FLAME_READ_SMOOTH (FLAME's temporal smoothing),
+	 *  2 = FLAME_READ_RAW_SIGNS. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	int32 ReadFlags = 0;
 
 	/** Starts a generation on a background thread (the model is loaded there once and kept).
 	 *  False if one is already running or libflame is unavailable (see LastError). */
@@ -93,6 +101,20 @@ public:
 	/** One frame's values of Pose (empty when out of range). */
 	UFUNCTION(BlueprintPure, Category = "Flame")
 	TArray<float> GetFramePose(int32 Frame) const;
+
+	/** A joint's rotation in a frame, when Layout is a quaternion x, y, z, w layout (2 or 7);
+	 *  identity otherwise or out of range. With the default Convention, an FQuat for the
+	 *  bone's parent-relative rotation. */
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	FQuat GetJointRotation(int32 Frame, int32 Joint) const;
+
+	/** The root joint's position in a frame (in Convention; centimetres by default). */
+	UFUNCTION(BlueprintPure, Category = "Flame")
+	FVector GetRootLocation(int32 Frame) const;
+
+	/** The root joint's positions, frame-major: GetFrameCount() × 3 floats. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	TArray<float> RootLocations;
 
 	/** The model's skeleton (from flame_model_info), filled once the model is loaded. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")

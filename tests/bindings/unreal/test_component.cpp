@@ -1,0 +1,218 @@
+/*
+ * The Unreal plugin's C++ (bindings/unreal/Flame) compiled against stand-ins for the engine
+ * (ue_stubs/ue_stub.h) and run against the real libflame: FFlameModule and UFlameMotionComponent
+ * driven the way the engine would (StartupModule, Generate, TickComponent every frame, EndPlay).
+ *
+ * usage: test_component MODEL REFERENCE_NPY
+ * Reference: the `flame` CLI's features for the same settings (tests/bindings/run_unreal.sh).
+ * Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
+ */
+#include <chrono>
+#include <cmath>
+#include <climits>
+#include <cstdlib>
+#include <cstring>
+#include <cstdio>
+#include <fstream>
+#include <iterator>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "FlameModule.h"
+#include "FlameMotionComponent.h"
+#include "flame.h"
+
+static int passed, failed;
+
+#define CHECK(cond, ...)                                            \
+    do {                                                            \
+        if (cond) {                                                 \
+            passed++;                                               \
+        } else {                                                    \
+            failed++;                                               \
+            std::fprintf(stderr, "FAIL line %d: %s: ", __LINE__, #cond); \
+            std::fprintf(stderr, __VA_ARGS__);                      \
+            std::fprintf(stderr, "\n");                             \
+        }                                                           \
+    } while (0)
+
+/* Ticks the component like the game thread would, until done() or the timeout. */
+template <typename F> static bool TickUntil(UFlameMotionComponent& c, F done, double seconds = 30) {
+    auto start = std::chrono::steady_clock::now();
+    while (!done()) {
+        c.TickComponent(0.016f, LEVELTICK_All, &c.PrimaryComponentTick);
+        if (std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() > seconds) return false;
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    return true;
+}
+
+static bool WaitForThreads(double seconds = 10) {
+    auto start = std::chrono::steady_clock::now();
+    while (UeStubRunningThreads() > 0) {
+        if (std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() > seconds) return false;
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    return true;
+}
+
+/* The float32 data of a .npy file: its last frames × dim × 4 bytes. */
+static std::vector<float> NpyData(const char* path, size_t count) {
+    std::ifstream f(path, std::ios::binary);
+    std::vector<char> bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+    std::vector<float> data(count);
+    if (bytes.size() >= count * 4) std::memcpy(data.data(), bytes.data() + bytes.size() - count * 4, count * 4);
+    return data;
+}
+
+static void Configure(UFlameMotionComponent& c, const char* model, int frames, int steps, bool ddim,
+                      int layout = 0 /* FLAME_LAYOUT_FEATURES */, int convention = 0) {
+    c.Layout = layout;
+    c.Convention = convention;
+    // Absolute: a relative ModelPath is taken relative to the project's Content directory.
+    char* full = realpath(model, nullptr);
+    c.ModelPath = FString(UTF8_TO_TCHAR(full ? full : model));
+    std::free(full);
+    c.Prompt = FString(TEXT("a person walks forward and waves."));
+    c.Frames = frames;
+    c.Steps = steps;
+    c.bUseDdim = ddim;
+    c.Seed = 3;
+    c.Threads = 1;
+}
+
+int main(int argc, char** argv) {
+    if (argc != 3) {
+        std::fprintf(stderr, "usage: test_component MODEL REFERENCE_NPY\n");
+        return 2;
+    }
+    const int Frames = 24, Dim = 147;
+    std::vector<float> reference = NpyData(argv[2], (size_t)Frames * Dim);
+
+    FFlameModule& module = FFlameModule::Get();
+    module.StartupModule();
+    CHECK(module.IsAvailable(), "module unavailable");
+
+    {   // The CLI's settings: the final Pose is its output, bit for bit.
+        UFlameMotionComponent c;
+        CHECK(c.PrimaryComponentTick.bCanEverTick, "ticks");
+        Configure(c, argv[1], Frames, 10, true);
+        int progressCalls = 0, finishedCalls = 0;
+        bool succeeded = false;
+        c.OnProgress.AddLambda([&](int32, int32) { progressCalls++; });
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        CHECK(c.Generate(), "Generate: %s", c.LastError.Utf8().c_str());
+        CHECK(!c.Generate(), "a second Generate while running");
+        CHECK(c.LastError.Utf8() == "a generation is already running", "%s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finishedCalls > 0; }), "finished in time");
+        CHECK(succeeded && c.LastError.IsEmpty(), "succeeded: %s", c.LastError.Utf8().c_str());
+        CHECK(!c.IsGenerating(), "idle after finishing");
+        CHECK(progressCalls >= 1 && progressCalls <= 10, "progress calls %d", progressCalls);
+        CHECK(c.StepsDone == 10 && c.StepsTotal == 10, "steps %d/%d", c.StepsDone, c.StepsTotal);
+        CHECK(c.GetFrameCount() == Frames && c.GetValuesPerFrame() == Dim, "%d x %d", c.GetFrameCount(), c.GetValuesPerFrame());
+        CHECK(c.Pose.Num() == Frames * Dim && std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0,
+              "Pose = the CLI's features");
+        TArray<float> row = c.GetFramePose(1);
+        CHECK(row.Num() == Dim && std::memcmp(row.GetData(), reference.data() + Dim, Dim * 4) == 0, "GetFramePose(1)");
+        CHECK(c.GetFramePose(Frames).Num() == 0 && c.GetFramePose(-1).Num() == 0, "out-of-range frames");
+        CHECK(c.JointNames.Num() == c.JointParents.Num(), "joint arrays");
+
+        // Again, with the cached model: the same motion.
+        c.Pose.Reset();
+        CHECK(c.Generate(), "Generate again");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished again");
+        CHECK(succeeded && std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0, "same again");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // The defaults: local quaternions x, y, z, w and root locations in Unreal's convention.
+        UFlameMotionComponent defaults;
+        CHECK(defaults.Layout == FLAME_LAYOUT_LOCAL_QUAT_XYZW && defaults.Convention == FLAME_CONVENTION_UNREAL, "defaults");
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 10, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        // The tiny model's clean motion saturates at ±1, where some 6D rotations are degenerate:
+        // check unit quaternions on the first published pose, the (generic) noisy sample.
+        c.bPreviewEstimate = false;
+        bool finished = false, succeeded = false, checkedFirst = false;
+        c.OnProgress.AddLambda([&](int32 done, int32) {
+            if (done != 1 || checkedFirst) return;
+            checkedFirst = true;
+            const int joints = c.GetValuesPerFrame() / 4;
+            bool unit = joints == 24;
+            for (int f = 0; f < Frames; f++)
+                for (int j = 0; j < joints; j++) {
+                    FQuat q = c.GetJointRotation(f, j);
+                    unit = unit && std::abs(q.X * q.X + q.Y * q.Y + q.Z * q.Z + q.W * q.W - 1) < 1e-4;
+                }
+            CHECK(unit, "unit quaternions for 24 joints");
+        });
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(succeeded && checkedFirst, "succeeded: %s", c.LastError.Utf8().c_str());
+        CHECK(c.Pose.Num() == Frames * 24 * 4 && c.RootLocations.Num() == Frames * 3, "%d %d", c.Pose.Num(), c.RootLocations.Num());
+        FQuat q = c.GetJointRotation(3, 5);
+        const float* raw = c.Pose.GetData() + (3 * 24 + 5) * 4;
+        CHECK(q.X == raw[0] && q.Y == raw[1] && q.Z == raw[2] && q.W == raw[3], "GetJointRotation(3, 5) reads x, y, z, w");
+        FVector p = c.GetRootLocation(3);
+        CHECK(p.X == c.RootLocations[9] && p.Z == c.RootLocations[11], "GetRootLocation(3)");
+        FQuat outside = c.GetJointRotation(Frames, 0);
+        CHECK(outside.W == 1 && outside.X == 0, "identity out of range");
+        CHECK(c.GetRootLocation(-1).X == 0, "zero out of range");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // Cancel from the game thread: OnFinished(false) with libflame's CANCELLED.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], 470, 1000, false);
+        bool finished = false, succeeded = true;
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate long");
+        CHECK(TickUntil(c, [&] { return c.StepsDone >= 2; }), "stepping");
+        auto t0 = std::chrono::steady_clock::now();
+        c.Cancel();
+        CHECK(TickUntil(c, [&] { return finished; }, 5), "finished after cancel");
+        double took = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        CHECK(!succeeded && c.LastError.Utf8().find("FLAME_STATUS_CANCELLED") == 0, "%s", c.LastError.Utf8().c_str());
+        CHECK(took < 2, "cancel took %.3f s", took);
+        CHECK(c.StepsDone < 1000, "stopped early at %d", c.StepsDone);
+    }
+    CHECK(WaitForThreads(), "workers exited after cancel");
+
+    {   // EndPlay mid-generation returns at once; the worker frees everything by itself.
+        UFlameMotionComponent* c = new UFlameMotionComponent;
+        Configure(*c, argv[1], 470, 1000, false);
+        CHECK(c->Generate(), "Generate long");
+        CHECK(TickUntil(*c, [&] { return c->StepsDone >= 1; }), "stepping");
+        auto t0 = std::chrono::steady_clock::now();
+        c->EndPlay(EEndPlayReason::Destroyed);
+        delete c;  // the component goes away before its worker
+        double took = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        CHECK(took < 0.05, "EndPlay took %.3f s", took);
+        CHECK(WaitForThreads(), "worker exited after EndPlay");
+        CHECK(FFlameModule::ActiveWorkers.GetValue() == 0, "active workers %d", FFlameModule::ActiveWorkers.GetValue());
+    }
+
+    {   // Errors reach LastError and OnFinished(false).
+        UFlameMotionComponent c;
+        Configure(c, "/nonexistent/model.safetensors", Frames, 10, true);
+        bool finished = false, succeeded = true;
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(!succeeded && c.LastError.Utf8().find("FLAME_STATUS_IO: cannot read /nonexistent/model.safetensors") == 0,
+              "%s", c.LastError.Utf8().c_str());
+
+        Configure(c, argv[1], 471, 10, true);
+        finished = false;
+        CHECK(c.Generate(), "Generate");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(!succeeded && c.LastError.Utf8().find("frames 471 outside") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+    }
+    CHECK(WaitForThreads(), "workers exited");
+    module.ShutdownModule();
+
+    std::printf("%d passed, %d failed\n", passed, failed);
+    return failed == 0 ? 0 : 1;
+}

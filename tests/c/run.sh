@@ -1,0 +1,237 @@
+#!/usr/bin/env bash
+# The C ABI tests, the C++ wrapper test and the packaging check, as one command:
+#
+#   bash tests/c/run.sh
+#
+# 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
+# 2. the CLI writes the reference features the tests must match bit for bit;
+# 3. test_api and test_threads (C11), each linked against the shared and the static library,
+#    and test_cpp (C++17, shared), all with -Wall -Wextra -Werror, are built and run;
+# 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
+#    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
+#    2 steps) and with FLAME_TEST_QUICK=1;
+# 5. packaging/install.sh installs a release build into a temporary prefix, and CMake
+#    (find_package(flame)) and pkg-config consumers are built against it and run
+#    (FLAME_PACKAGING=0 skips; needs cmake and pkg-config: tools/install_test_deps.sh).
+#
+# Each test program ends with "N passed, N failed"; this script adds them up (a build error, a
+# crash or a valgrind error counts as one failure), prints each step's time, and ends with the
+# total "N passed, N failed" line. Exit status 0 only when nothing failed.
+# Builds go to target/c-tests/. FLAME_STRICT=1 turns known ABI bugs into failures.
+set -uo pipefail
+
+ROOT="$(cd "$(dirname "$0")/../.." && pwd)"
+cd "$ROOT" || exit 1
+MODEL="$ROOT/tests/fixtures/flame_tiny.safetensors"
+PROMPT="a person walks forward and waves."
+LIB="$ROOT/target/debug"
+OUT="$ROOT/target/c-tests"
+WORK="$(mktemp -d)"
+trap 'rm -rf "$WORK"' EXIT
+mkdir -p "$OUT"
+
+CFLAGS=(-std=c11 -Wall -Wextra -Werror -g -pthread -I"$ROOT/include")
+CXXFLAGS=(-std=c++17 -Wall -Wextra -Werror -g -pthread -I"$ROOT/include" -I"$ROOT/bindings/cpp")
+# shellcheck disable=SC2054  # the commas belong to the linker flag
+SHARED_LIBS=(-L"$LIB" -lflame -Wl,-rpath,"$LIB" -lm)
+# What the static library needs besides libc, from
+#   cargo rustc --lib --crate-type staticlib -- --print native-static-libs
+# which prints "-lgcc_s -lutil -lrt -lpthread -lm -ldl -lc" on Linux/glibc: gcc adds libgcc_s
+# and libc itself, and glibc >= 2.34 keeps util and rt inside libc. (Asking rustc here would
+# rebuild the library with different flags on every run; packaging/install.sh does ask it.)
+STATIC_LIBS=("$LIB/libflame.a" -lpthread -ldl -lm)
+# shellcheck disable=SC2054  # the comma belongs to the option
+VALGRIND=(valgrind --error-exitcode=1 --leak-check=full --errors-for-leak-kinds=definite,indirect)
+
+PASSED=0
+FAILED=0
+START="$(date +%s.%N)"
+
+now() { date +%s.%N; }
+since() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
+
+# report LABEL PASSED FAILED SECONDS [NOTE]: adds to the totals and prints one line.
+report() {
+    local label="$1" p="$2" f="$3" secs="$4" note="${5:-}"
+    PASSED=$((PASSED + p))
+    FAILED=$((FAILED + f))
+    local mark="ok  "
+    [ "$f" -gt 0 ] && mark="FAIL"
+    printf '%s %-42s %5s s  %4d passed, %d failed%s\n' "$mark" "$label" "$secs" "$p" "$f" "$note"
+}
+
+# step LABEL LOG CMD...: one check that passes when CMD exits 0 (its output goes to LOG and
+# is shown on failure).
+step() {
+    local label="$1" log="$2"
+    shift 2
+    local t0
+    t0="$(now)"
+    if "$@" >"$log" 2>&1; then
+        report "$label" 1 0 "$(since "$t0")"
+        return 0
+    fi
+    report "$label" 0 1 "$(since "$t0")"
+    sed 's/^/    | /' "$log" | tail -n 40
+    return 1
+}
+
+# run_test LABEL LOG CMD...: a test program; adds its "N passed, N failed" line. No such line,
+# or a non-zero exit with no failure counted (a crash, a valgrind error), is one failure.
+run_test() {
+    local label="$1" log="$2"
+    shift 2
+    local t0 status p=0 f=0 line note=""
+    t0="$(now)"
+    "$@" >"$log" 2>&1
+    status=$?
+    line="$(grep -E '^[0-9]+ passed, [0-9]+ failed$' "$log" | tail -n 1)"
+    if [ -n "$line" ]; then
+        p="${line%% passed*}"
+        f="${line#*passed, }"
+        f="${f%% failed*}"
+    fi
+    if [ -z "$line" ] || { [ "$status" -ne 0 ] && [ "$f" -eq 0 ]; }; then
+        f=$((f + 1))
+        note="  (exit status $status)"
+    fi
+    local known
+    known="$(grep -E '^known bugs: ' "$log" | head -n 1 | cut -d' ' -f3)"
+    [ -n "$known" ] && note="$note  [$known known bugs]"
+    report "$label" "$p" "$f" "$(since "$t0")" "$note"
+    if [ "$f" -gt 0 ]; then
+        local show='^(FAIL|     )|ERROR SUMMARY|definitely lost|indirectly lost|Invalid|uninit'
+        grep -E "$show|panicked" "$log" | head -n 60 | sed 's/^/    | /'
+        echo "    (full output: $log)"
+    fi
+}
+
+finish() {
+    echo "tests/c/run.sh: $(since "$START") s"
+    echo "$PASSED passed, $FAILED failed"
+    [ "$FAILED" -eq 0 ]
+    exit $?
+}
+
+# ---- 1. build ------------------------------------------------------------------------------
+if ! step "cargo build" "$OUT/cargo-build.log" cargo build; then
+    finish
+fi
+
+# ---- 2. reference features from the CLI ----------------------------------------------------
+# shellcheck disable=SC2317  # called through step
+reference() { # NAME FRAMES STEPS
+    "$LIB/flame" generate --model "$MODEL" --prompt "$PROMPT" --frames "$2" --steps "$3" \
+        --sampler ddim --seed 3 --threads 1 --out "$OUT/$1.npy"
+}
+step "reference (CLI, 24 frames, 10 steps)" "$OUT/ref.log" reference ref 24 10 || finish
+step "reference (CLI, 8 frames, 2 steps)" "$OUT/ref_quick.log" reference ref_quick 8 2 || finish
+
+# ---- 3. compile and run --------------------------------------------------------------------
+BUILT=()
+compile() { # NAME COMPILER FLAGS... -- SOURCE LIBS...
+    local name="$1"
+    shift
+    if step "compile $name" "$OUT/$name.build.log" "$@" -o "$OUT/$name"; then
+        BUILT+=("$name")
+    fi
+}
+built() { [[ " ${BUILT[*]} " == *" $1 "* ]]; }
+
+compile test_api_shared gcc "${CFLAGS[@]}" tests/c/test_api.c "${SHARED_LIBS[@]}"
+compile test_api_static gcc "${CFLAGS[@]}" tests/c/test_api.c "${STATIC_LIBS[@]}"
+compile test_threads_shared gcc "${CFLAGS[@]}" tests/c/test_threads.c "${SHARED_LIBS[@]}"
+compile test_threads_static gcc "${CFLAGS[@]}" tests/c/test_threads.c "${STATIC_LIBS[@]}"
+compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
+
+API_ARGS=("$MODEL" "$OUT/ref.npy" "$WORK")
+for kind in shared static; do
+    built "test_api_$kind" && run_test "test_api ($kind)" "$OUT/test_api_$kind.log" \
+        "$OUT/test_api_$kind" "${API_ARGS[@]}"
+    built "test_threads_$kind" && run_test "test_threads ($kind)" "$OUT/test_threads_$kind.log" \
+        "$OUT/test_threads_$kind" "$MODEL"
+done
+built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
+    "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
+
+# ---- 4. valgrind ---------------------------------------------------------------------------
+# No suppressions: memcheck reports no error and no definite or indirect leak from libflame,
+# Rust's runtime or glibc. What it lists as "possibly lost" (hashbrown tables whose pointer
+# points past the allocation's start, crossbeam-epoch's global collector, thread stacks of
+# worker threads still exiting) is not among the kinds that fail the run.
+use_valgrind=0
+case "${FLAME_VALGRIND:-}" in
+    1) use_valgrind=1 ;;
+    0) use_valgrind=0 ;;
+    *) [ "${CI:-}" = "true" ] && command -v valgrind >/dev/null && use_valgrind=1 ;;
+esac
+if [ "$use_valgrind" = 1 ]; then
+    if ! command -v valgrind >/dev/null; then
+        report "valgrind" 0 1 0.0 "  (FLAME_VALGRIND=1 but valgrind is not installed)"
+    else
+        QUICK=("$OUT/ref_quick.npy")
+        export FLAME_TEST_QUICK=1
+        built test_api_shared && run_test "test_api (shared, valgrind)" \
+            "$OUT/test_api_valgrind.log" \
+            "${VALGRIND[@]}" "$OUT/test_api_shared" "$MODEL" "${QUICK[@]}" "$WORK" 2
+        built test_threads_shared && run_test "test_threads (shared, valgrind)" \
+            "$OUT/test_threads_valgrind.log" "${VALGRIND[@]}" "$OUT/test_threads_shared" "$MODEL"
+        built test_cpp_shared && run_test "test_cpp (shared, valgrind)" \
+            "$OUT/test_cpp_valgrind.log" \
+            "${VALGRIND[@]}" "$OUT/test_cpp_shared" "$MODEL" "${QUICK[@]}" 2
+        unset FLAME_TEST_QUICK
+    fi
+else
+    echo "skip valgrind (set FLAME_VALGRIND=1 to run it)"
+fi
+
+# ---- 5. packaging --------------------------------------------------------------------------
+packaging() {
+    local prefix="$WORK/prefix" pc="$WORK/prefix/lib/pkgconfig"
+    step "packaging/install.sh (release build)" "$OUT/install.log" \
+        bash packaging/install.sh "$prefix" || return
+    step "installed files" "$OUT/install-files.log" ls \
+        "$prefix/include/flame.h" "$prefix/include/flame.hpp" "$prefix/lib/libflame.so" \
+        "$prefix/lib/libflame.a" "$pc/flame.pc" "$pc/flame-static.pc" \
+        "$prefix/lib/cmake/flame/flameConfig.cmake" \
+        "$prefix/lib/cmake/flame/flameConfigVersion.cmake"
+
+    local cb="$WORK/cmake-build"
+    if step "cmake consumer: configure + build" "$OUT/cmake-consumer.log" \
+        bash -c "cmake -S tests/c/cmake_consumer -B '$cb' -DCMAKE_PREFIX_PATH='$prefix' \
+                 -DCMAKE_BUILD_TYPE=Release && cmake --build '$cb'"; then
+        step "cmake consumer: flame::flame" "$OUT/consumer-shared.log" "$cb/consumer_shared"
+        step "cmake consumer: flame::flame_static" "$OUT/consumer-static.log" "$cb/consumer_static"
+        step "cmake consumer: flame.hpp" "$OUT/consumer-cpp.log" "$cb/consumer_cpp"
+        # The shared consumer needs plain libflame.so (no build path baked in) ...
+        step "cmake consumer: NEEDED libflame.so" "$OUT/consumer-needed.log" \
+            bash -c "readelf -d '$cb/consumer_shared' | grep -F '[libflame.so]'"
+        # ... and the static one does not need it at all.
+        step "cmake consumer: static has no libflame.so" "$OUT/consumer-static-needed.log" \
+            bash -c "! readelf -d '$cb/consumer_static' | grep -F libflame"
+    fi
+
+    export PKG_CONFIG_PATH="$pc"
+    step "pkg-config consumer (flame)" "$OUT/pkgconfig-shared.log" bash -c \
+        "gcc ${CFLAGS[*]} tests/c/cmake_consumer/main.c \$(pkg-config --cflags --libs flame) \
+         -Wl,-rpath,'$prefix/lib' -o '$WORK/pc_shared' && '$WORK/pc_shared'"
+    step "pkg-config consumer (flame-static)" "$OUT/pkgconfig-static.log" bash -c \
+        "gcc ${CFLAGS[*]} tests/c/cmake_consumer/main.c \
+         \$(pkg-config --cflags --libs flame-static) -o '$WORK/pc_static' && '$WORK/pc_static'"
+    unset PKG_CONFIG_PATH
+}
+
+if [ "${FLAME_PACKAGING:-1}" = 0 ]; then
+    echo "skip packaging (FLAME_PACKAGING=0)"
+elif ! command -v cmake >/dev/null || ! command -v pkg-config >/dev/null; then
+    if [ "${CI:-}" = "true" ]; then
+        report "packaging" 0 1 0.0 \
+            "  (cmake or pkg-config missing: bash tools/install_test_deps.sh)"
+    else
+        echo "skip packaging: cmake or pkg-config missing (bash tools/install_test_deps.sh)"
+    fi
+else
+    packaging
+fi
+
+finish
