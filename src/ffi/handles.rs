@@ -111,6 +111,9 @@ pub(crate) struct SessionState {
 // thread that calls step; the caller promises it may be used from that thread.
 unsafe impl Send for SessionState {}
 
+/// A progress callback with the values to report (steps done, total).
+pub(crate) type ProgressReport = (Progress, u32, u32);
+
 impl Progress {
     pub(crate) fn report(self, done: u32, total: u32) {
         // SAFETY: the caller registered this callback and its data for this session.
@@ -223,7 +226,7 @@ impl SessionState {
 
     /// Runs one step; returns the steps left and the progress report to deliver once the
     /// session's lock is released (so the callback may call back into the session).
-    pub(crate) fn step(&mut self) -> Result<(usize, Option<(Progress, u32, u32)>), Fail> {
+    pub(crate) fn step(&mut self) -> Result<(usize, Option<ProgressReport>), Fail> {
         let left = self.session.step()?;
         let n = self.session.num_steps();
         Ok((
