@@ -14,6 +14,7 @@ pub mod kernels;
 pub mod models;
 pub mod motion;
 pub mod npy;
+pub mod pool;
 pub mod rng;
 pub mod session;
 pub mod text;

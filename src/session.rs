@@ -8,6 +8,7 @@ use std::sync::Arc;
 use crate::diffusion::{self, DiffusionSampler, SamplerKind};
 use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Condition, Model, Workspace};
+use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
 
 /// Which reverse process a session runs.
@@ -55,7 +56,7 @@ pub struct Session {
     seed: u64,
     sampler: DiffusionSampler,
     cond: Option<Condition>,
-    pool: Arc<rayon::ThreadPool>,
+    pool: Arc<WorkerPool>,
     noise: Box<dyn NoiseSource>,
     initial_noise: Option<Vec<f32>>,
     /// Steps not yet taken; the next step runs at spaced index `remaining - 1`.
@@ -114,17 +115,7 @@ impl Session {
             return Err(invalid_arg!("guidance must be finite"));
         }
         let sampler = build_sampler(&model, params)?;
-        let threads = if params.threads == 0 {
-            std::thread::available_parallelism().map_or(1, |n| n.get())
-        } else {
-            params.threads
-        };
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .thread_name(|i| format!("flame-worker-{i}"))
-            .build()
-            .map_err(|e| invalid_arg!("cannot start {threads} threads: {e}"))?;
-        let pool = Arc::new(pool);
+        let pool = Arc::new(WorkerPool::new(params.threads)?);
         let n = sampler.num_steps();
         let len = frames * model.motion_dim();
         Ok(Session {

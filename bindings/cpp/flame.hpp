@@ -281,9 +281,8 @@ public:
 
     // Runs after every step on the stepping thread; an empty function removes it. An exception
     // it throws is caught at the C boundary and rethrown by the step() that ran it (the step
-    // itself has completed by then). libflame 0.1 runs the callback with the session locked:
-    // other calls on this session from inside it throw WRONG_STATE (cancel() works); read the
-    // preview after step() returns instead.
+    // itself has completed by then). The callback may read() the preview and query progress();
+    // it must not step, reset or destroy the session.
     void on_progress(ProgressFn fn) {
         if (!fn) {
             detail::check(flame_session_set_progress_callback(handle_, nullptr, nullptr));

@@ -235,10 +235,7 @@ unsafe fn model_params(params: *const FlameModelParams) -> Result<FlameModelPara
 
 /// Finishes a load: encodes the guidance prompt once, with the requested threads.
 fn finish_load(model: Model, params: &FlameModelParams) -> Result<Box<FlameModel>, Fail> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(params.threads as usize)
-        .build()
-        .map_err(|e| invalid_arg!("cannot start threads: {e}"))?;
+    let pool = crate::pool::WorkerPool::new(params.threads as usize)?;
     pool.install(|| model.uncond().map(|_| ()))?;
     Ok(Box::new(FlameModel::new(Arc::new(model))))
 }
