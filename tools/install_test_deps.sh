@@ -63,9 +63,16 @@ pip_install() {
 # accesses; cmake and pkg-config build the two consumers of an installed libflame.
 apt_install gcc:gcc g++:g++ make:make valgrind:valgrind cmake:cmake pkg-config:pkg-config
 
-# --- Other test suites (C#/Mono, Python bindings): add their lines below -----------------------
-# Reserved for the engineers who own those bindings. Use the helpers above, e.g.
-#   apt_install mcs:mono-mcs mono:mono-runtime
-#   pip_install pytest:pytest numpy:numpy
+# --- Language bindings (tests/bindings/run_all.sh) ---------------------------------------------
+# C#: Mono's compiler and runtime. Python: numpy and pytest. The Unreal plugin's staging script
+# sets libflame.so's SONAME with patchelf; its C++ test uses g++ (above).
+apt_install mcs:mono-mcs mono:mono-runtime patchelf:patchelf
+pip_install numpy:numpy pytest:pytest
 
-# --- end of other test suites -------------------------------------------------------------------
+# --- BVH import by a real consumer (tools/bvh_roundtrip.sh) ---------------------------------------
+# Debian's Blender 3.4, run headless. Installed with its recommends, as measured (about 90 s).
+if ! command -v blender >/dev/null 2>&1; then
+    echo "install_test_deps: apt-get install blender"
+    [ -n "${APT_UPDATED:-}" ] || $SUDO apt-get update -qq >/dev/null
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq blender >/dev/null
+fi
