@@ -1,9 +1,11 @@
-//! Diffusion: noise schedules, respacing, and the DDPM/DDIM samplers. The sampler drives any
-//! denoiser through plain slices: it never knows which network produced a prediction.
+//! Diffusion: noise schedules, respacing, the DDPM/DDIM samplers, and the fixed-step ODE
+//! samplers of flow matching ([`flow`]). Samplers drive any denoiser through plain slices: they
+//! never know which network produced a prediction.
 //!
 //! Semantics follow OpenAI guided-diffusion (`gaussian_diffusion.py`, `respace.py`) as used by
 //! FLAME and MDM: f64 tables, f32 per-step arithmetic (see [`DiffusionSampler::step`]).
 
+pub mod flow;
 mod respace;
 mod sampler;
 mod schedule;
