@@ -13,7 +13,19 @@ DIR holds the text encoder's config.json and tokenizer.json.
 File layout: metadata {"format": "libflame", "flame.config": JSON, "flame.tokenizer":
 tokenizer.json text}; denoiser tensors under their official names (no prefix); text encoder tensors
 under `text.` + the Hugging Face BertModel/RobertaModel names.
-Other architectures (mdm, motionfm) are meant to be added as further subcommands.
+
+  python tools/convert.py mdm --ckpt model000475000.pt --args args.json --clip CLIP_DIR \
+      --mean Mean.npy --std Std.npy --out M.safetensors [--heads 4] [--guidance 2.5] [--dtype ..]
+  python tools/convert.py motionfm --ckpt model.pt [--args args.json] --clip CLIP_DIR \
+      --mean Mean.npy --std Std.npy --out M.safetensors [--steps 10] ...
+
+mdm / motionfm: GuyTevet/motion-diffusion-model `trans_enc` and dongzhuoyao/motionfm `MDM_Flow`
+(same network and names, REFERENCE 2.3 / 3). The checkpoint is a plain state_dict or a dict with
+'model'/'model_avg' (model_avg is used when present and args.json says use_ema); `clip_model.*` and
+the `pe` buffers are dropped. CLIP_DIR is a Hugging Face CLIP folder (config.json, tokenizer.json,
+model.safetensors of a CLIPModel or CLIPTextModelWithProjection); its text tower is stored under
+`text.` with the HF names (`text.text_model.*`, `text.text_projection.weight`). Mean/Std are the
+HumanML3D normalisation statistics (`motion.mean`, `motion.std`).
 """
 import argparse
 import json
@@ -361,6 +373,264 @@ def convert_flame(args):
     return 0
 
 
+# -- mdm / motionfm -----------------------------------------------------------------------------
+
+MDM_NET_ANCHOR = "input_process.poseEmbedding.weight"
+
+
+def load_mdm_state(path, use_ema):
+    """The denoiser's tensors from an MDM/MotionFM checkpoint, names relative to the net."""
+    if not os.path.isfile(path):
+        raise ConvertError(f"{path}: no such checkpoint file")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if isinstance(ckpt, dict) and "model_avg" in ckpt and use_ema:
+        state = ckpt["model_avg"]
+    elif isinstance(ckpt, dict) and "model" in ckpt and isinstance(ckpt["model"], dict):
+        if "model_avg" in ckpt:
+            warn(f"{path}: has 'model_avg' (EMA) but args say use_ema is off; using 'model'")
+        state = ckpt["model"]
+    elif isinstance(ckpt, dict) and isinstance(ckpt.get("state_dict"), dict):
+        state = ckpt["state_dict"]
+    elif isinstance(ckpt, dict):
+        state = ckpt
+    else:
+        raise ConvertError(f"{path}: not a state dict ({type(ckpt).__name__})")
+    anchors = [k for k in state if k.endswith(MDM_NET_ANCHOR)]
+    if not anchors:
+        raise ConvertError(f"{path}: no '{MDM_NET_ANCHOR}' tensor (not an MDM-family checkpoint); "
+                           f"first keys: {sorted(state)[:8]}")
+    prefix = min(anchors, key=len)[: -len(MDM_NET_ANCHOR)]
+    net = {}
+    for k, v in state.items():
+        if not k.startswith(prefix) or not torch.is_tensor(v):
+            continue
+        name = k[len(prefix):]
+        if name.startswith("clip_model.") or name.endswith("sequence_pos_encoder.pe"):
+            continue
+        net[name] = v
+    return net
+
+
+def infer_mdm(net, heads, mdm_args, max_len):
+    w_in = require(net, MDM_NET_ANCHOR)
+    latent, njoints = w_in.shape
+    layers = count_layers(net, "seqTransEncoder.layers.")
+    if layers == 0:
+        raise ConvertError("checkpoint: no 'seqTransEncoder.layers.*' tensors (arch must be "
+                           "trans_enc)")
+    ff = require(net, "seqTransEncoder.layers.0.linear1.weight").shape[0]
+    clip_dim = require(net, "embed_text.weight").shape[1]
+    for key, have in (("latent_dim", latent), ("layers", layers), ("ff_size", ff),
+                      ("njoints", njoints)):
+        if key in mdm_args and int(mdm_args[key]) != have:
+            raise ConvertError(f"args.json {key} = {mdm_args[key]} but the checkpoint has {have}")
+    if mdm_args.get("arch", "trans_enc") != "trans_enc":
+        raise ConvertError(f"args.json arch {mdm_args['arch']!r}: only trans_enc is supported")
+    if latent % heads or latent % 2:
+        raise ConvertError(f"latent_dim {latent} not even / divisible by heads {heads}")
+    return {"njoints": int(njoints), "latent_dim": int(latent), "layers": int(layers),
+            "heads": int(heads), "ff_size": int(ff),
+            "activation": str(mdm_args.get("activation", "gelu")), "clip_dim": int(clip_dim),
+            "max_len": int(max_len)}
+
+
+def mdm_shapes(d):
+    c, j, f = d["latent_dim"], d["njoints"], d["ff_size"]
+    shapes = {
+        "embed_timestep.time_embed.0.weight": (c, c), "embed_timestep.time_embed.0.bias": (c,),
+        "embed_timestep.time_embed.2.weight": (c, c), "embed_timestep.time_embed.2.bias": (c,),
+        "embed_text.weight": (c, d["clip_dim"]), "embed_text.bias": (c,),
+        "input_process.poseEmbedding.weight": (c, j), "input_process.poseEmbedding.bias": (c,),
+    }
+    for n in range(d["layers"]):
+        p = f"seqTransEncoder.layers.{n}."
+        shapes[p + "self_attn.in_proj_weight"] = (3 * c, c)
+        shapes[p + "self_attn.in_proj_bias"] = (3 * c,)
+        shapes[p + "self_attn.out_proj.weight"] = (c, c)
+        shapes[p + "self_attn.out_proj.bias"] = (c,)
+        shapes[p + "linear1.weight"] = (f, c)
+        shapes[p + "linear1.bias"] = (f,)
+        shapes[p + "linear2.weight"] = (c, f)
+        shapes[p + "linear2.bias"] = (c,)
+        for norm in ("norm1", "norm2"):
+            shapes[p + norm + ".weight"] = (c,)
+            shapes[p + norm + ".bias"] = (c,)
+    shapes["output_process.poseFinal.weight"] = (j, c)
+    shapes["output_process.poseFinal.bias"] = (j,)
+    return shapes
+
+
+def read_clip(clip_dir, max_length):
+    """(text_encoder config, {HF name: tensor}, tokenizer.json text) from a HF CLIP folder."""
+    path = os.path.join(clip_dir, "config.json")
+    if not os.path.exists(path):
+        raise ConvertError(f"{path} not found (need the CLIP model's Hugging Face config.json)")
+    with open(path) as f:
+        hf = json.load(f)
+    projection_dim = hf.get("projection_dim")
+    text = hf.get("text_config", hf)
+    projection_dim = text.get("projection_dim", projection_dim)
+    try:
+        cfg = {
+            "kind": "clip",
+            "vocab_size": int(text["vocab_size"]),
+            "width": int(text["hidden_size"]),
+            "layers": int(text["num_hidden_layers"]),
+            "heads": int(text["num_attention_heads"]),
+            "context_length": int(text.get("max_position_embeddings", 77)),
+            "projection_dim": int(projection_dim),
+            "layer_norm_eps": float(text.get("layer_norm_eps", 1e-5)),
+            "max_length": int(max_length),
+        }
+        intermediate = int(text["intermediate_size"])
+    except (KeyError, TypeError) as e:
+        raise ConvertError(f"{path}: missing key {e}") from None
+    if text.get("hidden_act", "quick_gelu") != "quick_gelu":
+        warn(f"{path}: hidden_act {text.get('hidden_act')!r} (OpenAI CLIP uses quick_gelu)")
+    if cfg["context_length"] != 77:
+        warn(f"{path}: context length {cfg['context_length']} (OpenAI CLIP: 77)")
+    if max_length > cfg["context_length"]:
+        raise ConvertError(f"--max-text-length {max_length} exceeds the CLIP context "
+                           f"{cfg['context_length']}")
+    weights = os.path.join(clip_dir, "model.safetensors")
+    if not os.path.exists(weights):
+        raise ConvertError(f"{weights} not found (need the CLIP weights as safetensors)")
+    from safetensors.torch import load_file
+    state = load_file(weights)
+    keep = {k: v for k, v in state.items()
+            if (k.startswith("text_model.") and not k.endswith("position_ids"))
+            or k == "text_projection.weight"}
+    w, e, i = cfg["width"], cfg["projection_dim"], intermediate
+    shapes = {
+        "text_model.embeddings.token_embedding.weight": (cfg["vocab_size"], w),
+        "text_model.embeddings.position_embedding.weight": (cfg["context_length"], w),
+        "text_model.final_layer_norm.weight": (w,), "text_model.final_layer_norm.bias": (w,),
+        "text_projection.weight": (e, w),
+    }
+    for n in range(cfg["layers"]):
+        p = f"text_model.encoder.layers.{n}."
+        for lin in ("q_proj", "k_proj", "v_proj", "out_proj"):
+            shapes[p + f"self_attn.{lin}.weight"] = (w, w)
+            shapes[p + f"self_attn.{lin}.bias"] = (w,)
+        shapes[p + "mlp.fc1.weight"] = (i, w)
+        shapes[p + "mlp.fc1.bias"] = (i,)
+        shapes[p + "mlp.fc2.weight"] = (w, i)
+        shapes[p + "mlp.fc2.bias"] = (w,)
+        for ln in ("layer_norm1", "layer_norm2"):
+            shapes[p + ln + ".weight"] = (w,)
+            shapes[p + ln + ".bias"] = (w,)
+    check_shapes(keep, shapes, f"CLIP text tower ({weights})")
+    tok_path = os.path.join(clip_dir, "tokenizer.json")
+    if not os.path.exists(tok_path):
+        raise ConvertError(f"{tok_path} not found (the libflame file embeds the tokenizer)")
+    with open(tok_path) as f:
+        tokenizer = f.read()
+    json.loads(tokenizer)
+    return cfg, {k: keep[k] for k in shapes}, tokenizer
+
+
+def read_stats(path, dim, what):
+    import numpy as np
+    if not os.path.exists(path):
+        raise ConvertError(f"{path}: no such {what} file")
+    a = np.load(path).astype(np.float64).reshape(-1)
+    if a.shape != (dim,):
+        raise ConvertError(f"{path}: {what} has {a.size} values, the denoiser has {dim} features")
+    if what == "std" and (a <= 0).any():
+        raise ConvertError(f"{path}: std has non-positive entries")
+    return torch.from_numpy(a).float()
+
+
+def convert_mdm(args):
+    t0 = time.perf_counter()
+    flow = args.arch == "motionfm"
+    mdm_args = {}
+    if args.args:
+        with open(args.args) as f:
+            mdm_args = json.load(f)
+    use_ema = bool(mdm_args.get("use_ema", False)) if args.use_ema is None else args.use_ema
+    net = load_mdm_state(args.ckpt, use_ema)
+    den_cfg = infer_mdm(net, args.heads, mdm_args, args.max_len)
+    shapes = mdm_shapes(den_cfg)
+    check_shapes(net, shapes, "checkpoint")
+    text_cfg, clip, tokenizer = read_clip(args.clip, args.max_text_length)
+    if text_cfg["projection_dim"] != den_cfg["clip_dim"]:
+        raise ConvertError(f"CLIP projection_dim {text_cfg['projection_dim']} != the denoiser's "
+                           f"embed_text input {den_cfg['clip_dim']}")
+    steps_t = int(mdm_args.get("diffusion_steps", args.diffusion_steps))
+    schedule = mdm_args.get("noise_schedule", "cosine")
+    guidance = float(args.guidance if args.guidance is not None
+                     else mdm_args.get("guidance_param", 2.5))
+    if flow:
+        sampler, steps = "euler", args.steps if args.steps is not None else 10
+    else:
+        sampler, steps = "ddpm", args.steps if args.steps is not None else steps_t
+    config = {
+        "format_version": FORMAT_VERSION,
+        "architecture": args.arch,
+        "denoiser": den_cfg,
+        "text_encoder": text_cfg,
+        "motion": {"format": "humanml263", "fps": 20.0},
+        "diffusion": {"num_timesteps": steps_t, "schedule": schedule,
+                      "parameterization": "velocity" if flow else "x0",
+                      "variance": "fixed_small", "clip_denoised": False, "uncond": "zeros"},
+        "defaults": {"sampler": sampler, "steps": int(steps), "guidance": guidance,
+                     "eta": 0.0, "frames": args.frames},
+    }
+    if args.frames > den_cfg["max_len"] - 1:
+        raise ConvertError(f"--frames {args.frames} exceeds max_len {den_cfg['max_len']} - 1")
+
+    dtype = DTYPES[args.dtype]
+    tensors = {k: cast(net[k], dtype, k) for k in shapes}
+    for k, v in clip.items():
+        tensors["text." + k] = cast(v, dtype, k)
+    # Normalisation statistics stay f32 whatever the weights' dtype.
+    tensors["motion.mean"] = read_stats(args.mean, den_cfg["njoints"], "mean").contiguous()
+    tensors["motion.std"] = read_stats(args.std, den_cfg["njoints"], "std").contiguous()
+
+    metadata = {"format": "libflame", "flame.config": json.dumps(config),
+                "flame.tokenizer": tokenizer}
+    from safetensors.torch import save_file
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_file(tensors, args.out, metadata=metadata)
+    n = sum(t.numel() for t in tensors.values())
+    print(f"wrote {args.out}: {args.arch}, {len(tensors)} tensors, {n / 1e6:.2f} M values "
+          f"({args.dtype}); latent={den_cfg['latent_dim']} layers={den_cfg['layers']} "
+          f"heads={den_cfg['heads']} ff={den_cfg['ff_size']} clip {text_cfg['layers']}x"
+          f"{text_cfg['width']}->{text_cfg['projection_dim']}; "
+          f"total {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def add_mdm_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text)
+    p.add_argument("--ckpt", required=True, help="official .pt (state_dict or model/model_avg)")
+    p.add_argument("--args", help="args.json saved next to the checkpoint"
+                   + (" (required for MDM)" if name == "mdm" else " (optional)"),
+                   required=(name == "mdm"))
+    p.add_argument("--clip", required=True,
+                   help="Hugging Face CLIP folder: config.json, tokenizer.json, model.safetensors")
+    p.add_argument("--mean", required=True, help="HumanML3D Mean.npy (263)")
+    p.add_argument("--std", required=True, help="HumanML3D Std.npy (263)")
+    p.add_argument("--out", required=True, help="output .safetensors")
+    p.add_argument("--heads", type=int, default=4, help="attention heads (not in shapes)")
+    p.add_argument("--max-len", type=int, default=5000, help="positional table rows")
+    p.add_argument("--max-text-length", type=int, default=22,
+                   help="CLIP tokens incl. start/end (MDM truncates to 22)")
+    p.add_argument("--diffusion-steps", type=int, default=1000,
+                   help="used when args.json has no diffusion_steps")
+    p.add_argument("--use-ema", dest="use_ema", action="store_true", default=None,
+                   help="force model_avg (default: args.json use_ema)")
+    p.add_argument("--no-ema", dest="use_ema", action="store_false")
+    p.add_argument("--guidance", type=float, default=None,
+                   help="default guidance (default: args.json guidance_param, else 2.5)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="default sampling steps (mdm: diffusion_steps; motionfm: 10)")
+    p.add_argument("--frames", type=int, default=196, help="default motion length")
+    p.add_argument("--dtype", choices=sorted(DTYPES), default="f32")
+    p.set_defaults(func=convert_mdm)
+
+
 def build_parser():
     ap = argparse.ArgumentParser(prog="convert.py", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="arch", required=True, metavar="ARCH")
@@ -379,6 +649,8 @@ def build_parser():
     p.add_argument("--frames", type=int, default=200, help="default motion length")
     p.add_argument("--dtype", choices=sorted(DTYPES), default="f32")
     p.set_defaults(func=convert_flame)
+    add_mdm_parser(sub, "mdm", "GuyTevet/motion-diffusion-model trans_enc checkpoint")
+    add_mdm_parser(sub, "motionfm", "dongzhuoyao/motionfm MDM_Flow checkpoint")
     return ap
 
 

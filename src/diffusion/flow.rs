@@ -7,6 +7,9 @@
 
 use crate::error::{invalid_arg, Error, Result};
 
+/// The caller's (guided) velocity field: `velocity(t, x, v)` writes v(x, t) into `v`.
+pub type Velocity<'a> = dyn FnMut(f32, &[f32], &mut [f32]) -> Result<()> + 'a;
+
 /// The integration rule of a flow sampler.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum OdeMethod {
@@ -76,7 +79,7 @@ impl FlowSampler {
         &self,
         k: usize,
         x: &[f32],
-        velocity: &mut dyn FnMut(f32, &[f32], &mut [f32]) -> Result<()>,
+        velocity: &mut Velocity,
         scratch: &mut FlowScratch,
         x_next: &mut [f32],
         x1: &mut [f32],

@@ -3,6 +3,7 @@
 //! sessions and threads.
 
 pub mod flame;
+pub mod mdm;
 
 use std::path::Path;
 use std::sync::OnceLock;

@@ -3,12 +3,15 @@
 //! - [`tokenizer`]: tokenizer.json (WordPiece, byte-level BPE) → ids + attention mask.
 //! - [`bert`]: the BERT/RoBERTa encoder (FLAME's RoBERTa, sentence-transformers' MiniLM) and
 //!   mean pooling.
+//! - [`clip`]: the CLIP text tower (MDM, Motion Flow Matching) with OpenAI's truncation.
 //!
-//! CLIP's text tower will be added later as its own file. The encoders only read weights and
+//! The encoders only read weights and
 //! run kernels; which encoder a model uses is the model file's configuration's business.
 
 pub mod bert;
+pub mod clip;
 pub mod tokenizer;
 
 pub use bert::{roberta_position_ids, EncoderKind, TextEncoder, TextOutput};
+pub use clip::{ClipConfig, ClipOutput, ClipTextEncoder};
 pub use tokenizer::{TextTokenizer, Tokens};

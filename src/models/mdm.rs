@@ -1,0 +1,458 @@
+//! MDM (Tevet et al., ICLR 2023) `trans_enc` and Motion Flow Matching's `MDM_Flow`, which is the
+//! same network predicting a velocity instead of x0 (REFERENCE.md sections 2.2 and 3).
+//!
+//! One conditioning token `emb = embed_text(clip) + embed_timestep(pe[t])` is prepended to the
+//! `poseEmbedding` of every frame, the interleaved sin/cos table `pe` is added at positions
+//! `0..=frames`, a post-LN `TransformerEncoder` (GELU, no final norm) runs over the sequence, the
+//! token is dropped and `poseFinal` maps the frames back to features. The unconditional input of
+//! classifier-free guidance is the all-zero CLIP vector (so its text token is `embed_text.bias`).
+//!
+//! Layout: libflame is frame-major, `[frames, njoints]` per batch row; the official tensors are
+//! `[B, njoints, 1, frames]`.
+
+use serde::Deserialize;
+
+use crate::checkpoint::{ModelFile, Tensor};
+use crate::error::{invalid_arg, Result};
+use crate::kernels;
+
+/// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
+const LAYER_NORM_EPS: f32 = 1e-5;
+
+/// Positions taken by the conditioning token in front of the frames.
+const COND_TOKENS: usize = 1;
+
+/// MDM's `trans_enc` sizes (REFERENCE 2.1; the official names from `args.json`).
+#[derive(Clone, Debug, Deserialize)]
+pub struct MdmConfig {
+    /// Feature channels per frame (263 for HumanML3D).
+    pub njoints: usize,
+    pub latent_dim: usize,
+    pub layers: usize,
+    pub heads: usize,
+    pub ff_size: usize,
+    /// `gelu` (exact erf, the official choice) or `relu`.
+    #[serde(default = "gelu")]
+    pub activation: String,
+    /// Width of the text vector fed to `embed_text` (CLIP's projection dim).
+    #[serde(default = "clip_dim")]
+    pub clip_dim: usize,
+    /// Rows of the positional table `pe` (`PositionalEncoding(max_len=5000)`).
+    #[serde(default = "max_len")]
+    pub max_len: usize,
+}
+
+fn gelu() -> String {
+    "gelu".into()
+}
+fn clip_dim() -> usize {
+    512
+}
+fn max_len() -> usize {
+    5000
+}
+
+/// How the `t` passed to [`MdmDenoiser::forward`] becomes a row of the positional table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TimeIndex {
+    /// MDM: `t` is the integer diffusion step, used as the row directly.
+    Diffusion,
+    /// Motion Flow Matching: `t ∈ [0, 1]`, row `trunc(f32(t · 1000))` (REFERENCE 3).
+    FlowMatching,
+}
+
+impl TimeIndex {
+    /// The `pe` row for `t`, or `None` when `t` does not name one (negative, NaN, fractional
+    /// diffusion step).
+    pub fn row(self, t: f32) -> Option<usize> {
+        let s = match self {
+            TimeIndex::Diffusion => t,
+            // `(t * 1000).long()` on a float32 tensor: one f32 multiply, then truncation.
+            TimeIndex::FlowMatching => (t * 1000.0f32).trunc(),
+        };
+        (s >= 0.0 && s.fract() == 0.0 && s.is_finite()).then_some(s as usize)
+    }
+}
+
+/// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
+struct Linear {
+    weight: Tensor,
+    bias: Tensor,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Linear {
+    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
+        Ok(Linear {
+            weight: file.tensor(&format!("{name}.weight"), &[n_out, n_in])?,
+            bias: file.tensor(&format!("{name}.bias"), &[n_out])?,
+            n_in,
+            n_out,
+        })
+    }
+
+    /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
+    fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
+        kernels::linear(
+            x,
+            self.weight.data(),
+            Some(self.bias.data()),
+            y,
+            rows,
+            self.n_in,
+            self.n_out,
+        );
+    }
+}
+
+/// `nn.MultiheadAttention` with packed `in_proj_weight` `[3E, E]` (rows q, k, v).
+struct Attention {
+    in_proj_weight: Tensor,
+    in_proj_bias: Tensor,
+    out_proj: Linear,
+}
+
+impl Attention {
+    fn load(file: &ModelFile, name: &str, e: usize) -> Result<Attention> {
+        Ok(Attention {
+            in_proj_weight: file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
+            in_proj_bias: file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
+            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e)?,
+        })
+    }
+}
+
+struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl LayerNorm {
+    fn load(file: &ModelFile, name: &str, e: usize) -> Result<LayerNorm> {
+        Ok(LayerNorm {
+            weight: file.tensor(&format!("{name}.weight"), &[e])?,
+            bias: file.tensor(&format!("{name}.bias"), &[e])?,
+        })
+    }
+}
+
+/// One `nn.TransformerEncoderLayer` (post-LN).
+struct EncoderLayer {
+    self_attn: Attention,
+    linear1: Linear,
+    linear2: Linear,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+}
+
+/// `TimestepEmbedder.time_embed`: Linear → SiLU → Linear on a row of `pe`.
+struct TimeEmbed {
+    fc0: Linear,
+    fc2: Linear,
+}
+
+/// Reusable buffers for one forward pass, so steps after the first do not allocate.
+#[derive(Default)]
+pub struct Workspace {
+    x: Vec<f32>,
+    qkv: Vec<f32>,
+    attn: Vec<f32>,
+    proj: Vec<f32>,
+    hidden: Vec<f32>,
+    frames: Vec<f32>,
+    text: Vec<f32>,
+}
+
+fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}
+
+/// MDM's `trans_enc` denoiser (and MotionFM's `MDM_Flow`), inference only.
+pub struct MdmDenoiser {
+    cfg: MdmConfig,
+    time_index: TimeIndex,
+    embed_timestep: TimeEmbed,
+    embed_text: Linear,
+    pose_embedding: Linear,
+    layers: Vec<EncoderLayer>,
+    pose_final: Linear,
+    /// `sequence_pos_encoder.pe` recomputed: `[max_len, latent_dim]`, interleaved sin/cos.
+    pe: Vec<f32>,
+}
+
+impl MdmDenoiser {
+    /// Reads the denoiser's tensors (official MDM names, no prefix) in module order, so the first
+    /// bad tensor is the one reported. The `pe` buffers are recomputed, not read. The time
+    /// convention starts as [`TimeIndex::Diffusion`]; see [`MdmDenoiser::with_time_index`].
+    pub fn load(file: &ModelFile, cfg: &MdmConfig) -> Result<MdmDenoiser> {
+        let c = cfg.latent_dim;
+        if c == 0 || c % 2 != 0 || cfg.heads == 0 || c % cfg.heads != 0 {
+            return Err(crate::error::bad_file!(
+                "mdm latent_dim {c} must be even and divisible by heads {}",
+                cfg.heads
+            ));
+        }
+        if cfg.activation != "gelu" && cfg.activation != "relu" {
+            return Err(crate::error::bad_file!(
+                "mdm activation `{}` is not supported (gelu or relu)",
+                cfg.activation
+            ));
+        }
+        if cfg.max_len < 2 {
+            return Err(crate::error::bad_file!(
+                "mdm max_len {} leaves no frame",
+                cfg.max_len
+            ));
+        }
+        let embed_timestep = TimeEmbed {
+            fc0: Linear::load(file, "embed_timestep.time_embed.0", c, c)?,
+            fc2: Linear::load(file, "embed_timestep.time_embed.2", c, c)?,
+        };
+        let embed_text = Linear::load(file, "embed_text", cfg.clip_dim, c)?;
+        let pose_embedding = Linear::load(file, "input_process.poseEmbedding", cfg.njoints, c)?;
+        let mut layers = Vec::with_capacity(cfg.layers);
+        for n in 0..cfg.layers {
+            let p = format!("seqTransEncoder.layers.{n}");
+            layers.push(EncoderLayer {
+                self_attn: Attention::load(file, &format!("{p}.self_attn"), c)?,
+                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.ff_size)?,
+                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.ff_size, c)?,
+                norm1: LayerNorm::load(file, &format!("{p}.norm1"), c)?,
+                norm2: LayerNorm::load(file, &format!("{p}.norm2"), c)?,
+            });
+        }
+        let pose_final = Linear::load(file, "output_process.poseFinal", c, cfg.njoints)?;
+        let mut pe = vec![0.0; cfg.max_len * c];
+        for (p, row) in pe.chunks_exact_mut(c).enumerate() {
+            kernels::sinusoid_interleaved(p as f32, row);
+        }
+        Ok(MdmDenoiser {
+            cfg: cfg.clone(),
+            time_index: TimeIndex::Diffusion,
+            embed_timestep,
+            embed_text,
+            pose_embedding,
+            layers,
+            pose_final,
+            pe,
+        })
+    }
+
+    /// Sets how `t` maps to a `pe` row: [`TimeIndex::FlowMatching`] for Motion Flow Matching.
+    pub fn with_time_index(mut self, time_index: TimeIndex) -> MdmDenoiser {
+        self.time_index = time_index;
+        self
+    }
+
+    pub fn time_index(&self) -> TimeIndex {
+        self.time_index
+    }
+
+    pub fn config(&self) -> &MdmConfig {
+        &self.cfg
+    }
+
+    /// Feature channels per frame (263 for HumanML3D); also the output width.
+    pub fn motion_dim(&self) -> usize {
+        self.cfg.njoints
+    }
+
+    /// Output channels per frame: the x0 (MDM) or velocity (MotionFM) prediction.
+    pub fn output_dim(&self) -> usize {
+        self.cfg.njoints
+    }
+
+    /// Width of the text vector each row is conditioned on (zeros = unconditional).
+    pub fn cond_dim(&self) -> usize {
+        self.cfg.clip_dim
+    }
+
+    /// The largest frame count the positional table covers (position 0 is the cond token).
+    pub fn max_frames(&self) -> usize {
+        self.cfg.max_len - COND_TOKENS
+    }
+
+    /// One forward pass over a batch: row `b` denoises `x[b]` (`[frames, njoints]`) under the
+    /// text vector `conds[b]` (`[clip_dim]`; all zeros for the unconditional pass) at time `t`
+    /// (see [`TimeIndex`]), writing `[frames, njoints]` into `out[b]`. Every frame is valid, so
+    /// no key-padding mask is applied.
+    pub fn forward(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&[f32]],
+        out: &mut [f32],
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let c = self.cfg.latent_dim;
+        let d = self.cfg.njoints;
+        let batch = conds.len();
+        if frames == 0 || frames > self.max_frames() {
+            return Err(invalid_arg!(
+                "frames {frames} outside 1..={}",
+                self.max_frames()
+            ));
+        }
+        if x.len() != batch * frames * d || out.len() != batch * frames * d {
+            return Err(invalid_arg!(
+                "forward buffers do not match batch {batch} × {frames} frames × {d}"
+            ));
+        }
+        if let Some(k) = conds.iter().position(|v| v.len() != self.cfg.clip_dim) {
+            return Err(invalid_arg!(
+                "condition {k} has {} values, the denoiser expects {}",
+                conds[k].len(),
+                self.cfg.clip_dim
+            ));
+        }
+        let row = self
+            .time_index
+            .row(t)
+            .filter(|&r| r < self.cfg.max_len)
+            .ok_or_else(|| invalid_arg!("t {t} has no positional row ({:?})", self.time_index))?;
+
+        // Time token: time_embed(pe[t]), shared by the batch.
+        let mut time_emb = vec![0.0; c];
+        let mut time_hidden = vec![0.0; c];
+        self.embed_timestep
+            .fc0
+            .forward(&self.pe[row * c..(row + 1) * c], 1, &mut time_hidden);
+        kernels::silu(&mut time_hidden);
+        self.embed_timestep
+            .fc2
+            .forward(&time_hidden, 1, &mut time_emb);
+
+        // Text tokens: embed_text(clip) for every row in one GEMM.
+        let text_in = sized(&mut ws.text, batch * self.cfg.clip_dim);
+        for (dst, cond) in text_in.chunks_exact_mut(self.cfg.clip_dim).zip(conds) {
+            dst.copy_from_slice(cond);
+        }
+        let mut text_emb = vec![0.0; batch * c];
+        self.embed_text.forward(&ws.text, batch, &mut text_emb);
+
+        // Frame tokens for the whole batch in one GEMM.
+        let motion = sized(&mut ws.frames, batch * frames * c);
+        self.pose_embedding.forward(x, batch * frames, motion);
+
+        let seq = frames + COND_TOKENS;
+        let h = sized(&mut ws.x, batch * seq * c);
+        for b in 0..batch {
+            let tokens = &mut h[b * seq * c..(b + 1) * seq * c];
+            // emb = time_emb + text_emb (MDM's "add" policy, time first as in the official sum).
+            for ((v, &te), &xe) in tokens[..c]
+                .iter_mut()
+                .zip(&time_emb)
+                .zip(&text_emb[b * c..(b + 1) * c])
+            {
+                *v = te + xe;
+            }
+            tokens[c..].copy_from_slice(&motion[b * frames * c..(b + 1) * frames * c]);
+            for (v, p) in tokens.iter_mut().zip(&self.pe[..seq * c]) {
+                *v += p;
+            }
+        }
+
+        for layer in &self.layers {
+            self.encoder_layer(layer, batch, seq, ws);
+        }
+
+        // Drop the cond token and project back to features.
+        let h = &ws.x;
+        let motion_out = sized(&mut ws.frames, batch * frames * c);
+        for b in 0..batch {
+            let src = &h[(b * seq + COND_TOKENS) * c..(b + 1) * seq * c];
+            motion_out[b * frames * c..(b + 1) * frames * c].copy_from_slice(src);
+        }
+        self.pose_final.forward(motion_out, batch * frames, out);
+        Ok(())
+    }
+
+    fn encoder_layer(&self, layer: &EncoderLayer, batch: usize, seq: usize, ws: &mut Workspace) {
+        let c = self.cfg.latent_dim;
+        let heads = self.cfg.heads;
+        let rows = batch * seq;
+
+        // Self-attention: x ← norm1(x + SelfAttn(x)).
+        let qkv = sized(&mut ws.qkv, rows * 3 * c);
+        let sa = &layer.self_attn;
+        kernels::linear(
+            &ws.x,
+            sa.in_proj_weight.data(),
+            Some(sa.in_proj_bias.data()),
+            qkv,
+            rows,
+            c,
+            3 * c,
+        );
+        let attn = sized(&mut ws.attn, rows * c);
+        for (b, out) in attn.chunks_exact_mut(seq * c).enumerate() {
+            let block = &qkv[b * seq * 3 * c..(b + 1) * seq * 3 * c];
+            kernels::multi_head_attention(
+                block,
+                3 * c,
+                &block[c..],
+                3 * c,
+                &block[2 * c..],
+                3 * c,
+                seq,
+                seq,
+                heads,
+                c / heads,
+                None,
+                false,
+                out,
+            );
+        }
+        let proj = sized(&mut ws.proj, rows * c);
+        sa.out_proj.forward(attn, rows, proj);
+        kernels::add_layer_norm(
+            &mut ws.x,
+            proj,
+            c,
+            layer.norm1.weight.data(),
+            layer.norm1.bias.data(),
+            LAYER_NORM_EPS,
+        );
+
+        // Feed-forward: x ← norm2(x + linear2(act(linear1(x)))).
+        let hidden = sized(&mut ws.hidden, rows * self.cfg.ff_size);
+        layer.linear1.forward(&ws.x, rows, hidden);
+        if self.cfg.activation == "gelu" {
+            kernels::gelu_erf(hidden);
+        } else {
+            kernels::relu(hidden);
+        }
+        let proj = sized(&mut ws.proj, rows * c);
+        layer.linear2.forward(hidden, rows, proj);
+        kernels::add_layer_norm(
+            &mut ws.x,
+            proj,
+            c,
+            layer.norm2.weight.data(),
+            layer.norm2.bias.data(),
+            LAYER_NORM_EPS,
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TimeIndex;
+
+    #[test]
+    fn time_rows() {
+        assert_eq!(TimeIndex::Diffusion.row(999.0), Some(999));
+        assert_eq!(TimeIndex::Diffusion.row(2.5), None);
+        assert_eq!(TimeIndex::Diffusion.row(-1.0), None);
+        assert_eq!(TimeIndex::FlowMatching.row(0.0), Some(0));
+        assert_eq!(TimeIndex::FlowMatching.row(0.5), Some(500));
+        // 0.01f32 · 5 rounds below 0.05 in f32 and the product truncates (REFERENCE 3).
+        assert_eq!(TimeIndex::FlowMatching.row(0.01f32 * 5.0), Some(49));
+        // The custom loops' grid i/N as an f32 division lands exactly.
+        assert_eq!(TimeIndex::FlowMatching.row(5.0f32 / 100.0), Some(50));
+        assert_eq!(TimeIndex::FlowMatching.row(f32::NAN), None);
+    }
+}

@@ -1,0 +1,493 @@
+//! The CLIP text tower (OpenAI CLIP as MDM uses it): token + position embeddings, pre-LN
+//! blocks with a causal mask and QuickGELU, the final LayerNorm, pooling at the first
+//! end-of-text token and the text projection (REFERENCE 6c, 2.4).
+//!
+//! Tensor names are Hugging Face's (`CLIPTextModelWithProjection`) under a caller-given prefix:
+//! `{prefix}text_model.embeddings.…`, `{prefix}text_model.encoder.layers.N.…`,
+//! `{prefix}text_model.final_layer_norm.…` and `{prefix}text_projection.weight` (`[E, W]`, the
+//! transpose of OpenAI's `text_projection`).
+//!
+//! Tokenization runs a tokenizer.json (the Hugging Face layout of CLIP's BPE) after
+//! [`clean_text`], a small subset of the official ftfy + HTML clean-up, and follows
+//! `clip.tokenize(…, context_length=c, truncate=True)` padded with 0 to the full context.
+
+use serde::Deserialize;
+
+use crate::checkpoint::{ModelFile, Tensor};
+use crate::error::{bad_file, invalid_arg, Result};
+use crate::kernels::{
+    add_inplace, embedding, layer_norm, linear, multi_head_attention, quick_gelu,
+};
+
+use super::tokenizer::TextTokenizer;
+
+/// The CLIP text tower's sizes (ViT-B/32: vocab 49408, width 512, 12 layers, 8 heads,
+/// projection 512; the MLP is always 4·width).
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+pub struct ClipConfig {
+    pub vocab_size: usize,
+    pub width: usize,
+    pub layers: usize,
+    pub heads: usize,
+    /// Positions in the table; every text is padded to this length (77).
+    #[serde(default = "clip_context")]
+    pub context_length: usize,
+    pub projection_dim: usize,
+    #[serde(default = "clip_ln_eps")]
+    pub layer_norm_eps: f32,
+}
+
+fn clip_context() -> usize {
+    77
+}
+
+fn clip_ln_eps() -> f32 {
+    1e-5
+}
+
+/// What [`ClipTextEncoder::encode`] computes for one text.
+#[derive(Clone, Debug)]
+pub struct ClipOutput {
+    /// The token ids run through the tower (start, text, end, 0-padding), `[n]`.
+    pub ids: Vec<u32>,
+    /// `ln_final` over every position (HF `last_hidden_state`), `[n, width]` row-major.
+    pub tokens: Vec<f32>,
+    /// The row of `tokens` at [`ClipOutput::pooled_index`] (HF `pooler_output`), `[width]`.
+    pub pooled: Vec<f32>,
+    /// `pooled · text_projection` (OpenAI `encode_text`, HF `text_embeds`), `[projection_dim]`.
+    pub projected: Vec<f32>,
+    /// First position of the largest id (the first `<|endoftext|>`).
+    pub pooled_index: usize,
+}
+
+/// A Linear layer in PyTorch layout (`weight [out, in]`), optionally without bias.
+struct Dense {
+    w: Tensor,
+    b: Option<Tensor>,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Dense {
+    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize, bias: bool) -> Result<Dense> {
+        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
+        let b = if bias {
+            Some(file.tensor(&format!("{name}.bias"), &[n_out])?)
+        } else {
+            None
+        };
+        Ok(Dense { w, b, n_in, n_out })
+    }
+
+    /// `x [rows, n_in]` → `[rows, n_out]`.
+    fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
+        let mut y = vec![0f32; rows * self.n_out];
+        linear(
+            x,
+            self.w.data(),
+            self.b.as_ref().map(|b| b.data()),
+            &mut y,
+            rows,
+            self.n_in,
+            self.n_out,
+        );
+        y
+    }
+}
+
+struct Norm {
+    gamma: Tensor,
+    beta: Tensor,
+}
+
+impl Norm {
+    fn load(file: &ModelFile, name: &str, dim: usize) -> Result<Norm> {
+        let gamma = file.tensor(&format!("{name}.weight"), &[dim])?;
+        let beta = file.tensor(&format!("{name}.bias"), &[dim])?;
+        Ok(Norm { gamma, beta })
+    }
+
+    /// A normalised copy of `x`.
+    fn apply(&self, x: &[f32], dim: usize, eps: f32) -> Vec<f32> {
+        let mut y = x.to_vec();
+        layer_norm(&mut y, dim, self.gamma.data(), self.beta.data(), eps);
+        y
+    }
+}
+
+/// One pre-LN residual block.
+struct Block {
+    ln1: Norm,
+    q: Dense,
+    k: Dense,
+    v: Dense,
+    out: Dense,
+    ln2: Norm,
+    fc1: Dense,
+    fc2: Dense,
+}
+
+impl Block {
+    fn load(file: &ModelFile, p: &str, w: usize) -> Result<Block> {
+        Ok(Block {
+            ln1: Norm::load(file, &format!("{p}layer_norm1"), w)?,
+            q: Dense::load(file, &format!("{p}self_attn.q_proj"), w, w, true)?,
+            k: Dense::load(file, &format!("{p}self_attn.k_proj"), w, w, true)?,
+            v: Dense::load(file, &format!("{p}self_attn.v_proj"), w, w, true)?,
+            out: Dense::load(file, &format!("{p}self_attn.out_proj"), w, w, true)?,
+            ln2: Norm::load(file, &format!("{p}layer_norm2"), w)?,
+            fc1: Dense::load(file, &format!("{p}mlp.fc1"), w, 4 * w, true)?,
+            fc2: Dense::load(file, &format!("{p}mlp.fc2"), 4 * w, w, true)?,
+        })
+    }
+
+    /// x ← x + out(causal_attn(LN1 x)); x ← x + fc2(QuickGELU(fc1(LN2 x))).
+    fn forward(&self, x: &mut [f32], n: usize, w: usize, heads: usize, eps: f32) {
+        let h = self.ln1.apply(x, w, eps);
+        let (q, k, v) = (
+            self.q.apply(&h, n),
+            self.k.apply(&h, n),
+            self.v.apply(&h, n),
+        );
+        let mut ctx = vec![0f32; n * w];
+        multi_head_attention(
+            &q,
+            w,
+            &k,
+            w,
+            &v,
+            w,
+            n,
+            n,
+            heads,
+            w / heads,
+            None,
+            true,
+            &mut ctx,
+        );
+        add_inplace(x, &self.out.apply(&ctx, n));
+        let h = self.ln2.apply(x, w, eps);
+        let mut m = self.fc1.apply(&h, n);
+        quick_gelu(&mut m);
+        add_inplace(x, &self.fc2.apply(&m, n));
+    }
+}
+
+/// A loaded CLIP text tower with its tokenizer. Immutable after load, so one instance can
+/// serve many threads.
+pub struct ClipTextEncoder {
+    cfg: ClipConfig,
+    tokenizer: TextTokenizer,
+    token_embedding: Tensor,
+    position_embedding: Tensor,
+    blocks: Vec<Block>,
+    final_norm: Norm,
+    projection: Dense,
+}
+
+impl std::fmt::Debug for ClipTextEncoder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ClipTextEncoder")
+            .field("cfg", &self.cfg)
+            .finish_non_exhaustive()
+    }
+}
+
+impl ClipTextEncoder {
+    /// Loads the tower whose tensors are `{prefix}text_model.…` and
+    /// `{prefix}text_projection.weight` (prefix `""` for a bare Hugging Face
+    /// CLIPTextModelWithProjection file). Tensors are requested embeddings → layers → final
+    /// norm → projection, so a bad file's error names the first bad tensor. The tokenizer must
+    /// put exactly two special tokens around a text; padding uses id 0 (OpenAI).
+    pub fn load(
+        file: &ModelFile,
+        prefix: &str,
+        cfg: &ClipConfig,
+        tokenizer_json: &str,
+    ) -> Result<ClipTextEncoder> {
+        check_config(cfg)?;
+        let (p, w) = (prefix, cfg.width);
+        let token_embedding = file.tensor(
+            &format!("{p}text_model.embeddings.token_embedding.weight"),
+            &[cfg.vocab_size, w],
+        )?;
+        let position_embedding = file.tensor(
+            &format!("{p}text_model.embeddings.position_embedding.weight"),
+            &[cfg.context_length, w],
+        )?;
+        let blocks = (0..cfg.layers)
+            .map(|i| Block::load(file, &format!("{p}text_model.encoder.layers.{i}."), w))
+            .collect::<Result<Vec<_>>>()?;
+        let final_norm = Norm::load(file, &format!("{p}text_model.final_layer_norm"), w)?;
+        let projection = Dense::load(
+            file,
+            &format!("{p}text_projection"),
+            w,
+            cfg.projection_dim,
+            false,
+        )?;
+        let tokenizer = TextTokenizer::from_json(tokenizer_json, cfg.vocab_size, 0)?;
+        if tokenizer.num_special_tokens() != 2 {
+            return Err(bad_file!(
+                "the CLIP tokenizer adds {} special tokens to a text, expected 2 \
+                 (<|startoftext|> … <|endoftext|>)",
+                tokenizer.num_special_tokens()
+            ));
+        }
+        Ok(ClipTextEncoder {
+            cfg: cfg.clone(),
+            tokenizer,
+            token_embedding,
+            position_embedding,
+            blocks,
+            final_norm,
+            projection,
+        })
+    }
+
+    pub fn config(&self) -> &ClipConfig {
+        &self.cfg
+    }
+
+    pub fn width(&self) -> usize {
+        self.cfg.width
+    }
+
+    pub fn projection_dim(&self) -> usize {
+        self.cfg.projection_dim
+    }
+
+    /// The full context every text is padded to (77).
+    pub fn context_length(&self) -> usize {
+        self.cfg.context_length
+    }
+
+    /// `clip.tokenize(text, context_length, truncate=True)` zero-padded to the full context:
+    /// start token, at most `context_length − 2` text tokens, end token (on overflow the end
+    /// token takes the place of the last kept one), then 0s. `context_length` must be in
+    /// `2..=` [`ClipTextEncoder::context_length`] (MDM: 22). Any text is accepted.
+    pub fn tokenize(&self, text: &str, context_length: usize) -> Result<Vec<u32>> {
+        if context_length < 2 || context_length > self.cfg.context_length {
+            return Err(invalid_arg!(
+                "context_length {context_length} is not between 2 and the encoder's {}",
+                self.cfg.context_length
+            ));
+        }
+        let mut ids = self
+            .tokenizer
+            .encode(&clean_text(text), context_length, false)?
+            .ids;
+        ids.resize(self.cfg.context_length, 0);
+        Ok(ids)
+    }
+
+    /// Tokenizes `text` with [`ClipTextEncoder::tokenize`] and runs the tower.
+    pub fn encode(&self, text: &str, context_length: usize) -> Result<ClipOutput> {
+        let ids = self.tokenize(text, context_length)?;
+        self.encode_ids(&ids)
+    }
+
+    /// Runs the tower on given ids (1 to `context_length` of them, each below `vocab_size`).
+    /// Pooling takes the first position of the largest id, as OpenAI's `argmax`.
+    pub fn encode_ids(&self, ids: &[u32]) -> Result<ClipOutput> {
+        let n = ids.len();
+        if n == 0 || n > self.cfg.context_length {
+            return Err(invalid_arg!(
+                "ids: {n} tokens, expected 1 to {}",
+                self.cfg.context_length
+            ));
+        }
+        if let Some((i, id)) = ids
+            .iter()
+            .enumerate()
+            .find(|(_, &id)| id as usize >= self.cfg.vocab_size)
+        {
+            return Err(invalid_arg!(
+                "ids: id {id} at index {i} is not below vocab_size {}",
+                self.cfg.vocab_size
+            ));
+        }
+        let w = self.cfg.width;
+        let eps = self.cfg.layer_norm_eps;
+        let mut x = vec![0f32; n * w];
+        embedding(self.token_embedding.data(), w, ids, &mut x);
+        add_inplace(&mut x, &self.position_embedding.data()[..n * w]);
+        for block in &self.blocks {
+            block.forward(&mut x, n, w, self.cfg.heads, eps);
+        }
+        let tokens = self.final_norm.apply(&x, w, eps);
+        // First occurrence of the maximum (Iterator::max_by_key would return the last).
+        let pooled_index = ids
+            .iter()
+            .enumerate()
+            .fold(0, |best, (i, &id)| if id > ids[best] { i } else { best });
+        let pooled = tokens[pooled_index * w..(pooled_index + 1) * w].to_vec();
+        let projected = self.projection.apply(&pooled, 1);
+        Ok(ClipOutput {
+            ids: ids.to_vec(),
+            tokens,
+            pooled,
+            projected,
+            pooled_index,
+        })
+    }
+}
+
+/// Checks what the tensor shapes cannot.
+fn check_config(cfg: &ClipConfig) -> Result<()> {
+    let positive = [
+        ("vocab_size", cfg.vocab_size),
+        ("width", cfg.width),
+        ("heads", cfg.heads),
+        ("projection_dim", cfg.projection_dim),
+    ];
+    if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
+        return Err(bad_file!("clip.{name} must be positive"));
+    }
+    if cfg.width % cfg.heads != 0 {
+        return Err(bad_file!(
+            "clip.width {} is not divisible by heads {}",
+            cfg.width,
+            cfg.heads
+        ));
+    }
+    if cfg.context_length < 2 {
+        return Err(bad_file!(
+            "clip.context_length {} leaves no room for the start and end tokens",
+            cfg.context_length
+        ));
+    }
+    if !(cfg.layer_norm_eps.is_finite() && cfg.layer_norm_eps > 0.0) {
+        return Err(bad_file!(
+            "clip.layer_norm_eps {} must be positive",
+            cfg.layer_norm_eps
+        ));
+    }
+    Ok(())
+}
+
+/// The part of the official clean-up (`ftfy.fix_text`, then `html.unescape` twice) that the
+/// tokenizer.json normaliser (NFC, whitespace collapse, lower-case) lacks, for the characters
+/// prompts plausibly contain: curly quotes → straight (ftfy `uncurl_quotes`), the Latin
+/// ligatures U+FB00–FB06 and Ĳ/ĳ (ftfy `fix_latin_ligatures`), full-width ASCII and the
+/// ideographic space (ftfy `fix_character_width`), then the entities `&amp; &lt; &gt; &quot;
+/// &apos; &nbsp;` and numeric `&#N;`/`&#xH;` decoded twice. Plain ASCII without `&` is returned
+/// unchanged. Other ftfy repairs (mojibake, control characters, …) are not done.
+pub fn clean_text(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '\u{02bc}' | '\u{2018}'..='\u{201b}' => out.push('\''),
+            '\u{201c}'..='\u{201f}' => out.push('"'),
+            '\u{fb00}' => out.push_str("ff"),
+            '\u{fb01}' => out.push_str("fi"),
+            '\u{fb02}' => out.push_str("fl"),
+            '\u{fb03}' => out.push_str("ffi"),
+            '\u{fb04}' => out.push_str("ffl"),
+            '\u{fb05}' => out.push_str("\u{17f}t"),
+            '\u{fb06}' => out.push_str("st"),
+            '\u{0132}' => out.push_str("IJ"),
+            '\u{0133}' => out.push_str("ij"),
+            '\u{3000}' => out.push(' '),
+            '\u{ff01}'..='\u{ff5e}' => {
+                out.push(char::from_u32(c as u32 - 0xfee0).unwrap_or(c));
+            }
+            _ => out.push(c),
+        }
+    }
+    if out.contains('&') {
+        out = unescape_html(&unescape_html(&out));
+    }
+    out
+}
+
+/// Decodes the few named and the numeric character references listed in [`clean_text`];
+/// anything else (unknown names, missing `;`, invalid code points) stays as written.
+fn unescape_html(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut rest = s;
+    while let Some(amp) = rest.find('&') {
+        out.push_str(&rest[..amp]);
+        let tail = &rest[amp..];
+        let decoded = tail[1..]
+            .char_indices()
+            .take(10)
+            .find(|&(_, c)| c == ';')
+            .and_then(|(semi, _)| {
+                let name = &tail[1..1 + semi];
+                decode_entity(name).map(|c| (c, semi + 2))
+            });
+        match decoded {
+            Some((c, len)) => {
+                out.push(c);
+                rest = &tail[len..];
+            }
+            None => {
+                out.push('&');
+                rest = &tail[1..];
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
+fn decode_entity(name: &str) -> Option<char> {
+    let numeric = |digits: &str, radix| {
+        u32::from_str_radix(digits, radix)
+            .ok()
+            .filter(|&v| v != 0)
+            .and_then(char::from_u32)
+    };
+    match name {
+        "amp" => Some('&'),
+        "lt" => Some('<'),
+        "gt" => Some('>'),
+        "quot" => Some('"'),
+        "apos" => Some('\''),
+        "nbsp" => Some('\u{a0}'),
+        _ => {
+            let num = name.strip_prefix('#')?;
+            match num.strip_prefix(['x', 'X']) {
+                Some(hex) if !hex.is_empty() && hex.chars().all(|c| c.is_ascii_hexdigit()) => {
+                    numeric(hex, 16)
+                }
+                None if !num.is_empty() && num.chars().all(|c| c.is_ascii_digit()) => {
+                    numeric(num, 10)
+                }
+                _ => None,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const _: () = {
+        const fn send_sync<T: Send + Sync>() {}
+        send_sync::<ClipTextEncoder>();
+    };
+
+    #[test]
+    fn clean_text_subset() {
+        assert_eq!(clean_text("a person walks."), "a person walks.");
+        assert_eq!(
+            clean_text("he said \u{201c}jump\u{201d} and didn\u{2019}t"),
+            "he said \"jump\" and didn't"
+        );
+        assert_eq!(clean_text("the \u{fb01}nal \u{fb02}ip"), "the final flip");
+        assert_eq!(clean_text("\u{ff21}\u{ff42}\u{3000}\u{ff01}"), "Ab !");
+        assert_eq!(clean_text("tom &amp; jerry &lt;3"), "tom & jerry <3");
+        assert_eq!(
+            clean_text("&amp;amp; &#65;&#x42; &bogus; & &"),
+            "& AB &bogus; & &"
+        );
+        assert_eq!(
+            clean_text("&#0; &#xZZ; &#; &#99999999;"),
+            "&#0; &#xZZ; &#; &#99999999;"
+        );
+        assert_eq!(clean_text("&&amp;&"), "&&&");
+    }
+}
