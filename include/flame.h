@@ -66,6 +66,12 @@ typedef enum FlameSampler {
   FLAME_SAMPLER_DEFAULT = 0,
   FLAME_SAMPLER_DDPM = 1,
   FLAME_SAMPLER_DDIM = 2,
+  // Flow matching (Motion Flow Matching models): Euler steps.
+  FLAME_SAMPLER_EULER = 3,
+  // Flow matching: Heun, two network evaluations per step.
+  FLAME_SAMPLER_HEUN = 4,
+  // Flow matching: midpoint rule, two network evaluations per step.
+  FLAME_SAMPLER_MIDPOINT = 5,
 } FlameSampler;
 
 // Which motion [`flame_session_read`] returns.

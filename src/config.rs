@@ -25,23 +25,72 @@ use serde::Deserialize;
 
 use crate::checkpoint::{ModelFile, CONFIG_KEY};
 use crate::error::{bad_file, Result};
+use crate::models::mdm::MdmConfig;
+use crate::text::ClipConfig;
 
 /// The highest `format_version` this build reads.
 pub const FORMAT_VERSION: u32 = 1;
 
 /// The architectures this build runs.
-pub const ARCHITECTURES: &[&str] = &["flame"];
+pub const ARCHITECTURES: &[&str] = &["flame", "mdm", "motionfm"];
 
 /// The whole configuration of a model file.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug)]
 pub struct Config {
     pub format_version: u32,
+    /// `flame`, `mdm` or `motionfm`.
     pub architecture: String,
-    pub denoiser: FlameConfig,
-    pub text_encoder: TextEncoderConfig,
+    pub denoiser: DenoiserConfig,
+    pub text_encoder: TextConfig,
     pub motion: MotionConfig,
     pub diffusion: DiffusionConfig,
     pub defaults: Defaults,
+}
+
+/// The denoiser's sizes, by architecture.
+#[derive(Clone, Debug)]
+pub enum DenoiserConfig {
+    Flame(FlameConfig),
+    /// MDM's `trans_enc`, also Motion Flow Matching's network.
+    Mdm(MdmConfig),
+}
+
+/// The text encoder's configuration, by kind.
+#[derive(Clone, Debug)]
+pub enum TextConfig {
+    /// `bert` or `roberta`.
+    Bert(TextEncoderConfig),
+    Clip(ClipTextConfig),
+}
+
+/// A CLIP text tower and the context length prompts are truncated to (MDM: 22).
+#[derive(Clone, Debug, Deserialize)]
+pub struct ClipTextConfig {
+    #[serde(flatten)]
+    pub clip: ClipConfig,
+    pub max_length: usize,
+}
+
+impl TextConfig {
+    /// `bert`, `roberta` or `clip`.
+    pub fn kind(&self) -> &str {
+        match self {
+            TextConfig::Bert(t) => &t.kind,
+            TextConfig::Clip(_) => "clip",
+        }
+    }
+}
+
+/// The raw shape of the JSON, before the per-architecture parts are read.
+#[derive(Deserialize)]
+struct RawConfig {
+    format_version: u32,
+    architecture: String,
+    denoiser: serde_json::Value,
+    text_encoder: serde_json::Value,
+    motion: MotionConfig,
+    diffusion: DiffusionConfig,
+    defaults: Defaults,
 }
 
 /// FLAME's `Text2MotionTransformer` sizes (REFERENCE 1.1).
@@ -162,61 +211,103 @@ impl Config {
                 ARCHITECTURES.join(", ")
             ));
         }
-        let cfg: Config = serde_json::from_value(v)
-            .map_err(|e| bad_file!("`{CONFIG_KEY}` does not match the {arch} schema: {e}"))?;
+        let schema = |e: serde_json::Error| {
+            bad_file!("`{CONFIG_KEY}` does not match the {arch} schema: {e}")
+        };
+        let raw: RawConfig = serde_json::from_value(v).map_err(schema)?;
+        let denoiser = match arch.as_str() {
+            "flame" => DenoiserConfig::Flame(serde_json::from_value(raw.denoiser).map_err(schema)?),
+            _ => DenoiserConfig::Mdm(serde_json::from_value(raw.denoiser).map_err(schema)?),
+        };
+        let text_encoder = match raw.text_encoder.get("kind").and_then(|k| k.as_str()) {
+            Some("clip") => {
+                TextConfig::Clip(serde_json::from_value(raw.text_encoder).map_err(schema)?)
+            }
+            _ => TextConfig::Bert(serde_json::from_value(raw.text_encoder).map_err(schema)?),
+        };
+        let cfg = Config {
+            format_version: raw.format_version,
+            architecture: raw.architecture,
+            denoiser,
+            text_encoder,
+            motion: raw.motion,
+            diffusion: raw.diffusion,
+            defaults: raw.defaults,
+        };
         cfg.check()?;
         Ok(cfg)
     }
 
     /// Checks the values that shapes alone would not catch.
     fn check(&self) -> Result<()> {
-        let d = &self.denoiser;
-        let t = &self.text_encoder;
-        let positive = [
-            ("denoiser.motion_dim", d.motion_dim),
-            ("denoiser.model_channels", d.model_channels),
-            ("denoiser.num_layers", d.num_layers),
-            ("denoiser.num_heads", d.num_heads),
-            ("denoiser.dim_feedforward", d.dim_feedforward),
-            ("denoiser.max_motion_length", d.max_motion_length),
-            ("text_encoder.hidden_size", t.hidden_size),
-            ("text_encoder.num_heads", t.num_heads),
-            ("text_encoder.max_length", t.max_length),
-            ("diffusion.num_timesteps", self.diffusion.num_timesteps),
-        ];
-        for (name, value) in positive {
+        let positive = |name: &str, value: usize| -> Result<()> {
             if value == 0 {
                 return Err(bad_file!("config `{name}` must be positive"));
             }
+            Ok(())
+        };
+        let divisible = |name: &str, width: usize, heads: usize| -> Result<()> {
+            if width % heads != 0 || width % 2 != 0 {
+                return Err(bad_file!(
+                    "config {name} {width} is not even or not divisible by its {heads} heads"
+                ));
+            }
+            Ok(())
+        };
+        match &self.denoiser {
+            DenoiserConfig::Flame(d) => {
+                for (name, value) in [
+                    ("denoiser.motion_dim", d.motion_dim),
+                    ("denoiser.model_channels", d.model_channels),
+                    ("denoiser.num_layers", d.num_layers),
+                    ("denoiser.num_heads", d.num_heads),
+                    ("denoiser.dim_feedforward", d.dim_feedforward),
+                    ("denoiser.max_motion_length", d.max_motion_length),
+                ] {
+                    positive(name, value)?;
+                }
+                divisible("denoiser.model_channels", d.model_channels, d.num_heads)?;
+                if d.activation != "relu" && d.activation != "gelu" {
+                    return Err(bad_file!("unknown denoiser.activation `{}`", d.activation));
+                }
+            }
+            DenoiserConfig::Mdm(d) => {
+                for (name, value) in [
+                    ("denoiser.njoints", d.njoints),
+                    ("denoiser.latent_dim", d.latent_dim),
+                    ("denoiser.layers", d.layers),
+                    ("denoiser.heads", d.heads),
+                    ("denoiser.ff_size", d.ff_size),
+                    ("denoiser.clip_dim", d.clip_dim),
+                    ("denoiser.max_len", d.max_len),
+                ] {
+                    positive(name, value)?;
+                }
+                divisible("denoiser.latent_dim", d.latent_dim, d.heads)?;
+            }
         }
-        if d.model_channels % d.num_heads != 0 {
-            return Err(bad_file!(
-                "config denoiser.model_channels {} is not divisible by num_heads {}",
-                d.model_channels,
-                d.num_heads
-            ));
+        match &self.text_encoder {
+            TextConfig::Bert(t) => {
+                positive("text_encoder.hidden_size", t.hidden_size)?;
+                positive("text_encoder.num_heads", t.num_heads)?;
+                positive("text_encoder.max_length", t.max_length)?;
+                if t.hidden_size % t.num_heads != 0 {
+                    return Err(bad_file!(
+                        "config text_encoder.hidden_size {} is not divisible by num_heads {}",
+                        t.hidden_size,
+                        t.num_heads
+                    ));
+                }
+                if !matches!(t.kind.as_str(), "bert" | "roberta") {
+                    return Err(bad_file!(
+                        "unknown text_encoder.kind `{}` (supported: bert, roberta, clip)",
+                        t.kind
+                    ));
+                }
+            }
+            TextConfig::Clip(c) => positive("text_encoder.max_length", c.max_length)?,
         }
-        if d.model_channels % 2 != 0 {
-            return Err(bad_file!(
-                "config denoiser.model_channels must be even (sinusoidal embedding)"
-            ));
-        }
-        if t.hidden_size % t.num_heads != 0 {
-            return Err(bad_file!(
-                "config text_encoder.hidden_size {} is not divisible by num_heads {}",
-                t.hidden_size,
-                t.num_heads
-            ));
-        }
-        if !matches!(t.kind.as_str(), "bert" | "roberta") {
-            return Err(bad_file!(
-                "unknown text_encoder.kind `{}` (supported: bert, roberta)",
-                t.kind
-            ));
-        }
-        if d.activation != "relu" && d.activation != "gelu" {
-            return Err(bad_file!("unknown denoiser.activation `{}`", d.activation));
-        }
+        positive("diffusion.num_timesteps", self.diffusion.num_timesteps)?;
         if self.motion.fps.is_nan() || self.motion.fps <= 0.0 {
             return Err(bad_file!("config motion.fps must be positive"));
         }
@@ -249,8 +340,11 @@ mod tests {
     #[test]
     fn parses_the_documented_schema() {
         let c = Config::from_json(EXAMPLE).unwrap();
-        assert_eq!(c.denoiser.model_channels, 64);
-        assert_eq!(c.text_encoder.kind, "roberta");
+        let DenoiserConfig::Flame(d) = &c.denoiser else {
+            panic!("a FLAME config")
+        };
+        assert_eq!(d.model_channels, 64);
+        assert_eq!(c.text_encoder.kind(), "roberta");
         assert_eq!(c.defaults.guidance, 8.0);
     }
 
@@ -263,7 +357,7 @@ mod tests {
             .to_string();
         assert_eq!(
             e,
-            "bad model file: unknown architecture `unet` (supported: flame)"
+            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm)"
         );
         let e =
             Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
@@ -274,6 +368,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("not divisible"), "{e}");
+        // ("not even or not divisible" for the denoiser, "not divisible" for the text encoder)
         let e = Config::from_json(&EXAMPLE.replace("\"max_motion_length\": 471,", ""))
             .unwrap_err()
             .to_string();

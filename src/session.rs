@@ -5,6 +5,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
+use crate::diffusion::flow::{FlowSampler, FlowScratch, OdeMethod};
 use crate::diffusion::{self, DiffusionSampler, SamplerKind};
 use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Condition, Model, Workspace};
@@ -18,6 +19,12 @@ pub enum Sampler {
     Ddpm,
     /// DDIM with the session's `eta`.
     Ddim,
+    /// Flow matching: Euler steps (the Motion Flow Matching paper's sampler).
+    Euler,
+    /// Flow matching: Heun (second order, two evaluations per step).
+    Heun,
+    /// Flow matching: the midpoint rule (second order, two evaluations per step).
+    Midpoint,
 }
 
 impl std::str::FromStr for Sampler {
@@ -26,8 +33,11 @@ impl std::str::FromStr for Sampler {
         match s {
             "ddpm" => Ok(Sampler::Ddpm),
             "ddim" => Ok(Sampler::Ddim),
+            "euler" => Ok(Sampler::Euler),
+            "heun" => Ok(Sampler::Heun),
+            "midpoint" => Ok(Sampler::Midpoint),
             _ => Err(invalid_arg!(
-                "unknown sampler `{s}` (expected ddpm or ddim)"
+                "unknown sampler `{s}` (expected ddpm, ddim, euler, heun or midpoint)"
             )),
         }
     }
@@ -54,7 +64,7 @@ pub struct Session {
     frames: usize,
     guidance: f32,
     seed: u64,
-    sampler: DiffusionSampler,
+    rule: StepRule,
     cond: Option<Condition>,
     pool: Arc<WorkerPool>,
     noise: Box<dyn NoiseSource>,
@@ -68,6 +78,21 @@ pub struct Session {
     bufs: StepBuffers,
     cancel: Arc<AtomicBool>,
     edit: Edit,
+}
+
+/// How a step moves the sample: a reverse diffusion step, or an ODE step of flow matching.
+enum StepRule {
+    Diffusion(Box<DiffusionSampler>),
+    Flow(FlowSampler),
+}
+
+impl StepRule {
+    fn num_steps(&self) -> usize {
+        match self {
+            StepRule::Diffusion(d) => d.num_steps(),
+            StepRule::Flow(f) => f.num_steps(),
+        }
+    }
 }
 
 /// A reference motion and which of its values to keep (FLAME's editing, REFERENCE 1.12).
@@ -88,14 +113,64 @@ struct Edit {
 /// Per-step scratch, sized once per session.
 #[derive(Default)]
 struct StepBuffers {
-    batch_x: Vec<f32>,
-    out: Vec<f32>,
+    fwd: ForwardBuffers,
     pred: Vec<f32>,
-    pred_uncond: Vec<f32>,
     var: Vec<f32>,
     noise: Vec<f32>,
     x_prev: Vec<f32>,
+    flow: FlowScratch,
+}
+
+/// Buffers of one guided network evaluation.
+#[derive(Default)]
+struct ForwardBuffers {
+    batch_x: Vec<f32>,
+    out: Vec<f32>,
+    pred_uncond: Vec<f32>,
+    unused: Vec<f32>,
     ws: Workspace,
+}
+
+/// What a guided network evaluation needs besides its buffers.
+struct Predictor<'a> {
+    model: &'a Model,
+    frames: usize,
+    cond: &'a Condition,
+    /// The unconditional input, when guidance is on (scale ≠ 1).
+    uncond: Option<&'a Condition>,
+    guidance: f32,
+}
+
+impl Predictor<'_> {
+    /// Runs the network on `x` at time `t` — conditional and unconditional rows as one batch of
+    /// two when guided — and writes the guided prediction into `pred` and, for models with
+    /// learned variance, the conditional row's variance values into `var`.
+    fn predict(
+        &self,
+        b: &mut ForwardBuffers,
+        x: &[f32],
+        t: f32,
+        pred: &mut Vec<f32>,
+        var: &mut Vec<f32>,
+    ) -> Result<()> {
+        let (d, od) = (self.model.motion_dim(), self.model.output_dim());
+        let batch = 1 + self.uncond.is_some() as usize;
+        b.batch_x.clear();
+        for _ in 0..batch {
+            b.batch_x.extend_from_slice(x);
+        }
+        b.out.resize(batch * self.frames * od, 0.0);
+        let conds: Vec<&Condition> = std::iter::once(self.cond).chain(self.uncond).collect();
+        self.model
+            .forward(&b.batch_x, self.frames, t, &conds, &mut b.out, &mut b.ws)?;
+        let rows = self.frames * od;
+        split_channels(&b.out[..rows], d, od, pred, var);
+        if self.uncond.is_some() {
+            split_channels(&b.out[rows..], d, od, &mut b.pred_uncond, &mut b.unused);
+            diffusion::guide(pred, &b.pred_uncond, self.guidance);
+        }
+        Ok(())
+    }
 }
 
 impl Session {
@@ -114,16 +189,16 @@ impl Session {
         if !guidance.is_finite() {
             return Err(invalid_arg!("guidance must be finite"));
         }
-        let sampler = build_sampler(&model, params)?;
+        let rule = build_rule(&model, params)?;
         let pool = Arc::new(WorkerPool::new(params.threads)?);
-        let n = sampler.num_steps();
+        let n = rule.num_steps();
         let len = frames * model.motion_dim();
         Ok(Session {
             model,
             frames,
             guidance,
             seed: params.seed,
-            sampler,
+            rule,
             cond: None,
             pool,
             noise: Box::new(GaussianRng::new(params.seed)),
@@ -149,7 +224,7 @@ impl Session {
 
     /// Total sampler steps of this generation.
     pub fn num_steps(&self) -> usize {
-        self.sampler.num_steps()
+        self.rule.num_steps()
     }
 
     pub fn steps_left(&self) -> usize {
@@ -160,6 +235,14 @@ impl Session {
     pub fn set_prompt(&mut self, prompt: &str) -> Result<()> {
         let model = Arc::clone(&self.model);
         let cond = self.pool.install(|| model.encode_prompt(prompt))?;
+        self.cond = Some(cond);
+        Ok(())
+    }
+
+    /// Sets a precomputed condition (for example a text vector computed elsewhere) instead of
+    /// a prompt. It must be made for this model's architecture.
+    pub fn set_condition(&mut self, cond: Condition) -> Result<()> {
+        self.model.check_condition(&cond)?;
         self.cond = Some(cond);
         Ok(())
     }
@@ -194,7 +277,7 @@ impl Session {
 
     /// Back to before the first step: same prompt, same settings, the seeded generator restarted.
     pub fn reset(&mut self) {
-        self.remaining = self.sampler.num_steps();
+        self.remaining = self.rule.num_steps();
         self.started = false;
         self.stepped = false;
         self.noise = Box::new(GaussianRng::new(self.seed));
@@ -286,13 +369,18 @@ impl Session {
         if !keep.iter().any(|&k| k) {
             return Ok(false);
         }
+        let StepRule::Diffusion(sampler) = &self.rule else {
+            return Err(invalid_arg!(
+                "editing is implemented for diffusion models only"
+            ));
+        };
         if *noise_step != Some(t) {
             noise.resize(reference.len(), 0.0);
             self.noise.fill(noise);
             *noise_step = Some(t);
         }
         noised.resize(reference.len(), 0.0);
-        self.sampler.try_q_sample(t, reference, noise, noised)?;
+        sampler.try_q_sample(t, reference, noise, noised)?;
         x_in.clear();
         x_in.extend(
             self.x
@@ -331,9 +419,7 @@ impl Session {
 
     fn step_inner(&mut self) -> Result<usize> {
         let model = Arc::clone(&self.model);
-        let d = model.motion_dim();
-        let od = model.output_dim();
-        let len = self.frames * d;
+        let len = self.frames * model.motion_dim();
         if !self.started {
             match &self.initial_noise {
                 Some(x) => self.x.copy_from_slice(x),
@@ -345,76 +431,101 @@ impl Session {
         let edited = self.impose_reference(t)?;
         let x_t: &[f32] = if edited { &self.edit.x_in } else { &self.x };
         let guided = self.guidance != 1.0;
-        let uncond = if guided { Some(model.uncond()?) } else { None };
-        let cond = self.cond.as_ref().expect("checked in step");
-        let batch = if guided { 2 } else { 1 };
-        let b = &mut self.bufs;
-
-        b.batch_x.clear();
-        for _ in 0..batch {
-            b.batch_x.extend_from_slice(x_t);
-        }
-        b.out.resize(batch * self.frames * od, 0.0);
-        let conds: Vec<&Condition> = std::iter::once(cond).chain(uncond).collect();
-        model.forward(
-            &b.batch_x,
-            self.frames,
-            self.sampler.model_timestep(t),
-            &conds,
-            &mut b.out,
-            &mut b.ws,
-        )?;
-        if self.cancel.swap(false, Ordering::SeqCst) {
-            return Err(Error::Cancelled);
-        }
-
-        // Split the per-frame output into the prediction and (if present) the variance value.
-        split_channels(&b.out[..self.frames * od], d, od, &mut b.pred, &mut b.var);
-        if guided {
-            let mut unused = Vec::new();
-            split_channels(
-                &b.out[self.frames * od..],
-                d,
-                od,
-                &mut b.pred_uncond,
-                &mut unused,
-            );
-            diffusion::guide(&mut b.pred, &b.pred_uncond, self.guidance);
-        }
-        let noise = if self.sampler.needs_noise(t) {
-            b.noise.resize(len, 0.0);
-            self.noise.fill(&mut b.noise);
-            Some(&b.noise[..])
-        } else {
-            None
+        let p = Predictor {
+            model: &model,
+            frames: self.frames,
+            cond: self.cond.as_ref().expect("checked in step"),
+            uncond: if guided { Some(model.uncond()?) } else { None },
+            guidance: self.guidance,
         };
-        b.x_prev.resize(len, 0.0);
-        let var = (od > d).then_some(&b.var[..]);
-        self.sampler
-            .step(t, x_t, &b.pred, var, noise, &mut b.x_prev, &mut self.x0)?;
-        std::mem::swap(&mut self.x, &mut b.x_prev);
+        let StepBuffers {
+            fwd,
+            pred,
+            var,
+            noise,
+            x_prev,
+            flow,
+        } = &mut self.bufs;
+        x_prev.resize(len, 0.0);
+        match &self.rule {
+            StepRule::Diffusion(sampler) => {
+                p.predict(fwd, x_t, sampler.model_timestep(t), pred, var)?;
+                if self.cancel.swap(false, Ordering::SeqCst) {
+                    return Err(Error::Cancelled);
+                }
+                let z = if sampler.needs_noise(t) {
+                    noise.resize(len, 0.0);
+                    self.noise.fill(noise);
+                    Some(&noise[..])
+                } else {
+                    None
+                };
+                let v = (model.output_dim() > model.motion_dim()).then_some(&var[..]);
+                sampler.step(t, x_t, pred, v, z, x_prev, &mut self.x0)?;
+            }
+            StepRule::Flow(sampler) => {
+                // Flow time runs forwards: the first step is k = 0 at t = 0 (noise).
+                let k = sampler.num_steps() - self.remaining;
+                let mut velocity = |tk: f32, x: &[f32], v: &mut [f32]| {
+                    p.predict(fwd, x, tk, pred, var)?;
+                    v.copy_from_slice(pred);
+                    Ok(())
+                };
+                sampler.step(k, x_t, &mut velocity, flow, x_prev, &mut self.x0)?;
+                if self.cancel.swap(false, Ordering::SeqCst) {
+                    return Err(Error::Cancelled);
+                }
+            }
+        }
+        std::mem::swap(&mut self.x, x_prev);
         self.remaining -= 1;
         self.stepped = true;
         Ok(self.remaining)
     }
 }
 
-/// Builds the respaced sampler the parameters ask for.
-fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampler> {
+/// Builds the step rule the parameters ask for: a respaced diffusion sampler, or a flow
+/// sampler for velocity-predicting models.
+fn build_rule(model: &Model, params: &SessionParams) -> Result<StepRule> {
     let cfg = model.config();
     let dc = &cfg.diffusion;
     let steps = params.steps.unwrap_or(cfg.defaults.steps);
+    let sampler = params
+        .sampler
+        .map_or_else(|| cfg.defaults.sampler.parse(), Ok)?;
+    let flow_model = matches!(dc.parameterization.as_str(), "velocity" | "flow");
+    let method = match sampler {
+        Sampler::Euler => Some(OdeMethod::Euler),
+        Sampler::Heun => Some(OdeMethod::Heun),
+        Sampler::Midpoint => Some(OdeMethod::Midpoint),
+        Sampler::Ddpm | Sampler::Ddim => None,
+    };
+    match (flow_model, method) {
+        (true, Some(m)) => {
+            if steps == 0 || steps > 10_000 {
+                return Err(invalid_arg!("steps {steps} outside 1..=10000"));
+            }
+            return Ok(StepRule::Flow(FlowSampler::new(m, steps)?));
+        }
+        (true, None) => {
+            return Err(invalid_arg!(
+                "sampler {sampler:?} needs a diffusion model; this flow-matching model takes euler, heun or midpoint"
+            ))
+        }
+        (false, Some(_)) => {
+            return Err(invalid_arg!(
+                "sampler {sampler:?} needs a flow-matching model; this diffusion model takes ddpm or ddim"
+            ))
+        }
+        (false, None) => {}
+    }
     if steps == 0 || steps > dc.num_timesteps {
         return Err(invalid_arg!(
             "steps {steps} outside 1..={}",
             dc.num_timesteps
         ));
     }
-    let kind = match params
-        .sampler
-        .map_or_else(|| cfg.defaults.sampler.parse(), Ok)?
-    {
-        Sampler::Ddpm => SamplerKind::Ddpm,
+    let kind = match sampler {
         Sampler::Ddim => {
             let eta = params.eta.unwrap_or(cfg.defaults.eta);
             if !(eta.is_finite() && eta >= 0.0) {
@@ -422,6 +533,7 @@ fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampl
             }
             SamplerKind::Ddim { eta }
         }
+        _ => SamplerKind::Ddpm,
     };
     let bad = |what: &str, v: &str| {
         crate::error::bad_file!("config diffusion.{what} `{v}` is not supported")
@@ -441,7 +553,9 @@ fn build_sampler(model: &Model, params: &SessionParams) -> Result<DiffusionSampl
     let betas = diffusion::betas(schedule, dc.num_timesteps);
     let kept = diffusion::space_timesteps(dc.num_timesteps, &[steps])?;
     let clip = params.clip_denoised.unwrap_or(dc.clip_denoised);
-    DiffusionSampler::new(&betas, &kept, kind, param, variance, clip)
+    Ok(StepRule::Diffusion(Box::new(DiffusionSampler::new(
+        &betas, &kept, kind, param, variance, clip,
+    )?)))
 }
 
 /// Splits rows of `od` channels into the first `d` (prediction) and the rest (variance value).

@@ -72,10 +72,10 @@ fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f32) {
 #[test]
 fn text_encoder_matches_transformers() {
     let (m, e) = (model(), Expected::load());
-    let cond = m.text_encoder().encode(&e.prompt()).unwrap();
+    let cond = m.text_encoder().unwrap().encode(&e.prompt()).unwrap();
     assert_close("cond hidden", &cond.hidden, &e.get("text_cond_hidden"), TOL);
     assert_close("cond pooled", &cond.pooled, &e.get("text_cond_pooled"), TOL);
-    let unc = m.text_encoder().encode("").unwrap();
+    let unc = m.text_encoder().unwrap().encode("").unwrap();
     assert_close(
         "uncond hidden",
         &unc.hidden,
@@ -363,7 +363,7 @@ fn bad_model_files_get_clear_errors() {
     ));
     assert_eq!(
         e,
-        "bad model file: unknown architecture `unet` (supported: flame)"
+        "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm)"
     );
     let e = load_err(&rewrite(|m| drop(m.remove("flame.tokenizer")), |_| {}));
     assert!(e.contains("flame.tokenizer"), "{e}");

@@ -69,8 +69,10 @@ def random_net(seed):
 def tiny_clip(folder, tokenizer_json):
     from transformers import CLIPTextConfig, CLIPTextModelWithProjection
     with open(tokenizer_json) as f:
-        vocab = json.load(f)["model"]["vocab"]
-    cfg = CLIPTextConfig(vocab_size=len(vocab), hidden_size=32, intermediate_size=64,
+        tok = json.load(f)
+    # Every id the tokenizer can produce, added tokens included, must have an embedding row.
+    ids = list(tok["model"]["vocab"].values()) + [t["id"] for t in tok.get("added_tokens", [])]
+    cfg = CLIPTextConfig(vocab_size=max(ids) + 1, hidden_size=32, intermediate_size=128,
                          num_hidden_layers=2, num_attention_heads=2, max_position_embeddings=77,
                          projection_dim=NET["clip_dim"], hidden_act="quick_gelu")
     torch.manual_seed(SEEDS["clip"])

@@ -45,6 +45,12 @@ namespace Flame
         Default = 0,
         Ddpm = 1,
         Ddim = 2,
+        /// <summary>Flow matching (Motion Flow Matching models): Euler steps.</summary>
+        Euler = 3,
+        /// <summary>Flow matching: Heun, two network evaluations per step.</summary>
+        Heun = 4,
+        /// <summary>Flow matching: midpoint rule, two network evaluations per step.</summary>
+        Midpoint = 5,
     }
 
     /// <summary>Which motion FlameSession.Read returns.</summary>

@@ -6,13 +6,14 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
 
+use flame::config::{DenoiserConfig, TextConfig};
 use flame::models::Model;
 use flame::motion::{self, Convention, Format, Layout, Poses, QuatOrder};
 use flame::session::{Session, SessionParams};
 
 const USAGE: &str = "\
 usage:
-  flame generate --model M --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim]
+  flame generate --model M --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim|euler|heun|midpoint]
                  [--eta E] [--guidance G] [--seed K] [--noise FILE.npy] [--threads T]
                  --out FILE.npy|FILE.bvh|FILE.json
                  [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
@@ -311,17 +312,27 @@ fn info(args: &[String]) -> Result<(), String> {
     };
     let model = Model::load(path).map_err(|e| format!("cannot load {path}: {e}"))?;
     let c = model.config();
-    let d = &c.denoiser;
-    let t = &c.text_encoder;
     println!("architecture:   {}", c.architecture);
-    println!(
-        "denoiser:       {} layers, {} wide, {} heads, feed-forward {}, {} activation",
-        d.num_layers, d.model_channels, d.num_heads, d.dim_feedforward, d.activation
-    );
-    println!(
-        "text encoder:   {} ({} layers, {} wide, {} heads, vocab {}, max {} tokens)",
-        t.kind, t.num_layers, t.hidden_size, t.num_heads, t.vocab_size, t.max_length
-    );
+    match &c.denoiser {
+        DenoiserConfig::Flame(d) => println!(
+            "denoiser:       {} layers, {} wide, {} heads, feed-forward {}, {} activation",
+            d.num_layers, d.model_channels, d.num_heads, d.dim_feedforward, d.activation
+        ),
+        DenoiserConfig::Mdm(d) => println!(
+            "denoiser:       {} layers, {} wide, {} heads, feed-forward {}, {} activation, text vector {}",
+            d.layers, d.latent_dim, d.heads, d.ff_size, d.activation, d.clip_dim
+        ),
+    }
+    match &c.text_encoder {
+        TextConfig::Bert(t) => println!(
+            "text encoder:   {} ({} layers, {} wide, {} heads, vocab {}, max {} tokens)",
+            t.kind, t.num_layers, t.hidden_size, t.num_heads, t.vocab_size, t.max_length
+        ),
+        TextConfig::Clip(t) => println!(
+            "text encoder:   clip ({} layers, {} wide, {} heads, vocab {}, projection {}, max {} tokens)",
+            t.clip.layers, t.clip.width, t.clip.heads, t.clip.vocab_size, t.clip.projection_dim, t.max_length
+        ),
+    }
     println!(
         "weights dtype:  {}",
         model.stored_dtype().map_or("-", |x| x.name())

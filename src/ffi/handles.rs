@@ -39,7 +39,7 @@ impl FlameModel {
         FlameModel {
             architecture: cstring(&cfg.architecture),
             motion_format: cstring(&cfg.motion.format),
-            text_encoder: cstring(&cfg.text_encoder.kind),
+            text_encoder: cstring(cfg.text_encoder.kind()),
             joint_name_ptrs: names.iter().map(|n| n.as_ptr()).collect(),
             _joint_names: names,
             joint_parents: parents,
@@ -57,6 +57,9 @@ impl FlameModel {
         let sampler = match c.defaults.sampler.as_str() {
             "ddpm" => FlameSampler::Ddpm,
             "ddim" => FlameSampler::Ddim,
+            "euler" => FlameSampler::Euler,
+            "heun" => FlameSampler::Heun,
+            "midpoint" => FlameSampler::Midpoint,
             _ => FlameSampler::Default,
         };
         FlameModelInfo {

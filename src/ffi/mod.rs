@@ -43,6 +43,12 @@ pub enum FlameSampler {
     Default = 0,
     Ddpm = 1,
     Ddim = 2,
+    /// Flow matching (Motion Flow Matching models): Euler steps.
+    Euler = 3,
+    /// Flow matching: Heun, two network evaluations per step.
+    Heun = 4,
+    /// Flow matching: midpoint rule, two network evaluations per step.
+    Midpoint = 5,
 }
 
 /// Which motion [`flame_session_read`] returns.
@@ -359,7 +365,15 @@ fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
         0 => None,
         1 => Some(Sampler::Ddpm),
         2 => Some(Sampler::Ddim),
-        s => return Err(invalid_arg!("unknown sampler {s} (0 default, 1 DDPM, 2 DDIM)").into()),
+        3 => Some(Sampler::Euler),
+        4 => Some(Sampler::Heun),
+        5 => Some(Sampler::Midpoint),
+        s => {
+            return Err(invalid_arg!(
+                "unknown sampler {s} (0 default, 1 DDPM, 2 DDIM, 3 Euler, 4 Heun, 5 midpoint)"
+            )
+            .into())
+        }
     };
     Ok(SessionParams {
         frames: nonzero(p.frames),

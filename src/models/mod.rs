@@ -9,12 +9,13 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use crate::checkpoint::{ModelFile, StoredDtype, Tensor, TOKENIZER_KEY};
-use crate::config::Config;
-use crate::error::{bad_file, Result};
+use crate::config::{Config, DenoiserConfig, TextConfig};
+use crate::error::{bad_file, invalid_arg, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
-use crate::text::TextEncoder;
+use crate::text::{ClipTextEncoder, TextEncoder};
 
-pub use flame::{FlameCondition, FlameDenoiser, Workspace};
+pub use flame::{FlameCondition, FlameDenoiser};
+pub use mdm::{MdmDenoiser, TimeIndex};
 
 /// Prefix of the text encoder's tensors inside a libflame file.
 pub const TEXT_PREFIX: &str = "text.";
@@ -22,18 +23,40 @@ pub const TEXT_PREFIX: &str = "text.";
 /// The denoiser of a model, by architecture.
 pub enum Denoiser {
     Flame(FlameDenoiser),
+    /// MDM (x0 prediction) and Motion Flow Matching (velocity) share this network.
+    Mdm(MdmDenoiser),
+}
+
+/// The text encoder of a model, by kind.
+pub enum TextModel {
+    /// BERT or RoBERTa: per-token states and the pooler output (FLAME).
+    Bert(TextEncoder),
+    /// CLIP: the projected end-of-text vector (MDM), prompts truncated to `context` tokens.
+    Clip {
+        encoder: ClipTextEncoder,
+        context: usize,
+    },
 }
 
 /// What a denoiser is conditioned on, derived from a prompt once and reused at every step.
 #[derive(Clone, Debug)]
 pub enum Condition {
     Flame(FlameCondition),
+    /// MDM's text vector (CLIP's projection); zeros are the unconditional input.
+    Mdm(Vec<f32>),
+}
+
+/// Reusable buffers of a forward pass, so steps after the first do not allocate.
+#[derive(Default)]
+pub struct Workspace {
+    flame: flame::Workspace,
+    mdm: mdm::Workspace,
 }
 
 /// A loaded model: read-only after loading, `Send + Sync`.
 pub struct Model {
     config: Config,
-    text: TextEncoder,
+    text: TextModel,
     denoiser: Denoiser,
     dtype: Option<StoredDtype>,
     format: Format,
@@ -60,23 +83,51 @@ impl Model {
         let tokenizer = file
             .metadata(TOKENIZER_KEY)
             .ok_or_else(|| bad_file!("no `{TOKENIZER_KEY}` metadata (the tokenizer.json text)"))?;
-        let text = TextEncoder::load(&file, TEXT_PREFIX, &config.text_encoder, tokenizer)?;
-        let denoiser = match config.architecture.as_str() {
-            "flame" => Denoiser::Flame(FlameDenoiser::load(
-                &file,
-                &config.denoiser,
-                text.hidden_size(),
-            )?),
-            other => return Err(bad_file!("unknown architecture `{other}`")),
+        let text = match &config.text_encoder {
+            TextConfig::Bert(t) => {
+                TextModel::Bert(TextEncoder::load(&file, TEXT_PREFIX, t, tokenizer)?)
+            }
+            TextConfig::Clip(c) => TextModel::Clip {
+                encoder: ClipTextEncoder::load(&file, TEXT_PREFIX, &c.clip, tokenizer)?,
+                context: c.max_length,
+            },
+        };
+        let denoiser = match (&config.denoiser, &text) {
+            (DenoiserConfig::Flame(d), TextModel::Bert(t)) => {
+                Denoiser::Flame(FlameDenoiser::load(&file, d, t.hidden_size())?)
+            }
+            (DenoiserConfig::Mdm(d), TextModel::Clip { encoder, .. }) => {
+                if encoder.projection_dim() != d.clip_dim {
+                    return Err(bad_file!(
+                        "the CLIP projection has {} values, denoiser.clip_dim is {}",
+                        encoder.projection_dim(),
+                        d.clip_dim
+                    ));
+                }
+                let m = MdmDenoiser::load(&file, d)?;
+                Denoiser::Mdm(if config.architecture == "motionfm" {
+                    m.with_time_index(TimeIndex::FlowMatching)
+                } else {
+                    m
+                })
+            }
+            _ => {
+                return Err(bad_file!(
+                    "architecture `{}` cannot use a `{}` text encoder",
+                    config.architecture,
+                    config.text_encoder.kind()
+                ))
+            }
+        };
+        let dim = match &denoiser {
+            Denoiser::Flame(f) => f.motion_dim(),
+            Denoiser::Mdm(m) => m.motion_dim(),
         };
         let format: Format = config
             .motion
             .format
             .parse()
             .map_err(|_| bad_file!("unknown motion.format `{}`", config.motion.format))?;
-        let dim = match &denoiser {
-            Denoiser::Flame(f) => f.motion_dim(),
-        };
         if format.feature_dim() != dim {
             return Err(bad_file!(
                 "motion.format `{format}` has {} features per frame, the denoiser {dim}",
@@ -107,8 +158,16 @@ impl Model {
         &self.config
     }
 
-    pub fn text_encoder(&self) -> &TextEncoder {
+    pub fn text_model(&self) -> &TextModel {
         &self.text
+    }
+
+    /// The BERT/RoBERTa encoder, for models that use one.
+    pub fn text_encoder(&self) -> Option<&TextEncoder> {
+        match &self.text {
+            TextModel::Bert(t) => Some(t),
+            TextModel::Clip { .. } => None,
+        }
     }
 
     pub fn denoiser(&self) -> &Denoiser {
@@ -142,6 +201,15 @@ impl Model {
     pub fn motion_dim(&self) -> usize {
         match &self.denoiser {
             Denoiser::Flame(f) => f.motion_dim(),
+            Denoiser::Mdm(m) => m.motion_dim(),
+        }
+    }
+
+    /// Output channels per frame of the denoiser (FLAME adds its variance values).
+    pub fn output_dim(&self) -> usize {
+        match &self.denoiser {
+            Denoiser::Flame(f) => f.output_dim(),
+            Denoiser::Mdm(m) => m.output_dim(),
         }
     }
 
@@ -149,28 +217,60 @@ impl Model {
     pub fn max_frames(&self) -> usize {
         match &self.denoiser {
             Denoiser::Flame(f) => f.max_frames(),
+            Denoiser::Mdm(m) => m.max_frames(),
         }
     }
 
     /// Encodes a prompt into the denoiser's conditioning.
     pub fn encode_prompt(&self, prompt: &str) -> Result<Condition> {
-        let out = self.text.encode(prompt)?;
-        match &self.denoiser {
-            Denoiser::Flame(f) => Ok(Condition::Flame(f.condition(&out)?)),
+        match (&self.text, &self.denoiser) {
+            (TextModel::Bert(t), Denoiser::Flame(f)) => {
+                Ok(Condition::Flame(f.condition(&t.encode(prompt)?)?))
+            }
+            (TextModel::Clip { encoder, context }, Denoiser::Mdm(_)) => {
+                Ok(Condition::Mdm(encoder.encode(prompt, *context)?.projected))
+            }
+            _ => unreachable!("text encoder and denoiser are paired at load"),
         }
     }
 
-    /// The unconditional input for guidance (FLAME: the empty prompt), encoded once per model.
+    /// The unconditional input for guidance, computed once per model: the empty prompt's
+    /// encoding (FLAME) or a zero text vector (MDM), as the model file's configuration says.
     pub fn uncond(&self) -> Result<&Condition> {
         if let Some(c) = self.uncond.get() {
             return Ok(c);
         }
-        let c = self.encode_prompt("")?;
+        let c = match (&self.denoiser, self.config.diffusion.uncond.as_str()) {
+            (Denoiser::Mdm(m), "zeros") => Condition::Mdm(vec![0.0; m.cond_dim()]),
+            (Denoiser::Flame(_), "zeros") => {
+                return Err(bad_file!(
+                    "FLAME models need diffusion.uncond `empty_prompt`"
+                ))
+            }
+            _ => self.encode_prompt("")?,
+        };
         Ok(self.uncond.get_or_init(|| c))
     }
 
+    /// Checks that a condition was made for this model's denoiser.
+    pub fn check_condition(&self, cond: &Condition) -> Result<()> {
+        match (&self.denoiser, cond) {
+            (Denoiser::Flame(_), Condition::Flame(_)) => Ok(()),
+            (Denoiser::Mdm(m), Condition::Mdm(v)) if v.len() == m.cond_dim() => Ok(()),
+            (Denoiser::Mdm(m), Condition::Mdm(v)) => Err(invalid_arg!(
+                "text vector has {} values, the model expects {}",
+                v.len(),
+                m.cond_dim()
+            )),
+            _ => Err(invalid_arg!(
+                "the condition was made for another architecture"
+            )),
+        }
+    }
+
     /// One batched forward pass: `x` is `[batch, frames, motion_dim]`, `out` is
-    /// `[batch, frames, output_dim]`, row `b` conditioned on `conds[b]`.
+    /// `[batch, frames, output_dim]`, row `b` conditioned on `conds[b]`. `t` is the network's
+    /// time input (a diffusion step, or flow time in [0, 1] for Motion Flow Matching).
     pub fn forward(
         &self,
         x: &[f32],
@@ -180,23 +280,28 @@ impl Model {
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
+        let wrong = || invalid_arg!("a condition was made for another architecture");
         match &self.denoiser {
             Denoiser::Flame(f) => {
-                let conds: Vec<&FlameCondition> = conds
+                let conds = conds
                     .iter()
                     .map(|c| match c {
-                        Condition::Flame(fc) => fc,
+                        Condition::Flame(fc) => Ok(fc),
+                        _ => Err(wrong()),
                     })
-                    .collect();
-                f.forward(x, frames, t, &conds, out, ws)
+                    .collect::<Result<Vec<_>>>()?;
+                f.forward(x, frames, t, &conds, out, &mut ws.flame)
             }
-        }
-    }
-
-    /// Output channels per frame of the denoiser.
-    pub fn output_dim(&self) -> usize {
-        match &self.denoiser {
-            Denoiser::Flame(f) => f.output_dim(),
+            Denoiser::Mdm(m) => {
+                let conds = conds
+                    .iter()
+                    .map(|c| match c {
+                        Condition::Mdm(v) => Ok(&v[..]),
+                        _ => Err(wrong()),
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                m.forward(x, frames, t, &conds, out, &mut ws.mdm)
+            }
         }
     }
 }

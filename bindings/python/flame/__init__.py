@@ -72,6 +72,9 @@ class Sampler:
     DEFAULT = 0
     DDPM = 1
     DDIM = 2
+    EULER = 3
+    HEUN = 4
+    MIDPOINT = 5
 
 
 class Which:
@@ -438,7 +441,7 @@ class Model:
         threads: int = 0,
     ) -> "Session":
         """Starts a generation. None takes the model file's default; `sampler` is "ddpm",
-        "ddim" or a Sampler value; `threads` 0 = one per core (the session owns its threads)."""
+        "ddim", "euler", "heun", "midpoint" or a Sampler value; `threads` 0 = one per core (the session owns its threads)."""
         return Session(self, frames, steps, sampler, eta, guidance, seed, threads)
 
     def close(self) -> None:
@@ -475,7 +478,8 @@ _LAYOUT_SHAPES = {
     Layout.FOOT_CONTACTS: lambda d, j: (4,),
 }
 
-_SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM}
+_SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM,
+             "euler": Sampler.EULER, "heun": Sampler.HEUN, "midpoint": Sampler.MIDPOINT}
 _WHICH = {"sample": Which.SAMPLE, "estimate": Which.ESTIMATE}
 
 ProgressFn = Callable[[int, int], None]
@@ -500,7 +504,7 @@ class Session:
         if isinstance(sampler, str) or sampler is None:
             key = sampler.lower() if isinstance(sampler, str) else None
             if key not in _SAMPLERS:
-                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim)")
+                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
             p.sampler = _SAMPLERS[key]
         else:
             p.sampler = int(sampler)

@@ -222,7 +222,9 @@ def test_session_errors(model):
     ]:
         expect_error(Status.INVALID_ARGUMENT, fragment, model.session, **kwargs)
     with pytest.raises(ValueError):
-        model.session(sampler="euler")
+        model.session(sampler="rk4")
+    # FLAME is a diffusion model: the flow-matching samplers are refused by the library.
+    expect_error(Status.INVALID_ARGUMENT, "needs a flow-matching model", model.session, sampler="euler")
 
 
 def test_raw_read_buffer_too_small(model):
