@@ -155,3 +155,69 @@ fn wrong_sampler_for_the_model_and_wrong_condition_are_errors() {
     let s = Session::new(model, &SessionParams::default()).unwrap();
     assert_eq!(s.num_steps(), 10);
 }
+
+#[test]
+fn flame_info_reports_the_converted_models() {
+    for (file, arch, pred, sampler) in [
+        ("mdm_tiny.safetensors", "mdm", "predicts x0", "sampler ddpm"),
+        (
+            "motionfm_tiny.safetensors",
+            "motionfm",
+            "predicts velocity",
+            "sampler euler",
+        ),
+    ] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_flame"))
+            .arg("info")
+            .arg(fixture(file))
+            .output()
+            .unwrap();
+        assert!(out.status.success());
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert!(
+            text.contains(&format!("architecture:   {arch}\n")),
+            "{text}"
+        );
+        assert!(
+            text.contains("motion:         humanml263 (263 features per frame, 20 fps"),
+            "{text}"
+        );
+        assert!(text.contains("text encoder:   clip"), "{text}");
+        assert!(text.contains(pred) && text.contains(sampler), "{text}");
+    }
+}
+
+#[test]
+fn prompts_go_through_the_clip_tower() {
+    // The fixtures' CLIP tower is a random stand-in, so only the plumbing is checked here (the
+    // tower itself is tested in tests/text_clip.rs): a prompt gives a 512-d vector that differs
+    // between prompts, and a whole generation from it runs.
+    let model = Arc::new(Model::load(fixture("motionfm_tiny.safetensors")).unwrap());
+    let Condition::Mdm(a) = model.encode_prompt("a person jumps").unwrap() else {
+        panic!()
+    };
+    let Condition::Mdm(b) = model.encode_prompt("a person waves").unwrap() else {
+        panic!()
+    };
+    assert_eq!(a.len(), 512);
+    assert!(max_abs_diff(&a, &b) > 1e-3);
+    let Condition::Mdm(u) = model.uncond().unwrap() else {
+        panic!()
+    };
+    assert!(
+        u.iter().all(|&v| v == 0.0),
+        "MDM's unconditional input is a zero vector"
+    );
+    let mut s = Session::new(
+        model,
+        &SessionParams {
+            frames: Some(8),
+            seed: 1,
+            threads: 1,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    s.set_prompt("a person jumps").unwrap();
+    assert!(s.run().unwrap().iter().all(|v| v.is_finite()));
+}
