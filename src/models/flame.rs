@@ -13,71 +13,10 @@ use crate::error::{invalid_arg, Result};
 use crate::kernels;
 use crate::text::TextOutput;
 
+use super::layers::{sized, Attention, LayerNorm, Linear};
+
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;
-
-/// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
-struct Linear {
-    weight: Tensor,
-    bias: Tensor,
-    n_in: usize,
-    n_out: usize,
-}
-
-impl Linear {
-    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
-        Ok(Linear {
-            weight: file.tensor(&format!("{name}.weight"), &[n_out, n_in])?,
-            bias: file.tensor(&format!("{name}.bias"), &[n_out])?,
-            n_in,
-            n_out,
-        })
-    }
-
-    /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
-    fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        kernels::linear(
-            x,
-            self.weight.data(),
-            Some(self.bias.data()),
-            y,
-            rows,
-            self.n_in,
-            self.n_out,
-        );
-    }
-}
-
-/// `nn.MultiheadAttention` with packed `in_proj_weight` `[3E, E]` (rows q, k, v).
-struct Attention {
-    in_proj_weight: Tensor,
-    in_proj_bias: Tensor,
-    out_proj: Linear,
-}
-
-impl Attention {
-    fn load(file: &ModelFile, name: &str, e: usize) -> Result<Attention> {
-        Ok(Attention {
-            in_proj_weight: file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
-            in_proj_bias: file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
-            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e)?,
-        })
-    }
-}
-
-struct LayerNorm {
-    weight: Tensor,
-    bias: Tensor,
-}
-
-impl LayerNorm {
-    fn load(file: &ModelFile, name: &str, e: usize) -> Result<LayerNorm> {
-        Ok(LayerNorm {
-            weight: file.tensor(&format!("{name}.weight"), &[e])?,
-            bias: file.tensor(&format!("{name}.bias"), &[e])?,
-        })
-    }
-}
 
 /// One `nn.TransformerDecoderLayer` (post-LN).
 struct DecoderLayer {
@@ -133,11 +72,6 @@ pub struct Workspace {
     proj: Vec<f32>,
     hidden: Vec<f32>,
     frames_in: Vec<f32>,
-}
-
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
 }
 
 /// FLAME's `Text2MotionTransformer`, inference only.

@@ -12,9 +12,11 @@
 
 use serde::Deserialize;
 
-use crate::checkpoint::{ModelFile, Tensor};
+use crate::checkpoint::ModelFile;
 use crate::error::{invalid_arg, Result};
 use crate::kernels;
+
+use super::layers::{sized, Attention, LayerNorm, Linear};
 
 /// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
 const LAYER_NORM_EPS: f32 = 1e-5;
@@ -74,69 +76,6 @@ impl TimeIndex {
     }
 }
 
-/// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
-struct Linear {
-    weight: Tensor,
-    bias: Tensor,
-    n_in: usize,
-    n_out: usize,
-}
-
-impl Linear {
-    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
-        Ok(Linear {
-            weight: file.tensor(&format!("{name}.weight"), &[n_out, n_in])?,
-            bias: file.tensor(&format!("{name}.bias"), &[n_out])?,
-            n_in,
-            n_out,
-        })
-    }
-
-    /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
-    fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        kernels::linear(
-            x,
-            self.weight.data(),
-            Some(self.bias.data()),
-            y,
-            rows,
-            self.n_in,
-            self.n_out,
-        );
-    }
-}
-
-/// `nn.MultiheadAttention` with packed `in_proj_weight` `[3E, E]` (rows q, k, v).
-struct Attention {
-    in_proj_weight: Tensor,
-    in_proj_bias: Tensor,
-    out_proj: Linear,
-}
-
-impl Attention {
-    fn load(file: &ModelFile, name: &str, e: usize) -> Result<Attention> {
-        Ok(Attention {
-            in_proj_weight: file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
-            in_proj_bias: file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
-            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e)?,
-        })
-    }
-}
-
-struct LayerNorm {
-    weight: Tensor,
-    bias: Tensor,
-}
-
-impl LayerNorm {
-    fn load(file: &ModelFile, name: &str, e: usize) -> Result<LayerNorm> {
-        Ok(LayerNorm {
-            weight: file.tensor(&format!("{name}.weight"), &[e])?,
-            bias: file.tensor(&format!("{name}.bias"), &[e])?,
-        })
-    }
-}
-
 /// One `nn.TransformerEncoderLayer` (post-LN).
 struct EncoderLayer {
     self_attn: Attention,
@@ -162,11 +101,6 @@ pub struct Workspace {
     hidden: Vec<f32>,
     frames: Vec<f32>,
     text: Vec<f32>,
-}
-
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
 }
 
 /// MDM's `trans_enc` denoiser (and MotionFM's `MDM_Flow`), inference only.

@@ -3,6 +3,7 @@
 //! sessions and threads.
 
 pub mod flame;
+mod layers;
 pub mod mdm;
 
 use std::path::Path;
