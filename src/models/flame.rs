@@ -282,26 +282,18 @@ impl FlameDenoiser {
         let rows = batch * seq;
 
         // Self-attention: x ← norm1(x + SelfAttn(x)).
-        let qkv = sized(&mut ws.qkv, rows * 3 * c);
-        let sa = &layer.self_attn;
-        kernels::linear(
+        let heads = self.cfg.num_heads;
+        layer.self_attn.self_attention(
             &ws.x,
-            sa.in_proj_weight.data(),
-            Some(sa.in_proj_bias.data()),
-            qkv,
-            rows,
+            batch,
+            seq,
             c,
-            3 * c,
+            heads,
+            &mut ws.qkv,
+            &mut ws.attn,
+            &mut ws.proj,
         );
-        let attn = sized(&mut ws.attn, rows * c);
-        let packed = Rows {
-            data: qkv,
-            stride: 3 * c,
-            len: seq,
-        };
-        self.attend(batch, packed.at(0), packed.at(c), packed.at(2 * c), attn);
-        let proj = sized(&mut ws.proj, rows * c);
-        sa.out_proj.forward(attn, rows, proj);
+        let proj = &ws.proj[..rows * c];
         kernels::add_layer_norm(
             &mut ws.x,
             proj,

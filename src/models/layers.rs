@@ -54,6 +54,49 @@ impl Attention {
     }
 }
 
+impl Attention {
+    /// `out = out_proj(MultiHeadAttention(x, x, x))` over `batch` independent blocks of `seq`
+    /// rows of width `e` (no masks: every position is valid at sampling).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn self_attention(
+        &self,
+        x: &[f32],
+        batch: usize,
+        seq: usize,
+        e: usize,
+        heads: usize,
+        qkv: &mut Vec<f32>,
+        attn: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+    ) {
+        let rows = batch * seq;
+        let qkv = sized(qkv, rows * 3 * e);
+        let (w, b) = (self.in_proj_weight.data(), self.in_proj_bias.data());
+        kernels::linear(x, w, Some(b), qkv, rows, e, 3 * e);
+        let attn = sized(attn, rows * e);
+        for (i, o) in attn.chunks_exact_mut(seq * e).enumerate() {
+            let block = &qkv[i * seq * 3 * e..(i + 1) * seq * 3 * e];
+            let (k, v) = (&block[e..], &block[2 * e..]);
+            kernels::multi_head_attention(
+                block,
+                3 * e,
+                k,
+                3 * e,
+                v,
+                3 * e,
+                seq,
+                seq,
+                heads,
+                e / heads,
+                None,
+                false,
+                o,
+            );
+        }
+        self.out_proj.forward(attn, rows, sized(out, rows * e));
+    }
+}
+
 pub(crate) struct LayerNorm {
     pub(crate) weight: Tensor,
     pub(crate) bias: Tensor,

@@ -310,38 +310,17 @@ impl MdmDenoiser {
         let rows = batch * seq;
 
         // Self-attention: x ← norm1(x + SelfAttn(x)).
-        let qkv = sized(&mut ws.qkv, rows * 3 * c);
-        let sa = &layer.self_attn;
-        kernels::linear(
+        layer.self_attn.self_attention(
             &ws.x,
-            sa.in_proj_weight.data(),
-            Some(sa.in_proj_bias.data()),
-            qkv,
-            rows,
+            batch,
+            seq,
             c,
-            3 * c,
+            heads,
+            &mut ws.qkv,
+            &mut ws.attn,
+            &mut ws.proj,
         );
-        let attn = sized(&mut ws.attn, rows * c);
-        for (b, out) in attn.chunks_exact_mut(seq * c).enumerate() {
-            let block = &qkv[b * seq * 3 * c..(b + 1) * seq * 3 * c];
-            kernels::multi_head_attention(
-                block,
-                3 * c,
-                &block[c..],
-                3 * c,
-                &block[2 * c..],
-                3 * c,
-                seq,
-                seq,
-                heads,
-                c / heads,
-                None,
-                false,
-                out,
-            );
-        }
-        let proj = sized(&mut ws.proj, rows * c);
-        sa.out_proj.forward(attn, rows, proj);
+        let proj = &ws.proj[..rows * c];
         kernels::add_layer_norm(
             &mut ws.x,
             proj,
