@@ -291,7 +291,7 @@ impl ModelFile {
         let shape = e.shape.clone();
         let data = match stored_dtype(name, e.dtype)? {
             StoredDtype::F32 => {
-                let aligned = (bytes.as_ptr() as usize) % 4 == 0;
+                let aligned = (bytes.as_ptr() as usize).is_multiple_of(4);
                 if aligned && cfg!(target_endian = "little") {
                     TensorData::Borrowed {
                         backing: Arc::clone(&self.backing),

@@ -247,7 +247,7 @@ impl Config {
             Ok(())
         };
         let divisible = |name: &str, width: usize, heads: usize| -> Result<()> {
-            if width % heads != 0 || width % 2 != 0 {
+            if !width.is_multiple_of(heads) || !width.is_multiple_of(2) {
                 return Err(bad_file!(
                     "config {name} {width} is not even or not divisible by its {heads} heads"
                 ));

@@ -294,14 +294,7 @@ impl FlameDenoiser {
             &mut ws.proj,
         );
         let proj = &ws.proj[..rows * c];
-        kernels::add_layer_norm(
-            &mut ws.x,
-            proj,
-            c,
-            layer.norm1.weight.data(),
-            layer.norm1.bias.data(),
-            eps,
-        );
+        layer.norm1.add_norm(&mut ws.x, proj, eps);
 
         // Cross-attention to the memory: x ← norm2(x + CrossAttn(x, memory)).
         let ca = &layer.multihead_attn;
@@ -332,14 +325,7 @@ impl FlameDenoiser {
         self.attend(batch, queries, keys.at(0), keys.at(c), attn);
         let proj = sized(&mut ws.proj, rows * c);
         ca.out_proj.forward(attn, rows, proj);
-        kernels::add_layer_norm(
-            &mut ws.x,
-            proj,
-            c,
-            layer.norm2.weight.data(),
-            layer.norm2.bias.data(),
-            eps,
-        );
+        layer.norm2.add_norm(&mut ws.x, proj, eps);
 
         // Feed-forward: x ← norm3(x + linear2(act(linear1(x)))).
         let f = self.cfg.dim_feedforward;
@@ -352,13 +338,6 @@ impl FlameDenoiser {
         }
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
-        kernels::add_layer_norm(
-            &mut ws.x,
-            proj,
-            c,
-            layer.norm3.weight.data(),
-            layer.norm3.bias.data(),
-            eps,
-        );
+        layer.norm3.add_norm(&mut ws.x, proj, eps);
     }
 }

@@ -111,6 +111,14 @@ impl LayerNorm {
     }
 }
 
+impl LayerNorm {
+    /// `x ← LayerNorm(x + residual)` row-wise: the post-LN residual step.
+    pub(crate) fn add_norm(&self, x: &mut [f32], residual: &[f32], eps: f32) {
+        let (g, b) = (self.weight.data(), self.bias.data());
+        kernels::add_layer_norm(x, residual, g.len(), g, b, eps);
+    }
+}
+
 /// A scratch buffer grown to `n` values (never shrunk, so later steps do not allocate).
 pub(crate) fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
     v.resize(n, 0.0);

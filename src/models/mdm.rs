@@ -122,7 +122,7 @@ impl MdmDenoiser {
     /// convention starts as [`TimeIndex::Diffusion`]; see [`MdmDenoiser::with_time_index`].
     pub fn load(file: &ModelFile, cfg: &MdmConfig) -> Result<MdmDenoiser> {
         let c = cfg.latent_dim;
-        if c == 0 || c % 2 != 0 || cfg.heads == 0 || c % cfg.heads != 0 {
+        if c == 0 || !c.is_multiple_of(2) || cfg.heads == 0 || !c.is_multiple_of(cfg.heads) {
             return Err(crate::error::bad_file!(
                 "mdm latent_dim {c} must be even and divisible by heads {}",
                 cfg.heads
@@ -321,14 +321,7 @@ impl MdmDenoiser {
             &mut ws.proj,
         );
         let proj = &ws.proj[..rows * c];
-        kernels::add_layer_norm(
-            &mut ws.x,
-            proj,
-            c,
-            layer.norm1.weight.data(),
-            layer.norm1.bias.data(),
-            LAYER_NORM_EPS,
-        );
+        layer.norm1.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
 
         // Feed-forward: x ← norm2(x + linear2(act(linear1(x)))).
         let hidden = sized(&mut ws.hidden, rows * self.cfg.ff_size);
@@ -340,14 +333,7 @@ impl MdmDenoiser {
         }
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
-        kernels::add_layer_norm(
-            &mut ws.x,
-            proj,
-            c,
-            layer.norm2.weight.data(),
-            layer.norm2.bias.data(),
-            LAYER_NORM_EPS,
-        );
+        layer.norm2.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
     }
 }
 

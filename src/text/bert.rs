@@ -428,7 +428,7 @@ fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
     if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
         return Err(bad_file!("text_encoder.{name} must be positive"));
     }
-    if cfg.hidden_size % cfg.num_heads != 0 {
+    if !cfg.hidden_size.is_multiple_of(cfg.num_heads) {
         return Err(bad_file!(
             "text_encoder.hidden_size {} is not divisible by num_heads {}",
             cfg.hidden_size,

@@ -344,7 +344,7 @@ fn check_config(cfg: &ClipConfig) -> Result<()> {
     if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
         return Err(bad_file!("clip.{name} must be positive"));
     }
-    if cfg.width % cfg.heads != 0 {
+    if !cfg.width.is_multiple_of(cfg.heads) {
         return Err(bad_file!(
             "clip.width {} is not divisible by heads {}",
             cfg.width,
