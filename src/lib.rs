@@ -5,8 +5,10 @@
 //! about transformers, models know nothing about the C ABI, and the sampler never knows which
 //! network it drives.
 
+pub mod assemble;
 pub mod checkpoint;
 pub mod config;
+pub mod demo;
 pub mod diffusion;
 pub mod error;
 pub mod ffi;

@@ -70,6 +70,8 @@ pub mod json;
 pub mod layout;
 pub mod poses;
 pub mod postprocess;
+#[cfg(feature = "preview")]
+pub mod preview;
 pub mod rotation;
 pub mod skeleton;
 mod smpl24_6d;

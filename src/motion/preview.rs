@@ -1,0 +1,1 @@
+//! Contact-sheet previews: a motion drawn as stick figures side by side, written as a PNG.
