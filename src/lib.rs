@@ -10,6 +10,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod demo;
 pub mod diffusion;
+pub mod edit;
 pub mod error;
 pub mod ffi;
 pub mod kernels;

@@ -6,7 +6,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use crate::diffusion::flow::{FlowSampler, FlowScratch, OdeMethod};
-use crate::diffusion::{self, DiffusionSampler, SamplerKind};
+use crate::diffusion::{self, DiffusionSampler, SamplerKind, X0Replacement};
+use crate::edit;
+pub use crate::edit::{EditMethod, EditParams};
 use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Condition, Model, Workspace};
 use crate::pool::WorkerPool;
@@ -69,6 +71,8 @@ pub struct Session {
     pool: Arc<WorkerPool>,
     noise: Box<dyn NoiseSource>,
     initial_noise: Option<Vec<f32>>,
+    /// x_T (z0 for flow models) of this generation, kept for trajectory rewriting.
+    x_start: Vec<f32>,
     /// Steps not yet taken; the next step runs at spaced index `remaining - 1`.
     remaining: usize,
     started: bool,
@@ -95,12 +99,15 @@ impl StepRule {
     }
 }
 
-/// A reference motion and which of its values to keep (FLAME's editing, REFERENCE 1.12).
+/// A reference motion, which of its values to keep, and how (see [`crate::edit`]).
 #[derive(Default)]
 struct Edit {
+    /// `[frames, dim]`, zero past `ref_frames` (a reference may be shorter than the session).
     reference: Option<Vec<f32>>,
+    ref_frames: usize,
     /// One flag per feature value, `true` = keep the reference.
     keep: Option<Vec<bool>>,
+    params: EditParams,
     noised: Vec<f32>,
     noise: Vec<f32>,
     /// The step index `noise` was drawn for: a cancelled step retried reuses it, so the retry
@@ -203,6 +210,7 @@ impl Session {
             pool,
             noise: Box::new(GaussianRng::new(params.seed)),
             initial_noise: None,
+            x_start: Vec::new(),
             remaining: n,
             started: false,
             stepped: false,
@@ -300,15 +308,16 @@ impl Session {
         self.stepped.then_some(&self.x0[..])
     }
 
-    /// Sets the reference motion (`[frames, motion_dim]`, the session's frame count) whose kept
-    /// values (see [`Session::set_mask`]) are imposed at every step. May change between steps.
+    /// Sets the reference motion: model-space features `[ref_frames, motion_dim]` with
+    /// 1 ≤ ref_frames ≤ the session's frames. Frames past a shorter reference cannot be kept.
+    /// May change between steps: it takes effect at the next step.
     pub fn set_reference(&mut self, features: &[f32]) -> Result<()> {
         let dim = self.model.motion_dim();
-        if features.len() != self.x.len() {
+        if features.is_empty() || features.len() % dim != 0 || features.len() > self.x.len() {
             return Err(invalid_arg!(
-                "reference has {} values, expected {} (frames {} × {dim}); a shorter reference must be padded by the caller",
+                "reference has {} values; it must be 1..={} whole frames of {dim} values (the session has {} frames)",
                 features.len(),
-                self.x.len(),
+                self.frames,
                 self.frames
             ));
         }
@@ -319,30 +328,81 @@ impl Session {
                 i % dim
             ));
         }
-        self.edit.reference = Some(features.to_vec());
+        let ref_frames = features.len() / dim;
+        if let Some(keep) = &self.edit.keep {
+            check_kept_frames(keep, dim, ref_frames)?;
+        }
+        let mut reference = features.to_vec();
+        reference.resize(self.x.len(), 0.0);
+        self.edit.reference = Some(reference);
+        self.edit.ref_frames = ref_frames;
         Ok(())
     }
 
     /// Sets the keep-mask, one entry per feature value (`[frames, motion_dim]`, nonzero = keep
-    /// the reference). An all-zero mask edits nothing; an all-keep mask reproduces the
-    /// reference. May change between steps: it takes effect at the next step.
+    /// the reference). An all-zero mask edits nothing (plain generation); an all-keep mask
+    /// reproduces the reference. May change between steps: it takes effect at the next step.
     pub fn set_mask(&mut self, mask: &[u8]) -> Result<()> {
-        if mask.len() != self.x.len() {
+        let keep: Vec<bool> = mask.iter().map(|&m| m != 0).collect();
+        self.set_keep(keep)
+    }
+
+    /// [`Session::set_mask`] with `bool` flags (for example [`crate::motion::mask::Mask`]'s).
+    pub fn set_keep(&mut self, keep: Vec<bool>) -> Result<()> {
+        if keep.len() != self.x.len() {
             return Err(invalid_arg!(
                 "mask has {} values, expected {} (frames {} × {})",
-                mask.len(),
+                keep.len(),
                 self.x.len(),
                 self.frames,
                 self.model.motion_dim()
             ));
         }
-        self.edit.keep = Some(mask.iter().map(|&m| m != 0).collect());
+        if self.edit.reference.is_some() {
+            check_kept_frames(&keep, self.model.motion_dim(), self.edit.ref_frames)?;
+        }
+        self.edit.keep = Some(keep);
         Ok(())
+    }
+
+    /// Chooses the editing algorithm and the final paste. Checked against the model: the
+    /// diffusion methods need a diffusion model, trajectory rewriting a flow model.
+    pub fn set_edit_params(&mut self, params: &EditParams) -> Result<()> {
+        params.validate()?;
+        self.resolve_method(params.method)?;
+        self.edit.params = params.clone();
+        Ok(())
+    }
+
+    pub fn edit_params(&self) -> &EditParams {
+        &self.edit.params
+    }
+
+    /// The algorithm [`EditMethod::Auto`] stands for with this model, or `method` itself if the
+    /// model can run it.
+    pub fn resolve_method(&self, method: EditMethod) -> Result<EditMethod> {
+        let flow = matches!(self.rule, StepRule::Flow(_));
+        match (method, flow) {
+            (EditMethod::Auto, true) => Ok(EditMethod::RewriteTrajectory),
+            (EditMethod::Auto, false) => Ok(if self.model.config().architecture == "mdm" {
+                EditMethod::ReplaceX0
+            } else {
+                EditMethod::NoisedReference
+            }),
+            (EditMethod::RewriteTrajectory, true)
+            | (EditMethod::NoisedReference | EditMethod::ReplaceX0, false) => Ok(method),
+            (m, _) => Err(invalid_arg!(
+                "edit method {} does not apply to this {} model",
+                m.name(),
+                if flow { "flow-matching" } else { "diffusion" }
+            )),
+        }
     }
 
     /// Removes the reference and the mask: plain generation from the next step on.
     pub fn clear_edit(&mut self) {
         self.edit.reference = None;
+        self.edit.ref_frames = 0;
         self.edit.keep = None;
     }
 
@@ -351,10 +411,31 @@ impl Session {
         self.edit.keep.as_deref()
     }
 
-    /// Writes x_t with the kept reference values imposed (diffused to step `t` with fresh
-    /// noise, as FLAME's editing loop does before every denoising step) into `edit.x_in`.
-    /// Returns false, writing nothing, when there is nothing to impose.
-    fn impose_reference(&mut self, t: usize) -> Result<bool> {
+    /// Whether the mask keeps something (then the reference is set and covers it); an error
+    /// when it keeps values no reference provides.
+    fn edit_active(&self) -> Result<bool> {
+        let Some(keep) = self.edit.keep.as_deref() else {
+            return Ok(false);
+        };
+        if !keep.iter().any(|&k| k) {
+            return Ok(false);
+        }
+        if self.edit.reference.is_none() {
+            return Err(Error::WrongState(
+                "the mask keeps values but no reference motion is set".into(),
+            ));
+        }
+        check_kept_frames(keep, self.model.motion_dim(), self.edit.ref_frames)?;
+        Ok(true)
+    }
+
+    /// Writes the step's input into `edit.x_in` when an edit applies before the network runs
+    /// (FLAME: the reference diffused to step `t` with fresh noise; flow: the rewritten
+    /// trajectory). Returns false, writing nothing, when x_t goes in unchanged.
+    fn prepare_input(&mut self, method: EditMethod, t: usize) -> Result<bool> {
+        if !self.edit_active()? {
+            return Ok(false);
+        }
         let Edit {
             reference: Some(reference),
             keep: Some(keep),
@@ -362,34 +443,38 @@ impl Session {
             noise,
             noise_step,
             x_in,
+            params,
+            ..
         } = &mut self.edit
         else {
             return Ok(false);
         };
-        if !keep.iter().any(|&k| k) {
-            return Ok(false);
+        match (method, &self.rule) {
+            (EditMethod::NoisedReference, StepRule::Diffusion(sampler)) => {
+                if *noise_step != Some(t) {
+                    noise.resize(reference.len(), 0.0);
+                    self.noise.fill(noise);
+                    *noise_step = Some(t);
+                }
+                noised.resize(reference.len(), 0.0);
+                sampler.try_q_sample(t, reference, noise, noised)?;
+                x_in.clear();
+                x_in.extend_from_slice(&self.x);
+                edit::impose(x_in, noised, keep);
+                Ok(true)
+            }
+            (EditMethod::RewriteTrajectory, StepRule::Flow(sampler)) => {
+                let (n, k) = (sampler.num_steps(), sampler.num_steps() - self.remaining);
+                if !edit::flow_rewrites(k, n, params.edit_till) {
+                    return Ok(false);
+                }
+                x_in.clear();
+                x_in.extend_from_slice(&self.x);
+                edit::impose_flow_path(x_in, &self.x_start, reference, keep, k, n);
+                Ok(true)
+            }
+            _ => Ok(false),
         }
-        let StepRule::Diffusion(sampler) = &self.rule else {
-            return Err(invalid_arg!(
-                "editing is implemented for diffusion models only"
-            ));
-        };
-        if *noise_step != Some(t) {
-            noise.resize(reference.len(), 0.0);
-            self.noise.fill(noise);
-            *noise_step = Some(t);
-        }
-        noised.resize(reference.len(), 0.0);
-        sampler.try_q_sample(t, reference, noise, noised)?;
-        x_in.clear();
-        x_in.extend(
-            self.x
-                .iter()
-                .zip(keep.iter())
-                .zip(noised.iter())
-                .map(|((&x, &k), &r)| if k { r } else { x }),
-        );
-        Ok(true)
     }
 
     /// Advances one sampler step; returns the number of steps left.
@@ -420,16 +505,26 @@ impl Session {
     fn step_inner(&mut self) -> Result<usize> {
         let model = Arc::clone(&self.model);
         let len = self.frames * model.motion_dim();
+        // Resolved before anything is drawn, so a bad combination leaves the session as it was.
+        let method = self.resolve_method(self.edit.params.method)?;
+        let active = self.edit_active()?;
         if !self.started {
             match &self.initial_noise {
                 Some(x) => self.x.copy_from_slice(x),
                 None => self.noise.fill(&mut self.x),
             }
+            self.x_start.clone_from(&self.x);
             self.started = true;
         }
         let t = self.remaining - 1;
-        let edited = self.impose_reference(t)?;
+        let edited = self.prepare_input(method, t)?;
         let x_t: &[f32] = if edited { &self.edit.x_in } else { &self.x };
+        let replace = match (method, &self.edit.reference, &self.edit.keep) {
+            (EditMethod::ReplaceX0, Some(reference), Some(keep)) if active => {
+                Some(X0Replacement { reference, keep })
+            }
+            _ => None,
+        };
         let guided = self.guidance != 1.0;
         let p = Predictor {
             model: &model,
@@ -461,7 +556,7 @@ impl Session {
                     None
                 };
                 let v = (model.output_dim() > model.motion_dim()).then_some(&var[..]);
-                sampler.step(t, x_t, pred, v, z, x_prev, &mut self.x0)?;
+                sampler.step_replacing(t, x_t, pred, v, z, replace, x_prev, &mut self.x0)?;
             }
             StepRule::Flow(sampler) => {
                 // Flow time runs forwards: the first step is k = 0 at t = 0 (noise).
@@ -480,6 +575,15 @@ impl Session {
         std::mem::swap(&mut self.x, x_prev);
         self.remaining -= 1;
         self.stepped = true;
+        if self.remaining == 0 && self.edit.params.paste {
+            if let (true, Some(reference), Some(keep)) =
+                (active, &self.edit.reference, &self.edit.keep)
+            {
+                let dim = model.motion_dim();
+                let seam = self.edit.params.seam_frames;
+                edit::paste_with_seams(&mut self.x, reference, keep, self.frames, dim, seam);
+            }
+        }
         Ok(self.remaining)
     }
 }
@@ -565,5 +669,16 @@ fn split_channels(out: &[f32], d: usize, od: usize, pred: &mut Vec<f32>, var: &m
     for row in out.chunks_exact(od) {
         pred.extend_from_slice(&row[..d]);
         var.extend_from_slice(&row[d..]);
+    }
+}
+
+/// Errors when `keep` keeps a value in a frame at or past `ref_frames`.
+fn check_kept_frames(keep: &[bool], dim: usize, ref_frames: usize) -> Result<()> {
+    match keep[ref_frames * dim..].iter().position(|&k| k) {
+        Some(i) => Err(invalid_arg!(
+            "the mask keeps frame {} but the reference has only {ref_frames} frames",
+            ref_frames + i / dim
+        )),
+        None => Ok(()),
     }
 }

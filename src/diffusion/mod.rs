@@ -13,5 +13,7 @@ mod schedule;
 pub use respace::{
     parse_timestep_respacing, respaced_betas, space_timesteps, space_timesteps_ddim_stride,
 };
-pub use sampler::{guide, DiffusionSampler, Parameterization, SamplerKind, Variance};
+pub use sampler::{
+    guide, DiffusionSampler, Parameterization, SamplerKind, Variance, X0Replacement,
+};
 pub use schedule::{betas, BetaSchedule, Schedule};

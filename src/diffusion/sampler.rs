@@ -303,11 +303,32 @@ impl DiffusionSampler {
         x_prev: &mut [f32],
         x0: &mut [f32],
     ) -> Result<()> {
+        self.step_replacing(t, x_t, pred, var_pred, noise, None, x_prev, x0)
+    }
+
+    /// [`DiffusionSampler::step`] with MDM's editing (REFERENCE 2.6): the kept values of x̂0
+    /// (after the clamp, if any) are replaced by the reference before the step is taken.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_replacing(
+        &self,
+        t: usize,
+        x_t: &[f32],
+        pred: &[f32],
+        var_pred: Option<&[f32]>,
+        noise: Option<&[f32]>,
+        replace: Option<X0Replacement>,
+        x_prev: &mut [f32],
+        x0: &mut [f32],
+    ) -> Result<()> {
         self.check_t(t)?;
         let n = x_t.len();
         check_len("pred", pred.len(), n)?;
         check_len("x_prev", x_prev.len(), n)?;
         check_len("x0", x0.len(), n)?;
+        if let Some(r) = &replace {
+            check_len("reference", r.reference.len(), n)?;
+            check_len("keep", r.keep.len(), n)?;
+        }
         if let Some(z) = noise {
             check_len("noise", z.len(), n)?;
         }
@@ -327,6 +348,9 @@ impl DiffusionSampler {
         };
 
         self.predict_x0_unchecked(t, x_t, pred, x0);
+        if let Some(r) = replace {
+            crate::edit::impose(x0, r.reference, r.keep);
+        }
         match self.kind {
             SamplerKind::Ddpm => self.ddpm(t, x_t, var_pred, noise, x_prev, x0),
             SamplerKind::Ddim { eta } => self.ddim(t, eta, x_t, noise, x_prev, x0),
@@ -436,6 +460,13 @@ impl DiffusionSampler {
         }
         Ok(())
     }
+}
+
+/// The reference values that replace x̂0's kept values (one flag per value, `true` = keep).
+#[derive(Clone, Copy, Debug)]
+pub struct X0Replacement<'a> {
+    pub reference: &'a [f32],
+    pub keep: &'a [bool],
 }
 
 /// Classifier-free guidance in place: `cond = uncond + scale·(cond − uncond)`, in f32 and in the
