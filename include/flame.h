@@ -124,6 +124,22 @@ typedef enum FlameConvention {
   FLAME_CONVENTION_GLTF = 5,
 } FlameConvention;
 
+// How a session imposes the kept reference values ([`FlameEditParams::method`]).
+typedef enum FlameEditMethod {
+  // The model family's own method: FLAME's for FLAME files, MDM's for MDM files, trajectory
+  // rewriting for flow-matching files.
+  FLAME_EDIT_METHOD_AUTO = 0,
+  // FLAME: the reference, diffused to each step's noise level, overwrites the kept values of
+  // x_t before the step (diffusion models).
+  FLAME_EDIT_METHOD_NOISED_REFERENCE = 1,
+  // MDM: the reference overwrites the kept values of the predicted clean motion (diffusion
+  // models).
+  FLAME_EDIT_METHOD_REPLACE_X0 = 2,
+  // Motion Flow Matching: the kept values follow the straight path from the initial noise to
+  // the reference while step / steps <= `edit_till` (flow-matching models).
+  FLAME_EDIT_METHOD_REWRITE_TRAJECTORY = 3,
+} FlameEditMethod;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
 
@@ -192,15 +208,25 @@ typedef struct FlameSessionParams {
   uint32_t threads;
 } FlameSessionParams;
 
+// Editing settings of a session. Initialise with [`flame_edit_params_default`].
+typedef struct FlameEditParams {
+  // `sizeof(FlameEditParams)`.
+  uint32_t struct_size;
+  // A [`FlameEditMethod`] value.
+  int32_t method;
+  // Flow models: the fraction of the steps, from the noise end, that rewrite the trajectory
+  // (0..1; default 0.2).
+  float edit_till;
+  // Nonzero (default): after the last step the kept values are pasted exactly into the
+  // result and the seams blended. Zero: the official behaviour.
+  uint32_t paste;
+  // Frames over which a seam's offset fades out (default 4; 0 = no blending).
+  uint32_t seam_frames;
+} FlameEditParams;
+
 // Called after every step with the caller's `user_data`, the steps done and the total.
 // NULL (no callback) is allowed wherever one is passed.
 typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint32_t steps_total);
-
-
-
-
-
-
 
 #ifdef __cplusplus
 extern "C" {
@@ -257,6 +283,21 @@ enum FlameStatus flame_model_info(const struct FlameModel *model, struct FlameMo
 // `params` points to writable memory for a `FlameSessionParams`.
 enum FlameStatus flame_session_params_default(struct FlameSessionParams *params);
 
+// Fills `*params` with the editing defaults: the model family's method, `edit_till` 0.2,
+// paste on, 4 seam frames.
+//
+// # Safety
+// `params` points to writable memory for a `FlameEditParams`.
+enum FlameStatus flame_edit_params_default(struct FlameEditParams *params);
+
+// Sets how the session edits (method, `edit_till`, final paste). Checked against the model:
+// FLAME's and MDM's methods need a diffusion model, trajectory rewriting a flow model.
+//
+// # Safety
+// `session` is a live session; `params` points to a valid `FlameEditParams`.
+enum FlameStatus flame_session_set_edit_params(struct FlameSession *session,
+                                               const struct FlameEditParams *params);
+
 // Starts a generation on `model`. `params` may be NULL for the defaults. The session keeps
 // the model alive; free it with [`flame_session_free`].
 //
@@ -296,8 +337,9 @@ enum FlameStatus flame_session_set_noise(struct FlameSession *session,
                                          const float *noise,
                                          size_t len);
 
-// Sets the reference motion for editing: `frames` × `dim` features, frame-major; `frames`
-// must equal the session's and `dim` the model's feature dim. May change between steps.
+// Sets the reference motion for editing: `frames` × `dim` model-space features, frame-major;
+// `dim` is the model's feature dim and 1 <= `frames` <= the session's frames (the frames past a
+// shorter reference cannot be kept). May change between steps.
 //
 // # Safety
 // `session` is a live session; `features` points to `frames * dim` floats.

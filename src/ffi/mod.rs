@@ -16,7 +16,7 @@ use std::sync::Arc;
 
 use crate::error::{invalid_arg, Error};
 use crate::models::Model;
-use crate::session::{Sampler, Session, SessionParams};
+use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 
 pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use errors::{guard, Fail};
@@ -49,6 +49,42 @@ pub enum FlameSampler {
     Heun = 4,
     /// Flow matching: midpoint rule, two network evaluations per step.
     Midpoint = 5,
+}
+
+/// How a session imposes the kept reference values ([`FlameEditParams::method`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameEditMethod {
+    /// The model family's own method: FLAME's for FLAME files, MDM's for MDM files, trajectory
+    /// rewriting for flow-matching files.
+    Auto = 0,
+    /// FLAME: the reference, diffused to each step's noise level, overwrites the kept values of
+    /// x_t before the step (diffusion models).
+    NoisedReference = 1,
+    /// MDM: the reference overwrites the kept values of the predicted clean motion (diffusion
+    /// models).
+    ReplaceX0 = 2,
+    /// Motion Flow Matching: the kept values follow the straight path from the initial noise to
+    /// the reference while step / steps <= `edit_till` (flow-matching models).
+    RewriteTrajectory = 3,
+}
+
+/// Editing settings of a session. Initialise with [`flame_edit_params_default`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameEditParams {
+    /// `sizeof(FlameEditParams)`.
+    pub struct_size: u32,
+    /// A [`FlameEditMethod`] value.
+    pub method: i32,
+    /// Flow models: the fraction of the steps, from the noise end, that rewrite the trajectory
+    /// (0..1; default 0.2).
+    pub edit_till: f32,
+    /// Nonzero (default): after the last step the kept values are pasted exactly into the
+    /// result and the seams blended. Zero: the official behaviour.
+    pub paste: u32,
+    /// Frames over which a seam's offset fades out (default 4; 0 = no blending).
+    pub seam_frames: u32,
 }
 
 /// Which motion [`flame_session_read`] returns.
@@ -387,6 +423,59 @@ fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
     })
 }
 
+/// Fills `*params` with the editing defaults: the model family's method, `edit_till` 0.2,
+/// paste on, 4 seam frames.
+///
+/// # Safety
+/// `params` points to writable memory for a `FlameEditParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_edit_params_default(params: *mut FlameEditParams) -> FlameStatus {
+    guard(|| {
+        let d = EditParams::default();
+        let p = FlameEditParams {
+            struct_size: std::mem::size_of::<FlameEditParams>() as u32,
+            method: FlameEditMethod::Auto as i32,
+            edit_till: d.edit_till,
+            paste: d.paste as u32,
+            seam_frames: d.seam_frames as u32,
+        };
+        write_out(params, p, "params")
+    })
+}
+
+/// Sets how the session edits (method, `edit_till`, final paste). Checked against the model:
+/// FLAME's and MDM's methods need a diffusion model, trajectory rewriting a flow model.
+///
+/// # Safety
+/// `session` is a live session; `params` points to a valid `FlameEditParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_edit_params(
+    session: *mut FlameSession,
+    params: *const FlameEditParams,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let p = params
+            .as_ref()
+            .ok_or_else(|| Fail::from(invalid_arg!("`params` is NULL")))?;
+        check_size(
+            p.struct_size,
+            std::mem::size_of::<FlameEditParams>(),
+            "params",
+        )?;
+        let method = u32::try_from(p.method)
+            .map_err(|_| invalid_arg!("unknown edit method {}", p.method))
+            .and_then(EditMethod::from_u32)?;
+        let e = EditParams {
+            method,
+            edit_till: p.edit_till,
+            paste: p.paste != 0,
+            seam_frames: p.seam_frames as usize,
+        };
+        s.with(|st| Ok(st.session.set_edit_params(&e)?))
+    })
+}
+
 /// Starts a generation on `model`. `params` may be NULL for the defaults. The session keeps
 /// the model alive; free it with [`flame_session_free`].
 ///
@@ -486,8 +575,9 @@ pub unsafe extern "C" fn flame_session_set_noise(
     })
 }
 
-/// Sets the reference motion for editing: `frames` × `dim` features, frame-major; `frames`
-/// must equal the session's and `dim` the model's feature dim. May change between steps.
+/// Sets the reference motion for editing: `frames` × `dim` model-space features, frame-major;
+/// `dim` is the model's feature dim and 1 <= `frames` <= the session's frames (the frames past a
+/// shorter reference cannot be kept). May change between steps.
 ///
 /// # Safety
 /// `session` is a live session; `features` points to `frames * dim` floats.
@@ -499,8 +589,20 @@ pub unsafe extern "C" fn flame_session_set_reference(
     dim: u32,
 ) -> FlameStatus {
     guard(|| {
-        with_frames_buffer(session, features, frames, dim, "features", |s, v| {
-            s.set_reference(v)
+        let s = session_ref(session)?;
+        let n = (frames as usize)
+            .checked_mul(dim as usize)
+            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+        let values = slice_arg(features, n, "features")?;
+        s.with(|st| {
+            let (f, d) = (st.session.frames(), st.session.model().motion_dim());
+            if frames == 0 || frames as usize > f || dim as usize != d {
+                return Err(invalid_arg!(
+                    "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
+                )
+                .into());
+            }
+            Ok(st.session.set_reference(values)?)
         })
     })
 }
