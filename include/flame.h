@@ -140,6 +140,33 @@ typedef enum FlameEditMethod {
   FLAME_EDIT_METHOD_REWRITE_TRAJECTORY = 3,
 } FlameEditMethod;
 
+// Named groups of channels for [`flame_session_keep_part`].
+typedef enum FlameBodyPart {
+  // The root's trajectory (smpl24_6d: the translation; humanml263: root yaw velocity, planar
+  // velocity and height).
+  FLAME_BODY_PART_ROOT_PATH = 0,
+  // Root path, pelvis and legs (what an upper-body edit keeps).
+  FLAME_BODY_PART_LOWER_BODY = 1,
+  // Spine, neck, head, collars and arms.
+  FLAME_BODY_PART_UPPER_BODY = 2,
+  // Collars, shoulders, elbows, wrists (and hands).
+  FLAME_BODY_PART_ARMS = 3,
+  // Hips, knees, ankles and feet (and foot contacts).
+  FLAME_BODY_PART_LEGS = 4,
+} FlameBodyPart;
+
+// The standard editing tasks of [`flame_session_set_task_mask`].
+typedef enum FlameEditTask {
+  // Keep the first and last quarter of the frames, generate the middle.
+  FLAME_EDIT_TASK_INBETWEEN = 0,
+  // Keep the first quarter of the frames, generate the rest.
+  FLAME_EDIT_TASK_PREDICT = 1,
+  // Keep the lower body on every frame, generate the upper body.
+  FLAME_EDIT_TASK_UPPER_BODY = 2,
+  // Keep the root path on every frame, generate the body.
+  FLAME_EDIT_TASK_PATH = 3,
+} FlameEditTask;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
 
@@ -376,6 +403,40 @@ enum FlameStatus flame_session_keep_frames(struct FlameSession *session,
 enum FlameStatus flame_session_keep_joints(struct FlameSession *session,
                                            const int32_t *joints,
                                            size_t count);
+
+// Marks a body part's channels on frames `start..end` (end exclusive) as kept, adding to the
+// current mask. `part` is a [`FlameBodyPart`] value.
+//
+// # Safety
+// `session` is a live session.
+enum FlameStatus flame_session_keep_part(struct FlameSession *session,
+                                         int32_t part,
+                                         uint32_t start,
+                                         uint32_t end);
+
+// Replaces the mask with a standard task's: `task` is a [`FlameEditTask`] value.
+//
+// # Safety
+// `session` is a live session.
+enum FlameStatus flame_session_set_task_mask(struct FlameSession *session, int32_t task);
+
+// Sets a smpl24_6d reference from poses instead of features: `root` = `frames` × 3 root
+// (pelvis) positions, `rotations` = `frames` × 24 local joint rotations in `layout`
+// (FLAME_LAYOUT_LOCAL_QUAT_XYZW/WXYZ, _LOCAL_MATRIX or _LOCAL_6D), both in `convention` (a
+// [`FlameConvention`] value) and its unit: the inverse of [`flame_session_read`]. Quaternions
+// are normalised; matrices must be rotations. 1 <= `frames` <= the session's frames.
+//
+// # Safety
+// `session` is a live session; `root` points to `root_len` floats and `rotations` to
+// `rotations_len` floats.
+enum FlameStatus flame_session_set_reference_poses(struct FlameSession *session,
+                                                   const float *root,
+                                                   size_t root_len,
+                                                   const float *rotations,
+                                                   size_t rotations_len,
+                                                   uint32_t frames,
+                                                   int32_t layout,
+                                                   int32_t convention);
 
 // Removes the reference and the mask.
 //

@@ -339,6 +339,52 @@ impl Session {
         Ok(())
     }
 
+    /// [`Session::set_reference`] with features in the motion format's own units (as decoded
+    /// poses and BVH files are): normalised first with the model's statistics, if it has any.
+    pub fn set_reference_unnormalized(&mut self, features: &[f32]) -> Result<()> {
+        let mut x = features.to_vec();
+        if let Some(norm) = self.model.read_options(0.0, true).normalization {
+            norm.normalize(&mut x)?;
+        }
+        self.set_reference(&x)
+    }
+
+    /// Sets a `smpl24_6d` reference from poses: root (pelvis) positions `[frames, 3]` and local
+    /// joint rotations `[frames, 24, …]` in `layout` (local matrices, 6D or quaternions), both
+    /// in `convention` (see [`crate::motion::reference::smpl24_features`]).
+    pub fn set_reference_poses(
+        &mut self,
+        root: &[f32],
+        rotations: &[f32],
+        layout: crate::motion::Layout,
+        convention: crate::motion::Convention,
+        frames: usize,
+    ) -> Result<()> {
+        let format = self.model.motion_format();
+        if format != crate::motion::Format::Smpl24Rot6d {
+            return Err(invalid_arg!(
+                "pose references need a smpl24_6d model; this model's format is {format} (give features)"
+            ));
+        }
+        let x =
+            crate::motion::reference::smpl24_features(root, rotations, layout, convention, frames)?;
+        self.set_reference_unnormalized(&x)
+    }
+
+    /// Sets the keep-mask from a [`crate::motion::mask::Mask`] built for this session.
+    pub fn set_mask_from(&mut self, mask: &crate::motion::mask::Mask) -> Result<()> {
+        if mask.format() != self.model.motion_format() || mask.frames() != self.frames {
+            return Err(invalid_arg!(
+                "mask is for {} frames of {}, the session has {} frames of {}",
+                mask.frames(),
+                mask.format(),
+                self.frames,
+                self.model.motion_format()
+            ));
+        }
+        self.set_keep(mask.flags().to_vec())
+    }
+
     /// Sets the keep-mask, one entry per feature value (`[frames, motion_dim]`, nonzero = keep
     /// the reference). An all-zero mask edits nothing (plain generation); an all-keep mask
     /// reproduces the reference. May change between steps: it takes effect at the next step.

@@ -8,8 +8,8 @@ use std::time::Instant;
 
 use flame::config::{DenoiserConfig, TextConfig};
 use flame::models::Model;
-use flame::motion::{self, Convention, Format, Layout, Poses, QuatOrder};
-use flame::session::{Session, SessionParams};
+use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
+use flame::session::{EditParams, Session, SessionParams};
 
 const USAGE: &str = "\
 usage:
@@ -18,6 +18,11 @@ usage:
                  --out FILE.npy|FILE.bvh|FILE.json
                  [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
                  [--quat xyzw|wxyz] [--positions FILE.npy]
+  flame edit --model M --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
+             [--task inbetween|predict|upper-body|path] [--keep-frames A:B,...]
+             [--keep-joints J,...] [--method auto|noised-reference|replace-x0|rewrite-trajectory]
+             [--edit-till F] [--paste on|off] [--seam-frames N] [--reference-convention C]
+             [generate's other options]
   flame info M
 
 generate picks the writer by the extension of --out: .npy = raw features (float32, frames x
@@ -27,12 +32,24 @@ the skeleton. --positions also writes world joint positions (float32, frames x j
 Poses are in --convention (default native); --smooth is the sigma in frames of the temporal
 Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
 otherwise; 0 = off). For Blender's BVH importer write the BVH with --convention gltf. Unset
-options take the model file's defaults (see `flame info`).";
+options take the model file's defaults (see `flame info`).
+
+edit keeps parts of a reference motion and generates the rest from the prompt. References are
+.npy model-space features (what `generate --out x.npy` writes) or a BVH written by libflame
+(smpl24_6d models; its convention is recognised from the skeleton's offsets and, for native
+vs gltf whose offsets agree, from which axis is up; --reference-convention says it outright). Kept values:
+--task inbetween (first and last quarter), predict (the first quarter, or all of a reference
+shorter than --frames), upper-body (keeps the root path, pelvis and legs), path (keeps the root
+path); --keep-frames adds frame ranges (A:B half-open, `:B`, `A:`), --keep-joints adds joints
+by index or name (`root` = the root path) on every frame. --frames defaults to the reference's
+length. Flow models take 30 steps by default when editing. --paste off gives the official
+behaviour (the kept parts are not copied exactly into the result).";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.first().map(String::as_str) {
         Some("generate") => generate(&args[1..]),
+        Some("edit") => edit(&args[1..]),
         Some("info") => info(&args[1..]),
         Some("-h" | "--help" | "help") => {
             println!("{USAGE}");
@@ -87,43 +104,42 @@ fn parsed<T: std::str::FromStr>(
         .transpose()
 }
 
-fn generate(args: &[String]) -> Result<(), String> {
-    let flags = parse_flags(
-        args,
-        &[
-            "model",
-            "prompt",
-            "frames",
-            "steps",
-            "sampler",
-            "eta",
-            "guidance",
-            "seed",
-            "noise",
-            "threads",
-            "out",
-            "convention",
-            "smooth",
-            "quat",
-            "positions",
-        ],
-    )?;
-    let model_path = flags.get("model").ok_or("generate needs `--model M`")?;
-    let prompt = flags
-        .get("prompt")
-        .ok_or("generate needs `--prompt TEXT`")?;
-    let outputs = Outputs::from_flags(&flags)?;
-    let params = SessionParams {
-        frames: parsed(&flags, "frames")?,
-        steps: parsed(&flags, "steps")?,
-        sampler: parsed(&flags, "sampler")?,
-        eta: parsed(&flags, "eta")?,
-        guidance: parsed(&flags, "guidance")?,
-        clip_denoised: None,
-        seed: parsed(&flags, "seed")?.unwrap_or(0),
-        threads: parsed(&flags, "threads")?.unwrap_or(0),
-    };
+/// Options `generate` and `edit` share.
+const COMMON_FLAGS: [&str; 15] = [
+    "model",
+    "prompt",
+    "frames",
+    "steps",
+    "sampler",
+    "eta",
+    "guidance",
+    "seed",
+    "noise",
+    "threads",
+    "out",
+    "convention",
+    "smooth",
+    "quat",
+    "positions",
+];
 
+fn session_params(flags: &HashMap<String, String>) -> Result<SessionParams, String> {
+    Ok(SessionParams {
+        frames: parsed(flags, "frames")?,
+        steps: parsed(flags, "steps")?,
+        sampler: parsed(flags, "sampler")?,
+        eta: parsed(flags, "eta")?,
+        guidance: parsed(flags, "guidance")?,
+        clip_denoised: None,
+        seed: parsed(flags, "seed")?.unwrap_or(0),
+        threads: parsed(flags, "threads")?.unwrap_or(0),
+    })
+}
+
+fn load_model(flags: &HashMap<String, String>, command: &str) -> Result<Arc<Model>, String> {
+    let model_path = flags
+        .get("model")
+        .ok_or_else(|| format!("{command} needs `--model M`"))?;
     let t0 = Instant::now();
     let model =
         Arc::new(Model::load(model_path).map_err(|e| format!("cannot load {model_path}: {e}"))?);
@@ -131,6 +147,17 @@ fn generate(args: &[String]) -> Result<(), String> {
         "loaded {model_path} in {:.0} ms",
         t0.elapsed().as_secs_f64() * 1e3
     );
+    Ok(model)
+}
+
+fn generate(args: &[String]) -> Result<(), String> {
+    let flags = parse_flags(args, &COMMON_FLAGS)?;
+    let prompt = flags
+        .get("prompt")
+        .ok_or("generate needs `--prompt TEXT`")?;
+    let outputs = Outputs::from_flags(&flags)?;
+    let params = session_params(&flags)?;
+    let model = load_model(&flags, "generate")?;
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(&model);
     let mut session = Session::new(Arc::clone(&model), &params).map_err(|e| e.to_string())?;
@@ -139,6 +166,186 @@ fn generate(args: &[String]) -> Result<(), String> {
         session.set_initial_noise(&x).map_err(|e| e.to_string())?;
     }
     session.set_prompt(prompt).map_err(|e| e.to_string())?;
+    sample(&mut session)?;
+    let x = session.sample().expect("finished generation has a sample");
+    outputs.write(x, session.frames(), &model, decoder.as_ref())
+}
+
+/// A reference motion read from the command line, in model space.
+struct Reference {
+    features: Vec<f32>,
+    frames: usize,
+}
+
+fn read_reference(
+    path: &str,
+    model: &Model,
+    convention: Option<Convention>,
+) -> Result<Reference, String> {
+    let dim = model.motion_dim();
+    let ext = Path::new(path).extension().and_then(|e| e.to_str());
+    let (features, raw) = match ext {
+        Some("npy") => {
+            let (shape, x) = flame::npy::read_f32(Path::new(path))
+                .map_err(|e| format!("cannot read {path}: {e}"))?;
+            if shape.len() != 2 || shape[1] != dim {
+                return Err(format!(
+                    "cannot use {path}: shape {shape:?}, expected [frames, {dim}] features"
+                ));
+            }
+            (x, false)
+        }
+        Some("bvh") => {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+            let bvh = motion::bvh::parse(&text).map_err(|e| format!("cannot read {path}: {e}"))?;
+            let format = model.motion_format();
+            let x = match convention {
+                Some(c) => motion::bvh::to_features_in(&bvh, format, c),
+                None => motion::bvh::to_features(&bvh, format).map(|(x, frames, c, fps)| {
+                    eprintln!("reference {path}: {frames} frames at {fps} fps, {c} convention");
+                    x
+                }),
+            }
+            .map_err(|e| format!("cannot use {path}: {e}"))?;
+            (x, true)
+        }
+        _ => {
+            return Err(format!(
+                "cannot read {path}: --reference must end in .npy or .bvh"
+            ))
+        }
+    };
+    let frames = features.len() / dim;
+    if frames == 0 {
+        return Err(format!("cannot use {path}: the reference has no frames"));
+    }
+    let mut features = features;
+    if raw {
+        // BVH poses are in the format's own units; a normalised model wants its own space.
+        if let Some(norm) = model.read_options(0.0, true).normalization {
+            norm.normalize(&mut features).map_err(|e| e.to_string())?;
+        }
+    }
+    Ok(Reference { features, frames })
+}
+
+/// The keep-mask `edit` asks for.
+fn edit_mask(
+    flags: &HashMap<String, String>,
+    format: Format,
+    frames: usize,
+    ref_frames: usize,
+) -> Result<Mask, String> {
+    let err = |e: flame::Error| e.to_string();
+    let mut mask = Mask::new(format, frames).map_err(err)?;
+    if let Some(task) = flags.get("task") {
+        let task: Task = task.parse().map_err(err)?;
+        mask = if task == Task::Predict && ref_frames < frames {
+            let mut m = Mask::new(format, frames).map_err(err)?;
+            m.keep_frames(0, ref_frames).map_err(err)?;
+            m
+        } else {
+            Mask::for_task(format, frames, task).map_err(err)?
+        };
+    }
+    if let Some(spec) = flags.get("keep-frames") {
+        for (a, b) in motion::mask::parse_frame_ranges(spec, frames).map_err(err)? {
+            mask.keep_frames(a, b).map_err(err)?;
+        }
+    }
+    if let Some(spec) = flags.get("keep-joints") {
+        mask.keep_joint_list(spec, 0, frames).map_err(err)?;
+    }
+    if mask.is_empty() {
+        return Err("edit needs --task, --keep-frames or --keep-joints (nothing is kept)".into());
+    }
+    Ok(mask)
+}
+
+fn edit(args: &[String]) -> Result<(), String> {
+    let mut known = COMMON_FLAGS.to_vec();
+    known.extend([
+        "reference",
+        "task",
+        "keep-frames",
+        "keep-joints",
+        "method",
+        "edit-till",
+        "paste",
+        "seam-frames",
+        "reference-convention",
+    ]);
+    let flags = parse_flags(args, &known)?;
+    let prompt = flags.get("prompt").ok_or("edit needs `--prompt TEXT`")?;
+    let ref_path = flags
+        .get("reference")
+        .ok_or("edit needs `--reference FILE.npy|FILE.bvh`")?;
+    let outputs = Outputs::from_flags(&flags)?;
+    let mut edit = EditParams::default();
+    if let Some(m) = flags.get("method") {
+        edit.method = m.parse().map_err(|e: flame::Error| e.to_string())?;
+    }
+    if let Some(t) = parsed(&flags, "edit-till")? {
+        edit.edit_till = t;
+    }
+    if let Some(n) = parsed(&flags, "seam-frames")? {
+        edit.seam_frames = n;
+    }
+    edit.paste = match flags.get("paste").map(String::as_str) {
+        None | Some("on") => true,
+        Some("off") => false,
+        Some(v) => return Err(format!("option `--paste`: expected on or off, got `{v}`")),
+    };
+    let mut params = session_params(&flags)?;
+    let model = load_model(&flags, "edit")?;
+    let ref_convention = flags
+        .get("reference-convention")
+        .map(|c| c.parse::<Convention>())
+        .transpose()
+        .map_err(|e| format!("option `--reference-convention`: {e}"))?;
+    let reference = read_reference(ref_path, &model, ref_convention)?;
+    params.frames = params.frames.or(Some(reference.frames));
+    let flow = matches!(
+        model.config().diffusion.parameterization.as_str(),
+        "velocity" | "flow"
+    );
+    if flow && params.steps.is_none() {
+        // Motion Flow Matching edits with N = 30 (REFERENCE 3).
+        params.steps = Some(30);
+    }
+    let decoder = outputs.decoder(&model);
+    let mut session = Session::new(Arc::clone(&model), &params).map_err(|e| e.to_string())?;
+    let frames = session.frames();
+    if reference.frames > frames {
+        return Err(format!(
+            "the reference has {} frames, more than the {frames} to generate (give --frames)",
+            reference.frames
+        ));
+    }
+    let mask = edit_mask(&flags, model.motion_format(), frames, reference.frames)?;
+    eprintln!(
+        "keeping {} of {} values ({:.0}%)",
+        mask.kept_count(),
+        mask.flags().len(),
+        100.0 * mask.kept_count() as f64 / mask.flags().len() as f64
+    );
+    let e = |e: flame::Error| e.to_string();
+    session.set_edit_params(&edit).map_err(e)?;
+    session.set_reference(&reference.features).map_err(e)?;
+    session.set_mask_from(&mask).map_err(e)?;
+    if let Some(noise) = flags.get("noise") {
+        let (_, x) = flame::npy::read_f32(Path::new(noise)).map_err(|e| e.to_string())?;
+        session.set_initial_noise(&x).map_err(e)?;
+    }
+    session.set_prompt(prompt).map_err(e)?;
+    sample(&mut session)?;
+    let x = session.sample().expect("finished generation has a sample");
+    outputs.write(x, frames, &model, decoder.as_ref())
+}
+
+/// Runs every step, reporting progress on stderr.
+fn sample(session: &mut Session) -> Result<(), String> {
     let t1 = Instant::now();
     let n = session.num_steps();
     while session.steps_left() > 0 {
@@ -153,8 +360,7 @@ fn generate(args: &[String]) -> Result<(), String> {
         elapsed,
         elapsed * 1e3 / n as f64
     );
-    let x = session.sample().expect("finished generation has a sample");
-    outputs.write(x, session.frames(), &model, decoder.as_ref())
+    Ok(())
 }
 
 /// What `generate` writes, from `--out`, `--positions` and the pose options.
@@ -186,7 +392,7 @@ impl Outputs {
         let out = PathBuf::from(
             flags
                 .get("out")
-                .ok_or("generate needs `--out FILE.npy|FILE.bvh|FILE.json`")?,
+                .ok_or("`--out FILE.npy|FILE.bvh|FILE.json` is required")?,
         );
         let kind = match out.extension().and_then(|e| e.to_str()) {
             Some("npy") => OutKind::Features,

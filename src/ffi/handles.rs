@@ -207,17 +207,31 @@ impl SessionState {
     pub(crate) fn keep_joints(&mut self, joints: &[i32]) -> Result<(), Fail> {
         let model = Arc::clone(self.session.model());
         let d = model.motion_dim();
-        let mut ranges = Vec::with_capacity(joints.len());
+        let mut channels = Vec::with_capacity(joints.len());
         for &j in joints {
-            ranges.push(super::poses::joint_channels(model.motion_format(), j)?);
+            channels.extend(super::poses::joint_channels(model.motion_format(), j)?);
         }
         let mut mask = self.mask_or_empty();
         for frame in mask.chunks_exact_mut(d) {
-            for r in &ranges {
-                frame[r.clone()].fill(1);
+            for &c in &channels {
+                frame[c] = 1;
             }
         }
         Ok(self.session.set_mask(&mask)?)
+    }
+
+    /// Adds a body part's channels on frames `start..end` to the mask.
+    pub(crate) fn keep_part(
+        &mut self,
+        part: crate::motion::BodyPart,
+        start: usize,
+        end: usize,
+    ) -> Result<(), Fail> {
+        let format = self.session.model().motion_format();
+        let flags = self.mask_or_empty();
+        let mut mask = crate::motion::Mask::from_flags(format, self.session.frames(), &flags)?;
+        mask.keep_part(part, start, end)?;
+        Ok(self.session.set_mask_from(&mask)?)
     }
 
     pub(crate) fn set_progress(&mut self, callback: FlameProgressCallback, user_data: *mut c_void) {

@@ -87,6 +87,37 @@ pub struct FlameEditParams {
     pub seam_frames: u32,
 }
 
+/// Named groups of channels for [`flame_session_keep_part`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameBodyPart {
+    /// The root's trajectory (smpl24_6d: the translation; humanml263: root yaw velocity, planar
+    /// velocity and height).
+    RootPath = 0,
+    /// Root path, pelvis and legs (what an upper-body edit keeps).
+    LowerBody = 1,
+    /// Spine, neck, head, collars and arms.
+    UpperBody = 2,
+    /// Collars, shoulders, elbows, wrists (and hands).
+    Arms = 3,
+    /// Hips, knees, ankles and feet (and foot contacts).
+    Legs = 4,
+}
+
+/// The standard editing tasks of [`flame_session_set_task_mask`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameEditTask {
+    /// Keep the first and last quarter of the frames, generate the middle.
+    Inbetween = 0,
+    /// Keep the first quarter of the frames, generate the rest.
+    Predict = 1,
+    /// Keep the lower body on every frame, generate the upper body.
+    UpperBody = 2,
+    /// Keep the root path on every frame, generate the body.
+    Path = 3,
+}
+
 /// Which motion [`flame_session_read`] returns.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -652,6 +683,94 @@ pub unsafe extern "C" fn flame_session_keep_joints(
         let s = session_ref(session)?;
         let j = slice_arg(joints, count, "joints")?;
         s.with(|st| st.keep_joints(j))
+    })
+}
+
+/// Marks a body part's channels on frames `start..end` (end exclusive) as kept, adding to the
+/// current mask. `part` is a [`FlameBodyPart`] value.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_keep_part(
+    session: *mut FlameSession,
+    part: i32,
+    start: u32,
+    end: u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let part = usize::try_from(part)
+            .ok()
+            .and_then(|p| crate::motion::BodyPart::ALL.get(p).copied())
+            .ok_or_else(|| invalid_arg!("unknown body part {part} (0..=4)"))?;
+        s.with(|st| st.keep_part(part, start as usize, end as usize))
+    })
+}
+
+/// Replaces the mask with a standard task's: `task` is a [`FlameEditTask`] value.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_task_mask(
+    session: *mut FlameSession,
+    task: i32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let task = usize::try_from(task)
+            .ok()
+            .and_then(|t| crate::motion::Task::ALL.get(t).copied())
+            .ok_or_else(|| invalid_arg!("unknown editing task {task} (0..=3)"))?;
+        s.with(|st| {
+            let format = st.session.model().motion_format();
+            let mask = crate::motion::Mask::for_task(format, st.session.frames(), task)?;
+            Ok(st.session.set_mask_from(&mask)?)
+        })
+    })
+}
+
+/// Sets a smpl24_6d reference from poses instead of features: `root` = `frames` × 3 root
+/// (pelvis) positions, `rotations` = `frames` × 24 local joint rotations in `layout`
+/// (FLAME_LAYOUT_LOCAL_QUAT_XYZW/WXYZ, _LOCAL_MATRIX or _LOCAL_6D), both in `convention` (a
+/// [`FlameConvention`] value) and its unit: the inverse of [`flame_session_read`]. Quaternions
+/// are normalised; matrices must be rotations. 1 <= `frames` <= the session's frames.
+///
+/// # Safety
+/// `session` is a live session; `root` points to `root_len` floats and `rotations` to
+/// `rotations_len` floats.
+#[no_mangle]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn flame_session_set_reference_poses(
+    session: *mut FlameSession,
+    root: *const f32,
+    root_len: usize,
+    rotations: *const f32,
+    rotations_len: usize,
+    frames: u32,
+    layout: i32,
+    convention: i32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let root = slice_arg(root, root_len, "root")?;
+        let rotations = slice_arg(rotations, rotations_len, "rotations")?;
+        let layout = poses::rotation_layout(layout)?;
+        let convention = poses::convention(convention)?;
+        s.with(|st| {
+            let f = st.session.frames();
+            if frames == 0 || frames as usize > f {
+                return Err(invalid_arg!("reference frames {frames} outside 1..={f}").into());
+            }
+            Ok(st.session.set_reference_poses(
+                root,
+                rotations,
+                layout,
+                convention,
+                frames as usize,
+            )?)
+        })
     })
 }
 

@@ -2,8 +2,6 @@
 //! so the motion module's Rust enums stay out of the header), read flags, skeleton tables and
 //! the feature channels a joint owns (for keep-masks).
 
-use std::ops::Range;
-
 use crate::error::{invalid_arg, Result};
 use crate::models::Model;
 use crate::motion::{self, Convention, Format, Layout};
@@ -91,24 +89,37 @@ pub(crate) fn skeleton(format: Format) -> (Vec<String>, Vec<i32>) {
     )
 }
 
-/// The feature channels joint `joint` owns in `format`; -1 is the root translation.
-pub(crate) fn joint_channels(format: Format, joint: i32) -> Result<Range<usize>> {
-    match format {
-        // REFERENCE 1.14: channels 0..3 root translation, then the 6D rotations of 24 joints.
-        Format::Smpl24Rot6d => match joint {
-            -1 => Ok(0..3),
-            0..=23 => {
-                let j = joint as usize;
-                Ok(3 + 6 * j..3 + 6 * j + 6)
-            }
-            _ => Err(invalid_arg!(
-                "joint {joint} is not a smpl24_6d joint (0..=23, or -1 for the root translation)"
-            )),
-        },
-        other => Err(invalid_arg!(
-            "keeping joints is not supported yet for the `{other}` motion format"
+/// The feature channels joint `joint` owns in `format`; -1 is the root path (smpl24_6d's
+/// translation, humanml263's root velocity and height channels).
+pub(crate) fn joint_channels(format: Format, joint: i32) -> Result<Vec<usize>> {
+    match joint {
+        -1 => Ok(motion::mask::root_path_channels(format)),
+        j if j >= 0 => motion::mask::joint_channels(format, j as usize),
+        j => Err(invalid_arg!(
+            "joint {j} is not a joint index (0..J-1, or -1 for the root path)"
         )),
     }
+}
+
+/// A C layout value that describes joint rotations (for pose references).
+pub(crate) fn rotation_layout(layout: i32) -> Result<Layout> {
+    match layout {
+        l if l == FlameLayout::LocalQuatXyzw as i32 => Ok(Layout::LocalQuatXyzw),
+        l if l == FlameLayout::LocalQuatWxyz as i32 => Ok(Layout::LocalQuatWxyz),
+        l if l == FlameLayout::LocalMatrix as i32 => Ok(Layout::LocalMatrix),
+        l if l == FlameLayout::Local6d as i32 => Ok(Layout::Local6d),
+        l => Err(invalid_arg!(
+            "layout {l} does not hold local rotations (2 quat xyzw, 3 quat wxyz, 4 matrix, 5 6D)"
+        )),
+    }
+}
+
+/// A C convention value.
+pub(crate) fn convention(convention: i32) -> Result<Convention> {
+    usize::try_from(convention)
+        .ok()
+        .and_then(|c| CONVENTIONS.get(c).copied())
+        .ok_or_else(|| invalid_arg!("unknown convention {convention} (0..=5)"))
 }
 
 /// The features in the requested layout, convention and flags.
@@ -123,10 +134,7 @@ pub(crate) fn read(
     if flags & !(FLAME_READ_SMOOTH | FLAME_READ_RAW_SIGNS) != 0 {
         return Err(invalid_arg!("unknown read flags {flags:#x}"));
     }
-    let convention = usize::try_from(convention)
-        .ok()
-        .and_then(|c| CONVENTIONS.get(c).copied())
-        .ok_or_else(|| invalid_arg!("unknown convention {convention} (0..=5)"))?;
+    let convention = self::convention(convention)?;
     if layout == FlameLayout::Features as i32 {
         return Ok(features.to_vec());
     }

@@ -1,4 +1,6 @@
-//! BVH export: the format's skeleton as the hierarchy, one frame of channels per motion frame.
+//! BVH export and import: the format's skeleton as the hierarchy, one frame of channels per
+//! motion frame; and a reader ([`parse`], [`to_features`]) that turns a BVH written by libflame
+//! (in any convention) back into `smpl24_6d` features, so it can serve as an editing reference.
 //!
 //! - Hierarchy: joints in depth-first order from the root, children in index order, OFFSETs
 //!   = the rest offsets in the chosen convention and unit; the root's OFFSET is zero so that
@@ -19,8 +21,10 @@
 use std::fmt::Write;
 
 use super::convention::{Change, Convention};
+use super::format::Format;
 use super::poses::Poses;
-use super::rotation::{self, Vec3};
+use super::reference;
+use super::rotation::{self, Mat3, Vec3};
 use super::skeleton::Skeleton;
 use crate::error::{invalid_arg, Result};
 
@@ -98,4 +102,627 @@ fn write_joint(
         );
     }
     let _ = writeln!(out, "{pad}}}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+
+/// One BVH channel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Channel {
+    Xposition,
+    Yposition,
+    Zposition,
+    Xrotation,
+    Yrotation,
+    Zrotation,
+}
+
+impl Channel {
+    const ALL: [Channel; 6] = [
+        Channel::Xposition,
+        Channel::Yposition,
+        Channel::Zposition,
+        Channel::Xrotation,
+        Channel::Yrotation,
+        Channel::Zrotation,
+    ];
+
+    /// The name as written in a `CHANNELS` line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Channel::Xposition => "Xposition",
+            Channel::Yposition => "Yposition",
+            Channel::Zposition => "Zposition",
+            Channel::Xrotation => "Xrotation",
+            Channel::Yrotation => "Yrotation",
+            Channel::Zrotation => "Zrotation",
+        }
+    }
+
+    /// The axis (0 = X, 1 = Y, 2 = Z).
+    pub fn axis(self) -> usize {
+        match self {
+            Channel::Xposition | Channel::Xrotation => 0,
+            Channel::Yposition | Channel::Yrotation => 1,
+            Channel::Zposition | Channel::Zrotation => 2,
+        }
+    }
+
+    pub fn is_rotation(self) -> bool {
+        matches!(
+            self,
+            Channel::Xrotation | Channel::Yrotation | Channel::Zrotation
+        )
+    }
+}
+
+/// One joint of a parsed hierarchy.
+#[derive(Clone, Debug)]
+pub struct BvhJoint {
+    name: String,
+    parent: Option<usize>,
+    offset: Option<Vec3>,
+    channels: Vec<Channel>,
+    /// Index of the joint's first channel within a frame.
+    first_channel: usize,
+    /// 1-based line of the `ROOT`/`JOINT` keyword, for error messages.
+    line: usize,
+}
+
+impl BvhJoint {
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The parent's index in [`BvhMotion::joints`], `None` for the root.
+    pub fn parent(&self) -> Option<usize> {
+        self.parent
+    }
+
+    pub fn offset(&self) -> Vec3 {
+        self.offset.unwrap_or_default()
+    }
+
+    pub fn channels(&self) -> &[Channel] {
+        &self.channels
+    }
+}
+
+/// A parsed BVH file: the hierarchy in file order (parents before children) and the motion,
+/// `frames × channel_count` values (degrees and the file's unit), frame-major.
+#[derive(Clone, Debug)]
+pub struct BvhMotion {
+    joints: Vec<BvhJoint>,
+    channel_count: usize,
+    frame_time: f64,
+    data: Vec<f64>,
+}
+
+impl BvhMotion {
+    pub fn joints(&self) -> &[BvhJoint] {
+        &self.joints
+    }
+
+    /// Channels per frame, over all joints.
+    pub fn channel_count(&self) -> usize {
+        self.channel_count
+    }
+
+    pub fn frames(&self) -> usize {
+        self.data.len().checked_div(self.channel_count).unwrap_or(0)
+    }
+
+    /// Seconds per frame (`Frame Time`).
+    pub fn frame_time(&self) -> f64 {
+        self.frame_time
+    }
+
+    /// `1 / Frame Time`, snapped to the integer rate when the 6 printed decimals explain the
+    /// difference (libflame writes `1/fps` with `{:.6}`: 30 fps reads back as 0.033333).
+    pub fn fps(&self) -> f32 {
+        let rate = 1.0 / self.frame_time;
+        let whole = rate.round();
+        if whole >= 1.0 && (1.0 / whole - self.frame_time).abs() <= 5.0001e-7 {
+            whole as f32
+        } else {
+            rate as f32
+        }
+    }
+
+    /// The channel values of frame `t`, in file order.
+    pub fn frame(&self, t: usize) -> Option<&[f64]> {
+        self.data
+            .chunks_exact(self.channel_count.max(1))
+            .nth(t)
+            .filter(|_| self.channel_count > 0)
+    }
+}
+
+/// A parse error at a 1-based line.
+fn at(line: usize, msg: impl std::fmt::Display) -> crate::error::Error {
+    invalid_arg!("BVH line {line}: {msg}")
+}
+
+/// Parses BVH text: `HIERARCHY` with one `ROOT`, nested `JOINT`s and `End Site`s, `OFFSET` and
+/// `CHANNELS`; then `MOTION`, `Frames:`, `Frame Time:` and one line of numbers per frame.
+/// Errors carry the line number. Storage grows with the data actually present, never with the
+/// declared `Frames:` count, which must match the number of frame lines.
+pub fn parse(text: &str) -> Result<BvhMotion> {
+    let lines: Vec<&str> = text.lines().collect();
+    let motion_at = lines
+        .iter()
+        .position(|l| l.split_whitespace().next() == Some("MOTION"))
+        .ok_or_else(|| invalid_arg!("BVH has no MOTION section"))?;
+    let tokens: Vec<(usize, &str)> = lines[..motion_at]
+        .iter()
+        .enumerate()
+        .flat_map(|(i, l)| l.split_whitespace().map(move |t| (i + 1, t)))
+        .collect();
+    let (joints, channel_count) = parse_hierarchy(&tokens, motion_at + 1)?;
+    let (frame_time, data) = parse_motion(&lines, motion_at, channel_count)?;
+    Ok(BvhMotion {
+        joints,
+        channel_count,
+        frame_time,
+        data,
+    })
+}
+
+/// The hierarchy's joints and the total channel count. An explicit stack (no recursion) keeps
+/// deeply nested input from overflowing the call stack.
+fn parse_hierarchy(tokens: &[(usize, &str)], motion_line: usize) -> Result<(Vec<BvhJoint>, usize)> {
+    let mut it = Tokens(tokens.iter());
+    match it.0.next().copied() {
+        Some((_, "HIERARCHY")) => {}
+        Some((line, t)) => return Err(at(line, format!("expected HIERARCHY, found `{t}`"))),
+        None => return Err(at(motion_line, "MOTION before any HIERARCHY")),
+    }
+    let mut joints: Vec<BvhJoint> = Vec::new();
+    // Open blocks: Some(joint) or None for an End Site.
+    let mut stack: Vec<Option<usize>> = Vec::new();
+    let mut channel_count = 0usize;
+    while let Some(&(line, tok)) = it.0.next() {
+        match tok {
+            "ROOT" | "JOINT" => {
+                let parent = match (tok, stack.last()) {
+                    ("ROOT", None) if joints.is_empty() => None,
+                    ("ROOT", _) => return Err(at(line, "only one ROOT is supported")),
+                    ("JOINT", Some(Some(p))) => Some(*p),
+                    ("JOINT", Some(None)) => return Err(at(line, "JOINT inside an End Site")),
+                    _ => return Err(at(line, "JOINT outside any ROOT")),
+                };
+                let (name_line, name) = it.need(line, "a joint name")?;
+                if name_line != line || name == "{" || name == "}" {
+                    return Err(at(line, format!("{tok} has no name")));
+                }
+                expect(it.need(line, "`{`")?, "{")?;
+                if joints.iter().any(|j| j.name == name) {
+                    return Err(at(line, format!("joint `{name}` appears twice")));
+                }
+                stack.push(Some(joints.len()));
+                joints.push(BvhJoint {
+                    name: name.to_string(),
+                    parent,
+                    offset: None,
+                    channels: Vec::new(),
+                    first_channel: channel_count,
+                    line,
+                });
+            }
+            "End" => {
+                expect(it.need(line, "`Site`")?, "Site")?;
+                if !matches!(stack.last(), Some(Some(_))) {
+                    return Err(at(line, "End Site outside a joint"));
+                }
+                expect(it.need(line, "`{`")?, "{")?;
+                stack.push(None);
+            }
+            "OFFSET" => {
+                let mut v = [0.0; 3];
+                for x in &mut v {
+                    *x = number(it.need(line, "an OFFSET value")?)?;
+                }
+                match stack.last() {
+                    Some(Some(j)) if joints[*j].offset.is_none() => joints[*j].offset = Some(v),
+                    Some(Some(j)) => {
+                        return Err(at(line, format!("second OFFSET for `{}`", joints[*j].name)))
+                    }
+                    Some(None) => {} // End Site tails carry no motion.
+                    None => return Err(at(line, "OFFSET outside a joint")),
+                }
+            }
+            "CHANNELS" => {
+                let Some(Some(j)) = stack.last().copied() else {
+                    return Err(at(line, "CHANNELS outside a joint"));
+                };
+                let (_, n) = it.need(line, "a channel count")?;
+                let n: usize = n
+                    .parse()
+                    .ok()
+                    .filter(|&n| n <= 6)
+                    .ok_or_else(|| at(line, format!("channel count `{n}` is not 0..6")))?;
+                if !joints[j].channels.is_empty() {
+                    return Err(at(
+                        line,
+                        format!("second CHANNELS for `{}`", joints[j].name),
+                    ));
+                }
+                for _ in 0..n {
+                    let (l, name) = it.need(line, "a channel name")?;
+                    let c = Channel::ALL
+                        .into_iter()
+                        .find(|c| c.name().eq_ignore_ascii_case(name))
+                        .ok_or_else(|| at(l, format!("unknown channel `{name}` (CHANNELS {n} declared on line {line})")))?;
+                    if joints[j].channels.contains(&c) {
+                        return Err(at(l, format!("channel {} listed twice", c.name())));
+                    }
+                    joints[j].channels.push(c);
+                }
+                channel_count += n;
+            }
+            "}" => {
+                if stack.pop().is_none() {
+                    return Err(at(line, "`}` without an open block"));
+                }
+            }
+            other => return Err(at(line, format!("unexpected `{other}` in the hierarchy"))),
+        }
+    }
+    if let Some(open) = stack.iter().rev().find_map(|x| *x) {
+        return Err(at(
+            motion_line,
+            format!(
+                "MOTION before joint `{}` (line {}) is closed",
+                joints[open].name, joints[open].line
+            ),
+        ));
+    }
+    if let Some(j) = joints.iter().find(|j| j.offset.is_none()) {
+        return Err(at(j.line, format!("joint `{}` has no OFFSET", j.name)));
+    }
+    if joints.is_empty() {
+        return Err(at(motion_line, "the hierarchy has no ROOT"));
+    }
+    Ok((joints, channel_count))
+}
+
+/// `Frames:`, `Frame Time:` and the frame lines after the `MOTION` line at index `motion_at`.
+fn parse_motion(lines: &[&str], motion_at: usize, channels: usize) -> Result<(f64, Vec<f64>)> {
+    let mut rest = lines
+        .iter()
+        .enumerate()
+        .skip(motion_at + 1)
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty());
+    let mut header = |key: &str| -> Result<(usize, &str)> {
+        let (line, l) = rest
+            .next()
+            .ok_or_else(|| invalid_arg!("BVH ends before `{key}:`"))?;
+        l.strip_prefix(key)
+            .map(|v| v.trim_start())
+            .and_then(|v| v.strip_prefix(':'))
+            .map(|v| (line, v.trim()))
+            .ok_or_else(|| at(line, format!("expected `{key}:`, found `{l}`")))
+    };
+    let (frames_line, n) = header("Frames")?;
+    let declared: usize = n.parse().map_err(|_| {
+        at(
+            frames_line,
+            format!("frame count `{n}` is not a whole number"),
+        )
+    })?;
+    let (time_line, t) = header("Frame Time")?;
+    let frame_time = number((time_line, t))?;
+    if frame_time <= 0.0 {
+        return Err(at(
+            time_line,
+            format!("Frame Time must be positive, got {t}"),
+        ));
+    }
+    let mut data = Vec::new();
+    let mut seen = 0usize;
+    for (line, l) in rest {
+        if seen == declared {
+            return Err(at(
+                line,
+                format!("more frame lines than the {declared} declared by `Frames:`"),
+            ));
+        }
+        let before = data.len();
+        for tok in l.split_whitespace() {
+            data.push(number((line, tok))?);
+        }
+        let got = data.len() - before;
+        if got != channels {
+            return Err(at(
+                line,
+                format!(
+                    "frame {seen} has {got} values; the hierarchy declares {channels} channels"
+                ),
+            ));
+        }
+        seen += 1;
+    }
+    if seen != declared {
+        return Err(at(
+            lines.len(),
+            format!("file ends after {seen} of the {declared} frames declared at line {frames_line} (truncated?)"),
+        ));
+    }
+    Ok((frame_time, data))
+}
+
+/// The hierarchy's tokens with their lines.
+struct Tokens<'a>(std::slice::Iter<'a, (usize, &'a str)>);
+
+impl<'a> Tokens<'a> {
+    /// The next token, or an error saying what was missing after `line`.
+    fn need(&mut self, line: usize, what: &str) -> Result<(usize, &'a str)> {
+        self.0.next().copied().ok_or_else(|| {
+            at(
+                line,
+                format!("MOTION or the end comes where {what} was expected"),
+            )
+        })
+    }
+}
+
+fn expect((line, tok): (usize, &str), want: &str) -> Result<()> {
+    if tok == want {
+        Ok(())
+    } else {
+        Err(at(line, format!("expected `{want}`, found `{tok}`")))
+    }
+}
+
+/// A finite number.
+fn number((line, tok): (usize, &str)) -> Result<f64> {
+    tok.parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| at(line, format!("`{tok}` is not a finite number")))
+}
+
+/// How far (metres) a file's OFFSETs may be from a convention's rest offsets and still be taken
+/// as written in it: far above the 6 printed decimals, far below any difference between
+/// conventions (they differ by axis swaps and signs of offsets ≥ 5 cm).
+const OFFSET_TOLERANCE_M: f64 = 1e-4;
+
+/// The `smpl24_6d` features `[frames, 147]` of a BVH written by libflame, with the frame count,
+/// the convention the file was written in and its frame rate.
+///
+/// Joints are matched to SMPL-24 by name (any order; the parents must match SMPL's). The
+/// convention is the one whose rest offsets (unit included) the file's OFFSETs reproduce;
+/// `native` and `gltf` share their offsets for SMPL (both put the body Y-up), and are told apart
+/// by which of them stands the character upright in the format's own world. Rotation channels
+/// may come in any order (the listed order is the order of the product, parent side first);
+/// only the root may carry position channels, all three; a non-zero root OFFSET is added to the
+/// root position. `humanml263` references must be given as features.
+pub fn to_features(bvh: &BvhMotion, format: Format) -> Result<(Vec<f32>, usize, Convention, f32)> {
+    let poses = FilePoses::read(bvh, format)?;
+    let candidates = poses.conventions(format)?;
+    let convention = if candidates.len() == 1 {
+        candidates[0]
+    } else {
+        let score = |c: &Convention| poses.uprightness(format, *c);
+        candidates
+            .into_iter()
+            .max_by(|a, b| score(a).total_cmp(&score(b)))
+            .unwrap_or(Convention::Native)
+    };
+    let features = reference::features_from_poses(&poses.root, &poses.local, convention);
+    Ok((features, bvh.frames(), convention, bvh.fps()))
+}
+
+/// [`to_features`] for a file known to be in `convention` (its OFFSETs must still match it):
+/// for when a motion lies down for its whole length and uprightness cannot decide between
+/// `native` and `gltf`.
+pub fn to_features_in(bvh: &BvhMotion, format: Format, convention: Convention) -> Result<Vec<f32>> {
+    let poses = FilePoses::read(bvh, format)?;
+    let dev = poses.offset_deviation(format, convention);
+    if dev > OFFSET_TOLERANCE_M {
+        return Err(invalid_arg!(
+            "BVH offsets are not SMPL-24's in the {convention} convention (off by up to {dev:.4} m)"
+        ));
+    }
+    Ok(reference::features_from_poses(
+        &poses.root,
+        &poses.local,
+        convention,
+    ))
+}
+
+/// A BVH's SMPL-24 poses in the file's own coordinates.
+struct FilePoses {
+    /// `[24]` OFFSETs in SMPL joint order.
+    offsets: Vec<Vec3>,
+    /// `[frames]` root positions.
+    root: Vec<Vec3>,
+    /// `[frames × 24]` local rotations, SMPL joint order.
+    local: Vec<Mat3>,
+}
+
+impl FilePoses {
+    fn read(bvh: &BvhMotion, format: Format) -> Result<FilePoses> {
+        if format != Format::Smpl24Rot6d {
+            return Err(invalid_arg!(
+                "BVH references need a smpl24_6d model; for {format} give .npy features"
+            ));
+        }
+        if bvh.frames() == 0 {
+            return Err(invalid_arg!("the BVH has no frames"));
+        }
+        let skel = format.skeleton();
+        let order = match_joints(bvh, skel)?;
+        let mut root = Vec::with_capacity(bvh.frames());
+        let mut local = Vec::with_capacity(bvh.frames() * order.len());
+        let root_offset = bvh.joints[order[0]].offset();
+        for t in 0..bvh.frames() {
+            let row = bvh.frame(t).unwrap_or(&[]);
+            let mut p = root_offset;
+            for (j, &b) in order.iter().enumerate() {
+                let joint = &bvh.joints[b];
+                let mut r = rotation::IDENTITY;
+                for (k, c) in joint.channels.iter().enumerate() {
+                    let v = row[joint.first_channel + k];
+                    if c.is_rotation() {
+                        let mut axis = [0.0; 3];
+                        axis[c.axis()] = 1.0;
+                        r = rotation::mul(&r, &rotation::axis_angle(&axis, v.to_radians()));
+                    } else if j == 0 {
+                        p[c.axis()] += v;
+                    }
+                }
+                local.push(r);
+            }
+            root.push(p);
+        }
+        Ok(FilePoses {
+            offsets: order.iter().map(|&b| bvh.joints[b].offset()).collect(),
+            root,
+            local,
+        })
+    }
+
+    /// The largest difference (metres) between the file's non-root OFFSETs and the rest offsets
+    /// in `convention`.
+    fn offset_deviation(&self, format: Format, convention: Convention) -> f64 {
+        let ch = Change::new(format, convention);
+        let scale = convention.frame(format).unit.scale();
+        format.skeleton().rest_offsets()[1..]
+            .iter()
+            .zip(&self.offsets[1..])
+            .flat_map(|(rest, file)| {
+                let want = ch.offset(rest);
+                (0..3).map(move |k| (file[k] - want[k]).abs() / scale)
+            })
+            .fold(0.0, f64::max)
+    }
+
+    /// Every convention whose rest offsets the file reproduces, or an error naming the closest.
+    fn conventions(&self, format: Format) -> Result<Vec<Convention>> {
+        let devs: Vec<(Convention, f64)> = Convention::ALL
+            .iter()
+            .map(|&c| (c, self.offset_deviation(format, c)))
+            .collect();
+        let matching: Vec<Convention> = devs
+            .iter()
+            .filter(|(_, d)| *d <= OFFSET_TOLERANCE_M)
+            .map(|(c, _)| *c)
+            .collect();
+        if !matching.is_empty() {
+            return Ok(matching);
+        }
+        let mut sorted = devs;
+        sorted.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let closest: Vec<String> = sorted
+            .iter()
+            .take(3)
+            .map(|(c, d)| format!("{c} (off by {d:.4} m)"))
+            .collect();
+        Err(invalid_arg!(
+            "BVH offsets match SMPL-24's rest skeleton in no convention (tolerance {OFFSET_TOLERANCE_M} m); closest: {}",
+            closest.join(", ")
+        ))
+    }
+
+    /// How upright the character stands if the file is in `convention`: the mean over frames of
+    /// the native world's up · (root rotation · the body's up).
+    fn uprightness(&self, format: Format, convention: Convention) -> f64 {
+        let ch = Change::new(format, convention);
+        let up = Convention::Native.frame(format).up.vector();
+        let joints = format.skeleton().joint_count();
+        let sum: f64 = self
+            .local
+            .chunks_exact(joints)
+            .map(|frame| {
+                let r = ch.inverse_global(&frame[0]);
+                rotation::dot(&up, &rotation::apply(&r, &[0.0, 1.0, 0.0]))
+            })
+            .sum();
+        sum / self.root.len().max(1) as f64
+    }
+}
+
+/// For each skeleton joint, its index in the BVH: names matched case-insensitively, the
+/// hierarchy and channels checked against what the skeleton and [`FilePoses::read`] need.
+fn match_joints(bvh: &BvhMotion, skel: &Skeleton) -> Result<Vec<usize>> {
+    let names = skel.joint_names();
+    let mut order: Vec<Option<usize>> = vec![None; names.len()];
+    for (b, joint) in bvh.joints.iter().enumerate() {
+        let j = names
+            .iter()
+            .position(|n| n.eq_ignore_ascii_case(&joint.name))
+            .ok_or_else(|| {
+                at(
+                    joint.line,
+                    format!(
+                        "joint `{}` is not an SMPL-24 joint (expected {}, …)",
+                        joint.name,
+                        names[..4].join(", ")
+                    ),
+                )
+            })?;
+        if order[j].replace(b).is_some() {
+            return Err(at(
+                joint.line,
+                format!("joint `{}` appears twice", joint.name),
+            ));
+        }
+    }
+    let missing: Vec<&str> = (0..names.len())
+        .filter(|&j| order[j].is_none())
+        .map(|j| names[j])
+        .collect();
+    if !missing.is_empty() {
+        return Err(invalid_arg!(
+            "BVH lacks SMPL-24 joints: {}",
+            missing.join(", ")
+        ));
+    }
+    let order: Vec<usize> = order.into_iter().flatten().collect();
+    for (j, &b) in order.iter().enumerate() {
+        let joint = &bvh.joints[b];
+        let want = skel.parent(j).map(|p| order[p]);
+        if joint.parent != want {
+            let parent =
+                |p: Option<usize>| p.map_or("none (root)", |p| bvh.joints[p].name.as_str());
+            return Err(at(
+                joint.line,
+                format!(
+                    "joint `{}` hangs from {}; SMPL-24 hangs it from {}",
+                    joint.name,
+                    parent(joint.parent),
+                    skel.parent(j).map_or("none (root)", |p| names[p])
+                ),
+            ));
+        }
+        check_channels(joint, j == 0)?;
+    }
+    Ok(order)
+}
+
+/// Three rotation channels, one per axis, plus (root only) three position channels.
+fn check_channels(joint: &BvhJoint, is_root: bool) -> Result<()> {
+    let rotations = joint.channels.iter().filter(|c| c.is_rotation()).count();
+    let positions = joint.channels.len() - rotations;
+    let want_positions = if is_root { 3 } else { 0 };
+    if rotations != 3 || positions != want_positions {
+        let listed: Vec<&str> = joint.channels.iter().map(|c| c.name()).collect();
+        return Err(at(
+            joint.line,
+            format!(
+                "joint `{}` has channels [{}]; libflame reads {} X/Y/Z rotations in any order",
+                joint.name,
+                listed.join(" "),
+                if is_root {
+                    "3 positions and 3"
+                } else {
+                    "exactly 3"
+                }
+            ),
+        ));
+    }
+    Ok(())
 }

@@ -286,6 +286,30 @@ impl Change {
             &rotation::mul(r, &rotation::transpose(&self.body)),
         )
     }
+
+    // The inverses read references given in a convention back into the native frame. `W` and
+    // `C` are signed permutations, so their transposes undo them exactly (no rounding).
+
+    /// `Wᵀ·p / s`: undoes [`Change::position`].
+    pub(crate) fn inverse_position(&self, p: &Vec3) -> Vec3 {
+        rotation::apply(&rotation::transpose(&self.world), p).map(|x| x / self.scale)
+    }
+
+    /// `Wᵀ·R·C`: undoes [`Change::global`].
+    pub(crate) fn inverse_global(&self, r: &Mat3) -> Mat3 {
+        rotation::mul(
+            &rotation::transpose(&self.world),
+            &rotation::mul(r, &self.body),
+        )
+    }
+
+    /// `Cᵀ·R·C`: undoes [`Change::local`].
+    pub(crate) fn inverse_local(&self, r: &Mat3) -> Mat3 {
+        rotation::mul(
+            &rotation::transpose(&self.body),
+            &rotation::mul(r, &self.body),
+        )
+    }
 }
 
 #[cfg(test)]
@@ -334,6 +358,22 @@ mod tests {
                 assert_eq!(rotation::det(&ch.body), want, "{f} {c}");
                 assert!((rotation::det(&ch.global(&r)) - 1.0).abs() < 1e-12);
                 assert!((rotation::det(&ch.local(&r)) - 1.0).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn inverses_undo_every_change_exactly() {
+        let r = rotation::axis_angle(&[0.3, -1.0, 0.5], 1.2);
+        let p = [0.25, -1.5, 3.0];
+        for f in Format::ALL {
+            for c in Convention::ALL {
+                let ch = Change::new(f, c);
+                // Signed permutations and a power-of-ten scale of exact binary values: equal,
+                // not merely close (0.25, 1.5 and 3 survive ×100 and ÷100 exactly).
+                assert_eq!(ch.inverse_position(&ch.position(&p)), p, "{f} {c}");
+                assert_eq!(ch.inverse_global(&ch.global(&r)), r, "{f} {c}");
+                assert_eq!(ch.inverse_local(&ch.local(&r)), r, "{f} {c}");
             }
         }
     }

@@ -100,6 +100,33 @@ pub struct Normalization<'a> {
     pub std: &'a [f32],
 }
 
+impl Normalization<'_> {
+    /// `(x − mean) / std` in place, frame by frame (in `f64`, the inverse of de-normalising):
+    /// how features in the format's own units enter a normalised model's space.
+    pub fn normalize(&self, x: &mut [f32]) -> crate::error::Result<()> {
+        let dim = self.mean.len();
+        if dim == 0 || self.std.len() != dim || x.len() % dim != 0 {
+            return Err(crate::error::invalid_arg!(
+                "cannot normalise {} values with {} means and {} stds",
+                x.len(),
+                dim,
+                self.std.len()
+            ));
+        }
+        if let Some(c) = self.std.iter().position(|s| !(s.is_finite() && *s != 0.0)) {
+            return Err(crate::error::invalid_arg!(
+                "normalisation std at channel {c} is zero or not finite"
+            ));
+        }
+        for row in x.chunks_exact_mut(dim) {
+            for ((v, &m), &s) in row.iter_mut().zip(self.mean).zip(self.std) {
+                *v = ((*v as f64 - m as f64) / s as f64) as f32;
+            }
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

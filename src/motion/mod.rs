@@ -68,10 +68,12 @@ pub mod format;
 mod humanml263;
 pub mod json;
 pub mod layout;
+pub mod mask;
 pub mod poses;
 pub mod postprocess;
 #[cfg(feature = "preview")]
 pub mod preview;
+pub mod reference;
 pub mod rotation;
 pub mod skeleton;
 mod smpl24_6d;
@@ -79,6 +81,7 @@ mod smpl24_6d;
 pub use convention::{Axis, Convention, Frame, Handedness, Unit};
 pub use format::{Format, Normalization};
 pub use layout::{Layout, QuatOrder};
+pub use mask::{BodyPart, Mask, Task};
 pub use poses::{Poses, ReadOptions};
 pub use skeleton::Skeleton;
 
