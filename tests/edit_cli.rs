@@ -221,3 +221,45 @@ fn bad_edits_are_refused_with_a_message() {
     let (ok, err) = edit(&wrong, &["--task", "path"], &out);
     assert!(!ok && err.contains("expected [frames, 147]"), "{err}");
 }
+
+#[test]
+fn preview_writes_a_png_next_to_any_output() {
+    for out in ["prev.npy", "prev.bvh"] {
+        let out = tmp(out);
+        let png = tmp(&format!(
+            "{}.png",
+            out.file_name().unwrap().to_str().unwrap()
+        ));
+        let (ok, err) = run(&[
+            "generate",
+            "--model",
+            &model(),
+            "--prompt",
+            "a person jumps",
+            "--frames",
+            "24",
+            "--steps",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+            "--preview",
+            png.to_str().unwrap(),
+        ]);
+        assert!(ok, "{err}");
+        let bytes = std::fs::read(&png).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        assert!(out.exists());
+    }
+    let (ok, err) = run(&[
+        "generate",
+        "--model",
+        &model(),
+        "--prompt",
+        "x",
+        "--out",
+        "x.npy",
+        "--preview",
+        "x.jpg",
+    ]);
+    assert!(!ok && err.contains("--preview must end in .png"), "{err}");
+}

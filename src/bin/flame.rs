@@ -17,7 +17,7 @@ usage:
                  [--eta E] [--guidance G] [--seed K] [--noise FILE.npy] [--threads T]
                  --out FILE.npy|FILE.bvh|FILE.json
                  [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
-                 [--quat xyzw|wxyz] [--positions FILE.npy]
+                 [--quat xyzw|wxyz] [--positions FILE.npy] [--preview FILE.png]
   flame edit --model M --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
              [--task inbetween|predict|upper-body|path] [--keep-frames A:B,...]
              [--keep-joints J,...] [--method auto|noised-reference|replace-x0|rewrite-trajectory]
@@ -28,7 +28,8 @@ usage:
 generate picks the writer by the extension of --out: .npy = raw features (float32, frames x
 feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, degrees), .json = root
 translation + local quaternions (--quat order, default wxyz as FLAME's official output) with
-the skeleton. --positions also writes world joint positions (float32, frames x joints x 3).
+the skeleton. --positions also writes world joint positions (float32, frames x joints x 3);
+--preview a PNG contact sheet (stick figures side by side and the root path seen from above).
 Poses are in --convention (default native); --smooth is the sigma in frames of the temporal
 Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
 otherwise; 0 = off). For Blender's BVH importer write the BVH with --convention gltf. Unset
@@ -105,7 +106,7 @@ fn parsed<T: std::str::FromStr>(
 }
 
 /// Options `generate` and `edit` share.
-const COMMON_FLAGS: [&str; 15] = [
+const COMMON_FLAGS: [&str; 16] = [
     "model",
     "prompt",
     "frames",
@@ -121,6 +122,7 @@ const COMMON_FLAGS: [&str; 15] = [
     "smooth",
     "quat",
     "positions",
+    "preview",
 ];
 
 fn session_params(flags: &HashMap<String, String>) -> Result<SessionParams, String> {
@@ -368,6 +370,7 @@ struct Outputs {
     out: PathBuf,
     kind: OutKind,
     positions: Option<PathBuf>,
+    preview: Option<PathBuf>,
     convention: Convention,
     smooth: Option<f32>,
     quat: QuatOrder,
@@ -414,6 +417,18 @@ impl Outputs {
                 ));
             }
         }
+        let preview = flags.get("preview").map(PathBuf::from);
+        if let Some(p) = &preview {
+            if !cfg!(feature = "preview") {
+                return Err("--preview needs the `preview` feature (built without it)".into());
+            }
+            if p.extension().and_then(|e| e.to_str()) != Some("png") {
+                return Err(format!(
+                    "cannot write {}: --preview must end in .png",
+                    p.display()
+                ));
+            }
+        }
         let convention = match flags.get("convention") {
             Some(c) => c
                 .parse()
@@ -438,6 +453,7 @@ impl Outputs {
             out,
             kind,
             positions,
+            preview,
             convention,
             smooth,
             quat,
@@ -447,7 +463,7 @@ impl Outputs {
     /// The decoder for `model`, or `None` when only raw features are written. The model has
     /// already checked its motion format and loaded any normalisation statistics.
     fn decoder(&self, model: &Model) -> Option<Decoder> {
-        if self.kind == OutKind::Features && self.positions.is_none() {
+        if self.kind == OutKind::Features && self.positions.is_none() && self.preview.is_none() {
             return None;
         }
         let format = model.motion_format();
@@ -507,6 +523,14 @@ impl Outputs {
             flame::npy::write_f32(p, &[frames, poses.joint_count(), 3], &pos)
                 .map_err(|e| e.to_string())?;
             println!("{}", p.display());
+        }
+        #[cfg(feature = "preview")]
+        if let Some(png) = &self.preview {
+            use flame::motion::preview::{contact_sheet, write_png, PreviewOptions};
+            contact_sheet(&poses, &PreviewOptions::default())
+                .and_then(|img| write_png(png, &img))
+                .map_err(|e| e.to_string())?;
+            println!("{}", png.display());
         }
         Ok(())
     }

@@ -475,8 +475,8 @@ pub fn contact_sheet(poses: &Poses, opts: &PreviewOptions) -> Result<Image> {
     if poses.frames() == 0 {
         return Err(invalid_arg!("preview: the motion has no frames"));
     }
+    let grid = Grid::new(opts, opts.frames.min(poses.frames()))?;
     let frames = sample_frames(poses.frames(), opts.frames);
-    let grid = Grid::new(opts, frames.len())?;
     let view = View::new(poses)?;
     let (w, h) = grid.size();
     let mut img = Image::new(w, h);
