@@ -94,6 +94,12 @@ struct SessionParams : FlameSessionParams {
     SessionParams() : FlameSessionParams() { detail::check(flame_session_params_default(this)); }
 };
 
+// Editing settings (Session::set_edit_params); the defaults come from flame_edit_params_default
+// (the model family's method, edit_till 0.2, paste on, 4 seam frames).
+struct EditParams : FlameEditParams {
+    EditParams() : FlameEditParams() { detail::check(flame_edit_params_default(this)); }
+};
+
 // What Model::info reports, copied: it stays valid after the model is gone.
 struct ModelInfo {
     uint32_t feature_dim = 0;
@@ -243,7 +249,8 @@ public:
     }
     void set_noise(const std::vector<float>& noise) { set_noise(noise.data(), noise.size()); }
 
-    // The reference motion for editing, frames x dim (the session's frames, the model's dim).
+    // The reference motion for editing, frames x dim: the model's dim and 1..the session's
+    // frames (frames past a shorter reference cannot be kept).
     void set_reference(const float* features, uint32_t frames, uint32_t dim) {
         detail::check(flame_session_set_reference(handle_, features, frames, dim));
     }
@@ -275,6 +282,44 @@ public:
     }
     void keep_joints(std::initializer_list<int32_t> joints) {
         keep_joints(joints.begin(), joints.size());
+    }
+
+    // A smpl24_6d reference from poses, the inverse of read(): root = frames x 3 pelvis
+    // positions, rotations = frames x 24 local rotations in `layout` (LOCAL_QUAT_XYZW/WXYZ,
+    // LOCAL_MATRIX or LOCAL6D), both in `convention`.
+    void set_reference_poses(const float* root, std::size_t root_len, const float* rotations,
+                             std::size_t rotations_len, uint32_t frames, FlameLayout layout,
+                             FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        detail::check(flame_session_set_reference_poses(handle_, root, root_len, rotations,
+                                                        rotations_len, frames, layout,
+                                                        convention));
+    }
+    // Frames from the root's length (3 values per frame).
+    void set_reference_poses(const std::vector<float>& root, const std::vector<float>& rotations,
+                             FlameLayout layout,
+                             FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        if (root.size() % 3 != 0) {
+            throw Error(FLAME_STATUS_INVALID_ARGUMENT,
+                        "`root` has " + std::to_string(root.size()) +
+                            " values, not a multiple of 3");
+        }
+        set_reference_poses(root.data(), root.size(), rotations.data(), rotations.size(),
+                            static_cast<uint32_t>(root.size() / 3), layout, convention);
+    }
+
+    // Keeps a body part's channels on frames [start, end), adding to the mask.
+    void keep_part(FlameBodyPart part, uint32_t start, uint32_t end) {
+        detail::check(flame_session_keep_part(handle_, part, start, end));
+    }
+
+    // Replaces the mask with a standard editing task's.
+    void set_task_mask(FlameEditTask task) {
+        detail::check(flame_session_set_task_mask(handle_, task));
+    }
+
+    // How the session edits: method, edit_till (flow models), final paste and seam blending.
+    void set_edit_params(const EditParams& params = EditParams()) {
+        detail::check(flame_session_set_edit_params(handle_, &params));
     }
 
     void clear_edit() { detail::check(flame_session_clear_edit(handle_)); }

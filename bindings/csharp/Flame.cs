@@ -62,6 +62,47 @@ namespace Flame
         Estimate = 1,
     }
 
+    /// <summary>How a session imposes the kept reference values (FlameEditParams.method).</summary>
+    public enum FlameEditMethod
+    {
+        /// <summary>The model family's own method.</summary>
+        Auto = 0,
+        /// <summary>FLAME: the reference, noised to each step's level, overwrites the kept values of x_t (diffusion models).</summary>
+        NoisedReference = 1,
+        /// <summary>MDM: the reference overwrites the kept values of the clean-motion estimate (diffusion models).</summary>
+        ReplaceX0 = 2,
+        /// <summary>Motion Flow Matching: the kept values follow the path to the reference while step / steps &lt;= edit_till (flow models).</summary>
+        RewriteTrajectory = 3,
+    }
+
+    /// <summary>Named groups of channels for FlameSession.KeepPart.</summary>
+    public enum FlameBodyPart
+    {
+        /// <summary>The root's trajectory.</summary>
+        RootPath = 0,
+        /// <summary>Root path, pelvis and legs.</summary>
+        LowerBody = 1,
+        /// <summary>Spine, neck, head, collars and arms.</summary>
+        UpperBody = 2,
+        /// <summary>Collars, shoulders, elbows, wrists (and hands).</summary>
+        Arms = 3,
+        /// <summary>Hips, knees, ankles and feet (and foot contacts).</summary>
+        Legs = 4,
+    }
+
+    /// <summary>The standard editing tasks of FlameSession.SetTaskMask (L = the session's frames).</summary>
+    public enum FlameEditTask
+    {
+        /// <summary>Keep all but frames [L/4, 3L/4).</summary>
+        Inbetween = 0,
+        /// <summary>Keep frames [0, L/4), generate the rest.</summary>
+        Predict = 1,
+        /// <summary>Keep the lower body on every frame, generate the upper body.</summary>
+        UpperBody = 2,
+        /// <summary>Keep the root path on every frame, generate the body.</summary>
+        Path = 3,
+    }
+
     /// <summary>Pose layouts of FlameSession.Read (enum FlameLayout; J = joint count). Plain
     /// integers, passed through unchanged, so a layout the library adds works before it is
     /// named here.</summary>
@@ -202,6 +243,29 @@ namespace Flame
         }
     }
 
+    /// <summary>Mirror of the C struct FlameEditParams. Start from Default(): the model family's
+    /// method, edit_till 0.2, paste on, 4 seam frames.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameEditParams
+    {
+        public uint struct_size;
+        /// <summary>A FlameEditMethod value.</summary>
+        public int method;
+        /// <summary>Flow models: the fraction of the steps, from the noise end, that rewrite the trajectory (0..1).</summary>
+        public float edit_till;
+        /// <summary>Nonzero: the kept values are pasted exactly into the final result and the seams blended; 0: the official behaviour.</summary>
+        public uint paste;
+        /// <summary>Frames over which a seam's offset fades out (0..1000; 0 = no blending).</summary>
+        public uint seam_frames;
+
+        public static FlameEditParams Default()
+        {
+            var p = new FlameEditParams();
+            FlameException.Check(FlameNative.flame_edit_params_default(out p));
+            return p;
+        }
+    }
+
     /// <summary>Called after every step, on the stepping thread (FlameProgressCallback).</summary>
     [UnmanagedFunctionPointer(CallingConvention.Cdecl)]
     public delegate void ProgressCallback(IntPtr userData, uint stepsDone, uint stepsTotal);
@@ -280,6 +344,12 @@ namespace Flame
         public static extern FlameStatus flame_session_params_default(out FlameSessionParams p);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_edit_params_default(out FlameEditParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_edit_params(FlameSessionHandle session, ref FlameEditParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_new(FlameModelHandle model, ref FlameSessionParams p, out FlameSessionHandle session);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
@@ -305,6 +375,17 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_keep_joints(FlameSessionHandle session, int[] joints, UIntPtr count);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_keep_part(FlameSessionHandle session, int part, uint start, uint end);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_task_mask(FlameSessionHandle session, int task);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_reference_poses(FlameSessionHandle session, float[] root, UIntPtr rootLen,
+                                                                           float[] rotations, UIntPtr rotationsLen, uint frames,
+                                                                           int layout, int convention);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_clear_edit(FlameSessionHandle session);
@@ -531,6 +612,8 @@ namespace Flame
             SetReference(features, Frames, FeatureDim);
         }
 
+        /// <summary>frames × dim floats: the model's dim and 1..Frames frames (the frames past a
+        /// shorter reference cannot be kept).</summary>
         public void SetReference(float[] features, int frames, int dim)
         {
             CheckLength(features, features == null ? 0 : features.Length, frames, dim, "features");
@@ -569,6 +652,49 @@ namespace Flame
             if (joints == null)
                 throw new ArgumentNullException("joints");
             FlameException.Check(FlameNative.flame_session_keep_joints(Handle, joints, (UIntPtr)joints.Length));
+        }
+
+        /// <summary>Keeps a body part's channels on frames start..end (end exclusive), adding to the mask.</summary>
+        public void KeepPart(FlameBodyPart part, int start, int end)
+        {
+            if (start < 0 || end < 0)
+                throw new ArgumentOutOfRangeException(start < 0 ? "start" : "end");
+            FlameException.Check(FlameNative.flame_session_keep_part(Handle, (int)part, (uint)start, (uint)end));
+        }
+
+        /// <summary>Keeps a body part's channels on every frame, adding to the mask.</summary>
+        public void KeepPart(FlameBodyPart part)
+        {
+            KeepPart(part, 0, Frames);
+        }
+
+        /// <summary>Replaces the mask with a standard editing task's.</summary>
+        public void SetTaskMask(FlameEditTask task)
+        {
+            FlameException.Check(FlameNative.flame_session_set_task_mask(Handle, (int)task));
+        }
+
+        /// <summary>How the session edits; start p from FlameEditParams.Default(). The library
+        /// checks the method against the model.</summary>
+        public void SetEditParams(FlameEditParams p)
+        {
+            FlameException.Check(FlameNative.flame_session_set_edit_params(Handle, ref p));
+        }
+
+        /// <summary>A smpl24_6d reference from poses, the inverse of Read: root = frames × 3 pelvis
+        /// positions, rotations = frames × 24 local rotations in layout (FlameLayout.LocalQuatXyzw,
+        /// LocalQuatWxyz, LocalMatrix or Local6d), both in convention. Frames = root.Length / 3.</summary>
+        public void SetReferencePoses(float[] root, float[] rotations, int layout, int convention)
+        {
+            if (root == null)
+                throw new ArgumentNullException("root");
+            if (rotations == null)
+                throw new ArgumentNullException("rotations");
+            if (root.Length % 3 != 0)
+                throw new ArgumentException("root has " + root.Length + " values, not frames × 3", "root");
+            FlameException.Check(FlameNative.flame_session_set_reference_poses(Handle, root, (UIntPtr)root.Length, rotations,
+                                                                               (UIntPtr)rotations.Length, (uint)(root.Length / 3),
+                                                                               layout, convention));
         }
 
         public void ClearEdit()

@@ -400,6 +400,15 @@ static void test_null_arguments(const FlameModel *m) {
     CHECK_ERROR_MENTIONS(flame_session_keep_frames(NULL, 0, 1), INV, "session");
     CHECK_ERROR_MENTIONS(flame_session_keep_joints(NULL, joints, 1), INV, "session");
     CHECK_ERROR_MENTIONS(flame_session_clear_edit(NULL), INV, "session");
+    FlameEditParams ep;
+    CHECK_OK(flame_edit_params_default(&ep));
+    CHECK_ERROR_MENTIONS(flame_session_set_edit_params(NULL, &ep), INV, "session");
+    CHECK_ERROR_MENTIONS(flame_session_keep_part(NULL, FLAME_BODY_PART_ARMS, 0, 1), INV,
+                         "session");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_mask(NULL, FLAME_EDIT_TASK_PATH), INV, "session");
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(NULL, f, 3, f, 24 * 6, 1,
+                                                           FLAME_LAYOUT_LOCAL6D, 0),
+                         INV, "session");
     CHECK_ERROR_MENTIONS(flame_session_set_progress_callback(NULL, dummy_progress, NULL), INV,
                          "session");
     CHECK_ERROR_MENTIONS(flame_session_step(NULL, &u), INV, "session");
@@ -416,6 +425,13 @@ static void test_null_arguments(const FlameModel *m) {
                          "features");
     CHECK_ERROR_MENTIONS(flame_session_set_mask(s, NULL, ref_frames, FLAME_TINY_DIM), INV, "mask");
     CHECK_ERROR_MENTIONS(flame_session_keep_joints(s, NULL, 1), INV, "joints");
+    CHECK_ERROR_MENTIONS(flame_session_set_edit_params(s, NULL), INV, "params");
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, NULL, 3, f, 24 * 6, 1,
+                                                           FLAME_LAYOUT_LOCAL6D, 0),
+                         INV, "root");
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, f, 3, NULL, 24 * 6, 1,
+                                                           FLAME_LAYOUT_LOCAL6D, 0),
+                         INV, "rotations");
     CHECK_ERROR_MENTIONS(flame_session_read(s, 0, FLAME_LAYOUT_FEATURES, 0, 0, f, REF_VALUES, NULL),
                          INV, "out_len");
     /* NULL where the header allows it. */
@@ -869,12 +885,10 @@ static void test_edit(const FlameModel *m) {
     make_reference(r);
     uint8_t *zeros = (uint8_t *)calloc(REF_VALUES, 1);
     int32_t root[] = {FLAME_ROOT_TRANSLATION};
+    FlameSession *s = NULL;
 
-    /* Without a kept value nothing changes: a reference alone, a mask alone, an all-zero mask. */
+    /* Without a kept value nothing changes: a reference alone, an all-zero mask. */
     float *x = edited(m, r, NULL, 0, 0, NULL, 0);
-    CHECK(same_bits(x, REF_VALUES, g_ref, g_ref_n));
-    free(x);
-    x = edited(m, NULL, NULL, 0, (int)ref_frames, NULL, 0);
     CHECK(same_bits(x, REF_VALUES, g_ref, g_ref_n));
     free(x);
     x = edited(m, r, zeros, 0, 0, NULL, 0);
@@ -889,13 +903,27 @@ static void test_edit(const FlameModel *m) {
     CHECK(max_diff(g_ref, r, 0, 3) > 0.5f);
     free(x);
 
-    /* Keeping every frame reproduces the reference (up to the last step's tiny noise). */
+    /* Keeping every frame reproduces the reference: the final paste (on by default) copies the
+     * kept values exactly. */
     x = edited(m, r, NULL, 0, (int)ref_frames, NULL, 0);
-    CHECK(max_diff(x, r, 0, FLAME_TINY_DIM) < 0.1f);
+    CHECK(same_bits(x, REF_VALUES, r, REF_VALUES));
     free(x);
 
+    /* A mask that keeps values with no reference to take them from: the step refuses
+     * (WRONG_STATE), and goes on once a reference is set. */
+    s = ref_session(m);
+    CHECK_OK(flame_session_keep_frames(s, 0, ref_frames));
+    CHECK_OK(flame_session_set_prompt(s, REF_PROMPT));
+    uint32_t left = 99;
+    CHECK_ERROR_MENTIONS(flame_session_step(s, &left), FLAME_STATUS_WRONG_STATE, "no reference");
+    CHECK(left == 99);
+    CHECK_OK(flame_session_set_reference(s, r, ref_frames, FLAME_TINY_DIM));
+    CHECK_OK(flame_session_step(s, &left));
+    CHECK(left == ref_steps - 1);
+    flame_session_free(s);
+
     /* clear_edit after setting everything: the plain generation again, bit for bit. */
-    FlameSession *s = ref_session(m);
+    s = ref_session(m);
     CHECK_OK(flame_session_set_reference(s, r, ref_frames, FLAME_TINY_DIM));
     CHECK_OK(flame_session_keep_joints(s, root, 1));
     CHECK_OK(flame_session_clear_edit(s));
@@ -918,6 +946,660 @@ static void test_edit(const FlameModel *m) {
 
     free(r);
     free(zeros);
+}
+
+/* ---- editing: parameters, tasks, body parts, pose references, other model families -------- */
+
+/* The channel a smpl24_6d feature index belongs to: -1 for the root translation, else the
+ * joint whose 6D rotation it holds. */
+static int smpl_joint_of(int c) {
+    return c < 3 ? -1 : (c - 3) / 6;
+}
+
+static int is_leg(int j) {
+    return j == 1 || j == 2 || j == 4 || j == 5 || j == 7 || j == 8 || j == 10 || j == 11;
+}
+
+/* What a FlameEditTask keeps of frame f, channel c in a smpl24_6d session of F frames (the
+ * header's definitions, written out independently of the library). */
+static int task_keeps(int task, uint32_t F, uint32_t f, int c) {
+    int j = smpl_joint_of(c);
+    switch (task) {
+    case FLAME_EDIT_TASK_INBETWEEN: return f < F / 4 || f >= 3 * F / 4;
+    case FLAME_EDIT_TASK_PREDICT: return f < F / 4;
+    case FLAME_EDIT_TASK_UPPER_BODY: return j == -1 || j == 0 || is_leg(j);
+    case FLAME_EDIT_TASK_PATH: return j == -1;
+    default: return 0;
+    }
+}
+
+/* Compares x with r over a keep-predicate: *kept_diff counts kept values whose bits differ,
+ * *free_diff generated values whose bits differ from the reference. */
+struct keep_count {
+    size_t kept, kept_diff, free_diff;
+};
+
+static struct keep_count compare_kept(const float *x, const float *r, uint32_t ref_rows, int task,
+                                      uint32_t F) {
+    struct keep_count k = {0, 0, 0};
+    for (uint32_t f = 0; f < F; f++) {
+        for (int c = 0; c < FLAME_TINY_DIM; c++) {
+            size_t i = (size_t)f * FLAME_TINY_DIM + (size_t)c;
+            int differs = f >= ref_rows || memcmp(&x[i], &r[i], sizeof(float)) != 0;
+            if (task_keeps(task, F, f, c)) {
+                k.kept++;
+                k.kept_diff += differs;
+            } else {
+                k.free_diff += differs;
+            }
+        }
+    }
+    return k;
+}
+
+/* Runs `s` to the end and returns its final features (NULL on error). */
+static float *finish_features(FlameSession *s) {
+    FlameStatus st = run_to_end(s, REF_PROMPT);
+    CHECK_OK(st);
+    size_t n = 0;
+    float *x = st == FLAME_STATUS_OK ? read_features(s, FLAME_WHICH_SAMPLE, &n, &st) : NULL;
+    CHECK(x != NULL && n == REF_VALUES);
+    return x;
+}
+
+static FlameStatus set_params(FlameSession *s, int32_t method, float edit_till, uint32_t paste,
+                              uint32_t seam_frames) {
+    FlameEditParams p;
+    flame_edit_params_default(&p);
+    p.method = method;
+    p.edit_till = edit_till;
+    p.paste = paste;
+    p.seam_frames = seam_frames;
+    return flame_session_set_edit_params(s, &p);
+}
+
+static void test_edit_params(const FlameModel *m) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    CHECK_ERROR_MENTIONS(flame_edit_params_default(NULL), INV, "params");
+    FlameEditParams d;
+    memset(&d, 0xAB, sizeof d);
+    CHECK_OK(flame_edit_params_default(&d));
+    CHECK(d.struct_size == sizeof(FlameEditParams));
+    CHECK(d.method == FLAME_EDIT_METHOD_AUTO);
+    CHECK(d.edit_till == 0.2f);
+    CHECK(d.paste == 1);
+    CHECK(d.seam_frames == 4);
+
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_edit_params(s, &d));
+    FlameEditParams p = d;
+    p.struct_size = 0;
+    CHECK_ERROR_MENTIONS(flame_session_set_edit_params(s, &p), INV, "struct_size");
+    p.struct_size = sizeof(FlameEditParams) - 1;
+    CHECK_STATUS(flame_session_set_edit_params(s, &p), INV);
+
+    /* Unknown methods; a method the model cannot run (FLAME is a diffusion model). */
+    CHECK_ERROR_MENTIONS(set_params(s, 4, 0.2f, 1, 4), INV, "edit method");
+    CHECK_ERROR_MENTIONS(set_params(s, -1, 0.2f, 1, 4), INV, "edit method");
+    CHECK_STATUS(set_params(s, INT32_MAX, 0.2f, 1, 4), INV);
+    CHECK_ERROR_MENTIONS(set_params(s, FLAME_EDIT_METHOD_REWRITE_TRAJECTORY, 0.2f, 1, 4), INV,
+                         "does not apply");
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_NOISED_REFERENCE, 0.2f, 1, 4));
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_REPLACE_X0, 0.2f, 1, 4));
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_AUTO, 0.2f, 1, 4));
+
+    /* edit_till in [0, 1], finite; seam_frames at most 1000; paste any nonzero. */
+    CHECK_ERROR_MENTIONS(set_params(s, 0, -0.01f, 1, 4), INV, "edit_till");
+    CHECK_ERROR_MENTIONS(set_params(s, 0, 1.01f, 1, 4), INV, "edit_till");
+    CHECK_ERROR_MENTIONS(set_params(s, 0, NAN, 1, 4), INV, "edit_till");
+    CHECK_STATUS(set_params(s, 0, INFINITY, 1, 4), INV);
+    CHECK_STATUS(set_params(s, 0, -INFINITY, 1, 4), INV);
+    CHECK_OK(set_params(s, 0, 0.0f, 1, 4));
+    CHECK_OK(set_params(s, 0, 1.0f, 1, 4));
+    CHECK_ERROR_MENTIONS(set_params(s, 0, 0.2f, 1, 1001), INV, "seam_frames");
+    CHECK_STATUS(set_params(s, 0, 0.2f, 1, UINT32_MAX), INV);
+    CHECK_OK(set_params(s, 0, 0.2f, 1, 1000));
+    CHECK_OK(set_params(s, 0, 0.2f, 1, 0));
+    CHECK_OK(set_params(s, 0, 0.2f, 0, 4));
+    CHECK_OK(set_params(s, 0, 0.2f, 7, 4));
+    /* Settings alone edit nothing: the plain generation. */
+    CHECK(matches_reference(s));
+    flame_session_free(s);
+}
+
+static void test_task_mask_errors(const FlameModel *m) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    const uint32_t F = ref_frames;
+    FlameSession *s = ref_session(m);
+    CHECK_ERROR_MENTIONS(flame_session_set_task_mask(s, 4), INV, "task");
+    CHECK_STATUS(flame_session_set_task_mask(s, -1), INV);
+    CHECK_STATUS(flame_session_set_task_mask(s, INT32_MIN), INV);
+    CHECK_ERROR_MENTIONS(flame_session_keep_part(s, 5, 0, F), INV, "body part");
+    CHECK_STATUS(flame_session_keep_part(s, -1, 0, F), INV);
+    CHECK_STATUS(flame_session_keep_part(s, INT32_MAX, 0, F), INV);
+    CHECK_STATUS(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, 0, 0), INV);
+    CHECK_STATUS(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, 5, 3), INV);
+    CHECK_STATUS(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, 0, F + 1), INV);
+    CHECK_STATUS(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, F, F + 1), INV);
+    CHECK_STATUS(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, UINT32_MAX - 1, UINT32_MAX),
+                 INV);
+    for (int32_t part = FLAME_BODY_PART_ROOT_PATH; part <= FLAME_BODY_PART_LEGS; part++) {
+        CHECK_OK(flame_session_keep_part(s, part, 0, F));
+        CHECK_OK(flame_session_keep_part(s, part, F - 1, F));
+    }
+    for (int32_t task = FLAME_EDIT_TASK_INBETWEEN; task <= FLAME_EDIT_TASK_PATH; task++) {
+        CHECK_OK(flame_session_set_task_mask(s, task));
+    }
+    flame_session_free(s);
+}
+
+/* Every task, run to the end with the default settings (paste on): the kept values are the
+ * reference's, bit for bit, and the rest is generated. */
+static void test_task_masks_paste(const FlameModel *m, const float *r) {
+    const uint32_t F = ref_frames;
+    for (int32_t task = FLAME_EDIT_TASK_INBETWEEN; task <= FLAME_EDIT_TASK_PATH; task++) {
+        FlameSession *s = ref_session(m);
+        CHECK_OK(flame_session_keep_frames(s, 0, F)); /* replaced by the task's mask */
+        CHECK_OK(flame_session_set_task_mask(s, task));
+        CHECK_OK(flame_session_set_reference(s, r, F, FLAME_TINY_DIM));
+        float *x = finish_features(s);
+        if (x) {
+            struct keep_count k = compare_kept(x, r, F, task, F);
+            char what[96];
+            snprintf(what, sizeof what, "task %d: %zu kept values, %zu differ from the reference",
+                     task, k.kept, k.kept_diff);
+            check_record(k.kept > 0 && k.kept_diff == 0, __FILE__, __LINE__, what, "");
+            snprintf(what, sizeof what, "task %d: the generated values are not the reference's",
+                     task);
+            check_record(k.free_diff > 0, __FILE__, __LINE__, what, "");
+        }
+        free(x);
+        flame_session_free(s);
+    }
+}
+
+/* A task mask equals the same mask built from parts and frames, and replaces what was there. */
+static float *edited_by(const FlameModel *m, const float *r, int task, int part, uint32_t lo,
+                        uint32_t hi) {
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference(s, r, ref_frames, FLAME_TINY_DIM));
+    if (task >= 0) {
+        CHECK_OK(flame_session_set_task_mask(s, task));
+    }
+    if (part >= 0) {
+        CHECK_OK(flame_session_keep_part(s, part, 0, ref_frames));
+    } else if (hi > lo) {
+        CHECK_OK(flame_session_keep_frames(s, lo, hi));
+    }
+    float *x = finish_features(s);
+    flame_session_free(s);
+    return x;
+}
+
+static void test_parts_match_tasks(const FlameModel *m, const float *r) {
+    const uint32_t F = ref_frames;
+    float *a = edited_by(m, r, FLAME_EDIT_TASK_PATH, -1, 0, 0);
+    float *b = edited_by(m, r, -1, FLAME_BODY_PART_ROOT_PATH, 0, 0);
+    CHECK(same_bits(a, REF_VALUES, b, REF_VALUES));
+    free(a);
+    free(b);
+    a = edited_by(m, r, FLAME_EDIT_TASK_UPPER_BODY, -1, 0, 0);
+    b = edited_by(m, r, -1, FLAME_BODY_PART_LOWER_BODY, 0, 0);
+    CHECK(same_bits(a, REF_VALUES, b, REF_VALUES));
+    free(a);
+    free(b);
+    a = edited_by(m, r, FLAME_EDIT_TASK_PREDICT, -1, 0, 0);
+    b = edited_by(m, r, -1, -1, 0, F / 4);
+    CHECK(same_bits(a, REF_VALUES, b, REF_VALUES));
+    free(b);
+    /* keep_part adds to the task's mask: PREDICT + arms keeps more than PREDICT alone. */
+    b = edited_by(m, r, FLAME_EDIT_TASK_PREDICT, FLAME_BODY_PART_ARMS, 0, 0);
+    CHECK(!same_bits(a, REF_VALUES, b, REF_VALUES));
+    free(a);
+
+    /* ARMS over the second half: exactly the arm joints' channels of those frames are kept. */
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference(s, r, F, FLAME_TINY_DIM));
+    CHECK_OK(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, F / 2, F));
+    float *x = finish_features(s);
+    static const int arms[] = {13, 14, 16, 17, 18, 19, 20, 21, 22, 23};
+    size_t kept_diff = 0, other_same = 0;
+    for (uint32_t f = 0; x && f < F; f++) {
+        for (int c = 0; c < FLAME_TINY_DIM; c++) {
+            int j = smpl_joint_of(c), arm = 0;
+            for (size_t a_ = 0; a_ < sizeof arms / sizeof arms[0]; a_++) {
+                arm |= arms[a_] == j;
+            }
+            size_t i = (size_t)f * FLAME_TINY_DIM + (size_t)c;
+            int same = memcmp(&x[i], &r[i], sizeof(float)) == 0;
+            if (arm && f >= F / 2) {
+                kept_diff += !same;
+            } else {
+                other_same += same;
+            }
+        }
+    }
+    CHECK(x != NULL && kept_diff == 0);
+    CHECK(other_same == 0);
+    free(x);
+    free(b);
+    flame_session_free(s);
+}
+
+/* paste 0: the official behaviour, the kept values are only close; methods and seams matter. */
+static void test_paste_off_and_methods(const FlameModel *m, const float *r) {
+    const uint32_t F = ref_frames;
+    float *out[4] = {NULL, NULL, NULL, NULL};
+    /* 0: noised reference, paste off; 1: replace x0, paste off; 2: replace x0, paste on;
+     * 3: noised reference, paste on, no seam blending. */
+    const int32_t method[4] = {FLAME_EDIT_METHOD_NOISED_REFERENCE, FLAME_EDIT_METHOD_REPLACE_X0,
+                               FLAME_EDIT_METHOD_REPLACE_X0, FLAME_EDIT_METHOD_NOISED_REFERENCE};
+    const uint32_t paste[4] = {0, 0, 1, 1}, seams[4] = {4, 4, 4, 0};
+    for (int i = 0; i < 4; i++) {
+        FlameSession *s = ref_session(m);
+        CHECK_OK(set_params(s, method[i], 0.2f, paste[i], seams[i]));
+        CHECK_OK(flame_session_set_reference(s, r, F, FLAME_TINY_DIM));
+        CHECK_OK(flame_session_set_task_mask(s, FLAME_EDIT_TASK_INBETWEEN));
+        out[i] = finish_features(s);
+        flame_session_free(s);
+    }
+    struct keep_count k[4];
+    for (int i = 0; i < 4; i++) {
+        k[i] = out[i] ? compare_kept(out[i], r, F, FLAME_EDIT_TASK_INBETWEEN, F)
+                      : (struct keep_count){0, 1, 0};
+    }
+    /* Paste off: the noised reference leaves the kept values only close to the reference.
+     * (x0 replacement needs no paste with DDIM: its last step returns the replaced x0.) */
+    CHECK(k[0].kept_diff > 0);
+    CHECK(k[2].kept_diff == 0 && k[3].kept_diff == 0);
+    CHECK(!same_bits(out[0], REF_VALUES, out[1], REF_VALUES)); /* the methods differ */
+
+    /* Seam blending changes only generated frames near the seams: with and without it the
+     * kept values are the same and the generated ones are not. */
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference(s, r, F, FLAME_TINY_DIM));
+    CHECK_OK(flame_session_set_task_mask(s, FLAME_EDIT_TASK_INBETWEEN));
+    float *blended = finish_features(s);
+    flame_session_free(s);
+    CHECK(!same_bits(blended, REF_VALUES, out[3], REF_VALUES));
+    free(blended);
+    for (int i = 0; i < 4; i++) {
+        free(out[i]);
+    }
+}
+
+static float max_abs_diff(const float *a, const float *b, size_t n) {
+    float d = 0.0f;
+    for (size_t i = 0; i < n; i++) {
+        float e = fabsf(a[i] - b[i]);
+        d = e > d || e != e ? e : d;
+    }
+    return d;
+}
+
+/* A reference shorter than the session: its frames can be kept, later frames cannot. */
+static void test_short_reference(const FlameModel *m, const float *r) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    const uint32_t F = ref_frames, R = ref_frames / 4;
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference(s, r, R, FLAME_TINY_DIM));
+    /* A mask keeping frame R, set after the reference. */
+    CHECK_ERROR_MENTIONS(flame_session_keep_frames(s, 0, R + 1), INV, num(R));
+    CHECK_ERROR_MENTIONS(flame_session_set_task_mask(s, FLAME_EDIT_TASK_INBETWEEN), INV,
+                         "keeps frame");
+    CHECK_ERROR_MENTIONS(flame_session_keep_part(s, FLAME_BODY_PART_ROOT_PATH, 0, F), INV,
+                         "keeps frame");
+    /* PREDICT keeps [0, F/4): the reference's frames exactly. */
+    CHECK_OK(flame_session_set_task_mask(s, FLAME_EDIT_TASK_PREDICT));
+    CHECK_OK(flame_session_keep_part(s, FLAME_BODY_PART_ARMS, 0, R));
+    float *x = finish_features(s);
+    flame_session_free(s);
+    if (x) {
+        size_t head = (size_t)R * FLAME_TINY_DIM;
+        CHECK(memcmp(x, r, head * sizeof(float)) == 0);
+        CHECK(max_abs_diff(x + head, r + head, REF_VALUES - head) > 0.0f); /* generated */
+    }
+    free(x);
+
+    /* The other order: a mask keeping every frame, then a short reference. */
+    s = ref_session(m);
+    CHECK_OK(flame_session_keep_frames(s, 0, F));
+    char frame[32];
+    snprintf(frame, sizeof frame, "keeps frame %u", R);
+    CHECK_ERROR_MENTIONS(flame_session_set_reference(s, r, R, FLAME_TINY_DIM), INV, frame);
+    CHECK_OK(flame_session_set_reference(s, r, F, FLAME_TINY_DIM));
+    /* One frame is the shortest reference. */
+    CHECK_OK(flame_session_clear_edit(s));
+    CHECK_OK(flame_session_set_reference(s, r, 1, FLAME_TINY_DIM));
+    CHECK_OK(flame_session_keep_frames(s, 0, 1));
+    CHECK_ERROR_MENTIONS(flame_session_keep_frames(s, 1, 2), INV, "keeps frame 1");
+    flame_session_free(s);
+}
+
+struct poses {
+    float *root, *rot;
+    size_t root_n, rot_n;
+};
+
+static struct poses read_poses(const FlameSession *s, int32_t layout, int32_t conv) {
+    struct poses p;
+    p.root = read_layout(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION, conv, 0, &p.root_n);
+    p.rot = read_layout(s, FLAME_WHICH_SAMPLE, layout, conv, 0, &p.rot_n);
+    return p;
+}
+
+static void free_poses(struct poses *p) {
+    free(p->root);
+    free(p->rot);
+}
+
+static void test_reference_pose_errors(const FlameModel *m, const struct poses *p) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    const uint32_t F = ref_frames;
+    const int32_t L6 = FLAME_LAYOUT_LOCAL6D;
+    FlameSession *s = ref_session(m);
+    size_t rn = p->root_n, qn = p->rot_n;
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, 0, L6, 0),
+                         INV, "frames");
+    CHECK_ERROR_MENTIONS(
+        flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, F + 1, L6, 0), INV, "frames");
+    CHECK_ERROR_MENTIONS(
+        flame_session_set_reference_poses(s, p->root, rn - 1, p->rot, qn, F, L6, 0), INV, "root");
+    CHECK_STATUS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn - 1, F, L6, 0), INV);
+    CHECK_STATUS(flame_session_set_reference_poses(s, p->root, 0, p->rot, qn, F, L6, 0), INV);
+    /* 6D values passed as quaternions: a length mismatch. */
+    CHECK_STATUS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, F,
+                                                   FLAME_LAYOUT_LOCAL_QUAT_XYZW, 0),
+                 INV);
+    const int32_t bad_layouts[] = {FLAME_LAYOUT_FEATURES,         FLAME_LAYOUT_ROOT_TRANSLATION,
+                                   FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_LAYOUT_GLOBAL_QUAT_XYZW,
+                                   FLAME_LAYOUT_GLOBAL_QUAT_WXYZ, FLAME_LAYOUT_FOOT_CONTACTS,
+                                   99,                            -1};
+    for (size_t i = 0; i < sizeof bad_layouts / sizeof bad_layouts[0]; i++) {
+        CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, F,
+                                                               bad_layouts[i], 0),
+                             INV, "layout");
+    }
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, F, L6,
+                                                           FLAME_CONVENTION_GLTF + 1),
+                         INV, "convention");
+    CHECK_STATUS(flame_session_set_reference_poses(s, p->root, rn, p->rot, qn, F, L6, -1), INV);
+
+    /* Values: NaN and infinity; zero matrices and quaternions are no rotations. */
+    float *root = (float *)malloc(rn * sizeof(float));
+    float *rot = (float *)calloc((size_t)F * 24 * 9, sizeof(float));
+    memcpy(root, p->root, rn * sizeof(float));
+    root[4] = NAN;
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, root, rn, p->rot, qn, F, L6, 0), INV,
+                         "finite");
+    root[4] = 0.0f;
+    memcpy(rot, p->rot, qn * sizeof(float));
+    rot[7] = INFINITY;
+    CHECK_STATUS(flame_session_set_reference_poses(s, root, rn, rot, qn, F, L6, 0), INV);
+    memset(rot, 0, (size_t)F * 24 * 9 * sizeof(float));
+    CHECK_STATUS(flame_session_set_reference_poses(s, root, rn, rot, (size_t)F * 24 * 9, F,
+                                                   FLAME_LAYOUT_LOCAL_MATRIX, 0),
+                 INV);
+    CHECK_STATUS(flame_session_set_reference_poses(s, root, rn, rot, (size_t)F * 24 * 4, F,
+                                                   FLAME_LAYOUT_LOCAL_QUAT_WXYZ, 0),
+                 INV);
+    /* Identity rotations (unit quaternions w = 1) and a shorter pose reference are fine. */
+    for (size_t i = 0; i < (size_t)F * 24; i++) {
+        rot[4 * i] = 1.0f;
+    }
+    CHECK_OK(flame_session_set_reference_poses(s, root, rn, rot, (size_t)F * 24 * 4, F,
+                                               FLAME_LAYOUT_LOCAL_QUAT_WXYZ, 0));
+    CHECK_OK(flame_session_set_reference_poses(s, root, 3, rot, 24 * 4, 1,
+                                               FLAME_LAYOUT_LOCAL_QUAT_WXYZ, 0));
+    free(root);
+    free(rot);
+    flame_session_free(s);
+}
+
+/* A session keeping every frame of a pose reference: returns its final features. */
+static float *from_poses(const FlameModel *m, const struct poses *p, int32_t layout,
+                         int32_t conv) {
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference_poses(s, p->root, p->root_n, p->rot, p->rot_n, ref_frames,
+                                               layout, conv));
+    CHECK_OK(flame_session_keep_frames(s, 0, ref_frames));
+    float *x = finish_features(s);
+    flame_session_free(s);
+    return x;
+}
+
+/* flame_session_set_reference_poses is flame_session_read's inverse. The poses come from the
+ * sample after one step (generic; the tiny model's final motions hold degenerate 6D
+ * rotations). */
+static void test_reference_poses(const FlameModel *m) {
+    const uint32_t F = ref_frames;
+    const int32_t U = FLAME_CONVENTION_UNITY;
+    FlameSession *g = ref_session(m);
+    CHECK_OK(flame_session_set_prompt(g, REF_PROMPT));
+    CHECK_OK(flame_session_step(g, NULL));
+    struct poses p1 = read_poses(g, FLAME_LAYOUT_LOCAL6D, U);
+    CHECK(p1.root && p1.rot && p1.root_n == F * 3 && p1.rot_n == F * 24 * 6);
+    if (!p1.root || !p1.rot) {
+        flame_session_free(g);
+        free_poses(&p1);
+        return;
+    }
+    /* poses -> features (kept, pasted) -> poses: the same poses. */
+    float *b = from_poses(m, &p1, FLAME_LAYOUT_LOCAL6D, U);
+    FlameSession *s = ref_session(m);
+    CHECK_OK(flame_session_set_reference_poses(s, p1.root, p1.root_n, p1.rot, p1.rot_n, F,
+                                               FLAME_LAYOUT_LOCAL6D, U));
+    CHECK_OK(flame_session_keep_frames(s, 0, F));
+    CHECK_OK(run_to_end(s, REF_PROMPT));
+    struct poses p2 = read_poses(s, FLAME_LAYOUT_LOCAL6D, U);
+    flame_session_free(s);
+    CHECK(p2.root && p2.rot && p2.root_n == p1.root_n && p2.rot_n == p1.rot_n);
+    if (p2.root && p2.rot) {
+        CHECK(max_abs_diff(p2.root, p1.root, p1.root_n) < 1e-4f);
+        CHECK(max_abs_diff(p2.rot, p1.rot, p1.rot_n) < 1e-4f);
+        /* features -> poses -> features: the same features (the brief's round trip). */
+        float *c = from_poses(m, &p2, FLAME_LAYOUT_LOCAL6D, U);
+        CHECK(b && c && max_abs_diff(b, c, REF_VALUES) < 1e-4f);
+        free(c);
+    }
+    free_poses(&p2);
+
+    /* Every rotation layout and another convention give the same features. */
+    const int32_t layouts[] = {FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_LAYOUT_LOCAL_QUAT_WXYZ,
+                               FLAME_LAYOUT_LOCAL_MATRIX};
+    for (int i = 0; i < 4 && b; i++) {
+        int32_t layout = i < 3 ? layouts[i] : FLAME_LAYOUT_LOCAL6D;
+        int32_t conv = i < 3 ? U : FLAME_CONVENTION_UNREAL;
+        struct poses q = read_poses(g, layout, conv);
+        float *x = q.root && q.rot ? from_poses(m, &q, layout, conv) : NULL;
+        char what[64];
+        snprintf(what, sizeof what, "layout %d convention %d gives the same features", layout,
+                 conv);
+        check_record(x && max_abs_diff(x, b, REF_VALUES) < 1e-4f, __FILE__, __LINE__, what, "");
+        free(x);
+        free_poses(&q);
+    }
+    free(b);
+
+    test_reference_pose_errors(m, &p1);
+    free_poses(&p1);
+    flame_session_free(g);
+}
+
+/* A fixture next to the FLAME model (tests/fixtures/NAME). */
+static FlameModel *load_fixture(const char *name) {
+    char path[4096];
+    const char *slash = strrchr(g_model_path, '/');
+    int dir = slash ? (int)(slash - g_model_path) : 1;
+    snprintf(path, sizeof path, "%.*s/%s", dir, slash ? g_model_path : ".", name);
+    return load_or_die(path);
+}
+
+/* A small session on another model family, with a reference of `dim` smooth values. */
+static FlameSession *family_session(const FlameModel *m, uint32_t frames, int32_t sampler) {
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = frames;
+    p.steps = 3;
+    p.sampler = sampler;
+    p.seed = 1;
+    p.threads = 1;
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    return s;
+}
+
+static float *family_run(FlameSession *s, size_t expect) {
+    FlameStatus st = run_to_end(s, REF_PROMPT);
+    CHECK_OK(st);
+    size_t n = 0;
+    float *x = st == FLAME_STATUS_OK ? read_features(s, FLAME_WHICH_SAMPLE, &n, &st) : NULL;
+    CHECK(x != NULL && n == expect);
+    return x;
+}
+
+/* Whether channels [c0, c1) of frames [f0, f1) of x equal r's bit for bit. */
+static int same_block(const float *x, const float *r, int dim, uint32_t f0, uint32_t f1, int c0,
+                      int c1) {
+    for (uint32_t f = f0; x && f < f1; f++) {
+        size_t i = (size_t)f * (size_t)dim + (size_t)c0;
+        if (memcmp(x + i, r + i, (size_t)(c1 - c0) * sizeof(float)) != 0) {
+            return 0;
+        }
+    }
+    return x != NULL;
+}
+
+/* MDM (humanml263, a diffusion model with x0 replacement): joints, parts and tasks keep its
+ * channels; pose references are smpl24_6d only. The fixture's text tower is a placeholder:
+ * prompts encode, meaninglessly. */
+static void test_edit_mdm(void) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    const uint32_t F = 16;
+    const int D = 263;
+    FlameModel *m = load_fixture("mdm_tiny.safetensors");
+    FlameModelInfo info;
+    memset(&info, 0, sizeof info);
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_model_info(m, &info));
+    CHECK(info.feature_dim == (uint32_t)D && strcmp(info.motion_format, "humanml263") == 0);
+    CHECK(info.joint_count == 22);
+    float *r = (float *)malloc((size_t)F * D * sizeof(float));
+    for (size_t i = 0; i < (size_t)F * D; i++) {
+        r[i] = 0.4f * sinf(0.03f * (float)i) - 0.1f;
+    }
+
+    FlameSession *s = family_session(m, F, FLAME_SAMPLER_DDIM);
+    CHECK_ERROR_MENTIONS(set_params(s, FLAME_EDIT_METHOD_REWRITE_TRAJECTORY, 0.2f, 1, 4), INV,
+                         "does not apply");
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_NOISED_REFERENCE, 0.2f, 1, 4));
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_REPLACE_X0, 0.2f, 1, 4));
+    int32_t bad[] = {22}, good[] = {FLAME_ROOT_TRANSLATION, 0, 7, 21};
+    CHECK_ERROR_MENTIONS(flame_session_keep_joints(s, bad, 1), INV, "22");
+    CHECK_OK(flame_session_keep_joints(s, good, 4));
+    for (int32_t part = FLAME_BODY_PART_ROOT_PATH; part <= FLAME_BODY_PART_LEGS; part++) {
+        CHECK_OK(flame_session_keep_part(s, part, 0, F));
+    }
+    for (int32_t task = FLAME_EDIT_TASK_INBETWEEN; task <= FLAME_EDIT_TASK_PATH; task++) {
+        CHECK_OK(flame_session_set_task_mask(s, task));
+    }
+    float q[24 * 4] = {0}, root[3] = {0};
+    for (int j = 0; j < 24; j++) {
+        q[4 * j] = 1.0f;
+    }
+    CHECK_ERROR_MENTIONS(flame_session_set_reference_poses(s, root, 3, q, 24 * 4, 1,
+                                                           FLAME_LAYOUT_LOCAL_QUAT_WXYZ, 0),
+                         INV, "smpl24_6d");
+    flame_session_free(s);
+
+    /* keep_joints({ROOT}) keeps the root path (channels 0..4) exactly, as keep_part does. */
+    float *x[3];
+    for (int k = 0; k < 3; k++) {
+        s = family_session(m, F, FLAME_SAMPLER_DDIM);
+        CHECK_OK(flame_session_set_reference(s, r, F, (uint32_t)D));
+        int32_t joint = k == 2 ? 0 : FLAME_ROOT_TRANSLATION;
+        if (k == 1) {
+            CHECK_OK(flame_session_keep_part(s, FLAME_BODY_PART_ROOT_PATH, 0, F));
+        } else {
+            CHECK_OK(flame_session_keep_joints(s, &joint, 1));
+        }
+        x[k] = family_run(s, (size_t)F * D);
+        flame_session_free(s);
+    }
+    CHECK(same_block(x[0], r, D, 0, F, 0, 4));
+    CHECK(!same_block(x[0], r, D, 0, F, 4, D));
+    CHECK(same_bits(x[0], (size_t)F * D, x[1], (size_t)F * D));
+    CHECK(same_block(x[2], r, D, 0, F, 0, 4)); /* joint 0 holds the root's channels too */
+    CHECK(!same_bits(x[0], (size_t)F * D, x[2], (size_t)F * D));
+    for (int k = 0; k < 3; k++) {
+        free(x[k]);
+    }
+
+    /* PREDICT with a reference of just its frames. */
+    s = family_session(m, F, FLAME_SAMPLER_DDIM);
+    CHECK_OK(flame_session_set_reference(s, r, F / 4, (uint32_t)D));
+    CHECK_OK(flame_session_set_task_mask(s, FLAME_EDIT_TASK_PREDICT));
+    float *p = family_run(s, (size_t)F * D);
+    CHECK(same_block(p, r, D, 0, F / 4, 0, D));
+    CHECK(!same_block(p, r, D, F / 4, F, 0, D));
+    free(p);
+    flame_session_free(s);
+    free(r);
+    flame_model_free(m);
+}
+
+/* Motion Flow Matching (a flow model): trajectory rewriting only; with paste on the kept
+ * values are the reference's whatever edit_till is. */
+static void test_edit_flow(void) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    const uint32_t F = 16;
+    const int D = 263;
+    FlameModel *m = load_fixture("motionfm_tiny.safetensors");
+    float *r = (float *)malloc((size_t)F * D * sizeof(float));
+    for (size_t i = 0; i < (size_t)F * D; i++) {
+        r[i] = 0.3f * cosf(0.02f * (float)i);
+    }
+    FlameSession *s = family_session(m, F, FLAME_SAMPLER_EULER);
+    CHECK_ERROR_MENTIONS(set_params(s, FLAME_EDIT_METHOD_NOISED_REFERENCE, 0.2f, 1, 4), INV,
+                         "does not apply");
+    CHECK_ERROR_MENTIONS(set_params(s, FLAME_EDIT_METHOD_REPLACE_X0, 0.2f, 1, 4), INV,
+                         "does not apply");
+    CHECK_ERROR_MENTIONS(set_params(s, FLAME_EDIT_METHOD_REWRITE_TRAJECTORY, NAN, 1, 4), INV,
+                         "edit_till");
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_REWRITE_TRAJECTORY, 0.5f, 1, 4));
+    CHECK_OK(flame_session_set_reference(s, r, F, (uint32_t)D));
+    CHECK_OK(flame_session_set_task_mask(s, FLAME_EDIT_TASK_INBETWEEN));
+    float *x = family_run(s, (size_t)F * D);
+    CHECK(same_block(x, r, D, 0, F / 4, 0, D) && same_block(x, r, D, 3 * F / 4, F, 0, D));
+    CHECK(!same_block(x, r, D, F / 4, 3 * F / 4, 0, D));
+    /* edit_till changes the generation; paste off leaves the kept frames only close. */
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_AUTO, 1.0f, 1, 4));
+    CHECK_OK(flame_session_reset(s));
+    float *y = family_run(s, (size_t)F * D);
+    CHECK(!same_bits(x, (size_t)F * D, y, (size_t)F * D));
+    CHECK_OK(set_params(s, FLAME_EDIT_METHOD_AUTO, 0.2f, 0, 4));
+    CHECK_OK(flame_session_reset(s));
+    float *z = family_run(s, (size_t)F * D);
+    CHECK(!same_block(z, r, D, 0, F / 4, 0, D));
+    free(x);
+    free(y);
+    free(z);
+    free(r);
+    flame_session_free(s);
+    flame_model_free(m);
+}
+
+static void test_edit_api(const FlameModel *m) {
+    float *r = (float *)malloc(REF_VALUES * sizeof(float));
+    make_reference(r);
+    test_edit_params(m);
+    test_task_mask_errors(m);
+    test_task_masks_paste(m, r);
+    test_parts_match_tasks(m, r);
+    test_paste_off_and_methods(m, r);
+    test_short_reference(m, r);
+    test_reference_poses(m);
+    free(r);
 }
 
 /* ---- explicit noise, thread counts ------------------------------------------------------- */
@@ -1401,6 +2083,7 @@ int main(int argc, char **argv) {
     TIMED(test_layouts(m));
     TIMED(test_lengths(m));
     TIMED(test_edit(m));
+    TIMED(test_edit_api(m));
     TIMED(test_noise(m));
     TIMED(test_thread_count_invariance(m));
     TIMED(test_progress(m));
@@ -1411,6 +2094,8 @@ int main(int argc, char **argv) {
     TIMED(test_cli_parity(m));
     flame_model_free(m);
 
+    TIMED(test_edit_mdm());
+    TIMED(test_edit_flow());
     TIMED(test_model_freed_first());
     TIMED(test_threads_joined());
 

@@ -5,7 +5,9 @@
 //
 // usage: test_cpp MODEL REFERENCE_NPY [STEPS]   (as test_api: frames from the file, steps 10)
 
+#include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
@@ -224,6 +226,128 @@ static void test_editing() {
     CHECK_NOTHROW(s.step());
 }
 
+static float max_abs_diff(const std::vector<float> &a, const std::vector<float> &b) {
+    if (a.size() != b.size()) {
+        return INFINITY;
+    }
+    float d = 0.0f;
+    for (std::size_t i = 0; i < a.size(); ++i) {
+        d = std::max(d, std::fabs(a[i] - b[i]));
+    }
+    return d;
+}
+
+// Whether frames [f0, f1) of x are r's, bit for bit.
+static bool same_frames(const std::vector<float> &x, const std::vector<float> &r, uint32_t f0,
+                        uint32_t f1) {
+    std::size_t a = std::size_t{f0} * FLAME_TINY_DIM, n = std::size_t{f1 - f0} * FLAME_TINY_DIM;
+    return x.size() >= a + n && r.size() >= a + n &&
+           std::memcmp(x.data() + a, r.data() + a, n * sizeof(float)) == 0;
+}
+
+static void test_edit_params_tasks_parts() {
+    flame::Model model = flame::Model::load(g_model_path);
+    const uint32_t F = ref_frames, Q = ref_frames / 4;
+    flame::EditParams d;
+    CHECK(d.struct_size == sizeof(FlameEditParams) && d.method == FLAME_EDIT_METHOD_AUTO);
+    CHECK(d.edit_till == 0.2f && d.paste == 1 && d.seam_frames == 4);
+
+    flame::Session s = model.session(reference_params());
+    CHECK_NOTHROW(s.set_edit_params());
+    flame::EditParams p;
+    p.method = FLAME_EDIT_METHOD_REWRITE_TRAJECTORY;
+    CHECK_THROWS(s.set_edit_params(p), FLAME_STATUS_INVALID_ARGUMENT, "does not apply");
+    p = flame::EditParams();
+    p.method = 4;
+    CHECK_THROWS(s.set_edit_params(p), FLAME_STATUS_INVALID_ARGUMENT, "edit method");
+    p = flame::EditParams();
+    p.edit_till = NAN;
+    CHECK_THROWS(s.set_edit_params(p), FLAME_STATUS_INVALID_ARGUMENT, "edit_till");
+    p = flame::EditParams();
+    p.struct_size = 0;
+    CHECK_THROWS(s.set_edit_params(p), FLAME_STATUS_INVALID_ARGUMENT, "struct_size");
+    CHECK_THROWS(s.keep_part(static_cast<FlameBodyPart>(5), 0, F), FLAME_STATUS_INVALID_ARGUMENT,
+                 "body part");
+    CHECK_THROWS(s.keep_part(FLAME_BODY_PART_ARMS, 3, 3), FLAME_STATUS_INVALID_ARGUMENT, "3..3");
+    CHECK_THROWS(s.set_task_mask(static_cast<FlameEditTask>(4)), FLAME_STATUS_INVALID_ARGUMENT,
+                 "task");
+
+    // A mask with no reference: the step refuses.
+    CHECK_NOTHROW(s.set_task_mask(FLAME_EDIT_TASK_PATH));
+    s.set_prompt(REF_PROMPT);
+    CHECK_THROWS(s.step(), FLAME_STATUS_WRONG_STATE, "no reference");
+
+    // In-betweening with paste on (the default): the kept frames are the reference's.
+    std::vector<float> r(g_values);
+    for (std::size_t i = 0; i < r.size(); ++i) {
+        r[i] = 0.5f * std::sin(0.01f * static_cast<float>(i)) + 0.25f;
+    }
+    s.reset();
+    CHECK_NOTHROW(s.set_reference(r, F, FLAME_TINY_DIM));
+    CHECK_NOTHROW(s.set_task_mask(FLAME_EDIT_TASK_INBETWEEN));
+    while (s.step() > 0) {
+    }
+    std::vector<float> pasted = s.read();
+    CHECK(same_frames(pasted, r, 0, Q) && same_frames(pasted, r, 3 * F / 4, F));
+    CHECK(!same_frames(pasted, r, Q, 3 * F / 4));
+    // Paste off: the kept frames are only close.
+    p = flame::EditParams();
+    p.paste = 0;
+    CHECK_NOTHROW(s.set_edit_params(p));
+    s.reset();
+    while (s.step() > 0) {
+    }
+    CHECK(!same_frames(s.read(), r, 0, Q));
+
+    // keep_part adds to the mask: the arms on top of the task.
+    s.reset();
+    CHECK_NOTHROW(s.set_edit_params());
+    CHECK_NOTHROW(s.keep_part(FLAME_BODY_PART_ARMS, 0, F));
+    while (s.step() > 0) {
+    }
+    std::vector<float> arms = s.read();
+    CHECK(!same(arms, pasted) && same_frames(arms, r, 0, Q));
+
+    // A shorter reference: PREDICT keeps exactly its frames; more is refused.
+    flame::Session short_ref = model.session(reference_params());
+    CHECK_NOTHROW(short_ref.set_reference(r.data(), Q, FLAME_TINY_DIM));
+    CHECK_THROWS(short_ref.keep_frames(0, Q + 1), FLAME_STATUS_INVALID_ARGUMENT,
+                 "keeps frame " + std::to_string(Q));
+    CHECK_NOTHROW(short_ref.set_task_mask(FLAME_EDIT_TASK_PREDICT));
+    CHECK(same_frames(run(short_ref), r, 0, Q));
+}
+
+// set_reference_poses is read()'s inverse: quaternions in, the same 6D rotations out.
+static void test_reference_poses() {
+    flame::Model model = flame::Model::load(g_model_path);
+    const uint32_t F = ref_frames;
+    flame::Session g = model.session(reference_params());
+    g.set_prompt(REF_PROMPT);
+    g.step();  // a generic motion (the tiny model's final ones have degenerate rotations)
+    const FlameConvention U = FLAME_CONVENTION_UNITY;
+    std::vector<float> root = g.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION, U);
+    std::vector<float> quats = g.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW, U);
+    std::vector<float> rot6d = g.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL6D, U);
+
+    flame::Session s = model.session(reference_params());
+    CHECK_NOTHROW(s.set_reference_poses(root, quats, FLAME_LAYOUT_LOCAL_QUAT_XYZW, U));
+    CHECK_NOTHROW(s.keep_frames(0, F));
+    run(s);
+    CHECK(max_abs_diff(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION, U), root) < 1e-4f);
+    CHECK(max_abs_diff(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL6D, U), rot6d) < 1e-4f);
+
+    std::vector<float> odd(root.begin(), root.end() - 1);
+    CHECK_THROWS(s.set_reference_poses(odd, quats, FLAME_LAYOUT_LOCAL_QUAT_XYZW),
+                 FLAME_STATUS_INVALID_ARGUMENT, "multiple of 3");
+    CHECK_THROWS(s.set_reference_poses(root, quats, FLAME_LAYOUT_GLOBAL_QUAT_XYZW),
+                 FLAME_STATUS_INVALID_ARGUMENT, "layout");
+    CHECK_THROWS(s.set_reference_poses(root, rot6d, FLAME_LAYOUT_LOCAL_QUAT_XYZW),
+                 FLAME_STATUS_INVALID_ARGUMENT, "rotations");
+    CHECK_THROWS(s.set_reference_poses(root.data(), root.size(), nullptr, 10, F,
+                                       FLAME_LAYOUT_LOCAL6D),
+                 FLAME_STATUS_INVALID_ARGUMENT, "rotations");
+}
+
 static void test_moves() {
     flame::Model a = flame::Model::load(g_model_path);
     flame::Model b = std::move(a);
@@ -362,6 +486,8 @@ int main(int argc, char **argv) {
         test_load_from_memory();
         test_errors();
         test_editing();
+        test_edit_params_tasks_parts();
+        test_reference_poses();
         test_moves();
         test_session_outlives_model();
         test_progress_exception();

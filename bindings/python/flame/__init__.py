@@ -40,7 +40,12 @@ __all__ = [
     "Layout",
     "Convention",
     "ReadFlags",
+    "EditMethod",
+    "EditParams",
+    "BodyPart",
+    "EditTask",
     "ROOT_TRANSLATION",
+    "edit_params_default",
     "library_path",
     "version",
 ]
@@ -117,6 +122,49 @@ class ReadFlags:
 
     SMOOTH = 1  # FLAME's temporal Gaussian smoothing (sigma = 1 frame) before posing
     RAW_SIGNS = 2  # quaternions as computed (w >= 0), not made sign-continuous per track
+
+
+class EditMethod:
+    """FlameEditMethod values: how a session imposes the kept reference values."""
+
+    AUTO = 0  # the model family's own method
+    NOISED_REFERENCE = 1  # FLAME: the reference, noised to the step's level, overwrites x_t
+    REPLACE_X0 = 2  # MDM: the reference overwrites the kept values of the clean-motion estimate
+    REWRITE_TRAJECTORY = 3  # Motion Flow Matching (flow models), while step / steps <= edit_till
+
+
+class BodyPart:
+    """FlameBodyPart values for Session.keep_part (or their names: "root-path", ...)."""
+
+    ROOT_PATH = 0  # the root's trajectory
+    LOWER_BODY = 1  # root path, pelvis and legs
+    UPPER_BODY = 2  # spine, neck, head, collars and arms
+    ARMS = 3  # collars, shoulders, elbows, wrists (and hands)
+    LEGS = 4  # hips, knees, ankles and feet (and foot contacts)
+
+
+class EditTask:
+    """FlameEditTask values for Session.set_task_mask (or their names: "inbetween", ...)."""
+
+    INBETWEEN = 0  # keep all but frames [L/4, 3L/4)
+    PREDICT = 1  # keep frames [0, L/4)
+    UPPER_BODY = 2  # keep the lower body on every frame
+    PATH = 3  # keep the root path on every frame
+
+
+@dataclass
+class EditParams:
+    """FlameEditParams: the editing algorithm (an EditMethod value or its name, "auto",
+    "noised-reference", "replace-x0", "rewrite-trajectory"), `edit_till` (flow models: the
+    fraction of the steps, from the noise end, that rewrite the trajectory, in [0, 1]), `paste`
+    (copy the kept values exactly into the final result and blend the seams; False = the
+    official behaviour) and `seam_frames` (frames over which a seam fades, 0..=1000). The
+    defaults are flame_edit_params_default's."""
+
+    method: Union[int, str] = EditMethod.AUTO
+    edit_till: float = 0.2
+    paste: bool = True
+    seam_frames: int = 4
 
 
 # --- the shared library ------------------------------------------------------------------------
@@ -198,6 +246,16 @@ class _SessionParams(ctypes.Structure):
     ]
 
 
+class _EditParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("method", ctypes.c_int32),
+        ("edit_till", ctypes.c_float),
+        ("paste", ctypes.c_uint32),
+        ("seam_frames", ctypes.c_uint32),
+    ]
+
+
 _ProgressCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32)
 
 _P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
@@ -224,6 +282,8 @@ def _signatures():
         "flame_model_free": (None, [_P]),
         "flame_model_info": (_status, [_P, ctypes.POINTER(_ModelInfo)]),
         "flame_session_params_default": (_status, [ctypes.POINTER(_SessionParams)]),
+        "flame_edit_params_default": (_status, [ctypes.POINTER(_EditParams)]),
+        "flame_session_set_edit_params": (_status, [_P, ctypes.POINTER(_EditParams)]),
         "flame_session_new": (
             _status,
             [_P, ctypes.POINTER(_SessionParams), ctypes.POINTER(_P)],
@@ -236,6 +296,12 @@ def _signatures():
         "flame_session_set_mask": (_status, [_P, ctypes.POINTER(ctypes.c_uint8), u32, u32]),
         "flame_session_keep_frames": (_status, [_P, u32, u32]),
         "flame_session_keep_joints": (_status, [_P, ctypes.POINTER(i32), size_t]),
+        "flame_session_keep_part": (_status, [_P, i32, u32, u32]),
+        "flame_session_set_task_mask": (_status, [_P, i32]),
+        "flame_session_set_reference_poses": (
+            _status,
+            [_P, pf32, size_t, pf32, size_t, u32, i32, i32],
+        ),
         "flame_session_clear_edit": (_status, [_P]),
         "flame_session_set_progress_callback": (_status, [_P, _ProgressCallback, ctypes.c_void_p]),
         "flame_session_step": (_status, [_P, pu32]),
@@ -481,6 +547,31 @@ _LAYOUT_SHAPES = {
 _SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM,
              "euler": Sampler.EULER, "heun": Sampler.HEUN, "midpoint": Sampler.MIDPOINT}
 _WHICH = {"sample": Which.SAMPLE, "estimate": Which.ESTIMATE}
+_EDIT_METHODS = {"auto": EditMethod.AUTO, "noised-reference": EditMethod.NOISED_REFERENCE,
+                 "replace-x0": EditMethod.REPLACE_X0, "rewrite-trajectory": EditMethod.REWRITE_TRAJECTORY}
+_BODY_PARTS = {"root-path": BodyPart.ROOT_PATH, "lower-body": BodyPart.LOWER_BODY,
+               "upper-body": BodyPart.UPPER_BODY, "arms": BodyPart.ARMS, "legs": BodyPart.LEGS}
+_TASKS = {"inbetween": EditTask.INBETWEEN, "predict": EditTask.PREDICT,
+          "upper-body": EditTask.UPPER_BODY, "path": EditTask.PATH}
+
+
+def _named(value, names: dict, what: str) -> int:
+    """A named value by its name (case-insensitive, '_' or '-') or as a plain integer."""
+    if isinstance(value, str):
+        key = value.strip().lower().replace("_", "-")
+        if key not in names:
+            raise ValueError(f"unknown {what} {value!r} ({', '.join(names)})")
+        return names[key]
+    return int(value)
+
+
+def edit_params_default() -> EditParams:
+    """The library's editing defaults (flame_edit_params_default)."""
+    raw = _EditParams()
+    _check(_lib().flame_edit_params_default(ctypes.byref(raw)))
+    # The shortest decimal that is the same float32 (0.2, not 0.20000000298...).
+    edit_till = float(str(np.float32(raw.edit_till)))
+    return EditParams(raw.method, edit_till, bool(raw.paste), raw.seam_frames)
 
 ProgressFn = Callable[[int, int], None]
 
@@ -537,7 +628,8 @@ class Session:
         self._call(_lib().flame_session_set_noise, _ptr(a, ctypes.c_float), a.size)
 
     def set_reference(self, features) -> None:
-        """The reference motion for editing, [frames, feature_dim] float32."""
+        """The reference motion for editing, [frames, feature_dim] float32, with 1 <= frames <=
+        the session's frames (the frames past a shorter reference cannot be kept)."""
         a = _f32(features, "features")
         frames, dim = _frames_by_dim(a, self.feature_dim, "features")
         self._call(_lib().flame_session_set_reference, _ptr(a, ctypes.c_float), frames, dim)
@@ -559,6 +651,44 @@ class Session:
         """Keeps the channels of these joints (ROOT_TRANSLATION for the root path) in every frame."""
         j = np.ascontiguousarray(list(joints), dtype=np.int32)
         self._call(_lib().flame_session_keep_joints, _ptr(j, ctypes.c_int32) if j.size else None, j.size)
+
+    def keep_part(self, part: Union[int, str], start: int = 0, end: Optional[int] = None) -> None:
+        """Keeps a body part's channels (a BodyPart value or name) on frames start..end (end
+        exclusive; None = the last frame), adding to the mask."""
+        p = _named(part, _BODY_PARTS, "body part")
+        self._call(_lib().flame_session_keep_part, p, start, self.frames if end is None else end)
+
+    def set_task_mask(self, task: Union[int, str]) -> None:
+        """Replaces the mask with a standard editing task's (an EditTask value or name)."""
+        self._call(_lib().flame_session_set_task_mask, _named(task, _TASKS, "editing task"))
+
+    def set_reference_poses(self, root, rotations, layout: int, convention: int = Convention.NATIVE) -> None:
+        """A smpl24_6d reference from poses, the inverse of read(): `root` [frames, 3] pelvis
+        positions, `rotations` [frames, 24, ...] local rotations in `layout` (Layout.LOCAL_QUAT_XYZW,
+        LOCAL_QUAT_WXYZ, LOCAL_MATRIX or LOCAL_6D), both in `convention`. Frames come from `root`."""
+        r = _f32(root, "root")
+        q = _f32(rotations, "rotations")
+        if r.size % 3:
+            raise ValueError(f"root must be shaped [frames, 3], got {r.shape}")
+        self._call(
+            _lib().flame_session_set_reference_poses,
+            _ptr(r, ctypes.c_float), r.size, _ptr(q, ctypes.c_float), q.size, r.size // 3, layout, convention,
+        )
+
+    def set_edit_params(self, params: Optional[EditParams] = None, **fields) -> None:
+        """How the session edits: an EditParams, or its fields as keywords (method, edit_till,
+        paste, seam_frames) over the defaults. The library checks the method against the model
+        (FLAME's and MDM's need a diffusion model, trajectory rewriting a flow model)."""
+        p = params if params is not None else EditParams()
+        if fields:
+            p = EditParams(**{**vars(p), **fields})
+        raw = _EditParams()
+        _check(_lib().flame_edit_params_default(ctypes.byref(raw)))
+        raw.method = _named(p.method, _EDIT_METHODS, "edit method")
+        raw.edit_till = p.edit_till
+        raw.paste = 1 if p.paste else 0
+        raw.seam_frames = p.seam_frames
+        self._call(_lib().flame_session_set_edit_params, ctypes.byref(raw))
 
     def clear_edit(self) -> None:
         self._call(_lib().flame_session_clear_edit)

@@ -69,6 +69,11 @@ static class FlameTest
             Run("CancelFromAnotherThread", TestCancelFromAnotherThread);
             Run("DisposeWhileStepping", TestDisposeWhileStepping);
             Run("Editing", TestEditing);
+            Run("EditParams", TestEditParams);
+            Run("TaskMasksAndParts", TestTaskMasksAndParts);
+            Run("ShortReference", TestShortReference);
+            Run("ReferencePoses", TestReferencePoses);
+            Run("EditOtherFamilies", TestEditOtherFamilies);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -231,6 +236,9 @@ static class FlameTest
         CheckValues("FLAME_LAYOUT_", ConstValues(typeof(FlameLayout)));
         CheckValues("FLAME_CONVENTION_", ConstValues(typeof(FlameConvention)));
         CheckValues("FLAME_READ_", ConstValues(typeof(FlameReadFlags)));
+        CheckValues("FLAME_EDIT_METHOD_", EnumValues(typeof(FlameEditMethod)));
+        CheckValues("FLAME_BODY_PART_", EnumValues(typeof(FlameBodyPart)));
+        CheckValues("FLAME_EDIT_TASK_", EnumValues(typeof(FlameEditTask)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
     }
@@ -252,6 +260,9 @@ static class FlameTest
         Check(sp.frames == 0 && sp.steps == 0 && sp.sampler == 0 && sp.eta < 0 && sp.guidance < 0 && sp.seed == 0 && sp.threads == 0, "session defaults");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
+        var ep = FlameEditParams.Default();
+        Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
+        Check(ep.method == (int)FlameEditMethod.Auto && ep.edit_till == 0.2f && ep.paste == 1 && ep.seam_frames == 4, "edit defaults");
     }
 
     static void TestLoadErrors()
@@ -361,7 +372,7 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "frame range 5..5", () => s.KeepFrames(5, 5));
             Throws(FlameStatus.InvalidArgument, "outside 0..24", () => s.KeepFrames(0, 25));
             Throws(FlameStatus.InvalidArgument, "joint 24", () => s.KeepJoints(24));
-            Throws(FlameStatus.InvalidArgument, "does not match", () => s.SetReference(new float[23 * Dim], 23, Dim));
+            Throws(FlameStatus.InvalidArgument, "want 1..=24 frames", () => s.SetReference(new float[25 * Dim], 25, Dim));
             Throws(FlameStatus.InvalidArgument, "does not match", () => s.SetMask(new byte[RefFrames * 146], RefFrames, 146));
             Throws(FlameStatus.WrongState, "before the first step", () => s.SetNoise(new float[RefFrames * Dim]));
             ThrowsManaged<ArgumentException>(() => s.SetReference(new float[10]));   // checked before native code
@@ -701,6 +712,215 @@ static class FlameTest
             s.SetMask(mask, RefFrames, Dim);
             s.Reset();
             Check(BitEqual(RunAll(s), joints), "KeepJoints(-1, 0) = the equivalent mask");
+        }
+    }
+
+    static float[] SmoothReference(int frames, int dim)
+    {
+        var r = new float[frames * dim];
+        for (int i = 0; i < r.Length; i++)
+            r[i] = (float)(0.5 * Math.Sin(0.01 * i) + 0.25);
+        return r;
+    }
+
+    /// <summary>Whether frames [f0, f1) of x are r's, bit for bit.</summary>
+    static bool SameFrames(float[] x, float[] r, int dim, int f0, int f1)
+    {
+        var a = new float[(f1 - f0) * dim];
+        var b = new float[(f1 - f0) * dim];
+        Array.Copy(x, f0 * dim, a, 0, a.Length);
+        Array.Copy(r, f0 * dim, b, 0, b.Length);
+        return BitEqual(a, b);
+    }
+
+    static float MaxAbsDiff(float[] a, float[] b)
+    {
+        if (a.Length != b.Length)
+            return float.PositiveInfinity;
+        float d = 0;
+        for (int i = 0; i < a.Length; i++)
+            d = Math.Max(d, Math.Abs(a[i] - b[i]));
+        return d;
+    }
+
+    static void TestEditParams()
+    {
+        using (var s = RefSession())
+        {
+            var p = FlameEditParams.Default();
+            s.SetEditParams(p);
+            p.method = (int)FlameEditMethod.RewriteTrajectory;
+            Throws(FlameStatus.InvalidArgument, "does not apply", () => s.SetEditParams(p));
+            p = FlameEditParams.Default();
+            p.method = 4;
+            Throws(FlameStatus.InvalidArgument, "edit method 4", () => s.SetEditParams(p));
+            p = FlameEditParams.Default();
+            p.edit_till = float.NaN;
+            Throws(FlameStatus.InvalidArgument, "edit_till", () => s.SetEditParams(p));
+            p.edit_till = 1.5f;
+            Throws(FlameStatus.InvalidArgument, "edit_till", () => s.SetEditParams(p));
+            p = FlameEditParams.Default();
+            p.seam_frames = 1001;
+            Throws(FlameStatus.InvalidArgument, "seam_frames", () => s.SetEditParams(p));
+            p = FlameEditParams.Default();
+            p.struct_size = 8;
+            Throws(FlameStatus.InvalidArgument, "struct_size", () => s.SetEditParams(p));
+            p = FlameEditParams.Default();
+            p.method = (int)FlameEditMethod.ReplaceX0;
+            p.paste = 0;
+            s.SetEditParams(p);
+            s.SetEditParams(FlameEditParams.Default());
+            Check(BitEqual(RunAll(s), reference), "settings alone edit nothing");
+        }
+        using (var none = new FlameSessionHandle())
+        {
+            var p = FlameEditParams.Default();
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_set_edit_params(none, ref p)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_set_task_mask(none, 0)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_keep_part(none, 0, 0, 1)));
+        }
+    }
+
+    static void TestTaskMasksAndParts()
+    {
+        var r = SmoothReference(RefFrames, Dim);
+        using (var s = RefSession())
+        {
+            s.SetTaskMask(FlameEditTask.Path);
+            Throws(FlameStatus.WrongState, "no reference", () => s.Step());
+            s.SetReference(r);
+            s.SetTaskMask(FlameEditTask.Inbetween);
+            var x = RunAll(s);
+            Check(SameFrames(x, r, Dim, 0, 6) && SameFrames(x, r, Dim, 18, 24), "in-between: kept frames = the reference (paste on)");
+            Check(!SameFrames(x, r, Dim, 6, 18), "in-between: the middle is generated");
+
+            var p = FlameEditParams.Default();
+            p.paste = 0;
+            s.SetEditParams(p);
+            s.Reset();
+            Check(!SameFrames(RunAll(s), r, Dim, 0, 6), "paste off: the kept frames are only close");
+            s.SetEditParams(FlameEditParams.Default());
+
+            s.SetTaskMask(FlameEditTask.Path);
+            s.Reset();
+            var path = RunAll(s);
+            bool rootKept = true;
+            for (int f = 0; f < RefFrames; f++)
+                for (int c = 0; c < 3; c++)
+                    rootKept &= path[f * Dim + c] == r[f * Dim + c];
+            Check(rootKept && !BitEqual(path, x), "path: the root translation is kept");
+            s.ClearEdit();
+            s.SetReference(r);
+            s.KeepPart(FlameBodyPart.RootPath);
+            s.Reset();
+            Check(BitEqual(RunAll(s), path), "KeepPart(RootPath) = the PATH task");
+
+            Throws(FlameStatus.InvalidArgument, "unknown editing task 4", () => s.SetTaskMask((FlameEditTask)4));
+            Throws(FlameStatus.InvalidArgument, "unknown body part 5", () => s.KeepPart((FlameBodyPart)5));
+            Throws(FlameStatus.InvalidArgument, "3..3", () => s.KeepPart(FlameBodyPart.Arms, 3, 3));
+            Throws(FlameStatus.InvalidArgument, "0..25", () => s.KeepPart(FlameBodyPart.Arms, 0, 25));
+            ThrowsManaged<ArgumentOutOfRangeException>(() => s.KeepPart(FlameBodyPart.Arms, -1, 3));
+        }
+    }
+
+    static void TestShortReference()
+    {
+        var r = SmoothReference(6, Dim);
+        using (var s = RefSession())
+        {
+            s.SetReference(r, 6, Dim);
+            Throws(FlameStatus.InvalidArgument, "keeps frame 6", () => s.KeepFrames(0, 7));
+            Throws(FlameStatus.InvalidArgument, "keeps frame", () => s.SetTaskMask(FlameEditTask.Inbetween));
+            s.SetTaskMask(FlameEditTask.Predict);
+            Check(SameFrames(RunAll(s), r, Dim, 0, 6), "PREDICT keeps the short reference's frames");
+        }
+        using (var s = RefSession())
+        {
+            s.KeepFrames(0, RefFrames);
+            Throws(FlameStatus.InvalidArgument, "keeps frame 6", () => s.SetReference(r, 6, Dim));
+        }
+    }
+
+    static void TestReferencePoses()
+    {
+        float[] root, quats, rot6d;
+        using (var g = RefSession())
+        {
+            g.Step();   // a generic motion (the tiny model's final ones hold degenerate rotations)
+            root = g.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Unity, 0);
+            quats = g.Read(FlameWhich.Sample, FlameLayout.LocalQuatWxyz, FlameConvention.Unity, 0);
+            rot6d = g.Read(FlameWhich.Sample, FlameLayout.Local6d, FlameConvention.Unity, 0);
+        }
+        using (var s = RefSession())
+        {
+            s.SetReferencePoses(root, quats, FlameLayout.LocalQuatWxyz, FlameConvention.Unity);
+            s.KeepFrames(0, RefFrames);
+            RunAll(s);
+            Check(MaxAbsDiff(s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Unity, 0), root) < 1e-4f, "root round trip");
+            Check(MaxAbsDiff(s.Read(FlameWhich.Sample, FlameLayout.Local6d, FlameConvention.Unity, 0), rot6d) < 1e-4f, "rotation round trip");
+            Throws(FlameStatus.InvalidArgument, "layout", () => s.SetReferencePoses(root, rot6d, FlameLayout.GlobalQuatXyzw, 0));
+            Throws(FlameStatus.InvalidArgument, "convention", () => s.SetReferencePoses(root, rot6d, FlameLayout.Local6d, 6));
+            Throws(FlameStatus.InvalidArgument, "rotations", () => s.SetReferencePoses(root, rot6d, FlameLayout.LocalQuatXyzw, 0));
+            Throws(FlameStatus.InvalidArgument, "outside 1..=24", () => s.SetReferencePoses(new float[25 * 3], new float[25 * 24 * 6], FlameLayout.Local6d, 0));
+            ThrowsManaged<ArgumentException>(() => s.SetReferencePoses(new float[5], rot6d, FlameLayout.Local6d, 0));
+            ThrowsManaged<ArgumentNullException>(() => s.SetReferencePoses(root, null, FlameLayout.Local6d, 0));
+            Throws(FlameStatus.InvalidArgument, "`rotations` is NULL",
+                   () => FlameException.Check(FlameNative.flame_session_set_reference_poses(s.Handle, root, (UIntPtr)root.Length, null, (UIntPtr)10,
+                                                                                            (uint)RefFrames, FlameLayout.Local6d, 0)));
+        }
+    }
+
+    static void TestEditOtherFamilies()
+    {
+        // The fixtures' text towers are placeholders: prompts encode, meaninglessly.
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        var p = FlameSessionParams.Default();
+        p.frames = 16;
+        p.steps = 3;
+        p.seed = 1;
+        p.threads = 1;
+        using (var mdm = FlameModel.Load(Path.Combine(dir, "mdm_tiny.safetensors"), 1))
+        {
+            int d = mdm.Info.FeatureDim;
+            var r = SmoothReference(16, d);
+            p.sampler = (int)FlameSampler.Ddim;
+            using (var s = mdm.NewSession(p))
+            {
+                s.SetPrompt(RefPrompt);
+                s.SetReference(r);
+                s.KeepJoints(FlameNative.RootTranslation);
+                var x = RunAll(s);
+                bool rootKept = true;
+                for (int f = 0; f < 16; f++)
+                    for (int c = 0; c < 4; c++)
+                        rootKept &= x[f * d + c] == r[f * d + c];
+                Check(d == 263 && rootKept && !BitEqual(x, r), "humanml263: KeepJoints(RootTranslation) keeps the root path");
+                Throws(FlameStatus.InvalidArgument, "joint 22", () => s.KeepJoints(22));
+                var ep = FlameEditParams.Default();
+                ep.method = (int)FlameEditMethod.RewriteTrajectory;
+                Throws(FlameStatus.InvalidArgument, "does not apply", () => s.SetEditParams(ep));
+                Throws(FlameStatus.InvalidArgument, "smpl24_6d", () => s.SetReferencePoses(new float[3], new float[24 * 6], FlameLayout.Local6d, 0));
+            }
+        }
+        using (var fm = FlameModel.Load(Path.Combine(dir, "motionfm_tiny.safetensors"), 1))
+        {
+            int d = fm.Info.FeatureDim;
+            var r = SmoothReference(16, d);
+            p.sampler = (int)FlameSampler.Euler;
+            using (var s = fm.NewSession(p))
+            {
+                var ep = FlameEditParams.Default();
+                ep.method = (int)FlameEditMethod.NoisedReference;
+                Throws(FlameStatus.InvalidArgument, "does not apply", () => s.SetEditParams(ep));
+                ep.method = (int)FlameEditMethod.RewriteTrajectory;
+                ep.edit_till = 0.5f;
+                s.SetEditParams(ep);
+                s.SetPrompt(RefPrompt);
+                s.SetReference(r);
+                s.SetTaskMask(FlameEditTask.Predict);
+                var x = RunAll(s);
+                Check(SameFrames(x, r, d, 0, 4) && !SameFrames(x, r, d, 4, 16), "flow: PREDICT keeps the first quarter");
+            }
         }
     }
 

@@ -96,7 +96,9 @@ def test_every_header_function_is_bound():
 @pytest.mark.parametrize(
     "prefix, names",
     [("FLAME_STATUS_", Status), ("FLAME_SAMPLER_", flame.Sampler), ("FLAME_WHICH_", flame.Which),
-     ("FLAME_LAYOUT_", Layout), ("FLAME_CONVENTION_", Convention), ("FLAME_READ_", ReadFlags)],
+     ("FLAME_LAYOUT_", Layout), ("FLAME_CONVENTION_", Convention), ("FLAME_READ_", ReadFlags),
+     ("FLAME_EDIT_METHOD_", flame.EditMethod), ("FLAME_BODY_PART_", flame.BodyPart),
+     ("FLAME_EDIT_TASK_", flame.EditTask)],
 )
 def test_named_values_match_the_header(prefix, names):
     import re
@@ -211,7 +213,7 @@ def test_session_errors(model):
         expect_error(Status.INVALID_ARGUMENT, "frame range 5..5", s.keep_frames, 5, 5)
         expect_error(Status.INVALID_ARGUMENT, "outside 0..24", s.keep_frames, 0, 25)
         expect_error(Status.INVALID_ARGUMENT, "joint 24", s.keep_joints, [24])
-        expect_error(Status.INVALID_ARGUMENT, "does not match", s.set_reference, np.zeros((23, DIM)))
+        expect_error(Status.INVALID_ARGUMENT, "want 1..=24 frames", s.set_reference, np.zeros((25, DIM)))
         expect_error(Status.INVALID_ARGUMENT, "does not match", s.set_mask, np.zeros((24, 146)))
     for kwargs, fragment in [
         (dict(frames=471), "frames 471 outside 1..=470"),
@@ -523,3 +525,205 @@ def test_two_sessions_in_two_threads_match_sequential(model):
 def test_thread_count_does_not_change_output(model, reference):
     with ref_session(model, threads=2) as s:
         assert s.run().tobytes() == reference.tobytes()
+
+
+# --- editing: parameters, tasks, body parts, pose references -------------------------------------
+
+FIXTURES = ROOT / "tests/fixtures"
+
+
+def smooth_reference(frames=24, dim=DIM):
+    i = np.arange(frames * dim, dtype=np.float32)
+    return (0.5 * np.sin(0.01 * i) + 0.25).astype(np.float32).reshape(frames, dim)
+
+
+def test_edit_params_defaults_and_errors(model, reference):
+    d = flame.edit_params_default()
+    assert (d.method, d.paste, d.seam_frames) == (flame.EditMethod.AUTO, True, 4)
+    assert np.float32(d.edit_till) == np.float32(0.2)
+    assert flame.EditParams() == d
+    with ref_session(model) as s:
+        s.set_edit_params()
+        s.set_edit_params(flame.EditParams(method="noised-reference", paste=False, seam_frames=0))
+        s.set_edit_params(method=flame.EditMethod.REPLACE_X0, edit_till=1.0)
+        expect_error(Status.INVALID_ARGUMENT, "does not apply", s.set_edit_params, method="rewrite-trajectory")
+        expect_error(Status.INVALID_ARGUMENT, "edit method 4", s.set_edit_params, method=4)
+        expect_error(Status.INVALID_ARGUMENT, "edit method -1", s.set_edit_params, method=-1)
+        expect_error(Status.INVALID_ARGUMENT, "edit_till", s.set_edit_params, edit_till=float("nan"))
+        expect_error(Status.INVALID_ARGUMENT, "edit_till", s.set_edit_params, edit_till=1.5)
+        expect_error(Status.INVALID_ARGUMENT, "edit_till", s.set_edit_params, edit_till=-0.1)
+        expect_error(Status.INVALID_ARGUMENT, "seam_frames", s.set_edit_params, seam_frames=1001)
+        with pytest.raises(ValueError):
+            s.set_edit_params(method="x0")
+        with pytest.raises(TypeError):
+            s.set_edit_params(steps=3)
+        s.set_edit_params()
+        assert s.run().tobytes() == reference.tobytes(), "settings alone edit nothing"
+
+
+def test_edit_params_struct_size_through_ctypes(model):
+    import ctypes
+
+    lib = flame._lib()
+    raw = flame._EditParams()
+    assert lib.flame_edit_params_default(ctypes.byref(raw)) == Status.OK
+    assert raw.struct_size == ctypes.sizeof(flame._EditParams) == 20
+    with ref_session(model) as s:
+        raw.struct_size = 8
+        assert lib.flame_session_set_edit_params(s._h(), ctypes.byref(raw)) == Status.INVALID_ARGUMENT
+        assert b"struct_size" in lib.flame_last_error()
+        assert lib.flame_session_set_edit_params(s._h(), None) == Status.INVALID_ARGUMENT
+        assert lib.flame_edit_params_default(None) == Status.INVALID_ARGUMENT
+
+
+def test_task_masks_paste_kept_values(model):
+    r = smooth_reference()
+    quarter = slice(0, 6)
+    with ref_session(model) as s:
+        s.set_reference(r)
+        s.set_task_mask("inbetween")
+        x = s.run()
+        assert x[:6].tobytes() == r[:6].tobytes() and x[18:].tobytes() == r[18:].tobytes()
+        assert not np.array_equal(x[6:18], r[6:18])
+
+        s.set_task_mask(flame.EditTask.PREDICT)  # replaces the mask
+        s.reset()
+        x = s.run()
+        assert x[quarter].tobytes() == r[quarter].tobytes() and not np.array_equal(x[6:], r[6:])
+
+        s.set_task_mask("path")
+        s.reset()
+        path = s.run()
+        assert path[:, :3].tobytes() == r[:, :3].tobytes() and not np.array_equal(path[:, 3:], r[:, 3:])
+        s.clear_edit()
+        s.set_reference(r)
+        s.keep_part("root-path")
+        s.reset()
+        assert s.run().tobytes() == path.tobytes(), "PATH = keep_part(ROOT_PATH) on every frame"
+
+        s.set_task_mask(flame.EditTask.UPPER_BODY)
+        s.reset()
+        upper = s.run()
+        lower = [0, 1, 2, 4, 5, 7, 8, 10, 11]  # pelvis and legs
+        kept = np.r_[0:3, [3 + 6 * j + k for j in lower for k in range(6)]]
+        assert upper[:, kept].tobytes() == r[:, kept].tobytes()
+
+        s.set_edit_params(paste=False)
+        s.set_task_mask("inbetween")
+        s.reset()
+        x = s.run()
+        assert not np.array_equal(x[:6], r[:6]), "paste off: the kept values are only close"
+
+        expect_error(Status.INVALID_ARGUMENT, "unknown editing task 4", s.set_task_mask, 4)
+        with pytest.raises(ValueError):
+            s.set_task_mask("dance")
+
+
+def test_keep_part(model):
+    r = smooth_reference()
+    with ref_session(model) as s:
+        s.set_reference(r)
+        s.keep_part(flame.BodyPart.ARMS, 12)  # to the last frame
+        x = s.run()
+        arms = np.r_[[3 + 6 * j + k for j in (13, 14, 16, 17, 18, 19, 20, 21, 22, 23) for k in range(6)]]
+        assert x[12:, arms].tobytes() == r[12:, arms].tobytes()
+        assert not np.array_equal(x[:12, arms], r[:12, arms])
+        for part in ("root-path", "lower_body", "UPPER-BODY", "legs", 3):
+            s.keep_part(part, 0, 24)
+        expect_error(Status.INVALID_ARGUMENT, "unknown body part 5", s.keep_part, 5)
+        expect_error(Status.INVALID_ARGUMENT, "unknown body part -1", s.keep_part, -1)
+        expect_error(Status.INVALID_ARGUMENT, "3..3", s.keep_part, "arms", 3, 3)
+        expect_error(Status.INVALID_ARGUMENT, "0..25", s.keep_part, "arms", 0, 25)
+        with pytest.raises(ValueError):
+            s.keep_part("tail")
+
+
+def test_mask_without_reference_and_short_reference(model):
+    r = smooth_reference()
+    with ref_session(model) as s:
+        s.set_task_mask("path")
+        expect_error(Status.WRONG_STATE, "no reference", s.step)
+        s.clear_edit()
+        s.set_reference(r[:6])  # a shorter reference: its frames can be kept
+        expect_error(Status.INVALID_ARGUMENT, "keeps frame 6", s.keep_frames, 0, 7)
+        expect_error(Status.INVALID_ARGUMENT, "keeps frame", s.set_task_mask, "inbetween")
+        s.set_task_mask("predict")
+        x = s.run()
+        assert x[:6].tobytes() == r[:6].tobytes()
+    with ref_session(model) as s:
+        s.keep_frames(0, 24)
+        expect_error(Status.INVALID_ARGUMENT, "keeps frame 6", s.set_reference, r[:6])
+
+
+def test_reference_poses_round_trip(model):
+    """set_reference_poses is read()'s inverse (poses of a generic, one-step sample: the tiny
+    model's final motions hold degenerate 6D rotations)."""
+    with ref_session(model) as g:
+        g.step()
+        root = g.read("sample", Layout.ROOT_TRANSLATION, Convention.UNITY)
+        rot6d = g.read("sample", Layout.LOCAL_6D, Convention.UNITY)
+        results = {}
+        for layout in (Layout.LOCAL_6D, Layout.LOCAL_QUAT_XYZW, Layout.LOCAL_QUAT_WXYZ, Layout.LOCAL_MATRIX):
+            rotations = g.read("sample", layout, Convention.UNITY)
+            with ref_session(model) as s:
+                s.set_reference_poses(root, rotations, layout, Convention.UNITY)
+                s.keep_frames(0, 24)
+                results[layout] = s.run()
+                np.testing.assert_allclose(s.read("sample", Layout.ROOT_TRANSLATION, Convention.UNITY), root, atol=1e-4)
+                np.testing.assert_allclose(s.read("sample", Layout.LOCAL_6D, Convention.UNITY), rot6d, atol=1e-4)
+        for x in results.values():
+            np.testing.assert_allclose(x, results[Layout.LOCAL_6D], atol=1e-4)
+        # features -> poses -> features
+        with ref_session(model) as s:
+            s.set_reference(results[Layout.LOCAL_6D])
+            s.keep_frames(0, 24)
+            x = s.run()
+            again_root = s.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF)
+            again_rot = s.read("sample", Layout.LOCAL_QUAT_WXYZ, Convention.GLTF)
+        with ref_session(model) as s:
+            s.set_reference_poses(again_root, again_rot, Layout.LOCAL_QUAT_WXYZ, Convention.GLTF)
+            s.keep_frames(0, 24)
+            np.testing.assert_allclose(s.run(), x, atol=1e-4)
+            expect_error(Status.INVALID_ARGUMENT, "layout", s.set_reference_poses, root, rot6d, Layout.GLOBAL_QUAT_XYZW)
+            expect_error(Status.INVALID_ARGUMENT, "convention", s.set_reference_poses, root, rot6d, Layout.LOCAL_6D, 6)
+            expect_error(Status.INVALID_ARGUMENT, "rotations", s.set_reference_poses, root, rot6d, Layout.LOCAL_QUAT_XYZW)
+            expect_error(Status.INVALID_ARGUMENT, "outside 1..=24", s.set_reference_poses,
+                         np.zeros((25, 3)), np.zeros((25, 24, 6)), Layout.LOCAL_6D)
+            bad = root.copy()
+            bad[2, 1] = np.nan
+            expect_error(Status.INVALID_ARGUMENT, "not finite", s.set_reference_poses, bad, rot6d, Layout.LOCAL_6D)
+            with pytest.raises(ValueError):
+                s.set_reference_poses(np.zeros(5), rot6d, Layout.LOCAL_6D)
+
+
+def test_editing_other_families():
+    """MDM (humanml263): keep_joints and parts; Motion Flow Matching: trajectory rewriting. The
+    fixtures' text towers are placeholders: prompts encode, meaninglessly."""
+    with flame.Model.load(FIXTURES / "mdm_tiny.safetensors") as mdm, \
+            mdm.session(frames=16, steps=3, sampler="ddim", seed=1, threads=1) as s:
+        d = mdm.info.feature_dim
+        r = smooth_reference(16, d)
+        s.set_prompt(REF_PROMPT)
+        s.set_reference(r)
+        s.keep_joints([flame.ROOT_TRANSLATION])
+        x = s.run()
+        assert x[:, :4].tobytes() == r[:, :4].tobytes() and not np.array_equal(x[:, 4:], r[:, 4:])
+        s.clear_edit()
+        s.set_reference(r)
+        s.keep_part("root-path")
+        s.reset()
+        assert s.run().tobytes() == x.tobytes(), "keep_joints([ROOT]) = the root path"
+        expect_error(Status.INVALID_ARGUMENT, "joint 22", s.keep_joints, [22])
+        expect_error(Status.INVALID_ARGUMENT, "does not apply", s.set_edit_params, method="rewrite-trajectory")
+        expect_error(Status.INVALID_ARGUMENT, "smpl24_6d", s.set_reference_poses,
+                     np.zeros((1, 3)), np.tile([1, 0, 0, 0], (1, 24, 1)), Layout.LOCAL_QUAT_WXYZ)
+    with flame.Model.load(FIXTURES / "motionfm_tiny.safetensors") as fm, \
+            fm.session(frames=16, steps=4, seed=1, threads=1) as s:
+        r = smooth_reference(16, fm.info.feature_dim)
+        expect_error(Status.INVALID_ARGUMENT, "does not apply", s.set_edit_params, method="noised-reference")
+        s.set_edit_params(method="rewrite-trajectory", edit_till=0.5)
+        s.set_prompt(REF_PROMPT)
+        s.set_reference(r)
+        s.set_task_mask("predict")
+        x = s.run()
+        assert x[:4].tobytes() == r[:4].tobytes() and not np.array_equal(x[4:], r[4:])

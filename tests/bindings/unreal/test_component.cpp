@@ -194,6 +194,64 @@ int main(int argc, char** argv) {
         CHECK(FFlameModule::ActiveWorkers.GetValue() == 0, "active workers %d", FFlameModule::ActiveWorkers.GetValue());
     }
 
+    {   // Editing: a task mask over EditReference; with paste on the kept frames are its bits.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 10, true);
+        CHECK(c.EditTask == -1 && c.EditMethod == 0 && c.bEditPaste && c.EditSeamFrames == 4 && c.EditTill == 0.2f,
+              "editing defaults");
+        std::vector<float> edit((size_t)Frames * Dim);
+        for (size_t i = 0; i < edit.size(); i++) edit[i] = 0.5f * std::sin(0.01f * (float)i) + 0.25f;
+        c.EditReference.Append(edit.data(), (int32)edit.size());
+        c.EditTask = FLAME_EDIT_TASK_PREDICT;
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        auto generate = [&](const char* what) {
+            const int before = finishedCalls;
+            CHECK(c.Generate(), "Generate (%s): %s", what, c.LastError.Utf8().c_str());
+            CHECK(TickUntil(c, [&] { return finishedCalls > before; }), "finished (%s)", what);
+        };
+        auto sameFrames = [&](int f0, int f1) {
+            return c.Pose.Num() == Frames * Dim &&
+                   std::memcmp(c.Pose.GetData() + f0 * Dim, edit.data() + f0 * Dim, (size_t)(f1 - f0) * Dim * 4) == 0;
+        };
+        generate("predict");
+        CHECK(succeeded && c.LastError.IsEmpty(), "edit succeeded: %s", c.LastError.Utf8().c_str());
+        CHECK(sameFrames(0, Frames / 4), "the kept quarter is the reference's");
+        CHECK(!sameFrames(Frames / 4, Frames), "the rest is generated");
+
+        c.bEditPaste = false;
+        generate("paste off");
+        CHECK(succeeded && !sameFrames(0, Frames / 4), "paste off: the kept frames are only close");
+
+        c.bEditPaste = true;
+        c.EditMethod = FLAME_EDIT_METHOD_REWRITE_TRAJECTORY;
+        generate("flow method on a diffusion model");
+        CHECK(!succeeded && c.LastError.Utf8().find("does not apply") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+
+        c.EditMethod = 0;
+        c.EditTask = 7;
+        generate("unknown task");
+        CHECK(!succeeded && c.LastError.Utf8().find("unknown editing task 7") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+
+        c.EditTask = FLAME_EDIT_TASK_PATH;
+        c.EditReference.Reset();
+        c.EditReference.Append(edit.data(), 10);
+        generate("bad reference length");
+        CHECK(!succeeded && c.LastError.Utf8().find("EditReference has 10 values") == 0, "%s", c.LastError.Utf8().c_str());
+
+        c.EditReference.Reset();
+        generate("no reference");
+        CHECK(!succeeded && c.LastError.Utf8().find("FLAME_STATUS_WRONG_STATE") == 0 &&
+                  c.LastError.Utf8().find("no reference") != std::string::npos,
+              "%s", c.LastError.Utf8().c_str());
+
+        c.EditTask = -1;  // back to plain generation: the CLI's features
+        generate("plain");
+        CHECK(succeeded && std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0, "plain again");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
     {   // Errors reach LastError and OnFinished(false).
         UFlameMotionComponent c;
         Configure(c, "/nonexistent/model.safetensors", Frames, 10, true);

@@ -49,6 +49,9 @@ struct FFlameJob
 	int32 Convention = 0;
 	uint32 Flags = 0;
 	bool bPreviewEstimate = true;
+	int32 EditTask = -1; // -1: no edit
+	TArray<float> EditReference;
+	FlameEditParams EditParams;
 
 	FCriticalSection Lock;
 	// Guarded by Lock:
@@ -140,13 +143,42 @@ private:
 			}
 			Session = S;
 		}
-		const bool bOk = Step(S, Failure);
+		const bool bOk = Edit(S, Info.feature_dim, Failure) && Step(S, Failure);
 		{
 			FScopeLock Guard(&Lock);
 			Session = nullptr;
 		}
 		flame_session_free(S);
 		return bOk;
+	}
+
+	/** Sets the edit (parameters, reference, task mask) when EditTask asks for one. */
+	bool Edit(FlameSession* S, uint32 Dim, FString& Failure)
+	{
+		if (EditTask < 0)
+		{
+			return true;
+		}
+		if (Dim == 0 || EditReference.Num() % (int32)Dim != 0)
+		{
+			Failure = FString::Printf(TEXT("EditReference has %d values, not frames x %u features"), EditReference.Num(), Dim);
+			return false;
+		}
+		FlameStatus Status = flame_session_set_edit_params(S, &EditParams);
+		if (Status == FLAME_STATUS_OK && EditReference.Num() > 0)
+		{
+			Status = flame_session_set_reference(S, EditReference.GetData(), (uint32)(EditReference.Num() / (int32)Dim), Dim);
+		}
+		if (Status == FLAME_STATUS_OK)
+		{
+			Status = flame_session_set_task_mask(S, EditTask);
+		}
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		return true;
 	}
 
 	bool Step(FlameSession* S, FString& Failure)
@@ -244,6 +276,13 @@ bool UFlameMotionComponent::Generate()
 	NewJob->Convention = Convention;
 	NewJob->Flags = (uint32)FMath::Max(ReadFlags, 0);
 	NewJob->bPreviewEstimate = bPreviewEstimate;
+	NewJob->EditTask = EditTask;
+	NewJob->EditReference = EditReference;
+	flame_edit_params_default(&NewJob->EditParams);
+	NewJob->EditParams.method = EditMethod;
+	NewJob->EditParams.edit_till = EditTill;
+	NewJob->EditParams.paste = bEditPaste ? 1u : 0u;
+	NewJob->EditParams.seam_frames = (uint32)FMath::Max(EditSeamFrames, 0);
 	if (Model.IsValid() && Model->Path == NewJob->Path)
 	{
 		NewJob->Model = Model;

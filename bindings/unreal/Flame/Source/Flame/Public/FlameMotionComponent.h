@@ -76,6 +76,35 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	int32 ReadFlags = 0;
 
+	/** Editing: a FlameEditTask value of flame.h, or -1 (the default) for plain generation.
+	 *  0 = in-betweening (keep all but the middle half of the frames), 1 = prediction (keep
+	 *  the first quarter), 2 = upper body (keep root path, pelvis and legs), 3 = path (keep
+	 *  the root path). The kept values come from EditReference. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing")
+	int32 EditTask = -1;
+
+	/** The reference motion as the model's raw features, frame-major: frames × feature_dim
+	 *  floats, at most Frames frames (e.g. a previous Pose read with Layout = 0). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing")
+	TArray<float> EditReference;
+
+	/** A FlameEditMethod value: 0 = the model family's own (the default). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing")
+	int32 EditMethod = 0;
+
+	/** Flow models: the fraction of the steps, from the noise end, that rewrite the trajectory. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing", meta = (ClampMin = "0", ClampMax = "1"))
+	float EditTill = 0.2f;
+
+	/** Paste the kept values exactly into the final motion and blend the seams (libflame's
+	 *  default); off = the official methods' behaviour (kept values only close). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing")
+	bool bEditPaste = true;
+
+	/** Frames over which a seam's offset fades out (0 = no blending). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing", meta = (ClampMin = "0"))
+	int32 EditSeamFrames = 4;
+
 	/** Starts a generation on a background thread (the model is loaded there once and kept).
 	 *  False if one is already running or libflame is unavailable (see LastError). */
 	UFUNCTION(BlueprintCallable, Category = "Flame")
