@@ -140,6 +140,13 @@ impl Channel {
         }
     }
 
+    /// The channel named `name` (case-insensitive), if any.
+    pub fn from_name(name: &str) -> Option<Channel> {
+        Channel::ALL
+            .into_iter()
+            .find(|c| c.name().eq_ignore_ascii_case(name))
+    }
+
     /// The axis (0 = X, 1 = Y, 2 = Z).
     pub fn axis(self) -> usize {
         match self {
@@ -232,10 +239,8 @@ impl BvhMotion {
 
     /// The channel values of frame `t`, in file order.
     pub fn frame(&self, t: usize) -> Option<&[f64]> {
-        self.data
-            .chunks_exact(self.channel_count.max(1))
-            .nth(t)
-            .filter(|_| self.channel_count > 0)
+        let n = self.channel_count;
+        (t < self.frames()).then(|| &self.data[t * n..(t + 1) * n])
     }
 }
 
@@ -282,6 +287,7 @@ fn parse_hierarchy(tokens: &[(usize, &str)], motion_line: usize) -> Result<(Vec<
     // Open blocks: Some(joint) or None for an End Site.
     let mut stack: Vec<Option<usize>> = Vec::new();
     let mut channel_count = 0usize;
+    let mut names = std::collections::HashSet::new();
     while let Some(&(line, tok)) = it.0.next() {
         match tok {
             "ROOT" | "JOINT" => {
@@ -297,7 +303,7 @@ fn parse_hierarchy(tokens: &[(usize, &str)], motion_line: usize) -> Result<(Vec<
                     return Err(at(line, format!("{tok} has no name")));
                 }
                 expect(it.need(line, "`{`")?, "{")?;
-                if joints.iter().any(|j| j.name == name) {
+                if !names.insert(name) {
                     return Err(at(line, format!("joint `{name}` appears twice")));
                 }
                 stack.push(Some(joints.len()));
@@ -341,7 +347,7 @@ fn parse_hierarchy(tokens: &[(usize, &str)], motion_line: usize) -> Result<(Vec<
                     .parse()
                     .ok()
                     .filter(|&n| n <= 6)
-                    .ok_or_else(|| at(line, format!("channel count `{n}` is not 0..6")))?;
+                    .ok_or_else(|| at(line, format!("channel count `{n}` is not 0 to 6")))?;
                 if !joints[j].channels.is_empty() {
                     return Err(at(
                         line,
@@ -350,10 +356,12 @@ fn parse_hierarchy(tokens: &[(usize, &str)], motion_line: usize) -> Result<(Vec<
                 }
                 for _ in 0..n {
                     let (l, name) = it.need(line, "a channel name")?;
-                    let c = Channel::ALL
-                        .into_iter()
-                        .find(|c| c.name().eq_ignore_ascii_case(name))
-                        .ok_or_else(|| at(l, format!("unknown channel `{name}` (CHANNELS {n} declared on line {line})")))?;
+                    let c = Channel::from_name(name).ok_or_else(|| {
+                        at(
+                            l,
+                            format!("unknown channel `{name}` (CHANNELS of line {line})"),
+                        )
+                    })?;
                     if joints[j].channels.contains(&c) {
                         return Err(at(l, format!("channel {} listed twice", c.name())));
                     }
@@ -558,8 +566,7 @@ impl FilePoses {
         let mut root = Vec::with_capacity(bvh.frames());
         let mut local = Vec::with_capacity(bvh.frames() * order.len());
         let root_offset = bvh.joints[order[0]].offset();
-        for t in 0..bvh.frames() {
-            let row = bvh.frame(t).unwrap_or(&[]);
+        for row in bvh.data.chunks_exact(bvh.channel_count.max(1)) {
             let mut p = root_offset;
             for (j, &b) in order.iter().enumerate() {
                 let joint = &bvh.joints[b];

@@ -192,18 +192,57 @@ fn check_rotation(m: &Mat3) -> std::result::Result<(), String> {
 mod tests {
     use super::*;
 
+    fn identity_rotations() -> Vec<f32> {
+        (0..24)
+            .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+            .collect()
+    }
+
     #[test]
     fn rest_pose_in_native_is_zero_translation_and_identity_rows() {
-        // Pelvis at the rest pelvis, identity everywhere → translation 0, 6D [1,0,0,0,1,0].
+        // Pelvis at the rest pelvis, identity everywhere → translation 0 (up to the f32 input's
+        // rounding), 6D [1,0,0,0,1,0].
         let rest = Skeleton::smpl24().rest_offsets()[0].map(|x| x as f32);
-        let eye: Vec<f32> = (0..24)
-            .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-            .collect();
-        let f = smpl24_features(&rest, &eye, Layout::LocalMatrix, Convention::Native, 1).unwrap();
-        assert_eq!(&f[..3], &[0.0, 0.0, 0.0]);
+        let f = smpl24_features(
+            &rest,
+            &identity_rotations(),
+            Layout::LocalMatrix,
+            Convention::Native,
+            1,
+        )
+        .unwrap();
+        assert!(f[..3].iter().all(|x| x.abs() < 1e-8), "{:?}", &f[..3]);
         for j in 0..24 {
             assert_eq!(&f[3 + 6 * j..9 + 6 * j], &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
         }
+    }
+
+    #[test]
+    fn an_upright_unreal_character_gets_smpls_tilt_back() {
+        // Unreal (Z up, X forward, Y right, cm) from the native Z-up world (−Y forward, +X
+        // left): native (x, y, z) = (−Y', −X', Z') / 100. An unturned Unreal root (identity)
+        // is the tilt Rx(+90°) = rows [1,0,0], [0,0,−1], [0,1,0] in SMPL's data; other joints
+        // stay identity.
+        let rest = Skeleton::smpl24().rest_offsets()[0];
+        let root = [-50.0f32, 120.0, 95.0];
+        let f = smpl24_features(
+            &root,
+            &identity_rotations(),
+            Layout::LocalMatrix,
+            Convention::Unreal,
+            1,
+        )
+        .unwrap();
+        let want = [-1.2 - rest[0], 0.5 - rest[1], 0.95 - rest[2]];
+        for k in 0..3 {
+            assert!(
+                (f[k] as f64 - want[k]).abs() < 1e-6,
+                "{:?} vs {want:?}",
+                &f[..3]
+            );
+        }
+        assert_eq!(&f[3..9], &[1.0, 0.0, 0.0, 0.0, 0.0, -1.0]);
+        assert_eq!(&f[9..15], &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
     }
 
     #[test]
@@ -218,9 +257,7 @@ mod tests {
             e.contains("frame 0, joint 5 (R_Knee)") && e.contains("no direction"),
             "{e}"
         );
-        let mut m: Vec<f32> = (0..24)
-            .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-            .collect();
+        let mut m = identity_rotations();
         m[2 * 9 + 8] = -1.0;
         let e = smpl24_features(&root, &m, Layout::LocalMatrix, Convention::Ros, 1)
             .unwrap_err()
