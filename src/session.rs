@@ -313,7 +313,10 @@ impl Session {
     /// May change between steps: it takes effect at the next step.
     pub fn set_reference(&mut self, features: &[f32]) -> Result<()> {
         let dim = self.model.motion_dim();
-        if features.is_empty() || features.len() % dim != 0 || features.len() > self.x.len() {
+        if features.is_empty()
+            || !features.len().is_multiple_of(dim)
+            || features.len() > self.x.len()
+        {
             return Err(invalid_arg!(
                 "reference has {} values; it must be 1..={} whole frames of {dim} values (the session has {} frames)",
                 features.len(),

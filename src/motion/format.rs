@@ -105,7 +105,7 @@ impl Normalization<'_> {
     /// how features in the format's own units enter a normalised model's space.
     pub fn normalize(&self, x: &mut [f32]) -> crate::error::Result<()> {
         let dim = self.mean.len();
-        if dim == 0 || self.std.len() != dim || x.len() % dim != 0 {
+        if dim == 0 || self.std.len() != dim || !x.len().is_multiple_of(dim) {
             return Err(crate::error::invalid_arg!(
                 "cannot normalise {} values with {} means and {} stds",
                 x.len(),
