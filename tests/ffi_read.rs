@@ -230,19 +230,29 @@ fn a_flow_matching_model_through_the_c_abi() {
     assert_eq!((st, pos.len()), (FlameStatus::Ok, 10 * 22 * 3));
     let (st, contacts) = read(session, FlameLayout::FootContacts as i32, 0, 0);
     assert_eq!((st, contacts.len()), (FlameStatus::Ok, 10 * 4));
-    // Editing is FLAME's only so far: a mask on a flow model is refused at the next step.
+    // Editing a flow model (trajectory rewriting, then the paste): the kept frames come back as
+    // the reference exactly.
     unsafe {
         assert_eq!(flame_session_reset(session), FlameStatus::Ok);
         assert_eq!(flame_session_keep_frames(session, 0, 2), FlameStatus::Ok);
-        let reference = vec![0.0f32; 10 * 263];
+        let reference = vec![0.25f32; 10 * 263];
         assert_eq!(
             flame_session_set_reference(session, reference.as_ptr(), 10, 263),
             FlameStatus::Ok
         );
-        assert_eq!(
-            flame_session_step(session, std::ptr::null_mut()),
-            FlameStatus::InvalidArgument
-        );
+        let mut left = 0u32;
+        loop {
+            assert_eq!(flame_session_step(session, &mut left), FlameStatus::Ok);
+            if left == 0 {
+                break;
+            }
+        }
+    }
+    let (st, x) = read(session, FlameLayout::Features as i32, 0, 0);
+    assert_eq!(st, FlameStatus::Ok);
+    assert!(x[..2 * 263].iter().all(|&v| v == 0.25));
+    assert!(x[2 * 263..].iter().any(|&v| v != 0.25));
+    unsafe {
         flame_session_free(session);
         flame_model_free(model);
     }
