@@ -31,13 +31,13 @@ fn run(args: &[&str]) -> (bool, String) {
     (out.status.success(), text)
 }
 
-/// Each test writes its own reference (tests run in parallel in one process).
-fn generate_reference(tag: &str) -> (PathBuf, Vec<f32>) {
-    let path = tmp(&format!("ref_{tag}.npy"));
-    let (ok, err) = run(&[
+/// The reference walk (24 frames, seed 3) written to `out`, with `extra` options.
+fn generate_walk(out: &Path, extra: &[&str]) -> (bool, String) {
+    let m = model();
+    let mut args = vec![
         "generate",
         "--model",
-        &model(),
+        &m,
         "--prompt",
         "a person walks forward",
         "--frames",
@@ -47,8 +47,16 @@ fn generate_reference(tag: &str) -> (PathBuf, Vec<f32>) {
         "--seed",
         "3",
         "--out",
-        path.to_str().unwrap(),
-    ]);
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+/// Each test writes its own reference (tests run in parallel in one process).
+fn generate_reference(tag: &str) -> (PathBuf, Vec<f32>) {
+    let path = tmp(&format!("ref_{tag}.npy"));
+    let (ok, err) = generate_walk(&path, &[]);
     assert!(ok, "{err}");
     let (shape, x) = flame::npy::read_f32(&path).unwrap();
     assert_eq!(shape, vec![FRAMES, DIM]);
@@ -134,25 +142,7 @@ fn a_bvh_reference_written_by_libflame_is_read_back() {
     let (reference, _) = generate_reference("bvh");
     for convention in ["gltf", "unreal"] {
         let bvh = tmp(&format!("ref_{convention}.bvh"));
-        let (ok, err) = run(&[
-            "generate",
-            "--model",
-            &model(),
-            "--prompt",
-            "a person walks forward",
-            "--frames",
-            "24",
-            "--steps",
-            "4",
-            "--seed",
-            "3",
-            "--smooth",
-            "0",
-            "--convention",
-            convention,
-            "--out",
-            bvh.to_str().unwrap(),
-        ]);
+        let (ok, err) = generate_walk(&bvh, &["--smooth", "0", "--convention", convention]);
         assert!(ok, "{err}");
         let out = tmp(&format!("edit_from_{convention}.npy"));
         // smpl24_6d's native and gltf BVHs share their offsets and a random-weight motion has
