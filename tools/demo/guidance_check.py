@@ -9,8 +9,8 @@ guidance values and score each by nearest-neighbour retrieval against the corpus
 Each sample and each corpus motion is described by the per-channel mean and std over time of its
 normalised features. "family acc" is how often the nearest corpus motion belongs to the prompt's
 family (text adherence); "nn dist" is the mean distance to that nearest motion (how far samples
-drift from the data; guidance too high makes it grow). The suggested value is the smallest
-guidance within 2 points of the best accuracy whose nn dist is not above the best one by 25 %.
+drift from the data; guidance too high makes it grow). The suggested value: among the guidances whose
+nn dist is at most 25 % above the lowest, the smallest within 2 points of the best accuracy.
 A crude check, not an evaluation: the corpus' own classifier (flame-corpus) is the real one.
 """
 import argparse
@@ -101,9 +101,12 @@ def main(argv=None):
         acc = float((corpus_fam[nn_idx.numpy()] == fam).mean())
         rows.append((g, acc, float(nn_dist.mean())))
         print(f"{g:8.2f}  {acc:10.3f}  {rows[-1][2]:7.3f}", flush=True)
-    best_acc = max(r[1] for r in rows)
+    # Guidances that keep samples near the data; among them the best accuracy, the smaller
+    # guidance on ties (within 2 points).
     best_dist = min(r[2] for r in rows)
-    ok = [r for r in rows if r[1] >= best_acc - 0.02 and r[2] <= 1.25 * best_dist] or rows
+    near = [r for r in rows if r[2] <= 1.25 * best_dist]
+    best_acc = max(r[1] for r in near)
+    ok = [r for r in near if r[1] >= best_acc - 0.02]
     print(f"suggested guidance: {min(ok, key=lambda r: r[0])[0]}")
     return 0
 
