@@ -7,8 +7,8 @@
 //! open too; only [`ModelFile::config`] needs the metadata.
 //!
 //! f32 tensors are borrowed straight from the mapping (one copy of the weights, in the page
-//! cache); f16 and bf16 tensors are widened to f32 once at load, so their mapped pages are read
-//! once and can be dropped by the OS.
+//! cache); f16 and bf16 tensors are widened to f32 once at load. Linear weights, which the models
+//! pack into their own layout, are [released](ModelFile::release) as soon as they are packed.
 
 use std::collections::HashMap;
 use std::fs::File;
@@ -284,6 +284,30 @@ impl ModelFile {
             .get(name)
             .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
         Ok(&e.shape)
+    }
+
+    /// Tells the OS that tensor `name`'s mapped pages will not be read again, once the caller has
+    /// copied what it needs (linear weights packed at load). The pages leave the process's
+    /// resident set, so a packed model does not hold the weights twice; should anything read
+    /// them after all, they are read again from the file. A no-op for caller bytes, unknown names
+    /// and non-Linux systems.
+    pub fn release(&self, name: &str) {
+        #[cfg(target_os = "linux")]
+        if let (Backing::Mapped(map), Some(e)) = (&*self.backing, self.entries.get(name)) {
+            // SAFETY: the mapping is read-only and backed by the file (shared), so MADV_DONTNEED
+            // drops clean page-cache references only: a later read faults the same bytes back
+            // in, and no borrowed tensor can observe a change. The range lies inside the map
+            // (validated header). Failure only means the pages stay resident.
+            let _ = unsafe {
+                map.unchecked_advise_range(
+                    memmap2::UncheckedAdvice::DontNeed,
+                    e.start,
+                    e.end - e.start,
+                )
+            };
+        }
+        #[cfg(not(target_os = "linux"))]
+        let _ = name;
     }
 
     fn read(&self, name: &str, e: &Entry) -> Result<Tensor> {

@@ -165,19 +165,21 @@ pub fn paste_with_seams(
             (0.5 * (1.0 + a.cos())) as f32
         }
     };
-    let mut out = x.to_vec();
+    // In place: a run's left offset is taken from its kept neighbour before that frame is
+    // overwritten, and its right neighbour is overwritten only after the run.
     for c in 0..dim {
         let at = |f: usize| f * dim + c;
+        let mut left = None;
         let mut f = 0;
         while f < frames {
             if keep[at(f)] {
-                out[at(f)] = reference[at(f)];
+                left = Some(reference[at(f)] - x[at(f)]);
+                x[at(f)] = reference[at(f)];
                 f += 1;
                 continue;
             }
             // A run of generated frames [f, end).
             let end = (f..frames).find(|&g| keep[at(g)]).unwrap_or(frames);
-            let left = f.checked_sub(1).map(|l| reference[at(l)] - x[at(l)]);
             let right = (end < frames).then(|| reference[at(end)] - x[at(end)]);
             for g in f..end {
                 let mut v = x[at(g)];
@@ -187,12 +189,11 @@ pub fn paste_with_seams(
                 if let Some(dr) = right {
                     v += fade(end - g) * dr;
                 }
-                out[at(g)] = v;
+                x[at(g)] = v;
             }
             f = end;
         }
     }
-    x.copy_from_slice(&out);
 }
 
 #[cfg(test)]

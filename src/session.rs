@@ -167,9 +167,15 @@ impl Predictor<'_> {
             b.batch_x.extend_from_slice(x);
         }
         b.out.resize(batch * self.frames * od, 0.0);
-        let conds: Vec<&Condition> = std::iter::once(self.cond).chain(self.uncond).collect();
-        self.model
-            .forward(&b.batch_x, self.frames, t, &conds, &mut b.out, &mut b.ws)?;
+        let both = [self.cond, self.uncond.unwrap_or(self.cond)];
+        self.model.forward(
+            &b.batch_x,
+            self.frames,
+            t,
+            &both[..batch],
+            &mut b.out,
+            &mut b.ws,
+        )?;
         let rows = self.frames * od;
         split_channels(&b.out[..rows], d, od, pred, var);
         if self.uncond.is_some() {

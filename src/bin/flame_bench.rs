@@ -1,12 +1,20 @@
 //! `flame-bench`: times text encoding, one guided denoising step and a whole generation on a
 //! model file, and prints medians over several runs.
 //!
-//! `flame-bench --model M [--frames 196] [--steps 10] [--sampler ddim] [--threads 2] [--runs 5]`
+//! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler ddim] [--threads 2]
+//!  [--runs 5] [--weights f32|f16|bf16]` also prints GFLOP/s of a step (linear layers and
+//! attention counted from the configuration) and the peak resident memory (VmHWM), and one
+//! `RESULT` line per frame count for tools/bench.sh.
+//!
+//! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
+//! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use flame::models::Model;
+use flame::config::{DenoiserConfig, TextConfig};
+use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType};
+use flame::models::{LoadOptions, Model};
 use flame::session::{Sampler, Session, SessionParams};
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -29,61 +37,189 @@ fn arg<T: std::str::FromStr>(args: &[String], key: &str, default: T) -> T {
     }
 }
 
+/// GFLOP/s of the packed linear kernel and the older matrixmultiply path on the shapes
+/// FLAME-base runs (M = 2 × (196 + 3) rows), plus a large square problem as the peak.
+fn gemm_bench(args: &[String]) {
+    let threads: usize = arg(args, "--threads", 2);
+    let runs: usize = arg(args, "--runs", 7);
+    let ty: WeightType = arg(args, "--weights", WeightType::F32);
+    let pool = flame::pool::WorkerPool::new(threads).expect("pool");
+    let m = 2 * (196 + 3);
+    let shapes = [
+        ("attn qkv", m, 768, 2304),
+        ("attn q/out", m, 768, 768),
+        ("ffn up", m, 768, 2048),
+        ("ffn down", m, 2048, 768),
+        ("text 20x768x3072", 20, 768, 3072),
+        ("square 1536", 1536, 1536, 1536),
+    ];
+    println!("linear GFLOP/s, {threads} threads, {ty:?} weights, median of {runs}:");
+    println!(
+        "  {:<18} {:>16} {:>10} {:>10}",
+        "shape", "MxKxN", "packed", "sgemm"
+    );
+    for (name, m, k, n) in shapes {
+        let x: Vec<f32> = (0..m * k)
+            .map(|i| ((i * 7919) % 1000) as f32 * 1e-3 - 0.5)
+            .collect();
+        let w: Vec<f32> = (0..n * k)
+            .map(|i| ((i * 104729) % 997) as f32 * 1e-3 - 0.5)
+            .collect();
+        let b = vec![0.1f32; n];
+        let mut y = vec![0.0f32; m * n];
+        let packed = PackedWeights::pack(&w, n, k, ty);
+        let flops = 2.0 * (m * k * n) as f64;
+        let time = |f: &mut dyn FnMut()| {
+            f();
+            let v = (0..runs)
+                .map(|_| {
+                    let t = Instant::now();
+                    f();
+                    t.elapsed().as_secs_f64()
+                })
+                .collect();
+            flops / median(v) / 1e9
+        };
+        let p = pool.install(|| {
+            time(&mut || linear_packed(&x, &packed, Some(&b), Activation::None, &mut y, m))
+        });
+        let s = pool.install(|| time(&mut || kernels::linear(&x, &w, Some(&b), &mut y, m, k, n)));
+        println!(
+            "  {name:<18} {:>16} {p:>10.1} {s:>10.1}",
+            format!("{m}x{k}x{n}")
+        );
+    }
+}
+
+/// Multiply-adds of one guided step (batch 2) in linear layers and in attention, from the
+/// configuration.
+fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
+    let b = 2.0;
+    let f = frames as f64;
+    match &model.config().denoiser {
+        DenoiserConfig::Flame(d) => {
+            let (c, ff, dm) = (
+                d.model_channels as f64,
+                d.dim_feedforward as f64,
+                d.motion_dim as f64,
+            );
+            let text = match &model.config().text_encoder {
+                TextConfig::Bert(t) => t.max_length as f64,
+                TextConfig::Clip(_) => 0.0,
+            };
+            let (s, mem) = (f + 3.0, text + 3.0);
+            let r = b * s;
+            // qkv, self out, cross q, cross out, ffn; cross k/v of the 2 per-step memory rows.
+            let layer = r * c * (3.0 * c + c + c + c + 2.0 * ff) + 2.0 * c * 2.0 * c;
+            let lin = d.num_layers as f64 * layer + b * f * (dm * c + c * 2.0 * dm);
+            let attn = d.num_layers as f64 * b * 2.0 * (s * s + s * mem) * c;
+            (lin, attn)
+        }
+        DenoiserConfig::Mdm(d) => {
+            let (c, ff, nj) = (d.latent_dim as f64, d.ff_size as f64, d.njoints as f64);
+            let s = f + 1.0;
+            let r = b * s;
+            let layer = r * c * (4.0 * c + 2.0 * ff);
+            let lin = d.layers as f64 * layer + b * f * 2.0 * nj * c;
+            let attn = d.layers as f64 * b * 2.0 * s * s * c;
+            (lin, attn)
+        }
+    }
+}
+
+/// A `/proc/self/status` field in MiB (Linux; 0 elsewhere).
+fn status_mib(key: &str) -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix(key))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.first().map(String::as_str) == Some("gemm") {
+        gemm_bench(&args);
+        return;
+    }
     let path: String = arg(&args, "--model", String::new());
     if path.is_empty() {
-        eprintln!("usage: flame-bench --model M [--frames 196] [--steps 10] [--sampler ddim] [--threads 2] [--runs 5]");
+        eprintln!(
+            "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler ddim] \
+             [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]"
+        );
         std::process::exit(2);
     }
-    let frames: usize = arg(&args, "--frames", 196);
+    let frames_list: String = arg(&args, "--frames", "196".to_string());
     let steps: usize = arg(&args, "--steps", 10);
     let threads: usize = arg(&args, "--threads", 2);
     let runs: usize = arg(&args, "--runs", 5);
     let sampler: Sampler = arg(&args, "--sampler", Sampler::Ddim);
+    let weights: WeightType = arg(&args, "--weights", WeightType::F32);
     let prompt = "a person walks forward, turns around and waves with the right hand";
 
     let t = Instant::now();
-    let model = Arc::new(Model::load(&path).unwrap_or_else(|e| panic!("cannot load {path}: {e}")));
-    println!(
-        "model {path}: loaded in {:.0} ms",
-        t.elapsed().as_secs_f64() * 1e3
+    let opts = LoadOptions { weights };
+    let model = Arc::new(
+        Model::load_with(&path, &opts).unwrap_or_else(|e| panic!("cannot load {path}: {e}")),
     );
-    let params = SessionParams {
-        frames: Some(frames),
-        steps: Some(steps),
-        sampler: Some(sampler),
-        eta: Some(0.0),
-        guidance: None,
-        clip_denoised: None,
-        seed: 1,
-        threads,
-    };
-    let mut session = Session::new(Arc::clone(&model), &params).expect("session");
-
-    let mut text_ms = Vec::new();
-    for _ in 0..runs {
-        let t = Instant::now();
-        session.set_prompt(prompt).expect("prompt");
-        text_ms.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    let mut step_ms = Vec::new();
-    let mut gen_ms = Vec::new();
-    for _ in 0..runs {
-        session.reset();
-        let g = Instant::now();
-        while session.steps_left() > 0 {
+    println!(
+        "model {path}: {} weights, loaded in {:.0} ms, linear weights {:.1} MiB, RSS after load {:.1} MiB",
+        weights.name(),
+        t.elapsed().as_secs_f64() * 1e3,
+        model.linear_weight_bytes() as f64 / (1 << 20) as f64,
+        status_mib("VmRSS:"),
+    );
+    for frames in frames_list
+        .split(',')
+        .map(|f| f.trim().parse::<usize>().expect("--frames"))
+    {
+        let params = SessionParams {
+            frames: Some(frames),
+            steps: Some(steps),
+            sampler: Some(sampler),
+            eta: Some(0.0),
+            guidance: None,
+            clip_denoised: None,
+            seed: 1,
+            threads,
+        };
+        let mut session = Session::new(Arc::clone(&model), &params).expect("session");
+        let mut text_ms = Vec::new();
+        for _ in 0..runs {
             let t = Instant::now();
-            session.step().expect("step");
-            step_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            session.set_prompt(prompt).expect("prompt");
+            text_ms.push(t.elapsed().as_secs_f64() * 1e3);
         }
-        gen_ms.push(g.elapsed().as_secs_f64() * 1e3);
+        let mut step_ms = Vec::new();
+        let mut gen_ms = Vec::new();
+        for _ in 0..runs {
+            session.reset();
+            let g = Instant::now();
+            while session.steps_left() > 0 {
+                let t = Instant::now();
+                session.step().expect("step");
+                step_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            gen_ms.push(g.elapsed().as_secs_f64() * 1e3);
+        }
+        let (text, step, gen) = (median(text_ms), median(step_ms), median(gen_ms));
+        let (lin, attn) = step_macs(&model, frames);
+        let gflops = 2.0 * (lin + attn) / (step * 1e-3) / 1e9;
+        println!(
+            "frames {frames}, {steps} {sampler:?} steps, guidance {}, {threads} threads, {runs} runs (medians):",
+            model.config().defaults.guidance
+        );
+        println!("  text encoding      {text:9.2} ms");
+        println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
+            2.0 * (lin + attn) / 1e9, 2.0 * lin / 1e9, 2.0 * attn / 1e9);
+        println!("  whole generation   {gen:9.2} ms");
+        println!("  peak RSS (VmHWM)   {:9.1} MiB", status_mib("VmHWM:"));
+        println!(
+            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} hwm_mib={:.1}",
+            weights.name(),
+            status_mib("VmHWM:")
+        );
     }
-    println!(
-        "frames {frames}, {steps} {sampler:?} steps, guidance {}, {threads} threads, {runs} runs (medians):",
-        model.config().defaults.guidance
-    );
-    println!("  text encoding      {:9.2} ms", median(text_ms));
-    println!("  one guided step    {:9.2} ms", median(step_ms));
-    println!("  whole generation   {:9.2} ms", median(gen_ms));
 }

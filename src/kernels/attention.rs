@@ -2,16 +2,31 @@
 //!
 //! Work is split into (query block, head) tasks that write disjoint `[rows, head_dim]` blocks
 //! of `out`. The block size is fixed (not derived from the thread count) and every output
-//! element comes from one task, so results are bit-identical for any pool size.
+//! element comes from one task, in one fixed order of operations, so results are bit-identical
+//! for any pool size.
+//!
+//! Each task holds its scores and a transposed copy of its head's keys in a per-thread slot of
+//! an [`AttentionScratch`]; every slot is sized before the tasks start, so a caller that keeps
+//! its scratch between calls allocates nothing after the first. The two products (`q·kᵀ` and
+//! `p·v`) use a 4×16 register-blocked AVX2+FMA kernel when the CPU has one (the same detection
+//! as the linear layers) and plain loops otherwise.
+
+use std::cell::UnsafeCell;
 
 use rayon::prelude::*;
 
 use super::activation::softmax_row;
+use super::packed::{detected_isa, Isa};
 
 /// Query rows per task: bounds the score buffer at `Q_BLOCK × lk` and gives 2 cores enough
 /// tasks to balance at the sequence lengths we run (~200-400).
 const Q_BLOCK: usize = 32;
 const _: () = assert!(Q_BLOCK <= 64, "dead-row mask is a u64");
+
+/// Keys per register tile (two AVX2 vectors); score rows are padded to a multiple of it.
+const KT: usize = 16;
+/// Query rows per register tile.
+const RT: usize = 4;
 
 /// Below this many score entries × head_dim, run on the calling thread.
 const PAR_MIN_WORK: usize = 1 << 16;
@@ -19,12 +34,177 @@ const PAR_MIN_WORK: usize = 1 << 16;
 /// Raw output pointer shared by tasks that write disjoint blocks.
 #[derive(Clone, Copy)]
 struct OutPtr(*mut f32);
-// SAFETY: tasks write disjoint (row block, head) regions; see `multi_head_attention`.
+// SAFETY: tasks write disjoint (row block, head) regions; see `AttentionScratch::attend`.
 unsafe impl Send for OutPtr {}
 unsafe impl Sync for OutPtr {}
 impl OutPtr {
     fn get(self) -> *mut f32 {
         self.0
+    }
+}
+
+/// One worker's buffers: scores `[Q_BLOCK, keys_padded]` then keys transposed
+/// `[head_dim, keys_padded]`.
+struct Slot(UnsafeCell<Vec<f32>>);
+// SAFETY: slot `i` is only touched by the task running on rayon worker `i` (or by the calling
+// thread when nothing runs in parallel), and a task never yields to another task while it holds
+// the slot (it calls nothing that could steal work), so no two threads use a slot at once.
+unsafe impl Sync for Slot {}
+
+/// Reusable per-thread buffers of [`multi_head_attention`]-style calls.
+#[derive(Default)]
+pub struct AttentionScratch {
+    slots: Vec<Slot>,
+}
+
+impl AttentionScratch {
+    /// Multi-head attention, as [`multi_head_attention`], with buffers kept in `self`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn attend(
+        &mut self,
+        q: &[f32],
+        q_stride: usize,
+        k: &[f32],
+        k_stride: usize,
+        v: &[f32],
+        v_stride: usize,
+        lq: usize,
+        lk: usize,
+        heads: usize,
+        head_dim: usize,
+        key_padding: Option<&[bool]>,
+        causal: bool,
+        out: &mut [f32],
+    ) {
+        let e = heads * head_dim;
+        assert!(out.len() >= lq * e, "attention: out too short");
+        let rows_fit =
+            |len: usize, rows: usize, stride: usize| rows == 0 || len >= (rows - 1) * stride + e;
+        assert!(rows_fit(q.len(), lq, q_stride), "attention: q too short");
+        assert!(rows_fit(k.len(), lk, k_stride), "attention: k too short");
+        assert!(rows_fit(v.len(), lk, v_stride), "attention: v too short");
+        if let Some(p) = key_padding {
+            assert_eq!(p.len(), lk, "attention: key_padding length");
+        }
+        if lq == 0 || e == 0 {
+            return;
+        }
+        if lk == 0 {
+            out[..lq * e].fill(0.0);
+            return;
+        }
+
+        // PyTorch computes head_dim ** -0.5 in double and applies it as an f32 scalar.
+        let scale = (1.0 / (head_dim as f64).sqrt()) as f32;
+        let blocks = lq.div_ceil(Q_BLOCK);
+        let tasks = blocks * heads;
+        let out_ptr = OutPtr(out.as_mut_ptr());
+        let isa = detected_isa();
+        let kp = lk.div_ceil(KT) * KT;
+        let slot_len = (Q_BLOCK + head_dim) * kp;
+
+        let work = lq.saturating_mul(lk).saturating_mul(e);
+        let parallel = tasks > 1 && work >= PAR_MIN_WORK && rayon::current_num_threads() > 1;
+        let slots = if parallel {
+            rayon::current_num_threads()
+        } else {
+            1
+        };
+        // Size every slot now, on this thread: tasks never allocate.
+        if self.slots.len() < slots {
+            self.slots
+                .resize_with(slots, || Slot(UnsafeCell::new(Vec::new())));
+        }
+        for slot in &mut self.slots[..slots] {
+            let buf = slot.0.get_mut();
+            if buf.len() < slot_len {
+                buf.resize(slot_len, 0.0);
+            }
+        }
+        let slots_ref = &self.slots;
+
+        let task = |t: usize| {
+            let slot = if parallel {
+                rayon::current_thread_index().expect("attention tasks run on the pool")
+            } else {
+                0
+            };
+            // SAFETY: see `Slot`: this thread alone uses slot `slot` while the task runs.
+            let buf = unsafe { &mut *slots_ref[slot].0.get() };
+            let (scores, kt) = buf[..slot_len].split_at_mut(Q_BLOCK * kp);
+
+            let (block, h) = (t / heads, t % heads);
+            let i0 = block * Q_BLOCK;
+            let rows = Q_BLOCK.min(lq - i0);
+            // Causal rows of this block see at most keys 0..i0+rows; the rest would be masked.
+            let keys = if causal { lk.min(i0 + rows) } else { lk };
+            let ktp = keys.div_ceil(KT) * KT;
+            let col = h * head_dim;
+
+            // kᵀ of this head, [head_dim, ktp], zero past `keys`.
+            for c in 0..head_dim {
+                let dst = &mut kt[c * ktp..(c + 1) * ktp];
+                for (j, d) in dst[..keys].iter_mut().enumerate() {
+                    *d = k[j * k_stride + col + c];
+                }
+                dst[keys..].fill(0.0);
+            }
+            let q_block = &q[i0 * q_stride + col..];
+            scores_qk(
+                isa, q_block, q_stride, kt, ktp, rows, head_dim, scale, scores,
+            );
+
+            let mut dead_rows = 0u64; // bit r: row r has no visible key (Q_BLOCK <= 64)
+            for r in 0..rows {
+                let row = &mut scores[r * ktp..r * ktp + keys];
+                if let Some(p) = key_padding {
+                    for (s, &pad) in row.iter_mut().zip(p) {
+                        if pad {
+                            *s = f32::NEG_INFINITY;
+                        }
+                    }
+                }
+                // Causal rows normalise only their visible keys (the rest are exactly 0), so a
+                // row's sum runs over the same values in the same order whatever follows it:
+                // padding a sequence leaves its prefix bit-identical.
+                let visible = if causal { (i0 + r + 1).min(keys) } else { keys };
+                row[visible..].fill(0.0);
+                if !softmax_row(&mut row[..visible]) {
+                    dead_rows |= 1 << r;
+                }
+            }
+
+            // SAFETY: this task alone writes rows i0..i0+rows, columns col..col+head_dim of
+            // `out` (bounds asserted above); no other reference to `out` is used meanwhile.
+            let dst = unsafe {
+                std::slice::from_raw_parts_mut(
+                    out_ptr.get().add(i0 * e + col),
+                    (rows - 1) * e + head_dim,
+                )
+            };
+            weighted_values(
+                isa,
+                scores,
+                ktp,
+                &v[col..],
+                v_stride,
+                rows,
+                keys,
+                head_dim,
+                dst,
+                e,
+            );
+            // All-zero weights already give zeros unless v holds inf/NaN; make it exact.
+            for r in (0..rows).filter(|r| dead_rows >> r & 1 == 1) {
+                dst[r * e..r * e + head_dim].fill(0.0);
+            }
+        };
+
+        if parallel {
+            (0..tasks).into_par_iter().for_each(task);
+        } else {
+            (0..tasks).for_each(task);
+        }
     }
 }
 
@@ -35,7 +215,8 @@ impl OutPtr {
 /// (so q/k/v can be read straight out of a packed `[L, 3E]` projection). Scores are
 /// `q_h · k_hᵀ / sqrt(head_dim)`; `key_padding[j] == true` excludes key `j` (weight exactly 0);
 /// `causal` excludes keys `j > i`. A query row whose keys are all excluded yields zeros.
-/// `out` is `[lq, heads * head_dim]`, heads concatenated in order.
+/// `out` is `[lq, heads * head_dim]`, heads concatenated in order. Allocates its buffers; a
+/// caller that runs attention repeatedly keeps an [`AttentionScratch`] instead.
 #[allow(clippy::too_many_arguments)]
 pub fn multi_head_attention(
     q: &[f32],
@@ -52,112 +233,250 @@ pub fn multi_head_attention(
     causal: bool,
     out: &mut [f32],
 ) {
-    let e = heads * head_dim;
-    assert!(out.len() >= lq * e, "attention: out too short");
-    let rows_fit =
-        |len: usize, rows: usize, stride: usize| rows == 0 || len >= (rows - 1) * stride + e;
-    assert!(rows_fit(q.len(), lq, q_stride), "attention: q too short");
-    assert!(rows_fit(k.len(), lk, k_stride), "attention: k too short");
-    assert!(rows_fit(v.len(), lk, v_stride), "attention: v too short");
-    if let Some(p) = key_padding {
-        assert_eq!(p.len(), lk, "attention: key_padding length");
-    }
-    if lq == 0 || e == 0 {
+    AttentionScratch::default().attend(
+        q,
+        q_stride,
+        k,
+        k_stride,
+        v,
+        v_stride,
+        lq,
+        lk,
+        heads,
+        head_dim,
+        key_padding,
+        causal,
+        out,
+    );
+}
+
+/// `scores[r, j] = scale · Σ_c q[r·qs + c] · kt[c·kp + j]` for `r < rows`, `j < kp`
+/// (`kp` a multiple of [`KT`]). Each score is one sum over `c` in order, on every path.
+#[allow(clippy::too_many_arguments)]
+fn scores_qk(
+    isa: Isa,
+    q: &[f32],
+    qs: usize,
+    kt: &[f32],
+    kp: usize,
+    rows: usize,
+    hd: usize,
+    scale: f32,
+    scores: &mut [f32],
+) {
+    assert!(kt.len() >= hd * kp && scores.len() >= rows * kp && kp.is_multiple_of(KT));
+    assert!(rows == 0 || q.len() >= (rows - 1) * qs + hd);
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx2 {
+        // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
+        unsafe { avx2::scores_qk(q, qs, kt, kp, rows, hd, scale, scores) };
         return;
     }
-    if lk == 0 {
-        out[..lq * e].fill(0.0);
-        return;
-    }
-
-    // PyTorch computes head_dim ** -0.5 in double and applies it as an f32 scalar.
-    let scale = (1.0 / (head_dim as f64).sqrt()) as f32;
-    let blocks = lq.div_ceil(Q_BLOCK);
-    let tasks = blocks * heads;
-    let out_ptr = OutPtr(out.as_mut_ptr());
-
-    let task = |scores: &mut Vec<f32>, t: usize| {
-        let (block, h) = (t / heads, t % heads);
-        let i0 = block * Q_BLOCK;
-        let rows = Q_BLOCK.min(lq - i0);
-        // Causal rows of this block see at most keys 0..i0+rows; the rest would be masked anyway.
-        let keys = if causal { lk.min(i0 + rows) } else { lk };
-        let col = h * head_dim;
-        scores.clear();
-        scores.resize(rows * keys, 0.0);
-
-        // SAFETY (both sgemm calls): q rows i0..i0+rows, and k/v rows 0..keys, at columns
-        // col..col+head_dim lie within the slices (asserted above); `scores` holds rows×keys.
-        unsafe {
-            matrixmultiply::sgemm(
-                rows,
-                head_dim,
-                keys,
-                scale,
-                q.as_ptr().add(i0 * q_stride + col),
-                q_stride as isize,
-                1,
-                k.as_ptr().add(col),
-                1,
-                k_stride as isize,
-                0.0,
-                scores.as_mut_ptr(),
-                keys as isize,
-                1,
-            );
+    let _ = isa;
+    for r in 0..rows {
+        let qr = &q[r * qs..r * qs + hd];
+        let row = &mut scores[r * kp..(r + 1) * kp];
+        row.fill(0.0);
+        for (c, &a) in qr.iter().enumerate() {
+            for (s, &b) in row.iter_mut().zip(&kt[c * kp..(c + 1) * kp]) {
+                *s += a * b;
+            }
         }
+        for s in row.iter_mut() {
+            *s *= scale;
+        }
+    }
+}
 
-        let mut dead_rows = 0u64; // bit r: row r has no visible key (Q_BLOCK <= 64)
-        for (r, row) in scores.chunks_exact_mut(keys).enumerate() {
-            if let Some(p) = key_padding {
-                for (s, &pad) in row.iter_mut().zip(p) {
-                    if pad {
-                        *s = f32::NEG_INFINITY;
-                    }
+/// `out[r·os + c] = Σ_{j<keys} p[r·kp + j] · v[j·vs + c]` for `r < rows`, `c < hd`, each a sum
+/// over `j` in order.
+#[allow(clippy::too_many_arguments)]
+fn weighted_values(
+    isa: Isa,
+    p: &[f32],
+    kp: usize,
+    v: &[f32],
+    vs: usize,
+    rows: usize,
+    keys: usize,
+    hd: usize,
+    out: &mut [f32],
+    os: usize,
+) {
+    assert!(keys <= kp && (rows == 0 || p.len() >= (rows - 1) * kp + keys));
+    assert!(keys == 0 || v.len() >= (keys - 1) * vs + hd);
+    assert!(rows == 0 || out.len() >= (rows - 1) * os + hd);
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx2 {
+        // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
+        unsafe { avx2::weighted_values(p, kp, v, vs, rows, keys, hd, out, os) };
+        return;
+    }
+    let _ = isa;
+    for r in 0..rows {
+        let o = &mut out[r * os..r * os + hd];
+        o.fill(0.0);
+        for j in 0..keys {
+            let w = p[r * kp + j];
+            for (x, &b) in o.iter_mut().zip(&v[j * vs..j * vs + hd]) {
+                *x += w * b;
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{KT, RT};
+
+    /// See [`super::scores_qk`]; tiles of `R` rows × 16 keys.
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn scores_qk(
+        q: &[f32],
+        qs: usize,
+        kt: &[f32],
+        kp: usize,
+        rows: usize,
+        hd: usize,
+        scale: f32,
+        scores: &mut [f32],
+    ) {
+        let mut r = 0;
+        while r < rows {
+            let n = RT.min(rows - r);
+            for j in (0..kp).step_by(KT) {
+                match n {
+                    4 => qk_tile::<4>(q, qs, kt, kp, r, j, hd, scale, scores),
+                    3 => qk_tile::<3>(q, qs, kt, kp, r, j, hd, scale, scores),
+                    2 => qk_tile::<2>(q, qs, kt, kp, r, j, hd, scale, scores),
+                    _ => qk_tile::<1>(q, qs, kt, kp, r, j, hd, scale, scores),
                 }
             }
-            if causal {
-                row[(i0 + r + 1).min(keys)..].fill(f32::NEG_INFINITY);
-            }
-            if !softmax_row(row) {
-                dead_rows |= 1 << r;
+            r += n;
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    unsafe fn qk_tile<const R: usize>(
+        q: &[f32],
+        qs: usize,
+        kt: &[f32],
+        kp: usize,
+        r0: usize,
+        j: usize,
+        hd: usize,
+        scale: f32,
+        scores: &mut [f32],
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        let (qp, kp_ptr) = (q.as_ptr(), kt.as_ptr());
+        for c in 0..hd {
+            let b = kp_ptr.add(c * kp + j);
+            let (b0, b1) = (_mm256_loadu_ps(b), _mm256_loadu_ps(b.add(8)));
+            for (i, a) in acc.iter_mut().enumerate() {
+                let x = _mm256_broadcast_ss(&*qp.add((r0 + i) * qs + c));
+                a[0] = _mm256_fmadd_ps(x, b0, a[0]);
+                a[1] = _mm256_fmadd_ps(x, b1, a[1]);
             }
         }
+        let s = _mm256_set1_ps(scale);
+        for (i, a) in acc.iter().enumerate() {
+            let dst = scores.as_mut_ptr().add((r0 + i) * kp + j);
+            _mm256_storeu_ps(dst, _mm256_mul_ps(a[0], s));
+            _mm256_storeu_ps(dst.add(8), _mm256_mul_ps(a[1], s));
+        }
+    }
 
-        let out = out_ptr.get();
-        // SAFETY: this task alone writes rows i0..i0+rows, columns col..col+head_dim of `out`
-        // (bounds asserted above); no other reference to `out` is used while tasks run.
-        unsafe {
-            let dst = out.add(i0 * e + col);
-            matrixmultiply::sgemm(
-                rows,
-                keys,
-                head_dim,
-                1.0,
-                scores.as_ptr(),
-                keys as isize,
-                1,
-                v.as_ptr().add(col),
-                v_stride as isize,
-                1,
-                0.0,
-                dst,
-                e as isize,
-                1,
-            );
-            // All-zero weights already give zeros unless v holds inf/NaN; make it exact.
-            for r in (0..rows).filter(|r| dead_rows >> r & 1 == 1) {
-                std::slice::from_raw_parts_mut(dst.add(r * e), head_dim).fill(0.0);
+    /// See [`super::weighted_values`]; tiles of `R` rows × 16 columns, the last columns
+    /// (`hd % 16`) by 8-wide then scalar steps.
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn weighted_values(
+        p: &[f32],
+        kp: usize,
+        v: &[f32],
+        vs: usize,
+        rows: usize,
+        keys: usize,
+        hd: usize,
+        out: &mut [f32],
+        os: usize,
+    ) {
+        let mut r = 0;
+        while r < rows {
+            let n = RT.min(rows - r);
+            match n {
+                4 => pv_rows::<4>(p, kp, v, vs, r, keys, hd, out, os),
+                3 => pv_rows::<3>(p, kp, v, vs, r, keys, hd, out, os),
+                2 => pv_rows::<2>(p, kp, v, vs, r, keys, hd, out, os),
+                _ => pv_rows::<1>(p, kp, v, vs, r, keys, hd, out, os),
+            }
+            r += n;
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    unsafe fn pv_rows<const R: usize>(
+        p: &[f32],
+        kp: usize,
+        v: &[f32],
+        vs: usize,
+        r0: usize,
+        keys: usize,
+        hd: usize,
+        out: &mut [f32],
+        os: usize,
+    ) {
+        let (pp, vp, op) = (p.as_ptr(), v.as_ptr(), out.as_mut_ptr());
+        let mut c = 0;
+        while c + 16 <= hd {
+            let mut acc = [[_mm256_setzero_ps(); 2]; R];
+            for j in 0..keys {
+                let b = vp.add(j * vs + c);
+                let (b0, b1) = (_mm256_loadu_ps(b), _mm256_loadu_ps(b.add(8)));
+                for (i, a) in acc.iter_mut().enumerate() {
+                    let x = _mm256_broadcast_ss(&*pp.add((r0 + i) * kp + j));
+                    a[0] = _mm256_fmadd_ps(x, b0, a[0]);
+                    a[1] = _mm256_fmadd_ps(x, b1, a[1]);
+                }
+            }
+            for (i, a) in acc.iter().enumerate() {
+                let dst = op.add((r0 + i) * os + c);
+                _mm256_storeu_ps(dst, a[0]);
+                _mm256_storeu_ps(dst.add(8), a[1]);
+            }
+            c += 16;
+        }
+        while c + 8 <= hd {
+            let mut acc = [_mm256_setzero_ps(); R];
+            for j in 0..keys {
+                let b0 = _mm256_loadu_ps(vp.add(j * vs + c));
+                for (i, a) in acc.iter_mut().enumerate() {
+                    let x = _mm256_broadcast_ss(&*pp.add((r0 + i) * kp + j));
+                    *a = _mm256_fmadd_ps(x, b0, *a);
+                }
+            }
+            for (i, a) in acc.iter().enumerate() {
+                _mm256_storeu_ps(op.add((r0 + i) * os + c), *a);
+            }
+            c += 8;
+        }
+        for c in c..hd {
+            for i in 0..R {
+                let mut s = 0.0f32;
+                for j in 0..keys {
+                    s = (*pp.add((r0 + i) * kp + j)).mul_add(*vp.add(j * vs + c), s);
+                }
+                *op.add((r0 + i) * os + c) = s;
             }
         }
-    };
-
-    let work = lq.saturating_mul(lk).saturating_mul(e);
-    if tasks == 1 || work < PAR_MIN_WORK || rayon::current_num_threads() <= 1 {
-        let mut scores = Vec::new();
-        (0..tasks).for_each(|t| task(&mut scores, t));
-    } else {
-        (0..tasks).into_par_iter().for_each_init(Vec::new, task);
     }
 }
 

@@ -151,13 +151,13 @@ pub(crate) fn gemm(
 
 /// Output pointer shared by tasks that write disjoint blocks.
 #[derive(Clone, Copy)]
-struct SharedMut(*mut f32);
+pub(super) struct SharedMut(pub(super) *mut f32);
 // SAFETY: only used to hand disjoint output blocks to parallel tasks.
 unsafe impl Send for SharedMut {}
 unsafe impl Sync for SharedMut {}
 impl SharedMut {
     // A method (not field access) so closures capture the whole Send + Sync wrapper.
-    fn get(self) -> *mut f32 {
+    pub(super) fn get(self) -> *mut f32 {
         self.0
     }
 }

@@ -16,12 +16,14 @@ mod elementwise;
 mod embedding;
 mod gemm;
 mod norm;
+mod packed;
 #[cfg(test)]
 mod testutil;
 
 pub use activation::{gelu_erf, quick_gelu, relu, silu, softmax_rows, tanh};
-pub use attention::multi_head_attention;
+pub use attention::{multi_head_attention, AttentionScratch};
 pub use elementwise::{add_bias, add_inplace, scale_inplace};
 pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};
 pub use gemm::{linear, matmul_nn, matmul_nt};
 pub use norm::{add_layer_norm, layer_norm};
+pub use packed::{linear_packed, Activation, PackedLinear, PackedWeights, WeightType};

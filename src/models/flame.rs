@@ -10,10 +10,10 @@
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::config::FlameConfig;
 use crate::error::{invalid_arg, Result};
-use crate::kernels;
+use crate::kernels::{self, AttentionScratch, WeightType};
 use crate::text::TextOutput;
 
-use super::layers::{sized, Attention, LayerNorm, Linear};
+use super::layers::{activation, sized, Attention, CrossAttention, LayerNorm, Linear};
 
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;
@@ -21,7 +21,7 @@ const AUX_TOKENS: usize = 3;
 /// One `nn.TransformerDecoderLayer` (post-LN).
 struct DecoderLayer {
     self_attn: Attention,
-    multihead_attn: Attention,
+    multihead_attn: CrossAttention,
     linear1: Linear,
     linear2: Linear,
     norm1: LayerNorm,
@@ -34,9 +34,11 @@ struct DecoderLayer {
 pub struct FlameCondition {
     /// `text_pooler_proj(pooler_output)`: the CLS token, `[C]`.
     cls_token: Vec<f32>,
-    /// `text_h_proj(last_hidden_state)`: `[text_len, C]`.
-    text_tokens: Vec<f32>,
     text_len: usize,
+    /// Every decoder layer's cross-attention keys and values of the memory rows fixed by the
+    /// prompt (CLS, then the text tokens): `[layers, text_len + 1, 2C]`, computed once here
+    /// rather than at every step.
+    memory_kv: Vec<f32>,
 }
 
 /// A batch of row blocks inside a strided buffer: batch row `b` holds `len` rows of `stride`
@@ -65,6 +67,8 @@ impl<'a> Rows<'a> {
 #[derive(Default)]
 pub struct Workspace {
     x: Vec<f32>,
+    /// Per-thread attention buffers.
+    scratch: AttentionScratch,
     memory: Vec<f32>,
     qkv: Vec<f32>,
     kv: Vec<f32>,
@@ -72,6 +76,10 @@ pub struct Workspace {
     proj: Vec<f32>,
     hidden: Vec<f32>,
     frames_in: Vec<f32>,
+    /// The raw timestep token.
+    ts: Vec<f32>,
+    /// Keys and values of the per-step memory rows (ML, TS), `[2, 2C]`.
+    step_kv: Vec<f32>,
 }
 
 /// FLAME's `Text2MotionTransformer`, inference only.
@@ -92,27 +100,37 @@ impl FlameDenoiser {
     /// Reads the denoiser's tensors (official FLAME names, no prefix), in module order so the
     /// first bad tensor is the one reported.
     pub fn load(file: &ModelFile, cfg: &FlameConfig, text_hidden: usize) -> Result<FlameDenoiser> {
+        FlameDenoiser::load_with(file, cfg, text_hidden, WeightType::F32)
+    }
+
+    /// [`FlameDenoiser::load`] with the linear weights held (and multiplied) as `ty`.
+    pub fn load_with(
+        file: &ModelFile,
+        cfg: &FlameConfig,
+        text_hidden: usize,
+        ty: WeightType,
+    ) -> Result<FlameDenoiser> {
         let c = cfg.model_channels;
         let d = cfg.motion_dim;
         let motion_length_emb =
             file.tensor("motion_length_emb.weight", &[cfg.max_motion_length, c])?;
-        let input_projection = Linear::load(file, "input_projection", d, c)?;
-        let text_pooler_proj = Linear::load(file, "text_pooler_proj", text_hidden, c)?;
-        let text_h_proj = Linear::load(file, "text_h_proj", text_hidden, c)?;
+        let input_projection = Linear::load(file, "input_projection", d, c, ty)?;
+        let text_pooler_proj = Linear::load(file, "text_pooler_proj", text_hidden, c, ty)?;
+        let text_h_proj = Linear::load(file, "text_h_proj", text_hidden, c, ty)?;
         let mut layers = Vec::with_capacity(cfg.num_layers);
         for n in 0..cfg.num_layers {
             let p = format!("tf_decoder.layers.{n}");
             layers.push(DecoderLayer {
-                self_attn: Attention::load(file, &format!("{p}.self_attn"), c)?,
-                multihead_attn: Attention::load(file, &format!("{p}.multihead_attn"), c)?,
-                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.dim_feedforward)?,
-                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.dim_feedforward, c)?,
+                self_attn: Attention::load(file, &format!("{p}.self_attn"), c, ty)?,
+                multihead_attn: CrossAttention::load(file, &format!("{p}.multihead_attn"), c, ty)?,
+                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.dim_feedforward, ty)?,
+                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.dim_feedforward, c, ty)?,
                 norm1: LayerNorm::load(file, &format!("{p}.norm1"), c)?,
                 norm2: LayerNorm::load(file, &format!("{p}.norm2"), c)?,
                 norm3: LayerNorm::load(file, &format!("{p}.norm3"), c)?,
             });
         }
-        let last_projection = Linear::load(file, "last_projection", c, 2 * d)?;
+        let last_projection = Linear::load(file, "last_projection", c, 2 * d, ty)?;
         let rows = cfg.max_motion_length + AUX_TOKENS;
         let mut positions = vec![0.0; rows * c];
         for (p, row) in positions.chunks_exact_mut(c).enumerate() {
@@ -146,7 +164,32 @@ impl FlameDenoiser {
         self.cfg.max_motion_length - 1
     }
 
-    /// Projects a text encoding into FLAME's conditioning (once per prompt, not per step).
+    /// Bytes of the packed linear weights (the part [`WeightType`] changes).
+    pub fn linear_weight_bytes(&self) -> usize {
+        let layers: usize = self
+            .layers
+            .iter()
+            .map(|l| {
+                l.self_attn.weight_bytes()
+                    + l.multihead_attn.weight_bytes()
+                    + l.linear1.weight_bytes()
+                    + l.linear2.weight_bytes()
+            })
+            .sum();
+        layers
+            + [
+                &self.input_projection,
+                &self.text_pooler_proj,
+                &self.text_h_proj,
+                &self.last_projection,
+            ]
+            .iter()
+            .map(|l| l.weight_bytes())
+            .sum::<usize>()
+    }
+
+    /// Projects a text encoding into FLAME's conditioning (once per prompt, not per step),
+    /// including every layer's cross-attention keys and values of the prompt's memory rows.
     pub fn condition(&self, text: &TextOutput) -> Result<FlameCondition> {
         let c = self.cfg.model_channels;
         if text.pooled.len() != self.text_hidden || text.hidden.len() != text.len * self.text_hidden
@@ -163,10 +206,22 @@ impl FlameDenoiser {
         let mut text_tokens = vec![0.0; text.len * c];
         self.text_h_proj
             .forward(&text.hidden, text.len, &mut text_tokens);
+        let fixed = text.len + 1;
+        let mut memory = Vec::with_capacity(fixed * c);
+        memory.extend_from_slice(&cls_token);
+        memory.extend_from_slice(&text_tokens);
+        let mut memory_kv = vec![0.0; self.layers.len() * fixed * 2 * c];
+        for (layer, kv) in self
+            .layers
+            .iter()
+            .zip(memory_kv.chunks_exact_mut(fixed * 2 * c))
+        {
+            layer.multihead_attn.kv.forward(&memory, fixed, kv);
+        }
         Ok(FlameCondition {
             cls_token,
-            text_tokens,
             text_len: text.len,
+            memory_kv,
         })
     }
 
@@ -209,29 +264,30 @@ impl FlameDenoiser {
         self.input_projection.forward(x, batch * frames, motion);
 
         let ml = &self.motion_length_emb.data()[frames * c..(frames + 1) * c];
-        let mut ts = vec![0.0; c];
-        kernels::sinusoid_cos_first(t, &mut ts);
+        let ts = sized(&mut ws.ts, c);
+        kernels::sinusoid_cos_first(t, ts);
+        let ts = &ws.ts[..c];
+
+        // The memory rows that change per step (ML, TS) are shared by the batch; the prompt's
+        // rows were projected to keys and values with the condition.
+        let memory = sized(&mut ws.memory, 2 * c);
+        memory[..c].copy_from_slice(ml);
+        memory[c..].copy_from_slice(ts);
 
         let h = sized(&mut ws.x, batch * seq * c);
-        let memory = sized(&mut ws.memory, batch * mem_len * c);
         for (b, cond) in conds.iter().enumerate() {
             let tgt = &mut h[b * seq * c..(b + 1) * seq * c];
             tgt[..c].copy_from_slice(ml);
-            tgt[c..2 * c].copy_from_slice(&ts);
+            tgt[c..2 * c].copy_from_slice(ts);
             tgt[2 * c..3 * c].copy_from_slice(&cond.cls_token);
             tgt[3 * c..].copy_from_slice(&motion[b * frames * c..(b + 1) * frames * c]);
             for (v, p) in tgt.iter_mut().zip(&self.positions[..seq * c]) {
                 *v += p;
             }
-            let mem = &mut memory[b * mem_len * c..(b + 1) * mem_len * c];
-            mem[..c].copy_from_slice(ml);
-            mem[c..2 * c].copy_from_slice(&ts);
-            mem[2 * c..3 * c].copy_from_slice(&cond.cls_token);
-            mem[3 * c..].copy_from_slice(&cond.text_tokens);
         }
 
-        for layer in &self.layers {
-            self.decoder_layer(layer, batch, seq, mem_len, ws);
+        for (l, layer) in self.layers.iter().enumerate() {
+            self.decoder_layer(l, layer, conds, seq, mem_len, ws);
         }
 
         // Keep the motion positions and project to ε and v.
@@ -247,11 +303,19 @@ impl FlameDenoiser {
     }
 
     /// Multi-head attention of every batch row's queries over that row's keys and values.
-    fn attend(&self, batch: usize, q: Rows, k: Rows, v: Rows, out: &mut [f32]) {
+    fn attend(
+        &self,
+        batch: usize,
+        q: Rows,
+        k: Rows,
+        v: Rows,
+        out: &mut [f32],
+        scratch: &mut AttentionScratch,
+    ) {
         let c = self.cfg.model_channels;
         let heads = self.cfg.num_heads;
         for (b, out) in out.chunks_exact_mut(q.len * c).take(batch).enumerate() {
-            kernels::multi_head_attention(
+            scratch.attend(
                 q.row_block(b),
                 q.stride,
                 k.row_block(b),
@@ -271,13 +335,15 @@ impl FlameDenoiser {
 
     fn decoder_layer(
         &self,
+        l: usize,
         layer: &DecoderLayer,
-        batch: usize,
+        conds: &[&FlameCondition],
         seq: usize,
         mem_len: usize,
         ws: &mut Workspace,
     ) {
         let c = self.cfg.model_channels;
+        let batch = conds.len();
         let eps = self.cfg.layer_norm_eps;
         let rows = batch * seq;
 
@@ -292,25 +358,23 @@ impl FlameDenoiser {
             &mut ws.qkv,
             &mut ws.attn,
             &mut ws.proj,
+            &mut ws.scratch,
         );
         let proj = &ws.proj[..rows * c];
         layer.norm1.add_norm(&mut ws.x, proj, eps);
 
         // Cross-attention to the memory: x ← norm2(x + CrossAttn(x, memory)).
         let ca = &layer.multihead_attn;
-        let (w, bias) = (ca.in_proj_weight.data(), ca.in_proj_bias.data());
         let q = sized(&mut ws.qkv, rows * c);
-        kernels::linear(&ws.x, &w[..c * c], Some(&bias[..c]), q, rows, c, c);
+        ca.q.forward(&ws.x, rows, q);
+        let step_kv = sized(&mut ws.step_kv, 2 * 2 * c);
+        ca.kv.forward(&ws.memory, 2, step_kv);
+        let fixed = (mem_len - 2) * 2 * c;
         let kv = sized(&mut ws.kv, batch * mem_len * 2 * c);
-        kernels::linear(
-            &ws.memory,
-            &w[c * c..],
-            Some(&bias[c..]),
-            kv,
-            batch * mem_len,
-            c,
-            2 * c,
-        );
+        for (dst, cond) in kv.chunks_exact_mut(mem_len * 2 * c).zip(conds) {
+            dst[..2 * 2 * c].copy_from_slice(&ws.step_kv[..2 * 2 * c]);
+            dst[2 * 2 * c..].copy_from_slice(&cond.memory_kv[l * fixed..(l + 1) * fixed]);
+        }
         let attn = sized(&mut ws.attn, rows * c);
         let keys = Rows {
             data: kv,
@@ -322,7 +386,14 @@ impl FlameDenoiser {
             stride: c,
             len: seq,
         };
-        self.attend(batch, queries, keys.at(0), keys.at(c), attn);
+        self.attend(
+            batch,
+            queries,
+            keys.at(0),
+            keys.at(c),
+            attn,
+            &mut ws.scratch,
+        );
         let proj = sized(&mut ws.proj, rows * c);
         ca.out_proj.forward(attn, rows, proj);
         layer.norm2.add_norm(&mut ws.x, proj, eps);
@@ -330,12 +401,8 @@ impl FlameDenoiser {
         // Feed-forward: x ← norm3(x + linear2(act(linear1(x)))).
         let f = self.cfg.dim_feedforward;
         let hidden = sized(&mut ws.hidden, rows * f);
-        layer.linear1.forward(&ws.x, rows, hidden);
-        if self.cfg.activation == "gelu" {
-            kernels::gelu_erf(hidden);
-        } else {
-            kernels::relu(hidden);
-        }
+        let act = activation(&self.cfg.activation);
+        layer.linear1.forward_act(&ws.x, rows, hidden, act);
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
         layer.norm3.add_norm(&mut ws.x, proj, eps);

@@ -1,60 +1,94 @@
 //! The PyTorch layers the denoisers are built from, as read from a model file: `Linear`,
 //! `nn.MultiheadAttention`'s packed projections and `LayerNorm`. Shared by every architecture.
+//!
+//! Linear weights are packed at load into the GEMM kernel's panel layout, in the weight type
+//! the caller chose ([`WeightType`]); biases and norms stay f32.
 
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::error::Result;
-use crate::kernels;
+use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, WeightType};
 
 /// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
-pub(crate) struct Linear {
-    pub(crate) weight: Tensor,
-    pub(crate) bias: Tensor,
-    n_in: usize,
-    n_out: usize,
-}
+pub(crate) struct Linear(PackedLinear);
 
 impl Linear {
-    pub(crate) fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Linear> {
-        Ok(Linear {
-            weight: file.tensor(&format!("{name}.weight"), &[n_out, n_in])?,
-            bias: file.tensor(&format!("{name}.bias"), &[n_out])?,
-            n_in,
-            n_out,
-        })
+    pub(crate) fn load(
+        file: &ModelFile,
+        name: &str,
+        n_in: usize,
+        n_out: usize,
+        ty: WeightType,
+    ) -> Result<Linear> {
+        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
+        let b = file.tensor(&format!("{name}.bias"), &[n_out])?;
+        let layer = Linear::rows(&w, &b, n_in, 0..n_out, ty);
+        file.release(&format!("{name}.weight"));
+        Ok(layer)
+    }
+
+    /// Rows `rows` of a `[n, n_in]` weight and its bias, as one layer.
+    fn rows(
+        w: &Tensor,
+        b: &Tensor,
+        n_in: usize,
+        rows: std::ops::Range<usize>,
+        ty: WeightType,
+    ) -> Linear {
+        let weight = &w.data()[rows.start * n_in..rows.end * n_in];
+        let bias = &b.data()[rows.clone()];
+        Linear(PackedLinear::new(weight, Some(bias), n_in, rows.len(), ty))
     }
 
     /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
     pub(crate) fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        kernels::linear(
-            x,
-            self.weight.data(),
-            Some(self.bias.data()),
-            y,
-            rows,
-            self.n_in,
-            self.n_out,
-        );
+        self.0.forward(x, rows, y, Activation::None);
+    }
+
+    /// `y = act(x · Wᵀ + b)`, the activation applied as each output tile is finished.
+    pub(crate) fn forward_act(&self, x: &[f32], rows: usize, y: &mut [f32], act: Activation) {
+        self.0.forward(x, rows, y, act);
+    }
+
+    /// Bytes of packed weights.
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.0.weights().bytes()
     }
 }
 
-/// `nn.MultiheadAttention` with packed `in_proj_weight` `[3E, E]` (rows q, k, v).
+/// Reads `nn.MultiheadAttention`'s packed `in_proj_weight` `[3E, E]` (rows q, k, v) and bias.
+fn in_proj(file: &ModelFile, name: &str, e: usize) -> Result<(Tensor, Tensor)> {
+    Ok((
+        file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
+        file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
+    ))
+}
+
+/// `nn.MultiheadAttention` used as self-attention: q, k and v projected in one GEMM.
 pub(crate) struct Attention {
-    pub(crate) in_proj_weight: Tensor,
-    pub(crate) in_proj_bias: Tensor,
-    pub(crate) out_proj: Linear,
+    qkv: Linear,
+    out_proj: Linear,
 }
 
 impl Attention {
-    pub(crate) fn load(file: &ModelFile, name: &str, e: usize) -> Result<Attention> {
+    pub(crate) fn load(
+        file: &ModelFile,
+        name: &str,
+        e: usize,
+        ty: WeightType,
+    ) -> Result<Attention> {
+        let (w, b) = in_proj(file, name, e)?;
+        let qkv = Linear::rows(&w, &b, e, 0..3 * e, ty);
+        file.release(&format!("{name}.in_proj_weight"));
         Ok(Attention {
-            in_proj_weight: file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
-            in_proj_bias: file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
-            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e)?,
+            qkv,
+            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e, ty)?,
         })
     }
-}
 
-impl Attention {
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.qkv.weight_bytes() + self.out_proj.weight_bytes()
+    }
+
     /// `out = out_proj(MultiHeadAttention(x, x, x))` over `batch` independent blocks of `seq`
     /// rows of width `e` (no masks: every position is valid at sampling).
     #[allow(clippy::too_many_arguments)]
@@ -68,16 +102,16 @@ impl Attention {
         qkv: &mut Vec<f32>,
         attn: &mut Vec<f32>,
         out: &mut Vec<f32>,
+        scratch: &mut AttentionScratch,
     ) {
         let rows = batch * seq;
         let qkv = sized(qkv, rows * 3 * e);
-        let (w, b) = (self.in_proj_weight.data(), self.in_proj_bias.data());
-        kernels::linear(x, w, Some(b), qkv, rows, e, 3 * e);
+        self.qkv.forward(x, rows, qkv);
         let attn = sized(attn, rows * e);
         for (i, o) in attn.chunks_exact_mut(seq * e).enumerate() {
             let block = &qkv[i * seq * 3 * e..(i + 1) * seq * 3 * e];
             let (k, v) = (&block[e..], &block[2 * e..]);
-            kernels::multi_head_attention(
+            scratch.attend(
                 block,
                 3 * e,
                 k,
@@ -94,6 +128,40 @@ impl Attention {
             );
         }
         self.out_proj.forward(attn, rows, sized(out, rows * e));
+    }
+}
+
+/// `nn.MultiheadAttention` used as cross-attention: the query projection apart from the
+/// key/value projection, so keys and values of a fixed memory can be computed once.
+pub(crate) struct CrossAttention {
+    pub(crate) q: Linear,
+    /// Rows k then v of `in_proj`: `[memory rows, 2E]` out.
+    pub(crate) kv: Linear,
+    pub(crate) out_proj: Linear,
+}
+
+impl CrossAttention {
+    pub(crate) fn load(
+        file: &ModelFile,
+        name: &str,
+        e: usize,
+        ty: WeightType,
+    ) -> Result<CrossAttention> {
+        let (w, b) = in_proj(file, name, e)?;
+        let (q, kv) = (
+            Linear::rows(&w, &b, e, 0..e, ty),
+            Linear::rows(&w, &b, e, e..3 * e, ty),
+        );
+        file.release(&format!("{name}.in_proj_weight"));
+        Ok(CrossAttention {
+            q,
+            kv,
+            out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e, ty)?,
+        })
+    }
+
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.q.weight_bytes() + self.kv.weight_bytes() + self.out_proj.weight_bytes()
     }
 }
 
@@ -116,6 +184,15 @@ impl LayerNorm {
     pub(crate) fn add_norm(&self, x: &mut [f32], residual: &[f32], eps: f32) {
         let (g, b) = (self.weight.data(), self.bias.data());
         kernels::add_layer_norm(x, residual, g.len(), g, b, eps);
+    }
+}
+
+/// The fused activation for a configuration's name (`gelu` = exact erf GELU, else ReLU).
+pub(crate) fn activation(name: &str) -> Activation {
+    if name == "gelu" {
+        Activation::Gelu
+    } else {
+        Activation::Relu
     }
 }
 

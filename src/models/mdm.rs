@@ -14,9 +14,9 @@ use serde::Deserialize;
 
 use crate::checkpoint::ModelFile;
 use crate::error::{invalid_arg, Result};
-use crate::kernels;
+use crate::kernels::{self, AttentionScratch, WeightType};
 
-use super::layers::{sized, Attention, LayerNorm, Linear};
+use super::layers::{activation, sized, Attention, LayerNorm, Linear};
 
 /// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
 const LAYER_NORM_EPS: f32 = 1e-5;
@@ -95,12 +95,17 @@ struct TimeEmbed {
 #[derive(Default)]
 pub struct Workspace {
     x: Vec<f32>,
+    /// Per-thread attention buffers.
+    scratch: AttentionScratch,
     qkv: Vec<f32>,
     attn: Vec<f32>,
     proj: Vec<f32>,
     hidden: Vec<f32>,
     frames: Vec<f32>,
     text: Vec<f32>,
+    text_emb: Vec<f32>,
+    time_hidden: Vec<f32>,
+    time_emb: Vec<f32>,
 }
 
 /// MDM's `trans_enc` denoiser (and MotionFM's `MDM_Flow`), inference only.
@@ -121,6 +126,11 @@ impl MdmDenoiser {
     /// bad tensor is the one reported. The `pe` buffers are recomputed, not read. The time
     /// convention starts as [`TimeIndex::Diffusion`]; see [`MdmDenoiser::with_time_index`].
     pub fn load(file: &ModelFile, cfg: &MdmConfig) -> Result<MdmDenoiser> {
+        MdmDenoiser::load_with(file, cfg, WeightType::F32)
+    }
+
+    /// [`MdmDenoiser::load`] with the linear weights held (and multiplied) as `ty`.
+    pub fn load_with(file: &ModelFile, cfg: &MdmConfig, ty: WeightType) -> Result<MdmDenoiser> {
         let c = cfg.latent_dim;
         if c == 0 || !c.is_multiple_of(2) || cfg.heads == 0 || !c.is_multiple_of(cfg.heads) {
             return Err(crate::error::bad_file!(
@@ -141,23 +151,23 @@ impl MdmDenoiser {
             ));
         }
         let embed_timestep = TimeEmbed {
-            fc0: Linear::load(file, "embed_timestep.time_embed.0", c, c)?,
-            fc2: Linear::load(file, "embed_timestep.time_embed.2", c, c)?,
+            fc0: Linear::load(file, "embed_timestep.time_embed.0", c, c, ty)?,
+            fc2: Linear::load(file, "embed_timestep.time_embed.2", c, c, ty)?,
         };
-        let embed_text = Linear::load(file, "embed_text", cfg.clip_dim, c)?;
-        let pose_embedding = Linear::load(file, "input_process.poseEmbedding", cfg.njoints, c)?;
+        let embed_text = Linear::load(file, "embed_text", cfg.clip_dim, c, ty)?;
+        let pose_embedding = Linear::load(file, "input_process.poseEmbedding", cfg.njoints, c, ty)?;
         let mut layers = Vec::with_capacity(cfg.layers);
         for n in 0..cfg.layers {
             let p = format!("seqTransEncoder.layers.{n}");
             layers.push(EncoderLayer {
-                self_attn: Attention::load(file, &format!("{p}.self_attn"), c)?,
-                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.ff_size)?,
-                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.ff_size, c)?,
+                self_attn: Attention::load(file, &format!("{p}.self_attn"), c, ty)?,
+                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.ff_size, ty)?,
+                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.ff_size, c, ty)?,
                 norm1: LayerNorm::load(file, &format!("{p}.norm1"), c)?,
                 norm2: LayerNorm::load(file, &format!("{p}.norm2"), c)?,
             });
         }
-        let pose_final = Linear::load(file, "output_process.poseFinal", c, cfg.njoints)?;
+        let pose_final = Linear::load(file, "output_process.poseFinal", c, cfg.njoints, ty)?;
         let mut pe = vec![0.0; cfg.max_len * c];
         for (p, row) in pe.chunks_exact_mut(c).enumerate() {
             kernels::sinusoid_interleaved(p as f32, row);
@@ -182,6 +192,28 @@ impl MdmDenoiser {
 
     pub fn time_index(&self) -> TimeIndex {
         self.time_index
+    }
+
+    /// Bytes of the packed linear weights (the part [`WeightType`] changes).
+    pub fn linear_weight_bytes(&self) -> usize {
+        let layers: usize = self
+            .layers
+            .iter()
+            .map(|l| {
+                l.self_attn.weight_bytes() + l.linear1.weight_bytes() + l.linear2.weight_bytes()
+            })
+            .sum();
+        layers
+            + [
+                &self.embed_timestep.fc0,
+                &self.embed_timestep.fc2,
+                &self.embed_text,
+                &self.pose_embedding,
+                &self.pose_final,
+            ]
+            .iter()
+            .map(|l| l.weight_bytes())
+            .sum::<usize>()
     }
 
     pub fn config(&self) -> &MdmConfig {
@@ -249,23 +281,24 @@ impl MdmDenoiser {
             .ok_or_else(|| invalid_arg!("t {t} has no positional row ({:?})", self.time_index))?;
 
         // Time token: time_embed(pe[t]), shared by the batch.
-        let mut time_emb = vec![0.0; c];
-        let mut time_hidden = vec![0.0; c];
+        let time_hidden = sized(&mut ws.time_hidden, c);
         self.embed_timestep
             .fc0
-            .forward(&self.pe[row * c..(row + 1) * c], 1, &mut time_hidden);
-        kernels::silu(&mut time_hidden);
+            .forward(&self.pe[row * c..(row + 1) * c], 1, time_hidden);
+        kernels::silu(time_hidden);
+        let time_emb = sized(&mut ws.time_emb, c);
         self.embed_timestep
             .fc2
-            .forward(&time_hidden, 1, &mut time_emb);
+            .forward(&ws.time_hidden[..c], 1, time_emb);
 
         // Text tokens: embed_text(clip) for every row in one GEMM.
         let text_in = sized(&mut ws.text, batch * self.cfg.clip_dim);
         for (dst, cond) in text_in.chunks_exact_mut(self.cfg.clip_dim).zip(conds) {
             dst.copy_from_slice(cond);
         }
-        let mut text_emb = vec![0.0; batch * c];
-        self.embed_text.forward(&ws.text, batch, &mut text_emb);
+        let text_emb = sized(&mut ws.text_emb, batch * c);
+        self.embed_text.forward(&ws.text, batch, text_emb);
+        let (time_emb, text_emb) = (&ws.time_emb[..c], &ws.text_emb[..batch * c]);
 
         // Frame tokens for the whole batch in one GEMM.
         let motion = sized(&mut ws.frames, batch * frames * c);
@@ -278,7 +311,7 @@ impl MdmDenoiser {
             // emb = time_emb + text_emb (MDM's "add" policy, time first as in the official sum).
             for ((v, &te), &xe) in tokens[..c]
                 .iter_mut()
-                .zip(&time_emb)
+                .zip(time_emb)
                 .zip(&text_emb[b * c..(b + 1) * c])
             {
                 *v = te + xe;
@@ -319,18 +352,15 @@ impl MdmDenoiser {
             &mut ws.qkv,
             &mut ws.attn,
             &mut ws.proj,
+            &mut ws.scratch,
         );
         let proj = &ws.proj[..rows * c];
         layer.norm1.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
 
         // Feed-forward: x ← norm2(x + linear2(act(linear1(x)))).
         let hidden = sized(&mut ws.hidden, rows * self.cfg.ff_size);
-        layer.linear1.forward(&ws.x, rows, hidden);
-        if self.cfg.activation == "gelu" {
-            kernels::gelu_erf(hidden);
-        } else {
-            kernels::relu(hidden);
-        }
+        let act = activation(&self.cfg.activation);
+        layer.linear1.forward_act(&ws.x, rows, hidden, act);
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
         layer.norm2.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);

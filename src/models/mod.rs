@@ -15,11 +15,25 @@ use crate::error::{bad_file, invalid_arg, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
 use crate::text::{ClipTextEncoder, TextEncoder};
 
+pub use crate::kernels::WeightType;
 pub use flame::{FlameCondition, FlameDenoiser};
 pub use mdm::{MdmDenoiser, TimeIndex};
 
+/// Most rows one forward pass batches (conditional + unconditional rows of guidance, with room
+/// to spare).
+pub const MAX_BATCH: usize = 4;
+
 /// Prefix of the text encoder's tensors inside a libflame file.
 pub const TEXT_PREFIX: &str = "text.";
+
+/// How a model file is loaded.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// What the linear layers' weights are held and multiplied in, whatever the file stores
+    /// (an f32 file can load as f16 or bf16; an f16 file as f32). Embeddings, norms and biases
+    /// stay f32.
+    pub weights: WeightType,
+}
 
 /// The denoiser of a model, by architecture.
 pub enum Denoiser {
@@ -60,6 +74,7 @@ pub struct Model {
     text: TextModel,
     denoiser: Denoiser,
     dtype: Option<StoredDtype>,
+    weights: WeightType,
     format: Format,
     /// `motion.mean` / `motion.std`: what the denoiser's features are normalised with, if anything.
     stats: Option<(Tensor, Tensor)>,
@@ -68,9 +83,14 @@ pub struct Model {
 }
 
 impl Model {
-    /// Loads a libflame model file by memory-mapping it.
+    /// Loads a libflame model file by memory-mapping it (f32 weights).
     pub fn load(path: impl AsRef<Path>) -> Result<Model> {
-        Model::from_file(ModelFile::open(path.as_ref())?)
+        Model::load_with(path, &LoadOptions::default())
+    }
+
+    /// Loads a libflame model file by memory-mapping it, with `opts`.
+    pub fn load_with(path: impl AsRef<Path>, opts: &LoadOptions) -> Result<Model> {
+        Model::from_file_with(ModelFile::open(path.as_ref())?, opts)
     }
 
     /// Loads a model from the bytes of a model file (copied).
@@ -80,22 +100,32 @@ impl Model {
 
     /// Builds the model from an opened file, validating every tensor against the configuration.
     pub fn from_file(file: ModelFile) -> Result<Model> {
+        Model::from_file_with(file, &LoadOptions::default())
+    }
+
+    /// [`Model::from_file`] with `opts`.
+    pub fn from_file_with(file: ModelFile, opts: &LoadOptions) -> Result<Model> {
+        let ty = opts.weights;
         let config = Config::from_file(&file)?;
         let tokenizer = file
             .metadata(TOKENIZER_KEY)
             .ok_or_else(|| bad_file!("no `{TOKENIZER_KEY}` metadata (the tokenizer.json text)"))?;
         let text = match &config.text_encoder {
-            TextConfig::Bert(t) => {
-                TextModel::Bert(TextEncoder::load(&file, TEXT_PREFIX, t, tokenizer)?)
-            }
+            TextConfig::Bert(t) => TextModel::Bert(TextEncoder::load_with(
+                &file,
+                TEXT_PREFIX,
+                t,
+                tokenizer,
+                ty,
+            )?),
             TextConfig::Clip(c) => TextModel::Clip {
-                encoder: ClipTextEncoder::load(&file, TEXT_PREFIX, &c.clip, tokenizer)?,
+                encoder: ClipTextEncoder::load_with(&file, TEXT_PREFIX, &c.clip, tokenizer, ty)?,
                 context: c.max_length,
             },
         };
         let denoiser = match (&config.denoiser, &text) {
             (DenoiserConfig::Flame(d), TextModel::Bert(t)) => {
-                Denoiser::Flame(FlameDenoiser::load(&file, d, t.hidden_size())?)
+                Denoiser::Flame(FlameDenoiser::load_with(&file, d, t.hidden_size(), ty)?)
             }
             (DenoiserConfig::Mdm(d), TextModel::Clip { encoder, .. }) => {
                 if encoder.projection_dim() != d.clip_dim {
@@ -105,7 +135,7 @@ impl Model {
                         d.clip_dim
                     ));
                 }
-                let m = MdmDenoiser::load(&file, d)?;
+                let m = MdmDenoiser::load_with(&file, d, ty)?;
                 Denoiser::Mdm(if config.architecture == "motionfm" {
                     m.with_time_index(TimeIndex::FlowMatching)
                 } else {
@@ -149,6 +179,7 @@ impl Model {
             text,
             denoiser,
             dtype,
+            weights: ty,
             format,
             stats,
             uncond: OnceLock::new(),
@@ -196,6 +227,23 @@ impl Model {
     /// The dtype most of the file's weights are stored in.
     pub fn stored_dtype(&self) -> Option<StoredDtype> {
         self.dtype
+    }
+
+    /// What the linear layers' weights are held in (the load option).
+    pub fn weight_type(&self) -> WeightType {
+        self.weights
+    }
+
+    /// Bytes of the denoiser's and text encoder's packed linear weights.
+    pub fn linear_weight_bytes(&self) -> usize {
+        let text = match &self.text {
+            TextModel::Bert(t) => t.linear_weight_bytes(),
+            TextModel::Clip { encoder, .. } => encoder.linear_weight_bytes(),
+        };
+        text + match &self.denoiser {
+            Denoiser::Flame(f) => f.linear_weight_bytes(),
+            Denoiser::Mdm(m) => m.linear_weight_bytes(),
+        }
     }
 
     /// Feature channels per frame.
@@ -272,36 +320,45 @@ impl Model {
     /// One batched forward pass: `x` is `[batch, frames, motion_dim]`, `out` is
     /// `[batch, frames, output_dim]`, row `b` conditioned on `conds[b]`. `t` is the network's
     /// time input (a diffusion step, or flow time in [0, 1] for Motion Flow Matching).
-    pub fn forward(
+    pub fn forward<'a>(
         &self,
         x: &[f32],
         frames: usize,
         t: f32,
-        conds: &[&Condition],
+        conds: &[&'a Condition],
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
         let wrong = || invalid_arg!("a condition was made for another architecture");
+        if conds.is_empty() || conds.len() > MAX_BATCH {
+            return Err(invalid_arg!(
+                "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
+                conds.len()
+            ));
+        }
+        // The per-architecture views of `conds` live on the stack: a step allocates nothing.
         match &self.denoiser {
             Denoiser::Flame(f) => {
-                let conds = conds
-                    .iter()
-                    .map(|c| match c {
-                        Condition::Flame(fc) => Ok(fc),
-                        _ => Err(wrong()),
-                    })
-                    .collect::<Result<Vec<_>>>()?;
-                f.forward(x, frames, t, &conds, out, &mut ws.flame)
+                let pick = |c: &'a Condition| match c {
+                    Condition::Flame(fc) => Ok(fc),
+                    _ => Err(wrong()),
+                };
+                let mut views = [pick(conds[0])?; MAX_BATCH];
+                for (v, c) in views.iter_mut().zip(conds) {
+                    *v = pick(c)?;
+                }
+                f.forward(x, frames, t, &views[..conds.len()], out, &mut ws.flame)
             }
             Denoiser::Mdm(m) => {
-                let conds = conds
-                    .iter()
-                    .map(|c| match c {
-                        Condition::Mdm(v) => Ok(&v[..]),
-                        _ => Err(wrong()),
-                    })
-                    .collect::<Result<Vec<_>>>()?;
-                m.forward(x, frames, t, &conds, out, &mut ws.mdm)
+                let pick = |c: &'a Condition| match c {
+                    Condition::Mdm(v) => Ok(&v[..]),
+                    _ => Err(wrong()),
+                };
+                let mut views = [pick(conds[0])?; MAX_BATCH];
+                for (v, c) in views.iter_mut().zip(conds) {
+                    *v = pick(c)?;
+                }
+                m.forward(x, frames, t, &views[..conds.len()], out, &mut ws.mdm)
             }
         }
     }

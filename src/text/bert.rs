@@ -8,7 +8,8 @@ use crate::checkpoint::{ModelFile, Tensor};
 use crate::config::TextEncoderConfig;
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{
-    add_layer_norm, embedding, gelu_erf, layer_norm, linear, multi_head_attention, tanh,
+    add_layer_norm, embedding, layer_norm, multi_head_attention, tanh, Activation, PackedLinear,
+    WeightType,
 };
 
 use super::tokenizer::{TextTokenizer, Tokens};
@@ -79,33 +80,35 @@ impl TextOutput {
     }
 }
 
-/// A Linear layer in PyTorch layout (`weight [out, in]`).
-struct Dense {
-    w: Tensor,
-    b: Tensor,
-    n_in: usize,
-    n_out: usize,
-}
+/// Linear layers in PyTorch layout (`weight [out, in]`) sharing an input, stacked into one
+/// packed GEMM whose outputs sit side by side (one layer, or q|k|v).
+struct Dense(PackedLinear);
 
 impl Dense {
-    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize) -> Result<Dense> {
-        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
-        let b = file.tensor(&format!("{name}.bias"), &[n_out])?;
-        Ok(Dense { w, b, n_in, n_out })
+    fn load(
+        file: &ModelFile,
+        names: &[&str],
+        n_in: usize,
+        n_out: usize,
+        ty: WeightType,
+    ) -> Result<Dense> {
+        let (mut w, mut b) = (Vec::new(), Vec::new());
+        for name in names {
+            w.extend_from_slice(
+                file.tensor(&format!("{name}.weight"), &[n_out, n_in])?
+                    .data(),
+            );
+            file.release(&format!("{name}.weight"));
+            b.extend_from_slice(file.tensor(&format!("{name}.bias"), &[n_out])?.data());
+        }
+        let n = names.len() * n_out;
+        Ok(Dense(PackedLinear::new(&w, Some(&b), n_in, n, ty)))
     }
 
-    /// `x [rows, n_in]` → `[rows, n_out]`.
-    fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
-        let mut y = vec![0f32; rows * self.n_out];
-        linear(
-            x,
-            self.w.data(),
-            Some(self.b.data()),
-            &mut y,
-            rows,
-            self.n_in,
-            self.n_out,
-        );
+    /// `act(x [rows, n_in] · Wᵀ + b)` → `[rows, n_out]`.
+    fn apply(&self, x: &[f32], rows: usize, act: Activation) -> Vec<f32> {
+        let mut y = vec![0f32; rows * self.0.outputs()];
+        self.0.forward(x, rows, &mut y, act);
         y
     }
 }
@@ -125,9 +128,8 @@ impl Norm {
 
 /// One post-LN encoder layer.
 struct Layer {
-    query: Dense,
-    key: Dense,
-    value: Dense,
+    /// query | key | value.
+    qkv: Dense,
     attn_out: Dense,
     attn_norm: Norm,
     intermediate: Dense,
@@ -145,16 +147,16 @@ struct Dims {
 }
 
 impl Layer {
-    fn load(file: &ModelFile, p: &str, d: Dims) -> Result<Layer> {
+    fn load(file: &ModelFile, p: &str, d: Dims, ty: WeightType) -> Result<Layer> {
         let (e, i) = (d.hidden, d.intermediate);
+        let qkv = ["query", "key", "value"].map(|n| format!("{p}attention.self.{n}"));
+        let qkv = qkv.each_ref().map(String::as_str);
         Ok(Layer {
-            query: Dense::load(file, &format!("{p}attention.self.query"), e, e)?,
-            key: Dense::load(file, &format!("{p}attention.self.key"), e, e)?,
-            value: Dense::load(file, &format!("{p}attention.self.value"), e, e)?,
-            attn_out: Dense::load(file, &format!("{p}attention.output.dense"), e, e)?,
+            qkv: Dense::load(file, &qkv, e, e, ty)?,
+            attn_out: Dense::load(file, &[&format!("{p}attention.output.dense")], e, e, ty)?,
             attn_norm: Norm::load(file, &format!("{p}attention.output.LayerNorm"), e)?,
-            intermediate: Dense::load(file, &format!("{p}intermediate.dense"), e, i)?,
-            output: Dense::load(file, &format!("{p}output.dense"), i, e)?,
+            intermediate: Dense::load(file, &[&format!("{p}intermediate.dense")], e, i, ty)?,
+            output: Dense::load(file, &[&format!("{p}output.dense")], i, e, ty)?,
             out_norm: Norm::load(file, &format!("{p}output.LayerNorm"), e)?,
         })
     }
@@ -162,20 +164,16 @@ impl Layer {
     /// a = LN(dense(attn(x)) + x); returns LN(W2·GELU(W1·a) + a).
     fn forward(&self, x: &[f32], n: usize, key_padding: Option<&[bool]>, d: Dims) -> Vec<f32> {
         let e = d.hidden;
-        let (q, k, v) = (
-            self.query.apply(x, n),
-            self.key.apply(x, n),
-            self.value.apply(x, n),
-        );
+        let qkv = self.qkv.apply(x, n, Activation::None);
         let mut ctx = vec![0f32; n * e];
         let head_dim = e / d.heads;
         multi_head_attention(
-            &q,
-            e,
-            &k,
-            e,
-            &v,
-            e,
+            &qkv,
+            3 * e,
+            &qkv[e..],
+            3 * e,
+            &qkv[2 * e..],
+            3 * e,
             n,
             n,
             d.heads,
@@ -184,7 +182,7 @@ impl Layer {
             false,
             &mut ctx,
         );
-        let mut a = self.attn_out.apply(&ctx, n);
+        let mut a = self.attn_out.apply(&ctx, n, Activation::None);
         add_layer_norm(
             &mut a,
             x,
@@ -193,9 +191,8 @@ impl Layer {
             self.attn_norm.beta.data(),
             d.eps,
         );
-        let mut h = self.intermediate.apply(&a, n);
-        gelu_erf(&mut h);
-        let mut out = self.output.apply(&h, n);
+        let h = self.intermediate.apply(&a, n, Activation::Gelu);
+        let mut out = self.output.apply(&h, n, Activation::None);
         add_layer_norm(
             &mut out,
             &a,
@@ -237,6 +234,17 @@ impl TextEncoder {
         cfg: &TextEncoderConfig,
         tokenizer_json: &str,
     ) -> Result<TextEncoder> {
+        TextEncoder::load_with(file, prefix, cfg, tokenizer_json, WeightType::F32)
+    }
+
+    /// [`TextEncoder::load`] with the linear weights held (and multiplied) as `ty`.
+    pub fn load_with(
+        file: &ModelFile,
+        prefix: &str,
+        cfg: &TextEncoderConfig,
+        tokenizer_json: &str,
+        ty: WeightType,
+    ) -> Result<TextEncoder> {
         let kind = check_config(cfg)?;
         let dims = Dims {
             hidden: cfg.hidden_size,
@@ -260,9 +268,9 @@ impl TextEncoder {
         )?;
         let emb_norm = Norm::load(file, &format!("{p}embeddings.LayerNorm"), e)?;
         let layers = (0..cfg.num_layers)
-            .map(|i| Layer::load(file, &format!("{p}encoder.layer.{i}."), dims))
+            .map(|i| Layer::load(file, &format!("{p}encoder.layer.{i}."), dims, ty))
             .collect::<Result<Vec<_>>>()?;
-        let pooler = Dense::load(file, &format!("{p}pooler.dense"), e, e)?;
+        let pooler = Dense::load(file, &[&format!("{p}pooler.dense")], e, e, ty)?;
         let tokenizer = TextTokenizer::from_json(tokenizer_json, cfg.vocab_size, cfg.pad_token_id)?;
         if cfg.max_length < tokenizer.num_special_tokens() + 1 {
             return Err(bad_file!(
@@ -286,6 +294,17 @@ impl TextEncoder {
             layers,
             pooler,
         })
+    }
+
+    /// Bytes of the packed linear weights.
+    pub fn linear_weight_bytes(&self) -> usize {
+        let layer = |l: &Layer| {
+            [&l.qkv, &l.attn_out, &l.intermediate, &l.output]
+                .iter()
+                .map(|d| d.0.weights().bytes())
+                .sum::<usize>()
+        };
+        self.layers.iter().map(layer).sum::<usize>() + self.pooler.0.weights().bytes()
     }
 
     pub fn kind(&self) -> EncoderKind {
@@ -361,7 +380,7 @@ impl TextEncoder {
         for layer in &self.layers {
             x = layer.forward(&x, n, key_padding, self.dims);
         }
-        let mut pooled = self.pooler.apply(&x[..e], 1);
+        let mut pooled = self.pooler.apply(&x[..e], 1, Activation::None);
         tanh(&mut pooled);
         Ok(TextOutput {
             len: n,

@@ -16,7 +16,8 @@ use serde::Deserialize;
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{
-    add_inplace, embedding, layer_norm, linear, multi_head_attention, quick_gelu,
+    add_inplace, embedding, layer_norm, multi_head_attention, quick_gelu, Activation, PackedLinear,
+    WeightType,
 };
 
 use super::tokenizer::TextTokenizer;
@@ -60,37 +61,39 @@ pub struct ClipOutput {
     pub pooled_index: usize,
 }
 
-/// A Linear layer in PyTorch layout (`weight [out, in]`), optionally without bias.
-struct Dense {
-    w: Tensor,
-    b: Option<Tensor>,
-    n_in: usize,
-    n_out: usize,
-}
+/// Linear layers in PyTorch layout (`weight [out, in]`) sharing an input, stacked into one
+/// packed GEMM whose outputs sit side by side (one layer, or q|k|v); biases all or none.
+struct Dense(PackedLinear);
 
 impl Dense {
-    fn load(file: &ModelFile, name: &str, n_in: usize, n_out: usize, bias: bool) -> Result<Dense> {
-        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
-        let b = if bias {
-            Some(file.tensor(&format!("{name}.bias"), &[n_out])?)
-        } else {
-            None
-        };
-        Ok(Dense { w, b, n_in, n_out })
+    fn load(
+        file: &ModelFile,
+        names: &[&str],
+        n_in: usize,
+        n_out: usize,
+        bias: bool,
+        ty: WeightType,
+    ) -> Result<Dense> {
+        let (mut w, mut b) = (Vec::new(), Vec::new());
+        for name in names {
+            w.extend_from_slice(
+                file.tensor(&format!("{name}.weight"), &[n_out, n_in])?
+                    .data(),
+            );
+            file.release(&format!("{name}.weight"));
+            if bias {
+                b.extend_from_slice(file.tensor(&format!("{name}.bias"), &[n_out])?.data());
+            }
+        }
+        let n = names.len() * n_out;
+        let b = bias.then_some(&b[..]);
+        Ok(Dense(PackedLinear::new(&w, b, n_in, n, ty)))
     }
 
     /// `x [rows, n_in]` → `[rows, n_out]`.
     fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
-        let mut y = vec![0f32; rows * self.n_out];
-        linear(
-            x,
-            self.w.data(),
-            self.b.as_ref().map(|b| b.data()),
-            &mut y,
-            rows,
-            self.n_in,
-            self.n_out,
-        );
+        let mut y = vec![0f32; rows * self.0.outputs()];
+        self.0.forward(x, rows, &mut y, Activation::None);
         y
     }
 }
@@ -118,9 +121,8 @@ impl Norm {
 /// One pre-LN residual block.
 struct Block {
     ln1: Norm,
-    q: Dense,
-    k: Dense,
-    v: Dense,
+    /// q | k | v.
+    qkv: Dense,
     out: Dense,
     ln2: Norm,
     fc1: Dense,
@@ -128,35 +130,34 @@ struct Block {
 }
 
 impl Block {
-    fn load(file: &ModelFile, p: &str, w: usize) -> Result<Block> {
+    fn load(file: &ModelFile, p: &str, w: usize, ty: WeightType) -> Result<Block> {
+        let qkv = ["q", "k", "v"].map(|n| format!("{p}self_attn.{n}_proj"));
+        let qkv = qkv.each_ref().map(String::as_str);
+        let one = |name: &str, n_in: usize, n_out: usize| {
+            Dense::load(file, &[&format!("{p}{name}")], n_in, n_out, true, ty)
+        };
         Ok(Block {
             ln1: Norm::load(file, &format!("{p}layer_norm1"), w)?,
-            q: Dense::load(file, &format!("{p}self_attn.q_proj"), w, w, true)?,
-            k: Dense::load(file, &format!("{p}self_attn.k_proj"), w, w, true)?,
-            v: Dense::load(file, &format!("{p}self_attn.v_proj"), w, w, true)?,
-            out: Dense::load(file, &format!("{p}self_attn.out_proj"), w, w, true)?,
+            qkv: Dense::load(file, &qkv, w, w, true, ty)?,
+            out: one("self_attn.out_proj", w, w)?,
             ln2: Norm::load(file, &format!("{p}layer_norm2"), w)?,
-            fc1: Dense::load(file, &format!("{p}mlp.fc1"), w, 4 * w, true)?,
-            fc2: Dense::load(file, &format!("{p}mlp.fc2"), 4 * w, w, true)?,
+            fc1: one("mlp.fc1", w, 4 * w)?,
+            fc2: one("mlp.fc2", 4 * w, w)?,
         })
     }
 
     /// x ← x + out(causal_attn(LN1 x)); x ← x + fc2(QuickGELU(fc1(LN2 x))).
     fn forward(&self, x: &mut [f32], n: usize, w: usize, heads: usize, eps: f32) {
         let h = self.ln1.apply(x, w, eps);
-        let (q, k, v) = (
-            self.q.apply(&h, n),
-            self.k.apply(&h, n),
-            self.v.apply(&h, n),
-        );
+        let qkv = self.qkv.apply(&h, n);
         let mut ctx = vec![0f32; n * w];
         multi_head_attention(
-            &q,
-            w,
-            &k,
-            w,
-            &v,
-            w,
+            &qkv,
+            3 * w,
+            &qkv[w..],
+            3 * w,
+            &qkv[2 * w..],
+            3 * w,
             n,
             n,
             heads,
@@ -205,6 +206,17 @@ impl ClipTextEncoder {
         cfg: &ClipConfig,
         tokenizer_json: &str,
     ) -> Result<ClipTextEncoder> {
+        ClipTextEncoder::load_with(file, prefix, cfg, tokenizer_json, WeightType::F32)
+    }
+
+    /// [`ClipTextEncoder::load`] with the linear weights held (and multiplied) as `ty`.
+    pub fn load_with(
+        file: &ModelFile,
+        prefix: &str,
+        cfg: &ClipConfig,
+        tokenizer_json: &str,
+        ty: WeightType,
+    ) -> Result<ClipTextEncoder> {
         check_config(cfg)?;
         let (p, w) = (prefix, cfg.width);
         let token_embedding = file.tensor(
@@ -216,15 +228,16 @@ impl ClipTextEncoder {
             &[cfg.context_length, w],
         )?;
         let blocks = (0..cfg.layers)
-            .map(|i| Block::load(file, &format!("{p}text_model.encoder.layers.{i}."), w))
+            .map(|i| Block::load(file, &format!("{p}text_model.encoder.layers.{i}."), w, ty))
             .collect::<Result<Vec<_>>>()?;
         let final_norm = Norm::load(file, &format!("{p}text_model.final_layer_norm"), w)?;
         let projection = Dense::load(
             file,
-            &format!("{p}text_projection"),
+            &[&format!("{p}text_projection")],
             w,
             cfg.projection_dim,
             false,
+            ty,
         )?;
         let tokenizer = TextTokenizer::from_json(tokenizer_json, cfg.vocab_size, 0)?;
         if tokenizer.num_special_tokens() != 2 {
@@ -243,6 +256,17 @@ impl ClipTextEncoder {
             final_norm,
             projection,
         })
+    }
+
+    /// Bytes of the packed linear weights.
+    pub fn linear_weight_bytes(&self) -> usize {
+        let block = |b: &Block| {
+            [&b.qkv, &b.out, &b.fc1, &b.fc2]
+                .iter()
+                .map(|d| d.0.weights().bytes())
+                .sum::<usize>()
+        };
+        self.blocks.iter().map(block).sum::<usize>() + self.projection.0.weights().bytes()
     }
 
     pub fn config(&self) -> &ClipConfig {

@@ -1,0 +1,809 @@
+//! Linear layers on weights packed once at load into the micro-kernel's panel layout, in f32,
+//! f16 or bf16, with the bias and an activation applied as each output tile is finished.
+//!
+//! Layout: the weight `W [n, k]` (PyTorch `Linear.weight`) is cut into panels of [`NR`] output
+//! columns; panel `j` stores `k` rows of `NR` values, row `p` holding `W[j·NR + c, p]` for
+//! `c < NR` (zeros past `n`). The micro-kernel walks one panel row per multiply step, so the
+//! weights are never repacked per call. Activations are read in place (rows of `x`).
+//!
+//! Every output element is one chain: start at the bias (or 0), then one fused multiply-add
+//! per `p = 0..k` in order (the portable kernel: multiply, then add), then the activation. Tile
+//! position, the K blocking and the thread split never change that chain, so results are
+//! bit-identical for any thread count; half-precision weights are widened exactly, so an f16
+//! run equals an f32 run on weights pre-rounded to f16.
+//!
+//! This module does not hold activations-by-activations products (attention scores): those
+//! stay on [`super::gemm`].
+
+use std::sync::OnceLock;
+
+use half::{bf16, f16};
+use rayon::prelude::*;
+
+use super::activation::{gelu_erf, relu};
+use super::gemm::SharedMut;
+
+/// Rows of a micro-tile.
+const MR: usize = 6;
+/// Columns of a micro-tile and of a weight panel: two 8-lane vectors.
+const NR: usize = 16;
+/// Multiply steps per K block: the panel slice (`KC × NR` weights) stays in L1.
+const KC: usize = 256;
+/// Rows per M block (a multiple of [`MR`]): the `MC × KC` block of activations stays in L2
+/// while every panel of the task streams past it.
+const MC: usize = 96;
+/// Below this many multiply-adds a fork/join costs more than a second core saves.
+const PAR_MIN_MACS: usize = 1 << 20;
+
+/// How weights are held in memory and read by the kernels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum WeightType {
+    /// Single precision, as trained.
+    #[default]
+    F32,
+    /// IEEE half precision (rounded to nearest even when narrowed from f32).
+    F16,
+    /// bfloat16 (rounded to nearest even when narrowed from f32).
+    Bf16,
+}
+
+impl WeightType {
+    pub fn name(self) -> &'static str {
+        match self {
+            WeightType::F32 => "f32",
+            WeightType::F16 => "f16",
+            WeightType::Bf16 => "bf16",
+        }
+    }
+
+    /// Bytes per stored weight.
+    pub fn size(self) -> usize {
+        match self {
+            WeightType::F32 => 4,
+            WeightType::F16 | WeightType::Bf16 => 2,
+        }
+    }
+}
+
+impl std::str::FromStr for WeightType {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "f32" | "float32" => Ok(WeightType::F32),
+            "f16" | "float16" | "half" => Ok(WeightType::F16),
+            "bf16" | "bfloat16" => Ok(WeightType::Bf16),
+            _ => Err(format!("weight type `{s}`: expected f32, f16 or bf16")),
+        }
+    }
+}
+
+/// What is applied to each output after the bias.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Activation {
+    #[default]
+    None,
+    Relu,
+    /// Exact (erf) GELU, the same function as [`super::gelu_erf`].
+    Gelu,
+}
+
+/// Which micro-kernel runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Isa {
+    /// x86-64 with AVX2, FMA and F16C.
+    Avx2,
+    /// Plain Rust the compiler may vectorise; any target.
+    Portable,
+}
+
+/// The best kernel this CPU runs, detected once.
+pub(crate) fn detected_isa() -> Isa {
+    static ISA: OnceLock<Isa> = OnceLock::new();
+    *ISA.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        if is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("fma")
+            && is_x86_feature_detected!("f16c")
+        {
+            return Isa::Avx2;
+        }
+        Isa::Portable
+    })
+}
+
+/// One 64-byte line: the allocation unit of the panels, so every panel row starts aligned.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Line([u8; 64]);
+
+/// A `Linear` weight `[n, k]` packed into [`NR`]-column panels.
+pub struct PackedWeights {
+    k: usize,
+    n: usize,
+    ty: WeightType,
+    lines: Vec<Line>,
+}
+
+impl PackedWeights {
+    /// Packs `w` (`[n, k]`, row-major, PyTorch `Linear.weight`), narrowing to `ty`.
+    pub fn pack(w: &[f32], n: usize, k: usize, ty: WeightType) -> PackedWeights {
+        assert_eq!(w.len(), n * k, "pack: weight is not {n}x{k}");
+        let panels = n.div_ceil(NR);
+        let bytes = panels * k * NR * ty.size();
+        let mut packed = PackedWeights {
+            k,
+            n,
+            ty,
+            lines: vec![Line([0; 64]); bytes.div_ceil(64)],
+        };
+        let value = |j: usize, p: usize, c: usize| {
+            let col = j * NR + c;
+            if col < n {
+                w[col * k + p]
+            } else {
+                0.0
+            }
+        };
+        let at = |j: usize, p: usize, c: usize| (j * k + p) * NR + c;
+        match ty {
+            WeightType::F32 => {
+                let dst = packed.f32_mut();
+                for j in 0..panels {
+                    for p in 0..k {
+                        for c in 0..NR {
+                            dst[at(j, p, c)] = value(j, p, c);
+                        }
+                    }
+                }
+            }
+            WeightType::F16 | WeightType::Bf16 => {
+                let dst = packed.u16_mut();
+                for j in 0..panels {
+                    for p in 0..k {
+                        for c in 0..NR {
+                            let v = value(j, p, c);
+                            dst[at(j, p, c)] = match ty {
+                                WeightType::F16 => f16::from_f32(v).to_bits(),
+                                _ => bf16::from_f32(v).to_bits(),
+                            };
+                        }
+                    }
+                }
+            }
+        }
+        packed
+    }
+
+    /// Input features (`k`).
+    pub fn inputs(&self) -> usize {
+        self.k
+    }
+
+    /// Output features (`n`).
+    pub fn outputs(&self) -> usize {
+        self.n
+    }
+
+    pub fn weight_type(&self) -> WeightType {
+        self.ty
+    }
+
+    /// Heap bytes held (padding included).
+    pub fn bytes(&self) -> usize {
+        self.lines.len() * 64
+    }
+
+    fn values(&self) -> usize {
+        self.n.div_ceil(NR) * self.k * NR
+    }
+
+    fn f32_mut(&mut self) -> &mut [f32] {
+        let len = self.values();
+        assert!(len * 4 <= self.lines.len() * 64);
+        // SAFETY: `lines` owns at least `len * 4` bytes, 64-byte aligned, and every bit pattern
+        // is a valid f32; the borrow of `self` keeps them alive and unaliased.
+        unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr() as *mut f32, len) }
+    }
+
+    fn u16_mut(&mut self) -> &mut [u16] {
+        let len = self.values();
+        assert!(len * 2 <= self.lines.len() * 64);
+        // SAFETY: as in `f32_mut`, for u16.
+        unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr() as *mut u16, len) }
+    }
+
+    /// First byte of panel `j`, row `p`.
+    fn panel_ptr(&self, j: usize, p: usize) -> *const u8 {
+        let offset = ((j * self.k + p) * NR) * self.ty.size();
+        debug_assert!(offset <= self.lines.len() * 64);
+        // SAFETY: the offset is inside (or one past) the allocation for j < panels, p ≤ k.
+        unsafe { (self.lines.as_ptr() as *const u8).add(offset) }
+    }
+}
+
+impl std::fmt::Debug for PackedWeights {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "PackedWeights[{}, {}] {}",
+            self.n,
+            self.k,
+            self.ty.name()
+        )
+    }
+}
+
+/// `y[m, n] = act(x[m, k] · Wᵀ + bias)` on pre-packed weights, split over the current rayon pool.
+/// `y` is overwritten (nothing past `m·n` is touched).
+pub fn linear_packed(
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+) {
+    linear_packed_on(detected_isa(), x, w, bias, act, y, m);
+}
+
+/// [`linear_packed`] on a chosen kernel (tests force the portable one through this).
+pub(crate) fn linear_packed_on(
+    isa: Isa,
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+) {
+    let (k, n) = (w.k, w.n);
+    // These checks are what make every pointer the kernels form stay inside its slice.
+    assert!(x.len() >= m * k, "linear_packed: x too short for {m}x{k}");
+    assert!(y.len() >= m * n, "linear_packed: y too short for {m}x{n}");
+    if let Some(b) = bias {
+        assert_eq!(b.len(), n, "linear_packed: bias length");
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let isa = match isa {
+        Isa::Avx2 => Isa::Portable,
+        other => other,
+    };
+    if m == 0 || n == 0 {
+        return;
+    }
+    let job = Job {
+        isa,
+        x,
+        w,
+        bias,
+        act,
+        y: SharedMut(y.as_mut_ptr()),
+        m,
+    };
+    let panels = n.div_ceil(NR);
+    let tiles = m.div_ceil(MR);
+    let threads = rayon::current_num_threads();
+    if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
+        job.run(0, m, 0, panels);
+        return;
+    }
+    // Split the weight panels when there are enough to balance: each task then reads a
+    // disjoint part of the weights. Otherwise (few outputs, many rows) split the rows by tiles.
+    let by_panels = panels >= 2 * threads || panels >= tiles;
+    let units = if by_panels { panels } else { tiles };
+    let tasks = threads.min(units);
+    let edge = |t: usize| units * t / tasks;
+    (0..tasks).into_par_iter().for_each(|t| {
+        let (lo, hi) = (edge(t), edge(t + 1));
+        if by_panels {
+            job.run(0, m, lo, hi);
+        } else {
+            job.run(lo * MR, (hi * MR).min(m), 0, panels);
+        }
+    });
+}
+
+/// One call's operands, shared by its tasks.
+struct Job<'a> {
+    isa: Isa,
+    x: &'a [f32],
+    w: &'a PackedWeights,
+    bias: Option<&'a [f32]>,
+    act: Activation,
+    /// Output `[m, n]`; tasks write disjoint blocks.
+    y: SharedMut,
+    m: usize,
+}
+
+impl Job<'_> {
+    /// Computes output rows `r0..r1` × panels `j0..j1`.
+    fn run(&self, r0: usize, r1: usize, j0: usize, j1: usize) {
+        let (k, n) = (self.w.k, self.w.n);
+        debug_assert!(r1 <= self.m && j1 <= n.div_ceil(NR));
+        if k == 0 {
+            for j in j0..j1 {
+                let (c0, c1) = (j * NR, (j * NR + NR).min(n));
+                for r in r0..r1 {
+                    let row = self.out_row(r, c0, c1);
+                    match self.bias {
+                        Some(b) => row.copy_from_slice(&b[c0..c1]),
+                        None => row.fill(0.0),
+                    }
+                    self.activate(row);
+                }
+            }
+            return;
+        }
+        for kb in (0..k).step_by(KC) {
+            let kc = KC.min(k - kb);
+            let (first, last) = (kb == 0, kb + kc == k);
+            for mb in (r0..r1).step_by(MC) {
+                let mb_end = (mb + MC).min(r1);
+                for j in j0..j1 {
+                    self.panel(kb, kc, first, last, mb, mb_end, j);
+                }
+            }
+        }
+    }
+
+    /// Rows `r0..r1` of panel `j` over multiply steps `kb..kb + kc`.
+    #[allow(clippy::too_many_arguments)]
+    fn panel(&self, kb: usize, kc: usize, first: bool, last: bool, r0: usize, r1: usize, j: usize) {
+        let (k, n) = (self.w.k, self.w.n);
+        let c0 = j * NR;
+        let cols = NR.min(n - c0);
+        let mut bias = [0.0f32; NR];
+        if let Some(b) = self.bias {
+            bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
+        }
+        let start = if first { Some(&bias) } else { None };
+        let b = self.w.panel_ptr(j, kb);
+        for i0 in (r0..r1).step_by(MR) {
+            let rows = MR.min(r1 - i0);
+            // Missing rows of an edge tile repeat the last real row; their results are dropped.
+            let a: [*const f32; MR] = std::array::from_fn(|i| {
+                // SAFETY: row i0 + min(i, rows-1) < m and kb < k, inside the checked m×k.
+                unsafe { self.x.as_ptr().add((i0 + i.min(rows - 1)) * k + kb) }
+            });
+            let y = self.y.get();
+            if rows == MR && cols == NR {
+                // SAFETY: the tile rows i0..i0+MR and columns c0..c0+NR lie inside y (m×n);
+                // a and b point at kc readable steps; this task alone writes the tile.
+                unsafe { self.kernel(kc, &a, b, y.add(i0 * n + c0), n, start) };
+            } else {
+                let mut tile = [0.0f32; MR * NR];
+                for i in 0..rows {
+                    if !first {
+                        tile[i * NR..i * NR + cols].copy_from_slice(self.out_row(
+                            i0 + i,
+                            c0,
+                            c0 + cols,
+                        ));
+                    }
+                }
+                // SAFETY: the kernel writes MR×NR values into `tile` (ldc NR); a and b as above.
+                unsafe { self.kernel(kc, &a, b, tile.as_mut_ptr(), NR, start) };
+                for i in 0..rows {
+                    self.out_row(i0 + i, c0, c0 + cols)
+                        .copy_from_slice(&tile[i * NR..i * NR + cols]);
+                }
+            }
+            if last {
+                for i in 0..rows {
+                    self.activate(self.out_row(i0 + i, c0, c0 + cols));
+                }
+            }
+        }
+    }
+
+    /// Columns `c0..c1` of output row `r`.
+    #[allow(clippy::mut_from_ref)]
+    fn out_row(&self, r: usize, c0: usize, c1: usize) -> &mut [f32] {
+        debug_assert!(r < self.m && c1 <= self.w.n);
+        // SAFETY: inside the checked m×n output; each (row, panel) block belongs to one task and
+        // the returned slice is dropped before that task forms another view of it.
+        unsafe { std::slice::from_raw_parts_mut(self.y.get().add(r * self.w.n + c0), c1 - c0) }
+    }
+
+    fn activate(&self, v: &mut [f32]) {
+        match self.act {
+            Activation::None => {}
+            Activation::Relu => relu(v),
+            Activation::Gelu => gelu_erf(v),
+        }
+    }
+
+    /// Runs the micro-kernel for this call's ISA and weight type.
+    ///
+    /// # Safety
+    /// Each `a[i]` must be readable for `kc` values, `b` for `kc` panel rows of this weight
+    /// type, and `c` writable (and readable unless `start` is given) for `MR` rows of `NR`
+    /// values at stride `ldc`.
+    unsafe fn kernel(
+        &self,
+        kc: usize,
+        a: &[*const f32; MR],
+        b: *const u8,
+        c: *mut f32,
+        ldc: usize,
+        start: Option<&[f32; NR]>,
+    ) {
+        match (self.isa, self.w.ty) {
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx2, ty) => {
+                // SAFETY: Avx2 is only chosen after detecting avx2, fma and f16c (tests force
+                // only the portable kernel); pointer contracts as documented above.
+                unsafe {
+                    match ty {
+                        WeightType::F32 => avx2::tile_f32(kc, a, b as *const f32, c, ldc, start),
+                        WeightType::F16 => avx2::tile_f16(kc, a, b as *const u16, c, ldc, start),
+                        WeightType::Bf16 => avx2::tile_bf16(kc, a, b as *const u16, c, ldc, start),
+                    }
+                }
+            }
+            (_, ty) => {
+                let tile = |p: usize| -> [f32; NR] {
+                    // SAFETY: p < kc panel rows are readable (contract above).
+                    std::array::from_fn(|cc| unsafe {
+                        match ty {
+                            WeightType::F32 => *(b as *const f32).add(p * NR + cc),
+                            WeightType::F16 => {
+                                f16::from_bits(*(b as *const u16).add(p * NR + cc)).to_f32()
+                            }
+                            WeightType::Bf16 => {
+                                bf16::from_bits(*(b as *const u16).add(p * NR + cc)).to_f32()
+                            }
+                        }
+                    })
+                };
+                // SAFETY: forwarded contract.
+                unsafe { portable_tile(kc, a, tile, c, ldc, start) }
+            }
+        }
+    }
+}
+
+/// The portable micro-kernel: `c[MR×NR] (+)= a · b` with multiply-then-add chains.
+///
+/// # Safety
+/// As [`Job::kernel`].
+unsafe fn portable_tile(
+    kc: usize,
+    a: &[*const f32; MR],
+    b: impl Fn(usize) -> [f32; NR],
+    c: *mut f32,
+    ldc: usize,
+    start: Option<&[f32; NR]>,
+) {
+    let mut acc = [[0.0f32; NR]; MR];
+    for (i, row) in acc.iter_mut().enumerate() {
+        *row = match start {
+            Some(s) => *s,
+            // SAFETY: c is readable for MR rows of NR at stride ldc when start is None.
+            None => std::array::from_fn(|cc| unsafe { *c.add(i * ldc + cc) }),
+        };
+    }
+    for p in 0..kc {
+        let bp = b(p);
+        for (i, row) in acc.iter_mut().enumerate() {
+            // SAFETY: a[i] is readable for kc values.
+            let ai = unsafe { *a[i].add(p) };
+            for (v, &bv) in row.iter_mut().zip(&bp) {
+                *v += ai * bv;
+            }
+        }
+    }
+    for (i, row) in acc.iter().enumerate() {
+        for (cc, &v) in row.iter().enumerate() {
+            // SAFETY: c is writable for MR rows of NR at stride ldc.
+            unsafe { *c.add(i * ldc + cc) = v };
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    //! The 6×16 AVX2/FMA micro-kernel: 12 accumulators, one panel row (two vectors) loaded
+    //! and widened per step, each activation broadcast once.
+
+    use super::{MR, NR};
+    use std::arch::x86_64::*;
+
+    macro_rules! tile_kernel {
+        ($name:ident, $elem:ty, |$b:ident, $p:ident| $load:expr) => {
+            /// `c[MR×NR] (+)= a · b` over `kc` steps (see `Job::kernel` for the contract).
+            ///
+            /// # Safety
+            /// The CPU supports avx2, fma and f16c; pointer contract of `Job::kernel`.
+            #[target_feature(enable = "avx2,fma,f16c")]
+            pub(super) unsafe fn $name(
+                kc: usize,
+                a: &[*const f32; MR],
+                $b: *const $elem,
+                c: *mut f32,
+                ldc: usize,
+                start: Option<&[f32; NR]>,
+            ) {
+                // SAFETY (whole body): every load/store is unaligned-tolerant and stays inside
+                // the ranges the contract grants: a[i][..kc], b[..kc·NR], c rows of NR values.
+                unsafe {
+                    let mut acc = [_mm256_setzero_ps(); 2 * MR];
+                    for i in 0..MR {
+                        let (lo, hi) = match start {
+                            Some(s) => (
+                                _mm256_loadu_ps(s.as_ptr()),
+                                _mm256_loadu_ps(s.as_ptr().add(8)),
+                            ),
+                            None => (
+                                _mm256_loadu_ps(c.add(i * ldc)),
+                                _mm256_loadu_ps(c.add(i * ldc + 8)),
+                            ),
+                        };
+                        acc[2 * i] = lo;
+                        acc[2 * i + 1] = hi;
+                    }
+                    for $p in 0..kc {
+                        let (b0, b1): (__m256, __m256) = $load;
+                        for i in 0..MR {
+                            let ai = _mm256_broadcast_ss(&*a[i].add($p));
+                            acc[2 * i] = _mm256_fmadd_ps(ai, b0, acc[2 * i]);
+                            acc[2 * i + 1] = _mm256_fmadd_ps(ai, b1, acc[2 * i + 1]);
+                        }
+                    }
+                    for i in 0..MR {
+                        _mm256_storeu_ps(c.add(i * ldc), acc[2 * i]);
+                        _mm256_storeu_ps(c.add(i * ldc + 8), acc[2 * i + 1]);
+                    }
+                }
+            }
+        };
+    }
+
+    tile_kernel!(tile_f32, f32, |b, p| (
+        _mm256_loadu_ps(b.add(p * NR)),
+        _mm256_loadu_ps(b.add(p * NR + 8))
+    ));
+    tile_kernel!(tile_f16, u16, |b, p| (
+        _mm256_cvtph_ps(_mm_loadu_si128(b.add(p * NR) as *const __m128i)),
+        _mm256_cvtph_ps(_mm_loadu_si128(b.add(p * NR + 8) as *const __m128i))
+    ));
+    tile_kernel!(tile_bf16, u16, |b, p| (
+        // bf16 is the top half of an f32: zero-extend to 32 bits and shift into place.
+        _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_cvtepu16_epi32(
+            _mm_loadu_si128(b.add(p * NR) as *const __m128i)
+        ))),
+        _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_cvtepu16_epi32(
+            _mm_loadu_si128(b.add(p * NR + 8) as *const __m128i)
+        )))
+    ));
+}
+
+/// A `Linear` layer on packed weights: weight, optional bias, fused activation.
+#[derive(Debug)]
+pub struct PackedLinear {
+    weight: PackedWeights,
+    bias: Option<Vec<f32>>,
+}
+
+impl PackedLinear {
+    /// Packs `weight` (`[n_out, n_in]`) as `ty`; the bias (`[n_out]`) stays f32.
+    pub fn new(
+        weight: &[f32],
+        bias: Option<&[f32]>,
+        n_in: usize,
+        n_out: usize,
+        ty: WeightType,
+    ) -> PackedLinear {
+        if let Some(b) = bias {
+            assert_eq!(b.len(), n_out, "PackedLinear: bias length");
+        }
+        PackedLinear {
+            weight: PackedWeights::pack(weight, n_out, n_in, ty),
+            bias: bias.map(<[f32]>::to_vec),
+        }
+    }
+
+    pub fn inputs(&self) -> usize {
+        self.weight.k
+    }
+
+    pub fn outputs(&self) -> usize {
+        self.weight.n
+    }
+
+    pub fn weights(&self) -> &PackedWeights {
+        &self.weight
+    }
+
+    /// `y[rows, out] = act(x[rows, in] · Wᵀ + b)`.
+    pub fn forward(&self, x: &[f32], rows: usize, y: &mut [f32], act: Activation) {
+        linear_packed(x, &self.weight, self.bias.as_deref(), act, y, rows);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::testutil::{in_pool, same_bits, Rng};
+
+    /// Reference in f64 on the weights as the kernel sees them (narrowed), plus `Σ|x||w|`.
+    fn naive(
+        x: &[f32],
+        w: &[f32],
+        bias: Option<&[f32]>,
+        m: usize,
+        k: usize,
+        n: usize,
+    ) -> (Vec<f64>, Vec<f64>) {
+        let mut y = vec![0.0; m * n];
+        let mut mag = vec![0.0; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                let mut s = bias.map_or(0.0, |b| b[j] as f64);
+                let mut g = s.abs();
+                for p in 0..k {
+                    let t = x[i * k + p] as f64 * w[j * k + p] as f64;
+                    s += t;
+                    g += t.abs();
+                }
+                y[i * n + j] = s;
+                mag[i * n + j] = g;
+            }
+        }
+        (y, mag)
+    }
+
+    fn narrowed(w: &[f32], ty: WeightType) -> Vec<f32> {
+        w.iter()
+            .map(|&v| match ty {
+                WeightType::F32 => v,
+                WeightType::F16 => f16::from_f32(v).to_f32(),
+                WeightType::Bf16 => bf16::from_f32(v).to_f32(),
+            })
+            .collect()
+    }
+
+    const SHAPES: &[(usize, usize, usize)] = &[
+        (1, 1, 1),
+        (1, 3, 5),
+        (3, 1, 17),
+        (5, 7, 1),
+        (2, 0, 3),
+        (6, 16, 16),
+        (7, 300, 33),
+        (13, 257, 16),
+        (197, 3, 5),
+        (64, 65, 33),
+        (100, 520, 47),
+        (20, 384, 70),
+    ];
+
+    fn isas() -> Vec<Isa> {
+        let mut v = vec![Isa::Portable];
+        if detected_isa() == Isa::Avx2 {
+            v.push(Isa::Avx2);
+        }
+        v
+    }
+
+    #[test]
+    fn matches_naive_on_odd_shapes_every_kernel_and_type() {
+        let mut rng = Rng::new(11);
+        let u = f32::EPSILON as f64 / 2.0;
+        for &(m, k, n) in SHAPES {
+            let x = rng.vec(m * k);
+            let w = rng.vec(n * k);
+            let bias = rng.vec(n);
+            for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
+                let packed = PackedWeights::pack(&w, n, k, ty);
+                let wn = narrowed(&w, ty);
+                for isa in isas() {
+                    for b in [None, Some(&bias[..])] {
+                        let mut y = vec![f32::NAN; m * n + 3];
+                        y[m * n..].fill(7.0);
+                        linear_packed_on(isa, &x, &packed, b, Activation::None, &mut y, m);
+                        assert_eq!(&y[m * n..], &[7.0; 3], "wrote past the output");
+                        let (want, mag) = naive(&x, &wn, b, m, k, n);
+                        for (i, (&g, (&wv, &s))) in y.iter().zip(want.iter().zip(&mag)).enumerate()
+                        {
+                            let tol = 2.0 * (k + 2) as f64 * u * s + 1e-30;
+                            assert!(
+                                (g as f64 - wv).abs() <= tol,
+                                "{isa:?} {ty:?} {m}x{k}x{n} bias={} [{i}]: {g} vs {wv}",
+                                b.is_some()
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fused_activations_equal_separate_passes() {
+        let mut rng = Rng::new(12);
+        let (m, k, n) = (29, 300, 37);
+        let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
+        let packed = PackedWeights::pack(&w, n, k, WeightType::F32);
+        for isa in isas() {
+            let mut plain = vec![0.0; m * n];
+            linear_packed_on(
+                isa,
+                &x,
+                &packed,
+                Some(&bias),
+                Activation::None,
+                &mut plain,
+                m,
+            );
+            for (act, f) in [
+                (Activation::Relu, relu as fn(&mut [f32])),
+                (Activation::Gelu, gelu_erf),
+            ] {
+                let mut want = plain.clone();
+                f(&mut want);
+                let mut got = vec![0.0; m * n];
+                linear_packed_on(isa, &x, &packed, Some(&bias), act, &mut got, m);
+                assert!(same_bits(&got, &want), "{isa:?} {act:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn half_weights_equal_f32_on_prerounded_weights() {
+        let mut rng = Rng::new(13);
+        let (m, k, n) = (31, 530, 45);
+        let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
+        for ty in [WeightType::F16, WeightType::Bf16] {
+            let half = PackedWeights::pack(&w, n, k, ty);
+            let full = PackedWeights::pack(&narrowed(&w, ty), n, k, WeightType::F32);
+            assert_eq!(half.bytes() * 2, full.bytes());
+            for isa in isas() {
+                let mut a = vec![0.0; m * n];
+                let mut b = vec![0.0; m * n];
+                linear_packed_on(isa, &x, &half, Some(&bias), Activation::Gelu, &mut a, m);
+                linear_packed_on(isa, &x, &full, Some(&bias), Activation::Gelu, &mut b, m);
+                assert!(same_bits(&a, &b), "{isa:?} {ty:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn bit_identical_across_thread_counts() {
+        let mut rng = Rng::new(14);
+        for &(m, k, n) in &[
+            (398, 768, 100),
+            (400, 300, 2304),
+            (20, 768, 3072),
+            (1, 3072, 768),
+            (130, 1030, 48),
+        ] {
+            let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
+            let packed = PackedWeights::pack(&w, n, k, WeightType::Bf16);
+            for isa in isas() {
+                let run = |threads: usize| {
+                    in_pool(threads, || {
+                        let mut y = vec![0.0; m * n];
+                        linear_packed_on(
+                            isa,
+                            &x,
+                            &packed,
+                            Some(&bias),
+                            Activation::Relu,
+                            &mut y,
+                            m,
+                        );
+                        y
+                    })
+                };
+                let base = run(1);
+                for threads in [2, 3] {
+                    assert!(
+                        same_bits(&base, &run(threads)),
+                        "{isa:?} {m}x{k}x{n}: {threads} threads differ from 1"
+                    );
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,126 @@
+#!/usr/bin/env python3
+"""PyTorch eager timings of a libflame model file, for comparison with `flame-bench`.
+
+Runs the same converted checkpoint through the reference modules (tools/reference/flame.py or
+mdm.py) with `torch.set_num_threads(N)`, the same frames, steps and guidance batch (conditional +
+unconditional rows in one batch of 2), and prints medians in the format flame-bench uses, plus
+one machine-readable `RESULT` line.
+
+    python3 tools/bench_torch.py --model models/flame_base_random.safetensors \
+        --frames 196 --steps 10 --threads 2 --runs 3
+
+What is timed (as people run these models today):
+  text      FLAME: `encode_text` of the prompt (RoBERTa) — MDM: not timed (CLIP is not in the
+            reference module; the MDM row uses a random text vector).
+  step      one guided denoising step: the batch-2 network forward, the guidance mix and a DDIM
+            (eta 0) update.
+  gen       `steps` such steps, text features computed once.
+"""
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__))))
+from reference import flame as ref_flame  # noqa: E402
+from reference import mdm as ref_mdm  # noqa: E402
+
+PROMPT = "a person walks forward, turns around and waves with the right hand"
+
+
+def ms(f):
+    t = time.perf_counter()
+    f()
+    return (time.perf_counter() - t) * 1e3
+
+
+def ddim_update(x, out, abar, abar_prev):
+    """eta-0 DDIM from an eps prediction (the arithmetic a sampler adds to a step)."""
+    x0 = (x - (1 - abar) ** 0.5 * out) / abar ** 0.5
+    return abar_prev ** 0.5 * x0 + (1 - abar_prev) ** 0.5 * out
+
+
+def flame_runner(path, frames, guidance):
+    net, cfg = ref_flame.load_libflame(path)
+    d = cfg["denoiser"]["motion_dim"]
+    torch.manual_seed(0)
+    x = torch.randn(1, d, frames)
+    length = torch.tensor([frames, frames])
+
+    def encode():
+        pooled, hidden = net.encode_text([PROMPT, ""])
+        return pooled, hidden
+
+    feats = encode()
+
+    def step(x, t, feats):
+        out = net(torch.cat([x, x]), torch.tensor([t, t]), length, text_features=feats)
+        eps_c, eps_u = out[:1, :d], out[1:, :d]
+        eps = eps_u + guidance * (eps_c - eps_u)
+        return ddim_update(x, eps, 0.5, 0.6)
+
+    return encode, feats, x, step
+
+
+def mdm_runner(path, frames, guidance):
+    net, cfg = ref_mdm.load_libflame(path)
+    d = cfg["denoiser"]
+    torch.manual_seed(0)
+    x = torch.randn(1, d["njoints"], 1, frames)
+    cond = torch.randn(1, d["clip_dim"])
+    feats = torch.cat([cond, torch.zeros_like(cond)])
+
+    def step(x, t, feats):
+        out = net(torch.cat([x, x]), torch.tensor([t, t]), feats)
+        o_c, o_u = out[:1], out[1:]
+        out = o_u + guidance * (o_c - o_u)
+        return ddim_update(x, out, 0.5, 0.6)
+
+    return None, feats, x, step
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--frames", type=int, default=196)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--guidance", type=float, default=2.5)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    torch.set_num_interop_threads(1)
+
+    from safetensors import safe_open
+    with safe_open(a.model, "pt") as f:
+        arch = json.loads(f.metadata()["flame.config"])["architecture"]
+    runner = flame_runner if arch == "flame" else mdm_runner
+    with torch.inference_mode():
+        encode, feats, x0, step = runner(a.model, a.frames, a.guidance)
+        text = [ms(encode) for _ in range(a.runs)] if encode else [float("nan")]
+        step(x0, 500, feats)  # warm-up
+        steps, gens = [], []
+        for _ in range(a.runs):
+            x = x0
+            t0 = time.perf_counter()
+            for i in range(a.steps):
+                t = time.perf_counter()
+                x = step(x, 999 - i * (1000 // a.steps), feats)
+                steps.append((time.perf_counter() - t) * 1e3)
+            gens.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median
+    print(f"torch {torch.__version__} eager, {arch}, frames {a.frames}, {a.steps} steps, "
+          f"guidance batch 2, {a.threads} threads, {a.runs} runs (medians):")
+    print(f"  text encoding      {med(text):9.2f} ms")
+    print(f"  one guided step    {med(steps):9.2f} ms")
+    print(f"  whole generation   {med(gens):9.2f} ms")
+    print(f"RESULT impl=torch frames={a.frames} text_ms={med(text):.2f} "
+          f"step_ms={med(steps):.2f} gen_ms={med(gens):.2f}")
+
+
+if __name__ == "__main__":
+    main()
