@@ -39,12 +39,12 @@ echo "load after: $(cut -d' ' -f1-3 /proc/loadavg)"
 awk '
 function val(key,   i, kv) { for (i = 2; i <= NF; i++) { split($i, kv, "="); if (kv[1] == key) return kv[2] } return "" }
 val("impl") == "torch" { tstep[val("frames")] = val("step_ms"); tgen[val("frames")] = val("gen_ms"); ttext[val("frames")] = val("text_ms"); next }
-{ n++; fr[n] = val("frames"); w[n] = val("weights"); text[n] = val("text_ms"); step[n] = val("step_ms"); gen[n] = val("gen_ms"); gf[n] = val("gflops"); hwm[n] = val("hwm_mib") }
+{ n++; fr[n] = val("frames"); w[n] = val("weights"); text[n] = val("text_ms"); step[n] = val("step_ms"); gen[n] = val("gen_ms"); gf[n] = val("gflops"); lgf[n] = val("linear_gflops"); hwm[n] = val("hwm_mib") }
 END {
-    print "| frames | weights | text ms | step ms | 10-step gen ms | GFLOP/s | peak RSS MiB | torch text ms | torch step ms | torch gen ms | speed-up (gen) |"
-    print "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    print "| frames | weights | text ms | step ms | 10-step gen ms | GFLOP/s (step) | GFLOP/s (linear layers) | peak RSS MiB | torch text ms | torch step ms | torch gen ms | speed-up (gen) |"
+    print "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     for (i = 1; i <= n; i++) {
         f = fr[i]
-        printf "| %s | %s | %.1f | %.1f | %.1f | %.1f | %.0f | %.1f | %.1f | %.1f | %.2fx |\n", f, w[i], text[i], step[i], gen[i], gf[i], hwm[i], ttext[f], tstep[f], tgen[f], tgen[f] / gen[i]
+        printf "| %s | %s | %.1f | %.1f | %.1f | %.1f | %.1f | %.0f | %.1f | %.1f | %.1f | %.2fx |\n", f, w[i], text[i], step[i], gen[i], gf[i], lgf[i], hwm[i], ttext[f], tstep[f], tgen[f], tgen[f] / gen[i]
     }
 }' "$OUT"

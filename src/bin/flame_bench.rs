@@ -204,6 +204,20 @@ fn main() {
             }
             gen_ms.push(g.elapsed().as_secs_f64() * 1e3);
         }
+        // One more generation with the kernel accounting on (kept out of the timings above).
+        session.reset();
+        kernels::profile::enable(true);
+        let g = Instant::now();
+        while session.steps_left() > 0 {
+            session.step().expect("step");
+        }
+        let profiled = g.elapsed().as_secs_f64();
+        kernels::profile::enable(false);
+        let prof = kernels::profile::take();
+        let lin_gflops = prof.linear_flop / prof.linear_seconds / 1e9;
+        let attn_gflops = prof.attention_flop / prof.attention_seconds / 1e9;
+        let lin_share = prof.linear_seconds / profiled;
+        let attn_share = prof.attention_seconds / profiled;
         let (text, step, gen) = (median(text_ms), median(step_ms), median(gen_ms));
         let (lin, attn) = step_macs(&model, frames);
         let gflops = 2.0 * (lin + attn) / (step * 1e-3) / 1e9;
@@ -215,9 +229,15 @@ fn main() {
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
             2.0 * (lin + attn) / 1e9, 2.0 * lin / 1e9, 2.0 * attn / 1e9);
         println!("  whole generation   {gen:9.2} ms");
+        println!(
+            "  inside the kernels {lin_gflops:9.1} GFLOP/s in linear layers ({:.0}% of the time), \
+             {attn_gflops:.1} GFLOP/s in attention ({:.0}%)",
+            lin_share * 100.0,
+            attn_share * 100.0
+        );
         println!("  peak RSS (VmHWM)   {:9.1} MiB", status_mib("VmHWM:"));
         println!(
-            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} hwm_mib={:.1}",
+            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} linear_gflops={lin_gflops:.1} linear_share={lin_share:.3} attention_gflops={attn_gflops:.1} hwm_mib={:.1}",
             weights.name(),
             status_mib("VmHWM:")
         );

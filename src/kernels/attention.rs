@@ -55,6 +55,7 @@ unsafe impl Sync for Slot {}
 #[derive(Default)]
 pub struct AttentionScratch {
     slots: Vec<Slot>,
+    keys_t: Vec<f32>,
 }
 
 impl AttentionScratch {
@@ -101,7 +102,7 @@ impl AttentionScratch {
         let out_ptr = OutPtr(out.as_mut_ptr());
         let isa = detected_isa();
         let kp = lk.div_ceil(KT) * KT;
-        let slot_len = (Q_BLOCK + head_dim) * kp;
+        let slot_len = Q_BLOCK * kp;
 
         let work = lq.saturating_mul(lk).saturating_mul(e);
         let parallel = tasks > 1 && work >= PAR_MIN_WORK && rayon::current_num_threads() > 1;
@@ -121,6 +122,35 @@ impl AttentionScratch {
                 buf.resize(slot_len, 0.0);
             }
         }
+        // kᵀ of every head, [heads, head_dim, kp], zero past `lk`: made once per call and read
+        // by every query block of that head.
+        let kt_len = heads * head_dim * kp;
+        if self.keys_t.len() < kt_len {
+            self.keys_t.resize(kt_len, 0.0);
+        }
+        let transpose = |(h, dst): (usize, &mut [f32])| {
+            let col = h * head_dim;
+            for c in 0..head_dim {
+                let row = &mut dst[c * kp..(c + 1) * kp];
+                for (j, d) in row[..lk].iter_mut().enumerate() {
+                    *d = k[j * k_stride + col + c];
+                }
+                row[lk..].fill(0.0);
+            }
+        };
+        let keys_t = &mut self.keys_t[..kt_len];
+        if parallel {
+            keys_t
+                .par_chunks_mut(head_dim * kp)
+                .enumerate()
+                .for_each(transpose);
+        } else {
+            keys_t
+                .chunks_mut(head_dim * kp)
+                .enumerate()
+                .for_each(transpose);
+        }
+        let keys_t = &self.keys_t[..kt_len];
         let slots_ref = &self.slots;
 
         let task = |t: usize| {
@@ -131,7 +161,7 @@ impl AttentionScratch {
             };
             // SAFETY: see `Slot`: this thread alone uses slot `slot` while the task runs.
             let buf = unsafe { &mut *slots_ref[slot].0.get() };
-            let (scores, kt) = buf[..slot_len].split_at_mut(Q_BLOCK * kp);
+            let scores = &mut buf[..slot_len];
 
             let (block, h) = (t / heads, t % heads);
             let i0 = block * Q_BLOCK;
@@ -141,17 +171,10 @@ impl AttentionScratch {
             let ktp = keys.div_ceil(KT) * KT;
             let col = h * head_dim;
 
-            // kᵀ of this head, [head_dim, ktp], zero past `keys`.
-            for c in 0..head_dim {
-                let dst = &mut kt[c * ktp..(c + 1) * ktp];
-                for (j, d) in dst[..keys].iter_mut().enumerate() {
-                    *d = k[j * k_stride + col + c];
-                }
-                dst[keys..].fill(0.0);
-            }
             let q_block = &q[i0 * q_stride + col..];
+            let kt = &keys_t[h * head_dim * kp..(h + 1) * head_dim * kp];
             scores_qk(
-                isa, q_block, q_stride, kt, ktp, rows, head_dim, scale, scores,
+                isa, q_block, q_stride, kt, kp, ktp, rows, head_dim, scale, scores,
             );
 
             let mut dead_rows = 0u64; // bit r: row r has no visible key (Q_BLOCK <= 64)
@@ -200,11 +223,15 @@ impl AttentionScratch {
             }
         };
 
-        if parallel {
-            (0..tasks).into_par_iter().for_each(task);
-        } else {
-            (0..tasks).for_each(task);
-        }
+        // q·kᵀ and p·v, 2 flop per multiply-add each (causal blocks counted in full).
+        let flop = 4 * lq * lk * e;
+        super::profile::timed(super::profile::Kind::Attention, flop, || {
+            if parallel {
+                (0..tasks).into_par_iter().for_each(task);
+            } else {
+                (0..tasks).for_each(task);
+            }
+        });
     }
 }
 
@@ -250,26 +277,29 @@ pub fn multi_head_attention(
     );
 }
 
-/// `scores[r, j] = scale · Σ_c q[r·qs + c] · kt[c·kp + j]` for `r < rows`, `j < kp`
-/// (`kp` a multiple of [`KT`]). Each score is one sum over `c` in order, on every path.
+/// `scores[r·kp + j] = scale · Σ_c q[r·qs + c] · kt[c·kts + j]` for `r < rows`, `j < kp`
+/// (`kp ≤ kts`, a multiple of [`KT`]). Each score is one sum over `c` in order, on every path.
 #[allow(clippy::too_many_arguments)]
 fn scores_qk(
     isa: Isa,
     q: &[f32],
     qs: usize,
     kt: &[f32],
+    kts: usize,
     kp: usize,
     rows: usize,
     hd: usize,
     scale: f32,
     scores: &mut [f32],
 ) {
-    assert!(kt.len() >= hd * kp && scores.len() >= rows * kp && kp.is_multiple_of(KT));
+    assert!(kp <= kts && kp.is_multiple_of(KT));
+    assert!(hd == 0 || kt.len() >= (hd - 1) * kts + kp);
+    assert!(scores.len() >= rows * kp);
     assert!(rows == 0 || q.len() >= (rows - 1) * qs + hd);
     #[cfg(target_arch = "x86_64")]
     if isa == Isa::Avx2 {
         // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
-        unsafe { avx2::scores_qk(q, qs, kt, kp, rows, hd, scale, scores) };
+        unsafe { avx2::scores_qk(q, qs, kt, kts, kp, rows, hd, scale, scores) };
         return;
     }
     let _ = isa;
@@ -278,7 +308,7 @@ fn scores_qk(
         let row = &mut scores[r * kp..(r + 1) * kp];
         row.fill(0.0);
         for (c, &a) in qr.iter().enumerate() {
-            for (s, &b) in row.iter_mut().zip(&kt[c * kp..(c + 1) * kp]) {
+            for (s, &b) in row.iter_mut().zip(&kt[c * kts..c * kts + kp]) {
                 *s += a * b;
             }
         }
@@ -338,6 +368,7 @@ mod avx2 {
         q: &[f32],
         qs: usize,
         kt: &[f32],
+        kts: usize,
         kp: usize,
         rows: usize,
         hd: usize,
@@ -349,10 +380,10 @@ mod avx2 {
             let n = RT.min(rows - r);
             for j in (0..kp).step_by(KT) {
                 match n {
-                    4 => qk_tile::<4>(q, qs, kt, kp, r, j, hd, scale, scores),
-                    3 => qk_tile::<3>(q, qs, kt, kp, r, j, hd, scale, scores),
-                    2 => qk_tile::<2>(q, qs, kt, kp, r, j, hd, scale, scores),
-                    _ => qk_tile::<1>(q, qs, kt, kp, r, j, hd, scale, scores),
+                    4 => qk_tile::<4>(q, qs, kt, kts, kp, r, j, hd, scale, scores),
+                    3 => qk_tile::<3>(q, qs, kt, kts, kp, r, j, hd, scale, scores),
+                    2 => qk_tile::<2>(q, qs, kt, kts, kp, r, j, hd, scale, scores),
+                    _ => qk_tile::<1>(q, qs, kt, kts, kp, r, j, hd, scale, scores),
                 }
             }
             r += n;
@@ -366,6 +397,7 @@ mod avx2 {
         q: &[f32],
         qs: usize,
         kt: &[f32],
+        kts: usize,
         kp: usize,
         r0: usize,
         j: usize,
@@ -376,7 +408,7 @@ mod avx2 {
         let mut acc = [[_mm256_setzero_ps(); 2]; R];
         let (qp, kp_ptr) = (q.as_ptr(), kt.as_ptr());
         for c in 0..hd {
-            let b = kp_ptr.add(c * kp + j);
+            let b = kp_ptr.add(c * kts + j);
             let (b0, b1) = (_mm256_loadu_ps(b), _mm256_loadu_ps(b.add(8)));
             for (i, a) in acc.iter_mut().enumerate() {
                 let x = _mm256_broadcast_ss(&*qp.add((r0 + i) * qs + c));

@@ -17,6 +17,7 @@ mod embedding;
 mod gemm;
 mod norm;
 mod packed;
+pub mod profile;
 #[cfg(test)]
 mod testutil;
 

@@ -271,6 +271,23 @@ pub(crate) fn linear_packed_on(
     if m == 0 || n == 0 {
         return;
     }
+    let flop = 2 * m * k * n;
+    super::profile::timed(super::profile::Kind::Linear, flop, || {
+        linear_job(isa, x, w, bias, act, y, m)
+    });
+}
+
+/// The body of [`linear_packed_on`] once the operands are checked.
+fn linear_job(
+    isa: Isa,
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+) {
+    let (k, n) = (w.k, w.n);
     let job = Job {
         isa,
         x,
