@@ -351,13 +351,16 @@ impl Job<'_> {
             }
             return;
         }
+        // Half-precision panel slices widened once per M block (see `panel`); on the stack, so
+        // a call allocates nothing.
+        let mut widened = [0.0f32; KC * NR];
         for kb in (0..k).step_by(KC) {
             let kc = KC.min(k - kb);
             let (first, last) = (kb == 0, kb + kc == k);
             for mb in (r0..r1).step_by(MC) {
                 let mb_end = (mb + MC).min(r1);
                 for j in j0..j1 {
-                    self.panel(kb, kc, first, last, mb, mb_end, j);
+                    self.panel(kb, kc, first, last, mb, mb_end, j, &mut widened);
                 }
             }
         }
@@ -365,7 +368,17 @@ impl Job<'_> {
 
     /// Rows `r0..r1` of panel `j` over multiply steps `kb..kb + kc`.
     #[allow(clippy::too_many_arguments)]
-    fn panel(&self, kb: usize, kc: usize, first: bool, last: bool, r0: usize, r1: usize, j: usize) {
+    fn panel(
+        &self,
+        kb: usize,
+        kc: usize,
+        first: bool,
+        last: bool,
+        r0: usize,
+        r1: usize,
+        j: usize,
+        widened: &mut [f32; KC * NR],
+    ) {
         let (k, n) = (self.w.k, self.w.n);
         let c0 = j * NR;
         let cols = NR.min(n - c0);
@@ -374,7 +387,19 @@ impl Job<'_> {
             bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
         }
         let start = if first { Some(&bias) } else { None };
-        let b = self.w.panel_ptr(j, kb);
+        let mut b = self.w.panel_ptr(j, kb);
+        let mut ty = self.w.ty;
+        // The AVX2 kernel widens f16/bf16 weights inside its loop, on the same ports as the
+        // multiply-adds; with several row tiles to run, widening the slice once and running the
+        // f32 kernel is faster. Widening is exact, so the results are the same bits.
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx2 && ty != WeightType::F32 && r1 - r0 > MR {
+            // SAFETY: the panel slice holds kc × NR values of `ty` (kb + kc ≤ k); `widened`
+            // has room for KC × NR ≥ kc × NR; the CPU has f16c and avx2 (Isa::Avx2).
+            unsafe { avx2::widen(ty, b as *const u16, widened.as_mut_ptr(), kc * NR) };
+            b = widened.as_ptr() as *const u8;
+            ty = WeightType::F32;
+        }
         for i0 in (r0..r1).step_by(MR) {
             let rows = MR.min(r1 - i0);
             // Missing rows of an edge tile repeat the last real row; their results are dropped.
@@ -386,7 +411,7 @@ impl Job<'_> {
             if rows == MR && cols == NR {
                 // SAFETY: the tile rows i0..i0+MR and columns c0..c0+NR lie inside y (m×n);
                 // a and b point at kc readable steps; this task alone writes the tile.
-                unsafe { self.kernel(kc, &a, b, y.add(i0 * n + c0), n, start) };
+                unsafe { self.kernel(ty, kc, &a, b, y.add(i0 * n + c0), n, start) };
             } else {
                 let mut tile = [0.0f32; MR * NR];
                 for i in 0..rows {
@@ -399,7 +424,7 @@ impl Job<'_> {
                     }
                 }
                 // SAFETY: the kernel writes MR×NR values into `tile` (ldc NR); a and b as above.
-                unsafe { self.kernel(kc, &a, b, tile.as_mut_ptr(), NR, start) };
+                unsafe { self.kernel(ty, kc, &a, b, tile.as_mut_ptr(), NR, start) };
                 for i in 0..rows {
                     self.out_row(i0 + i, c0, c0 + cols)
                         .copy_from_slice(&tile[i * NR..i * NR + cols]);
@@ -430,14 +455,16 @@ impl Job<'_> {
         }
     }
 
-    /// Runs the micro-kernel for this call's ISA and weight type.
+    /// Runs the micro-kernel for this call's ISA on panel rows of type `ty`.
     ///
     /// # Safety
-    /// Each `a[i]` must be readable for `kc` values, `b` for `kc` panel rows of this weight
-    /// type, and `c` writable (and readable unless `start` is given) for `MR` rows of `NR`
-    /// values at stride `ldc`.
+    /// Each `a[i]` must be readable for `kc` values, `b` for `kc` panel rows of type `ty`,
+    /// and `c` writable (and readable unless `start` is given) for `MR` rows of `NR` values at
+    /// stride `ldc`.
+    #[allow(clippy::too_many_arguments)]
     unsafe fn kernel(
         &self,
+        ty: WeightType,
         kc: usize,
         a: &[*const f32; MR],
         b: *const u8,
@@ -445,7 +472,7 @@ impl Job<'_> {
         ldc: usize,
         start: Option<&[f32; NR]>,
     ) {
-        match (self.isa, self.w.ty) {
+        match (self.isa, ty) {
             #[cfg(target_arch = "x86_64")]
             (Isa::Avx2, ty) => {
                 // SAFETY: Avx2 is only chosen after detecting avx2, fma and f16c (tests force
@@ -523,7 +550,7 @@ mod avx2 {
     //! The 6×16 AVX2/FMA micro-kernel: 12 accumulators, one panel row (two vectors) loaded
     //! and widened per step, each activation broadcast once.
 
-    use super::{MR, NR};
+    use super::{WeightType, MR, NR};
     use std::arch::x86_64::*;
 
     macro_rules! tile_kernel {
@@ -574,6 +601,34 @@ mod avx2 {
                 }
             }
         };
+    }
+
+    /// `dst[..n] = src[..n]` widened from f16 or bf16 (exact).
+    ///
+    /// # Safety
+    /// The CPU supports avx2 and f16c; `src` readable and `dst` writable for `n` values.
+    #[target_feature(enable = "avx2,f16c")]
+    pub(super) unsafe fn widen(ty: WeightType, src: *const u16, dst: *mut f32, n: usize) {
+        // SAFETY (whole body): loads and stores stay inside src[..n] and dst[..n].
+        unsafe {
+            let mut i = 0;
+            while i + 8 <= n {
+                let h = _mm_loadu_si128(src.add(i) as *const __m128i);
+                let v = match ty {
+                    WeightType::F16 => _mm256_cvtph_ps(h),
+                    _ => _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_cvtepu16_epi32(h))),
+                };
+                _mm256_storeu_ps(dst.add(i), v);
+                i += 8;
+            }
+            for i in i..n {
+                let bits = *src.add(i);
+                *dst.add(i) = match ty {
+                    WeightType::F16 => half::f16::from_bits(bits).to_f32(),
+                    _ => half::bf16::from_bits(bits).to_f32(),
+                };
+            }
+        }
     }
 
     tile_kernel!(tile_f32, f32, |b, p| (
