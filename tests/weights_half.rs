@@ -95,7 +95,10 @@ fn half_weights_stay_close_to_f32_after_10_steps_on_a_trained_model() {
         // to f16's 11 and measures 5.2e-2 on this model (features are in units of the corpus
         // std); its bound here is a regression guard, documented in docs/performance.md.
         let bound = if ty == WeightType::F16 { 1e-2 } else { 1e-1 };
-        assert!(d < bound, "{ty:?}: features differ by {d:e} (bound {bound:e})");
+        assert!(
+            d < bound,
+            "{ty:?}: features differ by {d:e} (bound {bound:e})"
+        );
         // The text encoder's f32 weights are rounded either way, so the runs must differ.
         assert!(d > 0.0, "{ty:?}: weights were not narrowed");
     }

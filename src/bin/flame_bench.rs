@@ -1,7 +1,7 @@
 //! `flame-bench`: times text encoding, one guided denoising step and a whole generation on a
 //! model file, and prints medians over several runs.
 //!
-//! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler ddim] [--threads 2]
+//! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] [--threads 2]
 //!  [--runs 5] [--weights f32|f16|bf16]` also prints GFLOP/s of a step (linear layers and
 //! attention counted from the configuration) and the peak resident memory (VmHWM), and one
 //! `RESULT` line per frame count for tools/bench.sh.
@@ -38,7 +38,8 @@ fn arg<T: std::str::FromStr>(args: &[String], key: &str, default: T) -> T {
 }
 
 /// GFLOP/s of the packed linear kernel and the older matrixmultiply path on the shapes
-/// FLAME-base runs (M = 2 × (196 + 3) rows), plus a large square problem as the peak.
+/// FLAME-base (M = 2 × (196 + 3) rows) and MDM (M = 2 × (196 + 1)) run at 196 frames, plus a
+/// large square problem as the peak.
 fn gemm_bench(args: &[String]) {
     let threads: usize = arg(args, "--threads", 2);
     let runs: usize = arg(args, "--runs", 7);
@@ -50,13 +51,17 @@ fn gemm_bench(args: &[String]) {
         ("attn q/out", m, 768, 768),
         ("ffn up", m, 768, 2048),
         ("ffn down", m, 2048, 768),
+        ("mdm qkv", 394, 512, 1536),
+        ("mdm out", 394, 512, 512),
+        ("mdm ffn up", 394, 512, 1024),
+        ("mdm ffn down", 394, 1024, 512),
         ("text 20x768x3072", 20, 768, 3072),
         ("square 1536", 1536, 1536, 1536),
     ];
     println!("linear GFLOP/s, {threads} threads, {ty:?} weights, median of {runs}:");
     println!(
-        "  {:<18} {:>16} {:>10} {:>10}",
-        "shape", "MxKxN", "packed", "sgemm"
+        "  {:<18} {:>16} {:>10} {:>10} {:>10}",
+        "shape", "MxKxN", "packed", "cold", "sgemm"
     );
     for (name, m, k, n) in shapes {
         let x: Vec<f32> = (0..m * k)
@@ -83,9 +88,21 @@ fn gemm_bench(args: &[String]) {
         let p = pool.install(|| {
             time(&mut || linear_packed(&x, &packed, Some(&b), Activation::None, &mut y, m))
         });
+        // As in a model, where each layer's weights were last used a whole step ago: cycle
+        // through copies that together exceed the last-level cache.
+        let copies: Vec<PackedWeights> = (0..(64 << 20) / (n * k * 4).max(1) + 2)
+            .map(|_| PackedWeights::pack(&w, n, k, ty))
+            .collect();
+        let mut next = 0;
+        let cold = pool.install(|| {
+            time(&mut || {
+                next = (next + 1) % copies.len();
+                linear_packed(&x, &copies[next], Some(&b), Activation::None, &mut y, m)
+            })
+        });
         let s = pool.install(|| time(&mut || kernels::linear(&x, &w, Some(&b), &mut y, m, k, n)));
         println!(
-            "  {name:<18} {:>16} {p:>10.1} {s:>10.1}",
+            "  {name:<18} {:>16} {p:>10.1} {cold:>10.1} {s:>10.1}",
             format!("{m}x{k}x{n}")
         );
     }
@@ -146,7 +163,7 @@ fn main() {
     let path: String = arg(&args, "--model", String::new());
     if path.is_empty() {
         eprintln!(
-            "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler ddim] \
+            "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
              [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]"
         );
         std::process::exit(2);
@@ -155,8 +172,15 @@ fn main() {
     let steps: usize = arg(&args, "--steps", 10);
     let threads: usize = arg(&args, "--threads", 2);
     let runs: usize = arg(&args, "--runs", 5);
-    let sampler: Sampler = arg(&args, "--sampler", Sampler::Ddim);
+    // The model's own sampler unless asked (DDIM for diffusion, Euler for flow matching).
+    let sampler: Option<Sampler> = args
+        .iter()
+        .any(|a| a == "--sampler")
+        .then(|| arg(&args, "--sampler", Sampler::Ddim));
     let weights: WeightType = arg(&args, "--weights", WeightType::F32);
+    // A guided step runs the conditional and unconditional rows as one batch of two; the value
+    // itself does not change the time (tools/bench_torch.py uses the same default).
+    let guidance: f32 = arg(&args, "--guidance", 2.5);
     let prompt = "a person walks forward, turns around and waves with the right hand";
 
     let t = Instant::now();
@@ -178,9 +202,9 @@ fn main() {
         let params = SessionParams {
             frames: Some(frames),
             steps: Some(steps),
-            sampler: Some(sampler),
+            sampler,
             eta: Some(0.0),
-            guidance: None,
+            guidance: Some(guidance),
             clip_denoised: None,
             seed: 1,
             threads,
@@ -222,8 +246,9 @@ fn main() {
         let (lin, attn) = step_macs(&model, frames);
         let gflops = 2.0 * (lin + attn) / (step * 1e-3) / 1e9;
         println!(
-            "frames {frames}, {steps} {sampler:?} steps, guidance {}, {threads} threads, {runs} runs (medians):",
-            model.config().defaults.guidance
+            "frames {frames}, {steps} {} steps, guidance {}, {threads} threads, {runs} runs (medians):",
+            sampler.map_or("default-sampler".to_string(), |s| format!("{s:?}")),
+            guidance
         );
         println!("  text encoding      {text:9.2} ms");
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
