@@ -167,6 +167,17 @@ typedef enum FlameEditTask {
   FLAME_EDIT_TASK_PATH = 3,
 } FlameEditTask;
 
+// What a model's linear-layer weights are held and multiplied in ([`FlameModelParams`]),
+// whatever the file stores. Embeddings, norms and biases stay f32.
+typedef enum FlameWeights {
+  // f32: exact, the fastest on CPUs without half-precision arithmetic.
+  FLAME_WEIGHTS_F32 = 0,
+  // IEEE half: half the memory; features within ~1e-3 of f32 on the demo model.
+  FLAME_WEIGHTS_F16 = 1,
+  // bfloat16: half the memory; coarser than f16 (~5e-2 on the demo model).
+  FLAME_WEIGHTS_BF16 = 2,
+} FlameWeights;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
 
@@ -175,11 +186,16 @@ typedef struct FlameModel FlameModel;
 typedef struct FlameSession FlameSession;
 
 // Options of [`flame_model_load`]. Initialise with [`flame_model_params_default`].
+//
+// Version 1 of this struct ended after `threads` (8 bytes); a caller built against it passes
+// `struct_size = 8` and gets the defaults of every later field.
 typedef struct FlameModelParams {
   // `sizeof(FlameModelParams)`: lets later versions add fields.
   uint32_t struct_size;
   // Threads for work done at load (encoding the guidance prompt); 0 = one per core.
   uint32_t threads;
+  // A [`FlameWeights`] value (since version 2).
+  int32_t weights;
 } FlameModelParams;
 
 // What [`flame_model_info`] reports. Strings and arrays belong to the model and stay valid

@@ -206,3 +206,25 @@ fn bad_arguments_fail_before_sampling() {
     assert_eq!(std::fs::read_dir(&d).unwrap().count(), 0, "no file written");
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+#[test]
+fn weights_option_selects_the_linear_weight_type() {
+    let d = tmp_dir("weights");
+    let run = |w: &str| {
+        let out = d.join(format!("{w}.npy"));
+        ok(generate(&["--weights", w, "--out", out.to_str().unwrap()]));
+        flame::npy::read_f32(&out).unwrap().1
+    };
+    let (full, half) = (run("f32"), run("bf16"));
+    assert_eq!(full.len(), half.len());
+    assert!(half.iter().all(|v| v.is_finite()));
+    assert_ne!(full, half, "bf16 weights must change the numbers");
+    let out = generate(&[
+        "--weights",
+        "f8",
+        "--out",
+        d.join("x.npy").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--weights"));
+}

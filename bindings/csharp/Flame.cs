@@ -157,6 +157,17 @@ namespace Flame
         public const uint RawSigns = 2;
     }
 
+    /// <summary>FlameWeights: what a model's linear layers are held and multiplied in.</summary>
+    public enum FlameWeights : int
+    {
+        /// <summary>f32: exact, the fastest on CPUs without half-precision arithmetic.</summary>
+        F32 = 0,
+        /// <summary>IEEE half: half the memory.</summary>
+        F16 = 1,
+        /// <summary>bfloat16: half the memory, coarser than f16.</summary>
+        Bf16 = 2,
+    }
+
     /// <summary>Mirror of the C struct FlameModelParams.</summary>
     [StructLayout(LayoutKind.Sequential)]
     public struct FlameModelParams
@@ -164,6 +175,8 @@ namespace Flame
         public uint struct_size;
         /// <summary>Threads for work done at load; 0 = one per core.</summary>
         public uint threads;
+        /// <summary>A FlameWeights value: what the linear layers are held and multiplied in.</summary>
+        public FlameWeights weights;
 
         /// <summary>The library's defaults (struct_size set).</summary>
         public static FlameModelParams Default()
@@ -521,27 +534,30 @@ namespace Flame
             Info = new ModelInfo(raw);
         }
 
-        /// <summary>Loads a model file; threads are for work at load (0 = one per core).</summary>
-        public static FlameModel Load(string path, uint threads = 0)
+        /// <summary>Loads a model file; threads are for work at load (0 = one per core), weights
+        /// what the linear layers are held in.</summary>
+        public static FlameModel Load(string path, uint threads = 0, FlameWeights weights = FlameWeights.F32)
         {
             if (path == null)
                 throw new ArgumentNullException("path");
             FlameLibrary.CheckAbi();
             var p = FlameModelParams.Default();
             p.threads = threads;
+            p.weights = weights;
             FlameModelHandle h;
             FlameException.Check(FlameNative.flame_model_load(FlameNative.Utf8Z(path), ref p, out h));
             return new FlameModel(h);
         }
 
         /// <summary>Loads a model from the bytes of a model file (copied; e.g. a TextAsset's bytes).</summary>
-        public static FlameModel LoadFromMemory(byte[] bytes, uint threads = 0)
+        public static FlameModel LoadFromMemory(byte[] bytes, uint threads = 0, FlameWeights weights = FlameWeights.F32)
         {
             if (bytes == null)
                 throw new ArgumentNullException("bytes");
             FlameLibrary.CheckAbi();
             var p = FlameModelParams.Default();
             p.threads = threads;
+            p.weights = weights;
             FlameModelHandle h;
             FlameException.Check(FlameNative.flame_model_load_from_memory(bytes, (UIntPtr)bytes.Length, ref p, out h));
             return new FlameModel(h);

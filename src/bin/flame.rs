@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use flame::config::{DenoiserConfig, TextConfig};
-use flame::models::Model;
+use flame::models::{LoadOptions, Model};
 use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditParams, Session, SessionParams};
 
@@ -15,7 +15,7 @@ const USAGE: &str = "\
 usage:
   flame generate [--model M] --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim|euler|heun|midpoint]
                  [--eta E] [--guidance G] [--seed K] [--noise FILE.npy] [--threads T]
-                 --out FILE.npy|FILE.bvh|FILE.json
+                 [--weights f32|f16|bf16] --out FILE.npy|FILE.bvh|FILE.json
                  [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
                  [--quat xyzw|wxyz] [--positions FILE.npy] [--preview FILE.png]
   flame edit [--model M] --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
@@ -34,7 +34,8 @@ the skeleton. --positions also writes world joint positions (float32, frames x j
 Poses are in --convention (default native); --smooth is the sigma in frames of the temporal
 Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
 otherwise; 0 = off). For Blender's BVH importer write the BVH with --convention gltf. Unset
-options take the model file's defaults (see `flame info`).
+options take the model file's defaults (see `flame info`). --weights is what the linear layers
+are held and multiplied in (default f32; f16/bf16 halve their memory).
 
 edit keeps parts of a reference motion and generates the rest from the prompt. References are
 .npy model-space features (what `generate --out x.npy` writes) or a BVH written by libflame
@@ -111,8 +112,9 @@ fn parsed<T: std::str::FromStr>(
 }
 
 /// Options `generate` and `edit` share.
-const COMMON_FLAGS: [&str; 16] = [
+const COMMON_FLAGS: [&str; 17] = [
     "model",
+    "weights",
     "prompt",
     "frames",
     "steps",
@@ -149,8 +151,11 @@ fn load_model(flags: &HashMap<String, String>) -> Result<Arc<Model>, String> {
         None => default_model()?,
     };
     let t0 = Instant::now();
+    let opts = LoadOptions {
+        weights: parsed(flags, "weights")?.unwrap_or_default(),
+    };
     let model = Arc::new(
-        Model::load(&model_path)
+        Model::load_with(&model_path, &opts)
             .map_err(|e| format!("cannot load {}: {e}", model_path.display()))?,
     );
     eprintln!(

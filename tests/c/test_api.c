@@ -110,6 +110,7 @@ static void test_param_defaults(void) {
     CHECK_OK(flame_model_params_default(&mp));
     CHECK(mp.struct_size == sizeof(FlameModelParams));
     CHECK(mp.threads == 0);
+    CHECK(mp.weights == FLAME_WEIGHTS_F32);
 
     CHECK_ERROR_MENTIONS(flame_session_params_default(NULL), FLAME_STATUS_INVALID_ARGUMENT,
                          "params");
@@ -163,16 +164,48 @@ static void test_load_errors(const unsigned char *file, size_t file_len) {
                          FLAME_STATUS_INVALID_ARGUMENT, "model");
     CHECK(m == sentinel);
 
-    /* struct_size too small (0, and one byte short). */
+    /* struct_size too small (0, and one byte short of version 1's 8 bytes). */
     FlameModelParams small = mp;
     small.struct_size = 0;
     CHECK_ERROR_MENTIONS(flame_model_load(g_model_path, &small, &m), FLAME_STATUS_INVALID_ARGUMENT,
                          "struct_size");
-    small.struct_size = sizeof(FlameModelParams) - 1;
+    small.struct_size = 7;
     CHECK_STATUS(flame_model_load(g_model_path, &small, &m), FLAME_STATUS_INVALID_ARGUMENT);
     CHECK_STATUS(flame_model_load_from_memory(file, file_len, &small, &m),
                  FLAME_STATUS_INVALID_ARGUMENT);
     CHECK(m == sentinel);
+
+    /* An unknown weight type. */
+    FlameModelParams bad_weights = mp;
+    bad_weights.weights = 7;
+    CHECK_ERROR_MENTIONS(flame_model_load(g_model_path, &bad_weights, &m),
+                         FLAME_STATUS_INVALID_ARGUMENT, "weights");
+    CHECK_STATUS(flame_model_load_from_memory(file, file_len, &bad_weights, &m),
+                 FLAME_STATUS_INVALID_ARGUMENT);
+    CHECK(m == sentinel);
+
+    /* A caller built against version 1 of the struct (struct_size 8, no `weights` field): the
+     * bytes after it are never read, so garbage there changes nothing. */
+    struct {
+        FlameModelParams p;
+        unsigned char poison[16];
+    } v1;
+    memset(&v1, 0xA5, sizeof v1);
+    v1.p.struct_size = 8;
+    v1.p.threads = 1;
+    FlameModel *old_abi = NULL;
+    CHECK_STATUS(flame_model_load(g_model_path, &v1.p, &old_abi), FLAME_STATUS_OK);
+    flame_model_free(old_abi);
+
+    /* Half-precision weights load. */
+    for (int w = FLAME_WEIGHTS_F32; w <= FLAME_WEIGHTS_BF16; w++) {
+        FlameModelParams hp = mp;
+        hp.weights = w;
+        FlameModel *half = NULL;
+        CHECK_STATUS(flame_model_load(g_model_path, &hp, &half), FLAME_STATUS_OK);
+        CHECK(half != NULL);
+        flame_model_free(half);
+    }
 
     /* Files that cannot be read. */
     char path[4096];

@@ -37,6 +37,7 @@ __all__ = [
     "Status",
     "Sampler",
     "Which",
+    "Weights",
     "Layout",
     "Convention",
     "ReadFlags",
@@ -143,6 +144,15 @@ class BodyPart:
     LEGS = 4  # hips, knees, ankles and feet (and foot contacts)
 
 
+class Weights:
+    """FlameWeights values for Model.load(weights=...) (or their names: "f32", "f16", "bf16"):
+    what the linear layers are held and multiplied in."""
+
+    F32 = 0  # exact; the fastest on CPUs without half-precision arithmetic
+    F16 = 1  # half the memory
+    BF16 = 2  # half the memory, coarser than f16
+
+
 class EditTask:
     """FlameEditTask values for Session.set_task_mask (or their names: "inbetween", ...)."""
 
@@ -209,7 +219,12 @@ def library_path() -> str:
 
 
 class _ModelParams(ctypes.Structure):
-    _fields_ = [("struct_size", ctypes.c_uint32), ("threads", ctypes.c_uint32)]
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("threads", ctypes.c_uint32),
+        ("weights", ctypes.c_int32),
+    ]
+
 
 
 class _ModelInfo(ctypes.Structure):
@@ -421,10 +436,16 @@ def _text(p: Optional[bytes]) -> str:
     return p.decode("utf-8", "replace") if p else ""
 
 
-def _model_params(threads: int) -> _ModelParams:
+def _model_params(threads: int, weights: Union[str, int]) -> _ModelParams:
+    names = {n.lower(): v for n, v in vars(Weights).items() if n.isupper()}
+    if isinstance(weights, str):
+        if weights.lower() not in names:
+            raise ValueError(f"weights must be one of {sorted(names)}, not {weights!r}")
+        weights = names[weights.lower()]
     p = _ModelParams()
     _check(_lib().flame_model_params_default(ctypes.byref(p)))
     p.threads = threads
+    p.weights = weights
     return p
 
 
@@ -440,19 +461,29 @@ class Model:
         self._info: Optional[ModelInfo] = None
 
     @classmethod
-    def load(cls, path: Union[str, os.PathLike], threads: int = 0) -> "Model":
-        """Loads a model file. `threads` is for work done at load (0 = one per core)."""
+    def load(
+        cls, path: Union[str, os.PathLike], threads: int = 0, weights: Union[str, int] = "f32"
+    ) -> "Model":
+        """Loads a model file. `threads` is for work done at load (0 = one per core); `weights`
+        ("f32", "f16", "bf16" or a `Weights` value) is what the linear layers are held and
+        multiplied in."""
         out = _P()
-        params = _model_params(threads)
+        params = _model_params(threads, weights)
         _check(_lib().flame_model_load(os.fsencode(path), ctypes.byref(params), ctypes.byref(out)))
         return cls(out.value)
 
     @classmethod
-    def from_bytes(cls, data: Union[bytes, bytearray, memoryview], threads: int = 0) -> "Model":
-        """Loads a model from the bytes of a model file (libflame copies them)."""
+    def from_bytes(
+        cls,
+        data: Union[bytes, bytearray, memoryview],
+        threads: int = 0,
+        weights: Union[str, int] = "f32",
+    ) -> "Model":
+        """Loads a model from the bytes of a model file (libflame copies them); `threads` and
+        `weights` as in `load`."""
         buf = np.frombuffer(data, dtype=np.uint8)
         out = _P()
-        params = _model_params(threads)
+        params = _model_params(threads, weights)
         _check(
             _lib().flame_model_load_from_memory(
                 buf.ctypes.data if buf.size else None,

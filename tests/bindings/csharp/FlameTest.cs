@@ -57,6 +57,7 @@ static class FlameTest
             Run("Info", TestInfo);
             Run("MatchesCli", TestMatchesCli);
             Run("LoadFromMemory", TestLoadFromMemory);
+            Run("HalfWeights", TestHalfWeights);
             Run("StepsEstimateReset", TestStepsEstimateReset);
             Run("SessionErrors", TestSessionErrors);
             Run("NullArguments", TestNullArguments);
@@ -239,6 +240,7 @@ static class FlameTest
         CheckValues("FLAME_EDIT_METHOD_", EnumValues(typeof(FlameEditMethod)));
         CheckValues("FLAME_BODY_PART_", EnumValues(typeof(FlameBodyPart)));
         CheckValues("FLAME_EDIT_TASK_", EnumValues(typeof(FlameEditTask)));
+        CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
     }
@@ -331,6 +333,22 @@ static class FlameTest
             s.SetPrompt(RefPrompt);
             Check(BitEqual(RunAll(s), reference), "from memory = CLI");
         }
+    }
+
+    static void TestHalfWeights()
+    {
+        foreach (var w in new[] { FlameWeights.F16, FlameWeights.Bf16 })
+            using (var m = FlameModel.Load(modelPath, 1, w))
+            using (var s = m.NewSession(RefParams()))
+            {
+                s.SetPrompt(RefPrompt);
+                var got = RunAll(s);
+                bool finite = true;
+                foreach (var v in got)
+                    finite &= !float.IsNaN(v) && !float.IsInfinity(v);
+                Check(finite, w + " weights: finite output");
+                Check(!BitEqual(got, reference), w + " weights: narrowed");
+            }
     }
 
     static void TestStepsEstimateReset()

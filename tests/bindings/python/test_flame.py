@@ -98,7 +98,7 @@ def test_every_header_function_is_bound():
     [("FLAME_STATUS_", Status), ("FLAME_SAMPLER_", flame.Sampler), ("FLAME_WHICH_", flame.Which),
      ("FLAME_LAYOUT_", Layout), ("FLAME_CONVENTION_", Convention), ("FLAME_READ_", ReadFlags),
      ("FLAME_EDIT_METHOD_", flame.EditMethod), ("FLAME_BODY_PART_", flame.BodyPart),
-     ("FLAME_EDIT_TASK_", flame.EditTask)],
+     ("FLAME_EDIT_TASK_", flame.EditTask), ("FLAME_WEIGHTS_", flame.Weights)],
 )
 def test_named_values_match_the_header(prefix, names):
     import re
@@ -164,6 +164,20 @@ def test_matches_cli_bit_for_bit(model, reference):
 def test_from_bytes_matches_cli(reference):
     with flame.Model.from_bytes(Path(MODEL).read_bytes()) as m, ref_session(m) as s:
         assert s.run().tobytes() == reference.tobytes()
+
+
+def test_half_precision_weights(reference):
+    # The same generation with the linear layers in f16 / bf16: finite, close, not identical
+    # (the tiny random fixture amplifies rounding, so "close" is loose here; tests/weights_half.rs
+    # measures a trained model).
+    for weights in ("f16", flame.Weights.BF16):
+        with flame.Model.load(MODEL, weights=weights) as m, ref_session(m) as s:
+            out = s.run()
+        assert np.isfinite(out).all(), weights
+        assert out.tobytes() != reference.tobytes(), weights
+    with pytest.raises(ValueError, match="weights"):
+        flame.Model.load(MODEL, weights="f8")
+    expect_error(Status.INVALID_ARGUMENT, "params.weights is 7", flame.Model.load, MODEL, weights=7)
 
 
 def test_steps_left_estimate_and_reset(model, reference):
