@@ -15,10 +15,12 @@
 //! (a family<TAB>prompt file), `FLAME_DEMO_EVAL_GUIDANCE` and `FLAME_DEMO_EVAL_STEPS` override
 //! the prompts and the model's defaults for such runs.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
-use flame::assemble::assemble;
+mod common;
+
+use common::{demo_model, repo};
 use flame::demo::{classify, Confusion, Family};
 use flame::models::Model;
 use flame::motion::{Convention, Poses};
@@ -30,35 +32,6 @@ const TARGET_ACCURACY: f64 = 0.80;
 /// What the shipped model must keep (it measures 0.607): a drop means the runtime changed what
 /// the model generates.
 const MIN_ACCURACY: f64 = 0.55;
-
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
-
-fn demo_model() -> Option<PathBuf> {
-    if let Some(path) = std::env::var_os("FLAME_DEMO_MODEL") {
-        return Some(path.into());
-    }
-    let assembled = repo("models/demo/flame_demo.safetensors");
-    if assembled.is_file() {
-        return Some(assembled);
-    }
-    let denoiser = repo("models/demo/flame_demo_denoiser.safetensors");
-    let require = std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1");
-    let Some(minilm) = std::env::var_os("FLAME_MINILM_DIR").map(PathBuf::from) else {
-        assert!(
-            !require,
-            "FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set"
-        );
-        return None;
-    };
-    assert!(denoiser.is_file(), "missing {}", denoiser.display());
-    let dir = std::env::temp_dir().join(format!("flame-demo-eval-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let out = dir.join("flame_demo.safetensors");
-    assemble(&denoiser, &minilm.join("model.safetensors"), &out).unwrap();
-    Some(out)
-}
 
 fn prompts() -> Vec<(Family, String)> {
     let path = std::env::var_os("FLAME_DEMO_EVAL_PROMPTS").map_or_else(

@@ -8,6 +8,9 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+mod common;
+
+use common::{demo_model, max_abs_diff};
 use flame::models::{LoadOptions, Model, WeightType};
 use flame::session::{Sampler, Session, SessionParams};
 
@@ -38,42 +41,11 @@ fn generate(model: &Arc<Model>, threads: usize) -> Vec<f32> {
     s.run().unwrap().to_vec()
 }
 
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
-}
-
-/// The trained demo model (FLAME, 4 × 256, all-MiniLM-L6-v2), assembled from the committed
-/// denoiser and `$FLAME_MINILM_DIR`; None (test skipped) without the text encoder unless
-/// FLAME_REQUIRE_REAL_WEIGHTS=1. Random-weight fixtures are no use here: they amplify any
-/// rounding over 10 steps (the tiny FLAME fixture stored in f16 diverges from its f32 self by ~1).
-fn demo_model() -> Option<PathBuf> {
-    let require = std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1");
-    let Some(minilm) = std::env::var_os("FLAME_MINILM_DIR").map(PathBuf::from) else {
-        assert!(
-            !require,
-            "FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set"
-        );
-        return None;
-    };
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = std::env::temp_dir().join(format!("flame-weights-half-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let out = dir.join("flame_demo.safetensors");
-    flame::assemble::assemble(
-        &repo.join("models/demo/flame_demo_denoiser.safetensors"),
-        &minilm.join("model.safetensors"),
-        &out,
-    )
-    .unwrap();
-    Some(out)
-}
-
 #[test]
 fn half_weights_stay_close_to_f32_after_10_steps_on_a_trained_model() {
+    // The trained demo model (FLAME, 4 × 256, all-MiniLM-L6-v2). Random-weight fixtures are no
+    // use here: they amplify any rounding over 10 steps (the tiny FLAME fixture stored in f16
+    // diverges from its f32 self by ~1).
     let Some(path) = demo_model() else {
         eprintln!("skipped: FLAME_MINILM_DIR not set");
         return;
@@ -102,7 +74,6 @@ fn half_weights_stay_close_to_f32_after_10_steps_on_a_trained_model() {
         // The text encoder's f32 weights are rounded either way, so the runs must differ.
         assert!(d > 0.0, "{ty:?}: weights were not narrowed");
     }
-    std::fs::remove_dir_all(path.parent().unwrap()).ok();
 }
 
 #[test]

@@ -271,23 +271,6 @@ pub(crate) fn linear_packed_on(
     if m == 0 || n == 0 {
         return;
     }
-    let flop = 2 * m * k * n;
-    super::profile::timed(super::profile::Kind::Linear, flop, || {
-        linear_job(isa, x, w, bias, act, y, m)
-    });
-}
-
-/// The body of [`linear_packed_on`] once the operands are checked.
-fn linear_job(
-    isa: Isa,
-    x: &[f32],
-    w: &PackedWeights,
-    bias: Option<&[f32]>,
-    act: Activation,
-    y: &mut [f32],
-    m: usize,
-) {
-    let (k, n) = (w.k, w.n);
     let job = Job {
         isa,
         x,
@@ -297,27 +280,35 @@ fn linear_job(
         y: SharedMut(y.as_mut_ptr()),
         m,
     };
-    let panels = n.div_ceil(NR);
-    let tiles = m.div_ceil(MR);
-    let threads = rayon::current_num_threads();
-    if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
-        job.run(0, m, 0, panels);
-        return;
-    }
-    // Split the weight panels when there are enough to balance: each task then reads a
-    // disjoint part of the weights. Otherwise (few outputs, many rows) split the rows by tiles.
-    let by_panels = panels >= 2 * threads || panels >= tiles;
-    let units = if by_panels { panels } else { tiles };
-    let tasks = threads.min(units);
-    let edge = |t: usize| units * t / tasks;
-    (0..tasks).into_par_iter().for_each(|t| {
-        let (lo, hi) = (edge(t), edge(t + 1));
-        if by_panels {
-            job.run(0, m, lo, hi);
-        } else {
-            job.run(lo * MR, (hi * MR).min(m), 0, panels);
+    super::profile::timed(super::profile::Kind::Linear, 2 * m * k * n, || job.split());
+}
+
+impl Job<'_> {
+    /// Runs the whole call, split over the current pool's threads.
+    fn split(&self) {
+        let (job, k, n, m) = (self, self.w.k, self.w.n, self.m);
+        let panels = n.div_ceil(NR);
+        let tiles = m.div_ceil(MR);
+        let threads = rayon::current_num_threads();
+        if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
+            job.run(0, m, 0, panels);
+            return;
         }
-    });
+        // Split the weight panels when there are enough to balance: each task then reads a
+        // disjoint part of the weights. Otherwise (few outputs, many rows) split the rows by tiles.
+        let by_panels = panels >= 2 * threads || panels >= tiles;
+        let units = if by_panels { panels } else { tiles };
+        let tasks = threads.min(units);
+        let edge = |t: usize| units * t / tasks;
+        (0..tasks).into_par_iter().for_each(|t| {
+            let (lo, hi) = (edge(t), edge(t + 1));
+            if by_panels {
+                job.run(0, m, lo, hi);
+            } else {
+                job.run(lo * MR, (hi * MR).min(m), 0, panels);
+            }
+        });
+    }
 }
 
 /// One call's operands, shared by its tasks.
