@@ -1,6 +1,7 @@
-//! Numeric building blocks on row-major `f32` slices: GEMM (on `matrixmultiply`, split across
-//! the current rayon pool by output rows or columns), attention, normalisation, activations and
-//! embeddings.
+//! Numeric building blocks on row-major `f32` slices: linear layers on weights packed at load
+//! (`packed`: an AVX2/FMA micro-kernel with f32/f16/bf16 weights, split across the current rayon
+//! pool), attention, normalisation, activations and embeddings, plus general GEMMs on
+//! `matrixmultiply` (`gemm`: activation-by-activation products and the benchmark's baseline).
 //!
 //! Kernels know nothing about transformers or models. Weights use PyTorch's layout (`Linear.weight`
 //! is `[out, in]`). Parallel work is only ever split over independent outputs (rows, columns,
