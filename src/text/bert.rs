@@ -8,10 +8,10 @@ use crate::checkpoint::{ModelFile, Tensor};
 use crate::config::TextEncoderConfig;
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{
-    add_layer_norm, embedding, layer_norm, multi_head_attention, tanh, Activation, PackedLinear,
-    WeightType,
+    add_layer_norm, embedding, layer_norm, multi_head_attention, tanh, Activation, WeightType,
 };
 
+use super::layers::{Dense, Norm};
 use super::tokenizer::{TextTokenizer, Tokens};
 
 /// Which position-id rule the encoder follows.
@@ -80,52 +80,6 @@ impl TextOutput {
     }
 }
 
-/// Linear layers in PyTorch layout (`weight [out, in]`) sharing an input, stacked into one
-/// packed GEMM whose outputs sit side by side (one layer, or q|k|v).
-struct Dense(PackedLinear);
-
-impl Dense {
-    fn load(
-        file: &ModelFile,
-        names: &[&str],
-        n_in: usize,
-        n_out: usize,
-        ty: WeightType,
-    ) -> Result<Dense> {
-        let (mut w, mut b) = (Vec::new(), Vec::new());
-        for name in names {
-            w.extend_from_slice(
-                file.tensor(&format!("{name}.weight"), &[n_out, n_in])?
-                    .data(),
-            );
-            file.release(&format!("{name}.weight"));
-            b.extend_from_slice(file.tensor(&format!("{name}.bias"), &[n_out])?.data());
-        }
-        let n = names.len() * n_out;
-        Ok(Dense(PackedLinear::new(&w, Some(&b), n_in, n, ty)))
-    }
-
-    /// `act(x [rows, n_in] · Wᵀ + b)` → `[rows, n_out]`.
-    fn apply(&self, x: &[f32], rows: usize, act: Activation) -> Vec<f32> {
-        let mut y = vec![0f32; rows * self.0.outputs()];
-        self.0.forward(x, rows, &mut y, act);
-        y
-    }
-}
-
-struct Norm {
-    gamma: Tensor,
-    beta: Tensor,
-}
-
-impl Norm {
-    fn load(file: &ModelFile, name: &str, dim: usize) -> Result<Norm> {
-        let gamma = file.tensor(&format!("{name}.weight"), &[dim])?;
-        let beta = file.tensor(&format!("{name}.bias"), &[dim])?;
-        Ok(Norm { gamma, beta })
-    }
-}
-
 /// One post-LN encoder layer.
 struct Layer {
     /// query | key | value.
@@ -152,11 +106,18 @@ impl Layer {
         let qkv = ["query", "key", "value"].map(|n| format!("{p}attention.self.{n}"));
         let qkv = qkv.each_ref().map(String::as_str);
         Ok(Layer {
-            qkv: Dense::load(file, &qkv, e, e, ty)?,
-            attn_out: Dense::load(file, &[&format!("{p}attention.output.dense")], e, e, ty)?,
+            qkv: Dense::load(file, &qkv, e, e, true, ty)?,
+            attn_out: Dense::load(
+                file,
+                &[&format!("{p}attention.output.dense")],
+                e,
+                e,
+                true,
+                ty,
+            )?,
             attn_norm: Norm::load(file, &format!("{p}attention.output.LayerNorm"), e)?,
-            intermediate: Dense::load(file, &[&format!("{p}intermediate.dense")], e, i, ty)?,
-            output: Dense::load(file, &[&format!("{p}output.dense")], i, e, ty)?,
+            intermediate: Dense::load(file, &[&format!("{p}intermediate.dense")], e, i, true, ty)?,
+            output: Dense::load(file, &[&format!("{p}output.dense")], i, e, true, ty)?,
             out_norm: Norm::load(file, &format!("{p}output.LayerNorm"), e)?,
         })
     }
@@ -270,7 +231,7 @@ impl TextEncoder {
         let layers = (0..cfg.num_layers)
             .map(|i| Layer::load(file, &format!("{p}encoder.layer.{i}."), dims, ty))
             .collect::<Result<Vec<_>>>()?;
-        let pooler = Dense::load(file, &[&format!("{p}pooler.dense")], e, e, ty)?;
+        let pooler = Dense::load(file, &[&format!("{p}pooler.dense")], e, e, true, ty)?;
         let tokenizer = TextTokenizer::from_json(tokenizer_json, cfg.vocab_size, cfg.pad_token_id)?;
         if cfg.max_length < tokenizer.num_special_tokens() + 1 {
             return Err(bad_file!(
@@ -301,10 +262,10 @@ impl TextEncoder {
         let layer = |l: &Layer| {
             [&l.qkv, &l.attn_out, &l.intermediate, &l.output]
                 .iter()
-                .map(|d| d.0.weights().bytes())
+                .map(|d| d.weight_bytes())
                 .sum::<usize>()
         };
-        self.layers.iter().map(layer).sum::<usize>() + self.pooler.0.weights().bytes()
+        self.layers.iter().map(layer).sum::<usize>() + self.pooler.weight_bytes()
     }
 
     pub fn kind(&self) -> EncoderKind {

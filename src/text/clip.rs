@@ -16,10 +16,10 @@ use serde::Deserialize;
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{
-    add_inplace, embedding, layer_norm, multi_head_attention, quick_gelu, Activation, PackedLinear,
-    WeightType,
+    add_inplace, embedding, multi_head_attention, quick_gelu, Activation, WeightType,
 };
 
+use super::layers::{Dense, Norm};
 use super::tokenizer::TextTokenizer;
 
 /// The CLIP text tower's sizes (ViT-B/32: vocab 49408, width 512, 12 layers, 8 heads,
@@ -61,63 +61,6 @@ pub struct ClipOutput {
     pub pooled_index: usize,
 }
 
-/// Linear layers in PyTorch layout (`weight [out, in]`) sharing an input, stacked into one
-/// packed GEMM whose outputs sit side by side (one layer, or q|k|v); biases all or none.
-struct Dense(PackedLinear);
-
-impl Dense {
-    fn load(
-        file: &ModelFile,
-        names: &[&str],
-        n_in: usize,
-        n_out: usize,
-        bias: bool,
-        ty: WeightType,
-    ) -> Result<Dense> {
-        let (mut w, mut b) = (Vec::new(), Vec::new());
-        for name in names {
-            w.extend_from_slice(
-                file.tensor(&format!("{name}.weight"), &[n_out, n_in])?
-                    .data(),
-            );
-            file.release(&format!("{name}.weight"));
-            if bias {
-                b.extend_from_slice(file.tensor(&format!("{name}.bias"), &[n_out])?.data());
-            }
-        }
-        let n = names.len() * n_out;
-        let b = bias.then_some(&b[..]);
-        Ok(Dense(PackedLinear::new(&w, b, n_in, n, ty)))
-    }
-
-    /// `x [rows, n_in]` → `[rows, n_out]`.
-    fn apply(&self, x: &[f32], rows: usize) -> Vec<f32> {
-        let mut y = vec![0f32; rows * self.0.outputs()];
-        self.0.forward(x, rows, &mut y, Activation::None);
-        y
-    }
-}
-
-struct Norm {
-    gamma: Tensor,
-    beta: Tensor,
-}
-
-impl Norm {
-    fn load(file: &ModelFile, name: &str, dim: usize) -> Result<Norm> {
-        let gamma = file.tensor(&format!("{name}.weight"), &[dim])?;
-        let beta = file.tensor(&format!("{name}.bias"), &[dim])?;
-        Ok(Norm { gamma, beta })
-    }
-
-    /// A normalised copy of `x`.
-    fn apply(&self, x: &[f32], dim: usize, eps: f32) -> Vec<f32> {
-        let mut y = x.to_vec();
-        layer_norm(&mut y, dim, self.gamma.data(), self.beta.data(), eps);
-        y
-    }
-}
-
 /// One pre-LN residual block.
 struct Block {
     ln1: Norm,
@@ -149,7 +92,7 @@ impl Block {
     /// x ← x + out(causal_attn(LN1 x)); x ← x + fc2(QuickGELU(fc1(LN2 x))).
     fn forward(&self, x: &mut [f32], n: usize, w: usize, heads: usize, eps: f32) {
         let h = self.ln1.apply(x, w, eps);
-        let qkv = self.qkv.apply(&h, n);
+        let qkv = self.qkv.apply(&h, n, Activation::None);
         let mut ctx = vec![0f32; n * w];
         multi_head_attention(
             &qkv,
@@ -166,11 +109,11 @@ impl Block {
             true,
             &mut ctx,
         );
-        add_inplace(x, &self.out.apply(&ctx, n));
+        add_inplace(x, &self.out.apply(&ctx, n, Activation::None));
         let h = self.ln2.apply(x, w, eps);
-        let mut m = self.fc1.apply(&h, n);
+        let mut m = self.fc1.apply(&h, n, Activation::None);
         quick_gelu(&mut m);
-        add_inplace(x, &self.fc2.apply(&m, n));
+        add_inplace(x, &self.fc2.apply(&m, n, Activation::None));
     }
 }
 
@@ -263,10 +206,10 @@ impl ClipTextEncoder {
         let block = |b: &Block| {
             [&b.qkv, &b.out, &b.fc1, &b.fc2]
                 .iter()
-                .map(|d| d.0.weights().bytes())
+                .map(|d| d.weight_bytes())
                 .sum::<usize>()
         };
-        self.blocks.iter().map(block).sum::<usize>() + self.projection.0.weights().bytes()
+        self.blocks.iter().map(block).sum::<usize>() + self.projection.weight_bytes()
     }
 
     pub fn config(&self) -> &ClipConfig {
@@ -346,7 +289,7 @@ impl ClipTextEncoder {
             .enumerate()
             .fold(0, |best, (i, &id)| if id > ids[best] { i } else { best });
         let pooled = tokens[pooled_index * w..(pooled_index + 1) * w].to_vec();
-        let projected = self.projection.apply(&pooled, 1);
+        let projected = self.projection.apply(&pooled, 1, Activation::None);
         Ok(ClipOutput {
             ids: ids.to_vec(),
             tokens,

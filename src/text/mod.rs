@@ -10,6 +10,7 @@
 
 pub mod bert;
 pub mod clip;
+mod layers;
 pub mod tokenizer;
 
 pub use bert::{roberta_position_ids, EncoderKind, TextEncoder, TextOutput};
