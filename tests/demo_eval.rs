@@ -21,7 +21,8 @@ use std::sync::Arc;
 mod common;
 
 use common::{demo_model, repo};
-use flame::demo::{classify, Confusion, Family};
+use flame::demo::classify::{self, Features};
+use flame::demo::{Confusion, Family};
 use flame::models::Model;
 use flame::motion::{Convention, Poses};
 use flame::session::{Session, SessionParams};
@@ -49,13 +50,15 @@ fn prompts() -> Vec<(Family, String)> {
         .collect()
 }
 
-/// What `flame generate --prompt P --seed S` produces, labelled.
-fn generate_and_classify(model: &Arc<Model>, prompt: &str, seed: u64) -> Family {
+/// What `flame generate --prompt P --seed S` produces, labelled, with the measurements the
+/// label was decided on.
+fn generate_and_classify(model: &Arc<Model>, prompt: &str, seed: u64) -> (Family, Features) {
     let env = |name: &str| std::env::var(name).ok().map(|v| v.parse().unwrap());
     let params = SessionParams {
         seed,
         guidance: env("FLAME_DEMO_EVAL_GUIDANCE"),
         steps: env("FLAME_DEMO_EVAL_STEPS").map(|s: f32| s as usize),
+        frames: env("FLAME_DEMO_EVAL_FRAMES").map(|s: f32| s as usize),
         ..SessionParams::default()
     };
     let mut session = Session::new(Arc::clone(model), &params).unwrap();
@@ -71,7 +74,8 @@ fn generate_and_classify(model: &Arc<Model>, prompt: &str, seed: u64) -> Family 
     )
     .unwrap();
     let fps = model.config().motion.fps as f64;
-    classify::classify(&poses.positions(Convention::Native), frames, fps)
+    let features = classify::features(&poses.positions(Convention::Native), frames, fps);
+    (classify::decide(&features), features)
 }
 
 #[test]
@@ -87,10 +91,10 @@ fn held_out_prompts_are_classified_as_intended() {
     let mut misses = Vec::new();
     for (family, prompt) in &prompts {
         for seed in SEEDS {
-            let got = generate_and_classify(&model, prompt, seed);
+            let (got, f) = generate_and_classify(&model, prompt, seed);
             confusion.add(*family, got);
             if got != *family {
-                misses.push(format!("  {prompt:?} seed {seed}: {}", got.name()));
+                misses.push(format!("  {prompt:?} seed {seed}: {}\n    {f:.2?}", got.name()));
             }
         }
     }

