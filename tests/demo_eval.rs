@@ -94,7 +94,10 @@ fn held_out_prompts_are_classified_as_intended() {
             let (got, f) = generate_and_classify(&model, prompt, seed);
             confusion.add(*family, got);
             if got != *family {
-                misses.push(format!("  {prompt:?} seed {seed}: {}\n    {f:.2?}", got.name()));
+                misses.push(format!(
+                    "  {prompt:?} seed {seed}: {}\n    {f:.2?}",
+                    got.name()
+                ));
             }
         }
     }
