@@ -9,11 +9,10 @@
 //! the committed denoiser assembled here with `$FLAME_MINILM_DIR`. Skipped without any of them
 //! unless FLAME_REQUIRE_REAL_WEIGHTS=1.
 //!
-//! Status: the issue asks for 80%; the shipped model (3922 training steps, docs/demo_training.md)
-//! reaches 60.7% (91 of 150), so the assertion is a regression floor below that, not the target.
+//! The shipped model (docs/demo_training.md, phase 3) measures 92.7% (139 of 150) here.
 //! Settings are tuned on corpus sentences, never on these prompts: `FLAME_DEMO_EVAL_PROMPTS`
 //! (a family<TAB>prompt file), `FLAME_DEMO_EVAL_GUIDANCE` and `FLAME_DEMO_EVAL_STEPS` override
-//! the prompts and the model's defaults for such runs.
+//! the prompts and the model's defaults for such runs, `FLAME_DEMO_EVAL_FRAMES` the length.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -28,11 +27,8 @@ use flame::motion::{Convention, Poses};
 use flame::session::{Session, SessionParams};
 
 const SEEDS: [u64; 3] = [0, 1, 2];
-/// What the issue asks of a demo model.
+/// What the issue asks of a demo model (the shipped one measures 0.927).
 const TARGET_ACCURACY: f64 = 0.80;
-/// What the shipped model must keep (it measures 0.607): a drop means the runtime changed what
-/// the model generates.
-const MIN_ACCURACY: f64 = 0.55;
 
 fn prompts() -> Vec<(Family, String)> {
     let path = std::env::var_os("FLAME_DEMO_EVAL_PROMPTS").map_or_else(
@@ -111,19 +107,10 @@ fn held_out_prompts_are_classified_as_intended() {
         confusion.total()
     );
     println!("misses:\n{}", misses.join("\n"));
-    println!(
-        "issue target {:.0}%: {}",
-        100.0 * TARGET_ACCURACY,
-        if confusion.accuracy() >= TARGET_ACCURACY {
-            "met"
-        } else {
-            "NOT met"
-        }
-    );
     assert!(
-        confusion.accuracy() >= MIN_ACCURACY,
+        confusion.accuracy() >= TARGET_ACCURACY,
         "accuracy {:.1}% < {:.0}%",
         100.0 * confusion.accuracy(),
-        100.0 * MIN_ACCURACY
+        100.0 * TARGET_ACCURACY
     );
 }

