@@ -322,5 +322,31 @@ fn cli_generates_and_checks_a_corpus() {
         .unwrap();
     let got = String::from_utf8_lossy(&out.stdout).trim().to_string();
     assert!(Family::from_name(&got).is_some(), "{got}");
+
+    // The same motion as joint positions (what `flame generate --positions` writes) gets the
+    // same label; any other shape is refused with a message.
+    let (_, features) = flame::npy::read_f32(&dir.join("motions/000000.npy")).unwrap();
+    let positions: Vec<f32> = flame::demo::classify::positions_of(&features, frames)
+        .unwrap()
+        .iter()
+        .flat_map(|p| p.map(|v| v as f32))
+        .collect();
+    let pos_file = dir.join("positions.npy");
+    flame::npy::write_f32(&pos_file, &[frames, 24, 3], &positions).unwrap();
+    let out = std::process::Command::new(bin)
+        .args(["classify", pos_file.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), got);
+    flame::npy::write_f32(&pos_file, &[frames, 72], &positions).unwrap();
+    let out = std::process::Command::new(bin)
+        .args(["classify", pos_file.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("[frames, 24, 3]"),
+        "{err}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
