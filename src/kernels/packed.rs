@@ -393,6 +393,14 @@ impl Job<'_> {
         }
         for i0 in (r0..r1).step_by(MR) {
             let rows = MR.min(r1 - i0);
+            // The next tile's output rows are far apart (stride n) and, in wide layers, not in
+            // cache: ask for them now so the kernel's loads (K blocks after the first) and
+            // stores do not wait on memory. A hint only; it changes no result.
+            if i0 + MR < r1 {
+                self.prefetch_tile(i0 + MR, MR.min(r1 - i0 - MR), c0);
+            } else if c0 + NR < n {
+                self.prefetch_tile(r0, MR.min(r1 - r0), c0 + NR);
+            }
             // Missing rows of an edge tile repeat the last real row; their results are dropped.
             let a: [*const f32; MR] = std::array::from_fn(|i| {
                 // SAFETY: row i0 + min(i, rows-1) < m and kb < k, inside the checked m×k.
@@ -427,6 +435,29 @@ impl Job<'_> {
                 }
             }
         }
+    }
+
+    /// Hints the cache lines of the output tile at rows `r..r + rows`, columns `c0..c0 + NR`.
+    #[inline(always)]
+    fn prefetch_tile(&self, r: usize, rows: usize, c0: usize) {
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx2 {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let cols = NR.min(self.w.n - c0);
+            for i in 0..rows {
+                // wrapping_add: forming the address needs no unsafe; it is inside y anyway
+                // (r + i < m, c0 + cols ≤ n), and a prefetch never faults.
+                let first = self.y.get().wrapping_add((r + i) * self.w.n + c0);
+                let last = first.wrapping_add(cols - 1);
+                // SAFETY: prefetch is a hint that reads nothing architecturally.
+                unsafe {
+                    _mm_prefetch::<_MM_HINT_T0>(first as *const i8);
+                    _mm_prefetch::<_MM_HINT_T0>(last as *const i8);
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (r, rows, c0);
     }
 
     /// Columns `c0..c1` of output row `r`.
