@@ -116,6 +116,11 @@ pub(crate) fn detected_isa() -> Isa {
 #[repr(C, align(64))]
 struct Line([u8; 64]);
 
+/// A panel slice widened to f32, aligned like the packed panels: each panel row is one
+/// 64-byte line, so the kernel's two 32-byte loads per row never straddle lines.
+#[repr(C, align(64))]
+struct Widened([f32; KC * NR]);
+
 /// A `Linear` weight `[n, k]` packed into [`NR`]-column panels.
 pub struct PackedWeights {
     k: usize,
@@ -344,7 +349,7 @@ impl Job<'_> {
         }
         // Half-precision panel slices widened once per M block (see `panel`); on the stack, so
         // a call allocates nothing.
-        let mut widened = [0.0f32; KC * NR];
+        let mut widened = Widened([0.0; KC * NR]);
         for kb in (0..k).step_by(KC) {
             let kc = KC.min(k - kb);
             let (first, last) = (kb == 0, kb + kc == k);
@@ -368,7 +373,7 @@ impl Job<'_> {
         r0: usize,
         r1: usize,
         j: usize,
-        widened: &mut [f32; KC * NR],
+        widened: &mut Widened,
     ) {
         let (k, n) = (self.w.k, self.w.n);
         let c0 = j * NR;
@@ -387,8 +392,8 @@ impl Job<'_> {
         if self.isa == Isa::Avx2 && ty != WeightType::F32 && r1 - r0 > MR {
             // SAFETY: the panel slice holds kc × NR values of `ty` (kb + kc ≤ k); `widened`
             // has room for KC × NR ≥ kc × NR; the CPU has f16c and avx2 (Isa::Avx2).
-            unsafe { avx2::widen(ty, b as *const u16, widened.as_mut_ptr(), kc * NR) };
-            b = widened.as_ptr() as *const u8;
+            unsafe { avx2::widen(ty, b as *const u16, widened.0.as_mut_ptr(), kc * NR) };
+            b = widened.0.as_ptr() as *const u8;
             ty = WeightType::F32;
         }
         for i0 in (r0..r1).step_by(MR) {
