@@ -15,6 +15,12 @@ What is timed (as people run these models today):
   step      one guided denoising step: the batch-2 network forward, the guidance mix and a DDIM
             (eta 0) update.
   gen       `steps` such steps, text features computed once.
+
+    python3 tools/bench_torch.py --gemm [--threads 2] [--runs 9]
+
+prints GFLOP/s of `torch.nn.functional.linear` (x · Wᵀ + b, f32) on the shapes
+`flame-bench gemm` times (FLAME-base and MDM-sized layers at 196 frames, a 1536³ square),
+medians of `runs`: the BLAS side of "the machine's GEMM peak".
 """
 import argparse
 import json
@@ -83,17 +89,48 @@ def mdm_runner(path, frames, guidance):
     return None, feats, x, step
 
 
+# The shapes of `flame-bench gemm` (M x K x N).
+GEMM_SHAPES = [
+    ("attn qkv", 398, 768, 2304), ("attn q/out", 398, 768, 768), ("ffn up", 398, 768, 2048),
+    ("ffn down", 398, 2048, 768), ("mdm qkv", 394, 512, 1536), ("mdm out", 394, 512, 512),
+    ("mdm ffn up", 394, 512, 1024), ("mdm ffn down", 394, 1024, 512),
+    ("text 20x768x3072", 20, 768, 3072), ("square 1536", 1536, 1536, 1536),
+]
+
+
+def gemm(runs):
+    gen = torch.Generator().manual_seed(0)
+    print(f"torch {torch.__version__} linear GFLOP/s, {torch.get_num_threads()} threads, "
+          f"median of {runs}:")
+    for name, m, k, n in GEMM_SHAPES:
+        x, w, b = (torch.randn(*s, generator=gen) for s in ((m, k), (n, k), (n,)))
+        torch.nn.functional.linear(x, w, b)
+        times = []
+        for _ in range(runs):
+            t = time.perf_counter()
+            torch.nn.functional.linear(x, w, b)
+            times.append(time.perf_counter() - t)
+        print(f"  {name:<18} {f'{m}x{k}x{n}':>16} {2 * m * k * n / statistics.median(times) / 1e9:10.1f}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", required=True)
+    ap.add_argument("--gemm", action="store_true", help="time linear layers only (no model)")
+    ap.add_argument("--model")
     ap.add_argument("--frames", type=int, default=196)
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=int, help="default 3 (model) or 9 (--gemm)")
     ap.add_argument("--guidance", type=float, default=2.5)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.set_num_interop_threads(1)
+    if a.gemm:
+        gemm(a.runs or 9)
+        return
+    a.runs = a.runs or 3
+    if not a.model:
+        ap.error("--model is required (or --gemm)")
 
     from safetensors import safe_open
     with safe_open(a.model, "pt") as f:
