@@ -2015,7 +2015,12 @@ static int wait_for_threads(int n) {
 
 /* flame_session_free joins the session's worker threads (and a load joins its temporary
  * pool): nothing of libflame is left running once a call returns. Threads that merely exit
- * soon after make this racy, so each is tried several times and any leftover counts. */
+ * soon after make this racy, so each is tried several times and leftovers are counted.
+ * Joined threads can still be listed for a moment: pthread_join returns when the kernel
+ * clears the thread id, slightly before the task leaves /proc/self/task, and on a loaded
+ * machine the exiting thread may be descheduled in between (seen once in CI). So one
+ * lagging try of the 3 or 10 sessions is tolerated; a pool that is not joined leaves threads
+ * behind on nearly every try. */
 static void test_threads_joined(void) {
     if (count_threads("") < 0) {
         return; /* no /proc */
@@ -2060,7 +2065,7 @@ static void test_threads_joined(void) {
     flame_model_free(m);
     CHECK(wait_for_threads(base) == base); /* they do go, eventually */
     CHECK(left_by_load == 0); /* flame_model_load's temporary pool is joined before it returns */
-    CHECK(left_by_free == 0); /* flame_session_free joins the session's workers */
+    CHECK(left_by_free <= 1); /* flame_session_free joins the session's workers */
 }
 
 /* Runs one test; FLAME_TEST_TIMES=1 prints how long it took. */
