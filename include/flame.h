@@ -267,6 +267,26 @@ typedef struct FlameEditParams {
   uint32_t seam_frames;
 } FlameEditParams;
 
+// What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
+// encoder's window. Set `struct_size = sizeof(FlamePromptInfo)` first.
+typedef struct FlamePromptInfo {
+  uint32_t struct_size;
+  // Tokens of the whole prompt, special tokens included.
+  uint32_t tokens;
+  // Tokens the text encoder saw (at most `window`).
+  uint32_t kept;
+  // The encoder's window: the most tokens it sees, special tokens included.
+  uint32_t window;
+  // 1 when the window cut the prompt (`tokens > kept`).
+  uint32_t truncated;
+  // 1 when the prompt is empty or blank: generation without text (the model's
+  // unconditional input, no guidance pass).
+  uint32_t unconditional;
+  // The text that was cut off, UTF-8 ("" when nothing was). Owned by the session: valid
+  // until its next `flame_session_set_prompt` or `flame_session_free`.
+  const char *dropped;
+} FlamePromptInfo;
+
 // Called after every step with the caller's `user_data`, the steps done and the total.
 // NULL (no callback) is allowed wherever one is passed.
 typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint32_t steps_total);
@@ -370,6 +390,15 @@ enum FlameStatus flame_session_reset(struct FlameSession *session);
 // # Safety
 // `session` is a live session; `prompt` a NUL-terminated string.
 enum FlameStatus flame_session_set_prompt(struct FlameSession *session, const char *prompt);
+
+// Reports how the last prompt fitted the text encoder's window (tokens kept, whether it was
+// cut and the text that was dropped). `WRONG_STATE` before a prompt is set.
+//
+// # Safety
+// `session` is a live session; `info` points to a writable `FlamePromptInfo` whose
+// `struct_size` is set.
+enum FlameStatus flame_session_prompt_info(const struct FlameSession *session,
+                                           struct FlamePromptInfo *info);
 
 // Sets the initial noise x_T explicitly: `len` = frames × feature_dim values, frame-major.
 // Only before the first step (or after a reset).

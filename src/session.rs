@@ -13,6 +13,7 @@ use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Condition, Model, Workspace};
 use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
+use crate::text::PromptInfo;
 
 /// Which reverse process a session runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -68,6 +69,7 @@ pub struct Session {
     seed: u64,
     rule: StepRule,
     cond: Option<Condition>,
+    prompt_info: Option<PromptInfo>,
     pool: Arc<WorkerPool>,
     noise: Box<dyn NoiseSource>,
     initial_noise: Option<Vec<f32>>,
@@ -213,6 +215,7 @@ impl Session {
             seed: params.seed,
             rule,
             cond: None,
+            prompt_info: None,
             pool,
             noise: Box::new(GaussianRng::new(params.seed)),
             initial_noise: None,
@@ -246,11 +249,30 @@ impl Session {
     }
 
     /// Encodes and sets the prompt. Allowed between steps: it takes effect at the next step.
+    /// A prompt longer than the text encoder's window is cut ([`Session::prompt_info`] says
+    /// what was kept); an empty or blank prompt is unconditional generation: the model's
+    /// unconditional input (the empty prompt's encoding, or MDM's zero text vector) with no
+    /// guidance pass.
     pub fn set_prompt(&mut self, prompt: &str) -> Result<()> {
         let model = Arc::clone(&self.model);
-        let cond = self.pool.install(|| model.encode_prompt(prompt))?;
+        let (cond, info) = self.pool.install(|| -> Result<_> {
+            let info = model.prompt_info(prompt)?;
+            let cond = if info.unconditional {
+                model.uncond()?.clone()
+            } else {
+                model.encode_prompt(prompt)?
+            };
+            Ok((cond, info))
+        })?;
         self.cond = Some(cond);
+        self.prompt_info = Some(info);
         Ok(())
+    }
+
+    /// How the last prompt fitted the text encoder's window (`None` before a prompt, or after
+    /// [`Session::set_condition`]).
+    pub fn prompt_info(&self) -> Option<&PromptInfo> {
+        self.prompt_info.as_ref()
     }
 
     /// Sets a precomputed condition (for example a text vector computed elsewhere) instead of
@@ -258,6 +280,7 @@ impl Session {
     pub fn set_condition(&mut self, cond: Condition) -> Result<()> {
         self.model.check_condition(&cond)?;
         self.cond = Some(cond);
+        self.prompt_info = None;
         Ok(())
     }
 
@@ -580,7 +603,9 @@ impl Session {
             }
             _ => None,
         };
-        let guided = self.guidance != 1.0;
+        // A blank prompt's condition is the unconditional input: guiding it changes nothing.
+        let unconditional = self.prompt_info.as_ref().is_some_and(|p| p.unconditional);
+        let guided = self.guidance != 1.0 && !unconditional;
         let p = Predictor {
             model: &model,
             frames: self.frames,

@@ -11,6 +11,8 @@
 //! It skips while the demo model is not in the repository; FLAME_DEMO_DENOISER and
 //! FLAME_DEMO_PARITY point it at other files (tools/demo/build_demo.sh does).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use flame::assemble::{assemble, TEXT_ASSEMBLED_KEY, TEXT_SOURCE_KEY};
@@ -284,16 +286,6 @@ fn env_or_repo(var: &str, repo_path: &str) -> PathBuf {
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(repo_path))
 }
 
-fn minilm_dir() -> Option<PathBuf> {
-    if let Some(dir) = std::env::var_os("FLAME_MINILM_DIR") {
-        return Some(dir.into());
-    }
-    if std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1") {
-        panic!("FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set");
-    }
-    None
-}
-
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len(), "length mismatch");
     a.iter()
@@ -313,11 +305,17 @@ fn demo_model_matches_pytorch() {
         "models/demo/flame_demo_parity.safetensors",
     );
     if !denoiser.exists() {
-        println!("skipped: no demo model at {}", denoiser.display());
+        common::skip(
+            "assemble::demo_model_matches_pytorch",
+            &format!("no demo model at {}", denoiser.display()),
+        );
         return;
     }
-    let Some(minilm) = minilm_dir() else {
-        println!("skipped: set FLAME_MINILM_DIR");
+    let Some(minilm) = common::minilm_dir() else {
+        common::skip(
+            "assemble::demo_model_matches_pytorch",
+            "no all-MiniLM-L6-v2 (set FLAME_MINILM_DIR or run tools/try.sh)",
+        );
         return;
     };
     let dir = scratch("demo");

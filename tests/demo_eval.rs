@@ -77,7 +77,10 @@ fn generate_and_classify(model: &Arc<Model>, prompt: &str, seed: u64) -> (Family
 #[test]
 fn held_out_prompts_are_classified_as_intended() {
     let Some(path) = demo_model() else {
-        println!("skipped: no demo model (set FLAME_MINILM_DIR to assemble it)");
+        common::skip(
+            "demo_eval::held_out_prompts_are_classified_as_intended",
+            "no demo model (set FLAME_MINILM_DIR or run tools/try.sh to assemble it)",
+        );
         return;
     };
     let model = Arc::new(Model::load(&path).unwrap());

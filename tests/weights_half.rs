@@ -47,7 +47,10 @@ fn half_weights_stay_close_to_f32_after_10_steps_on_a_trained_model() {
     // use here: they amplify any rounding over 10 steps (the tiny FLAME fixture stored in f16
     // diverges from its f32 self by ~1).
     let Some(path) = demo_model() else {
-        eprintln!("skipped: FLAME_MINILM_DIR not set");
+        common::skip(
+            "weights_half::half_weights_stay_close_to_f32_after_10_steps_on_a_trained_model",
+            "no demo model (set FLAME_MINILM_DIR or run tools/try.sh)",
+        );
         return;
     };
     let open = |weights| Arc::new(Model::load_with(&path, &LoadOptions { weights }).unwrap());

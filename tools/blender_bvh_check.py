@@ -13,13 +13,16 @@ the joint positions libflame expects.
   (default 0.001), 2 on a usage or import problem.
 
 Debian's Blender 3.4 importer opens files with mode 'rU', which its Python 3.11 rejects; the mode
-is mapped to 'r' around the import.
+is mapped to 'r' around the import (tools/blender_import_bvh.py, also usable on its own).
 """
-import builtins
+import os
 import struct
 import sys
 import time
 import traceback
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from blender_import_bvh import import_bvh  # noqa: E402
 
 
 def load_npy_f32(path):
@@ -83,23 +86,11 @@ def main():
     import bpy
 
     (frames, joints, _), flat = load_npy_f32(expected_path)
-    real_open = builtins.open
-
-    def open_without_u(file, mode="r", *args, **kwargs):
-        if isinstance(mode, str) and "U" in mode:
-            mode = mode.replace("U", "") or "r"
-        return real_open(file, mode, *args, **kwargs)
-
     t0 = time.time()
-    builtins.open = open_without_u
-    try:
-        # Defaults spelled out: axis_forward '-Z', axis_up 'Y', scale 1, native Euler order,
-        # first BVH frame on scene frame 1.
-        result = bpy.ops.import_anim.bvh(filepath=bvh_path, axis_forward="-Z", axis_up="Y",
-                                         global_scale=1.0, rotate_mode="NATIVE", frame_start=1,
-                                         use_fps_scale=False)
-    finally:
-        builtins.open = real_open
+    # Defaults spelled out: axis_forward '-Z', axis_up 'Y', scale 1, native Euler order,
+    # first BVH frame on scene frame 1.
+    result = import_bvh(bvh_path, axis_forward="-Z", axis_up="Y", global_scale=1.0,
+                        rotate_mode="NATIVE", frame_start=1, use_fps_scale=False)
     if "FINISHED" not in result:
         print(f"import failed: {result}")
         sys.exit(2)

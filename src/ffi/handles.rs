@@ -6,7 +6,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, TryLockError};
 
 use super::errors::Fail;
-use super::{FlameModelInfo, FlameProgressCallback, FlameSampler, FlameWhich};
+use super::{FlameModelInfo, FlameProgressCallback, FlamePromptInfo, FlameSampler, FlameWhich};
 use crate::error::{invalid_arg, Error};
 use crate::models::Model;
 use crate::session::Session;
@@ -108,6 +108,8 @@ pub(crate) struct Progress {
 pub(crate) struct SessionState {
     pub(crate) session: Session,
     progress: Option<Progress>,
+    /// The last prompt's dropped text, which `FlamePromptInfo.dropped` points into.
+    dropped: CString,
 }
 
 // SAFETY: `user_data` is the caller's and only handed back to the caller's callback, on the
@@ -131,6 +133,7 @@ impl FlameSession {
             state: Mutex::new(SessionState {
                 session,
                 progress: None,
+                dropped: CString::default(),
             }),
         }
     }
@@ -232,6 +235,32 @@ impl SessionState {
         let mut mask = crate::motion::Mask::from_flags(format, self.session.frames(), &flags)?;
         mask.keep_part(part, start, end)?;
         Ok(self.session.set_mask_from(&mask)?)
+    }
+
+    /// Sets the prompt and keeps its dropped text for [`SessionState::prompt_info`].
+    pub(crate) fn set_prompt(&mut self, text: &str) -> Result<(), Fail> {
+        self.session.set_prompt(text)?;
+        let dropped = self.session.prompt_info().map_or("", |p| &p.dropped);
+        self.dropped = cstring(dropped);
+        Ok(())
+    }
+
+    /// The last prompt's fit; `dropped` points into the state, valid until the next prompt.
+    pub(crate) fn prompt_info(&self) -> Result<FlamePromptInfo, Fail> {
+        let info = self
+            .session
+            .prompt_info()
+            .ok_or_else(|| Error::WrongState("no prompt has been set".into()))?;
+        let count = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+        Ok(FlamePromptInfo {
+            struct_size: std::mem::size_of::<FlamePromptInfo>() as u32,
+            tokens: count(info.tokens),
+            kept: count(info.kept),
+            window: count(info.window),
+            truncated: info.truncated() as u32,
+            unconditional: info.unconditional as u32,
+            dropped: self.dropped.as_ptr(),
+        })
     }
 
     pub(crate) fn set_progress(&mut self, callback: FlameProgressCallback, user_data: *mut c_void) {

@@ -217,6 +217,28 @@ pub struct FlameModelInfo {
     pub joint_parents: *const i32,
 }
 
+/// What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
+/// encoder's window. Set `struct_size = sizeof(FlamePromptInfo)` first.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlamePromptInfo {
+    pub struct_size: u32,
+    /// Tokens of the whole prompt, special tokens included.
+    pub tokens: u32,
+    /// Tokens the text encoder saw (at most `window`).
+    pub kept: u32,
+    /// The encoder's window: the most tokens it sees, special tokens included.
+    pub window: u32,
+    /// 1 when the window cut the prompt (`tokens > kept`).
+    pub truncated: u32,
+    /// 1 when the prompt is empty or blank: generation without text (the model's
+    /// unconditional input, no guidance pass).
+    pub unconditional: u32,
+    /// The text that was cut off, UTF-8 ("" when nothing was). Owned by the session: valid
+    /// until its next `flame_session_set_prompt` or `flame_session_free`.
+    pub dropped: *const c_char,
+}
+
 /// Called after every step with the caller's `user_data`, the steps done and the total.
 /// NULL (no callback) is allowed wherever one is passed.
 pub type FlameProgressCallback =
@@ -635,7 +657,34 @@ pub unsafe extern "C" fn flame_session_set_prompt(
     guard(|| {
         let s = session_ref(session)?;
         let text = str_arg(prompt, "prompt")?;
-        s.with(|st| Ok(st.session.set_prompt(text)?))
+        s.with(|st| st.set_prompt(text))
+    })
+}
+
+/// Reports how the last prompt fitted the text encoder's window (tokens kept, whether it was
+/// cut and the text that was dropped). `WRONG_STATE` before a prompt is set.
+///
+/// # Safety
+/// `session` is a live session; `info` points to a writable `FlamePromptInfo` whose
+/// `struct_size` is set.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_prompt_info(
+    session: *const FlameSession,
+    info: *mut FlamePromptInfo,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if info.is_null() {
+            return Err(invalid_arg!("`info` is NULL").into());
+        }
+        check_size(
+            (*info).struct_size,
+            std::mem::size_of::<FlamePromptInfo>(),
+            "info",
+        )?;
+        let out = s.with(|st| st.prompt_info())?;
+        info.write(out);
+        Ok(())
     })
 }
 

@@ -13,7 +13,7 @@ use crate::checkpoint::{ModelFile, StoredDtype, Tensor, TOKENIZER_KEY};
 use crate::config::{Config, DenoiserConfig, TextConfig};
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
-use crate::text::{ClipTextEncoder, TextEncoder};
+use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
 
 pub use crate::kernels::WeightType;
 pub use flame::{FlameCondition, FlameDenoiser};
@@ -280,6 +280,18 @@ impl Model {
                 Ok(Condition::Mdm(encoder.encode(prompt, *context)?.projected))
             }
             _ => unreachable!("text encoder and denoiser are paired at load"),
+        }
+    }
+
+    /// How `prompt` fits the text encoder's window: tokens kept, tokens cut and the cut text.
+    pub fn prompt_info(&self, prompt: &str) -> Result<PromptInfo> {
+        match &self.text {
+            TextModel::Bert(t) => {
+                let mut info = t.tokenizer().fit(prompt, t.max_length())?;
+                info.unconditional = prompt.trim().is_empty();
+                Ok(info)
+            }
+            TextModel::Clip { encoder, context } => encoder.fit(prompt, *context),
         }
     }
 

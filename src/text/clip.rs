@@ -20,7 +20,7 @@ use crate::kernels::{
 };
 
 use super::layers::{Dense, Norm};
-use super::tokenizer::TextTokenizer;
+use super::tokenizer::{PromptInfo, TextTokenizer};
 
 /// The CLIP text tower's sizes (ViT-B/32: vocab 49408, width 512, 12 layers, 8 heads,
 /// projection 512; the MLP is always 4·width).
@@ -234,18 +234,31 @@ impl ClipTextEncoder {
     /// token takes the place of the last kept one), then 0s. `context_length` must be in
     /// `2..=` [`ClipTextEncoder::context_length`] (MDM: 22). Any text is accepted.
     pub fn tokenize(&self, text: &str, context_length: usize) -> Result<Vec<u32>> {
-        if context_length < 2 || context_length > self.cfg.context_length {
-            return Err(invalid_arg!(
-                "context_length {context_length} is not between 2 and the encoder's {}",
-                self.cfg.context_length
-            ));
-        }
+        self.check_context(context_length)?;
         let mut ids = self
             .tokenizer
             .encode(&clean_text(text), context_length, false)?
             .ids;
         ids.resize(self.cfg.context_length, 0);
         Ok(ids)
+    }
+
+    /// How `text` fits `context_length` tokens, cut as [`ClipTextEncoder::tokenize`] cuts it.
+    pub fn fit(&self, text: &str, context_length: usize) -> Result<PromptInfo> {
+        self.check_context(context_length)?;
+        let mut info = self.tokenizer.fit(&clean_text(text), context_length)?;
+        info.unconditional = text.trim().is_empty();
+        Ok(info)
+    }
+
+    fn check_context(&self, context_length: usize) -> Result<()> {
+        if context_length < 2 || context_length > self.cfg.context_length {
+            return Err(invalid_arg!(
+                "context_length {context_length} is not between 2 and the encoder's {}",
+                self.cfg.context_length
+            ));
+        }
+        Ok(())
     }
 
     /// Tokenizes `text` with [`ClipTextEncoder::tokenize`] and runs the tower.

@@ -15,4 +15,4 @@ pub mod tokenizer;
 
 pub use bert::{roberta_position_ids, EncoderKind, TextEncoder, TextOutput};
 pub use clip::{ClipConfig, ClipOutput, ClipTextEncoder};
-pub use tokenizer::{TextTokenizer, Tokens};
+pub use tokenizer::{PromptInfo, TextTokenizer, Tokens};

@@ -27,6 +27,29 @@ impl Tokens {
     }
 }
 
+/// How a prompt fits the text encoder's window: what the encoder saw and what was cut off.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PromptInfo {
+    /// Tokens of the whole prompt, special tokens included.
+    pub tokens: usize,
+    /// Tokens the encoder saw (at most `window`).
+    pub kept: usize,
+    /// The encoder's window: the most tokens it sees, special tokens included.
+    pub window: usize,
+    /// The text that was cut off (empty when nothing was): the prompt from its first dropped
+    /// token on, as the tokenizer saw it (CLIP lower-cases and cleans the text first).
+    pub dropped: String,
+    /// The prompt is empty or blank: the generation runs on the unconditional input alone.
+    pub unconditional: bool,
+}
+
+impl PromptInfo {
+    /// Whether the window cut the prompt.
+    pub fn truncated(&self) -> bool {
+        self.tokens > self.kept
+    }
+}
+
 /// A tokenizer.json tokenizer whose ids are known to fit the encoder's vocabulary.
 ///
 /// The inner tokenizer is never reconfigured after load, so one instance serves many threads;
@@ -145,6 +168,40 @@ impl TextTokenizer {
         Ok(Tokens { ids, mask })
     }
 
+    /// How `text` fits a window of `max_length` tokens (special tokens included), with the
+    /// same cut as [`TextTokenizer::encode`].
+    pub fn fit(&self, text: &str, max_length: usize) -> Result<PromptInfo> {
+        let budget = max_length.checked_sub(self.num_special).ok_or_else(|| {
+            invalid_arg!(
+                "max_length {max_length} leaves no room for the {} special tokens",
+                self.num_special
+            )
+        })?;
+        let enc = catch_unwind(AssertUnwindSafe(|| self.inner.encode(text, false)))
+            .map_err(|_| Error::Tokenizer("the tokenizer panicked on this text".into()))?
+            .map_err(tok_err("cannot tokenize the text"))?;
+        let content = enc.get_ids().len();
+        // Offsets are byte offsets into `text`; a token that starts inside a character (byte
+        // fallback) is moved back to that character's start.
+        let dropped = match enc.get_offsets().get(budget) {
+            Some(&(start, _)) if content > budget => {
+                let mut at = start.min(text.len());
+                while !text.is_char_boundary(at) {
+                    at -= 1;
+                }
+                text[at..].trim().to_string()
+            }
+            _ => String::new(),
+        };
+        Ok(PromptInfo {
+            tokens: content + self.num_special,
+            kept: content.min(budget) + self.num_special,
+            window: max_length,
+            dropped,
+            unconditional: text.trim().is_empty(),
+        })
+    }
+
     fn encode_truncated(&self, text: &str, budget: usize) -> Result<Encoding> {
         let mut enc = self
             .inner
@@ -225,6 +282,31 @@ pub(crate) mod tests {
         }
         assert_eq!(t.encode("", 8, false).unwrap().ids, [2, 3]);
         assert_eq!(t.encode("🙂", 8, false).unwrap().ids, [2, 1, 3]);
+    }
+
+    #[test]
+    fn fit_counts_what_the_window_keeps() {
+        let t = tok();
+        // [CLS] a person walk ##s . [SEP]: 7 tokens.
+        let all = t.fit("A Person walks.", 16).unwrap();
+        assert_eq!((all.tokens, all.kept, all.window), (7, 7, 16));
+        assert!(!all.truncated() && all.dropped.is_empty() && !all.unconditional);
+        // A window of 5 keeps [CLS] a person walk [SEP]: "##s ." is cut, which starts inside
+        // "walks" at byte 13.
+        let cut = t.fit("A Person walks.", 5).unwrap();
+        assert_eq!((cut.tokens, cut.kept), (7, 5));
+        assert!(cut.truncated());
+        assert_eq!(cut.dropped, "s.");
+        assert_eq!(
+            t.encode("A Person walks.", 5, false).unwrap().len(),
+            cut.kept
+        );
+        let exact = t.fit("a person", 4).unwrap();
+        assert_eq!((exact.tokens, exact.kept, exact.truncated()), (4, 4, false));
+        let blank = t.fit("  \t", 4).unwrap();
+        assert_eq!((blank.tokens, blank.kept), (2, 2));
+        assert!(blank.unconditional);
+        assert!(t.fit("a", 1).is_err());
     }
 
     #[test]

@@ -602,6 +602,51 @@ static void test_reset(const FlameModel *m) {
     flame_session_free(s);
 }
 
+/* ---- what a prompt became ---------------------------------------------------------------- */
+
+static void test_prompt_info(const FlameModel *m) {
+    FlameSession *s = ref_session(m);
+    FlamePromptInfo info;
+    memset(&info, 0, sizeof info);
+    info.struct_size = sizeof info;
+    CHECK_ERROR_MENTIONS(flame_session_prompt_info(s, &info), FLAME_STATUS_WRONG_STATE,
+                         "no prompt");
+    CHECK_ERROR_MENTIONS(flame_session_prompt_info(NULL, &info), FLAME_STATUS_INVALID_ARGUMENT,
+                         "session");
+    CHECK_ERROR_MENTIONS(flame_session_prompt_info(s, NULL), FLAME_STATUS_INVALID_ARGUMENT,
+                         "info");
+
+    /* The tiny model's RoBERTa window is 20 tokens, <s> and </s> included. */
+    const char *prompt = "a person walks forward, turns left, raises both arms, waves with the "
+                         "right hand, sits down on a chair and then kicks with the right leg";
+    CHECK_OK(flame_session_set_prompt(s, prompt));
+    info.struct_size = sizeof info - 1;
+    CHECK_ERROR_MENTIONS(flame_session_prompt_info(s, &info), FLAME_STATUS_INVALID_ARGUMENT,
+                         "struct_size");
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_session_prompt_info(s, &info));
+    CHECK(info.window == 20 && info.kept == 20 && info.tokens > 20);
+    CHECK(info.truncated == 1 && info.unconditional == 0);
+    CHECK(info.dropped != NULL && strlen(info.dropped) > 0);
+    /* The dropped text is the prompt's tail. */
+    size_t pl = strlen(prompt), dl = info.dropped ? strlen(info.dropped) : 0;
+    CHECK(dl < pl && strcmp(prompt + pl - dl, info.dropped) == 0);
+    /* A second query gives the same pointer: it lives until the next prompt. */
+    const char *first = info.dropped;
+    CHECK_OK(flame_session_prompt_info(s, &info));
+    CHECK(info.dropped == first);
+
+    CHECK_OK(flame_session_set_prompt(s, "a person walks"));
+    CHECK_OK(flame_session_prompt_info(s, &info));
+    CHECK(info.truncated == 0 && info.kept == info.tokens && info.tokens < 20);
+    CHECK(info.dropped != NULL && info.dropped[0] == '\0');
+
+    CHECK_OK(flame_session_set_prompt(s, ""));
+    CHECK_OK(flame_session_prompt_info(s, &info));
+    CHECK(info.unconditional == 1 && info.truncated == 0);
+    flame_session_free(s);
+}
+
 /* ---- reading ----------------------------------------------------------------------------- */
 
 static void test_read(const FlameModel *m) {
@@ -2123,6 +2168,7 @@ int main(int argc, char **argv) {
     TIMED(test_null_arguments(m));
     TIMED(test_wrong_state(m));
     TIMED(test_reset(m));
+    TIMED(test_prompt_info(m));
     TIMED(test_read(m));
     TIMED(test_layouts(m));
     TIMED(test_lengths(m));

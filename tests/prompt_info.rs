@@ -1,0 +1,108 @@
+//! What a prompt became: `Session::prompt_info` reports how the prompt fitted the text
+//! encoder's window, and a blank prompt runs on the model's unconditional input.
+//!
+//! Fixtures: tests/fixtures/flame_tiny.safetensors (RoBERTa, window 20) and mdm_tiny /
+//! motionfm_tiny (CLIP, MDM's window 22).
+
+mod common;
+
+use std::sync::Arc;
+
+use flame::config::TextConfig;
+use flame::models::{Condition, Model};
+use flame::session::{Sampler, Session, SessionParams};
+
+fn model(name: &str) -> Arc<Model> {
+    Arc::new(Model::load(common::repo(&format!("tests/fixtures/{name}.safetensors"))).unwrap())
+}
+
+fn params(sampler: Sampler) -> SessionParams {
+    SessionParams {
+        frames: Some(12),
+        steps: Some(3),
+        sampler: Some(sampler),
+        guidance: Some(2.5),
+        seed: 7,
+        threads: 1,
+        ..Default::default()
+    }
+}
+
+const LONG: &str = "a person walks forward slowly, then turns to the left, raises both arms \
+                    above the head, waves with the right hand and finally kicks with the right leg";
+
+#[test]
+fn a_long_prompt_is_cut_and_says_what_was_dropped() {
+    for (name, sampler) in [("flame_tiny", Sampler::Ddim), ("mdm_tiny", Sampler::Ddim)] {
+        let m = model(name);
+        let mut s = Session::new(Arc::clone(&m), &params(sampler)).unwrap();
+        assert!(s.prompt_info().is_none(), "{name}: no prompt yet");
+        s.set_prompt(LONG).unwrap();
+        let info = s.prompt_info().unwrap().clone();
+        let window = match &m.config().text_encoder {
+            TextConfig::Bert(t) => t.max_length,
+            TextConfig::Clip(c) => c.max_length,
+        };
+        assert_eq!(info.window, window, "{name}");
+        assert_eq!(info.kept, window, "{name}: a long prompt fills the window");
+        assert!(info.tokens > window && info.truncated(), "{name}: {info:?}");
+        assert!(!info.unconditional);
+        // What was dropped is the prompt's tail (CLIP lower-cases, and these are lower case),
+        // and the rest on its own fits the window exactly as the cut prompt did.
+        assert!(
+            !info.dropped.is_empty() && LONG.ends_with(&info.dropped),
+            "{name}: {info:?}"
+        );
+        assert!(info.dropped.ends_with("kicks with the right leg"), "{name}");
+        let kept_text = LONG[..LONG.len() - info.dropped.len()].trim_end();
+        let rest = m.prompt_info(kept_text).unwrap();
+        assert!(rest.tokens <= window, "{name}: {rest:?}");
+        assert!(
+            rest.tokens >= window - 1,
+            "{name}: {rest:?}: nothing kept is reported dropped"
+        );
+
+        s.set_prompt("a person walks").unwrap();
+        let short = s.prompt_info().unwrap();
+        assert!(
+            !short.truncated() && short.dropped.is_empty(),
+            "{name}: {short:?}"
+        );
+        assert_eq!(short.kept, short.tokens);
+    }
+}
+
+/// A blank prompt runs on exactly the unconditional input with no guidance pass: the same bits
+/// as setting that input as the condition with guidance 1.
+#[test]
+fn a_blank_prompt_is_unconditional_generation() {
+    for (name, sampler) in [
+        ("flame_tiny", Sampler::Ddim),
+        ("mdm_tiny", Sampler::Ddim),
+        ("motionfm_tiny", Sampler::Euler),
+    ] {
+        let m = model(name);
+        let mut blank = Session::new(Arc::clone(&m), &params(sampler)).unwrap();
+        blank.set_prompt("  \t ").unwrap();
+        assert!(blank.prompt_info().unwrap().unconditional, "{name}");
+        let got = blank.run().unwrap().to_vec();
+
+        let mut p = params(sampler);
+        p.guidance = Some(1.0);
+        let mut reference = Session::new(Arc::clone(&m), &p).unwrap();
+        let uncond: Condition = m.uncond().unwrap().clone();
+        if let Condition::Mdm(v) = &uncond {
+            assert!(
+                v.iter().all(|&x| x == 0.0),
+                "{name}: MDM's unconditional input is zeros"
+            );
+        }
+        reference.set_condition(uncond).unwrap();
+        assert!(reference.prompt_info().is_none());
+        let want = reference.run().unwrap().to_vec();
+        assert_eq!(
+            got, want,
+            "{name}: blank prompt = unconditional input, unguided"
+        );
+    }
+}
