@@ -20,7 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import Distribution, setup
 from setuptools.command.build_py import build_py
 
 try:  # setuptools >= 70.1 has its own; older ones need the `wheel` package's
@@ -91,16 +91,22 @@ class BuildPyWithLibrary(build_py):
         shutil.copyfile(lib, dest)  # a plain copy: always the newest bytes, whatever the mtimes
 
 
+class NativeDistribution(Distribution):
+    """Has native code (the library), so the wheel is not pure and installs into platlib."""
+
+    def has_ext_modules(self):
+        return True
+
+
 class PlatformWheel(bdist_wheel):
     """A platform wheel (the library is native) for any Python 3 (it is loaded with ctypes)."""
-
-    def finalize_options(self):
-        super().finalize_options()
-        self.root_is_pure = False
 
     def get_tag(self):
         _, _, plat = super().get_tag()
         return "py3", "none", plat
 
 
-setup(cmdclass={"build_py": BuildPyWithLibrary, "bdist_wheel": PlatformWheel})
+setup(
+    distclass=NativeDistribution,
+    cmdclass={"build_py": BuildPyWithLibrary, "bdist_wheel": PlatformWheel},
+)
