@@ -23,6 +23,13 @@ apt_install() {
     local pkgs
     pkgs="$(apt_missing "$@")"
     [ -z "$pkgs" ] && return 0
+    # shellcheck disable=SC2086  # the list is word-split on purpose
+    apt_install_packages $pkgs
+}
+
+# Installs these Debian packages (apt-get update first, once per run).
+apt_install_packages() {
+    local pkgs="$*"
     echo "install_test_deps: apt-get install $pkgs"
     local log
     log="$(mktemp)"
@@ -46,28 +53,26 @@ apt_install() {
     rm -f "$log"
 }
 
-# Python packages whose module is missing: "module:requirement" pairs, installed with pip
-# (quiet, no version check). For the other suites below.
-pip_install() {
-    local pair missing=()
-    for pair in "$@"; do
-        python3 -c "import ${pair%%:*}" >/dev/null 2>&1 || missing+=("${pair#*:}")
-    done
-    [ ${#missing[@]} -eq 0 ] && return 0
-    echo "install_test_deps: pip install ${missing[*]}"
-    python3 -m pip install --quiet --disable-pip-version-check "${missing[@]}"
-}
-
 # --- C/C++ ABI tests and packaging (tests/c/run.sh) -------------------------------------------
 # gcc/g++ compile the tests; valgrind checks the shared-library builds for leaks and invalid
 # accesses; cmake and pkg-config build the two consumers of an installed libflame.
 apt_install gcc:gcc g++:g++ make:make valgrind:valgrind cmake:cmake pkg-config:pkg-config
 
 # --- Language bindings (tests/bindings/run_all.sh) ---------------------------------------------
-# C#: Mono's compiler and runtime. Python: numpy and pytest. The Unreal plugin's staging script
-# sets libflame.so's SONAME with patchelf; its C++ test uses g++ (above).
+# C#: Mono's compiler and runtime. The Unreal plugin's staging script sets libflame.so's SONAME
+# with patchelf; its C++ test uses g++ (above).
 apt_install mcs:mono-mcs mono:mono-runtime patchelf:patchelf
-pip_install numpy:numpy pytest:pytest
+# Python: tests/bindings/run_python.sh makes its own virtual environment and takes numpy, pytest
+# and setuptools from PyPI into it, so nothing is installed into the machine's Python. It needs
+# python3's venv module (with ensurepip), which Debian ships apart as python3-venv.
+if ! python3 -c 'import venv, ensurepip' >/dev/null 2>&1; then
+    if [ "$(command -v python3)" = /usr/bin/python3 ]; then
+        apt_install_packages python3-venv
+    else
+        echo "install_test_deps: $(command -v python3) has no venv module; install one that has" >&2
+        exit 1
+    fi
+fi
 
 # --- BVH import by a real consumer (tools/bvh_roundtrip.sh) ---------------------------------------
 # Debian's Blender 3.4, run headless. Installed with its recommends, as measured (about 90 s).

@@ -1,7 +1,9 @@
 // A Unity example of the libflame bindings: generates a motion on a worker thread, hands the
 // latest poses to the main thread and plays them on a rig. Put Flame.cs and this file under
 // Assets/, the native library under Assets/Plugins/ (see bindings/csharp/README.md), the model
-// under Assets/StreamingAssets/ (or assign it as a TextAsset renamed to .bytes).
+// under Assets/StreamingAssets/ (or assign it as a TextAsset renamed to .bytes): the demo model,
+// models/demo/flame_demo.safetensors of the libflame checkout, which `bash tools/try.sh`
+// assembles.
 //
 // Why it is shaped like this:
 // - The main thread never waits for libflame: loading and every step run on the worker.
@@ -21,7 +23,7 @@ namespace Flame
     public class FlameExample : MonoBehaviour
     {
         [Tooltip("Model file under StreamingAssets (ignored when Model Asset is set).")]
-        public string modelFile = "flame_tiny.safetensors";
+        public string modelFile = "flame_demo.safetensors";
         [Tooltip("The model as a TextAsset (a copy named *.bytes); needed where StreamingAssets is not a folder (Android).")]
         public TextAsset modelAsset;
         public string prompt = "a person walks forward and waves.";
@@ -38,8 +40,8 @@ namespace Flame
         public int layout = FlameLayout.LocalQuatXyzw;
         [Tooltip("FlameConvention of Pose and RootPositions; Unity is 1.")]
         public int convention = FlameConvention.Unity;
-        [Tooltip("FlameReadFlags bits, e.g. 1 = FLAME's temporal smoothing.")]
-        public int readFlags = 0;
+        [Tooltip("FlameReadFlags bits (1 = FLAME's temporal smoothing, sigma = 1 frame); negative = what the flame CLI does: smoothing for smpl24_6d models (FLAME), none for others.")]
+        public int readFlags = -1;
         [Tooltip("One Transform per model joint, in the model's joint order (JointNames); optional.")]
         public Transform[] bones;
 
@@ -132,7 +134,7 @@ namespace Flame
         /// <summary>Steps to the end, publishing the poses after every step.</summary>
         void Publish(FlameSession s, ModelInfo modelInfo)
         {
-            uint flags = (uint)readFlags;
+            uint flags = readFlags >= 0 ? (uint)readFlags : DefaultReadFlags(modelInfo);
             float[] pose = null, root = null;
             int left = s.StepsLeft;
             while (left > 0)
@@ -154,6 +156,13 @@ namespace Flame
                     info = modelInfo;
                 }
             }
+        }
+
+        /// <summary>The read flags of the flame CLI's default output: FLAME's temporal smoothing
+        /// (sigma = 1) for smpl24_6d models, as FLAME's official output; none for others.</summary>
+        public static uint DefaultReadFlags(ModelInfo modelInfo)
+        {
+            return modelInfo.MotionFormat == "smpl24_6d" ? FlameReadFlags.Smooth : 0u;
         }
 
         float[] Fill(FlameSession s, float[] buffer, FlameWhich which, int readLayout, uint flags)

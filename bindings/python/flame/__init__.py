@@ -1,7 +1,7 @@
 """Python bindings of libflame (text-to-motion diffusion on the CPU) over its C ABI, via ctypes.
 
     import flame
-    with flame.Model.load("flame_tiny.safetensors") as model:
+    with flame.Model.load("models/demo/flame_demo.safetensors") as model:
         with model.session(frames=120, steps=50, sampler="ddim", seed=1) as s:
             s.set_prompt("a person jumps twice")
             motion = s.run()                     # numpy float32 [frames, feature_dim]

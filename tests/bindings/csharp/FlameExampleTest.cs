@@ -84,9 +84,51 @@ static class FlameExampleTest
             var r = bones[5].localRotation;
             Check(r.x == c.Pose[q] && r.y == c.Pose[q + 1] && r.z == c.Pose[q + 2] && r.w == c.Pose[q + 3], "bone 5 posed with frame 10");
             Check(bones[0].localPosition.z == c.RootPositions[10 * 3 + 2], "root posed with frame 10");
+            // The default read flags are the CLI's for this smpl24_6d model: FLAME's smoothing.
+            using (var m = FlameModel.Load(model))
+            {
+                var p = FlameSessionParams.Default();
+                p.frames = 24; p.steps = 10; p.sampler = (int)FlameSampler.Ddim; p.seed = 3; p.threads = 1;
+                using (var s = m.NewSession(p))
+                {
+                    s.SetPrompt(c.prompt);
+                    while (s.Step() > 0) { }
+                    var smooth = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, FlameReadFlags.Smooth);
+                    var raw = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0);
+                    Check(Same(c.Pose, smooth), "default read flags: smoothed as the CLI's default");
+                    Check(!Same(c.Pose, raw), "default read flags: not the unsmoothed poses");
+                    Check(FlameExample.DefaultReadFlags(m.Info) == FlameReadFlags.Smooth, "DefaultReadFlags(smpl24_6d)");
+                }
+            }
         }
         Call(c, "OnDestroy");
         ConsoleOk("rig");
+
+        // readFlags = 0 reads the unsmoothed poses.
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, seed = 3, threads = 1, readFlags = 0 };
+        Call(c, "Start");
+        watch = Stopwatch.StartNew();
+        while ((c.StepsDone < 10 || c.Pose == null) && c.Error == null && watch.ElapsedMilliseconds < 30000)
+        {
+            Call(c, "Update");
+            Thread.Sleep(1);
+        }
+        Thread.Sleep(50);
+        Call(c, "Update");
+        using (var m = FlameModel.Load(model))
+        {
+            var p = FlameSessionParams.Default();
+            p.frames = 24; p.steps = 10; p.sampler = (int)FlameSampler.Ddim; p.seed = 3; p.threads = 1;
+            using (var s = m.NewSession(p))
+            {
+                s.SetPrompt(c.prompt);
+                while (s.Step() > 0) { }
+                Check(c.Pose != null && Same(c.Pose, s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0)),
+                      "readFlags = 0: unsmoothed poses");
+            }
+        }
+        Call(c, "OnDestroy");
+        ConsoleOk("read flags 0");
 
         // Destroyed mid-generation: OnDestroy returns promptly and frees everything.
         c = new FlameExample { modelFile = model, frames = 470, steps = 1000, threads = 1 };
@@ -126,6 +168,16 @@ static class FlameExampleTest
 
         Console.WriteLine(passed + " passed, " + failed + " failed");
         return failed == 0 ? 0 : 1;
+    }
+
+    static bool Same(float[] a, float[] b)
+    {
+        if (a == null || b == null || a.Length != b.Length)
+            return false;
+        for (int i = 0; i < a.Length; i++)
+            if (BitConverter.ToInt32(BitConverter.GetBytes(a[i]), 0) != BitConverter.ToInt32(BitConverter.GetBytes(b[i]), 0))
+                return false;
+        return true;
     }
 
     static void ConsoleOk(string name)

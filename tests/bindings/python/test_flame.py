@@ -6,9 +6,12 @@ tests/fixtures/flame_tiny.safetensors (147 features per frame, at most 470 frame
 ddpm / 1000 steps / guidance 8).
 
 Environment (all optional; tests/bindings/run_python.sh sets them):
-  FLAME_LIBRARY   the shared library (else the bindings' own search: target/release, target/debug)
-  FLAME_CLI       the `flame` executable (else next to the library)
-  FLAME_MODEL     the model file (else the fixture)
+  FLAME_LIBRARY     the shared library (else the bindings' own search: next to the package, then
+                    target/release, target/debug); run_python.sh leaves it unset, so the installed
+                    wheel's own library is tested
+  FLAME_CLI         the `flame` executable (else next to the library)
+  FLAME_MODEL       the model file (else the fixture)
+  FLAME_TEST_WHEEL  1: the package under test is an installed wheel (checked by a test)
 """
 
 import os
@@ -119,6 +122,14 @@ def test_constants_match_the_header():
 def test_version_and_abi():
     assert flame.version().count(".") == 2
     assert flame._lib().flame_abi_version() == flame.ABI_VERSION
+
+
+@pytest.mark.skipif(os.environ.get("FLAME_TEST_WHEEL") != "1", reason="not testing an installed wheel")
+def test_installed_wheel_loads_its_own_library():
+    package = Path(flame.__file__).resolve().parent
+    assert ROOT not in package.parents, f"flame imported from the checkout: {package}"
+    assert "FLAME_LIBRARY" not in os.environ
+    assert Path(flame.library_path()) == package / flame._library_names()[0]
 
 
 def test_info(model):

@@ -28,7 +28,7 @@ public:
 	 *  builds need its folder in Project Settings > Packaging > Additional Non-Asset
 	 *  Directories to Copy. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
-	FString ModelPath = TEXT("Flame/flame_tiny.safetensors");
+	FString ModelPath = TEXT("Flame/flame_demo.safetensors");
 
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	FString Prompt = TEXT("a person walks forward and waves.");
@@ -71,8 +71,9 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	int32 Convention = 2;
 
-	/** flame_session_read flags: 1 = FLAME_READ_SMOOTH (FLAME's temporal smoothing),
-	 *  2 = FLAME_READ_RAW_SIGNS. */
+	/** flame_session_read flags: 1 = FLAME_READ_SMOOTH (FLAME's temporal smoothing, sigma = 1
+	 *  frame; what the flame CLI applies by default to smpl24_6d models such as the demo model),
+	 *  2 = FLAME_READ_RAW_SIGNS. 0 = the unsmoothed sample. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	int32 ReadFlags = 0;
 
