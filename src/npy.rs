@@ -88,10 +88,12 @@ pub fn decode_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
         return Err(invalid_arg!(".npy array must be in C order"));
     }
     let shape_txt = field("shape").ok_or_else(|| invalid_arg!(".npy header has no shape"))?;
-    let close = shape_txt
-        .find(')')
+    let dims = shape_txt
+        .strip_prefix('(')
+        .and_then(|s| s.split_once(')'))
+        .map(|(dims, _)| dims)
         .ok_or_else(|| invalid_arg!(".npy shape is malformed"))?;
-    let shape: Vec<usize> = shape_txt[1..close]
+    let shape: Vec<usize> = dims
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
@@ -100,16 +102,15 @@ pub fn decode_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
                 .map_err(|_| invalid_arg!(".npy shape is malformed"))
         })
         .collect::<Result<_>>()?;
-    let count = shape
+    let needed = shape
         .iter()
-        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .try_fold(width, |a: usize, &d| a.checked_mul(d))
         .ok_or_else(|| invalid_arg!(".npy shape is too large"))?;
     let data = &bytes[start + header_len..];
-    if data.len() != count.saturating_mul(width) {
+    if data.len() != needed {
         return Err(invalid_arg!(
-            ".npy holds {} data bytes, its shape needs {}",
+            ".npy holds {} data bytes, its shape needs {needed}",
             data.len(),
-            count * width
         ));
     }
     let values = if width == 4 {
@@ -164,5 +165,47 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("data bytes"));
+    }
+
+    /// A v1.0 file with `header` (padded to a 64-byte boundary) and `data`.
+    fn with_header(header: &str, data: &[u8]) -> Vec<u8> {
+        let mut h = header.to_string();
+        h.push_str(&" ".repeat((64 - (10 + h.len() + 1) % 64) % 64));
+        h.push('\n');
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        b.extend_from_slice(&(h.len() as u16).to_le_bytes());
+        b.extend_from_slice(h.as_bytes());
+        b.extend_from_slice(data);
+        b
+    }
+
+    /// Found by fuzzing: a shape whose `)` comes before any `(` sliced the header backwards.
+    #[test]
+    fn rejects_a_shape_without_its_parenthesis() {
+        for shape in ["),(", ")", "2,)", "(2,"] {
+            let b = with_header(
+                &format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}}}"),
+                &[0; 8],
+            );
+            let e = decode_f32(&b).unwrap_err().to_string();
+            assert!(e.contains("shape is malformed"), "{shape}: {e}");
+        }
+    }
+
+    /// Found by fuzzing: an element count that fits `usize` but whose byte size does not
+    /// overflowed while the error message was being written.
+    #[test]
+    fn rejects_a_shape_whose_byte_size_overflows() {
+        let huge = usize::MAX / 4 + 1;
+        let b = with_header(
+            &format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({huge},)}}"),
+            &[],
+        );
+        assert!(decode_f32(&b)
+            .unwrap_err()
+            .to_string()
+            .contains("too large"));
+        let b = with_header("{'descr': '<f8', 'shape': (3, 0), }", &[]);
+        assert_eq!(decode_f32(&b).unwrap(), (vec![3, 0], vec![]));
     }
 }

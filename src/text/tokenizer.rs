@@ -81,6 +81,13 @@ impl TextTokenizer {
     /// (vocabulary, added tokens, post-processor specials, `pad_id`) is below `vocab_size`, so an
     /// embedding lookup can never go out of bounds.
     pub fn from_json(json: &str, vocab_size: usize, pad_id: u32) -> Result<TextTokenizer> {
+        // tokenizers 0.22 panics (`expect("Helper")`) on a syntax error inside the `decoder`
+        // field instead of returning it, so the syntax is checked first.
+        serde_json::from_str::<serde::de::IgnoredAny>(json).map_err(|e| {
+            Error::Tokenizer(format!(
+                "cannot build a tokenizer from the tokenizer.json text: not valid JSON: {e}"
+            ))
+        })?;
         let mut inner = Tokenizer::from_str(json).map_err(tok_err(
             "cannot build a tokenizer from the tokenizer.json text",
         ))?;
@@ -233,6 +240,21 @@ pub(crate) mod tests {
       "decoder":null,
       "model":{"type":"WordPiece","unk_token":"[UNK]","continuing_subword_prefix":"##","max_input_chars_per_word":100,
         "vocab":{"[PAD]":0,"[UNK]":1,"[CLS]":2,"[SEP]":3,"a":4,"person":5,"walk":6,"##s":7,".":8}}}"###;
+
+    /// Found by fuzzing (model_header): a syntax error inside `decoder` made the tokenizers
+    /// crate panic while loading the model.
+    #[test]
+    fn a_syntax_error_in_the_decoder_is_an_error() {
+        let json = WORDPIECE.replace(
+            r#""decoder":null"#,
+            "\"decoder\":{\"type\":\"Byte\u{1}Level\"}",
+        );
+        assert_ne!(json, WORDPIECE);
+        let e = TextTokenizer::from_json(&json, 9, 0)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not valid JSON"), "{e}");
+    }
 
     fn tok() -> TextTokenizer {
         TextTokenizer::from_json(WORDPIECE, 9, 0).unwrap()

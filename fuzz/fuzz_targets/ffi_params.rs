@@ -1,0 +1,207 @@
+//! The C ABI's parameter structs filled with arbitrary field values (`struct_size` included,
+//! smaller and larger than the struct) and its integer arguments: model params to a load,
+//! session params to `flame_session_new`, edit params, keep/task masks and every argument of
+//! `flame_session_read`. Every call must return a status; `FLAME_STATUS_INTERNAL` (a caught
+//! panic) counts as a finding, as does any write past a buffer the caller declared.
+#![no_main]
+
+use std::collections::BTreeSet;
+use std::ptr;
+use std::sync::{Mutex, OnceLock};
+
+use flame::ffi::*;
+use flame_fuzz::FIXTURES;
+use libfuzzer_sys::fuzz_target;
+
+/// Worker threads per session are capped here (0 = one per core, 1 or 2): each execution would
+/// otherwise spawn up to 2³² − 1 threads, which the library does not bound.
+const MAX_THREADS: u32 = 3;
+/// Sessions longer than this are created and read but not stepped (a step costs ~frames²).
+const MAX_STEPPED_FRAMES: u32 = 24;
+
+/// Little-endian fields read off the input; zeros once it runs out.
+struct Input<'a>(&'a [u8]);
+
+impl Input<'_> {
+    fn bytes<const N: usize>(&mut self) -> [u8; N] {
+        let mut b = [0u8; N];
+        let n = N.min(self.0.len());
+        b[..n].copy_from_slice(&self.0[..n]);
+        self.0 = &self.0[n..];
+        b
+    }
+    fn u8(&mut self) -> u8 {
+        self.bytes::<1>()[0]
+    }
+    fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.bytes())
+    }
+    fn i32(&mut self) -> i32 {
+        i32::from_le_bytes(self.bytes())
+    }
+    fn f32(&mut self) -> f32 {
+        f32::from_le_bytes(self.bytes())
+    }
+    fn u64(&mut self) -> u64 {
+        u64::from_le_bytes(self.bytes())
+    }
+}
+
+struct Models([*mut FlameModel; 3]);
+// SAFETY: models are immutable after loading and documented as shareable across threads.
+unsafe impl Send for Models {}
+unsafe impl Sync for Models {}
+
+fn models() -> &'static Models {
+    static M: OnceLock<Models> = OnceLock::new();
+    M.get_or_init(|| {
+        let load = |bytes: &[u8]| {
+            let mut m = ptr::null_mut();
+            let s = unsafe {
+                flame_model_load_from_memory(bytes.as_ptr(), bytes.len(), ptr::null(), &mut m)
+            };
+            assert_eq!(s, FlameStatus::Ok);
+            m
+        };
+        Models(FIXTURES.map(load))
+    })
+}
+
+fn ok(status: FlameStatus) -> bool {
+    assert_ne!(
+        status,
+        FlameStatus::Internal,
+        "a panic reached the C boundary"
+    );
+    status == FlameStatus::Ok
+}
+
+fuzz_target!(|data: &[u8]| {
+    let mut input = Input(data);
+    let which_model = input.u8();
+    let actions = input.u8();
+
+    // Model params: the caller's struct is exactly as large as it says (at least its first
+    // field, at most the current struct), so a read past the declared size is caught. A missing
+    // file exercises the params' parsing and checks; a real load (slow) runs once per distinct
+    // set of values that pass them.
+    let declared = input.u32();
+    let mut mp = vec![0u8; (declared as usize).clamp(4, std::mem::size_of::<FlameModelParams>())];
+    let threads = input.u32() % MAX_THREADS;
+    let weights = input.i32();
+    let fields = [
+        declared.to_le_bytes(),
+        threads.to_le_bytes(),
+        weights.to_le_bytes(),
+    ];
+    for (dst, src) in mp.chunks_mut(4).zip(fields.iter()) {
+        dst.copy_from_slice(&src[..dst.len()]);
+    }
+    let mut loaded = ptr::null_mut();
+    let path = c"/nonexistent/model.safetensors".as_ptr();
+    let status = unsafe { flame_model_load(path, mp.as_ptr().cast(), &mut loaded) };
+    assert_ne!(status, FlameStatus::Ok);
+    assert!(loaded.is_null());
+    if ok(status) || status == FlameStatus::Io {
+        static LOADED: Mutex<BTreeSet<(usize, u32, i32)>> = Mutex::new(BTreeSet::new());
+        let seen = (mp.len(), threads, if mp.len() > 8 { weights } else { 0 });
+        if LOADED.lock().unwrap().insert(seen) {
+            let bytes = FIXTURES[which_model as usize % 3];
+            if ok(unsafe {
+                flame_model_load_from_memory(
+                    bytes.as_ptr(),
+                    bytes.len(),
+                    mp.as_ptr().cast(),
+                    &mut loaded,
+                )
+            }) {
+                unsafe { flame_model_free(loaded) };
+            }
+        }
+    }
+
+    let model = models().0[which_model as usize % 3];
+    let sp = FlameSessionParams {
+        struct_size: input.u32(),
+        frames: input.u32(),
+        steps: input.u32(),
+        sampler: input.i32(),
+        eta: input.f32(),
+        guidance: input.f32(),
+        seed: input.u64(),
+        threads: input.u32() % MAX_THREADS,
+    };
+    let mut session = ptr::null_mut();
+    let params = if actions & 2 != 0 {
+        ptr::null()
+    } else {
+        &sp as *const _
+    };
+    if !ok(unsafe { flame_session_new(model, params, &mut session) }) {
+        assert!(session.is_null());
+        return;
+    }
+
+    let ep = FlameEditParams {
+        struct_size: input.u32(),
+        method: input.i32(),
+        edit_till: input.f32(),
+        paste: input.u32(),
+        seam_frames: input.u32(),
+    };
+    ok(unsafe { flame_session_set_edit_params(session, &ep) });
+    let (a, b, c) = (input.u32(), input.u32(), input.i32());
+    if actions & 4 != 0 {
+        ok(unsafe { flame_session_keep_frames(session, a, b) });
+    }
+    if actions & 8 != 0 {
+        ok(unsafe { flame_session_keep_part(session, c, a, b) });
+    }
+    if actions & 16 != 0 {
+        ok(unsafe { flame_session_set_task_mask(session, c) });
+    }
+    if actions & 32 != 0
+        && params == &sp as *const _
+        && (1..=MAX_STEPPED_FRAMES).contains(&sp.frames)
+    {
+        if ok(unsafe { flame_session_set_prompt(session, c"a person walks".as_ptr()) }) {
+            let mut left = 0u32;
+            ok(unsafe { flame_session_step(session, &mut left) });
+        }
+    }
+
+    // Reads: first the length query, then into a buffer of exactly the declared length.
+    let (which, layout, convention, flags) = (input.i32(), input.i32(), input.i32(), input.u32());
+    let mut needed = 0usize;
+    ok(unsafe {
+        flame_session_read(
+            session,
+            which,
+            layout,
+            convention,
+            flags,
+            ptr::null_mut(),
+            0,
+            &mut needed,
+        )
+    });
+    let len = input.u32() as usize % 200_000;
+    let mut out = vec![0f32; len];
+    let mut written = usize::MAX;
+    if ok(unsafe {
+        flame_session_read(
+            session,
+            which,
+            layout,
+            convention,
+            flags,
+            out.as_mut_ptr(),
+            len,
+            &mut written,
+        )
+    }) {
+        assert!(written <= len);
+        assert_eq!(written, needed);
+    }
+    unsafe { flame_session_free(session) };
+});

@@ -1,0 +1,37 @@
+//! Shared pieces of the fuzz targets: the fixture model files, split into their safetensors
+//! header and tensor data so a target can mutate one part and keep the other valid.
+
+/// The three small model files of the test fixtures (FLAME, MDM, Motion Flow Matching).
+pub static FIXTURES: [&[u8]; 3] = [
+    include_bytes!("../../tests/fixtures/flame_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/mdm_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/motionfm_tiny.safetensors"),
+];
+
+/// A safetensors file's header JSON text and its tensor data.
+pub fn split(file: &[u8]) -> (&[u8], &[u8]) {
+    let n = u64::from_le_bytes(file[..8].try_into().expect("8 bytes")) as usize;
+    (&file[8..8 + n], &file[8 + n..])
+}
+
+/// A safetensors file from a header text and tensor data (the header is not checked).
+pub fn join(header: &[u8], data: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(8 + header.len() + data.len());
+    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    out.extend_from_slice(header);
+    out.extend_from_slice(data);
+    out
+}
+
+/// Fixture `i`'s file with its `flame.config` metadata replaced by `config`.
+pub fn with_config(i: usize, config: &str) -> Vec<u8> {
+    let (header, data) = split(FIXTURES[i]);
+    let mut h: serde_json::Value = serde_json::from_slice(header).expect("fixture header is JSON");
+    h["__metadata__"]["flame.config"] = serde_json::Value::String(config.to_string());
+    let mut text = serde_json::to_vec(&h).expect("serialisable");
+    // safetensors pads headers with spaces to 8 bytes; keep the data aligned the same way.
+    while text.len() % 8 != 0 {
+        text.push(b' ');
+    }
+    join(&text, data)
+}

@@ -1,0 +1,105 @@
+#!/usr/bin/env bash
+# Runs the libFuzzer targets of fuzz/ (see docs/fuzzing.md).
+#
+#   bash tools/fuzz.sh [SECONDS] [TARGET...]
+#
+# Runs every target (or the given ones) for SECONDS each (default 20, the smoke run of the test
+# command), one process on one core, memory capped so an allocation bomb is a finding. Prints
+# executions, coverage (edges) and findings per target; exits non-zero if any target found a
+# crash, panic, timeout, leak or out-of-memory (the input is kept under fuzz/artifacts/TARGET/).
+#
+# Environment:
+#   FUZZ_RUNS=N          stop a target after N executions (as well as after SECONDS)
+#   FUZZ_SANITIZER=S     address (default) or none
+#   FUZZ_RSS_MB=N        memory cap per run in MB (default 2048)
+#   FUZZ_LOG_DIR=DIR     where each target's libFuzzer output goes (default fuzz/logs)
+#
+# cargo-fuzz needs nightly-only compiler flags; on a stable toolchain RUSTC_BOOTSTRAP=1 makes
+# rustc accept them. cargo-fuzz is installed (pinned) if missing.
+set -euo pipefail
+
+CARGO_FUZZ_VERSION=0.13.2
+ALL_TARGETS=(npy bvh pose_reference prompt ffi_params model_config model_header model_file)
+
+cd "$(dirname "$0")/.."
+root=$(pwd)
+
+secs=20
+if [[ $# -gt 0 && $1 =~ ^[0-9]+$ ]]; then
+    secs=$1
+    shift
+fi
+targets=("$@")
+[[ ${#targets[@]} -eq 0 ]] && targets=("${ALL_TARGETS[@]}")
+for t in "${targets[@]}"; do
+    [[ -f fuzz/fuzz_targets/$t.rs ]] || { echo "fuzz.sh: no target '$t' (have: ${ALL_TARGETS[*]})" >&2; exit 2; }
+done
+
+sanitizer=${FUZZ_SANITIZER:-address}
+rss=${FUZZ_RSS_MB:-2048}
+logs=${FUZZ_LOG_DIR:-$root/fuzz/logs}
+mkdir -p "$logs"
+export RUSTC_BOOTSTRAP=1
+
+if [[ $(cargo fuzz --version 2>/dev/null) != "cargo-fuzz $CARGO_FUZZ_VERSION" ]]; then
+    echo "fuzz.sh: installing cargo-fuzz $CARGO_FUZZ_VERSION" >&2
+    cargo install cargo-fuzz --version "$CARGO_FUZZ_VERSION" --locked
+fi
+
+cd fuzz
+# -a: debug assertions (and so overflow checks) on, as in the test builds.
+cargo fuzz build -a --sanitizer "$sanitizer"
+
+# Longest input per target: model files are ~1 MB, their headers ~72 KB.
+max_len() {
+    case $1 in
+        model_file) echo 1200000 ;;
+        model_header) echo 80000 ;;
+        prompt | bvh) echo 16384 ;;
+        *) echo 4096 ;;
+    esac
+}
+
+# Seeds that are too big to commit are taken from the test fixtures.
+extra_seeds() {
+    if [[ $1 == model_file ]]; then
+        local d=target/seeds/model_file
+        mkdir -p "$d"
+        cp "$root"/tests/fixtures/{flame_tiny,mdm_tiny,motionfm_tiny,flame_tiny_f16}.safetensors "$d/"
+        echo "$d"
+    fi
+}
+
+failed=0
+printf '%-15s %12s %9s %8s %7s  %s\n' target executions exec/s edges seconds findings
+for t in "${targets[@]}"; do
+    # New inputs go to a scratch corpus; the committed one (fuzz/corpus/T) is only read.
+    scratch=target/corpus/$t
+    mkdir -p "$scratch" "corpus/$t" "artifacts/$t"
+    before=$(find "artifacts/$t" -type f | wc -l)
+    log=$logs/$t.log
+    args=(-rss_limit_mb="$rss" -malloc_limit_mb="$rss" -max_total_time="$secs" -timeout=30
+        -max_len="$(max_len "$t")" -print_final_stats=1)
+    [[ -n ${FUZZ_RUNS:-} ]] && args+=(-runs="$FUZZ_RUNS")
+    start=$(date +%s)
+    status=0
+    # shellcheck disable=SC2046
+    cargo fuzz run -a --sanitizer "$sanitizer" "$t" "$scratch" "corpus/$t" $(extra_seeds "$t") \
+        -- "${args[@]}" >"$log" 2>&1 || status=$?
+    took=$(($(date +%s) - start))
+    execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)
+    rate=$(sed -n 's/^stat::average_exec_per_sec: *//p' "$log" | tail -1)
+    edges=$(grep -o 'cov: [0-9]*' "$log" | tail -1 | cut -d' ' -f2)
+    if [[ -z $execs ]]; then # no final stats after a crash: the last status line's count
+        execs=$(grep -o '^#[0-9]*' "$log" | tail -1 | tr -d '#')
+    fi
+    found=$(($(find "artifacts/$t" -type f | wc -l) - before))
+    if [[ $status -ne 0 || $found -gt 0 ]]; then
+        failed=1
+        what="FOUND (exit $status): $(ls -t "artifacts/$t" | head -1), see $log"
+    else
+        what=none
+    fi
+    printf '%-15s %12s %9s %8s %7s  %s\n' "$t" "${execs:-?}" "${rate:-?}" "${edges:-?}" "$took" "$what"
+done
+exit $failed
