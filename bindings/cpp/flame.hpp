@@ -119,6 +119,17 @@ struct ModelInfo {
     std::vector<int32_t> joint_parents;
 };
 
+// What Session::prompt_info reports about the last prompt, copied (`dropped` stays valid after
+// the next prompt): how it fitted the text encoder's window.
+struct PromptInfo {
+    uint32_t tokens = 0;         // of the whole prompt, special tokens included
+    uint32_t kept = 0;           // those the text encoder saw (at most `window`)
+    uint32_t window = 0;         // the encoder's window, special tokens included
+    bool truncated = false;      // the window cut the prompt
+    bool unconditional = false;  // an empty or blank prompt: generation without text
+    std::string dropped;         // the text cut off, UTF-8 ("" when nothing was)
+};
+
 // Steps done and the total of a generation.
 struct Progress {
     uint32_t done = 0;
@@ -241,6 +252,21 @@ public:
             throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`prompt` contains a NUL byte");
         }
         detail::check(flame_session_set_prompt(handle_, prompt.c_str()));
+    }
+
+    // How the last prompt fitted the text encoder's window; throws WRONG_STATE before a prompt.
+    PromptInfo prompt_info() const {
+        FlamePromptInfo c{};
+        c.struct_size = sizeof c;
+        detail::check(flame_session_prompt_info(handle_, &c));
+        PromptInfo info;
+        info.tokens = c.tokens;
+        info.kept = c.kept;
+        info.window = c.window;
+        info.truncated = c.truncated != 0;
+        info.unconditional = c.unconditional != 0;
+        info.dropped = c.dropped ? c.dropped : "";
+        return info;
     }
 
     // x_T, frames x feature_dim; only before the first step (or after reset()).

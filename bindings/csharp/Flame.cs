@@ -279,6 +279,28 @@ namespace Flame
         }
     }
 
+    /// <summary>Mirror of the C struct FlamePromptInfo: how the last prompt fitted the text
+    /// encoder's window. Six uint then a pointer (32 bytes on 64-bit targets, 28 on 32-bit; no
+    /// padding either way). `dropped` belongs to the session until its next prompt: use
+    /// FlameSession.PromptInfo() (a managed copy).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlamePromptInfo
+    {
+        public uint struct_size;
+        /// <summary>Tokens of the whole prompt, special tokens included.</summary>
+        public uint tokens;
+        /// <summary>Tokens the text encoder saw (at most window).</summary>
+        public uint kept;
+        /// <summary>The encoder's window, special tokens included.</summary>
+        public uint window;
+        /// <summary>1 when the window cut the prompt.</summary>
+        public uint truncated;
+        /// <summary>1 when the prompt was empty or blank: generation without text.</summary>
+        public uint unconditional;
+        /// <summary>The text cut off, NUL-terminated UTF-8 ("" when nothing was).</summary>
+        public IntPtr dropped;
+    }
+
     /// <summary>Called after every step, on the stepping thread (FlameProgressCallback).</summary>
     [UnmanagedFunctionPointer(CallingConvention.Cdecl)]
     public delegate void ProgressCallback(IntPtr userData, uint stepsDone, uint stepsTotal);
@@ -373,6 +395,9 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_prompt(FlameSessionHandle session, byte[] prompt);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_prompt_info(FlameSessionHandle session, ref FlamePromptInfo info);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_noise(FlameSessionHandle session, float[] noise, UIntPtr len);
@@ -517,6 +542,30 @@ namespace Flame
         }
     }
 
+    /// <summary>A managed copy of FlamePromptInfo: what the last prompt became.</summary>
+    public sealed class PromptInfo
+    {
+        /// <summary>Tokens of the whole prompt and those the text encoder kept (at most
+        /// Window), special tokens included.</summary>
+        public int Tokens, Kept, Window;
+        /// <summary>The window cut the prompt: the encoder ignored Dropped.</summary>
+        public bool Truncated;
+        /// <summary>The prompt was empty or blank: generation without text.</summary>
+        public bool Unconditional;
+        /// <summary>The text cut off ("" when nothing was).</summary>
+        public string Dropped;
+
+        internal PromptInfo(FlamePromptInfo i)
+        {
+            Tokens = (int)i.tokens;
+            Kept = (int)i.kept;
+            Window = (int)i.window;
+            Truncated = i.truncated != 0;
+            Unconditional = i.unconditional != 0;
+            Dropped = FlameNative.Utf8(i.dropped);
+        }
+    }
+
     /// <summary>A loaded model: immutable, shareable by any number of sessions and threads.
     /// Sessions keep it alive natively, so disposing it does not invalidate them.</summary>
     public sealed class FlameModel : IDisposable
@@ -612,6 +661,17 @@ namespace Flame
             if (prompt == null)
                 throw new ArgumentNullException("prompt");
             FlameException.Check(FlameNative.flame_session_set_prompt(Handle, FlameNative.Utf8Z(prompt)));
+        }
+
+        /// <summary>How the last prompt fitted the text encoder's window: its tokens, those
+        /// kept, and the text cut off when it was too long. Throws FlameException (WrongState)
+        /// before a prompt is set.</summary>
+        public PromptInfo PromptInfo()
+        {
+            var raw = new FlamePromptInfo();
+            raw.struct_size = (uint)Marshal.SizeOf(typeof(FlamePromptInfo));
+            FlameException.Check(FlameNative.flame_session_prompt_info(Handle, ref raw));
+            return new PromptInfo(raw);  // copies `dropped` before the session can free it
         }
 
         /// <summary>Sets x_T (Frames × FeatureDim floats); before the first step only.</summary>

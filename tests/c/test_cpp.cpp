@@ -200,6 +200,41 @@ static void test_errors() {
     }
 }
 
+// The fixture's RoBERTa window is 20 tokens, <s> and </s> included.
+static void test_prompt_info() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::Session s = model.session(reference_params());
+    CHECK_THROWS(s.prompt_info(), FLAME_STATUS_WRONG_STATE, "no prompt");
+    const std::string prompt = "a person walks forward, turns left, raises both arms, waves with "
+                               "the right hand, sits down on a chair and then kicks with the "
+                               "right leg";
+    s.set_prompt(prompt);
+    flame::PromptInfo info = s.prompt_info();
+    CHECK(info.window == 20 && info.kept == 20 && info.tokens > 20);
+    CHECK(info.truncated && !info.unconditional);
+    // The dropped text is the prompt's tail.
+    const std::string &d = info.dropped;
+    CHECK(!d.empty() && d.size() < prompt.size() &&
+          prompt.compare(prompt.size() - d.size(), d.size(), d) == 0);
+    const std::string tail = "kicks with the right leg";
+    CHECK(d.size() >= tail.size() && d.compare(d.size() - tail.size(), tail.size(), tail) == 0);
+
+    s.set_prompt("a person walks");
+    flame::PromptInfo short_info = s.prompt_info();
+    CHECK(!short_info.truncated && !short_info.unconditional && short_info.dropped.empty());
+    CHECK(short_info.kept == short_info.tokens && short_info.tokens < 20);
+    // info holds its own copy of the dropped text: still the tail after the next prompt.
+    CHECK(!d.empty() && prompt.compare(prompt.size() - d.size(), d.size(), d) == 0);
+
+    s.set_prompt("");
+    flame::PromptInfo none = s.prompt_info();
+    CHECK(none.unconditional && !none.truncated && none.dropped.empty());
+
+    flame::Session moved(std::move(s));
+    CHECK_THROWS(s.prompt_info(), FLAME_STATUS_INVALID_ARGUMENT, "session");
+    CHECK(moved.prompt_info().unconditional);
+}
+
 static void test_editing() {
     flame::Model model = flame::Model::load(g_model_path);
     flame::Session s = model.session(reference_params());
@@ -485,6 +520,7 @@ int main(int argc, char **argv) {
         test_happy_path();
         test_load_from_memory();
         test_errors();
+        test_prompt_info();
         test_editing();
         test_edit_params_tasks_parts();
         test_reference_poses();

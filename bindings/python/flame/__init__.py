@@ -22,6 +22,7 @@ import ctypes.util
 import os
 import sys
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Union
@@ -33,6 +34,8 @@ __all__ = [
     "FlameError",
     "Model",
     "ModelInfo",
+    "PromptInfo",
+    "PromptTruncatedWarning",
     "Session",
     "Status",
     "Sampler",
@@ -248,6 +251,18 @@ class _ModelInfo(ctypes.Structure):
     ]
 
 
+class _PromptInfo(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("tokens", ctypes.c_uint32),
+        ("kept", ctypes.c_uint32),
+        ("window", ctypes.c_uint32),
+        ("truncated", ctypes.c_uint32),
+        ("unconditional", ctypes.c_uint32),
+        ("dropped", ctypes.c_char_p),
+    ]
+
+
 class _SessionParams(ctypes.Structure):
     _fields_ = [
         ("struct_size", ctypes.c_uint32),
@@ -306,6 +321,7 @@ def _signatures():
         "flame_session_free": (None, [_P]),
         "flame_session_reset": (_status, [_P]),
         "flame_session_set_prompt": (_status, [_P, ctypes.c_char_p]),
+        "flame_session_prompt_info": (_status, [_P, ctypes.POINTER(_PromptInfo)]),
         "flame_session_set_noise": (_status, [_P, pf32, size_t]),
         "flame_session_set_reference": (_status, [_P, pf32, u32, u32]),
         "flame_session_set_mask": (_status, [_P, ctypes.POINTER(ctypes.c_uint8), u32, u32]),
@@ -364,6 +380,13 @@ def version() -> str:
 
 
 # --- errors ------------------------------------------------------------------------------------
+
+
+class PromptTruncatedWarning(UserWarning):
+    """Issued by Session.set_prompt when the prompt is longer than the text encoder's window:
+    the encoder saw only its first tokens. The message names the kept and total tokens and the
+    dropped text; Session.prompt_info() has the same as values. Silence it with
+    `warnings.simplefilter("ignore", flame.PromptTruncatedWarning)`."""
 
 
 class FlameError(Exception):
@@ -434,6 +457,21 @@ class ModelInfo:
 
 def _text(p: Optional[bytes]) -> str:
     return p.decode("utf-8", "replace") if p else ""
+
+
+@dataclass(frozen=True)
+class PromptInfo:
+    """What flame_session_prompt_info reports about the last prompt: `tokens` of the whole
+    prompt and `kept` of them by the text encoder (special tokens included), its `window`,
+    whether the window cut the prompt (`truncated`), whether the prompt was empty or blank
+    (`unconditional`: generation without text) and the `dropped` text ("" when nothing was)."""
+
+    tokens: int
+    kept: int
+    window: int
+    truncated: bool
+    unconditional: bool
+    dropped: str
 
 
 def _model_params(threads: int, weights: Union[str, int]) -> _ModelParams:
@@ -651,7 +689,36 @@ class Session:
             _check(fn(self._h(), *args))
 
     def set_prompt(self, prompt: str) -> None:
-        self._call(_lib().flame_session_set_prompt, prompt.encode("utf-8"))
+        """Sets the text; "" (or blank) = generation without text. May change between steps.
+        A prompt longer than the text encoder's window issues a PromptTruncatedWarning (see
+        prompt_info())."""
+        with self._lock:
+            self._call(_lib().flame_session_set_prompt, prompt.encode("utf-8"))
+            info = self.prompt_info()
+        if info.truncated:
+            warnings.warn(
+                f"the prompt has {info.tokens} tokens; the text encoder keeps its first "
+                f"{info.kept} and ignores {info.dropped!r}",
+                PromptTruncatedWarning,
+                stacklevel=2,
+            )
+
+    def prompt_info(self) -> PromptInfo:
+        """How the last prompt fitted the text encoder's window (a PromptInfo). Raises
+        FlameError (WRONG_STATE) before a prompt is set."""
+        raw = _PromptInfo()
+        raw.struct_size = ctypes.sizeof(_PromptInfo)
+        with self._lock:
+            # The session owns `dropped` until its next prompt: copy it while holding the lock.
+            _check(_lib().flame_session_prompt_info(self._h(), ctypes.byref(raw)))
+            return PromptInfo(
+                tokens=raw.tokens,
+                kept=raw.kept,
+                window=raw.window,
+                truncated=bool(raw.truncated),
+                unconditional=bool(raw.unconditional),
+                dropped=_text(raw.dropped),
+            )
 
     def set_noise(self, noise) -> None:
         """Sets x_T explicitly ([frames, feature_dim] or flat); before the first step only."""

@@ -60,6 +60,7 @@ static class FlameTest
             Run("HalfWeights", TestHalfWeights);
             Run("StepsEstimateReset", TestStepsEstimateReset);
             Run("SessionErrors", TestSessionErrors);
+            Run("PromptInfo", TestPromptInfo);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
             Run("PoseLayouts", TestPoseLayouts);
@@ -264,6 +265,9 @@ static class FlameTest
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
         var ep = FlameEditParams.Default();
         Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
+        // FlamePromptInfo: six uint32 then a pointer, no padding (C: sizeof 32, offsetof dropped 24 on x86-64).
+        Check(Marshal.SizeOf(typeof(FlamePromptInfo)) == 24 + IntPtr.Size, "sizeof FlamePromptInfo " + Marshal.SizeOf(typeof(FlamePromptInfo)));
+        Check((int)Marshal.OffsetOf(typeof(FlamePromptInfo), "dropped") == 24, "offset of dropped");
         Check(ep.method == (int)FlameEditMethod.Auto && ep.edit_till == 0.2f && ep.paste == 1 && ep.seam_frames == 4, "edit defaults");
     }
 
@@ -412,6 +416,57 @@ static class FlameTest
         p = RefParams();
         p.struct_size = 8;
         Throws(FlameStatus.InvalidArgument, "params.struct_size is 8", () => model.NewSession(p).Dispose());
+    }
+
+    // The fixture's RoBERTa window: 20 tokens, <s> and </s> included.
+    const int Window = 20;
+    const string LongPrompt = "a person walks forward, turns left, raises both arms, waves with the right hand, "
+                              + "sits down on a chair and then kicks with the right leg";
+
+    static void TestPromptInfo()
+    {
+        using (var s = model.NewSession(RefParams()))
+        {
+            Throws(FlameStatus.WrongState, "no prompt", () => s.PromptInfo());
+            s.SetPrompt(LongPrompt);
+            var info = s.PromptInfo();
+            Check(info.Window == Window && info.Kept == Window && info.Tokens > Window, "long: window " + info.Window + " kept " + info.Kept + " tokens " + info.Tokens);
+            Check(info.Truncated && !info.Unconditional, "long: truncated, conditional");
+            Check(info.Dropped.Length > 0 && LongPrompt.EndsWith(info.Dropped, StringComparison.Ordinal)
+                  && info.Dropped.EndsWith("kicks with the right leg", StringComparison.Ordinal), "dropped is the prompt's tail: \"" + info.Dropped + "\"");
+            // What was kept, on its own, fits the window as the cut prompt did.
+            s.SetPrompt(LongPrompt.Substring(0, LongPrompt.Length - info.Dropped.Length).TrimEnd());
+            var rest = s.PromptInfo();
+            Check(!rest.Truncated && rest.Tokens >= Window - 1 && rest.Tokens <= Window, "the kept text fits: " + rest.Tokens);
+
+            s.SetPrompt("a person walks");
+            var shortInfo = s.PromptInfo();
+            Check(!shortInfo.Truncated && !shortInfo.Unconditional && shortInfo.Dropped == ""
+                  && shortInfo.Kept == shortInfo.Tokens && shortInfo.Tokens < Window, "short prompt: " + shortInfo.Tokens);
+            foreach (var blank in new[] { "", "  \t " })
+            {
+                s.SetPrompt(blank);
+                var none = s.PromptInfo();
+                Check(none.Unconditional && !none.Truncated && none.Dropped == "", "blank prompt is unconditional");
+            }
+            // Non-ASCII text in the dropped tail comes back as the same string (UTF-8 by hand).
+            string accented = LongPrompt + " près du café à l'été";
+            s.SetPrompt(accented);
+            var acc = s.PromptInfo();
+            Check(acc.Truncated && accented.EndsWith(acc.Dropped, StringComparison.Ordinal)
+                  && acc.Dropped.EndsWith("café à l'été", StringComparison.Ordinal), "non-ASCII dropped: \"" + acc.Dropped + "\"");
+
+            // The raw call checks struct_size.
+            var raw = new FlamePromptInfo();
+            raw.struct_size = (uint)Marshal.SizeOf(typeof(FlamePromptInfo)) - 1;
+            Throws(FlameStatus.InvalidArgument, "struct_size", () => FlameException.Check(FlameNative.flame_session_prompt_info(s.Handle, ref raw)));
+        }
+        using (var none = new FlameSessionHandle())
+        {
+            var raw = new FlamePromptInfo();
+            raw.struct_size = (uint)Marshal.SizeOf(typeof(FlamePromptInfo));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_prompt_info(none, ref raw)));
+        }
     }
 
     static void TestNullArguments()

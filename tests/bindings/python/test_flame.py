@@ -14,6 +14,7 @@ Environment (all optional; tests/bindings/run_python.sh sets them):
   FLAME_TEST_WHEEL  1: the package under test is an installed wheel (checked by a test)
 """
 
+import dataclasses
 import os
 import subprocess
 import threading
@@ -252,6 +253,73 @@ def test_session_errors(model):
         model.session(sampler="rk4")
     # FLAME is a diffusion model: the flow-matching samplers are refused by the library.
     expect_error(Status.INVALID_ARGUMENT, "needs a flow-matching model", model.session, sampler="euler")
+
+
+# The fixture's RoBERTa window is 20 tokens, <s> and </s> included (its config).
+WINDOW = 20
+LONG_PROMPT = ("a person walks forward, turns left, raises both arms, waves with the right hand, "
+               "sits down on a chair and then kicks with the right leg")
+
+
+def test_prompt_info(model):
+    import warnings
+
+    with model.session(**REF_SETTINGS) as s:
+        expect_error(Status.WRONG_STATE, "no prompt", s.prompt_info)
+        with pytest.warns(flame.PromptTruncatedWarning) as caught:
+            s.set_prompt(LONG_PROMPT)
+        info = s.prompt_info()
+        assert isinstance(info, flame.PromptInfo)
+        assert (info.window, info.kept) == (WINDOW, WINDOW) and info.tokens > WINDOW, info
+        assert info.truncated is True and info.unconditional is False
+        assert info.dropped and LONG_PROMPT.endswith(info.dropped), info
+        assert info.dropped.endswith("kicks with the right leg")
+        # The warning names the kept and total tokens and the dropped text.
+        message = str(caught[0].message)
+        assert len(caught) == 1 and caught[0].filename == __file__, "it points at the caller"
+        assert f"{info.tokens} tokens" in message and f"first {WINDOW}" in message, message
+        assert repr(info.dropped) in message, message
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            info.kept = 1
+        # What was kept, on its own, fits the window as the cut prompt did.
+        kept_text = LONG_PROMPT[: len(LONG_PROMPT) - len(info.dropped)].rstrip()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no warning for a prompt that fits
+            s.set_prompt(kept_text)
+            rest = s.prompt_info()
+            assert WINDOW - 1 <= rest.tokens <= WINDOW and not rest.truncated, rest
+            s.set_prompt("a person walks")
+            short = s.prompt_info()
+            assert not short.truncated and short.dropped == "" and short.kept == short.tokens < WINDOW
+            assert not short.unconditional
+            for blank in ["", "  \t "]:
+                s.set_prompt(blank)
+                none = s.prompt_info()
+                assert none.unconditional and not none.truncated and none.dropped == "", none
+        # Non-ASCII text in the dropped tail comes back as the same str.
+        accented = LONG_PROMPT + " près du café à l'été"
+        with pytest.warns(flame.PromptTruncatedWarning):
+            s.set_prompt(accented)
+        info = s.prompt_info()
+        assert accented.endswith(info.dropped) and info.dropped.endswith("café à l'été"), info
+        s.close()
+        with pytest.raises(ValueError):
+            s.prompt_info()
+
+
+def test_prompt_info_struct_size_through_ctypes(model):
+    """The raw call checks struct_size, so a struct from an older header is refused, not overrun."""
+    import ctypes
+
+    lib = flame._lib()
+    with ref_session(model) as s:
+        raw = flame._PromptInfo()
+        raw.struct_size = ctypes.sizeof(raw) - 1
+        assert lib.flame_session_prompt_info(s._h(), ctypes.byref(raw)) == Status.INVALID_ARGUMENT
+        assert b"struct_size" in lib.flame_last_error()
+        assert lib.flame_session_prompt_info(s._h(), None) == Status.INVALID_ARGUMENT
+        # Six u32 and a pointer, no padding on 32- or 64-bit targets.
+        assert ctypes.sizeof(raw) == 24 + ctypes.sizeof(ctypes.c_void_p)
 
 
 def test_raw_read_buffer_too_small(model):

@@ -252,6 +252,42 @@ int main(int argc, char** argv) {
     }
     CHECK(WaitForThreads(), "workers exited");
 
+    {   // A prompt longer than the text encoder's window (the fixture's RoBERTa: 20 tokens):
+        // bPromptTruncated, PromptDropped = the prompt's tail, and one warning in the log.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 2, true);
+        const std::string prompt = "a person walks forward, turns left, raises both arms, waves with the right hand, "
+                                   "sits down on a chair and then kicks with the right leg";
+        c.Prompt = FString(UTF8_TO_TCHAR(prompt.c_str()));
+        int finishedCalls = 0;
+        c.OnFinished.AddLambda([&](bool) { finishedCalls++; });
+        auto warnings = [] {
+            int n = 0;
+            for (const std::string& line : UeStubLogLines())
+                n += line.find("LogFlame: Warning: the prompt has ") == 0;
+            return n;
+        };
+        const int before = warnings();
+        CHECK(c.Generate(), "Generate: %s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finishedCalls > 0; }), "finished");
+        const std::string dropped = c.PromptDropped.Utf8();
+        CHECK(c.bPromptTruncated && !dropped.empty() && dropped.size() < prompt.size() &&
+                  prompt.compare(prompt.size() - dropped.size(), dropped.size(), dropped) == 0 &&
+                  dropped.find("kicks with the right leg") != std::string::npos,
+              "dropped \"%s\"", dropped.c_str());
+        CHECK(warnings() == before + 1, "one warning, %d", warnings() - before);
+        const std::vector<std::string> lines = UeStubLogLines();
+        const std::string& last = lines.empty() ? std::string() : lines.back();
+        CHECK(last.find("keeps its first 20") != std::string::npos && last.find("\"" + dropped + "\"") != std::string::npos,
+              "%s", last.c_str());
+
+        c.Prompt = FString(TEXT("a person walks"));
+        CHECK(c.Generate(), "Generate short");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished short");
+        CHECK(!c.bPromptTruncated && c.PromptDropped.IsEmpty() && warnings() == before + 1, "a short prompt fits, no warning");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
     {   // Errors reach LastError and OnFinished(false).
         UFlameMotionComponent c;
         Configure(c, "/nonexistent/model.safetensors", Frames, 10, true);

@@ -214,12 +214,27 @@ struct FPaths {
     static FString ConvertRelativePathToFull(const FString& p) { return p; }
 };
 
-/* Logging: categories are names; UE_LOG prints "Category: Verbosity: message". */
+/* Logging: categories are names; UE_LOG prints "Category: Verbosity: message" and keeps the
+ * line, so a test can check what was logged (UeStubLogLines). */
 struct FLogCategory { const char* name; };
 #define DECLARE_LOG_CATEGORY_EXTERN(Name, Default, Compile) extern FLogCategory Name
 #define DEFINE_LOG_CATEGORY(Name) FLogCategory Name{#Name}
+namespace ue_stub {
+inline std::mutex& LogLock() { static std::mutex m; return m; }
+inline std::vector<std::string>& LogLines() { static std::vector<std::string> lines; return lines; }
+inline void Log(const char* category, const char* verbosity, const std::string& message) {
+    std::string line = std::string(category) + ": " + verbosity + ": " + message;
+    std::fprintf(stderr, "%s\n", line.c_str());
+    std::lock_guard<std::mutex> guard(LogLock());
+    LogLines().push_back(line);
+}
+}  // namespace ue_stub
+inline std::vector<std::string> UeStubLogLines() {
+    std::lock_guard<std::mutex> guard(ue_stub::LogLock());
+    return ue_stub::LogLines();
+}
 #define UE_LOG(Category, Verbosity, Fmt, ...) \
-    std::fprintf(stderr, "%s: %s: %s\n", Category.name, #Verbosity, FString::Printf(Fmt, ##__VA_ARGS__).Utf8().c_str())
+    ue_stub::Log(Category.name, #Verbosity, FString::Printf(Fmt, ##__VA_ARGS__).Utf8())
 
 class IModuleInterface {
 public:

@@ -69,6 +69,11 @@ struct FFlameJob
 	FString Error;
 	TArray<FString> JointNames;
 	TArray<int32> JointParents;
+	bool bPromptInfoNew = false; // the fields below were set and not yet taken by the component
+	bool bPromptTruncated = false;
+	uint32 PromptTokens = 0;
+	uint32 PromptKept = 0;
+	FString PromptDropped;
 
 	void Cancel()
 	{
@@ -184,10 +189,26 @@ private:
 	bool Step(FlameSession* S, FString& Failure)
 	{
 		FlameStatus Status = flame_session_set_prompt(S, TCHAR_TO_UTF8(*Prompt));
+		FlamePromptInfo PromptInfo;
+		FMemory::Memzero(PromptInfo);
+		PromptInfo.struct_size = sizeof(PromptInfo);
+		if (Status == FLAME_STATUS_OK)
+		{
+			Status = flame_session_prompt_info(S, &PromptInfo);
+		}
 		if (Status != FLAME_STATUS_OK)
 		{
 			Failure = FlameFailure(Status);
 			return false;
+		}
+		{
+			// Copied now: `dropped` belongs to the session. The component logs it on its tick.
+			FScopeLock Guard(&Lock);
+			bPromptInfoNew = true;
+			bPromptTruncated = PromptInfo.truncated != 0;
+			PromptTokens = PromptInfo.tokens;
+			PromptKept = PromptInfo.kept;
+			PromptDropped = FString(UTF8_TO_TCHAR(PromptInfo.dropped != nullptr ? PromptInfo.dropped : ""));
 		}
 		TArray<float> Buffer, RootBuffer;
 		uint32 Left = 1;
@@ -289,6 +310,8 @@ bool UFlameMotionComponent::Generate()
 	}
 
 	LastError.Reset();
+	bPromptTruncated = false;
+	PromptDropped.Reset();
 	StepsDone = 0;
 	StepsTotal = 0;
 	Job = NewJob;
@@ -346,9 +369,19 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 	{
 		return;
 	}
-	bool bNewPose = false, bFinished = false, bSucceeded = false;
+	bool bNewPose = false, bFinished = false, bSucceeded = false, bWarnTruncated = false;
+	uint32 PromptTokens = 0, PromptKept = 0;
 	{
 		FScopeLock Guard(&Job->Lock);
+		if (Job->bPromptInfoNew)
+		{
+			Job->bPromptInfoNew = false;
+			bPromptTruncated = Job->bPromptTruncated;
+			PromptDropped = Job->PromptDropped;
+			bWarnTruncated = bPromptTruncated;
+			PromptTokens = Job->PromptTokens;
+			PromptKept = Job->PromptKept;
+		}
 		if (Job->bLatestIsNew)
 		{
 			Swap(Pose, Job->Latest);
@@ -368,6 +401,11 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			LastError = Job->Error;
 			Model = Job->Model;
 		}
+	}
+	if (bWarnTruncated)
+	{
+		UE_LOG(LogFlame, Warning, TEXT("the prompt has %u tokens; the text encoder keeps its first %u and ignores \"%s\""),
+			PromptTokens, PromptKept, *PromptDropped);
 	}
 	// Broadcast outside the lock: a handler may call Generate or Cancel.
 	if (bNewPose)

@@ -159,6 +159,15 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	int32 StepsTotal = 0;
 
+	/** The last generation's prompt was longer than the text encoder's window, which kept
+	 *  only its first tokens (a warning is logged too). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	bool bPromptTruncated = false;
+
+	/** The part of the last prompt the window cut off, which the model ignored ("" if none). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame")
+	FString PromptDropped;
+
 	/** libflame's status name and message of the last failure ("" if none). */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	FString LastError;
