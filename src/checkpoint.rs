@@ -223,6 +223,11 @@ impl ModelFile {
         v
     }
 
+    /// Whether any stored tensor's name starts with `prefix` (a layer of a stack, say).
+    pub fn has_prefix(&self, prefix: &str) -> bool {
+        self.entries.keys().any(|n| n.starts_with(prefix))
+    }
+
     /// Whether a tensor of that name is stored.
     pub fn contains(&self, name: &str) -> bool {
         self.entries.contains_key(name)
@@ -399,6 +404,9 @@ fn parse_header(bytes: &[u8]) -> Result<(usize, Metadata)> {
             bad_file!("a tensor's byte size does not match its dtype and shape")
         }
         SafeTensorError::HeaderTooLarge => bad_file!("header is too large"),
+        SafeTensorError::ValidationOverflow => {
+            bad_file!("a tensor's shape overflows its byte size (corrupt header)")
+        }
         other => bad_file!("invalid safetensors header: {other:?}"),
     })
 }
