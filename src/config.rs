@@ -401,10 +401,140 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("not divisible"), "{e}");
-        // ("not even or not divisible" for the denoiser, "not divisible" for the text encoder)
+        // ("not even" / "not divisible" for the denoiser, "not divisible" for the text encoder)
         let e = Config::from_json(&EXAMPLE.replace("\"max_motion_length\": 471,", ""))
             .unwrap_err()
             .to_string();
         assert!(e.contains("missing field `max_motion_length`"), "{e}");
+    }
+
+    /// EXAMPLE with `section.key` (top level when `section` is empty) set to `value`.
+    fn with(section: &str, key: &str, value: serde_json::Value) -> String {
+        let mut v: serde_json::Value = serde_json::from_str(EXAMPLE).unwrap();
+        let target = if section.is_empty() { &mut v } else { &mut v[section] };
+        target[key] = value;
+        v.to_string()
+    }
+
+    fn err(section: &str, key: &str, value: serde_json::Value) -> String {
+        match Config::from_json(&with(section, key, value.clone())) {
+            Ok(_) => panic!("{section}.{key} = {value} was accepted"),
+            Err(e) => {
+                assert!(matches!(e, crate::Error::BadModelFile(_)), "{e}");
+                e.to_string()
+            }
+        }
+    }
+
+    #[test]
+    fn every_count_is_bounded() {
+        let counts = [
+            ("denoiser", "motion_dim"),
+            ("denoiser", "model_channels"),
+            ("denoiser", "num_layers"),
+            ("denoiser", "num_heads"),
+            ("denoiser", "dim_feedforward"),
+            ("denoiser", "max_motion_length"),
+            ("text_encoder", "vocab_size"),
+            ("text_encoder", "hidden_size"),
+            ("text_encoder", "num_layers"),
+            ("text_encoder", "num_heads"),
+            ("text_encoder", "intermediate_size"),
+            ("text_encoder", "max_position_embeddings"),
+            ("text_encoder", "type_vocab_size"),
+            ("text_encoder", "max_length"),
+            ("diffusion", "num_timesteps"),
+            ("defaults", "steps"),
+            ("defaults", "frames"),
+        ];
+        for (section, key) in counts {
+            for n in [1_000_000_000u64, u64::MAX] {
+                let e = err(section, key, n.into());
+                assert!(e.contains(&format!("{section}.{key} {n} is outside")), "{e}");
+            }
+            let e = err(section, key, 0.into());
+            assert!(e.contains(key), "{e}");
+            err(section, key, (-1).into());
+            err(section, key, 1e9.into());
+        }
+        let e = err("text_encoder", "pad_token_id", 1_000_000_000.into());
+        assert!(e.contains("pad_token_id 1000000000 is not below vocab_size"), "{e}");
+        let e = err("", "format_version", u64::MAX.into());
+        assert!(e.contains("is not supported"), "{e}");
+        // 2^32 + 1 does not wrap around to version 1.
+        let e = err("", "format_version", ((1u64 << 32) + 1).into());
+        assert!(e.contains("is not supported"), "{e}");
+    }
+
+    #[test]
+    fn floats_are_finite_and_bounded() {
+        for (section, key, bad) in [
+            ("motion", "fps", vec![0.0, -20.0, 1e30, 1000.5]),
+            ("defaults", "guidance", vec![-1.0, 1e30, 100.5]),
+            ("defaults", "eta", vec![-0.5, 1.5, 1e30]),
+            ("denoiser", "layer_norm_eps", vec![0.0, -1e-5, 2.0]),
+            ("text_encoder", "layer_norm_eps", vec![0.0, 1e30]),
+        ] {
+            for v in bad {
+                let e = err(section, key, v.into());
+                assert!(e.contains(&format!("config {section}.{key}")), "{e}");
+            }
+        }
+        for (section, key, good) in [
+            ("motion", "fps", 1000.0),
+            ("defaults", "guidance", 100.0),
+            ("defaults", "guidance", 0.0),
+            ("defaults", "eta", 1.0),
+        ] {
+            Config::from_json(&with(section, key, good.into())).unwrap();
+        }
+    }
+
+    #[test]
+    fn names_are_checked_at_parse_time() {
+        for (section, key, value, needle) in [
+            ("diffusion", "schedule", "cosinus", "unknown config diffusion.schedule `cosinus` (accepted: cosine, squaredcos_cap_v2, linear, scaled_linear)"),
+            ("diffusion", "parameterization", "noise", "unknown config diffusion.parameterization `noise`"),
+            ("diffusion", "parameterization", "velocity", "is for motionfm models"),
+            ("diffusion", "variance", "learned", "unknown config diffusion.variance `learned`"),
+            ("diffusion", "uncond", "none", "unknown config diffusion.uncond `none`"),
+            ("diffusion", "uncond", "zeros", "FLAME models need `empty_prompt`"),
+            ("defaults", "sampler", "dpm", "unknown config defaults.sampler `dpm` (accepted: ddpm, ddim)"),
+            ("defaults", "sampler", "heun", "unknown config defaults.sampler `heun`"),
+            ("motion", "format", "bvh", "unknown config motion.format `bvh` (accepted: smpl24_6d, humanml263)"),
+            ("motion", "format", "humanml263", "has 263 features per frame, the denoiser 147"),
+            ("denoiser", "activation", "swish", "unknown config denoiser.activation `swish`"),
+            ("text_encoder", "hidden_act", "relu", "hidden_act `relu`"),
+            ("text_encoder", "kind", "t5", "unknown text_encoder.kind `t5`"),
+        ] {
+            let e = err(section, key, value.into());
+            assert!(e.contains(needle), "{section}.{key} = {value}: {e}");
+        }
+        // The sampler's own spellings still pass.
+        for (section, key, value) in [
+            ("diffusion", "schedule", "Linear"),
+            ("diffusion", "parameterization", "v_prediction"),
+            ("diffusion", "variance", "fixed_large"),
+            ("defaults", "sampler", "ddim"),
+        ] {
+            Config::from_json(&with(section, key, value.into())).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_loadable_configuration_starts_a_session() {
+        // A short linear schedule has betas above 1: refused at load, not at session start.
+        let short = with("diffusion", "num_timesteps", 10.into());
+        let short = short.replace("\"cosine\"", "\"linear\"");
+        let short: serde_json::Value = serde_json::from_str(&short).unwrap();
+        let mut v = short.clone();
+        v["defaults"]["steps"] = 10.into();
+        let e = Config::from_json(&v.to_string()).unwrap_err().to_string();
+        assert!(e.contains("config diffusion.schedule `linear` with num_timesteps 10"), "{e}");
+        assert!(e.contains("outside (0, 1)"), "{e}");
+        let e = err("defaults", "steps", 1001.into());
+        assert!(e.contains("defaults.steps 1001 is outside 1..=1000"), "{e}");
+        let e = err("defaults", "frames", 471.into());
+        assert!(e.contains("defaults.frames 471 is outside 1..=470"), "{e}");
     }
 }

@@ -202,7 +202,7 @@ impl Session {
         let guidance = params.guidance.unwrap_or(d.guidance);
         if !crate::config::guidance_in_range(guidance) {
             return Err(invalid_arg!(
-                "guidance {guidance} is outside [0, {}]",
+                "guidance {guidance:?} is outside [0, {:?}]",
                 crate::config::MAX_GUIDANCE
             ));
         }

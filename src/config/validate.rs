@@ -30,13 +30,13 @@ fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Res
     if !(value.is_finite() && above && value <= hi) {
         let open = if open_lo { "(" } else { "[" };
         return Err(bad_file!(
-            "config {field} {value} is outside {open}{lo}, {hi}]"
+            "config {field} {value:?} is outside {open}{lo:?}, {hi:?}]"
         ));
     }
     Ok(())
 }
 
-/// A width split over heads: `heads` in 1..=width dividing it (and `width` even if `even`).
+/// A width split over heads: `heads` in 1..=width, dividing it.
 fn heads_divide(field: &str, width: usize, heads_field: &str, heads: usize) -> Result<()> {
     in_range(heads_field, heads, 1, width)?;
     if !width.is_multiple_of(heads) {
@@ -112,13 +112,12 @@ impl FlameConfig {
         in_range("denoiser.num_layers", self.num_layers, 1, MAX_LAYERS)?;
         if !self.model_channels.is_multiple_of(2) {
             return Err(bad_file!(
-                "config denoiser.model_channels {} is not even or not divisible by its {} heads",
-                self.model_channels,
-                self.num_heads
+                "config denoiser.model_channels {} is not even",
+                self.model_channels
             ));
         }
         heads_divide(
-            "denoiser.model_channels (not even or not divisible by its heads)",
+            "denoiser.model_channels",
             self.model_channels,
             "denoiser.num_heads",
             self.num_heads,
@@ -194,13 +193,12 @@ impl MdmConfig {
         in_range("denoiser.layers", self.layers, 1, MAX_LAYERS)?;
         if !self.latent_dim.is_multiple_of(2) {
             return Err(bad_file!(
-                "config denoiser.latent_dim {} is not even or not divisible by its {} heads",
-                self.latent_dim,
-                self.heads
+                "config denoiser.latent_dim {} is not even",
+                self.latent_dim
             ));
         }
         heads_divide(
-            "denoiser.latent_dim (not even or not divisible by its heads)",
+            "denoiser.latent_dim",
             self.latent_dim,
             "denoiser.heads",
             self.heads,
@@ -565,8 +563,12 @@ impl Config {
         if !flow {
             // The schedule must give betas in (0, 1) (a short linear schedule does not).
             Schedule::new(&betas(schedule, dc.num_timesteps)).map_err(|e| {
+                let why = match e {
+                    crate::Error::InvalidArgument(m) => m,
+                    other => other.to_string(),
+                };
                 bad_file!(
-                    "config diffusion.schedule `{}` with num_timesteps {}: {e}",
+                    "config diffusion.schedule `{}` with num_timesteps {}: {why}",
                     dc.schedule,
                     dc.num_timesteps
                 )
@@ -592,10 +594,9 @@ impl Config {
         in_range("defaults.frames", df.frames, 1, max_frames)
     }
 
-    /// [`Config::from_json`]'s checks, then every size against the file's tensors: what
-    /// [`Config::from_file`] does before a model is built.
+    /// Every size against the file's tensors (and each part's bounds again): what
+    /// [`Config::from_file`] does after [`Config::from_json`]'s checks, before a model is built.
     pub fn validate(&self, file: &ModelFile) -> Result<()> {
-        self.check()?;
         let prefix = crate::models::TEXT_PREFIX;
         match &self.text_encoder {
             TextConfig::Bert(t) => {

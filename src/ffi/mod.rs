@@ -36,7 +36,6 @@ pub const FLAME_VERSION_PATCH: u32 = 0;
 /// The most worker threads `FlameModelParams.threads` and `FlameSessionParams.threads` may ask
 /// for; above it a load or session start fails with `FLAME_STATUS_INVALID_ARGUMENT`.
 pub const FLAME_MAX_THREADS: u32 = 256;
-const _: () = assert!(FLAME_MAX_THREADS as usize == crate::pool::MAX_THREADS);
 /// Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
 pub const FLAME_ROOT_TRANSLATION: i32 = -1;
 
