@@ -411,7 +411,11 @@ mod tests {
     /// EXAMPLE with `section.key` (top level when `section` is empty) set to `value`.
     fn with(section: &str, key: &str, value: serde_json::Value) -> String {
         let mut v: serde_json::Value = serde_json::from_str(EXAMPLE).unwrap();
-        let target = if section.is_empty() { &mut v } else { &mut v[section] };
+        let target = if section.is_empty() {
+            &mut v
+        } else {
+            &mut v[section]
+        };
         target[key] = value;
         v.to_string()
     }
@@ -450,7 +454,10 @@ mod tests {
         for (section, key) in counts {
             for n in [1_000_000_000u64, u64::MAX] {
                 let e = err(section, key, n.into());
-                assert!(e.contains(&format!("{section}.{key} {n} is outside")), "{e}");
+                assert!(
+                    e.contains(&format!("{section}.{key} {n} is outside")),
+                    "{e}"
+                );
             }
             let e = err(section, key, 0.into());
             assert!(e.contains(key), "{e}");
@@ -458,7 +465,10 @@ mod tests {
             err(section, key, 1e9.into());
         }
         let e = err("text_encoder", "pad_token_id", 1_000_000_000.into());
-        assert!(e.contains("pad_token_id 1000000000 is not below vocab_size"), "{e}");
+        assert!(
+            e.contains("pad_token_id 1000000000 is not below vocab_size"),
+            "{e}"
+        );
         let e = err("", "format_version", u64::MAX.into());
         assert!(e.contains("is not supported"), "{e}");
         // 2^32 + 1 does not wrap around to version 1.
@@ -530,7 +540,10 @@ mod tests {
         let mut v = short.clone();
         v["defaults"]["steps"] = 10.into();
         let e = Config::from_json(&v.to_string()).unwrap_err().to_string();
-        assert!(e.contains("config diffusion.schedule `linear` with num_timesteps 10"), "{e}");
+        assert!(
+            e.contains("config diffusion.schedule `linear` with num_timesteps 10"),
+            "{e}"
+        );
         assert!(e.contains("outside (0, 1)"), "{e}");
         let e = err("defaults", "steps", 1001.into());
         assert!(e.contains("defaults.steps 1001 is outside 1..=1000"), "{e}");

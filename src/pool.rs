@@ -129,7 +129,10 @@ mod tests {
     fn thread_counts_are_bounded() {
         assert_eq!(crate::ffi::FLAME_MAX_THREADS as usize, MAX_THREADS);
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        assert_eq!(WorkerPool::new(0).unwrap().threads(), cores.min(MAX_THREADS));
+        assert_eq!(
+            WorkerPool::new(0).unwrap().threads(),
+            cores.min(MAX_THREADS)
+        );
         assert_eq!(WorkerPool::new(MAX_THREADS).unwrap().threads(), MAX_THREADS);
         for n in [MAX_THREADS + 1, u32::MAX as usize, usize::MAX] {
             let e = WorkerPool::new(n).err().expect("refused").to_string();

@@ -34,12 +34,20 @@ fn read_fixture() -> Tensors {
         .tensors()
         .into_iter()
         .map(|(name, t)| {
-            assert_eq!(t.dtype(), Dtype::F32, "{name}");
-            let data = t
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
+            // Stored as f32 or f16; written back as f32 (the same values).
+            let data = match t.dtype() {
+                Dtype::F32 => t
+                    .data()
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect(),
+                Dtype::F16 => t
+                    .data()
+                    .chunks_exact(2)
+                    .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                    .collect(),
+                other => panic!("{name}: {other:?}"),
+            };
             (name, t.shape().to_vec(), data)
         })
         .collect();
@@ -174,5 +182,8 @@ fn mlp_size_comes_from_the_configuration() {
          expected [128, 32] (from config text_encoder.width: no intermediate_size, so 4 × width)"
     );
     let e = load(&base, Some(3 * W)).err().unwrap().to_string();
-    assert!(e.contains("mlp.fc1.weight` has shape [128, 32], expected [96, 32]"), "{e}");
+    assert!(
+        e.contains("mlp.fc1.weight` has shape [128, 32], expected [96, 32]"),
+        "{e}"
+    );
 }

@@ -17,9 +17,7 @@ use super::*;
 /// `lo <= value <= hi`, or an error naming the field and the range.
 fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
     if value < lo || value > hi {
-        return Err(bad_file!(
-            "config {field} {value} is outside {lo}..={hi}"
-        ));
+        return Err(bad_file!("config {field} {value} is outside {lo}..={hi}"));
     }
     Ok(())
 }
@@ -232,7 +230,12 @@ impl MdmConfig {
             &[c, self.njoints],
             "denoiser.latent_dim, njoints",
         )?;
-        check_layers(file, "denoiser.layers", self.layers, "seqTransEncoder.layers.")?;
+        check_layers(
+            file,
+            "denoiser.layers",
+            self.layers,
+            "seqTransEncoder.layers.",
+        )?;
         expect_shape(
             file,
             "seqTransEncoder.layers.0.linear1.weight",
@@ -495,7 +498,12 @@ impl Config {
         in_range_f32("motion.fps", m.fps, 0.0, MAX_FPS, true)?;
 
         let dc = &self.diffusion;
-        in_range("diffusion.num_timesteps", dc.num_timesteps, 1, MAX_TIMESTEPS)?;
+        in_range(
+            "diffusion.num_timesteps",
+            dc.num_timesteps,
+            1,
+            MAX_TIMESTEPS,
+        )?;
         // Exactly what the sampler's parsers take (they ignore case and surrounding spaces).
         let unknown = |field: &str, value: &str, accepted: &[&str]| {
             bad_file!(
@@ -514,11 +522,13 @@ impl Config {
         one_of("diffusion.uncond", &dc.uncond, &["empty_prompt", "zeros"])?;
         let flow = is_flow(&dc.parameterization);
         if !flow {
-            dc.parameterization.parse::<Parameterization>().map_err(|_| {
-                let mut all = PARAMETERIZATIONS.to_vec();
-                all.extend(["velocity", "flow"]);
-                unknown("diffusion.parameterization", &dc.parameterization, &all)
-            })?;
+            dc.parameterization
+                .parse::<Parameterization>()
+                .map_err(|_| {
+                    let mut all = PARAMETERIZATIONS.to_vec();
+                    all.extend(["velocity", "flow"]);
+                    unknown("diffusion.parameterization", &dc.parameterization, &all)
+                })?;
         }
         match (arch, flow) {
             ("motionfm", false) => {

@@ -19,8 +19,8 @@ use crate::error::{invalid_arg, Error};
 use crate::models::{LoadOptions, Model, WeightType};
 use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 
-pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use errors::{catch_quietly, guard, Fail};
+pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};

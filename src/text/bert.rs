@@ -385,7 +385,6 @@ impl TextEncoder {
     }
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -314,7 +314,6 @@ impl ClipTextEncoder {
     }
 }
 
-
 /// The part of the official clean-up (`ftfy.fix_text`, then `html.unescape` twice) that the
 /// tokenizer.json normaliser (NFC, whitespace collapse, lower-case) lacks, for the characters
 /// prompts plausibly contain: curly quotes → straight (ftfy `uncurl_quotes`), the Latin
