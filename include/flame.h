@@ -28,6 +28,10 @@
 // libflame's version, patch part.
 #define FLAME_VERSION_PATCH 0
 
+// The most worker threads `FlameModelParams.threads` and `FlameSessionParams.threads` may ask
+// for; above it a load or session start fails with `FLAME_STATUS_INVALID_ARGUMENT`.
+#define FLAME_MAX_THREADS 256
+
 // Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
 #define FLAME_ROOT_TRANSLATION -1
 
@@ -192,7 +196,8 @@ typedef struct FlameSession FlameSession;
 typedef struct FlameModelParams {
   // `sizeof(FlameModelParams)`: lets later versions add fields.
   uint32_t struct_size;
-  // Threads for work done at load (encoding the guidance prompt); 0 = one per core.
+  // Threads for work done at load (encoding the guidance prompt): 1 to [`FLAME_MAX_THREADS`],
+  // or 0 = one per core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
   uint32_t threads;
   // A [`FlameWeights`] value (since version 2).
   int32_t weights;
@@ -247,7 +252,8 @@ typedef struct FlameSessionParams {
   float guidance;
   // Seed of the session's noise generator.
   uint64_t seed;
-  // Worker threads this session creates and owns; 0 = one per core.
+  // Worker threads this session creates and owns: 1 to [`FLAME_MAX_THREADS`], or 0 = one per
+  // core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
   uint32_t threads;
 } FlameSessionParams;
 

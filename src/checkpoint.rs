@@ -223,6 +223,11 @@ impl ModelFile {
         v
     }
 
+    /// Whether any stored tensor's name starts with `prefix` (a layer of a stack, say).
+    pub fn has_prefix(&self, prefix: &str) -> bool {
+        self.entries.keys().any(|n| n.starts_with(prefix))
+    }
+
     /// Whether a tensor of that name is stored.
     pub fn contains(&self, name: &str) -> bool {
         self.entries.contains_key(name)
@@ -399,6 +404,9 @@ fn parse_header(bytes: &[u8]) -> Result<(usize, Metadata)> {
             bad_file!("a tensor's byte size does not match its dtype and shape")
         }
         SafeTensorError::HeaderTooLarge => bad_file!("header is too large"),
+        SafeTensorError::ValidationOverflow => {
+            bad_file!("a tensor's shape overflows its byte size (corrupt header)")
+        }
         other => bad_file!("invalid safetensors header: {other:?}"),
     })
 }
@@ -494,5 +502,43 @@ mod tests {
         not_st[8] = b'[';
         assert!(msg(&not_st).contains("does not start"));
         assert!(msg(b"hello world, this is text").contains("exceeds the file size"));
+        let mut huge = good.clone();
+        huge[..8].copy_from_slice(&(1u64 << 63).to_le_bytes());
+        assert!(msg(&huge).contains("exceeds the file size"));
+    }
+
+    /// A header whose JSON is `json`, followed by `data` bytes of tensor data.
+    fn raw(json: &str, data: usize) -> Vec<u8> {
+        let mut b = (json.len() as u64).to_le_bytes().to_vec();
+        b.extend_from_slice(json.as_bytes());
+        b.resize(b.len() + data, 0);
+        b
+    }
+
+    #[test]
+    fn rejects_sizes_that_overflow_or_point_outside() {
+        let msg = |b: &[u8]| {
+            ModelFile::from_bytes(b)
+                .err()
+                .expect("must fail")
+                .to_string()
+        };
+        // 2^32 × 2^32 elements overflow usize before any byte is counted.
+        let e = msg(&raw(
+            r#"{"w":{"dtype":"F32","shape":[4294967296,4294967296],"data_offsets":[0,8]}}"#,
+            8,
+        ));
+        assert!(e.contains("overflows its byte size"), "{e}");
+        // Offsets past the data, and a range whose size disagrees with the shape.
+        let e = msg(&raw(
+            r#"{"w":{"dtype":"F32","shape":[2],"data_offsets":[0,8000000000]}}"#,
+            8,
+        ));
+        assert!(e.contains("does not match"), "{e}");
+        let e = msg(&raw(
+            r#"{"w":{"dtype":"F32","shape":[2],"data_offsets":[4,12]}}"#,
+            12,
+        ));
+        assert!(e.contains("invalid data offsets"), "{e}");
     }
 }

@@ -20,6 +20,81 @@
 //!  "defaults": {"sampler": "ddpm", "steps": 1000, "guidance": 8.0, "eta": 0.0, "frames": 200}
 //! }
 //! ```
+//!
+//! MDM and Motion Flow Matching files (`"architecture": "mdm"` / `"motionfm"`) have the
+//! denoiser `{"njoints", "latent_dim", "layers", "heads", "ff_size", "activation", "clip_dim",
+//! "max_len"}` and a CLIP text encoder `{"kind": "clip", "vocab_size", "width", "layers",
+//! "heads", "intermediate_size", "context_length", "projection_dim", "layer_norm_eps",
+//! "max_length"}`.
+//!
+//! # Validation
+//!
+//! [`Config::from_file`] checks the whole configuration before anything is allocated or
+//! computed from it, so a file that loads can always start a session; a violation is
+//! `BadModelFile` naming the field. Every size lies within its bound and matches the tensors
+//! it describes in the safetensors header (a layer count `n`: tensors of layer `n − 1` present,
+//! of layer `n` absent); every name is one the runtime accepts. Bounds (W = [`MAX_WIDTH`]
+//! = 65536, F = [`MAX_FEEDFORWARD`] = 262144, L = [`MAX_LAYERS`] = 1024, V = [`MAX_VOCAB`] =
+//! 2^24, P = [`MAX_TEXT_POSITIONS`] = 4096, M = [`MAX_MOTION_POSITIONS`] = 100000):
+//!
+//! | field | bound | checked against |
+//! |---|---|---|
+//! | `format_version` | 1 | |
+//! | `architecture` | `flame`, `mdm`, `motionfm` | the text encoder's kind (flame: bert/roberta; others: clip) |
+//! | flame `denoiser.motion_dim` | 1..=W, = the format's features | `input_projection.weight` `[C, motion_dim]`, `last_projection.weight` `[2·motion_dim, C]` |
+//! | flame `denoiser.model_channels` (C) | 2..=W, even | `input_projection.weight` |
+//! | flame `denoiser.num_layers` | 1..=L | `tf_decoder.layers.{n−1}.*` present, `.{n}.*` absent |
+//! | flame `denoiser.num_heads` | 1..=C, divides C | |
+//! | flame `denoiser.dim_feedforward` | 1..=F | `tf_decoder.layers.0.linear1.weight` `[ff, C]` |
+//! | flame `denoiser.max_motion_length` | 2..=M, (it + 3) × C ≤ 2^26 | `motion_length_emb.weight` `[max_motion_length, C]` |
+//! | flame `denoiser.activation` | `relu`, `gelu` | |
+//! | every `layer_norm_eps` | finite, in (0, 1] | |
+//! | mdm `denoiser.njoints` | 1..=W, = the format's features | `input_process.poseEmbedding.weight` `[latent_dim, njoints]` |
+//! | mdm `denoiser.latent_dim` | 2..=W, even | `embed_timestep.time_embed.0.weight` `[latent_dim, latent_dim]` |
+//! | mdm `denoiser.layers` | 1..=L | `seqTransEncoder.layers.{n−1}.*` present, `.{n}.*` absent |
+//! | mdm `denoiser.heads` | 1..=latent_dim, divides it | |
+//! | mdm `denoiser.ff_size` | 1..=F | `seqTransEncoder.layers.0.linear1.weight` |
+//! | mdm `denoiser.clip_dim` | 1..=W, = `text_encoder.projection_dim` | `embed_text.weight` `[latent_dim, clip_dim]` |
+//! | mdm `denoiser.max_len` | 2..=M, × latent_dim ≤ 2^26, ≥ num_timesteps (mdm) or ≥ 1001 (motionfm) | |
+//! | mdm `denoiser.activation` | `gelu`, `relu` | |
+//! | `text_encoder.kind` | `bert`, `roberta`, `clip` | |
+//! | bert `text_encoder.vocab_size` | 1..=V | `text.embeddings.word_embeddings.weight` `[vocab, hidden]` |
+//! | bert `text_encoder.hidden_size` | 1..=W | same |
+//! | bert `text_encoder.num_layers` | 1..=L | `text.encoder.layer.{n−1}.*` present, `.{n}.*` absent |
+//! | bert `text_encoder.num_heads` | 1..=hidden, divides it | |
+//! | bert `text_encoder.intermediate_size` | 1..=F | `text.encoder.layer.0.intermediate.dense.weight` |
+//! | bert `text_encoder.max_position_embeddings` | 1..=P | `text.embeddings.position_embeddings.weight` |
+//! | bert `text_encoder.type_vocab_size` | 1..=V | `text.embeddings.token_type_embeddings.weight` |
+//! | bert `text_encoder.pad_token_id` | < vocab_size | the tokenizer's ids |
+//! | bert `text_encoder.max_length` | 1..=P, + RoBERTa's pad offset ≤ max_position_embeddings, > the tokenizer's special tokens | |
+//! | bert `text_encoder.hidden_act` | `gelu` | |
+//! | clip `text_encoder.vocab_size` | 1..=V | `text.text_model.embeddings.token_embedding.weight` `[vocab, width]` |
+//! | clip `text_encoder.width` | 1..=W | same |
+//! | clip `text_encoder.layers` | 1..=L | `text.text_model.encoder.layers.{n−1}.*` present, `.{n}.*` absent |
+//! | clip `text_encoder.heads` | 1..=width, divides it | |
+//! | clip `text_encoder.intermediate_size` | 1..=F (absent: 4 × width) | `text.text_model.encoder.layers.0.mlp.fc1.weight` |
+//! | clip `text_encoder.context_length` | 2..=P | `text.text_model.embeddings.position_embedding.weight` |
+//! | clip `text_encoder.projection_dim` | 1..=W | `text.text_projection.weight` `[projection_dim, width]` |
+//! | clip `text_encoder.max_length` | 2..=context_length | |
+//! | `motion.format` | `smpl24_6d`, `humanml263` | the denoiser's motion width |
+//! | `motion.fps` | finite, in (0, 1000] | |
+//! | `diffusion.num_timesteps` | 1..=100000; the schedule's betas in (0, 1) | |
+//! | `diffusion.schedule` | `cosine`, `squaredcos_cap_v2`, `linear`, `scaled_linear` | |
+//! | `diffusion.parameterization` | `epsilon`/`eps`, `x0`/`sample`/`start_x`, `v`/`v_prediction`; `velocity`/`flow` for (and only for) motionfm | |
+//! | `diffusion.variance` | `learned_range` (flame only), `fixed_small`, `fixed_large` | |
+//! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame) | |
+//! | `defaults.sampler` | `ddpm`, `ddim` (diffusion); `euler`, `heun`, `midpoint` (motionfm) | |
+//! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm) | |
+//! | `defaults.guidance` | finite, in [0, 100] (also a session's) | |
+//! | `defaults.eta` | finite, in [0, 1] | |
+//! | `defaults.frames` | 1..=max frames (max_motion_length − 1, max_len − 1) | |
+//!
+//! The schedule, parameterization and variance names ignore case and surrounding spaces, as the
+//! sampler does. The per-part checks ([`FlameConfig::validate`], [`MdmConfig::validate`],
+//! [`TextEncoderConfig::validate`], [`ClipConfig::validate`]) are also what each loader runs
+//! first when used on its own.
+
+mod validate;
 
 use serde::Deserialize;
 
@@ -27,6 +102,34 @@ use crate::checkpoint::{ModelFile, CONFIG_KEY};
 use crate::error::{bad_file, Result};
 use crate::models::mdm::MdmConfig;
 use crate::text::ClipConfig;
+
+/// Most layers of any stack (denoiser, text encoder).
+pub const MAX_LAYERS: usize = 1024;
+/// Most channels of a width: model and hidden sizes, motion and text-vector widths.
+pub const MAX_WIDTH: usize = 65536;
+/// Most channels of a feed-forward (MLP) layer.
+pub const MAX_FEEDFORWARD: usize = 4 * MAX_WIDTH;
+/// Most entries of a token (or token-type) vocabulary.
+pub const MAX_VOCAB: usize = 1 << 24;
+/// Most text positions: position tables, context and prompt lengths.
+pub const MAX_TEXT_POSITIONS: usize = 4096;
+/// Most rows of a denoiser's motion-position table (`max_motion_length`, `max_len`).
+pub const MAX_MOTION_POSITIONS: usize = 100_000;
+/// Most values of a positional table computed at load (rows × width; 256 MiB of f32).
+pub const MAX_TABLE_VALUES: usize = 1 << 26;
+/// Most training timesteps of a diffusion schedule.
+pub const MAX_TIMESTEPS: usize = 100_000;
+/// Most ODE steps of a flow-matching sampler.
+pub const MAX_FLOW_STEPS: usize = 10_000;
+/// The largest classifier-free guidance scale (in a file or a session).
+pub const MAX_GUIDANCE: f32 = 100.0;
+/// The largest frame rate.
+pub const MAX_FPS: f32 = 1000.0;
+
+/// Whether `g` is a guidance scale libflame runs: finite, in `[0, MAX_GUIDANCE]`.
+pub fn guidance_in_range(g: f32) -> bool {
+    g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)
+}
 
 /// The highest `format_version` this build reads.
 pub const FORMAT_VERSION: u32 = 1;
@@ -174,17 +277,21 @@ fn ln_eps_torch() -> f32 {
 }
 
 impl Config {
-    /// Reads and checks the configuration stored in a model file.
+    /// Reads the configuration stored in a model file and validates all of it, against the
+    /// bounds and against the file's tensor shapes ([`Config::validate`]).
     pub fn from_file(file: &ModelFile) -> Result<Config> {
         let text = file.metadata(CONFIG_KEY).ok_or_else(|| {
             bad_file!(
                 "no `{CONFIG_KEY}` metadata: not a libflame model file (convert it with tools/convert.py)"
             )
         })?;
-        Config::from_json(text)
+        let cfg = Config::from_json(text)?;
+        cfg.validate(file)?;
+        Ok(cfg)
     }
 
-    /// Parses and checks a configuration from JSON text.
+    /// Parses a configuration from JSON text and checks everything that needs no tensor
+    /// (bounds, names, the fields against each other).
     pub fn from_json(text: &str) -> Result<Config> {
         // Look at version and architecture first so an unknown model says so, rather than
         // complaining about whichever field its schema lacks.
@@ -192,7 +299,7 @@ impl Config {
             .map_err(|e| bad_file!("`{CONFIG_KEY}` is not valid JSON: {e}"))?;
         let version = v.get("format_version").and_then(|x| x.as_u64());
         match version {
-            Some(n) if n as u32 <= FORMAT_VERSION && n > 0 => {}
+            Some(n) if n <= u64::from(FORMAT_VERSION) && n > 0 => {}
             Some(n) => {
                 return Err(bad_file!(
                     "format_version {n} is not supported (this build reads up to {FORMAT_VERSION})"
@@ -223,7 +330,15 @@ impl Config {
             Some("clip") => {
                 TextConfig::Clip(serde_json::from_value(raw.text_encoder).map_err(schema)?)
             }
-            _ => TextConfig::Bert(serde_json::from_value(raw.text_encoder).map_err(schema)?),
+            Some("bert" | "roberta") => {
+                TextConfig::Bert(serde_json::from_value(raw.text_encoder).map_err(schema)?)
+            }
+            other => {
+                return Err(bad_file!(
+                    "unknown text_encoder.kind `{}` (supported: bert, roberta, clip)",
+                    other.unwrap_or("")
+                ))
+            }
         };
         let cfg = Config {
             format_version: raw.format_version,
@@ -236,88 +351,6 @@ impl Config {
         };
         cfg.check()?;
         Ok(cfg)
-    }
-
-    /// Checks the values that shapes alone would not catch.
-    fn check(&self) -> Result<()> {
-        let positive = |name: &str, value: usize| -> Result<()> {
-            if value == 0 {
-                return Err(bad_file!("config `{name}` must be positive"));
-            }
-            Ok(())
-        };
-        let divisible = |name: &str, width: usize, heads: usize| -> Result<()> {
-            if !width.is_multiple_of(heads) || !width.is_multiple_of(2) {
-                return Err(bad_file!(
-                    "config {name} {width} is not even or not divisible by its {heads} heads"
-                ));
-            }
-            Ok(())
-        };
-        match &self.denoiser {
-            DenoiserConfig::Flame(d) => {
-                for (name, value) in [
-                    ("denoiser.motion_dim", d.motion_dim),
-                    ("denoiser.model_channels", d.model_channels),
-                    ("denoiser.num_layers", d.num_layers),
-                    ("denoiser.num_heads", d.num_heads),
-                    ("denoiser.dim_feedforward", d.dim_feedforward),
-                    ("denoiser.max_motion_length", d.max_motion_length),
-                ] {
-                    positive(name, value)?;
-                }
-                divisible("denoiser.model_channels", d.model_channels, d.num_heads)?;
-                if d.activation != "relu" && d.activation != "gelu" {
-                    return Err(bad_file!("unknown denoiser.activation `{}`", d.activation));
-                }
-            }
-            DenoiserConfig::Mdm(d) => {
-                for (name, value) in [
-                    ("denoiser.njoints", d.njoints),
-                    ("denoiser.latent_dim", d.latent_dim),
-                    ("denoiser.layers", d.layers),
-                    ("denoiser.heads", d.heads),
-                    ("denoiser.ff_size", d.ff_size),
-                    ("denoiser.clip_dim", d.clip_dim),
-                    ("denoiser.max_len", d.max_len),
-                ] {
-                    positive(name, value)?;
-                }
-                divisible("denoiser.latent_dim", d.latent_dim, d.heads)?;
-            }
-        }
-        match &self.text_encoder {
-            TextConfig::Bert(t) => {
-                positive("text_encoder.hidden_size", t.hidden_size)?;
-                positive("text_encoder.num_heads", t.num_heads)?;
-                positive("text_encoder.max_length", t.max_length)?;
-                if t.hidden_size % t.num_heads != 0 {
-                    return Err(bad_file!(
-                        "config text_encoder.hidden_size {} is not divisible by num_heads {}",
-                        t.hidden_size,
-                        t.num_heads
-                    ));
-                }
-                if !matches!(t.kind.as_str(), "bert" | "roberta") {
-                    return Err(bad_file!(
-                        "unknown text_encoder.kind `{}` (supported: bert, roberta, clip)",
-                        t.kind
-                    ));
-                }
-            }
-            TextConfig::Clip(c) => positive("text_encoder.max_length", c.max_length)?,
-        }
-        positive("diffusion.num_timesteps", self.diffusion.num_timesteps)?;
-        if self.motion.fps.is_nan() || self.motion.fps <= 0.0 {
-            return Err(bad_file!("config motion.fps must be positive"));
-        }
-        if !matches!(self.diffusion.uncond.as_str(), "empty_prompt" | "zeros") {
-            return Err(bad_file!(
-                "unknown diffusion.uncond `{}`",
-                self.diffusion.uncond
-            ));
-        }
-        Ok(())
     }
 }
 
@@ -368,10 +401,153 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("not divisible"), "{e}");
-        // ("not even or not divisible" for the denoiser, "not divisible" for the text encoder)
+        // ("not even" / "not divisible" for the denoiser, "not divisible" for the text encoder)
         let e = Config::from_json(&EXAMPLE.replace("\"max_motion_length\": 471,", ""))
             .unwrap_err()
             .to_string();
         assert!(e.contains("missing field `max_motion_length`"), "{e}");
+    }
+
+    /// EXAMPLE with `section.key` (top level when `section` is empty) set to `value`.
+    fn with(section: &str, key: &str, value: serde_json::Value) -> String {
+        let mut v: serde_json::Value = serde_json::from_str(EXAMPLE).unwrap();
+        let target = if section.is_empty() {
+            &mut v
+        } else {
+            &mut v[section]
+        };
+        target[key] = value;
+        v.to_string()
+    }
+
+    fn err(section: &str, key: &str, value: serde_json::Value) -> String {
+        match Config::from_json(&with(section, key, value.clone())) {
+            Ok(_) => panic!("{section}.{key} = {value} was accepted"),
+            Err(e) => {
+                assert!(matches!(e, crate::Error::BadModelFile(_)), "{e}");
+                e.to_string()
+            }
+        }
+    }
+
+    #[test]
+    fn every_count_is_bounded() {
+        let counts = [
+            ("denoiser", "motion_dim"),
+            ("denoiser", "model_channels"),
+            ("denoiser", "num_layers"),
+            ("denoiser", "num_heads"),
+            ("denoiser", "dim_feedforward"),
+            ("denoiser", "max_motion_length"),
+            ("text_encoder", "vocab_size"),
+            ("text_encoder", "hidden_size"),
+            ("text_encoder", "num_layers"),
+            ("text_encoder", "num_heads"),
+            ("text_encoder", "intermediate_size"),
+            ("text_encoder", "max_position_embeddings"),
+            ("text_encoder", "type_vocab_size"),
+            ("text_encoder", "max_length"),
+            ("diffusion", "num_timesteps"),
+            ("defaults", "steps"),
+            ("defaults", "frames"),
+        ];
+        for (section, key) in counts {
+            for n in [1_000_000_000u64, u64::MAX] {
+                let e = err(section, key, n.into());
+                assert!(
+                    e.contains(&format!("{section}.{key} {n} is outside")),
+                    "{e}"
+                );
+            }
+            let e = err(section, key, 0.into());
+            assert!(e.contains(key), "{e}");
+            err(section, key, (-1).into());
+            err(section, key, 1e9.into());
+        }
+        let e = err("text_encoder", "pad_token_id", 1_000_000_000.into());
+        assert!(
+            e.contains("pad_token_id 1000000000 is not below vocab_size"),
+            "{e}"
+        );
+        let e = err("", "format_version", u64::MAX.into());
+        assert!(e.contains("is not supported"), "{e}");
+        // 2^32 + 1 does not wrap around to version 1.
+        let e = err("", "format_version", ((1u64 << 32) + 1).into());
+        assert!(e.contains("is not supported"), "{e}");
+    }
+
+    #[test]
+    fn floats_are_finite_and_bounded() {
+        for (section, key, bad) in [
+            ("motion", "fps", vec![0.0, -20.0, 1e30, 1000.5]),
+            ("defaults", "guidance", vec![-1.0, 1e30, 100.5]),
+            ("defaults", "eta", vec![-0.5, 1.5, 1e30]),
+            ("denoiser", "layer_norm_eps", vec![0.0, -1e-5, 2.0]),
+            ("text_encoder", "layer_norm_eps", vec![0.0, 1e30]),
+        ] {
+            for v in bad {
+                let e = err(section, key, v.into());
+                assert!(e.contains(&format!("config {section}.{key}")), "{e}");
+            }
+        }
+        for (section, key, good) in [
+            ("motion", "fps", 1000.0),
+            ("defaults", "guidance", 100.0),
+            ("defaults", "guidance", 0.0),
+            ("defaults", "eta", 1.0),
+        ] {
+            Config::from_json(&with(section, key, good.into())).unwrap();
+        }
+    }
+
+    #[test]
+    fn names_are_checked_at_parse_time() {
+        for (section, key, value, needle) in [
+            ("diffusion", "schedule", "cosinus", "unknown config diffusion.schedule `cosinus` (accepted: cosine, squaredcos_cap_v2, linear, scaled_linear)"),
+            ("diffusion", "parameterization", "noise", "unknown config diffusion.parameterization `noise`"),
+            ("diffusion", "parameterization", "velocity", "is for motionfm models"),
+            ("diffusion", "variance", "learned", "unknown config diffusion.variance `learned`"),
+            ("diffusion", "uncond", "none", "unknown config diffusion.uncond `none`"),
+            ("diffusion", "uncond", "zeros", "FLAME models need `empty_prompt`"),
+            ("defaults", "sampler", "dpm", "unknown config defaults.sampler `dpm` (accepted: ddpm, ddim)"),
+            ("defaults", "sampler", "heun", "unknown config defaults.sampler `heun`"),
+            ("motion", "format", "bvh", "unknown config motion.format `bvh` (accepted: smpl24_6d, humanml263)"),
+            ("motion", "format", "humanml263", "has 263 features per frame, the denoiser 147"),
+            ("denoiser", "activation", "swish", "unknown config denoiser.activation `swish`"),
+            ("text_encoder", "hidden_act", "relu", "hidden_act `relu`"),
+            ("text_encoder", "kind", "t5", "unknown text_encoder.kind `t5`"),
+        ] {
+            let e = err(section, key, value.into());
+            assert!(e.contains(needle), "{section}.{key} = {value}: {e}");
+        }
+        // The sampler's own spellings still pass.
+        for (section, key, value) in [
+            ("diffusion", "schedule", "Linear"),
+            ("diffusion", "parameterization", "v_prediction"),
+            ("diffusion", "variance", "fixed_large"),
+            ("defaults", "sampler", "ddim"),
+        ] {
+            Config::from_json(&with(section, key, value.into())).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_loadable_configuration_starts_a_session() {
+        // A short linear schedule has betas above 1: refused at load, not at session start.
+        let short = with("diffusion", "num_timesteps", 10.into());
+        let short = short.replace("\"cosine\"", "\"linear\"");
+        let short: serde_json::Value = serde_json::from_str(&short).unwrap();
+        let mut v = short.clone();
+        v["defaults"]["steps"] = 10.into();
+        let e = Config::from_json(&v.to_string()).unwrap_err().to_string();
+        assert!(
+            e.contains("config diffusion.schedule `linear` with num_timesteps 10"),
+            "{e}"
+        );
+        assert!(e.contains("outside (0, 1)"), "{e}");
+        let e = err("defaults", "steps", 1001.into());
+        assert!(e.contains("defaults.steps 1001 is outside 1..=1000"), "{e}");
+        let e = err("defaults", "frames", 471.into());
+        assert!(e.contains("defaults.frames 471 is outside 1..=470"), "{e}");
     }
 }

@@ -4,9 +4,24 @@
 //! A host that unloads the library (`dlclose`, a Unity domain reload) right after freeing a
 //! session would leave code of the unloaded library running, so libflame's pools wait.
 
+use std::cell::Cell;
 use std::thread::JoinHandle;
 
 use crate::error::{invalid_arg, Result};
+
+/// The most worker threads one pool starts (C: `FLAME_MAX_THREADS`). More would only add
+/// scheduling overhead on any machine libflame targets, and each thread costs a stack.
+pub const MAX_THREADS: usize = 256;
+
+thread_local! {
+    static WORKER: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Whether the calling thread is a worker of a libflame pool (the C ABI's panic hook keeps
+/// their panics quiet: they reach the caller's thread, where the entry point reports them).
+pub(crate) fn is_worker_thread() -> bool {
+    WORKER.with(Cell::get)
+}
 
 /// A rayon pool of `threads` named workers, joined on drop.
 pub struct WorkerPool {
@@ -15,10 +30,17 @@ pub struct WorkerPool {
 }
 
 impl WorkerPool {
-    /// Starts `threads` workers (0 = one per core).
+    /// Starts `threads` workers: 1..=[`MAX_THREADS`], or 0 for one per core (at most
+    /// [`MAX_THREADS`]). Above the bound: [`crate::Error::InvalidArgument`], before any thread
+    /// is started.
     pub fn new(threads: usize) -> Result<WorkerPool> {
+        if threads > MAX_THREADS {
+            return Err(invalid_arg!(
+                "threads {threads} is above the limit of {MAX_THREADS}"
+            ));
+        }
         let threads = if threads == 0 {
-            std::thread::available_parallelism().map_or(1, |n| n.get())
+            std::thread::available_parallelism().map_or(1, |n| n.get().min(MAX_THREADS))
         } else {
             threads
         };
@@ -26,6 +48,7 @@ impl WorkerPool {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("flame-worker-{i}"))
+            .start_handler(|_| WORKER.with(|w| w.set(true)))
             .spawn_handler(|t| {
                 let mut b = std::thread::Builder::new();
                 if let Some(name) = t.name() {
@@ -100,5 +123,23 @@ mod tests {
             0,
             "every worker exited before drop returned"
         );
+    }
+
+    #[test]
+    fn thread_counts_are_bounded() {
+        assert_eq!(crate::ffi::FLAME_MAX_THREADS as usize, MAX_THREADS);
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        assert_eq!(
+            WorkerPool::new(0).unwrap().threads(),
+            cores.min(MAX_THREADS)
+        );
+        assert_eq!(WorkerPool::new(MAX_THREADS).unwrap().threads(), MAX_THREADS);
+        for n in [MAX_THREADS + 1, u32::MAX as usize, usize::MAX] {
+            let e = WorkerPool::new(n).err().expect("refused").to_string();
+            assert_eq!(
+                e,
+                format!("invalid argument: threads {n} is above the limit of 256")
+            );
+        }
     }
 }

@@ -57,7 +57,8 @@ pub struct SessionParams {
     /// Clamp the x0 estimate to [-1, 1] at every step (the official FLAME sampling does).
     pub clip_denoised: Option<bool>,
     pub seed: u64,
-    /// Worker threads for this session's kernels; 0 = one per core.
+    /// Worker threads for this session's kernels: 1..=[`crate::pool::MAX_THREADS`], or 0 = one
+    /// per core (capped at the same bound).
     pub threads: usize,
 }
 
@@ -201,8 +202,11 @@ impl Session {
             ));
         }
         let guidance = params.guidance.unwrap_or(d.guidance);
-        if !guidance.is_finite() {
-            return Err(invalid_arg!("guidance must be finite"));
+        if !crate::config::guidance_in_range(guidance) {
+            return Err(invalid_arg!(
+                "guidance {guidance:?} is outside [0, {:?}]",
+                crate::config::MAX_GUIDANCE
+            ));
         }
         let rule = build_rule(&model, params)?;
         let pool = Arc::new(WorkerPool::new(params.threads)?);

@@ -526,7 +526,8 @@ def read_clip(clip_dir, max_length):
             "layer_norm_eps": float(text.get("layer_norm_eps", 1e-5)),
             "max_length": int(max_length),
         }
-        intermediate = int(text["intermediate_size"])
+        # Every size the tensors are checked against goes into the configuration.
+        cfg["intermediate_size"] = int(text["intermediate_size"])
     except (KeyError, TypeError) as e:
         raise ConvertError(f"{path}: missing key {e}") from None
     if text.get("hidden_act", "quick_gelu") != "quick_gelu":
@@ -544,7 +545,7 @@ def read_clip(clip_dir, max_length):
     keep = {k: v for k, v in state.items()
             if (k.startswith("text_model.") and not k.endswith("position_ids"))
             or k == "text_projection.weight"}
-    w, e, i = cfg["width"], cfg["projection_dim"], intermediate
+    w, e, i = cfg["width"], cfg["projection_dim"], cfg["intermediate_size"]
     shapes = {
         "text_model.embeddings.token_embedding.weight": (cfg["vocab_size"], w),
         "text_model.embeddings.position_embedding.weight": (cfg["context_length"], w),

@@ -173,7 +173,8 @@ namespace Flame
     public struct FlameModelParams
     {
         public uint struct_size;
-        /// <summary>Threads for work done at load; 0 = one per core.</summary>
+        /// <summary>Threads for work done at load; 0 = one per core; at most
+        /// FlameNative.MaxThreads (more: InvalidArgument).</summary>
         public uint threads;
         /// <summary>A FlameWeights value: what the linear layers are held and multiplied in.</summary>
         public FlameWeights weights;
@@ -245,7 +246,8 @@ namespace Flame
         public float eta;
         public float guidance;
         public ulong seed;
-        /// <summary>Worker threads the session creates and owns; 0 = one per core.</summary>
+        /// <summary>Worker threads the session creates and owns; 0 = one per core; at most
+        /// FlameNative.MaxThreads (more: InvalidArgument).</summary>
         public uint threads;
 
         public static FlameSessionParams Default()
@@ -348,6 +350,8 @@ namespace Flame
 #endif
         /// <summary>FLAME_ABI_VERSION of the header these declarations mirror.</summary>
         public const uint AbiVersion = 1;
+        /// <summary>FLAME_MAX_THREADS: the most worker threads a load or a session may ask for.</summary>
+        public const uint MaxThreads = 256;
         /// <summary>FLAME_ROOT_TRANSLATION: the root translation in flame_session_keep_joints.</summary>
         public const int RootTranslation = -1;
 

@@ -19,8 +19,8 @@ use crate::error::{invalid_arg, Error};
 use crate::models::{LoadOptions, Model, WeightType};
 use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 
+use errors::{catch_quietly, guard, Fail};
 pub use errors::{flame_last_error, flame_status_string, FlameStatus};
-use errors::{guard, Fail};
 use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
@@ -33,6 +33,9 @@ pub const FLAME_VERSION_MAJOR: u32 = 0;
 pub const FLAME_VERSION_MINOR: u32 = 1;
 /// libflame's version, patch part.
 pub const FLAME_VERSION_PATCH: u32 = 0;
+/// The most worker threads `FlameModelParams.threads` and `FlameSessionParams.threads` may ask
+/// for; above it a load or session start fails with `FLAME_STATUS_INVALID_ARGUMENT`.
+pub const FLAME_MAX_THREADS: u32 = 256;
 /// Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
 pub const FLAME_ROOT_TRANSLATION: i32 = -1;
 
@@ -151,7 +154,8 @@ pub enum FlameWeights {
 pub struct FlameModelParams {
     /// `sizeof(FlameModelParams)`: lets later versions add fields.
     pub struct_size: u32,
-    /// Threads for work done at load (encoding the guidance prompt); 0 = one per core.
+    /// Threads for work done at load (encoding the guidance prompt): 1 to [`FLAME_MAX_THREADS`],
+    /// or 0 = one per core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
     pub threads: u32,
     /// A [`FlameWeights`] value (since version 2).
     pub weights: i32,
@@ -179,7 +183,8 @@ pub struct FlameSessionParams {
     pub guidance: f32,
     /// Seed of the session's noise generator.
     pub seed: u64,
-    /// Worker threads this session creates and owns; 0 = one per core.
+    /// Worker threads this session creates and owns: 1 to [`FLAME_MAX_THREADS`], or 0 = one per
+    /// core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
     pub threads: u32,
 }
 
@@ -438,7 +443,7 @@ pub unsafe extern "C" fn flame_model_load_from_memory(
 /// `model` is NULL or a pointer returned by a load function and not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn flame_model_free(model: *mut FlameModel) {
-    let _ = std::panic::catch_unwind(|| {
+    catch_quietly(|| {
         if !model.is_null() {
             drop(Box::from_raw(model));
         }
@@ -622,7 +627,7 @@ pub unsafe extern "C" fn flame_session_new(
 /// `session` is NULL or a live session not in use by another thread.
 #[no_mangle]
 pub unsafe extern "C" fn flame_session_free(session: *mut FlameSession) {
-    let _ = std::panic::catch_unwind(|| {
+    catch_quietly(|| {
         if !session.is_null() {
             drop(Box::from_raw(session));
         }

@@ -110,6 +110,7 @@ impl FlameDenoiser {
         text_hidden: usize,
         ty: WeightType,
     ) -> Result<FlameDenoiser> {
+        cfg.validate(file)?;
         let c = cfg.model_channels;
         let d = cfg.motion_dim;
         let motion_length_emb =

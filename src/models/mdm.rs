@@ -131,25 +131,8 @@ impl MdmDenoiser {
 
     /// [`MdmDenoiser::load`] with the linear weights held (and multiplied) as `ty`.
     pub fn load_with(file: &ModelFile, cfg: &MdmConfig, ty: WeightType) -> Result<MdmDenoiser> {
+        cfg.validate(file)?;
         let c = cfg.latent_dim;
-        if c == 0 || !c.is_multiple_of(2) || cfg.heads == 0 || !c.is_multiple_of(cfg.heads) {
-            return Err(crate::error::bad_file!(
-                "mdm latent_dim {c} must be even and divisible by heads {}",
-                cfg.heads
-            ));
-        }
-        if cfg.activation != "gelu" && cfg.activation != "relu" {
-            return Err(crate::error::bad_file!(
-                "mdm activation `{}` is not supported (gelu or relu)",
-                cfg.activation
-            ));
-        }
-        if cfg.max_len < 2 {
-            return Err(crate::error::bad_file!(
-                "mdm max_len {} leaves no frame",
-                cfg.max_len
-            ));
-        }
         let embed_timestep = TimeEmbed {
             fc0: Linear::load(file, "embed_timestep.time_embed.0", c, c, ty)?,
             fc2: Linear::load(file, "embed_timestep.time_embed.2", c, c, ty)?,

@@ -206,7 +206,7 @@ impl TextEncoder {
         tokenizer_json: &str,
         ty: WeightType,
     ) -> Result<TextEncoder> {
-        let kind = check_config(cfg)?;
+        let kind = cfg.validate(file, prefix)?;
         let dims = Dims {
             hidden: cfg.hidden_size,
             heads: cfg.num_heads,
@@ -383,64 +383,6 @@ impl TextEncoder {
         }
         Ok(())
     }
-}
-
-/// Checks what the tensor shapes cannot (the config may come from a caller, not a checked file).
-fn check_config(cfg: &TextEncoderConfig) -> Result<EncoderKind> {
-    let kind = match cfg.kind.as_str() {
-        "bert" => EncoderKind::Bert,
-        "roberta" => EncoderKind::Roberta,
-        other => {
-            return Err(bad_file!(
-                "unknown text_encoder.kind `{other}` (supported: bert, roberta)"
-            ))
-        }
-    };
-    let positive = [
-        ("vocab_size", cfg.vocab_size),
-        ("hidden_size", cfg.hidden_size),
-        ("num_heads", cfg.num_heads),
-        ("intermediate_size", cfg.intermediate_size),
-        ("max_position_embeddings", cfg.max_position_embeddings),
-        ("type_vocab_size", cfg.type_vocab_size),
-        ("max_length", cfg.max_length),
-    ];
-    if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
-        return Err(bad_file!("text_encoder.{name} must be positive"));
-    }
-    if !cfg.hidden_size.is_multiple_of(cfg.num_heads) {
-        return Err(bad_file!(
-            "text_encoder.hidden_size {} is not divisible by num_heads {}",
-            cfg.hidden_size,
-            cfg.num_heads
-        ));
-    }
-    if cfg.hidden_act != "gelu" {
-        return Err(bad_file!(
-            "text_encoder.hidden_act `{}` is not supported (only exact `gelu`)",
-            cfg.hidden_act
-        ));
-    }
-    if cfg.pad_token_id as usize >= cfg.vocab_size {
-        return Err(bad_file!(
-            "text_encoder.pad_token_id {} is not below vocab_size {}",
-            cfg.pad_token_id,
-            cfg.vocab_size
-        ));
-    }
-    // RoBERTa's positions run from pad+1 to pad+max_length.
-    let offset = match kind {
-        EncoderKind::Bert => 0,
-        EncoderKind::Roberta => cfg.pad_token_id as usize + 1,
-    };
-    if cfg.max_length + offset > cfg.max_position_embeddings {
-        return Err(bad_file!(
-            "text_encoder.max_length {} (+{offset} position offset) exceeds max_position_embeddings {}",
-            cfg.max_length,
-            cfg.max_position_embeddings
-        ));
-    }
-    Ok(kind)
 }
 
 #[cfg(test)]
@@ -639,6 +581,6 @@ mod tests {
         let e = TextEncoder::load(&tiny_file(&[], ""), "text.", &tiny_config(), "{oops")
             .err()
             .unwrap();
-        assert!(matches!(e, crate::Error::Tokenizer(_)), "{e}");
+        assert!(matches!(e, crate::Error::BadModelFile(_)), "{e}");
     }
 }

@@ -23,13 +23,17 @@ use super::layers::{Dense, Norm};
 use super::tokenizer::{PromptInfo, TextTokenizer};
 
 /// The CLIP text tower's sizes (ViT-B/32: vocab 49408, width 512, 12 layers, 8 heads,
-/// projection 512; the MLP is always 4·width).
+/// MLP 2048, projection 512). Checked by [`ClipConfig::validate`] (in [`crate::config`]).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 pub struct ClipConfig {
     pub vocab_size: usize,
     pub width: usize,
     pub layers: usize,
     pub heads: usize,
+    /// Channels of each block's MLP (`mlp.fc1` out); files written before it was stored have
+    /// none, meaning 4 × width (OpenAI CLIP). See [`ClipConfig::mlp_size`].
+    #[serde(default)]
+    pub intermediate_size: Option<usize>,
     /// Positions in the table; every text is padded to this length (77).
     #[serde(default = "clip_context")]
     pub context_length: usize,
@@ -40,6 +44,13 @@ pub struct ClipConfig {
 
 fn clip_context() -> usize {
     77
+}
+
+impl ClipConfig {
+    /// Channels of each block's MLP: `intermediate_size`, or 4 × width when absent.
+    pub fn mlp_size(&self) -> usize {
+        self.intermediate_size.unwrap_or(4 * self.width)
+    }
 }
 
 fn clip_ln_eps() -> f32 {
@@ -73,7 +84,7 @@ struct Block {
 }
 
 impl Block {
-    fn load(file: &ModelFile, p: &str, w: usize, ty: WeightType) -> Result<Block> {
+    fn load(file: &ModelFile, p: &str, w: usize, mlp: usize, ty: WeightType) -> Result<Block> {
         let qkv = ["q", "k", "v"].map(|n| format!("{p}self_attn.{n}_proj"));
         let qkv = qkv.each_ref().map(String::as_str);
         let one = |name: &str, n_in: usize, n_out: usize| {
@@ -84,8 +95,8 @@ impl Block {
             qkv: Dense::load(file, &qkv, w, w, true, ty)?,
             out: one("self_attn.out_proj", w, w)?,
             ln2: Norm::load(file, &format!("{p}layer_norm2"), w)?,
-            fc1: one("mlp.fc1", w, 4 * w)?,
-            fc2: one("mlp.fc2", 4 * w, w)?,
+            fc1: one("mlp.fc1", w, mlp)?,
+            fc2: one("mlp.fc2", mlp, w)?,
         })
     }
 
@@ -160,8 +171,8 @@ impl ClipTextEncoder {
         tokenizer_json: &str,
         ty: WeightType,
     ) -> Result<ClipTextEncoder> {
-        check_config(cfg)?;
-        let (p, w) = (prefix, cfg.width);
+        cfg.validate(file, prefix)?;
+        let (p, w, mlp) = (prefix, cfg.width, cfg.mlp_size());
         let token_embedding = file.tensor(
             &format!("{p}text_model.embeddings.token_embedding.weight"),
             &[cfg.vocab_size, w],
@@ -171,7 +182,10 @@ impl ClipTextEncoder {
             &[cfg.context_length, w],
         )?;
         let blocks = (0..cfg.layers)
-            .map(|i| Block::load(file, &format!("{p}text_model.encoder.layers.{i}."), w, ty))
+            .map(|i| {
+                let block = format!("{p}text_model.encoder.layers.{i}.");
+                Block::load(file, &block, w, mlp, ty)
+            })
             .collect::<Result<Vec<_>>>()?;
         let final_norm = Norm::load(file, &format!("{p}text_model.final_layer_norm"), w)?;
         let projection = Dense::load(
@@ -311,39 +325,6 @@ impl ClipTextEncoder {
             pooled_index,
         })
     }
-}
-
-/// Checks what the tensor shapes cannot.
-fn check_config(cfg: &ClipConfig) -> Result<()> {
-    let positive = [
-        ("vocab_size", cfg.vocab_size),
-        ("width", cfg.width),
-        ("heads", cfg.heads),
-        ("projection_dim", cfg.projection_dim),
-    ];
-    if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
-        return Err(bad_file!("clip.{name} must be positive"));
-    }
-    if !cfg.width.is_multiple_of(cfg.heads) {
-        return Err(bad_file!(
-            "clip.width {} is not divisible by heads {}",
-            cfg.width,
-            cfg.heads
-        ));
-    }
-    if cfg.context_length < 2 {
-        return Err(bad_file!(
-            "clip.context_length {} leaves no room for the start and end tokens",
-            cfg.context_length
-        ));
-    }
-    if !(cfg.layer_norm_eps.is_finite() && cfg.layer_norm_eps > 0.0) {
-        return Err(bad_file!(
-            "clip.layer_norm_eps {} must be positive",
-            cfg.layer_norm_eps
-        ));
-    }
-    Ok(())
 }
 
 /// The part of the official clean-up (`ftfy.fix_text`, then `html.unescape` twice) that the

@@ -72,6 +72,11 @@ impl std::fmt::Debug for TextTokenizer {
     }
 }
 
+/// A tokenizer.json that cannot be used: the model file's fault.
+fn file_err(context: &str) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -> Error + '_ {
+    move |e| bad_file!("tokenizer (`flame.tokenizer`): {context}: {e}")
+}
+
 fn tok_err(context: &str) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -> Error + '_ {
     move |e| Error::Tokenizer(format!("{context}: {e}"))
 }
@@ -79,28 +84,27 @@ fn tok_err(context: &str) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -
 impl TextTokenizer {
     /// Builds the tokenizer from tokenizer.json text and checks that every id it can produce
     /// (vocabulary, added tokens, post-processor specials, `pad_id`) is below `vocab_size`, so an
-    /// embedding lookup can never go out of bounds.
+    /// embedding lookup can never go out of bounds. The text comes from the model file, so
+    /// every failure here is [`Error::BadModelFile`].
     pub fn from_json(json: &str, vocab_size: usize, pad_id: u32) -> Result<TextTokenizer> {
         // tokenizers 0.22 panics (`expect("Helper")`) on a syntax error inside the `decoder`
         // field instead of returning it, so the syntax is checked first.
         serde_json::from_str::<serde::de::IgnoredAny>(json).map_err(|e| {
-            Error::Tokenizer(format!(
-                "cannot build a tokenizer from the tokenizer.json text: not valid JSON: {e}"
-            ))
+            bad_file!("cannot build a tokenizer from the tokenizer.json text: not valid JSON: {e}")
         })?;
-        let mut inner = Tokenizer::from_str(json).map_err(tok_err(
+        let mut inner = Tokenizer::from_str(json).map_err(file_err(
             "cannot build a tokenizer from the tokenizer.json text",
         ))?;
         // Files carry their own truncation/padding (all-MiniLM-L6-v2's pads every text to 128);
         // lengths are the caller's choice here, so both are switched off once, at load.
         inner
             .with_truncation(None)
-            .map_err(tok_err("cannot switch off the tokenizer's truncation"))?;
+            .map_err(file_err("cannot switch off the tokenizer's truncation"))?;
         inner.with_padding(None);
 
         let specials = inner
             .post_process(Encoding::default(), None, true)
-            .map_err(tok_err(
+            .map_err(file_err(
                 "the tokenizer's post-processor failed on an empty text",
             ))?;
         let num_special = specials.get_ids().len();
@@ -359,13 +363,14 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn garbage_is_a_tokenizer_error() {
+    fn garbage_is_a_bad_model_file() {
         for json in ["", "not json", "{}", r#"{"model":{"type":"Nonsense"}}"#] {
             let e = TextTokenizer::from_json(json, 9, 0).unwrap_err();
-            assert!(matches!(e, Error::Tokenizer(_)), "{json:?}: {e}");
+            assert!(matches!(e, Error::BadModelFile(_)), "{json:?}: {e}");
             assert!(
                 e.to_string().starts_with(
-                    "tokenizer: cannot build a tokenizer from the tokenizer.json text: "
+                    "bad model file: tokenizer (`flame.tokenizer`): cannot build a tokenizer \
+                     from the tokenizer.json text: "
                 ),
                 "{e}"
             );

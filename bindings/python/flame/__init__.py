@@ -48,6 +48,7 @@ __all__ = [
     "EditParams",
     "BodyPart",
     "EditTask",
+    "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
     "library_path",
@@ -56,6 +57,10 @@ __all__ = [
 
 # The ABI version these bindings were written against (FLAME_ABI_VERSION in flame.h).
 ABI_VERSION = 1
+
+# The most worker threads a load or a session may ask for (FLAME_MAX_THREADS); more is refused
+# with Status.INVALID_ARGUMENT. 0 means one per core, capped at this bound.
+MAX_THREADS = 256
 
 # Passed to Session.keep_joints to keep the root translation channels (FLAME_ROOT_TRANSLATION).
 ROOT_TRANSLATION = -1
@@ -474,6 +479,13 @@ class PromptInfo:
     dropped: str
 
 
+def _uint32(name: str, value: int) -> int:
+    """`value` for a uint32 field: ctypes would silently wrap a negative or larger one."""
+    if not 0 <= value <= 0xFFFFFFFF:
+        raise ValueError(f"{name} {value} is not a uint32 (threads: 0 to {MAX_THREADS})")
+    return value
+
+
 def _model_params(threads: int, weights: Union[str, int]) -> _ModelParams:
     names = {n.lower(): v for n, v in vars(Weights).items() if n.isupper()}
     if isinstance(weights, str):
@@ -482,7 +494,7 @@ def _model_params(threads: int, weights: Union[str, int]) -> _ModelParams:
         weights = names[weights.lower()]
     p = _ModelParams()
     _check(_lib().flame_model_params_default(ctypes.byref(p)))
-    p.threads = threads
+    p.threads = _uint32("threads", threads)
     p.weights = weights
     return p
 
@@ -502,7 +514,8 @@ class Model:
     def load(
         cls, path: Union[str, os.PathLike], threads: int = 0, weights: Union[str, int] = "f32"
     ) -> "Model":
-        """Loads a model file. `threads` is for work done at load (0 = one per core); `weights`
+        """Loads a model file. `threads` is for work done at load (0 = one per core, at most
+        MAX_THREADS); `weights`
         ("f32", "f16", "bf16" or a `Weights` value) is what the linear layers are held and
         multiplied in."""
         out = _P()
@@ -576,7 +589,8 @@ class Model:
         threads: int = 0,
     ) -> "Session":
         """Starts a generation. None takes the model file's default; `sampler` is "ddpm",
-        "ddim", "euler", "heun", "midpoint" or a Sampler value; `threads` 0 = one per core (the session owns its threads)."""
+        "ddim", "euler", "heun", "midpoint" or a Sampler value; `threads` 0 = one per core, at most
+        MAX_THREADS (the session owns its threads)."""
         return Session(self, frames, steps, sampler, eta, guidance, seed, threads)
 
     def close(self) -> None:
@@ -671,7 +685,7 @@ class Session:
         p.eta = -1.0 if eta is None else eta
         p.guidance = -1.0 if guidance is None else guidance
         p.seed = seed
-        p.threads = threads
+        p.threads = _uint32("threads", threads)
         out = _P()
         _check(_lib().flame_session_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
         self._handle = out.value

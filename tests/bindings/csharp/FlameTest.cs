@@ -244,6 +244,7 @@ static class FlameTest
         CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
+        Check(header.Contains("#define FLAME_MAX_THREADS " + FlameNative.MaxThreads + "\n"), "FLAME_MAX_THREADS");
     }
 
     static void TestVersion()

@@ -115,6 +115,19 @@ def test_named_values_match_the_header(prefix, names):
 def test_constants_match_the_header():
     assert f"#define FLAME_ABI_VERSION {flame.ABI_VERSION}\n" in HEADER
     assert f"#define FLAME_ROOT_TRANSLATION {flame.ROOT_TRANSLATION}\n" in HEADER
+    assert f"#define FLAME_MAX_THREADS {flame.MAX_THREADS}\n" in HEADER
+
+
+def test_thread_bound_is_relayed(model):
+    limit = flame.MAX_THREADS
+    expect_error(Status.INVALID_ARGUMENT, f"threads {limit + 1} is above the limit of {limit}",
+                 flame.Model.load, MODEL, threads=limit + 1)
+    expect_error(Status.INVALID_ARGUMENT, f"threads {limit + 1} is above the limit of {limit}",
+                 model.session, threads=limit + 1)
+    with pytest.raises(ValueError):
+        model.session(threads=-1)
+    with model.session(threads=limit):
+        pass
 
 
 # --- library and model ------------------------------------------------------------------------

@@ -1,0 +1,659 @@
+//! The configuration's validation: every size against its bound and against the tensors it
+//! describes (shapes from the safetensors header, before any weight is read or any table
+//! allocated), every name against the values the runtime accepts, and the fields against each
+//! other, so that a file that loads can always start a session. The bounds are listed in the
+//! module comment of [`crate::config`].
+
+use crate::checkpoint::ModelFile;
+use crate::diffusion::{betas, BetaSchedule, Parameterization, Schedule, Variance};
+use crate::error::{bad_file, Result};
+use crate::models::mdm::MdmConfig;
+use crate::motion::Format;
+use crate::session::Sampler;
+use crate::text::{ClipConfig, EncoderKind};
+
+use super::*;
+
+/// `lo <= value <= hi`, or an error naming the field and the range.
+fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
+    if value < lo || value > hi {
+        return Err(bad_file!("config {field} {value} is outside {lo}..={hi}"));
+    }
+    Ok(())
+}
+
+/// A finite value in `lo..=hi` (`lo` excluded when `open_lo`).
+fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Result<()> {
+    let above = if open_lo { value > lo } else { value >= lo };
+    if !(value.is_finite() && above && value <= hi) {
+        let open = if open_lo { "(" } else { "[" };
+        return Err(bad_file!(
+            "config {field} {value:?} is outside {open}{lo:?}, {hi:?}]"
+        ));
+    }
+    Ok(())
+}
+
+/// A width split over heads: `heads` in 1..=width, dividing it.
+fn heads_divide(field: &str, width: usize, heads_field: &str, heads: usize) -> Result<()> {
+    in_range(heads_field, heads, 1, width)?;
+    if !width.is_multiple_of(heads) {
+        return Err(bad_file!(
+            "config {field} {width} is not divisible by {heads_field} {heads}"
+        ));
+    }
+    Ok(())
+}
+
+/// One of `accepted`, or an error naming the field and the accepted values.
+fn one_of(field: &str, value: &str, accepted: &[&str]) -> Result<()> {
+    if !accepted.contains(&value) {
+        return Err(bad_file!(
+            "unknown config {field} `{value}` (accepted: {})",
+            accepted.join(", ")
+        ));
+    }
+    Ok(())
+}
+
+/// Tensor `name` is stored with shape `want` (implied by config `fields`).
+fn expect_shape(file: &ModelFile, name: &str, want: &[usize], fields: &str) -> Result<()> {
+    let got = file.shape(name)?;
+    if got != want {
+        return Err(bad_file!(
+            "tensor `{name}` has shape {got:?}, expected {want:?} (from config {fields})"
+        ));
+    }
+    Ok(())
+}
+
+/// A stack of `n` layers whose tensors are named `{prefix}{i}.…`: 1..=MAX_LAYERS, layer n−1
+/// present and layer n absent in the header (so no per-layer storage is sized from a count the
+/// file does not back).
+fn check_layers(file: &ModelFile, field: &str, n: usize, prefix: &str) -> Result<()> {
+    in_range(field, n, 1, MAX_LAYERS)?;
+    let last = format!("{prefix}{}.", n - 1);
+    if !file.has_prefix(&last) {
+        return Err(bad_file!(
+            "config {field} is {n} but the file has no tensor `{last}*`"
+        ));
+    }
+    let next = format!("{prefix}{n}.");
+    if file.has_prefix(&next) {
+        return Err(bad_file!(
+            "config {field} is {n} but the file also has tensors `{next}*`"
+        ));
+    }
+    Ok(())
+}
+
+/// A positional table of `rows × width` values computed at load.
+fn table_fits(field: &str, rows: usize, width: usize) -> Result<()> {
+    match rows.checked_mul(width) {
+        Some(n) if n <= MAX_TABLE_VALUES => Ok(()),
+        _ => Err(bad_file!(
+            "config {field} {rows} × width {width} exceeds the {MAX_TABLE_VALUES} values a \
+             positional table may hold"
+        )),
+    }
+}
+
+fn check_eps(field: &str, eps: f32) -> Result<()> {
+    in_range_f32(field, eps, 0.0, 1.0, true)
+}
+
+impl FlameConfig {
+    /// Bounds and names, without the file.
+    pub fn check(&self) -> Result<()> {
+        in_range("denoiser.motion_dim", self.motion_dim, 1, MAX_WIDTH)?;
+        in_range("denoiser.model_channels", self.model_channels, 2, MAX_WIDTH)?;
+        in_range("denoiser.num_layers", self.num_layers, 1, MAX_LAYERS)?;
+        if !self.model_channels.is_multiple_of(2) {
+            return Err(bad_file!(
+                "config denoiser.model_channels {} is not even",
+                self.model_channels
+            ));
+        }
+        heads_divide(
+            "denoiser.model_channels",
+            self.model_channels,
+            "denoiser.num_heads",
+            self.num_heads,
+        )?;
+        in_range(
+            "denoiser.dim_feedforward",
+            self.dim_feedforward,
+            1,
+            MAX_FEEDFORWARD,
+        )?;
+        in_range(
+            "denoiser.max_motion_length",
+            self.max_motion_length,
+            2,
+            MAX_MOTION_POSITIONS,
+        )?;
+        table_fits(
+            "denoiser.max_motion_length + 3",
+            self.max_motion_length + 3,
+            self.model_channels,
+        )?;
+        one_of("denoiser.activation", &self.activation, &["relu", "gelu"])?;
+        check_eps("denoiser.layer_norm_eps", self.layer_norm_eps)
+    }
+
+    /// [`FlameConfig::check`], then the sizes against the file's tensors (no prefix).
+    pub fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.check()?;
+        let (c, d) = (self.model_channels, self.motion_dim);
+        expect_shape(
+            file,
+            "motion_length_emb.weight",
+            &[self.max_motion_length, c],
+            "denoiser.max_motion_length, model_channels",
+        )?;
+        expect_shape(
+            file,
+            "input_projection.weight",
+            &[c, d],
+            "denoiser.model_channels, motion_dim",
+        )?;
+        check_layers(
+            file,
+            "denoiser.num_layers",
+            self.num_layers,
+            "tf_decoder.layers.",
+        )?;
+        expect_shape(
+            file,
+            "tf_decoder.layers.0.linear1.weight",
+            &[self.dim_feedforward, c],
+            "denoiser.dim_feedforward, model_channels",
+        )?;
+        expect_shape(
+            file,
+            "last_projection.weight",
+            &[2 * d, c],
+            "denoiser.motion_dim, model_channels",
+        )
+    }
+
+    /// The largest frame count a session may ask for.
+    pub fn max_frames(&self) -> usize {
+        self.max_motion_length - 1
+    }
+}
+
+impl MdmConfig {
+    /// Bounds and names, without the file.
+    pub fn check(&self) -> Result<()> {
+        in_range("denoiser.njoints", self.njoints, 1, MAX_WIDTH)?;
+        in_range("denoiser.latent_dim", self.latent_dim, 2, MAX_WIDTH)?;
+        in_range("denoiser.layers", self.layers, 1, MAX_LAYERS)?;
+        if !self.latent_dim.is_multiple_of(2) {
+            return Err(bad_file!(
+                "config denoiser.latent_dim {} is not even",
+                self.latent_dim
+            ));
+        }
+        heads_divide(
+            "denoiser.latent_dim",
+            self.latent_dim,
+            "denoiser.heads",
+            self.heads,
+        )?;
+        in_range("denoiser.ff_size", self.ff_size, 1, MAX_FEEDFORWARD)?;
+        in_range("denoiser.clip_dim", self.clip_dim, 1, MAX_WIDTH)?;
+        in_range("denoiser.max_len", self.max_len, 2, MAX_MOTION_POSITIONS)?;
+        table_fits("denoiser.max_len", self.max_len, self.latent_dim)?;
+        one_of("denoiser.activation", &self.activation, &["gelu", "relu"])
+    }
+
+    /// [`MdmConfig::check`], then the sizes against the file's tensors (no prefix).
+    pub fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.check()?;
+        let c = self.latent_dim;
+        expect_shape(
+            file,
+            "embed_timestep.time_embed.0.weight",
+            &[c, c],
+            "denoiser.latent_dim",
+        )?;
+        expect_shape(
+            file,
+            "embed_text.weight",
+            &[c, self.clip_dim],
+            "denoiser.latent_dim, clip_dim",
+        )?;
+        expect_shape(
+            file,
+            "input_process.poseEmbedding.weight",
+            &[c, self.njoints],
+            "denoiser.latent_dim, njoints",
+        )?;
+        check_layers(
+            file,
+            "denoiser.layers",
+            self.layers,
+            "seqTransEncoder.layers.",
+        )?;
+        expect_shape(
+            file,
+            "seqTransEncoder.layers.0.linear1.weight",
+            &[self.ff_size, c],
+            "denoiser.ff_size, latent_dim",
+        )
+    }
+
+    /// The largest frame count a session may ask for (one row of `pe` is the condition's).
+    pub fn max_frames(&self) -> usize {
+        self.max_len - 1
+    }
+}
+
+impl TextEncoderConfig {
+    /// Bounds and names, without the file.
+    pub fn check(&self) -> Result<EncoderKind> {
+        let kind = match self.kind.as_str() {
+            "bert" => EncoderKind::Bert,
+            "roberta" => EncoderKind::Roberta,
+            other => {
+                return Err(bad_file!(
+                    "unknown text_encoder.kind `{other}` (supported: bert, roberta, clip)"
+                ))
+            }
+        };
+        in_range("text_encoder.vocab_size", self.vocab_size, 1, MAX_VOCAB)?;
+        in_range("text_encoder.hidden_size", self.hidden_size, 1, MAX_WIDTH)?;
+        in_range("text_encoder.num_layers", self.num_layers, 1, MAX_LAYERS)?;
+        heads_divide(
+            "text_encoder.hidden_size",
+            self.hidden_size,
+            "text_encoder.num_heads",
+            self.num_heads,
+        )?;
+        in_range(
+            "text_encoder.intermediate_size",
+            self.intermediate_size,
+            1,
+            MAX_FEEDFORWARD,
+        )?;
+        in_range(
+            "text_encoder.max_position_embeddings",
+            self.max_position_embeddings,
+            1,
+            MAX_TEXT_POSITIONS,
+        )?;
+        in_range(
+            "text_encoder.type_vocab_size",
+            self.type_vocab_size,
+            1,
+            MAX_VOCAB,
+        )?;
+        check_eps("text_encoder.layer_norm_eps", self.layer_norm_eps)?;
+        if self.pad_token_id as usize >= self.vocab_size {
+            return Err(bad_file!(
+                "config text_encoder.pad_token_id {} is not below vocab_size {}",
+                self.pad_token_id,
+                self.vocab_size
+            ));
+        }
+        in_range(
+            "text_encoder.max_length",
+            self.max_length,
+            1,
+            MAX_TEXT_POSITIONS,
+        )?;
+        // RoBERTa's positions run from pad+1 to pad+max_length.
+        let offset = match kind {
+            EncoderKind::Bert => 0,
+            EncoderKind::Roberta => self.pad_token_id as usize + 1,
+        };
+        if self.max_length + offset > self.max_position_embeddings {
+            return Err(bad_file!(
+                "text_encoder.max_length {} (+{offset} position offset) exceeds max_position_embeddings {}",
+                self.max_length,
+                self.max_position_embeddings
+            ));
+        }
+        if self.hidden_act != "gelu" {
+            return Err(bad_file!(
+                "text_encoder.hidden_act `{}` is not supported (only exact `gelu`)",
+                self.hidden_act
+            ));
+        }
+        Ok(kind)
+    }
+
+    /// [`TextEncoderConfig::check`], then the sizes against the tensors under `prefix`.
+    pub fn validate(&self, file: &ModelFile, prefix: &str) -> Result<EncoderKind> {
+        let kind = self.check()?;
+        let (p, e) = (prefix, self.hidden_size);
+        expect_shape(
+            file,
+            &format!("{p}embeddings.word_embeddings.weight"),
+            &[self.vocab_size, e],
+            "text_encoder.vocab_size, hidden_size",
+        )?;
+        expect_shape(
+            file,
+            &format!("{p}embeddings.position_embeddings.weight"),
+            &[self.max_position_embeddings, e],
+            "text_encoder.max_position_embeddings, hidden_size",
+        )?;
+        expect_shape(
+            file,
+            &format!("{p}embeddings.token_type_embeddings.weight"),
+            &[self.type_vocab_size, e],
+            "text_encoder.type_vocab_size, hidden_size",
+        )?;
+        check_layers(
+            file,
+            "text_encoder.num_layers",
+            self.num_layers,
+            &format!("{p}encoder.layer."),
+        )?;
+        expect_shape(
+            file,
+            &format!("{p}encoder.layer.0.intermediate.dense.weight"),
+            &[self.intermediate_size, e],
+            "text_encoder.intermediate_size, hidden_size",
+        )?;
+        Ok(kind)
+    }
+}
+
+impl ClipConfig {
+    /// Bounds, without the file.
+    pub fn check(&self) -> Result<()> {
+        in_range("text_encoder.vocab_size", self.vocab_size, 1, MAX_VOCAB)?;
+        in_range("text_encoder.width", self.width, 1, MAX_WIDTH)?;
+        in_range("text_encoder.layers", self.layers, 1, MAX_LAYERS)?;
+        heads_divide(
+            "text_encoder.width",
+            self.width,
+            "text_encoder.heads",
+            self.heads,
+        )?;
+        if let Some(i) = self.intermediate_size {
+            in_range("text_encoder.intermediate_size", i, 1, MAX_FEEDFORWARD)?;
+        }
+        in_range(
+            "text_encoder.context_length",
+            self.context_length,
+            2,
+            MAX_TEXT_POSITIONS,
+        )?;
+        in_range(
+            "text_encoder.projection_dim",
+            self.projection_dim,
+            1,
+            MAX_WIDTH,
+        )?;
+        check_eps("text_encoder.layer_norm_eps", self.layer_norm_eps)
+    }
+
+    /// [`ClipConfig::check`], then the sizes against the tensors under `prefix`.
+    pub fn validate(&self, file: &ModelFile, prefix: &str) -> Result<()> {
+        self.check()?;
+        let (p, w) = (prefix, self.width);
+        expect_shape(
+            file,
+            &format!("{p}text_model.embeddings.token_embedding.weight"),
+            &[self.vocab_size, w],
+            "text_encoder.vocab_size, width",
+        )?;
+        expect_shape(
+            file,
+            &format!("{p}text_model.embeddings.position_embedding.weight"),
+            &[self.context_length, w],
+            "text_encoder.context_length, width",
+        )?;
+        check_layers(
+            file,
+            "text_encoder.layers",
+            self.layers,
+            &format!("{p}text_model.encoder.layers."),
+        )?;
+        let fields = if self.intermediate_size.is_some() {
+            "text_encoder.intermediate_size, width"
+        } else {
+            "text_encoder.width: no intermediate_size, so 4 × width"
+        };
+        expect_shape(
+            file,
+            &format!("{p}text_model.encoder.layers.0.mlp.fc1.weight"),
+            &[self.mlp_size(), w],
+            fields,
+        )?;
+        expect_shape(
+            file,
+            &format!("{p}text_projection.weight"),
+            &[self.projection_dim, w],
+            "text_encoder.projection_dim, width",
+        )
+    }
+}
+
+impl ClipTextConfig {
+    pub fn check(&self) -> Result<()> {
+        self.clip.check()?;
+        in_range(
+            "text_encoder.max_length",
+            self.max_length,
+            2,
+            self.clip.context_length,
+        )
+    }
+}
+
+/// Whether the parameterization names a flow-matching model (a velocity predictor).
+pub(crate) fn is_flow(parameterization: &str) -> bool {
+    matches!(parameterization, "velocity" | "flow")
+}
+
+impl Config {
+    /// Everything that needs no tensor: bounds, names, and the fields against each other.
+    pub(super) fn check(&self) -> Result<()> {
+        let arch = self.architecture.as_str();
+        let (max_frames, motion_dim) = match (&self.denoiser, &self.text_encoder) {
+            (DenoiserConfig::Flame(d), TextConfig::Bert(t)) => {
+                d.check()?;
+                t.check()?;
+                (d.max_frames(), d.motion_dim)
+            }
+            (DenoiserConfig::Mdm(d), TextConfig::Clip(c)) => {
+                d.check()?;
+                c.check()?;
+                if c.clip.projection_dim != d.clip_dim {
+                    return Err(bad_file!(
+                        "config text_encoder.projection_dim {} differs from denoiser.clip_dim {}",
+                        c.clip.projection_dim,
+                        d.clip_dim
+                    ));
+                }
+                (d.max_frames(), d.njoints)
+            }
+            _ => {
+                // Say what is wrong with the kind before pairing it.
+                if let TextConfig::Bert(t) = &self.text_encoder {
+                    t.check()?;
+                }
+                return Err(bad_file!(
+                    "architecture `{arch}` cannot use a `{}` text encoder",
+                    self.text_encoder.kind()
+                ));
+            }
+        };
+
+        let m = &self.motion;
+        let names: Vec<&str> = Format::ALL.iter().map(|f| f.name()).collect();
+        one_of("motion.format", &m.format, &names)?;
+        let format: Format = m.format.parse()?;
+        if format.feature_dim() != motion_dim {
+            return Err(bad_file!(
+                "motion.format `{format}` has {} features per frame, the denoiser {motion_dim}",
+                format.feature_dim()
+            ));
+        }
+        in_range_f32("motion.fps", m.fps, 0.0, MAX_FPS, true)?;
+
+        let dc = &self.diffusion;
+        in_range(
+            "diffusion.num_timesteps",
+            dc.num_timesteps,
+            1,
+            MAX_TIMESTEPS,
+        )?;
+        // Exactly what the sampler's parsers take (they ignore case and surrounding spaces).
+        let unknown = |field: &str, value: &str, accepted: &[&str]| {
+            bad_file!(
+                "unknown config {field} `{value}` (accepted: {})",
+                accepted.join(", ")
+            )
+        };
+        let schedule: BetaSchedule = dc
+            .schedule
+            .parse()
+            .map_err(|_| unknown("diffusion.schedule", &dc.schedule, SCHEDULES))?;
+        let variance: Variance = dc
+            .variance
+            .parse()
+            .map_err(|_| unknown("diffusion.variance", &dc.variance, VARIANCES))?;
+        one_of("diffusion.uncond", &dc.uncond, &["empty_prompt", "zeros"])?;
+        let flow = is_flow(&dc.parameterization);
+        if !flow {
+            dc.parameterization
+                .parse::<Parameterization>()
+                .map_err(|_| {
+                    let mut all = PARAMETERIZATIONS.to_vec();
+                    all.extend(["velocity", "flow"]);
+                    unknown("diffusion.parameterization", &dc.parameterization, &all)
+                })?;
+        }
+        match (arch, flow) {
+            ("motionfm", false) => {
+                return Err(bad_file!(
+                    "config diffusion.parameterization `{}`: a motionfm model predicts a \
+                     velocity (`velocity` or `flow`)",
+                    dc.parameterization
+                ))
+            }
+            ("flame" | "mdm", true) => {
+                return Err(bad_file!(
+                    "config diffusion.parameterization `{}` is for motionfm models; {arch} \
+                     takes {}",
+                    dc.parameterization,
+                    PARAMETERIZATIONS.join(", ")
+                ))
+            }
+            _ => {}
+        }
+        if variance == Variance::LearnedRange && arch != "flame" {
+            return Err(bad_file!(
+                "config diffusion.variance `learned_range` needs a denoiser that outputs variance \
+                 values (flame); {arch} takes fixed_small or fixed_large"
+            ));
+        }
+        if dc.uncond == "zeros" && arch == "flame" {
+            return Err(bad_file!(
+                "config diffusion.uncond `zeros`: FLAME models need `empty_prompt`"
+            ));
+        }
+        if let DenoiserConfig::Mdm(d) = &self.denoiser {
+            // The time input selects a row of the positional table: step t (MDM) or
+            // trunc(1000 t) for t in [0, 1] (Motion Flow Matching).
+            let rows = if flow { 1001 } else { dc.num_timesteps };
+            if d.max_len < rows {
+                return Err(bad_file!(
+                    "config denoiser.max_len {} has no row for every time input ({rows} needed)",
+                    d.max_len
+                ));
+            }
+        }
+        if !flow {
+            // The schedule must give betas in (0, 1) (a short linear schedule does not).
+            Schedule::new(&betas(schedule, dc.num_timesteps)).map_err(|e| {
+                let why = match e {
+                    crate::Error::InvalidArgument(m) => m,
+                    other => other.to_string(),
+                };
+                bad_file!(
+                    "config diffusion.schedule `{}` with num_timesteps {}: {why}",
+                    dc.schedule,
+                    dc.num_timesteps
+                )
+            })?;
+        }
+
+        let df = &self.defaults;
+        let samplers: &[&str] = if flow {
+            &["euler", "heun", "midpoint"]
+        } else {
+            &["ddpm", "ddim"]
+        };
+        one_of("defaults.sampler", &df.sampler, samplers)?;
+        let _: Sampler = df.sampler.parse()?;
+        let max_steps = if flow {
+            MAX_FLOW_STEPS
+        } else {
+            dc.num_timesteps
+        };
+        in_range("defaults.steps", df.steps, 1, max_steps)?;
+        in_range_f32("defaults.guidance", df.guidance, 0.0, MAX_GUIDANCE, false)?;
+        in_range_f32("defaults.eta", df.eta, 0.0, 1.0, false)?;
+        in_range("defaults.frames", df.frames, 1, max_frames)
+    }
+
+    /// Every size against the file's tensors (and each part's bounds again): what
+    /// [`Config::from_file`] does after [`Config::from_json`]'s checks, before a model is built.
+    pub fn validate(&self, file: &ModelFile) -> Result<()> {
+        let prefix = crate::models::TEXT_PREFIX;
+        match &self.text_encoder {
+            TextConfig::Bert(t) => {
+                t.validate(file, prefix)?;
+            }
+            TextConfig::Clip(c) => c.clip.validate(file, prefix)?,
+        }
+        match &self.denoiser {
+            DenoiserConfig::Flame(d) => d.validate(file),
+            DenoiserConfig::Mdm(d) => d.validate(file),
+        }
+    }
+}
+
+/// `diffusion.schedule` values ([`BetaSchedule`]'s spellings).
+const SCHEDULES: &[&str] = &["cosine", "squaredcos_cap_v2", "linear", "scaled_linear"];
+/// `diffusion.variance` values ([`Variance`]).
+const VARIANCES: &[&str] = &["learned_range", "fixed_small", "fixed_large"];
+/// `diffusion.parameterization` values of diffusion models ([`Parameterization`]).
+const PARAMETERIZATIONS: &[&str] = &[
+    "epsilon",
+    "eps",
+    "x0",
+    "sample",
+    "start_x",
+    "v",
+    "v_prediction",
+];
+
+// The lists above are exactly what the parsers take.
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn accepted_names_parse() {
+        for s in SCHEDULES {
+            s.parse::<BetaSchedule>().unwrap();
+        }
+        for s in VARIANCES {
+            s.parse::<Variance>().unwrap();
+        }
+        for s in PARAMETERIZATIONS {
+            s.parse::<Parameterization>().unwrap();
+        }
+        for s in ["ddpm", "ddim", "euler", "heun", "midpoint"] {
+            s.parse::<Sampler>().unwrap();
+        }
+    }
+}
