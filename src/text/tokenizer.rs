@@ -90,7 +90,9 @@ impl TextTokenizer {
         // tokenizers 0.22 panics (`expect("Helper")`) on a syntax error inside the `decoder`
         // field instead of returning it, so the syntax is checked first.
         serde_json::from_str::<serde::de::IgnoredAny>(json).map_err(|e| {
-            bad_file!("cannot build a tokenizer from the tokenizer.json text: not valid JSON: {e}")
+            file_err("cannot build a tokenizer from the tokenizer.json text")(
+                format!("not valid JSON: {e}").into(),
+            )
         })?;
         let mut inner = Tokenizer::from_str(json).map_err(file_err(
             "cannot build a tokenizer from the tokenizer.json text",
