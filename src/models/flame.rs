@@ -13,6 +13,7 @@ use crate::error::{invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 use crate::text::TextOutput;
 
+use super::Cancel;
 use super::layers::{activation, sized, Attention, CrossAttention, LayerNorm, Linear};
 
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
@@ -237,6 +238,21 @@ impl FlameDenoiser {
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
+        self.forward_cancellable(x, frames, t, conds, out, ws, &Cancel::never())
+    }
+
+    /// [`Self::forward`] that checks `cancel` before every layer.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_cancellable(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&FlameCondition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
         let c = self.cfg.model_channels;
         let d = self.cfg.motion_dim;
         let batch = conds.len();
@@ -287,6 +303,7 @@ impl FlameDenoiser {
         }
 
         for (l, layer) in self.layers.iter().enumerate() {
+            cancel.check()?;
             self.decoder_layer(l, layer, conds, seq, mem_len, ws);
         }
 
