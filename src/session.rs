@@ -787,7 +787,11 @@ fn non_finite(x: &[f32], x0: &[f32], dim: usize) -> Option<String> {
         .iter()
         .find_map(|(v, what)| {
             let i = v.iter().position(|v| !v.is_finite())?;
-            Some(format!("frame {}, channel {} of the {what}", i / dim, i % dim))
+            Some(format!(
+                "frame {}, channel {} of the {what}",
+                i / dim,
+                i % dim
+            ))
         })
 }
 
@@ -888,12 +892,21 @@ mod tests {
                 }
                 assert!(matches!(r, Err(Error::Cancelled)), "{what}: {r:?}");
                 assert_eq!(s.steps_left(), 4 - cancelled_step, "{what}");
-                assert!(!s.cancel.load(Ordering::SeqCst), "{what}: the flag is lowered");
+                assert!(
+                    !s.cancel.load(Ordering::SeqCst),
+                    "{what}: the flag is lowered"
+                );
                 if cancelled_step > 0 || check > 0 {
                     // The first step's x_T is drawn once and kept for the retry.
-                    assert!(before.0.is_none() || before.0 == s.sample().map(bits), "{what}");
+                    assert!(
+                        before.0.is_none() || before.0 == s.sample().map(bits),
+                        "{what}"
+                    );
                 }
-                assert!(before.1 == s.x0_estimate().map(bits), "{what}: estimate untouched");
+                assert!(
+                    before.1 == s.x0_estimate().map(bits),
+                    "{what}: estimate untouched"
+                );
                 let mut got = Vec::new();
                 while s.steps_left() > 0 {
                     s.step().unwrap();
@@ -901,6 +914,51 @@ mod tests {
                 }
                 assert!(got == want[cancelled_step..], "{what}: retry differs");
             }
+        }
+    }
+
+    /// Initial noise of ±1e30 is finite (`set_initial_noise` takes it) but overflows inside the
+    /// network: the first step fails naming itself, nothing of it is kept, steps are refused
+    /// until a reset, and after the reset a valid generation has a fresh session's bits.
+    #[test]
+    fn a_non_finite_step_is_named_and_reset_recovers() {
+        let flame = model("flame_tiny.safetensors");
+        let motionfm = model("motionfm_tiny.safetensors");
+        for (m, sampler) in [(&flame, Sampler::Ddim), (&motionfm, Sampler::Heun)] {
+            let len = 16 * m.motion_dim();
+            let huge: Vec<f32> = (0..len)
+                .map(|i| if i % 2 == 0 { 1e30 } else { -1e30 })
+                .collect();
+            let calm: Vec<f32> = (0..len).map(|i| (i as f32 * 0.37).sin()).collect();
+            let mut s = session(m, sampler, 2.5);
+            s.set_initial_noise(&huge).unwrap();
+            let e = s.step().unwrap_err();
+            assert!(matches!(e, Error::NotFinite(_)), "{sampler:?}: {e}");
+            let msg = e.to_string();
+            assert!(msg.contains("step 1 of 4"), "{msg}");
+            assert!(
+                msg.contains("guidance scale (2.5)") && msg.contains("frame "),
+                "{msg}"
+            );
+            assert_eq!(s.steps_left(), 4);
+            assert!(
+                s.x0_estimate().is_none(),
+                "the failed step's estimate is not kept"
+            );
+            assert!(
+                bits(s.sample().unwrap()) == bits(&huge),
+                "the sample is still x_T"
+            );
+            let again = s.step().unwrap_err();
+            assert!(
+                matches!(again, Error::WrongState(_)) && again.to_string().contains("reset"),
+                "{again}"
+            );
+            s.reset();
+            s.set_initial_noise(&calm).unwrap();
+            let mut fresh = session(m, sampler, 2.5);
+            fresh.set_initial_noise(&calm).unwrap();
+            assert!(trajectory(s) == trajectory(fresh), "{sampler:?}");
         }
     }
 

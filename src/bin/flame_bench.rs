@@ -294,7 +294,10 @@ fn cancel_bench(args: &[String]) {
         .any(|a| a == "--sampler")
         .then(|| arg(args, "--sampler", Sampler::Ddim));
     let (model, name) = if args.iter().any(|a| a == "--random-base") {
-        (random_flame_base(), "random FLAME-base denoiser".to_string())
+        (
+            random_flame_base(),
+            "random FLAME-base denoiser".to_string(),
+        )
     } else {
         let path: String = arg(args, "--model", String::new());
         if path.is_empty() {
@@ -337,7 +340,8 @@ fn cancel_bench(args: &[String]) {
     let (mut latency, mut finished_first) = (Vec::new(), 0);
     for i in 0..trials {
         next_step(&mut session);
-        let delay = std::time::Duration::from_secs_f64(step_ms * 1e-3 * (i as f64 + 0.5) / trials as f64);
+        let delay =
+            std::time::Duration::from_secs_f64(step_ms * 1e-3 * (i as f64 + 0.5) / trials as f64);
         let (tx, rx) = std::sync::mpsc::channel();
         let (result, raised, end) = std::thread::scope(|s| {
             let session = &mut session;
@@ -367,7 +371,11 @@ fn cancel_bench(args: &[String]) {
     }
     let max = latency.iter().copied().fold(0.0, f64::max);
     let cancelled = latency.len();
-    let lat = if cancelled > 0 { median(latency) } else { f64::NAN };
+    let lat = if cancelled > 0 {
+        median(latency)
+    } else {
+        f64::NAN
+    };
     println!(
         "model {name}: {frames} frames, {} sampler, guidance {guidance}, {threads} threads",
         sampler.map_or("default".to_string(), |s| format!("{s:?}"))
@@ -388,7 +396,10 @@ fn cancel_bench(args: &[String]) {
 /// feed-forward, 2 → 8 layers).
 fn random_flame_base() -> Model {
     use safetensors::tensor::{Dtype, TensorView};
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/flame_tiny.safetensors");
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/flame_tiny.safetensors"
+    );
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"));
     let st = safetensors::SafeTensors::deserialize(&bytes).expect("fixture");
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).expect("fixture");
@@ -415,7 +426,9 @@ fn random_flame_base() -> Model {
             continue;
         }
         let names: Vec<String> = match name.strip_prefix("tf_decoder.layers.0.") {
-            Some(rest) => (0..8).map(|l| format!("tf_decoder.layers.{l}.{rest}")).collect(),
+            Some(rest) => (0..8)
+                .map(|l| format!("tf_decoder.layers.{l}.{rest}"))
+                .collect(),
             None if name.starts_with("tf_decoder.layers.") => continue,
             None => vec![name.clone()],
         };
@@ -423,7 +436,11 @@ fn random_flame_base() -> Model {
         for n in names {
             let count: usize = shape.iter().product();
             // PyTorch-like magnitudes: norms start at 1 / 0, linear weights ~ 1/sqrt(fan-in).
-            let bound = if shape.len() == 2 { (shape[1] as f64).sqrt().recip() } else { 0.02 };
+            let bound = if shape.len() == 2 {
+                (shape[1] as f64).sqrt().recip()
+            } else {
+                0.02
+            };
             let values: Vec<f32> = if n.contains(".norm") {
                 vec![if n.ends_with("weight") { 1.0 } else { 0.0 }; count]
             } else {
@@ -437,7 +454,12 @@ fn random_flame_base() -> Model {
     }
     let views: Vec<(String, TensorView)> = list
         .iter()
-        .map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F32, s.clone(), b).expect("view")))
+        .map(|(n, s, b)| {
+            (
+                n.clone(),
+                TensorView::new(Dtype::F32, s.clone(), b).expect("view"),
+            )
+        })
         .collect();
     let file = safetensors::serialize(views, &Some(meta)).expect("serialize");
     drop(list);

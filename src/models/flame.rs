@@ -13,8 +13,8 @@ use crate::error::{invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 use crate::text::TextOutput;
 
-use super::Cancel;
 use super::layers::{activation, sized, Attention, CrossAttention, LayerNorm, Linear};
+use super::Cancel;
 
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;

@@ -16,8 +16,8 @@ use crate::checkpoint::ModelFile;
 use crate::error::{invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 
-use super::Cancel;
 use super::layers::{activation, sized, Attention, LayerNorm, Linear};
+use super::Cancel;
 
 /// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
 const LAYER_NORM_EPS: f32 = 1e-5;

@@ -106,12 +106,6 @@ impl<'a> Cancel<'a> {
         }
         Ok(())
     }
-
-    /// Checks made so far (tests count them to find every point a step can be cancelled at).
-    #[cfg(test)]
-    pub(crate) fn checks(&self) -> usize {
-        self.checks.load(Ordering::Relaxed)
-    }
 }
 
 /// A loaded model: read-only after loading, `Send + Sync`.
@@ -408,7 +402,15 @@ impl Model {
                 for (v, c) in views.iter_mut().zip(conds) {
                     *v = pick(c)?;
                 }
-                f.forward_cancellable(x, frames, t, &views[..conds.len()], out, &mut ws.flame, cancel)
+                f.forward_cancellable(
+                    x,
+                    frames,
+                    t,
+                    &views[..conds.len()],
+                    out,
+                    &mut ws.flame,
+                    cancel,
+                )
             }
             Denoiser::Mdm(m) => {
                 let pick = |c: &'a Condition| match c {
@@ -419,7 +421,15 @@ impl Model {
                 for (v, c) in views.iter_mut().zip(conds) {
                     *v = pick(c)?;
                 }
-                m.forward_cancellable(x, frames, t, &views[..conds.len()], out, &mut ws.mdm, cancel)
+                m.forward_cancellable(
+                    x,
+                    frames,
+                    t,
+                    &views[..conds.len()],
+                    out,
+                    &mut ws.mdm,
+                    cancel,
+                )
             }
         }
     }
