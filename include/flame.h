@@ -62,6 +62,9 @@ typedef enum FlameStatus {
   FLAME_STATUS_BUFFER_TOO_SMALL = 7,
   // A bug inside libflame (a caught panic); the message says where.
   FLAME_STATUS_INTERNAL = 8,
+  // A step produced NaN or infinity; the message names the step. The session refuses
+  // further steps (`WRONG_STATE`) until `flame_session_reset`.
+  FLAME_STATUS_NOT_FINITE = 9,
 } FlameStatus;
 
 // Sampler choice in [`FlameSessionParams`].

@@ -22,6 +22,8 @@ pub enum Error {
     Cancelled,
     /// The tokenizer rejected the text or could not be built.
     Tokenizer(String),
+    /// A step produced NaN or infinity (the message names the step and the likely cause).
+    NotFinite(String),
 }
 
 /// Shorthand used across the crate.
@@ -36,6 +38,7 @@ impl fmt::Display for Error {
             Error::WrongState(m) => write!(f, "wrong state: {m}"),
             Error::Cancelled => write!(f, "cancelled"),
             Error::Tokenizer(m) => write!(f, "tokenizer: {m}"),
+            Error::NotFinite(m) => write!(f, "not finite: {m}"),
         }
     }
 }

@@ -10,10 +10,15 @@ use crate::diffusion::{self, DiffusionSampler, SamplerKind, X0Replacement};
 use crate::edit;
 pub use crate::edit::{EditMethod, EditParams};
 use crate::error::{invalid_arg, Error, Result};
-use crate::models::{Condition, Model, Workspace};
+use crate::models::{Cancel, Condition, Model, Workspace};
 use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
 use crate::text::PromptInfo;
+
+/// The largest classifier-free guidance scale a session (and a model file's default) accepts.
+/// Guidance runs from 0 (the unconditional model alone) through 1 (the prompt alone, one network
+/// row per step) to this; negative scales (steering away from the prompt) are refused.
+pub use crate::config::MAX_GUIDANCE;
 
 /// Which reverse process a session runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -53,6 +58,8 @@ pub struct SessionParams {
     pub steps: Option<usize>,
     pub sampler: Option<Sampler>,
     pub eta: Option<f32>,
+    /// Classifier-free guidance scale in [0, [`MAX_GUIDANCE`]]: 0 = unconditional, 1 = the
+    /// prompt alone (no unconditional pass), above 1 strengthens the prompt.
     pub guidance: Option<f32>,
     /// Clamp the x0 estimate to [-1, 1] at every step (the official FLAME sampling does).
     pub clip_denoised: Option<bool>,
@@ -84,6 +91,10 @@ pub struct Session {
     x0: Vec<f32>,
     bufs: StepBuffers,
     cancel: Arc<AtomicBool>,
+    /// Test hook: the next step finds the cancel flag raised at this check (see [`Cancel`]).
+    cancel_at: Option<usize>,
+    /// Why a step failed (non-finite values); steps are refused until a reset.
+    failed: Option<String>,
     edit: Edit,
 }
 
@@ -128,6 +139,8 @@ struct StepBuffers {
     var: Vec<f32>,
     noise: Vec<f32>,
     x_prev: Vec<f32>,
+    /// The step's clean-motion estimate, moved into the session only when the step completes.
+    x0_next: Vec<f32>,
     flow: FlowScratch,
 }
 
@@ -162,6 +175,7 @@ impl Predictor<'_> {
         t: f32,
         pred: &mut Vec<f32>,
         var: &mut Vec<f32>,
+        cancel: &Cancel,
     ) -> Result<()> {
         let (d, od) = (self.model.motion_dim(), self.model.output_dim());
         let batch = 1 + self.uncond.is_some() as usize;
@@ -171,13 +185,14 @@ impl Predictor<'_> {
         }
         b.out.resize(batch * self.frames * od, 0.0);
         let both = [self.cond, self.uncond.unwrap_or(self.cond)];
-        self.model.forward(
+        self.model.forward_cancellable(
             &b.batch_x,
             self.frames,
             t,
             &both[..batch],
             &mut b.out,
             &mut b.ws,
+            cancel,
         )?;
         let rows = self.frames * od;
         split_channels(&b.out[..rows], d, od, pred, var);
@@ -204,8 +219,7 @@ impl Session {
         let guidance = params.guidance.unwrap_or(d.guidance);
         if !crate::config::guidance_in_range(guidance) {
             return Err(invalid_arg!(
-                "guidance {guidance:?} is outside [0, {:?}]",
-                crate::config::MAX_GUIDANCE
+                "guidance {guidance} outside 0..={MAX_GUIDANCE} (0 = unconditional, 1 = the prompt alone, more strengthens the prompt; negative guidance is not supported)"
             ));
         }
         let rule = build_rule(&model, params)?;
@@ -231,6 +245,8 @@ impl Session {
             x0: vec![0.0; len],
             bufs: StepBuffers::default(),
             cancel: Arc::new(AtomicBool::new(false)),
+            cancel_at: None,
+            failed: None,
             edit: Edit::default(),
         })
     }
@@ -323,6 +339,7 @@ impl Session {
         self.stepped = false;
         self.noise = Box::new(GaussianRng::new(self.seed));
         self.edit.noise_step = None;
+        self.failed = None;
         self.cancel.store(false, Ordering::SeqCst);
     }
 
@@ -560,7 +577,19 @@ impl Session {
     }
 
     /// Advances one sampler step; returns the number of steps left.
+    ///
+    /// A raised [`Session::cancel_flag`] is seen before every transformer layer: the step
+    /// returns [`Error::Cancelled`] and leaves no trace (sample, estimate, noise stream), so a
+    /// retry gives the bits of a run never cancelled. A step whose sample or estimate is not
+    /// finite returns [`Error::NotFinite`] naming the step; the sample and estimate keep the
+    /// previous step's values and further steps return [`Error::WrongState`] until
+    /// [`Session::reset`].
     pub fn step(&mut self) -> Result<usize> {
+        if let Some(why) = &self.failed {
+            return Err(Error::WrongState(format!(
+                "{why}; reset the session to start over"
+            )));
+        }
         if self.cond.is_none() {
             return Err(Error::WrongState("set a prompt before stepping".into()));
         }
@@ -569,11 +598,18 @@ impl Session {
                 "the generation is finished; reset to start again".into(),
             ));
         }
-        if self.cancel.swap(false, Ordering::SeqCst) {
-            return Err(Error::Cancelled);
-        }
         let pool = Arc::clone(&self.pool);
-        pool.install(|| self.step_inner())
+        let flag = Arc::clone(&self.cancel);
+        let cancel = Cancel::new(&flag, self.cancel_at.take());
+        pool.install(|| self.step_inner(&cancel))
+    }
+
+    /// Test hook: the next step sees the cancel flag raised at its `check`-th cancellation
+    /// check (0 = before anything runs; then one before every layer of every network
+    /// evaluation; the last after the network, before the step's result is kept).
+    #[cfg(test)]
+    pub(crate) fn cancel_at_check(&mut self, check: usize) {
+        self.cancel_at = Some(check);
     }
 
     /// Runs every remaining step and returns the final sample.
@@ -584,7 +620,8 @@ impl Session {
         Ok(&self.x)
     }
 
-    fn step_inner(&mut self) -> Result<usize> {
+    fn step_inner(&mut self, cancel: &Cancel) -> Result<usize> {
+        cancel.check()?;
         let model = Arc::clone(&self.model);
         let len = self.frames * model.motion_dim();
         // Resolved before anything is drawn, so a bad combination leaves the session as it was.
@@ -623,15 +660,18 @@ impl Session {
             var,
             noise,
             x_prev,
+            x0_next,
             flow,
         } = &mut self.bufs;
         x_prev.resize(len, 0.0);
+        x0_next.resize(len, 0.0);
+        let n = self.rule.num_steps();
+        let step = n - self.remaining + 1;
         match &self.rule {
             StepRule::Diffusion(sampler) => {
-                p.predict(fwd, x_t, sampler.model_timestep(t), pred, var)?;
-                if self.cancel.swap(false, Ordering::SeqCst) {
-                    return Err(Error::Cancelled);
-                }
+                p.predict(fwd, x_t, sampler.model_timestep(t), pred, var, cancel)?;
+                // Last chance before the step draws noise: after this it completes.
+                cancel.check()?;
                 let z = if sampler.needs_noise(t) {
                     noise.resize(len, 0.0);
                     self.noise.fill(noise);
@@ -640,23 +680,33 @@ impl Session {
                     None
                 };
                 let v = (model.output_dim() > model.motion_dim()).then_some(&var[..]);
-                sampler.step_replacing(t, x_t, pred, v, z, replace, x_prev, &mut self.x0)?;
+                sampler.step_replacing(t, x_t, pred, v, z, replace, x_prev, x0_next)?;
             }
             StepRule::Flow(sampler) => {
                 // Flow time runs forwards: the first step is k = 0 at t = 0 (noise).
                 let k = sampler.num_steps() - self.remaining;
+                // The second evaluation of Heun and midpoint checks before its first layer too.
                 let mut velocity = |tk: f32, x: &[f32], v: &mut [f32]| {
-                    p.predict(fwd, x, tk, pred, var)?;
+                    p.predict(fwd, x, tk, pred, var, cancel)?;
                     v.copy_from_slice(pred);
                     Ok(())
                 };
-                sampler.step(k, x_t, &mut velocity, flow, x_prev, &mut self.x0)?;
-                if self.cancel.swap(false, Ordering::SeqCst) {
-                    return Err(Error::Cancelled);
-                }
+                sampler.step(k, x_t, &mut velocity, flow, x_prev, x0_next)?;
+                cancel.check()?;
             }
         }
+        if let Some(why) = non_finite(x_prev, x0_next, model.motion_dim()) {
+            let msg = format!(
+                "step {step} of {n} produced a non-finite value ({why}): the guidance scale ({}) or the input (reference, noise) is too large or not finite",
+                self.guidance
+            );
+            self.failed = Some(msg.clone());
+            return Err(Error::NotFinite(format!(
+                "{msg}; reset the session to start over"
+            )));
+        }
         std::mem::swap(&mut self.x, x_prev);
+        std::mem::swap(&mut self.x0, x0_next);
         self.remaining -= 1;
         self.stepped = true;
         if self.remaining == 0 && self.edit.params.paste {
@@ -756,6 +806,21 @@ fn split_channels(out: &[f32], d: usize, od: usize, pred: &mut Vec<f32>, var: &m
     }
 }
 
+/// Where the first NaN or infinity of a step's new sample (or else its clean-motion estimate)
+/// is, as "frame F, channel C of the sample"; `None` when both are finite.
+fn non_finite(x: &[f32], x0: &[f32], dim: usize) -> Option<String> {
+    [(x, "sample"), (x0, "clean-motion estimate")]
+        .iter()
+        .find_map(|(v, what)| {
+            let i = v.iter().position(|v| !v.is_finite())?;
+            Some(format!(
+                "frame {}, channel {} of the {what}",
+                i / dim,
+                i % dim
+            ))
+        })
+}
+
 /// Errors when `keep` keeps a value in a frame at or past `ref_frames`.
 fn check_kept_frames(keep: &[bool], dim: usize, ref_frames: usize) -> Result<()> {
     match keep[ref_frames * dim..].iter().position(|&k| k) {
@@ -764,5 +829,184 @@ fn check_kept_frames(keep: &[bool], dim: usize, ref_frames: usize) -> Result<()>
             ref_frames + i / dim
         )),
         None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn model(file: &str) -> Arc<Model> {
+        let path = format!("{}/tests/fixtures/{file}", env!("CARGO_MANIFEST_DIR"));
+        Arc::new(Model::load(path).unwrap())
+    }
+
+    /// A 16-frame, 4-step session; FLAME DDPM sessions edit (noised reference), so each step
+    /// draws both the edit's noise and the sampler's.
+    fn session(model: &Arc<Model>, sampler: Sampler, guidance: f32) -> Session {
+        let params = SessionParams {
+            frames: Some(16),
+            steps: Some(4),
+            sampler: Some(sampler),
+            guidance: Some(guidance),
+            seed: 11,
+            threads: 1,
+            ..Default::default()
+        };
+        let mut s = Session::new(Arc::clone(model), &params).unwrap();
+        s.set_prompt("a person walks forward").unwrap();
+        if sampler == Sampler::Ddpm {
+            let dim = model.motion_dim();
+            let r: Vec<f32> = (0..16 * dim).map(|i| (i as f32 * 0.01).sin()).collect();
+            s.set_reference(&r).unwrap();
+            s.set_keep((0..16 * dim).map(|i| i < 4 * dim).collect())
+                .unwrap();
+        }
+        s
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// Sample and estimate after every step of an uncancelled run.
+    fn trajectory(mut s: Session) -> Vec<(Vec<u32>, Vec<u32>)> {
+        let mut out = Vec::new();
+        while s.steps_left() > 0 {
+            s.step().unwrap();
+            out.push((bits(s.sample().unwrap()), bits(s.x0_estimate().unwrap())));
+        }
+        out
+    }
+
+    /// A step can be cancelled at each of its checks: at the start, before every layer of
+    /// every network evaluation (two for Heun and midpoint) and after the network. Wherever it
+    /// is cancelled, it returns `Cancelled`, leaves sample, estimate and step count as they were,
+    /// and the retried generation has the bits of one never cancelled. One check past the last
+    /// the step completes, so the count of checks is exact.
+    #[test]
+    fn a_step_cancelled_at_any_layer_leaves_no_trace() {
+        let flame = model("flame_tiny.safetensors");
+        let mdm = model("mdm_tiny.safetensors");
+        let motionfm = model("motionfm_tiny.safetensors");
+        let cases = [
+            (&flame, Sampler::Ddpm, 2.5, 2, 1),
+            (&flame, Sampler::Ddim, 1.0, 2, 1),
+            (&mdm, Sampler::Ddim, 2.5, 0, 1),
+            (&motionfm, Sampler::Heun, 2.5, 0, 2),
+            (&motionfm, Sampler::Midpoint, 1.0, 0, 2),
+        ];
+        for (m, sampler, guidance, cancelled_step, evals) in cases {
+            let layers = match &m.config().denoiser {
+                crate::config::DenoiserConfig::Flame(c) => c.num_layers,
+                crate::config::DenoiserConfig::Mdm(c) => c.layers,
+            };
+            let checks = 2 + evals * layers;
+            let want = trajectory(session(m, sampler, guidance));
+            for check in 0..=checks {
+                let what = format!("{sampler:?}, guidance {guidance}, check {check}");
+                let mut s = session(m, sampler, guidance);
+                for _ in 0..cancelled_step {
+                    s.step().unwrap();
+                }
+                let before = (s.sample().map(bits), s.x0_estimate().map(bits));
+                s.cancel_at_check(check);
+                let r = s.step();
+                if check == checks {
+                    assert_eq!(r.unwrap(), 3 - cancelled_step, "{what}: no check left");
+                    continue;
+                }
+                assert!(matches!(r, Err(Error::Cancelled)), "{what}: {r:?}");
+                assert_eq!(s.steps_left(), 4 - cancelled_step, "{what}");
+                assert!(
+                    !s.cancel.load(Ordering::SeqCst),
+                    "{what}: the flag is lowered"
+                );
+                if cancelled_step > 0 || check > 0 {
+                    // The first step's x_T is drawn once and kept for the retry.
+                    assert!(
+                        before.0.is_none() || before.0 == s.sample().map(bits),
+                        "{what}"
+                    );
+                }
+                assert!(
+                    before.1 == s.x0_estimate().map(bits),
+                    "{what}: estimate untouched"
+                );
+                let mut got = Vec::new();
+                while s.steps_left() > 0 {
+                    s.step().unwrap();
+                    got.push((bits(s.sample().unwrap()), bits(s.x0_estimate().unwrap())));
+                }
+                assert!(got == want[cancelled_step..], "{what}: retry differs");
+            }
+        }
+    }
+
+    /// Initial noise of ±1e30 is finite (`set_initial_noise` takes it) but overflows inside the
+    /// network: the first step fails naming itself, nothing of it is kept, steps are refused
+    /// until a reset, and after the reset a valid generation has a fresh session's bits.
+    #[test]
+    fn a_non_finite_step_is_named_and_reset_recovers() {
+        let flame = model("flame_tiny.safetensors");
+        let motionfm = model("motionfm_tiny.safetensors");
+        for (m, sampler) in [(&flame, Sampler::Ddim), (&motionfm, Sampler::Heun)] {
+            let len = 16 * m.motion_dim();
+            let huge: Vec<f32> = (0..len)
+                .map(|i| if i % 2 == 0 { 1e30 } else { -1e30 })
+                .collect();
+            let calm: Vec<f32> = (0..len).map(|i| (i as f32 * 0.37).sin()).collect();
+            let mut s = session(m, sampler, 2.5);
+            s.set_initial_noise(&huge).unwrap();
+            let e = s.step().unwrap_err();
+            assert!(matches!(e, Error::NotFinite(_)), "{sampler:?}: {e}");
+            let msg = e.to_string();
+            assert!(msg.contains("step 1 of 4"), "{msg}");
+            assert!(
+                msg.contains("guidance scale (2.5)") && msg.contains("frame "),
+                "{msg}"
+            );
+            assert_eq!(s.steps_left(), 4);
+            assert!(
+                s.x0_estimate().is_none(),
+                "the failed step's estimate is not kept"
+            );
+            assert!(
+                bits(s.sample().unwrap()) == bits(&huge),
+                "the sample is still x_T"
+            );
+            let again = s.step().unwrap_err();
+            assert!(
+                matches!(again, Error::WrongState(_)) && again.to_string().contains("reset"),
+                "{again}"
+            );
+            s.reset();
+            s.set_initial_noise(&calm).unwrap();
+            let mut fresh = session(m, sampler, 2.5);
+            fresh.set_initial_noise(&calm).unwrap();
+            assert!(trajectory(s) == trajectory(fresh), "{sampler:?}");
+        }
+    }
+
+    #[test]
+    fn guidance_outside_0_to_100_is_refused() {
+        let m = model("flame_tiny.safetensors");
+        let new = |g: f32| {
+            Session::new(
+                Arc::clone(&m),
+                &SessionParams {
+                    guidance: Some(g),
+                    ..Default::default()
+                },
+            )
+        };
+        for g in [-1.0, -0.0001, f32::NAN, f32::INFINITY, 1e30, 100.5] {
+            let e = new(g).err().unwrap();
+            assert!(matches!(e, Error::InvalidArgument(_)), "{g}: {e}");
+            assert!(e.to_string().contains("guidance"), "{g}: {e}");
+        }
+        for g in [0.0, 1.0, 2.5, MAX_GUIDANCE] {
+            assert!(new(g).is_ok(), "{g}");
+        }
     }
 }

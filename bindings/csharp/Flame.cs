@@ -37,6 +37,7 @@ namespace Flame
         Tokenizer = 6,
         BufferTooSmall = 7,
         Internal = 8,
+        NotFinite = 9,
     }
 
     /// <summary>FlameSessionParams.sampler values.</summary>

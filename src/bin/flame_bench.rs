@@ -8,6 +8,14 @@
 //!
 //! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
 //! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
+//!
+//! `flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]
+//!  [--guidance 2.5] [--sampler S]`: cancel latency. A worker thread runs one step while the
+//! main thread raises the session's cancel flag at a spread of fractions of the full step time;
+//! prints the time from raising the flag to the step returning (median, max) next to the full
+//! step. `--random-base` builds FLAME-base's denoiser (8 × 768, 8 heads, feed-forward 2048) with
+//! random weights in memory, with the tiny test fixture's text encoder (the step's cost is the
+//! denoiser's).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -160,11 +168,16 @@ fn main() {
         gemm_bench(&args);
         return;
     }
+    if args.first().map(String::as_str) == Some("cancel") {
+        cancel_bench(&args);
+        return;
+    }
     let path: String = arg(&args, "--model", String::new());
     if path.is_empty() {
         eprintln!(
             "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
-             [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]"
+             [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
+             flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]"
         );
         std::process::exit(2);
     }
@@ -267,4 +280,188 @@ fn main() {
             status_mib("VmHWM:")
         );
     }
+}
+
+/// Cancel latency: the time from raising the cancel flag, at fractions (i + ½) / trials of a
+/// full step, to the step returning.
+fn cancel_bench(args: &[String]) {
+    let frames: usize = arg(args, "--frames", 196);
+    let threads: usize = arg(args, "--threads", 2);
+    let trials: usize = arg(args, "--trials", 15);
+    let guidance: f32 = arg(args, "--guidance", 2.5);
+    let sampler: Option<Sampler> = args
+        .iter()
+        .any(|a| a == "--sampler")
+        .then(|| arg(args, "--sampler", Sampler::Ddim));
+    let (model, name) = if args.iter().any(|a| a == "--random-base") {
+        (
+            random_flame_base(),
+            "random FLAME-base denoiser".to_string(),
+        )
+    } else {
+        let path: String = arg(args, "--model", String::new());
+        if path.is_empty() {
+            eprintln!("usage: flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15] [--guidance 2.5] [--sampler S]");
+            std::process::exit(2);
+        }
+        let m = Model::load(&path).unwrap_or_else(|e| panic!("cannot load {path}: {e}"));
+        (m, path)
+    };
+    let params = SessionParams {
+        frames: Some(frames),
+        steps: Some(50),
+        sampler,
+        eta: Some(0.0),
+        guidance: Some(guidance),
+        seed: 1,
+        threads,
+        ..Default::default()
+    };
+    let mut session = Session::new(Arc::new(model), &params).expect("session");
+    session
+        .set_prompt("a person walks forward, turns around and waves with the right hand")
+        .expect("prompt");
+    let flag = session.cancel_flag();
+    let next_step = |session: &mut Session| {
+        if session.steps_left() == 0 {
+            session.reset();
+        }
+    };
+    let mut full = Vec::new();
+    for i in 0..7 {
+        next_step(&mut session);
+        let t = Instant::now();
+        session.step().expect("step");
+        if i >= 2 {
+            full.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let step_ms = median(full);
+    let (mut latency, mut finished_first) = (Vec::new(), 0);
+    for i in 0..trials {
+        next_step(&mut session);
+        let delay =
+            std::time::Duration::from_secs_f64(step_ms * 1e-3 * (i as f64 + 0.5) / trials as f64);
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (result, raised, end) = std::thread::scope(|s| {
+            let session = &mut session;
+            let worker = s.spawn(move || {
+                tx.send(Instant::now()).unwrap();
+                let r = session.step();
+                (r, Instant::now())
+            });
+            let start = rx.recv().unwrap();
+            std::thread::sleep((start + delay).saturating_duration_since(Instant::now()));
+            let raised = Instant::now();
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+            let (r, end) = worker.join().unwrap();
+            (r, raised, end)
+        });
+        match result {
+            Err(flame::Error::Cancelled) => {
+                latency.push(end.saturating_duration_since(raised).as_secs_f64() * 1e3)
+            }
+            Ok(_) => {
+                // The step ended before it saw the flag; the flag would cancel the next one.
+                finished_first += 1;
+                flag.store(false, std::sync::atomic::Ordering::SeqCst);
+            }
+            Err(e) => panic!("step: {e}"),
+        }
+    }
+    let max = latency.iter().copied().fold(0.0, f64::max);
+    let cancelled = latency.len();
+    let lat = if cancelled > 0 {
+        median(latency)
+    } else {
+        f64::NAN
+    };
+    println!(
+        "model {name}: {frames} frames, {} sampler, guidance {guidance}, {threads} threads",
+        sampler.map_or("default".to_string(), |s| format!("{s:?}"))
+    );
+    println!("  full step (median of 5)        {step_ms:9.2} ms");
+    println!(
+        "  cancel latency (median of {cancelled}) {lat:9.2} ms, max {max:.2} ms; flag raised at \
+         (i + 0.5) / {trials} of a step; {finished_first} steps ended before seeing it"
+    );
+    println!(
+        "RESULT impl=flame bench=cancel frames={frames} threads={threads} step_ms={step_ms:.2} cancel_median_ms={lat:.2} cancel_max_ms={max:.2} cancelled={cancelled} finished_first={finished_first}"
+    );
+}
+
+/// FLAME-base's denoiser (8 layers × 768 channels, 8 heads, feed-forward 2048, FLAME's 471
+/// motion lengths) with random weights, and the tiny test fixture's text encoder and tokenizer.
+/// Shapes come from the fixture's denoiser with its sizes scaled (64 → 768 channels, 128 → 2048
+/// feed-forward, 2 → 8 layers).
+fn random_flame_base() -> Model {
+    use safetensors::tensor::{Dtype, TensorView};
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/flame_tiny.safetensors"
+    );
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let st = safetensors::SafeTensors::deserialize(&bytes).expect("fixture");
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).expect("fixture");
+    let mut meta = header.metadata().clone().expect("fixture metadata");
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&meta["flame.config"]).expect("fixture config");
+    let den = &mut cfg["denoiser"];
+    den["model_channels"] = 768.into();
+    den["num_layers"] = 8.into();
+    den["num_heads"] = 8.into();
+    den["dim_feedforward"] = 2048.into();
+    meta.insert("flame.config".into(), cfg.to_string());
+    let scale = |d: usize| match d {
+        64 => 768,
+        128 => 2048,
+        192 => 3 * 768,
+        d => d,
+    };
+    let mut rng = flame::rng::GaussianRng::new(7);
+    let mut list: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    for (name, view) in st.tensors() {
+        if name.starts_with("text.") {
+            list.push((name, view.shape().to_vec(), view.data().to_vec()));
+            continue;
+        }
+        let names: Vec<String> = match name.strip_prefix("tf_decoder.layers.0.") {
+            Some(rest) => (0..8)
+                .map(|l| format!("tf_decoder.layers.{l}.{rest}"))
+                .collect(),
+            None if name.starts_with("tf_decoder.layers.") => continue,
+            None => vec![name.clone()],
+        };
+        let shape: Vec<usize> = view.shape().iter().map(|&d| scale(d)).collect();
+        for n in names {
+            let count: usize = shape.iter().product();
+            // PyTorch-like magnitudes: norms start at 1 / 0, linear weights ~ 1/sqrt(fan-in).
+            let bound = if shape.len() == 2 {
+                (shape[1] as f64).sqrt().recip()
+            } else {
+                0.02
+            };
+            let values: Vec<f32> = if n.contains(".norm") {
+                vec![if n.ends_with("weight") { 1.0 } else { 0.0 }; count]
+            } else {
+                (0..count)
+                    .map(|_| ((rng.next_uniform() * 2.0 - 1.0) * bound) as f32)
+                    .collect()
+            };
+            let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            list.push((n, shape.clone(), data));
+        }
+    }
+    let views: Vec<(String, TensorView)> = list
+        .iter()
+        .map(|(n, s, b)| {
+            (
+                n.clone(),
+                TensorView::new(Dtype::F32, s.clone(), b).expect("view"),
+            )
+        })
+        .collect();
+    let file = safetensors::serialize(views, &Some(meta)).expect("serialize");
+    drop(list);
+    Model::from_bytes(&file).expect("random FLAME-base")
 }

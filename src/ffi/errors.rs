@@ -35,6 +35,9 @@ pub enum FlameStatus {
     BufferTooSmall = 7,
     /// A bug inside libflame (a caught panic); the message says where.
     Internal = 8,
+    /// A step produced NaN or infinity; the message names the step. The session refuses
+    /// further steps (`WRONG_STATE`) until `flame_session_reset`.
+    NotFinite = 9,
 }
 
 /// Why an entry point failed.
@@ -102,6 +105,7 @@ pub(crate) fn guard(f: impl FnOnce() -> Result<(), Fail>) -> FlameStatus {
                 Error::WrongState(_) => FlameStatus::WrongState,
                 Error::Cancelled => FlameStatus::Cancelled,
                 Error::Tokenizer(_) => FlameStatus::Tokenizer,
+                Error::NotFinite(_) => FlameStatus::NotFinite,
             };
             set_last_error(e.to_string());
             status
@@ -144,6 +148,7 @@ pub extern "C" fn flame_status_string(status: i32) -> *const c_char {
         6 => "FLAME_STATUS_TOKENIZER\0",
         7 => "FLAME_STATUS_BUFFER_TOO_SMALL\0",
         8 => "FLAME_STATUS_INTERNAL\0",
+        9 => "FLAME_STATUS_NOT_FINITE\0",
         _ => "FLAME_STATUS_UNKNOWN\0",
     };
     s.as_ptr() as *const c_char

@@ -14,6 +14,7 @@ use crate::kernels::{self, AttentionScratch, WeightType};
 use crate::text::TextOutput;
 
 use super::layers::{activation, sized, Attention, CrossAttention, LayerNorm, Linear};
+use super::Cancel;
 
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;
@@ -238,6 +239,21 @@ impl FlameDenoiser {
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
+        self.forward_cancellable(x, frames, t, conds, out, ws, &Cancel::never())
+    }
+
+    /// [`Self::forward`] that checks `cancel` before every layer.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_cancellable(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&FlameCondition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
         let c = self.cfg.model_channels;
         let d = self.cfg.motion_dim;
         let batch = conds.len();
@@ -288,6 +304,7 @@ impl FlameDenoiser {
         }
 
         for (l, layer) in self.layers.iter().enumerate() {
+            cancel.check()?;
             self.decoder_layer(l, layer, conds, seq, mem_len, ws);
         }
 

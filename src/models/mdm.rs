@@ -17,6 +17,7 @@ use crate::error::{invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 
 use super::layers::{activation, sized, Attention, LayerNorm, Linear};
+use super::Cancel;
 
 /// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
 const LAYER_NORM_EPS: f32 = 1e-5;
@@ -236,6 +237,21 @@ impl MdmDenoiser {
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
+        self.forward_cancellable(x, frames, t, conds, out, ws, &Cancel::never())
+    }
+
+    /// [`Self::forward`] that checks `cancel` before every layer.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_cancellable(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&[f32]],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
         let c = self.cfg.latent_dim;
         let d = self.cfg.njoints;
         let batch = conds.len();
@@ -306,6 +322,7 @@ impl MdmDenoiser {
         }
 
         for layer in &self.layers {
+            cancel.check()?;
             self.encoder_layer(layer, batch, seq, ws);
         }
 

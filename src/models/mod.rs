@@ -7,11 +7,12 @@ mod layers;
 pub mod mdm;
 
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::OnceLock;
 
 use crate::checkpoint::{ModelFile, StoredDtype, Tensor, TOKENIZER_KEY};
 use crate::config::{Config, DenoiserConfig, TextConfig};
-use crate::error::{bad_file, invalid_arg, Result};
+use crate::error::{bad_file, invalid_arg, Error, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
 use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
 
@@ -66,6 +67,45 @@ pub enum Condition {
 pub struct Workspace {
     flame: flame::Workspace,
     mdm: mdm::Workspace,
+}
+
+/// A session's cancel flag as the forward passes see it: checked between transformer layers
+/// (never inside a kernel), so a cancelled step returns within about one layer's time.
+pub(crate) struct Cancel<'a> {
+    flag: &'a AtomicBool,
+    /// Checks made so far in this step.
+    checks: AtomicUsize,
+    /// Test hook: the check with this index (0-based over the step) finds the flag raised, as
+    /// if another thread had raised it just before. `None` outside tests.
+    trip_at: Option<usize>,
+}
+
+impl<'a> Cancel<'a> {
+    pub(crate) fn new(flag: &'a AtomicBool, trip_at: Option<usize>) -> Cancel<'a> {
+        Cancel {
+            flag,
+            checks: AtomicUsize::new(0),
+            trip_at,
+        }
+    }
+
+    /// A flag nobody raises: plain forward passes.
+    pub(crate) fn never() -> Cancel<'static> {
+        static NEVER: AtomicBool = AtomicBool::new(false);
+        Cancel::new(&NEVER, None)
+    }
+
+    /// `Err(Cancelled)` when the flag is raised; lowers it, so a cancel abandons one step.
+    pub(crate) fn check(&self) -> Result<()> {
+        let n = self.checks.fetch_add(1, Ordering::Relaxed);
+        if self.trip_at == Some(n) {
+            self.flag.store(true, Ordering::SeqCst);
+        }
+        if self.flag.load(Ordering::Relaxed) && self.flag.swap(false, Ordering::SeqCst) {
+            return Err(Error::Cancelled);
+        }
+        Ok(())
+    }
 }
 
 /// A loaded model: read-only after loading, `Send + Sync`.
@@ -332,7 +372,21 @@ impl Model {
     /// One batched forward pass: `x` is `[batch, frames, motion_dim]`, `out` is
     /// `[batch, frames, output_dim]`, row `b` conditioned on `conds[b]`. `t` is the network's
     /// time input (a diffusion step, or flow time in [0, 1] for Motion Flow Matching).
-    pub fn forward<'a>(
+    pub fn forward(
+        &self,
+        x: &[f32],
+        frames: usize,
+        t: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        self.forward_cancellable(x, frames, t, conds, out, ws, &Cancel::never())
+    }
+
+    /// [`Model::forward`] that checks `cancel` before every transformer layer.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_cancellable<'a>(
         &self,
         x: &[f32],
         frames: usize,
@@ -340,6 +394,7 @@ impl Model {
         conds: &[&'a Condition],
         out: &mut [f32],
         ws: &mut Workspace,
+        cancel: &Cancel,
     ) -> Result<()> {
         let wrong = || invalid_arg!("a condition was made for another architecture");
         if conds.is_empty() || conds.len() > MAX_BATCH {
@@ -359,7 +414,15 @@ impl Model {
                 for (v, c) in views.iter_mut().zip(conds) {
                     *v = pick(c)?;
                 }
-                f.forward(x, frames, t, &views[..conds.len()], out, &mut ws.flame)
+                f.forward_cancellable(
+                    x,
+                    frames,
+                    t,
+                    &views[..conds.len()],
+                    out,
+                    &mut ws.flame,
+                    cancel,
+                )
             }
             Denoiser::Mdm(m) => {
                 let pick = |c: &'a Condition| match c {
@@ -370,7 +433,15 @@ impl Model {
                 for (v, c) in views.iter_mut().zip(conds) {
                     *v = pick(c)?;
                 }
-                m.forward(x, frames, t, &views[..conds.len()], out, &mut ws.mdm)
+                m.forward_cancellable(
+                    x,
+                    frames,
+                    t,
+                    &views[..conds.len()],
+                    out,
+                    &mut ws.mdm,
+                    cancel,
+                )
             }
         }
     }

@@ -90,14 +90,14 @@ static void test_status_strings(void) {
         "FLAME_STATUS_IO",          "FLAME_STATUS_BAD_MODEL_FILE",
         "FLAME_STATUS_WRONG_STATE", "FLAME_STATUS_CANCELLED",
         "FLAME_STATUS_TOKENIZER",   "FLAME_STATUS_BUFFER_TOO_SMALL",
-        "FLAME_STATUS_INTERNAL",
+        "FLAME_STATUS_INTERNAL",    "FLAME_STATUS_NOT_FINITE",
     };
-    CHECK(FLAME_STATUS_OK == 0 && FLAME_STATUS_INTERNAL == 8);
-    for (int i = 0; i <= (int)FLAME_STATUS_INTERNAL; i++) {
+    CHECK(FLAME_STATUS_OK == 0 && FLAME_STATUS_NOT_FINITE == 9);
+    for (int i = 0; i <= (int)FLAME_STATUS_NOT_FINITE; i++) {
         CHECK(strcmp(flame_status_string(i), names[i]) == 0);
     }
     CHECK(strcmp(flame_status_string(-1), "FLAME_STATUS_UNKNOWN") == 0);
-    CHECK(strcmp(flame_status_string(9), "FLAME_STATUS_UNKNOWN") == 0);
+    CHECK(strcmp(flame_status_string(10), "FLAME_STATUS_UNKNOWN") == 0);
     CHECK(strcmp(flame_status_string(INT32_MAX), "FLAME_STATUS_UNKNOWN") == 0);
 }
 

@@ -78,6 +78,7 @@ class Status:
     TOKENIZER = 6
     BUFFER_TOO_SMALL = 7
     INTERNAL = 8
+    NOT_FINITE = 9
 
 
 class Sampler:
