@@ -124,11 +124,11 @@ def main():
         z = {}
         for j, name in enumerate(order):
             head = mw @ arm.pose.bones[name].head
-            z[name] = head[2]
+            z[name.lower()] = head[2]
             err = max(abs(head[k] - flat[(t * joints + j) * 3 + k]) for k in range(3))
             if err > worst:
                 worst, where = err, (t, name)
-        lowest = min(lowest, z["Head"] - z["Pelvis"])
+        lowest = min(lowest, z["head"] - z["pelvis"])  # SMPL names in either case
     print(f"blender {bpy.app.version_string}: {frames} frames x {joints} joints, "
           f"max error {worst * 1000:.4f} mm (frame {where[0]}, {where[1]}), "
           f"head at least {lowest:.3f} m above the pelvis along Z "

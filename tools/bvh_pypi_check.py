@@ -84,7 +84,8 @@ def main():
             err = max(abs(got[k] - flat[(t * joints + j) * 3 + k]) for k in range(3))
             if err > worst:
                 worst, where = err, (t, n)
-        lowest = min(lowest, pos["Head"][1] - pos["Pelvis"][1])  # Blender's Z is the file's Y
+        y = {n.lower(): pos[n][1] for n in names}  # Blender's Z is the file's Y
+        lowest = min(lowest, y["head"] - y["pelvis"])
     print(f"bvh (PyPI) fallback: {frames} frames x {joints} joints, max error "
           f"{worst * 1000:.4f} mm (frame {where[0]}, {where[1]}), head at least {lowest:.3f} m "
           f"above the pelvis along Z [{time.time() - t0:.2f} s]")

@@ -398,6 +398,11 @@ struct Decoder {
 impl Outputs {
     /// The outputs `o` asks for, every path checked (extension, folder, writable).
     fn new(o: &OutputArgs) -> Result<Outputs, String> {
+        // A folder is named as such before its "extension" is judged.
+        let given = [Some(&o.out), o.positions.as_ref(), o.preview.as_ref()];
+        if let Some(dir) = given.into_iter().flatten().find(|p| p.is_dir()) {
+            return Err(format!("cannot write {}: it is a folder", dir.display()));
+        }
         let kind = match paths::extension(&o.out).as_deref() {
             Some("npy") => OutKind::Features,
             Some("bvh") => OutKind::Bvh,
