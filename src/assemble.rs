@@ -10,24 +10,45 @@
 //! temporary file that is loaded as a [`Model`] before it is renamed into place, so a failure
 //! never leaves a half-written or unloadable model behind.
 //!
+//! The written file is the same bytes on every run: safetensors orders tensors by dtype and name,
+//! and [`assemble`] writes the header's metadata sorted by key (the `safetensors` crate keeps it
+//! in a `HashMap`, whose order changes from one process to the next).
+//!
+//! [`AssembleOptions::actions`] records the action families the denoiser was trained on under
+//! [`ACTIONS_KEY`] (the CLI passes the demo corpus's families, `flame::demo::Family::ALL`, when it
+//! assembles the demo model); `flame info` prints them and `flame generate` warns about prompts
+//! that name none of them.
+//!
 //! Not here: fetching the text encoder (the set-up scripts do that) or checking its hash (the
 //! `sha256` in `flame.text_source` is recorded for them).
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use safetensors::tensor::{Dtype, SafeTensorError, TensorView};
+use safetensors::tensor::{Dtype, TensorView};
 use safetensors::SafeTensors;
 
-use crate::checkpoint::{CONFIG_KEY, FORMAT_KEY};
+use crate::checkpoint::{ModelFile, CONFIG_KEY, FORMAT_KEY};
 use crate::config::{Config, TextConfig, TextEncoderConfig};
-use crate::error::{bad_file, Error, Result};
+use crate::error::{bad_file, invalid_arg, Error, Result};
 use crate::models::{Model, TEXT_PREFIX};
 
 /// Metadata key of a denoiser-only file: JSON describing the text encoder to add.
 pub const TEXT_SOURCE_KEY: &str = "flame.text_source";
 /// Metadata key of an assembled file: the `flame.text_source` it was assembled from.
 pub const TEXT_ASSEMBLED_KEY: &str = "flame.text_assembled";
+
+/// Metadata key of an assembled file: the action families its denoiser was trained on, a JSON
+/// list of names (`["walk", "run", ...]`). Absent when the assembler was not told.
+pub const ACTIONS_KEY: &str = "flame.actions";
+
+/// What [`assemble_with`] adds beyond the two input files.
+#[derive(Clone, Debug, Default)]
+pub struct AssembleOptions {
+    /// The action families the denoiser was trained on, stored under [`ACTIONS_KEY`] when not
+    /// empty. Names must be non-empty and free of commas and surrounding spaces.
+    pub actions: Vec<String>,
+}
 
 /// Hugging Face prefixes of task-model checkpoints around the bare encoder.
 const HF_PREFIXES: &[&str] = &["bert.", "roberta."];
@@ -51,6 +72,25 @@ pub struct AssembleReport {
 /// Writes `out`: the denoiser-only file `denoiser` plus the text encoder of `text_weights` (a
 /// Hugging Face `model.safetensors`). See the module documentation.
 pub fn assemble(denoiser: &Path, text_weights: &Path, out: &Path) -> Result<AssembleReport> {
+    assemble_with(denoiser, text_weights, out, &AssembleOptions::default())
+}
+
+/// [`assemble`] with `opts` (the trained action families).
+pub fn assemble_with(
+    denoiser: &Path,
+    text_weights: &Path,
+    out: &Path,
+    opts: &AssembleOptions,
+) -> Result<AssembleReport> {
+    if let Some(bad) = opts
+        .actions
+        .iter()
+        .find(|a| a.is_empty() || a.contains(',') || a.trim() != a.as_str())
+    {
+        return Err(invalid_arg!(
+            "action name {bad:?}: names must be non-empty, without commas or surrounding spaces"
+        ));
+    }
     let den_bytes = read(denoiser)?;
     let den = parse(&den_bytes, denoiser)?;
     let (config, mut metadata) = denoiser_only(&den_bytes, &den, denoiser)?;
@@ -69,6 +109,11 @@ pub fn assemble(denoiser: &Path, text_weights: &Path, out: &Path) -> Result<Asse
 
     let source = metadata.remove(TEXT_SOURCE_KEY).unwrap_or_default();
     metadata.insert(TEXT_ASSEMBLED_KEY.to_string(), source);
+    metadata.remove(ACTIONS_KEY);
+    if !opts.actions.is_empty() {
+        let list = serde_json::to_string(&opts.actions).expect("a list of strings serialises");
+        metadata.insert(ACTIONS_KEY.to_string(), list);
+    }
     let mut tensors: Named = den.tensors();
     let denoiser_tensors = tensors.len();
     let text_count = text_tensors.len();
@@ -237,30 +282,70 @@ fn text_encoder_tensors<'a>(
 /// to `out`. Returns the file size.
 fn write_checked(tensors: Named, metadata: HashMap<String, String>, out: &Path) -> Result<u64> {
     let tmp = temp_path(out);
-    let io = |path: &Path, source| Error::Io {
-        path: path.display().to_string(),
-        source,
-    };
-    let written = safetensors::serialize_to_file(tensors, &Some(metadata), &tmp)
-        .map_err(|e| match e {
-            SafeTensorError::IoError(source) => io(&tmp, source),
-            other => bad_file!("cannot write {}: {other:?}", tmp.display()),
+    let written = safetensors::serialize(tensors, &Some(metadata))
+        .map_err(|e| bad_file!("cannot write {}: {e:?}", tmp.display()))
+        .and_then(|bytes| sorted_metadata(bytes, &tmp))
+        .and_then(|bytes| {
+            std::fs::write(&tmp, &bytes)
+                .map(|()| bytes.len() as u64)
+                .map_err(|source| write_err(&tmp, source))
         })
-        .and_then(|()| {
+        .and_then(|len| {
             Model::load(&tmp)
-                .map(drop)
+                .map(|_| len)
                 .map_err(|e| bad_file!("the assembled model does not load: {e}"))
         })
-        .and_then(|()| std::fs::metadata(&tmp).map_err(|e| io(&tmp, e)))
-        .and_then(|m| {
+        .and_then(|len| {
             std::fs::rename(&tmp, out)
-                .map(|()| m.len())
-                .map_err(|e| io(out, e))
+                .map(|()| len)
+                .map_err(|source| write_err(out, source))
         });
     if written.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     written
+}
+
+fn write_err(path: &Path, source: std::io::Error) -> Error {
+    Error::Write {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// `bytes` (a serialised safetensors file) with the header's `__metadata__` sorted by key. The
+/// header keeps its length (the same entries in another order), so the data offsets stand.
+fn sorted_metadata(mut bytes: Vec<u8>, path: &Path) -> Result<Vec<u8>> {
+    let bad = |what: &str| bad_file!("cannot write {}: {what}", path.display());
+    let n = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize)
+        .filter(|&n| 8 + n <= bytes.len())
+        .ok_or_else(|| bad("header length out of range"))?;
+    let mut header: BTreeMap<String, serde_json::Value> =
+        serde_json::from_slice(&bytes[8..8 + n]).map_err(|e| bad(&e.to_string()))?;
+    if let Some(meta) = header.get_mut("__metadata__") {
+        let sorted: BTreeMap<String, String> =
+            serde_json::from_value(meta.take()).map_err(|e| bad(&e.to_string()))?;
+        *meta = serde_json::to_value(sorted).map_err(|e| bad(&e.to_string()))?;
+    }
+    let mut text = serde_json::to_vec(&header).map_err(|e| bad(&e.to_string()))?;
+    text.resize(n.max(text.len()), b' ');
+    if text.len() != n {
+        return Err(bad("the sorted header changed length"));
+    }
+    bytes[8..8 + n].copy_from_slice(&text);
+    Ok(bytes)
+}
+
+/// The action families recorded under [`ACTIONS_KEY`] in `file`, if any.
+pub fn trained_actions(file: &ModelFile) -> Result<Option<Vec<String>>> {
+    file.metadata(ACTIONS_KEY)
+        .map(|v| {
+            serde_json::from_str(v)
+                .map_err(|e| bad_file!("`{ACTIONS_KEY}` metadata is not a JSON list of names: {e}"))
+        })
+        .transpose()
 }
 
 fn temp_path(out: &Path) -> PathBuf {

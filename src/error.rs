@@ -11,6 +11,11 @@ pub enum Error {
         path: String,
         source: std::io::Error,
     },
+    /// Writing a file failed (`path` says which); the C ABI reports it as an I/O error too.
+    Write {
+        path: String,
+        source: std::io::Error,
+    },
     /// The model file is not a valid libflame file: bad header, bad JSON config, a missing or
     /// mis-shaped tensor, an unsupported dtype. The message names the first offending item.
     BadModelFile(String),
@@ -33,6 +38,7 @@ impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Error::Io { path, source } => write!(f, "cannot read {path}: {source}"),
+            Error::Write { path, source } => write!(f, "cannot write {path}: {source}"),
             Error::BadModelFile(m) => write!(f, "bad model file: {m}"),
             Error::InvalidArgument(m) => write!(f, "invalid argument: {m}"),
             Error::WrongState(m) => write!(f, "wrong state: {m}"),
@@ -46,7 +52,7 @@ impl fmt::Display for Error {
 impl std::error::Error for Error {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
-            Error::Io { source, .. } => Some(source),
+            Error::Io { source, .. } | Error::Write { source, .. } => Some(source),
             _ => None,
         }
     }

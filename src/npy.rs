@@ -34,7 +34,7 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
 
 /// Writes an `f32` array to `path`.
 pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
-    std::fs::write(path, encode_f32(shape, data)).map_err(|source| Error::Io {
+    std::fs::write(path, encode_f32(shape, data)).map_err(|source| Error::Write {
         path: path.display().to_string(),
         source,
     })

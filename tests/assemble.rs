@@ -15,7 +15,10 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use flame::assemble::{assemble, TEXT_ASSEMBLED_KEY, TEXT_SOURCE_KEY};
+use flame::assemble::{
+    assemble, assemble_with, trained_actions, AssembleOptions, ACTIONS_KEY, TEXT_ASSEMBLED_KEY,
+    TEXT_SOURCE_KEY,
+};
 use flame::checkpoint::ModelFile;
 use flame::models::{Model, Workspace};
 use flame::Error;
@@ -244,6 +247,92 @@ fn complete_file_is_not_denoiser_only() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The `__metadata__` keys of a safetensors file in the order its header text lists them.
+fn metadata_keys_in_file_order(bytes: &[u8]) -> Vec<String> {
+    let (_, header) = SafeTensors::read_metadata(bytes).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let text = std::str::from_utf8(&bytes[8..8 + n]).unwrap();
+    let start = text.find("\"__metadata__\":{").unwrap();
+    let mut keys: Vec<(usize, String)> = header
+        .metadata()
+        .clone()
+        .unwrap()
+        .into_keys()
+        .map(|k| (start + text[start..].find(&format!("\"{k}\":")).unwrap(), k))
+        .collect();
+    keys.sort();
+    keys.into_iter().map(|(_, k)| k).collect()
+}
+
+#[test]
+fn assembly_gives_the_same_bytes_every_time() {
+    let dir = scratch("repeat");
+    let (den, text) = split(&fixture("flame_tiny.safetensors"), &dir, &Split::default());
+    let demo: Vec<String> = flame::demo::Family::ALL
+        .iter()
+        .map(|f| f.name().to_string())
+        .collect();
+    // Separate processes (each hashes with its own random keys) and this one.
+    let mut files = Vec::new();
+    for run in 0..3 {
+        let out = dir.join(format!("cli{run}.safetensors"));
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_flame"))
+            .arg("assemble")
+            .args([&den, &text, &out])
+            .arg("--demo-actions")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        files.push(std::fs::read(&out).unwrap());
+    }
+    let lib = dir.join("lib.safetensors");
+    let opts = AssembleOptions {
+        actions: demo.clone(),
+    };
+    let report = assemble_with(&den, &text, &lib, &opts).unwrap();
+    files.push(std::fs::read(&lib).unwrap());
+    assert_eq!(report.bytes, files[0].len() as u64);
+    for f in &files[1..] {
+        assert!(f == &files[0], "assembled files differ");
+    }
+    // Deterministic by construction, not by luck: the metadata is written sorted by key.
+    let keys = metadata_keys_in_file_order(&files[0]);
+    let mut sorted = keys.clone();
+    sorted.sort();
+    assert_eq!(keys, sorted);
+    assert!(keys.len() >= 5, "{keys:?}");
+
+    let file = ModelFile::open(&lib).unwrap();
+    assert_eq!(trained_actions(&file).unwrap(), Some(demo.clone()));
+    assert_eq!(
+        file.metadata(ACTIONS_KEY).unwrap(),
+        serde_json::to_string(&demo).unwrap()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn action_names_are_checked() {
+    let dir = scratch("names");
+    let (den, text) = split(&fixture("flame_tiny.safetensors"), &dir, &Split::default());
+    let out = dir.join("out.safetensors");
+    for bad in ["", "walk,run", " walk"] {
+        let opts = AssembleOptions {
+            actions: vec!["jump".into(), bad.into()],
+        };
+        let e = assemble_with(&den, &text, &out, &opts).unwrap_err();
+        assert!(matches!(e, Error::InvalidArgument(_)), "{bad:?}: {e:?}");
+        assert!(!out.exists());
+    }
+    // Without actions the key is absent.
+    assemble(&den, &text, &out).unwrap();
+    assert_eq!(
+        trained_actions(&ModelFile::open(&out).unwrap()).unwrap(),
+        None
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn unreadable_inputs_are_clear_errors() {
     let dir = scratch("unreadable");
@@ -271,9 +360,10 @@ fn unreadable_inputs_are_clear_errors() {
     // A text file of another encoder (the denoiser file itself has no text tensors at all).
     let e = assemble(&den, &den, &out).unwrap_err().to_string();
     assert!(e.contains("missing text encoder tensor"), "{e}");
-    // An output directory that does not exist.
+    // An output directory that does not exist: a write error, said as such.
     let e = assemble(&den, &text, &dir.join("no/such/dir/out.safetensors")).unwrap_err();
-    assert!(matches!(e, Error::Io { .. }), "{e:?}");
+    assert!(matches!(e, Error::Write { .. }), "{e:?}");
+    assert!(e.to_string().starts_with("cannot write "), "{e}");
     assert!(!out.exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -360,11 +360,14 @@ fn json_carries_a_skeleton_that_reproduces_the_poses() {
 /// Writes, into $FLAME_BVH_OUT, `{smpl,hml}_walk.bvh` (convention gltf: Y up, the axes Blender's
 /// BVH importer assumes by default) and `{smpl,hml}_walk_blender.npy` (frames × joints × 3, f32:
 /// the positions the hierarchy gives, in convention blender — what the importer's default Y-up →
-/// Z-up axis conversion must produce).
+/// Z-up axis conversion must produce). Also `cli_walk.bvh`, what `flame generate --out x.bvh`
+/// writes WITHOUT `--convention` (model: $FLAME_BVH_MODEL, default the tiny fixture), and its
+/// `cli_walk_blender.npy`, computed here from the same generation's raw features.
 #[test]
 #[ignore = "writes files for tools/bvh_roundtrip.sh"]
 fn write_blender_check_files() {
     let dir = std::env::var("FLAME_BVH_OUT").expect("set FLAME_BVH_OUT to a directory");
+    write_cli_check_files(Path::new(&dir));
     for (format, name) in [
         (Format::Smpl24Rot6d, "smpl_walk"),
         (Format::HumanMl263, "hml_walk"),
@@ -385,4 +388,52 @@ fn write_blender_check_files() {
         )
         .unwrap();
     }
+}
+
+/// `cli_walk.bvh` from the CLI's default convention and the Blender-frame positions the same
+/// features must give (decoded as the CLI decodes them: the model's normalisation, FLAME's
+/// default smoothing of 1 frame for smpl24_6d).
+fn write_cli_check_files(dir: &Path) {
+    let model = std::env::var("FLAME_BVH_MODEL")
+        .ok()
+        .filter(|m| !m.is_empty())
+        .unwrap_or_else(|| {
+            let p =
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/flame_tiny.safetensors");
+            p.display().to_string()
+        });
+    let run = |out: &Path| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_flame"))
+            .args([
+                "generate",
+                "--model",
+                &model,
+                "--prompt",
+                "a person walks forward.",
+            ])
+            .args(["--frames", "60", "--seed", "1", "--out"])
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let (bvh_path, npy) = (dir.join("cli_walk.bvh"), dir.join("cli_walk_features.npy"));
+    run(&bvh_path);
+    run(&npy);
+    let m = flame::models::Model::load(&model).unwrap();
+    let (shape, x) = flame::npy::read_f32(&npy).unwrap();
+    let format = m.motion_format();
+    let smooth = if format == Format::Smpl24Rot6d {
+        1.0
+    } else {
+        0.0
+    };
+    let poses = Poses::decode(format, &x, shape[0], &m.read_options(smooth, true)).unwrap();
+    let p: Vec<f32> = hierarchy_positions(&poses, Convention::Blender)
+        .concat()
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let shape = [poses.frames(), poses.joint_count(), 3];
+    flame::npy::write_f32(&dir.join("cli_walk_blender.npy"), &shape, &p).unwrap();
 }

@@ -192,7 +192,7 @@ fn bad_arguments_fail_before_sampling() {
         ),
         (
             vec!["--out".into(), out("m.bvh"), "--smooth".into(), "x".into()],
-            "option `--smooth`: cannot parse `x`",
+            "invalid value 'x' for '--smooth <SIGMA>'",
         ),
     ];
     for (args, msg) in cases {

@@ -1,7 +1,7 @@
 """Imports a libflame BVH into Blender and compares every frame's bone head world positions with
 the joint positions libflame expects.
 
-    blender -b --factory-startup --python tools/blender_bvh_check.py -- FILE.bvh EXPECTED.npy [TOL_M]
+    blender -b --factory-startup --python tools/blender_bvh_check.py -- FILE.bvh EXPECTED.npy [TOL_M] [--upright]
 
 - FILE.bvh must be written with `--convention gltf` (Y up, right-handed, metres): Blender's BVH
   importer, with its default axis settings (forward -Z, up Y), turns Y-up into its Z-up world by
@@ -11,6 +11,8 @@ the joint positions libflame expects.
   children in file order; tests/motion_bvh.rs checks it).
 - Prints the largest error over all frames and joints (metres) and exits 1 if it exceeds TOL_M
   (default 0.001), 2 on a usage or import problem.
+- With --upright, also exits 1 unless on every frame the imported Head is at least 0.35 m above
+  the Pelvis along Blender's Z (up): a standing character stands, whatever EXPECTED.npy says.
 
 Debian's Blender 3.4 importer opens files with mode 'rU', which its Python 3.11 rejects; the mode
 is mapped to 'r' around the import (tools/blender_import_bvh.py, also usable on its own).
@@ -23,6 +25,10 @@ import traceback
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from blender_import_bvh import import_bvh  # noqa: E402
+
+
+# A standing SMPL body's head is about 0.55 m above its pelvis; lying down it is about 0.
+UPRIGHT_M = 0.35
 
 
 def load_npy_f32(path):
@@ -77,6 +83,8 @@ def bfs_order(bvh_path):
 
 def main():
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+    upright = "--upright" in argv
+    argv = [a for a in argv if a != "--upright"]
     if len(argv) not in (2, 3):
         print(__doc__)
         sys.exit(2)
@@ -100,19 +108,23 @@ def main():
         print(f"{bvh_path} has {len(order)} joints, {expected_path} {joints}")
         sys.exit(2)
     scene = bpy.context.scene
-    worst, where = 0.0, None
+    worst, where, lowest = 0.0, None, float("inf")
     for t in range(frames):
         scene.frame_set(1 + t)
         mw = arm.matrix_world
+        z = {}
         for j, name in enumerate(order):
             head = mw @ arm.pose.bones[name].head
+            z[name.lower()] = head[2]
             err = max(abs(head[k] - flat[(t * joints + j) * 3 + k]) for k in range(3))
             if err > worst:
                 worst, where = err, (t, name)
+        lowest = min(lowest, z["head"] - z["pelvis"])  # SMPL names in either case
     print(f"blender {bpy.app.version_string}: {frames} frames x {joints} joints, "
-          f"max error {worst * 1000:.4f} mm (frame {where[0]}, {where[1]}) "
+          f"max error {worst * 1000:.4f} mm (frame {where[0]}, {where[1]}), "
+          f"head at least {lowest:.3f} m above the pelvis along Z "
           f"[import + evaluation {time.time() - t0:.2f} s]")
-    sys.exit(0 if worst <= tol else 1)
+    sys.exit(0 if worst <= tol and (not upright or lowest >= UPRIGHT_M) else 1)
 
 
 if __name__ == "__main__":

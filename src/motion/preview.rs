@@ -710,7 +710,7 @@ pub fn encode_png(img: &Image) -> Vec<u8> {
 
 /// [`encode_png`] written to `path`.
 pub fn write_png(path: &Path, img: &Image) -> Result<()> {
-    std::fs::write(path, encode_png(img)).map_err(|source| Error::Io {
+    std::fs::write(path, encode_png(img)).map_err(|source| Error::Write {
         path: path.display().to_string(),
         source,
     })

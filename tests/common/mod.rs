@@ -84,3 +84,30 @@ pub fn demo_model() -> Option<PathBuf> {
     }
     Some(out)
 }
+
+/// Splits the complete model file `complete` into the two inputs of `flame assemble`:
+/// `dir/denoiser.safetensors` (all metadata plus `flame.text_source`, no `text.` tensors) and
+/// `dir/text.safetensors` (the text tensors under Hugging Face names, `roberta.` prefixed).
+pub fn split_denoiser_only(complete: &Path, dir: &Path) -> (PathBuf, PathBuf) {
+    use safetensors::SafeTensors;
+    let bytes = std::fs::read(complete).unwrap();
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let mut metadata = header.metadata().clone().unwrap();
+    metadata.insert(
+        flame::assemble::TEXT_SOURCE_KEY.into(),
+        r#"{"tensor_prefix": "text."}"#.into(),
+    );
+    let (mut den, mut text) = (Vec::new(), Vec::new());
+    for (name, view) in file.tensors() {
+        match name.strip_prefix("text.") {
+            None => den.push((name, view)),
+            Some(bare) => text.push((format!("roberta.{bare}"), view)),
+        }
+    }
+    let den_path = dir.join("denoiser.safetensors");
+    let text_path = dir.join("text.safetensors");
+    safetensors::serialize_to_file(den, &Some(metadata), &den_path).unwrap();
+    safetensors::serialize_to_file(text, &None, &text_path).unwrap();
+    (den_path, text_path)
+}

@@ -104,10 +104,10 @@ grep -q "test result: ok. 1 passed" "$RUN/parity.txt"
 took
 
 # The CLI subcommand is wired separately; use it when this build has it.
-if cargo run --release --quiet --bin flame -- help 2>/dev/null | grep -q "flame assemble"; then
+if cargo run --release --quiet --bin flame -- assemble --help >/dev/null 2>&1; then
     stage "CLI: assemble + generate"
     cargo run --release --quiet --bin flame -- assemble "$OUT/flame_demo_denoiser.safetensors" \
-        "$FLAME_MINILM_DIR/model.safetensors" "$WORK/flame_demo.safetensors"
+        "$FLAME_MINILM_DIR/model.safetensors" "$WORK/flame_demo.safetensors" --demo-actions
     cargo run --release --quiet --bin flame -- generate --model "$WORK/flame_demo.safetensors" \
         --prompt "a person walks forward." --out "$WORK/walk.bvh"
     took

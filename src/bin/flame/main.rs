@@ -1,169 +1,107 @@
-//! The `flame` command line: generate a motion from a sentence, or describe a model file.
+//! The `flame` command line: generate or edit a motion from a sentence, describe a model file,
+//! assemble the demo model. The grammar is in `args.rs` (clap); files are checked before any
+//! model is loaded (`paths.rs`).
 
-use std::collections::HashMap;
+mod actions;
+mod args;
+mod paths;
+
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
 
+use clap::Parser;
+use flame::assemble::AssembleOptions;
+use flame::checkpoint::ModelFile;
 use flame::config::{DenoiserConfig, TextConfig};
 use flame::models::{LoadOptions, Model};
 use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditParams, Session, SessionParams};
 
-const USAGE: &str = "\
-usage:
-  flame generate [--model M] --prompt TEXT [--frames N] [--steps S] [--sampler ddpm|ddim|euler|heun|midpoint]
-                 [--eta E] [--guidance G] [--seed K] [--noise FILE.npy] [--threads T]
-                 [--weights f32|f16|bf16] --out FILE.npy|FILE.bvh|FILE.json
-                 [--convention native|unity|unreal|ros|blender|gltf] [--smooth SIGMA]
-                 [--quat xyzw|wxyz] [--positions FILE.npy] [--preview FILE.png]
-  flame edit [--model M] --reference FILE.npy|FILE.bvh --prompt TEXT --out FILE
-             [--task inbetween|predict|upper-body|path] [--keep-frames A:B,...]
-             [--keep-joints J,...] [--method auto|noised-reference|replace-x0|rewrite-trajectory]
-             [--edit-till F] [--paste on|off] [--seam-frames N] [--reference-convention C]
-             [generate's other options]
-  flame info [M]
-  flame assemble DENOISER.safetensors TEXT_WEIGHTS.safetensors OUT.safetensors
-
-generate picks the writer by the extension of --out: .npy = raw features (float32, frames x
-feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, degrees), .json = root
-translation + local quaternions (--quat order, default wxyz as FLAME's official output) with
-the skeleton. --positions also writes world joint positions (float32, frames x joints x 3);
---preview a PNG contact sheet (stick figures side by side and the root path seen from above).
-Poses are in --convention (default native); --smooth is the sigma in frames of the temporal
-Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
-otherwise; 0 = off). For Blender's BVH importer write the BVH with --convention gltf. Unset
-options take the model file's defaults (see `flame info`). --weights is what the linear layers
-are held and multiplied in (default f32; f16/bf16 halve their memory).
-
-edit keeps parts of a reference motion and generates the rest from the prompt. References are
-.npy model-space features (what `generate --out x.npy` writes) or a BVH written by libflame
-(smpl24_6d models; its convention is recognised from the skeleton's offsets and, for native
-vs gltf whose offsets agree, from which axis is up; --reference-convention says it outright). Kept values:
---task inbetween (first and last quarter), predict (the first quarter, or all of a reference
-shorter than --frames), upper-body (keeps the root path, pelvis and legs), path (keeps the root
-path); --keep-frames adds frame ranges (A:B half-open, `:B`, `A:`), --keep-joints adds joints
-by index or name (`root` = the root path) on every frame. --frames defaults to the reference's
-length. Flow models take 30 steps by default when editing. --paste off gives the official
-behaviour (the kept parts are not copied exactly into the result).
-
-Without --model (and for `info` without M) the model is $FLAME_MODEL, else the demo model
-models/demo/flame_demo.safetensors, assembled on first use (see `bash tools/try.sh`).";
+use args::{
+    AssembleArgs, Cli, Command, EditArgs, GenerateArgs, InfoArgs, ModelArgs, OnOff, OutputArgs,
+    SamplingArgs,
+};
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let result = match args.first().map(String::as_str) {
-        Some("generate") => generate(&args[1..]),
-        Some("edit") => edit(&args[1..]),
-        Some("info") => info(&args[1..]),
-        Some("assemble") => assemble(&args[1..]),
-        Some("-h" | "--help" | "help") => {
-            println!("{USAGE}");
-            Ok(())
-        }
-        Some(other) => Err(format!("unknown command `{other}`")),
-        None => Err("no command given".into()),
+    // Usage errors, --help and --version exit here (2 for errors, 0 otherwise).
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Generate(a) => generate(&a),
+        Command::Edit(a) => edit(&a),
+        Command::Info(a) => info(&a),
+        Command::Assemble(a) => assemble(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(msg) => {
             eprintln!("flame: {msg}");
-            if !msg.starts_with("cannot") && !msg.contains(':') {
-                eprintln!("{USAGE}");
-            }
             ExitCode::FAILURE
         }
     }
 }
 
-/// Parses `--key value` pairs, rejecting unknown keys and missing values.
-fn parse_flags(args: &[String], known: &[&str]) -> Result<HashMap<String, String>, String> {
-    let mut out = HashMap::new();
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        let key = a
-            .strip_prefix("--")
-            .ok_or_else(|| format!("unexpected argument `{a}`"))?;
-        if !known.contains(&key) {
-            return Err(format!("unknown option `--{key}`"));
-        }
-        let value = it
-            .next()
-            .ok_or_else(|| format!("option `--{key}` needs a value"))?;
-        if out.insert(key.to_string(), value.clone()).is_some() {
-            return Err(format!("option `--{key}` given twice"));
-        }
-    }
-    Ok(out)
-}
-
-fn parsed<T: std::str::FromStr>(
-    flags: &HashMap<String, String>,
-    key: &str,
-) -> Result<Option<T>, String> {
-    flags
-        .get(key)
-        .map(|v| {
-            v.parse::<T>()
-                .map_err(|_| format!("option `--{key}`: cannot parse `{v}`"))
-        })
-        .transpose()
-}
-
-/// Options `generate` and `edit` share.
-const COMMON_FLAGS: [&str; 17] = [
-    "model",
-    "weights",
-    "prompt",
-    "frames",
-    "steps",
-    "sampler",
-    "eta",
-    "guidance",
-    "seed",
-    "noise",
-    "threads",
-    "out",
-    "convention",
-    "smooth",
-    "quat",
-    "positions",
-    "preview",
-];
-
-fn session_params(flags: &HashMap<String, String>) -> Result<SessionParams, String> {
-    Ok(SessionParams {
-        frames: parsed(flags, "frames")?,
-        steps: parsed(flags, "steps")?,
-        sampler: parsed(flags, "sampler")?,
-        eta: parsed(flags, "eta")?,
-        guidance: parsed(flags, "guidance")?,
+fn session_params(s: &SamplingArgs) -> SessionParams {
+    SessionParams {
+        frames: s.frames,
+        steps: s.steps,
+        sampler: s.sampler,
+        eta: s.eta,
+        guidance: s.guidance,
         clip_denoised: None,
-        seed: parsed(flags, "seed")?.unwrap_or(0),
-        threads: parsed(flags, "threads")?.unwrap_or(0),
-    })
+        seed: s.seed,
+        threads: s.threads,
+    }
 }
 
-fn load_model(flags: &HashMap<String, String>) -> Result<Arc<Model>, String> {
-    let model_path = match flags.get("model") {
-        Some(path) => PathBuf::from(path),
+/// A loaded model and the action families its file says it was trained on.
+struct Loaded {
+    model: Arc<Model>,
+    actions: Option<Vec<String>>,
+}
+
+fn load_model(m: &ModelArgs) -> Result<Loaded, String> {
+    let model_path = match &m.model {
+        Some(path) => path.clone(),
         None => default_model()?,
     };
+    check_model_path(&model_path)?;
     let t0 = Instant::now();
     let opts = LoadOptions {
-        weights: parsed(flags, "weights")?.unwrap_or_default(),
+        weights: m.weights.unwrap_or_default(),
     };
-    let model = Arc::new(
-        Model::load_with(&model_path, &opts)
-            .map_err(|e| format!("cannot load {}: {e}", model_path.display()))?,
-    );
+    let cannot = |e: flame::Error| format!("cannot load {}: {e}", model_path.display());
+    let file = ModelFile::open(&model_path).map_err(cannot)?;
+    let actions = flame::assemble::trained_actions(&file).map_err(cannot)?;
+    let model = Arc::new(Model::from_file_with(file, &opts).map_err(cannot)?);
     eprintln!(
         "loaded {} in {:.0} ms",
         model_path.display(),
         t0.elapsed().as_secs_f64() * 1e3
     );
-    Ok(model)
+    Ok(Loaded { model, actions })
+}
+
+/// A model path that is a folder gets its own message (opening one says "No such device").
+fn check_model_path(path: &Path) -> Result<(), String> {
+    if path.is_dir() {
+        return Err(format!("{} is a folder, not a model file", path.display()));
+    }
+    Ok(())
+}
+
+/// One note when the model lists what it was trained on and the prompt names none of it.
+fn note_unknown_actions(loaded: &Loaded, prompt: &str) {
+    if let Some(actions) = &loaded.actions {
+        if !actions.is_empty() && !actions::mentions_any(prompt, actions) {
+            eprintln!(
+                "note: this model knows only these actions: {}; {prompt:?} names none of them, \
+                 so expect one of them or standing still",
+                actions.join(", ")
+            );
+        }
+    }
 }
 
 /// The repository's `models/demo/` folder, where the demo model lives (this binary's source tree).
@@ -203,7 +141,7 @@ fn default_model() -> Result<PathBuf, String> {
                 denoiser.display(),
                 text.display()
             );
-            flame::assemble::assemble(&denoiser, &text, &model)
+            flame::assemble::assemble_with(&denoiser, &text, &model, &demo_options())
                 .map_err(|e| format!("cannot assemble the demo model: {e}"))?;
             Ok(model)
         }
@@ -216,25 +154,36 @@ fn default_model() -> Result<PathBuf, String> {
     }
 }
 
-fn generate(args: &[String]) -> Result<(), String> {
-    let flags = parse_flags(args, &COMMON_FLAGS)?;
-    let prompt = flags
-        .get("prompt")
-        .ok_or("generate needs `--prompt TEXT`")?;
-    let outputs = Outputs::from_flags(&flags)?;
-    let params = session_params(&flags)?;
-    let model = load_model(&flags)?;
+/// The demo corpus's action families, recorded in the demo model when it is assembled.
+fn demo_options() -> AssembleOptions {
+    AssembleOptions {
+        actions: flame::demo::Family::ALL
+            .iter()
+            .map(|f| f.name().to_string())
+            .collect(),
+    }
+}
+
+fn generate(a: &GenerateArgs) -> Result<(), String> {
+    let outputs = Outputs::new(&a.output)?;
+    if let Some(noise) = &a.sampling.noise {
+        paths::check_readable(noise)?;
+    }
+    let params = session_params(&a.sampling);
+    let loaded = load_model(&a.model)?;
+    note_unknown_actions(&loaded, &a.prompt);
+    let model = &loaded.model;
     // Check the pose side before spending minutes on sampling.
-    let decoder = outputs.decoder(&model);
-    let mut session = Session::new(Arc::clone(&model), &params).map_err(|e| e.to_string())?;
-    if let Some(noise) = flags.get("noise") {
-        let (_, x) = flame::npy::read_f32(Path::new(noise)).map_err(|e| e.to_string())?;
+    let decoder = outputs.decoder(model);
+    let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
+    if let Some(noise) = &a.sampling.noise {
+        let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
         session.set_initial_noise(&x).map_err(|e| e.to_string())?;
     }
-    session.set_prompt(prompt).map_err(|e| e.to_string())?;
+    session.set_prompt(&a.prompt).map_err(|e| e.to_string())?;
     sample(&mut session)?;
     let x = session.sample().expect("finished generation has a sample");
-    outputs.write(x, session.frames(), &model, decoder.as_ref())
+    outputs.write(x, session.frames(), model, decoder.as_ref())
 }
 
 /// A reference motion read from the command line, in model space.
@@ -244,16 +193,15 @@ struct Reference {
 }
 
 fn read_reference(
-    path: &str,
+    file: &Path,
     model: &Model,
     convention: Option<Convention>,
 ) -> Result<Reference, String> {
     let dim = model.motion_dim();
-    let ext = Path::new(path).extension().and_then(|e| e.to_str());
-    let (features, raw) = match ext {
-        Some("npy") => {
-            let (shape, x) = flame::npy::read_f32(Path::new(path))
-                .map_err(|e| format!("cannot read {path}: {e}"))?;
+    let path = file.display();
+    let (features, raw) = match reference_kind(file)? {
+        ReferenceKind::Npy => {
+            let (shape, x) = flame::npy::read_f32(file).map_err(|e| e.to_string())?;
             if shape.len() != 2 || shape[1] != dim {
                 return Err(format!(
                     "cannot use {path}: shape {shape:?}, expected [frames, {dim}] features"
@@ -261,9 +209,9 @@ fn read_reference(
             }
             (x, false)
         }
-        Some("bvh") => {
+        ReferenceKind::Bvh => {
             let text =
-                std::fs::read_to_string(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+                std::fs::read_to_string(file).map_err(|e| format!("cannot read {path}: {e}"))?;
             let bvh = motion::bvh::parse(&text).map_err(|e| format!("cannot read {path}: {e}"))?;
             let format = model.motion_format();
             let x = match convention {
@@ -275,11 +223,6 @@ fn read_reference(
             }
             .map_err(|e| format!("cannot use {path}: {e}"))?;
             (x, true)
-        }
-        _ => {
-            return Err(format!(
-                "cannot read {path}: --reference must end in .npy or .bvh"
-            ))
         }
     };
     let frames = features.len() / dim;
@@ -296,17 +239,32 @@ fn read_reference(
     Ok(Reference { features, frames })
 }
 
+enum ReferenceKind {
+    Npy,
+    Bvh,
+}
+
+fn reference_kind(file: &Path) -> Result<ReferenceKind, String> {
+    match paths::extension(file).as_deref() {
+        Some("npy") => Ok(ReferenceKind::Npy),
+        Some("bvh") => Ok(ReferenceKind::Bvh),
+        _ => Err(format!(
+            "cannot read {}: --reference must end in .npy or .bvh",
+            file.display()
+        )),
+    }
+}
+
 /// The keep-mask `edit` asks for.
 fn edit_mask(
-    flags: &HashMap<String, String>,
+    a: &EditArgs,
     format: Format,
     frames: usize,
     ref_frames: usize,
 ) -> Result<Mask, String> {
     let err = |e: flame::Error| e.to_string();
     let mut mask = Mask::new(format, frames).map_err(err)?;
-    if let Some(task) = flags.get("task") {
-        let task: Task = task.parse().map_err(err)?;
+    if let Some(task) = a.task {
         mask = if task == Task::Predict && ref_frames < frames {
             let mut m = Mask::new(format, frames).map_err(err)?;
             m.keep_frames(0, ref_frames).map_err(err)?;
@@ -315,12 +273,12 @@ fn edit_mask(
             Mask::for_task(format, frames, task).map_err(err)?
         };
     }
-    if let Some(spec) = flags.get("keep-frames") {
+    if let Some(spec) = &a.keep_frames {
         for (a, b) in motion::mask::parse_frame_ranges(spec, frames).map_err(err)? {
             mask.keep_frames(a, b).map_err(err)?;
         }
     }
-    if let Some(spec) = flags.get("keep-joints") {
+    if let Some(spec) = &a.keep_joints {
         mask.keep_joint_list(spec, 0, frames).map_err(err)?;
     }
     if mask.is_empty() {
@@ -329,48 +287,31 @@ fn edit_mask(
     Ok(mask)
 }
 
-fn edit(args: &[String]) -> Result<(), String> {
-    let mut known = COMMON_FLAGS.to_vec();
-    known.extend([
-        "reference",
-        "task",
-        "keep-frames",
-        "keep-joints",
-        "method",
-        "edit-till",
-        "paste",
-        "seam-frames",
-        "reference-convention",
-    ]);
-    let flags = parse_flags(args, &known)?;
-    let prompt = flags.get("prompt").ok_or("edit needs `--prompt TEXT`")?;
-    let ref_path = flags
-        .get("reference")
-        .ok_or("edit needs `--reference FILE.npy|FILE.bvh`")?;
-    let outputs = Outputs::from_flags(&flags)?;
-    let mut edit = EditParams::default();
-    if let Some(m) = flags.get("method") {
-        edit.method = m.parse().map_err(|e: flame::Error| e.to_string())?;
+fn edit(a: &EditArgs) -> Result<(), String> {
+    let outputs = Outputs::new(&a.output)?;
+    reference_kind(&a.reference)?;
+    paths::check_readable(&a.reference)?;
+    if let Some(noise) = &a.sampling.noise {
+        paths::check_readable(noise)?;
     }
-    if let Some(t) = parsed(&flags, "edit-till")? {
+    let mut edit = EditParams {
+        paste: a.paste == OnOff::On,
+        ..EditParams::default()
+    };
+    if let Some(m) = a.method {
+        edit.method = m;
+    }
+    if let Some(t) = a.edit_till {
         edit.edit_till = t;
     }
-    if let Some(n) = parsed(&flags, "seam-frames")? {
+    if let Some(n) = a.seam_frames {
         edit.seam_frames = n;
     }
-    edit.paste = match flags.get("paste").map(String::as_str) {
-        None | Some("on") => true,
-        Some("off") => false,
-        Some(v) => return Err(format!("option `--paste`: expected on or off, got `{v}`")),
-    };
-    let mut params = session_params(&flags)?;
-    let model = load_model(&flags)?;
-    let ref_convention = flags
-        .get("reference-convention")
-        .map(|c| c.parse::<Convention>())
-        .transpose()
-        .map_err(|e| format!("option `--reference-convention`: {e}"))?;
-    let reference = read_reference(ref_path, &model, ref_convention)?;
+    let mut params = session_params(&a.sampling);
+    let loaded = load_model(&a.model)?;
+    note_unknown_actions(&loaded, &a.prompt);
+    let model = &loaded.model;
+    let reference = read_reference(&a.reference, model, a.reference_convention)?;
     params.frames = params.frames.or(Some(reference.frames));
     let flow = matches!(
         model.config().diffusion.parameterization.as_str(),
@@ -380,8 +321,8 @@ fn edit(args: &[String]) -> Result<(), String> {
         // Motion Flow Matching edits with N = 30 (REFERENCE 3).
         params.steps = Some(30);
     }
-    let decoder = outputs.decoder(&model);
-    let mut session = Session::new(Arc::clone(&model), &params).map_err(|e| e.to_string())?;
+    let decoder = outputs.decoder(model);
+    let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     let frames = session.frames();
     if reference.frames > frames {
         return Err(format!(
@@ -389,7 +330,7 @@ fn edit(args: &[String]) -> Result<(), String> {
             reference.frames
         ));
     }
-    let mask = edit_mask(&flags, model.motion_format(), frames, reference.frames)?;
+    let mask = edit_mask(a, model.motion_format(), frames, reference.frames)?;
     eprintln!(
         "keeping {} of {} values ({:.0}%)",
         mask.kept_count(),
@@ -400,14 +341,14 @@ fn edit(args: &[String]) -> Result<(), String> {
     session.set_edit_params(&edit).map_err(e)?;
     session.set_reference(&reference.features).map_err(e)?;
     session.set_mask_from(&mask).map_err(e)?;
-    if let Some(noise) = flags.get("noise") {
-        let (_, x) = flame::npy::read_f32(Path::new(noise)).map_err(|e| e.to_string())?;
+    if let Some(noise) = &a.sampling.noise {
+        let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
         session.set_initial_noise(&x).map_err(e)?;
     }
-    session.set_prompt(prompt).map_err(e)?;
+    session.set_prompt(&a.prompt).map_err(e)?;
     sample(&mut session)?;
     let x = session.sample().expect("finished generation has a sample");
-    outputs.write(x, frames, &model, decoder.as_ref())
+    outputs.write(x, frames, model, decoder.as_ref())
 }
 
 /// Runs every step, reporting progress on stderr.
@@ -455,72 +396,64 @@ struct Decoder {
 }
 
 impl Outputs {
-    fn from_flags(flags: &HashMap<String, String>) -> Result<Outputs, String> {
-        let out = PathBuf::from(
-            flags
-                .get("out")
-                .ok_or("`--out FILE.npy|FILE.bvh|FILE.json` is required")?,
-        );
-        let kind = match out.extension().and_then(|e| e.to_str()) {
+    /// The outputs `o` asks for, every path checked (extension, folder, writable).
+    fn new(o: &OutputArgs) -> Result<Outputs, String> {
+        // A folder is named as such before its "extension" is judged.
+        let given = [Some(&o.out), o.positions.as_ref(), o.preview.as_ref()];
+        if let Some(dir) = given.into_iter().flatten().find(|p| p.is_dir()) {
+            return Err(format!("cannot write {}: it is a folder", dir.display()));
+        }
+        let kind = match paths::extension(&o.out).as_deref() {
             Some("npy") => OutKind::Features,
             Some("bvh") => OutKind::Bvh,
             Some("json") => OutKind::Json,
             _ => {
                 return Err(format!(
                     "cannot write {}: --out must end in .npy, .bvh or .json",
-                    out.display()
+                    o.out.display()
                 ))
             }
         };
-        let positions = flags.get("positions").map(PathBuf::from);
-        if let Some(p) = &positions {
-            if p.extension().and_then(|e| e.to_str()) != Some("npy") {
+        let mut files = vec![("--out", o.out.as_path())];
+        if let Some(p) = &o.positions {
+            if paths::extension(p).as_deref() != Some("npy") {
                 return Err(format!(
                     "cannot write {}: --positions must end in .npy",
                     p.display()
                 ));
             }
+            files.push(("--positions", p));
         }
-        let preview = flags.get("preview").map(PathBuf::from);
-        if let Some(p) = &preview {
+        if let Some(p) = &o.preview {
             if !cfg!(feature = "preview") {
                 return Err("--preview needs the `preview` feature (built without it)".into());
             }
-            if p.extension().and_then(|e| e.to_str()) != Some("png") {
+            if paths::extension(p).as_deref() != Some("png") {
                 return Err(format!(
                     "cannot write {}: --preview must end in .png",
                     p.display()
                 ));
             }
+            files.push(("--preview", p));
         }
-        let convention = match flags.get("convention") {
-            Some(c) => c
-                .parse()
-                .map_err(|e: flame::Error| format!("option `--convention`: {e}"))?,
-            None => Convention::Native,
-        };
-        let smooth: Option<f32> = parsed(flags, "smooth")?;
-        if let Some(s) = smooth {
-            if !(s.is_finite() && s >= 0.0) {
-                return Err(format!(
-                    "option `--smooth`: sigma must be a number >= 0, got `{s}`"
-                ));
-            }
+        paths::check_distinct(&files)?;
+        for (_, f) in &files {
+            paths::check_writable(f)?;
         }
-        let quat = match flags.get("quat") {
-            Some(q) => q
-                .parse()
-                .map_err(|e: flame::Error| format!("option `--quat`: {e}"))?,
-            None => QuatOrder::Wxyz,
-        };
+        // BVH readers take Y up (Blender's importer among them): a BVH stands upright by
+        // default. JSON and features stay in the model's own frame unless asked.
+        let convention = o.convention.unwrap_or(match kind {
+            OutKind::Bvh => Convention::Gltf,
+            OutKind::Features | OutKind::Json => Convention::Native,
+        });
         Ok(Outputs {
-            out,
+            out: o.out.clone(),
             kind,
-            positions,
-            preview,
+            positions: o.positions.clone(),
+            preview: o.preview.clone(),
             convention,
-            smooth,
-            quat,
+            smooth: o.smooth,
+            quat: o.quat,
         })
     }
 
@@ -601,11 +534,19 @@ impl Outputs {
 }
 
 /// Completes a denoiser-only file (the demo model's) with the text encoder's weights.
-fn assemble(args: &[String]) -> Result<(), String> {
-    let [denoiser, text, out] = args else {
-        return Err("assemble takes DENOISER TEXT_WEIGHTS OUT".into());
+fn assemble(a: &AssembleArgs) -> Result<(), String> {
+    paths::check_readable(&a.denoiser)?;
+    paths::check_readable(&a.text)?;
+    paths::check_writable(&a.out)?;
+    let opts = if a.demo_actions {
+        demo_options()
+    } else {
+        AssembleOptions {
+            actions: a.actions.clone(),
+        }
     };
-    let r = flame::assemble::assemble(Path::new(denoiser), Path::new(text), Path::new(out))
+    let out = a.out.display();
+    let r = flame::assemble::assemble_with(&a.denoiser, &a.text, &a.out, &opts)
         .map_err(|e| format!("cannot assemble {out}: {e}"))?;
     eprintln!(
         "{} denoiser + {} text tensors ({} left out), {:.1} MB",
@@ -618,13 +559,16 @@ fn assemble(args: &[String]) -> Result<(), String> {
     Ok(())
 }
 
-fn info(args: &[String]) -> Result<(), String> {
-    let path = match args {
-        [] => default_model()?,
-        [path] => PathBuf::from(path),
-        _ => return Err("info takes one model file".into()),
+fn info(a: &InfoArgs) -> Result<(), String> {
+    let path = match &a.model {
+        Some(p) => p.clone(),
+        None => default_model()?,
     };
-    let model = Model::load(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+    check_model_path(&path)?;
+    let cannot = |e: flame::Error| format!("cannot load {}: {e}", path.display());
+    let file = ModelFile::open(&path).map_err(cannot)?;
+    let actions = flame::assemble::trained_actions(&file).map_err(cannot)?;
+    let model = Model::from_file(file).map_err(cannot)?;
     let c = model.config();
     println!("architecture:   {}", c.architecture);
     match &c.denoiser {
@@ -668,5 +612,9 @@ fn info(args: &[String]) -> Result<(), String> {
         "defaults:       sampler {}, {} steps, guidance {}, eta {}, {} frames",
         s.sampler, s.steps, s.guidance, s.eta, s.frames
     );
+    if let Some(actions) = actions {
+        // The `flame.actions` metadata, written by `flame assemble --actions/--demo-actions`.
+        println!("trained on:     {}", actions.join(", "));
+    }
     Ok(())
 }

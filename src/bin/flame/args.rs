@@ -1,0 +1,261 @@
+//! The command line's grammar (clap, derive API). Named choices (sampler, convention, ...) are
+//! parsed by the library's `FromStr`, so a bad value is a usage error (exit 2) with the
+//! library's own message; everything checked later (files, models) exits 1.
+
+use std::fmt::Display;
+use std::path::PathBuf;
+use std::str::FromStr;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use flame::models::WeightType;
+use flame::motion::{Convention, QuatOrder, Task};
+use flame::session::{EditMethod, Sampler};
+
+const ABOUT: &str =
+    "Text to human motion on the CPU with libflame models (FLAME, MDM, Motion Flow Matching).";
+
+const AFTER_HELP: &str = "\
+Without --model (and for `info` without MODEL) the model is $FLAME_MODEL, else the demo model
+models/demo/flame_demo.safetensors, assembled on first use (see `bash tools/try.sh`).
+
+Exit status: 0 on success, 2 when the command line is not understood (unknown option, missing
+or unparsable value), 1 for everything else (files, model, values the model rejects).";
+
+const GENERATE_LONG: &str = "\
+Generate a motion from a sentence.
+
+The writer follows the extension of --out (upper or lower case): .npy = raw features (float32,
+frames x feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, degrees), .json =
+root translation + local quaternions (--quat order, default wxyz as FLAME's official output)
+with the skeleton. --positions also writes world joint positions (float32, frames x joints x 3);
+--preview a PNG contact sheet (stick figures side by side and the root path seen from above).
+
+Poses are in --convention: by default gltf (Y up) for a BVH, which Blender's importer and other
+BVH readers stand upright, and native (the model's own frame) for JSON and .npy outputs;
+--positions follows the same convention. --smooth is the sigma in frames of the temporal
+Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
+otherwise; 0 = off). Unset options take the model file's defaults (see `flame info`). Every
+output folder is checked before the model is loaded.";
+
+const EDIT_LONG: &str = "\
+Keep parts of a reference motion and generate the rest from a sentence.
+
+References are .npy model-space features (what `generate --out x.npy` writes) or a BVH written
+by libflame (smpl24_6d models; its convention is recognised from the skeleton's offsets and, for
+native vs gltf whose offsets agree, from which axis is up; --reference-convention says it
+outright). Kept values: --task inbetween (first and last quarter), predict (the first quarter,
+or all of a reference shorter than --frames), upper-body (keeps the root path, pelvis and legs),
+path (keeps the root path); --keep-frames adds frame ranges (A:B half-open, `:B`, `A:`),
+--keep-joints adds joints by index or name (`root` = the root path) on every frame. --frames
+defaults to the reference's length. Flow models take 30 steps by default when editing.
+--paste off gives the official behaviour (the kept parts are not copied exactly into the
+result). The output options are generate's.";
+
+#[derive(Parser)]
+#[command(
+    name = "flame",
+    version,
+    about = ABOUT,
+    after_help = AFTER_HELP,
+    propagate_version = true,
+    subcommand_required = true,
+    arg_required_else_help = true
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Generate a motion from a sentence
+    #[command(long_about = GENERATE_LONG, after_help = AFTER_HELP)]
+    Generate(GenerateArgs),
+    /// Keep parts of a reference motion and generate the rest from a sentence
+    #[command(long_about = EDIT_LONG, after_help = AFTER_HELP)]
+    Edit(EditArgs),
+    /// Describe a model file: architecture, text encoder, motion format, defaults
+    #[command(after_help = AFTER_HELP)]
+    Info(InfoArgs),
+    /// Complete a denoiser-only file (the demo model's) with a text encoder's weights
+    #[command(
+        long_about = "Complete a denoiser-only file (the demo model's) with the weights of its \
+                      text encoder (a Hugging Face model.safetensors), checked against the \
+                      configuration. The result is the same bytes on every run."
+    )]
+    Assemble(AssembleArgs),
+}
+
+/// The library's `FromStr`, its message without the error kind's prefix.
+fn lib<T>(s: &str) -> Result<T, String>
+where
+    T: FromStr,
+    T::Err: Display,
+{
+    s.parse::<T>().map_err(|e| {
+        let m = e.to_string();
+        m.strip_prefix("invalid argument: ")
+            .map(str::to_string)
+            .unwrap_or(m)
+    })
+}
+
+fn sigma(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("sigma must be a number >= 0, got `{s}`")),
+    }
+}
+
+#[derive(Args)]
+pub struct ModelArgs {
+    /// Model file [default: $FLAME_MODEL, else the demo model]
+    #[arg(long, value_name = "M")]
+    pub model: Option<PathBuf>,
+    /// What the linear layers are held and multiplied in (f16/bf16 halve their memory)
+    /// [f32|f16|bf16; default f32]
+    #[arg(long, value_name = "W", value_parser = lib::<WeightType>)]
+    pub weights: Option<WeightType>,
+}
+
+#[derive(Args)]
+pub struct SamplingArgs {
+    /// Frames to generate [default: the model's]
+    #[arg(long, value_name = "N")]
+    pub frames: Option<usize>,
+    /// Sampling steps, respaced from the trained ones [default: the model's]
+    #[arg(long, value_name = "S")]
+    pub steps: Option<usize>,
+    /// Sampler [ddpm|ddim (diffusion) or euler|heun|midpoint (flow matching); default: the model's]
+    #[arg(long, value_name = "NAME", value_parser = lib::<Sampler>)]
+    pub sampler: Option<Sampler>,
+    /// DDIM eta [default: the model's]
+    #[arg(long, value_name = "E", allow_negative_numbers = true)]
+    pub eta: Option<f32>,
+    /// Classifier-free guidance scale [default: the model's]
+    #[arg(long, value_name = "G", allow_negative_numbers = true)]
+    pub guidance: Option<f32>,
+    /// Seed of the noise
+    #[arg(long, value_name = "K", default_value_t = 0)]
+    pub seed: u64,
+    /// An explicit initial noise x_T (float32 .npy, frames x feature_dim)
+    #[arg(long, value_name = "FILE.npy")]
+    pub noise: Option<PathBuf>,
+    /// Worker threads (0 = one per core)
+    #[arg(long, value_name = "T", default_value_t = 0)]
+    pub threads: usize,
+}
+
+#[derive(Args)]
+pub struct OutputArgs {
+    /// Output file: .npy (raw features), .bvh or .json (poses)
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+    /// Coordinate convention of the poses [native|unity|unreal|ros|blender|gltf; default gltf
+    /// for .bvh, native otherwise]
+    #[arg(long, value_name = "C", value_parser = lib::<Convention>)]
+    pub convention: Option<Convention>,
+    /// Sigma in frames of the temporal smoothing of the features, 0 = off [default: 1 for
+    /// smpl24_6d, 0 otherwise]
+    #[arg(long, value_name = "SIGMA", value_parser = sigma, allow_negative_numbers = true)]
+    pub smooth: Option<f32>,
+    /// Quaternion component order of the JSON [xyzw|wxyz]
+    #[arg(long, value_name = "ORDER", value_parser = lib::<QuatOrder>, default_value = "wxyz")]
+    pub quat: QuatOrder,
+    /// Also write world joint positions (float32 .npy, frames x joints x 3)
+    #[arg(long, value_name = "FILE.npy")]
+    pub positions: Option<PathBuf>,
+    /// Also write a PNG contact sheet of the motion
+    #[arg(long, value_name = "FILE.png")]
+    pub preview: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct GenerateArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// The sentence to turn into a motion
+    #[arg(long, value_name = "TEXT")]
+    pub prompt: String,
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+#[derive(Args)]
+pub struct EditArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// The reference motion: .npy features or a BVH written by libflame
+    #[arg(long, value_name = "FILE")]
+    pub reference: PathBuf,
+    /// What to generate the rest of
+    #[arg(long, value_name = "TEXT")]
+    pub prompt: String,
+    /// Editing task [inbetween|predict|upper-body|path]
+    #[arg(long, value_name = "TASK", value_parser = lib::<Task>)]
+    pub task: Option<Task>,
+    /// Frame ranges to keep (A:B half-open, `:B`, `A:`, comma-separated)
+    #[arg(long, value_name = "A:B,...")]
+    pub keep_frames: Option<String>,
+    /// Joints to keep on every frame, by index or name (`root` = the root path)
+    #[arg(long, value_name = "J,...")]
+    pub keep_joints: Option<String>,
+    /// Editing algorithm [auto|noised-reference|replace-x0|rewrite-trajectory]
+    #[arg(long, value_name = "METHOD", value_parser = lib::<EditMethod>)]
+    pub method: Option<EditMethod>,
+    /// Flow models: the fraction of the steps during which the trajectory is rewritten [default 0.2]
+    #[arg(long, value_name = "F", allow_negative_numbers = true)]
+    pub edit_till: Option<f32>,
+    /// Copy the kept values exactly into the result and blend the seams
+    #[arg(long, value_enum, default_value = "on")]
+    pub paste: OnOff,
+    /// Frames over which each seam's offset fades out [default 4]
+    #[arg(long, value_name = "N")]
+    pub seam_frames: Option<usize>,
+    /// Convention of a BVH reference [default: recognised from the file]
+    #[arg(long, value_name = "C", value_parser = lib::<Convention>)]
+    pub reference_convention: Option<Convention>,
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+#[derive(Args)]
+pub struct InfoArgs {
+    /// Model file [default: $FLAME_MODEL, else the demo model]
+    pub model: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct AssembleArgs {
+    /// The denoiser-only file (tools/convert.py --denoiser-only)
+    #[arg(value_name = "DENOISER.safetensors")]
+    pub denoiser: PathBuf,
+    /// The text encoder's Hugging Face model.safetensors
+    #[arg(value_name = "TEXT_WEIGHTS.safetensors")]
+    pub text: PathBuf,
+    /// The model file to write
+    #[arg(value_name = "OUT.safetensors")]
+    pub out: PathBuf,
+    /// Record the action families the denoiser was trained on (comma-separated), printed by
+    /// `flame info`
+    #[arg(
+        long,
+        value_name = "A,B,...",
+        value_delimiter = ',',
+        conflicts_with = "demo_actions"
+    )]
+    pub actions: Vec<String>,
+    /// Record the demo corpus's action families (for the demo denoiser, see docs/demo_corpus.md)
+    #[arg(long)]
+    pub demo_actions: bool,
+}

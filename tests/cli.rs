@@ -1,0 +1,468 @@
+//! The `flame` command line as a user meets it: help and version, usage errors (exit 2) with
+//! suggestions, output paths checked before the model is loaded, upper-case extensions, folders
+//! named as such, the BVH's default convention (Y up), and the trained-action metadata of an
+//! assembled model. Model: tests/fixtures/flame_tiny.safetensors (random weights), and the demo
+//! model where assembled (see tests/common) for the upright check.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+mod common;
+
+use common::{demo_model, repo, split_denoiser_only};
+use flame::motion::bvh;
+
+fn flame(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_flame"))
+        .args(args)
+        .env_remove("FLAME_MODEL")
+        .output()
+        .unwrap()
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A fresh, empty folder for one test.
+fn scratch(test: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("flame_cli_{}_{test}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn tiny() -> String {
+    repo("tests/fixtures/flame_tiny.safetensors")
+        .display()
+        .to_string()
+}
+
+/// `flame generate` on `model` (2 steps, 16 frames, seed 3) with `extra` options.
+fn generate_with(model: &str, prompt: &str, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "generate",
+        "--model",
+        model,
+        "--prompt",
+        prompt,
+        "--frames",
+        "16",
+        "--steps",
+        "2",
+        "--seed",
+        "3",
+        "--threads",
+        "1",
+    ];
+    args.extend_from_slice(extra);
+    flame(&args)
+}
+
+fn generate(extra: &[&str]) -> Output {
+    generate_with(&tiny(), "a person walks", extra)
+}
+
+fn assert_ok(o: &Output) {
+    assert!(o.status.success(), "{}", stderr(o));
+}
+
+fn files_in(d: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(d)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn help_on_every_subcommand_names_its_options() {
+    let top = flame(&["--help"]);
+    assert_ok(&top);
+    for sub in ["generate", "edit", "info", "assemble"] {
+        assert!(stdout(&top).contains(sub), "{}", stdout(&top));
+    }
+    let cases: [(&str, &[&str]); 4] = [
+        (
+            "generate",
+            &[
+                "--prompt",
+                "--out",
+                "--model",
+                "--frames",
+                "--steps",
+                "--sampler",
+                "--eta",
+                "--guidance",
+                "--seed",
+                "--noise",
+                "--threads",
+                "--weights",
+                "--convention",
+                "--smooth",
+                "--quat",
+                "--positions",
+                "--preview",
+            ],
+        ),
+        (
+            "edit",
+            &[
+                "--reference",
+                "--prompt",
+                "--out",
+                "--task",
+                "--keep-frames",
+                "--keep-joints",
+                "--method",
+                "--edit-till",
+                "--paste",
+                "--seam-frames",
+                "--reference-convention",
+                "--steps",
+                "--convention",
+            ],
+        ),
+        ("info", &["[MODEL]"]),
+        (
+            "assemble",
+            &[
+                "DENOISER.safetensors",
+                "OUT.safetensors",
+                "--actions",
+                "--demo-actions",
+            ],
+        ),
+    ];
+    for (sub, options) in cases {
+        for flag in ["--help", "-h"] {
+            let o = flame(&[sub, flag]);
+            assert_ok(&o);
+            let text = stdout(&o);
+            assert!(
+                text.contains(&format!("Usage: flame {sub}")),
+                "{sub} {flag}: {text}"
+            );
+            for opt in options {
+                assert!(text.contains(opt), "{sub} {flag} lacks {opt}: {text}");
+            }
+        }
+    }
+    // The long help keeps the documentation of the writers and defaults.
+    let long = stdout(&flame(&["generate", "--help"]));
+    assert!(
+        long.contains("default gltf") && long.contains("Euler ZXY"),
+        "{long}"
+    );
+    let short = stdout(&flame(&["help", "edit"]));
+    assert!(short.contains("--keep-frames"), "{short}");
+}
+
+#[test]
+fn version_is_the_crate_version() {
+    let o = flame(&["--version"]);
+    assert_ok(&o);
+    assert_eq!(stdout(&o), format!("flame {}\n", env!("CARGO_PKG_VERSION")));
+    let sub = flame(&["info", "--version"]);
+    assert_eq!(
+        stdout(&sub),
+        format!("flame-info {}\n", env!("CARGO_PKG_VERSION"))
+    );
+}
+
+#[test]
+fn usage_errors_exit_2_with_a_suggestion() {
+    let o = flame(&["generate", "--promt", "a person walks", "--out", "x.bvh"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("unexpected argument '--promt'") && err.contains("'--prompt'"),
+        "{err}"
+    );
+    let o = flame(&["generat"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("'generate'"), "{}", stderr(&o));
+    // Named choices keep the library's message.
+    let o = generate(&["--out", "x.bvh", "--sampler", "dpm"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("unknown sampler `dpm`"),
+        "{}",
+        stderr(&o)
+    );
+    // A missing required option.
+    let o = flame(&["generate", "--out", "x.bvh"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("--prompt <TEXT>"), "{}", stderr(&o));
+}
+
+#[test]
+fn outputs_into_a_missing_folder_fail_before_the_model_loads() {
+    let d = scratch("missing");
+    let missing = d.join("no-such-folder");
+    let m = |name: &str| missing.join(name).display().to_string();
+    let here = |name: &str| d.join(name).display().to_string();
+    let cases = [
+        vec!["--out".to_string(), m("x.bvh")],
+        vec![
+            "--out".into(),
+            here("a.bvh"),
+            "--preview".into(),
+            m("p.png"),
+        ],
+        vec![
+            "--out".into(),
+            here("b.bvh"),
+            "--positions".into(),
+            m("p.npy"),
+        ],
+    ];
+    for case in cases {
+        let args: Vec<&str> = case.iter().map(String::as_str).collect();
+        let o = generate(&args);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains("cannot write") && err.contains("no-such-folder does not exist"),
+            "{args:?}: {err}"
+        );
+        assert!(
+            !err.contains("loaded "),
+            "{args:?}: loaded the model first: {err}"
+        );
+    }
+    // Nothing written: no --out file beside a refused --preview or --positions, no probe left.
+    assert_eq!(files_in(&d), Vec::<String>::new());
+    // A model that does not exist is not even looked at.
+    let o = generate_with("/no/such/model.safetensors", "x", &["--out", &m("x.bvh")]);
+    assert!(
+        stderr(&o).contains("no-such-folder does not exist"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn folders_are_named_as_folders() {
+    let d = scratch("folders");
+    let dir = d.display().to_string();
+    let o = generate(&["--out", &dir]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(stderr(&o).contains("is a folder"), "{}", stderr(&o));
+    let folder_bvh = d.join("looks_like.bvh");
+    std::fs::create_dir(&folder_bvh).unwrap();
+    let o = generate(&["--out", folder_bvh.to_str().unwrap()]);
+    assert!(
+        stderr(&o).contains(&format!(
+            "cannot write {}: it is a folder",
+            folder_bvh.display()
+        )),
+        "{}",
+        stderr(&o)
+    );
+    let o = flame(&["info", &dir]);
+    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(
+        stderr(&o),
+        format!("flame: {dir} is a folder, not a model file\n")
+    );
+    // The library says the same (the C ABI's message).
+    let e = flame::models::Model::load(&d).err().unwrap().to_string();
+    assert!(
+        e.contains(&format!("{dir} is a folder, not a model file")),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn upper_case_extensions_are_accepted() {
+    let d = scratch("upper");
+    let (bvh_path, npy, png) = (d.join("X.BVH"), d.join("P.Npy"), d.join("S.PNG"));
+    let o = generate(&[
+        "--out",
+        bvh_path.to_str().unwrap(),
+        "--positions",
+        npy.to_str().unwrap(),
+        "--preview",
+        png.to_str().unwrap(),
+    ]);
+    assert_ok(&o);
+    let text = std::fs::read_to_string(&bvh_path).unwrap();
+    assert!(text.starts_with("HIERARCHY\nROOT Pelvis\n"), "{text:.40}");
+    assert_eq!(flame::npy::read_f32(&npy).unwrap().0, vec![16, 24, 3]);
+    assert_eq!(&std::fs::read(&png).unwrap()[1..4], b"PNG");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn the_default_bvh_convention_is_gltf_and_native_stays_available() {
+    let d = scratch("default");
+    let path = |n: &str| d.join(n).display().to_string();
+    assert_ok(&generate(&["--out", &path("default.bvh")]));
+    assert_ok(&generate(&[
+        "--out",
+        &path("gltf.bvh"),
+        "--convention",
+        "gltf",
+    ]));
+    assert_ok(&generate(&[
+        "--out",
+        &path("native.bvh"),
+        "--convention",
+        "native",
+    ]));
+    let read = |n: &str| std::fs::read_to_string(d.join(n)).unwrap();
+    assert_eq!(read("default.bvh"), read("gltf.bvh"));
+    assert_ne!(read("default.bvh"), read("native.bvh"));
+    // JSON keeps the model's own frame unless asked.
+    assert_ok(&generate(&["--out", &path("m.json")]));
+    let v: serde_json::Value = serde_json::from_str(&read("m.json")).unwrap();
+    assert_eq!(v["convention"].as_str(), Some("native"));
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// World joint positions of frame `t` of a BVH, posed the usual way (rotation channels composed
+/// in the listed order, root position channels added to the root's offset).
+fn bvh_positions(m: &bvh::BvhMotion, t: usize) -> Vec<(String, [f64; 3])> {
+    type M = [[f64; 3]; 3];
+    let mul = |a: &M, b: &M| -> M {
+        let mut c = [[0.0; 3]; 3];
+        for (r, row) in c.iter_mut().enumerate() {
+            for (k, v) in row.iter_mut().enumerate() {
+                *v = (0..3).map(|i| a[r][i] * b[i][k]).sum();
+            }
+        }
+        c
+    };
+    let axis = |a: usize, deg: f64| -> M {
+        let (s, c) = deg.to_radians().sin_cos();
+        match a {
+            0 => [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]],
+            1 => [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]],
+            _ => [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+        }
+    };
+    let values = m.frame(t).unwrap();
+    let mut next = 0;
+    let mut world: Vec<(M, [f64; 3])> = Vec::new();
+    let mut out = Vec::new();
+    for j in m.joints() {
+        let mut rot: M = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let mut local = j.offset();
+        for c in j.channels() {
+            let v = values[next];
+            next += 1;
+            if c.is_rotation() {
+                rot = mul(&rot, &axis(c.axis(), v));
+            } else {
+                local[c.axis()] += v;
+            }
+        }
+        let (g, p) = match j.parent() {
+            None => (rot, local),
+            Some(parent) => {
+                let (pg, pp) = world[parent];
+                let d: Vec<f64> = (0..3)
+                    .map(|r| (0..3).map(|k| pg[r][k] * local[k]).sum())
+                    .collect();
+                (mul(&pg, &rot), [pp[0] + d[0], pp[1] + d[1], pp[2] + d[2]])
+            }
+        };
+        world.push((g, p));
+        out.push((j.name().to_string(), p));
+    }
+    out
+}
+
+#[test]
+fn a_default_bvh_of_the_demo_model_stands_up_along_y() {
+    let Some(model) = demo_model() else {
+        eprintln!("skipped: the demo model is not assembled (see tests/common)");
+        return;
+    };
+    let d = scratch("upright");
+    let out = d.join("walk.bvh");
+    let o = generate_with(
+        model.to_str().unwrap(),
+        "a person walks forward",
+        &["--out", out.to_str().unwrap()],
+    );
+    assert_ok(&o);
+    let m = bvh::parse(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    for t in [0, m.frames() / 2, m.frames() - 1] {
+        let p = bvh_positions(&m, t);
+        let y = |name: &str| p.iter().find(|(n, _)| n == name).unwrap().1[1];
+        // Head about 0.5 m above the pelvis in a standing SMPL body; native would put it on Z.
+        assert!(
+            y("Head") - y("Pelvis") > 0.35,
+            "frame {t}: head y {} pelvis y {}",
+            y("Head"),
+            y("Pelvis")
+        );
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn assembled_actions_are_printed_and_checked_against_the_prompt() {
+    let d = scratch("actions");
+    let (den, text) = split_denoiser_only(&repo("tests/fixtures/flame_tiny.safetensors"), &d);
+    let (den, text) = (den.display().to_string(), text.display().to_string());
+    let demo = d.join("demo.safetensors").display().to_string();
+    let o = flame(&["assemble", &den, &text, &demo, "--demo-actions"]);
+    assert_ok(&o);
+    let info = stdout(&flame(&["info", &demo]));
+    let names: Vec<&str> = flame::demo::Family::ALL.iter().map(|f| f.name()).collect();
+    assert!(
+        info.contains(&format!("trained on:     {}\n", names.join(", "))),
+        "{info}"
+    );
+    assert!(info.contains("trained on:     walk, run, jump, "), "{info}");
+
+    let two = d.join("two.safetensors").display().to_string();
+    assert_ok(&flame(&[
+        "assemble",
+        &den,
+        &text,
+        &two,
+        "--actions",
+        "walk,wave",
+    ]));
+    assert!(stdout(&flame(&["info", &two])).contains("trained on:     walk, wave\n"));
+    let plain = d.join("plain.safetensors").display().to_string();
+    assert_ok(&flame(&["assemble", &den, &text, &plain]));
+    assert!(!stdout(&flame(&["info", &plain])).contains("trained on"));
+
+    let bvh_out = d.join("m.bvh").display().to_string();
+    let o = generate_with(&two, "a person plays the guitar", &["--out", &bvh_out]);
+    assert_ok(&o);
+    let notes: Vec<String> = stderr(&o)
+        .lines()
+        .filter(|l| l.starts_with("note:"))
+        .map(str::to_string)
+        .collect();
+    assert_eq!(
+        notes,
+        vec![
+            "note: this model knows only these actions: walk, wave; \"a person plays the guitar\" \
+             names none of them, so expect one of them or standing still"
+                .to_string()
+        ]
+    );
+    for (model, prompt) in [
+        (&two, "a woman is waving"),
+        (&plain, "a person plays the guitar"),
+    ] {
+        let o = generate_with(model, prompt, &["--out", &bvh_out]);
+        assert_ok(&o);
+        assert!(!stderr(&o).contains("note:"), "{prompt}: {}", stderr(&o));
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
