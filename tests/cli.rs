@@ -466,3 +466,72 @@ fn assembled_actions_are_printed_and_checked_against_the_prompt() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+#[test]
+fn a_cut_prompt_is_reported_and_a_blank_one_is_unconditional() {
+    let d = scratch("prompt_fit");
+    let out = d.join("x.npy");
+    let out = out.to_str().unwrap();
+    // The tiny model's RoBERTa window is 20 tokens, <s> and </s> included.
+    let long = "a person walks forward, turns left, raises both arms, waves with the right \
+                hand, sits down on a chair and then kicks with the right leg";
+    let o = generate_with(&tiny(), long, &["--out", out]);
+    assert_ok(&o);
+    let err = stderr(&o);
+    let warning = err
+        .lines()
+        .find(|l| l.starts_with("warning: the prompt has"))
+        .unwrap_or_else(|| panic!("no truncation warning in:\n{err}"));
+    assert!(warning.contains("keeps its first 20"), "{warning}");
+    assert!(warning.contains("kicks with the right leg\""), "{warning}");
+
+    let o = generate_with(&tiny(), "a person walks", &["--out", out]);
+    assert_ok(&o);
+    assert!(
+        !stderr(&o).contains("warning: the prompt"),
+        "{}",
+        stderr(&o)
+    );
+
+    let o = generate_with(&tiny(), "  ", &["--out", out]);
+    assert_ok(&o);
+    assert!(
+        stderr(&o).contains("note: the prompt is empty: generating without a text condition"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn thread_counts_above_the_bound_are_refused() {
+    let d = scratch("threads");
+    let out = d.join("x.npy");
+    let out = out.to_str().unwrap();
+    let tiny = tiny();
+    let run = |threads: &str| {
+        flame(&[
+            "generate",
+            "--model",
+            &tiny,
+            "--prompt",
+            "a person walks",
+            "--frames",
+            "16",
+            "--steps",
+            "2",
+            "--threads",
+            threads,
+            "--out",
+            out,
+        ])
+    };
+    let o = run("257");
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("threads 257 is above the limit of 256"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!Path::new(out).exists(), "nothing written");
+    assert_ok(&run("256"));
+}

@@ -91,6 +91,23 @@ fn check_model_path(path: &Path) -> Result<(), String> {
     Ok(())
 }
 
+/// Says on stderr when the text encoder's window cut the prompt (and what it dropped), or when
+/// the prompt is blank and the generation runs without text.
+fn note_prompt_fit(session: &Session) {
+    let Some(info) = session.prompt_info() else {
+        return;
+    };
+    if info.unconditional {
+        eprintln!("note: the prompt is empty: generating without a text condition");
+    } else if info.truncated() {
+        eprintln!(
+            "warning: the prompt has {} tokens; the text encoder keeps its first {} (special \
+             tokens included) and ignores {:?}",
+            info.tokens, info.kept, info.dropped
+        );
+    }
+}
+
 /// One note when the model lists what it was trained on and the prompt names none of it.
 fn note_unknown_actions(loaded: &Loaded, prompt: &str) {
     if let Some(actions) = &loaded.actions {
@@ -181,6 +198,7 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
         session.set_initial_noise(&x).map_err(|e| e.to_string())?;
     }
     session.set_prompt(&a.prompt).map_err(|e| e.to_string())?;
+    note_prompt_fit(&session);
     sample(&mut session)?;
     let x = session.sample().expect("finished generation has a sample");
     outputs.write(x, session.frames(), model, decoder.as_ref())
@@ -346,6 +364,7 @@ fn edit(a: &EditArgs) -> Result<(), String> {
         session.set_initial_noise(&x).map_err(e)?;
     }
     session.set_prompt(&a.prompt).map_err(e)?;
+    note_prompt_fit(&session);
     sample(&mut session)?;
     let x = session.sample().expect("finished generation has a sample");
     outputs.write(x, frames, model, decoder.as_ref())
