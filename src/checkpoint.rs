@@ -20,7 +20,7 @@ use memmap2::Mmap;
 use safetensors::tensor::{Dtype, Metadata, SafeTensorError};
 use safetensors::SafeTensors;
 
-use crate::error::{bad_file, invalid_arg, Error, Result};
+use crate::error::{bad_file, Error, Result};
 
 /// Metadata key holding the JSON configuration.
 pub const CONFIG_KEY: &str = "flame.config";
@@ -156,10 +156,9 @@ impl ModelFile {
         let file = File::open(path).map_err(io)?;
         // A folder opens on Unix and then fails to map with "No such device": say what it is.
         if file.metadata().map_err(io)?.is_dir() {
-            return Err(invalid_arg!(
-                "{} is a folder, not a model file",
-                path.display()
-            ));
+            return Err(io(std::io::Error::other(
+                "it is a folder, not a model file",
+            )));
         }
         // SAFETY: the mapping is read-only; a file truncated by another process while mapped is
         // outside what any mmap-based loader can defend against and is documented as such.

@@ -272,11 +272,12 @@ fn folders_are_named_as_folders() {
         stderr(&o),
         format!("flame: {dir} is a folder, not a model file\n")
     );
-    // The library says the same (the C ABI's message).
-    let e = flame::models::Model::load(&d).err().unwrap().to_string();
-    assert!(
-        e.contains(&format!("{dir} is a folder, not a model file")),
-        "{e}"
+    // The library says the same (the C ABI's message, with status IO).
+    let e = flame::models::Model::load(&d).err().unwrap();
+    assert!(matches!(e, flame::Error::Io { .. }), "{e:?}");
+    assert_eq!(
+        e.to_string(),
+        format!("cannot read {dir}: it is a folder, not a model file")
     );
     std::fs::remove_dir_all(&d).unwrap();
 }
