@@ -1,8 +1,10 @@
 /*
  * Cancelling a running step and catching non-finite values, through the C ABI:
- *  - a step cancelled from another thread soon after it starts returns CANCELLED, well within
- *    the time of a full step (the flag is seen between layers, not at the step's end); the
- *    latency is printed (measuring it belongs to `flame-bench cancel`);
+ *  - a step cancelled from another thread soon after it starts returns CANCELLED (or, when
+ *    the step won the race, OK and then CANCELLED at the next step) and leaves the step count
+ *    alone; the latency is printed, not asserted (measuring it belongs to `flame-bench
+ *    cancel`; that the flag is seen between layers is tested deterministically in
+ *    src/session.rs);
  *  - a generation cancelled in the middle of a stochastic (DDPM) step and retried gives the
  *    bits of one never cancelled;
  *  - initial noise so large that the network overflows makes the first step return
@@ -99,9 +101,8 @@ static FlameStatus step_and_cancel(FlameSession *s, double delay, double *latenc
 }
 
 /* The full step's time at the fixture's largest frame count, then steps cancelled a fifth of
- * the way in: each returns CANCELLED, leaves the step count alone, and returns in less than a
- * full step (generous: the checks come before each of the model's layers, so the latency is
- * about one layer's time; a cancel seen only at the step's end would take most of a step). */
+ * the way in: each returns CANCELLED (or, when the step won the race, OK and then CANCELLED at
+ * the next step) and leaves the step count alone; the latency is printed. */
 static void test_cancel_latency(const FlameModel *m) {
     uint32_t frames = quick_mode() ? 64 : FLAME_TINY_MAX_FRAMES;
     FlameSession *s = new_session(m, frames, 50, FLAME_SAMPLER_DDIM, 1);
@@ -136,13 +137,19 @@ static void test_cancel_latency(const FlameModel *m) {
             done_before++;
         }
     }
-    CHECK(cancelled > 0);
-    CHECK(best < step);
+    /* How fast a cancel lands is a timing, measured by `flame-bench cancel`, not asserted
+     * here (under valgrind on a busy machine every trial may finish first); that the flag is
+     * checked between layers is tested deterministically in src/session.rs. */
     CHECK_OK(flame_session_progress(s, &done_after, NULL));
     CHECK(done_after == done_before);
-    printf("cancel: full step %.1f ms, cancel latency %.1f ms (best of %d cancelled, %u frames, "
-           "1 thread)\n",
-           step * 1e3, best * 1e3, cancelled, frames);
+    if (cancelled > 0) {
+        printf("cancel: full step %.1f ms, cancel latency %.1f ms (best of %d cancelled, %u "
+               "frames, 1 thread)\n",
+               step * 1e3, best * 1e3, cancelled, frames);
+    } else {
+        printf("cancel: full step %.1f ms, every step finished before its cancel (%u frames)\n",
+               step * 1e3, frames);
+    }
     flame_session_free(s);
 }
 
