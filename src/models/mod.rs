@@ -326,11 +326,7 @@ impl Model {
     /// How `prompt` fits the text encoder's window: tokens kept, tokens cut and the cut text.
     pub fn prompt_info(&self, prompt: &str) -> Result<PromptInfo> {
         match &self.text {
-            TextModel::Bert(t) => {
-                let mut info = t.tokenizer().fit(prompt, t.max_length())?;
-                info.unconditional = prompt.trim().is_empty();
-                Ok(info)
-            }
+            TextModel::Bert(t) => t.tokenizer().fit(prompt, t.max_length()),
             TextModel::Clip { encoder, context } => encoder.fit(prompt, *context),
         }
     }
