@@ -236,6 +236,13 @@ typedef struct FlameModelInfo {
   const char *const *joint_names;
   // `joint_count` parent indices, -1 for the root.
   const int32_t *joint_parents;
+  // Nonzero when the model samples a latent that its decoder turns into motion (MoLA): the
+  // frames a read returns are then the length the decoder decides
+  // ([`flame_session_read_frames`]), and masks and reference motions do not apply.
+  uint32_t latent;
+  // Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
+  // width of [`flame_session_set_initial_noise`]'s rows.
+  uint32_t sample_dim;
 } FlameModelInfo;
 
 // Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
@@ -409,7 +416,8 @@ enum FlameStatus flame_session_set_prompt(struct FlameSession *session, const ch
 enum FlameStatus flame_session_prompt_info(const struct FlameSession *session,
                                            struct FlamePromptInfo *info);
 
-// Sets the initial noise x_T explicitly: `len` = frames × feature_dim values, frame-major.
+// Sets the initial noise x_T explicitly: `len` = rows × dim values, frame-major, as
+// [`flame_session_sample_shape`] says (frames × feature_dim, or a latent model's latent).
 // Only before the first step (or after a reset).
 //
 // # Safety
@@ -533,6 +541,11 @@ enum FlameStatus flame_session_progress(const struct FlameSession *session,
 // [`FlameLayout`], converted to a [`FlameConvention`], with post-processing `flags`
 // ([`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]).
 //
+// The values are `frames` frames of the layout's per-frame size. `frames` is the session's
+// frame count, except for latent models (`FlameModelInfo.latent` nonzero): their decoder
+// decides the valid length, which [`flame_session_read_frames`] reports (the same for every
+// layout until the next step).
+//
 // With `out` NULL, `*out_len` receives the required number of floats and nothing else is
 // done. Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len`
 // set to the required length) and `*out_len` receives the number written. Reading the sample
@@ -549,6 +562,25 @@ enum FlameStatus flame_session_read(const struct FlameSession *session,
                                     float *out,
                                     size_t len,
                                     size_t *out_len);
+
+// The shape of the sampled space: `*out_rows` rows of `*out_dim` values (the session's frames
+// × feature_dim, or for a latent model the latent's rows × channels). Either pointer may be
+// NULL.
+//
+// # Safety
+// `session` is a live session; non-NULL pointers point to writable `uint32_t`s.
+enum FlameStatus flame_session_sample_shape(const struct FlameSession *session,
+                                            uint32_t *out_rows,
+                                            uint32_t *out_dim);
+
+// How many frames [`flame_session_read`] of `which` returns now: the session's frames, or a
+// latent model's valid length (decoded on first read after each step).
+//
+// # Safety
+// `session` is a live session; `out_frames` points to a writable `uint32_t`.
+enum FlameStatus flame_session_read_frames(const struct FlameSession *session,
+                                           int32_t which,
+                                           uint32_t *out_frames);
 
 // The message of the last failed call on this thread ("" after a successful call). The
 // pointer stays valid until the next libflame call on the same thread.

@@ -94,13 +94,13 @@
 //! [`TextEncoderConfig::validate`], [`ClipConfig::validate`]) are also what each loader runs
 //! first when used on its own.
 
-mod validate;
+pub(crate) mod validate;
 
 use serde::Deserialize;
 
 use crate::checkpoint::{ModelFile, CONFIG_KEY};
 use crate::error::{bad_file, Result};
-use crate::models::mdm::MdmConfig;
+use crate::models::{Family, FamilyConfig};
 use crate::text::ClipConfig;
 
 /// Most layers of any stack (denoiser, text encoder).
@@ -134,28 +134,18 @@ pub fn guidance_in_range(g: f32) -> bool {
 /// The highest `format_version` this build reads.
 pub const FORMAT_VERSION: u32 = 1;
 
-/// The architectures this build runs.
-pub const ARCHITECTURES: &[&str] = &["flame", "mdm", "motionfm"];
-
 /// The whole configuration of a model file.
 #[derive(Clone, Debug)]
 pub struct Config {
     pub format_version: u32,
-    /// `flame`, `mdm` or `motionfm`.
+    /// The model family's name for this file (see [`crate::models::FAMILIES`]).
     pub architecture: String,
-    pub denoiser: DenoiserConfig,
+    /// The family's own sections (`denoiser`, and any other it reads).
+    pub denoiser: std::sync::Arc<dyn FamilyConfig>,
     pub text_encoder: TextConfig,
     pub motion: MotionConfig,
     pub diffusion: DiffusionConfig,
     pub defaults: Defaults,
-}
-
-/// The denoiser's sizes, by architecture.
-#[derive(Clone, Debug)]
-pub enum DenoiserConfig {
-    Flame(FlameConfig),
-    /// MDM's `trans_enc`, also Motion Flow Matching's network.
-    Mdm(MdmConfig),
 }
 
 /// The text encoder's configuration, by kind.
@@ -189,26 +179,10 @@ impl TextConfig {
 struct RawConfig {
     format_version: u32,
     architecture: String,
-    denoiser: serde_json::Value,
     text_encoder: serde_json::Value,
     motion: MotionConfig,
     diffusion: DiffusionConfig,
     defaults: Defaults,
-}
-
-/// FLAME's `Text2MotionTransformer` sizes (REFERENCE 1.1).
-#[derive(Clone, Debug, Deserialize)]
-pub struct FlameConfig {
-    pub motion_dim: usize,
-    pub model_channels: usize,
-    pub num_layers: usize,
-    pub num_heads: usize,
-    pub dim_feedforward: usize,
-    pub max_motion_length: usize,
-    #[serde(default = "relu")]
-    pub activation: String,
-    #[serde(default = "ln_eps_torch")]
-    pub layer_norm_eps: f32,
 }
 
 /// A BERT-family text encoder (BERT, MiniLM, RoBERTa).
@@ -263,17 +237,24 @@ pub struct Defaults {
     pub frames: usize,
 }
 
-fn relu() -> String {
-    "relu".into()
-}
 fn gelu() -> String {
     "gelu".into()
 }
 fn empty_prompt() -> String {
     "empty_prompt".into()
 }
-fn ln_eps_torch() -> f32 {
-    1e-5
+
+/// Reads section `name` of a family's configuration (`v` is the whole JSON) into `T`, or an
+/// error naming the family's schema.
+pub(crate) fn section<T: serde::de::DeserializeOwned>(
+    v: &serde_json::Value,
+    architecture: &str,
+    name: &str,
+) -> Result<T> {
+    let part = v.get(name).cloned().unwrap_or(serde_json::Value::Null);
+    serde_json::from_value(part).map_err(|e| {
+        bad_file!("`{CONFIG_KEY}` does not match the {architecture} schema: {name}: {e}")
+    })
 }
 
 impl Config {
@@ -312,20 +293,17 @@ impl Config {
             .and_then(|x| x.as_str())
             .unwrap_or("")
             .to_string();
-        if !ARCHITECTURES.contains(&arch.as_str()) {
+        let Some(family) = Family::find(&arch) else {
             return Err(bad_file!(
                 "unknown architecture `{arch}` (supported: {})",
-                ARCHITECTURES.join(", ")
+                Family::all_architectures().join(", ")
             ));
-        }
+        };
         let schema = |e: serde_json::Error| {
             bad_file!("`{CONFIG_KEY}` does not match the {arch} schema: {e}")
         };
+        let denoiser = (family.parse)(&arch, &v)?;
         let raw: RawConfig = serde_json::from_value(v).map_err(schema)?;
-        let denoiser = match arch.as_str() {
-            "flame" => DenoiserConfig::Flame(serde_json::from_value(raw.denoiser).map_err(schema)?),
-            _ => DenoiserConfig::Mdm(serde_json::from_value(raw.denoiser).map_err(schema)?),
-        };
         let text_encoder = match raw.text_encoder.get("kind").and_then(|k| k.as_str()) {
             Some("clip") => {
                 TextConfig::Clip(serde_json::from_value(raw.text_encoder).map_err(schema)?)
@@ -373,9 +351,11 @@ mod tests {
     #[test]
     fn parses_the_documented_schema() {
         let c = Config::from_json(EXAMPLE).unwrap();
-        let DenoiserConfig::Flame(d) = &c.denoiser else {
-            panic!("a FLAME config")
-        };
+        let d = c
+            .denoiser
+            .as_any()
+            .downcast_ref::<crate::models::FlameConfig>()
+            .expect("a FLAME config");
         assert_eq!(d.model_channels, 64);
         assert_eq!(c.text_encoder.kind(), "roberta");
         assert_eq!(c.defaults.guidance, 8.0);
@@ -390,7 +370,7 @@ mod tests {
             .to_string();
         assert_eq!(
             e,
-            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm)"
+            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola)"
         );
         let e =
             Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
@@ -505,7 +485,7 @@ mod tests {
         for (section, key, value, needle) in [
             ("diffusion", "schedule", "cosinus", "unknown config diffusion.schedule `cosinus` (accepted: cosine, squaredcos_cap_v2, linear, scaled_linear)"),
             ("diffusion", "parameterization", "noise", "unknown config diffusion.parameterization `noise`"),
-            ("diffusion", "parameterization", "velocity", "is for motionfm models"),
+            ("diffusion", "parameterization", "velocity", "is for flow-matching models"),
             ("diffusion", "variance", "learned", "unknown config diffusion.variance `learned`"),
             ("diffusion", "uncond", "none", "unknown config diffusion.uncond `none`"),
             ("diffusion", "uncond", "zeros", "FLAME models need `empty_prompt`"),

@@ -10,7 +10,7 @@ use crate::diffusion::{self, DiffusionSampler, SamplerKind, X0Replacement};
 use crate::edit;
 pub use crate::edit::{EditMethod, EditParams};
 use crate::error::{invalid_arg, Error, Result};
-use crate::models::{Cancel, Condition, Model, Workspace};
+use crate::models::{Cancel, Condition, Guidance, Model, Workspace};
 use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
 use crate::text::PromptInfo;
@@ -87,8 +87,12 @@ pub struct Session {
     remaining: usize,
     started: bool,
     stepped: bool,
+    /// Rows of the sampled space (the frames, or a latent's rows).
+    rows: usize,
     x: Vec<f32>,
     x0: Vec<f32>,
+    /// Decoded motion features of a latent model's sample and estimate, made on demand.
+    decoded: [Decoded; 2],
     bufs: StepBuffers,
     cancel: Arc<AtomicBool>,
     /// Test hook: the next step finds the cancel flag raised at this check (see [`Cancel`]).
@@ -96,6 +100,25 @@ pub struct Session {
     /// Why a step failed (non-finite values); steps are refused until a reset.
     failed: Option<String>,
     edit: Edit,
+}
+
+/// A latent sample decoded into motion features, and which state of the session it shows.
+#[derive(Default)]
+struct Decoded {
+    /// The step count (`num_steps − remaining`, + 1 once started) the features were made at.
+    at: Option<usize>,
+    features: Vec<f32>,
+    frames: usize,
+    ws: Workspace,
+}
+
+/// Which of a session's motions to read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Which {
+    /// The current sample (x_T before the first step; the result at the end).
+    Sample,
+    /// The latest clean-motion estimate x̂0 (after at least one step).
+    Estimate,
 }
 
 /// How a step moves the sample: a reverse diffusion step, or an ODE step of flow matching.
@@ -157,11 +180,12 @@ struct ForwardBuffers {
 /// What a guided network evaluation needs besides its buffers.
 struct Predictor<'a> {
     model: &'a Model,
-    frames: usize,
+    /// Rows of the sampled space.
+    rows: usize,
     cond: &'a Condition,
-    /// The unconditional input, when guidance is on (scale ≠ 1).
-    uncond: Option<&'a Condition>,
-    guidance: f32,
+    /// The guidance scale; `None` when the condition is itself the unconditional input
+    /// (a blank prompt), so guiding it would change nothing.
+    scale: Option<f32>,
 }
 
 impl Predictor<'_> {
@@ -177,28 +201,36 @@ impl Predictor<'_> {
         var: &mut Vec<f32>,
         cancel: &Cancel,
     ) -> Result<()> {
-        let (d, od) = (self.model.motion_dim(), self.model.output_dim());
-        let batch = 1 + self.uncond.is_some() as usize;
+        let (d, od) = (self.model.sample_dim(), self.model.output_dim());
+        let guidance = match self.scale {
+            Some(s) => self.model.denoiser().guidance(s, t),
+            None => Guidance::Conditional,
+        };
+        let uncond = match guidance {
+            Guidance::Mix(w) => Some((self.model.uncond()?, w)),
+            Guidance::Conditional => None,
+        };
+        let batch = 1 + uncond.is_some() as usize;
         b.batch_x.clear();
         for _ in 0..batch {
             b.batch_x.extend_from_slice(x);
         }
-        b.out.resize(batch * self.frames * od, 0.0);
-        let both = [self.cond, self.uncond.unwrap_or(self.cond)];
+        b.out.resize(batch * self.rows * od, 0.0);
+        let both = [self.cond, uncond.map_or(self.cond, |u| u.0)];
         self.model.forward_cancellable(
             &b.batch_x,
-            self.frames,
+            self.rows,
             t,
             &both[..batch],
             &mut b.out,
             &mut b.ws,
             cancel,
         )?;
-        let rows = self.frames * od;
-        split_channels(&b.out[..rows], d, od, pred, var);
-        if self.uncond.is_some() {
-            split_channels(&b.out[rows..], d, od, &mut b.pred_uncond, &mut b.unused);
-            diffusion::guide(pred, &b.pred_uncond, self.guidance);
+        let n = self.rows * od;
+        split_channels(&b.out[..n], d, od, pred, var);
+        if let Some((_, w)) = uncond {
+            split_channels(&b.out[n..], d, od, &mut b.pred_uncond, &mut b.unused);
+            diffusion::guide(pred, &b.pred_uncond, w);
         }
         Ok(())
     }
@@ -225,7 +257,8 @@ impl Session {
         let rule = build_rule(&model, params)?;
         let pool = Arc::new(WorkerPool::new(params.threads)?);
         let n = rule.num_steps();
-        let len = frames * model.motion_dim();
+        let rows = model.sample_rows(frames);
+        let len = rows * model.sample_dim();
         Ok(Session {
             model,
             frames,
@@ -241,8 +274,10 @@ impl Session {
             remaining: n,
             started: false,
             stepped: false,
+            rows,
             x: vec![0.0; len],
             x0: vec![0.0; len],
+            decoded: Default::default(),
             bufs: StepBuffers::default(),
             cancel: Arc::new(AtomicBool::new(false)),
             cancel_at: None,
@@ -313,11 +348,11 @@ impl Session {
         }
         if x_t.len() != self.x.len() {
             return Err(invalid_arg!(
-                "initial noise has {} values, expected {} (frames {} × {})",
+                "initial noise has {} values, expected {} ({} rows × {})",
                 x_t.len(),
                 self.x.len(),
-                self.frames,
-                self.model.motion_dim()
+                self.rows,
+                self.model.sample_dim()
             ));
         }
         if x_t.iter().any(|v| !v.is_finite()) {
@@ -348,20 +383,80 @@ impl Session {
         Arc::clone(&self.cancel)
     }
 
-    /// The current sample x_t (x_T before the first step once started; the result at the end).
+    /// The current sample x_t in the sampled space, `[rows, sample_dim]` (the motion's
+    /// features, or a latent model's latent; x_T before the first step once started; the
+    /// result at the end). [`Session::motion`] gives the motion for every model.
     pub fn sample(&self) -> Option<&[f32]> {
         self.started.then_some(&self.x[..])
     }
 
-    /// The model's latest estimate of the clean motion x0 (after at least one step).
+    /// The model's latest estimate of the clean sample x0, in the sampled space (after at
+    /// least one step).
     pub fn x0_estimate(&self) -> Option<&[f32]> {
         self.stepped.then_some(&self.x0[..])
+    }
+
+    /// Rows of the sampled space: the frames, or the latent's rows of a latent model.
+    pub fn sample_rows(&self) -> usize {
+        self.rows
+    }
+
+    /// The motion features of the sample or the estimate, `[frames, motion_dim]` in the
+    /// model's (normalised) space, and the frame count. A latent model's sample is decoded
+    /// (once per step, on first read) and cut to the valid length the model decides; other
+    /// models return their sample as it is. `WrongState` before there is anything to read.
+    pub fn motion(&mut self, which: Which) -> Result<(&[f32], usize)> {
+        let (x, ready, what) = match which {
+            Which::Sample => (
+                &self.x,
+                self.started,
+                "start generating (step) before reading the sample",
+            ),
+            Which::Estimate => (
+                &self.x0,
+                self.stepped,
+                "step at least once before reading the estimate",
+            ),
+        };
+        if !ready {
+            return Err(Error::WrongState(what.into()));
+        }
+        if !self.model.is_latent() {
+            return Ok((&x[..], self.frames));
+        }
+        let at = self.rule.num_steps() - self.remaining + usize::from(self.started);
+        let d = &mut self.decoded[which as usize];
+        if d.at != Some(at) {
+            let model = &self.model;
+            let frames = self.frames;
+            let (features, ws) = (&mut d.features, &mut d.ws);
+            let valid = self
+                .pool
+                .install(|| model.decode(x, frames, features, ws))?;
+            d.frames = valid;
+            d.at = Some(at);
+        }
+        Ok((&d.features[..], d.frames))
+    }
+
+    /// Refuses mask and reference editing on a latent model (its sample is not the motion).
+    fn check_editable(&self) -> Result<()> {
+        if self.model.is_latent() {
+            return Err(invalid_arg!(
+                "this {} model samples a latent, not the motion: masks and reference motions \
+                 (replace-x0, noised-reference and trajectory editing) do not apply to it; \
+                 generate from a prompt, or set the initial latent",
+                self.model.config().architecture
+            ));
+        }
+        Ok(())
     }
 
     /// Sets the reference motion: model-space features `[ref_frames, motion_dim]` with
     /// 1 ≤ ref_frames ≤ the session's frames. Frames past a shorter reference cannot be kept.
     /// May change between steps: it takes effect at the next step.
     pub fn set_reference(&mut self, features: &[f32]) -> Result<()> {
+        self.check_editable()?;
         let dim = self.model.motion_dim();
         if features.is_empty()
             || !features.len().is_multiple_of(dim)
@@ -448,6 +543,7 @@ impl Session {
 
     /// [`Session::set_mask`] with `bool` flags (for example [`crate::motion::mask::Mask`]'s).
     pub fn set_keep(&mut self, keep: Vec<bool>) -> Result<()> {
+        self.check_editable()?;
         if keep.len() != self.x.len() {
             return Err(invalid_arg!(
                 "mask has {} values, expected {} (frames {} × {})",
@@ -483,11 +579,7 @@ impl Session {
         let flow = matches!(self.rule, StepRule::Flow(_));
         match (method, flow) {
             (EditMethod::Auto, true) => Ok(EditMethod::RewriteTrajectory),
-            (EditMethod::Auto, false) => Ok(if self.model.config().architecture == "mdm" {
-                EditMethod::ReplaceX0
-            } else {
-                EditMethod::NoisedReference
-            }),
+            (EditMethod::Auto, false) => Ok(self.model.denoiser().default_edit_method()),
             (EditMethod::RewriteTrajectory, true)
             | (EditMethod::NoisedReference | EditMethod::ReplaceX0, false) => Ok(method),
             (m, _) => Err(invalid_arg!(
@@ -623,7 +715,7 @@ impl Session {
     fn step_inner(&mut self, cancel: &Cancel) -> Result<usize> {
         cancel.check()?;
         let model = Arc::clone(&self.model);
-        let len = self.frames * model.motion_dim();
+        let len = self.x.len();
         // Resolved before anything is drawn, so a bad combination leaves the session as it was.
         let method = self.resolve_method(self.edit.params.method)?;
         let active = self.edit_active()?;
@@ -646,13 +738,11 @@ impl Session {
         };
         // A blank prompt's condition is the unconditional input: guiding it changes nothing.
         let unconditional = self.prompt_info.as_ref().is_some_and(|p| p.unconditional);
-        let guided = self.guidance != 1.0 && !unconditional;
         let p = Predictor {
             model: &model,
-            frames: self.frames,
+            rows: self.rows,
             cond: self.cond.as_ref().expect("checked in step"),
-            uncond: if guided { Some(model.uncond()?) } else { None },
-            guidance: self.guidance,
+            scale: (!unconditional).then_some(self.guidance),
         };
         let StepBuffers {
             fwd,
@@ -695,7 +785,7 @@ impl Session {
                 cancel.check()?;
             }
         }
-        if let Some(why) = non_finite(x_prev, x0_next, model.motion_dim()) {
+        if let Some(why) = non_finite(x_prev, x0_next, model.sample_dim()) {
             let msg = format!(
                 "step {step} of {n} produced a non-finite value ({why}): the guidance scale ({}) or the input (reference, noise) is too large or not finite",
                 self.guidance
@@ -897,9 +987,14 @@ mod tests {
             (&motionfm, Sampler::Midpoint, 1.0, 0, 2),
         ];
         for (m, sampler, guidance, cancelled_step, evals) in cases {
-            let layers = match &m.config().denoiser {
-                crate::config::DenoiserConfig::Flame(c) => c.num_layers,
-                crate::config::DenoiserConfig::Mdm(c) => c.layers,
+            let any = m.config().denoiser.as_any();
+            let layers = match any.downcast_ref::<crate::models::FlameConfig>() {
+                Some(c) => c.num_layers,
+                None => {
+                    any.downcast_ref::<crate::models::MdmConfig>()
+                        .unwrap()
+                        .layers
+                }
             };
             let checks = 2 + evals * layers;
             let want = trajectory(session(m, sampler, guidance));

@@ -131,7 +131,9 @@ impl Family {
         let mut s = Session::new(model, &params).unwrap();
         match sec["prompt"].as_str() {
             Some(prompt) => s.set_prompt(prompt).unwrap(),
-            None => s.set_condition(Condition::Mdm(e.get("text"))).unwrap(),
+            None => s
+                .set_condition(Condition::text_vector(e.get("text")))
+                .unwrap(),
         }
         s.set_initial_noise(&e.get(self.start)).unwrap();
         // NaN after the recorded noise: a session that draws more than the reference did (or

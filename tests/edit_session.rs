@@ -50,7 +50,7 @@ fn session(family: Family, seed: u64) -> Session {
     let mut s = Session::new(model, &params).unwrap();
     match family {
         Family::Flame => s.set_prompt("a person walks forward and waves.").unwrap(),
-        _ => s.set_condition(Condition::Mdm(mdm_text())).unwrap(),
+        _ => s.set_condition(Condition::text_vector(mdm_text())).unwrap(),
     }
     s
 }

@@ -46,7 +46,8 @@ fn session(file: &str, sampler: Sampler) -> Session {
         ..Default::default()
     };
     let mut s = Session::new(model, &params).unwrap();
-    s.set_condition(Condition::Mdm(expected("text"))).unwrap();
+    s.set_condition(Condition::text_vector(expected("text")))
+        .unwrap();
     s
 }
 
@@ -101,7 +102,8 @@ fn motionfm_second_order_samplers_converge_to_euler_with_many_steps() {
             ..Default::default()
         };
         let mut s = Session::new(model, &p).unwrap();
-        s.set_condition(Condition::Mdm(expected("text"))).unwrap();
+        s.set_condition(Condition::text_vector(expected("text")))
+            .unwrap();
         s.set_initial_noise(&expected("euler_x_0")).unwrap();
         s.run().unwrap().to_vec()
     };
@@ -144,7 +146,7 @@ fn wrong_sampler_for_the_model_and_wrong_condition_are_errors() {
     assert!(e.contains("diffusion model takes ddpm or ddim"), "{e}");
     let mut s = Session::new(mdm, &SessionParams::default()).unwrap();
     let e = s
-        .set_condition(Condition::Mdm(vec![0.0; 3]))
+        .set_condition(Condition::text_vector(vec![0.0; 3]))
         .unwrap_err()
         .to_string();
     assert!(
@@ -193,17 +195,13 @@ fn prompts_go_through_the_clip_tower() {
     // tower itself is tested in tests/text_clip.rs): a prompt gives a 512-d vector that differs
     // between prompts, and a whole generation from it runs.
     let model = Arc::new(Model::load(fixture("motionfm_tiny.safetensors")).unwrap());
-    let Condition::Mdm(a) = model.encode_prompt("a person jumps").unwrap() else {
-        panic!()
-    };
-    let Condition::Mdm(b) = model.encode_prompt("a person waves").unwrap() else {
-        panic!()
-    };
+    let a = model.encode_prompt("a person jumps").unwrap();
+    let a = a.as_text_vector().unwrap();
+    let b = model.encode_prompt("a person waves").unwrap();
+    let b = b.as_text_vector().unwrap();
     assert_eq!(a.len(), 512);
-    assert!(max_abs_diff(&a, &b) > 1e-3);
-    let Condition::Mdm(u) = model.uncond().unwrap() else {
-        panic!()
-    };
+    assert!(max_abs_diff(a, b) > 1e-3);
+    let u = model.uncond().unwrap().as_text_vector().unwrap();
     assert!(
         u.iter().all(|&v| v == 0.0),
         "MDM's unconditional input is a zero vector"

@@ -91,7 +91,7 @@ fn a_blank_prompt_is_unconditional_generation() {
         p.guidance = Some(1.0);
         let mut reference = Session::new(Arc::clone(&m), &p).unwrap();
         let uncond: Condition = m.uncond().unwrap().clone();
-        if let Condition::Mdm(v) = &uncond {
+        if let Some(v) = uncond.as_text_vector() {
             assert!(
                 v.iter().all(|&x| x == 0.0),
                 "{name}: MDM's unconditional input is zeros"

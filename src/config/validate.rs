@@ -7,7 +7,6 @@
 use crate::checkpoint::ModelFile;
 use crate::diffusion::{betas, BetaSchedule, Parameterization, Schedule, Variance};
 use crate::error::{bad_file, Result};
-use crate::models::mdm::MdmConfig;
 use crate::motion::Format;
 use crate::session::Sampler;
 use crate::text::{ClipConfig, EncoderKind};
@@ -15,7 +14,7 @@ use crate::text::{ClipConfig, EncoderKind};
 use super::*;
 
 /// `lo <= value <= hi`, or an error naming the field and the range.
-fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
+pub(crate) fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
     if value < lo || value > hi {
         return Err(bad_file!("config {field} {value} is outside {lo}..={hi}"));
     }
@@ -23,7 +22,7 @@ fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
 }
 
 /// A finite value in `lo..=hi` (`lo` excluded when `open_lo`).
-fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Result<()> {
+pub(crate) fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Result<()> {
     let above = if open_lo { value > lo } else { value >= lo };
     if !(value.is_finite() && above && value <= hi) {
         let open = if open_lo { "(" } else { "[" };
@@ -35,7 +34,12 @@ fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Res
 }
 
 /// A width split over heads: `heads` in 1..=width, dividing it.
-fn heads_divide(field: &str, width: usize, heads_field: &str, heads: usize) -> Result<()> {
+pub(crate) fn heads_divide(
+    field: &str,
+    width: usize,
+    heads_field: &str,
+    heads: usize,
+) -> Result<()> {
     in_range(heads_field, heads, 1, width)?;
     if !width.is_multiple_of(heads) {
         return Err(bad_file!(
@@ -46,7 +50,7 @@ fn heads_divide(field: &str, width: usize, heads_field: &str, heads: usize) -> R
 }
 
 /// One of `accepted`, or an error naming the field and the accepted values.
-fn one_of(field: &str, value: &str, accepted: &[&str]) -> Result<()> {
+pub(crate) fn one_of(field: &str, value: &str, accepted: &[&str]) -> Result<()> {
     if !accepted.contains(&value) {
         return Err(bad_file!(
             "unknown config {field} `{value}` (accepted: {})",
@@ -57,7 +61,12 @@ fn one_of(field: &str, value: &str, accepted: &[&str]) -> Result<()> {
 }
 
 /// Tensor `name` is stored with shape `want` (implied by config `fields`).
-fn expect_shape(file: &ModelFile, name: &str, want: &[usize], fields: &str) -> Result<()> {
+pub(crate) fn expect_shape(
+    file: &ModelFile,
+    name: &str,
+    want: &[usize],
+    fields: &str,
+) -> Result<()> {
     let got = file.shape(name)?;
     if got != want {
         return Err(bad_file!(
@@ -70,7 +79,7 @@ fn expect_shape(file: &ModelFile, name: &str, want: &[usize], fields: &str) -> R
 /// A stack of `n` layers whose tensors are named `{prefix}{i}.…`: 1..=MAX_LAYERS, layer n−1
 /// present and layer n absent in the header (so no per-layer storage is sized from a count the
 /// file does not back).
-fn check_layers(file: &ModelFile, field: &str, n: usize, prefix: &str) -> Result<()> {
+pub(crate) fn check_layers(file: &ModelFile, field: &str, n: usize, prefix: &str) -> Result<()> {
     in_range(field, n, 1, MAX_LAYERS)?;
     let last = format!("{prefix}{}.", n - 1);
     if !file.has_prefix(&last) {
@@ -88,7 +97,7 @@ fn check_layers(file: &ModelFile, field: &str, n: usize, prefix: &str) -> Result
 }
 
 /// A positional table of `rows × width` values computed at load.
-fn table_fits(field: &str, rows: usize, width: usize) -> Result<()> {
+pub(crate) fn table_fits(field: &str, rows: usize, width: usize) -> Result<()> {
     match rows.checked_mul(width) {
         Some(n) if n <= MAX_TABLE_VALUES => Ok(()),
         _ => Err(bad_file!(
@@ -98,156 +107,8 @@ fn table_fits(field: &str, rows: usize, width: usize) -> Result<()> {
     }
 }
 
-fn check_eps(field: &str, eps: f32) -> Result<()> {
+pub(crate) fn check_eps(field: &str, eps: f32) -> Result<()> {
     in_range_f32(field, eps, 0.0, 1.0, true)
-}
-
-impl FlameConfig {
-    /// Bounds and names, without the file.
-    pub fn check(&self) -> Result<()> {
-        in_range("denoiser.motion_dim", self.motion_dim, 1, MAX_WIDTH)?;
-        in_range("denoiser.model_channels", self.model_channels, 2, MAX_WIDTH)?;
-        in_range("denoiser.num_layers", self.num_layers, 1, MAX_LAYERS)?;
-        if !self.model_channels.is_multiple_of(2) {
-            return Err(bad_file!(
-                "config denoiser.model_channels {} is not even",
-                self.model_channels
-            ));
-        }
-        heads_divide(
-            "denoiser.model_channels",
-            self.model_channels,
-            "denoiser.num_heads",
-            self.num_heads,
-        )?;
-        in_range(
-            "denoiser.dim_feedforward",
-            self.dim_feedforward,
-            1,
-            MAX_FEEDFORWARD,
-        )?;
-        in_range(
-            "denoiser.max_motion_length",
-            self.max_motion_length,
-            2,
-            MAX_MOTION_POSITIONS,
-        )?;
-        table_fits(
-            "denoiser.max_motion_length + 3",
-            self.max_motion_length + 3,
-            self.model_channels,
-        )?;
-        one_of("denoiser.activation", &self.activation, &["relu", "gelu"])?;
-        check_eps("denoiser.layer_norm_eps", self.layer_norm_eps)
-    }
-
-    /// [`FlameConfig::check`], then the sizes against the file's tensors (no prefix).
-    pub fn validate(&self, file: &ModelFile) -> Result<()> {
-        self.check()?;
-        let (c, d) = (self.model_channels, self.motion_dim);
-        expect_shape(
-            file,
-            "motion_length_emb.weight",
-            &[self.max_motion_length, c],
-            "denoiser.max_motion_length, model_channels",
-        )?;
-        expect_shape(
-            file,
-            "input_projection.weight",
-            &[c, d],
-            "denoiser.model_channels, motion_dim",
-        )?;
-        check_layers(
-            file,
-            "denoiser.num_layers",
-            self.num_layers,
-            "tf_decoder.layers.",
-        )?;
-        expect_shape(
-            file,
-            "tf_decoder.layers.0.linear1.weight",
-            &[self.dim_feedforward, c],
-            "denoiser.dim_feedforward, model_channels",
-        )?;
-        expect_shape(
-            file,
-            "last_projection.weight",
-            &[2 * d, c],
-            "denoiser.motion_dim, model_channels",
-        )
-    }
-
-    /// The largest frame count a session may ask for.
-    pub fn max_frames(&self) -> usize {
-        self.max_motion_length - 1
-    }
-}
-
-impl MdmConfig {
-    /// Bounds and names, without the file.
-    pub fn check(&self) -> Result<()> {
-        in_range("denoiser.njoints", self.njoints, 1, MAX_WIDTH)?;
-        in_range("denoiser.latent_dim", self.latent_dim, 2, MAX_WIDTH)?;
-        in_range("denoiser.layers", self.layers, 1, MAX_LAYERS)?;
-        if !self.latent_dim.is_multiple_of(2) {
-            return Err(bad_file!(
-                "config denoiser.latent_dim {} is not even",
-                self.latent_dim
-            ));
-        }
-        heads_divide(
-            "denoiser.latent_dim",
-            self.latent_dim,
-            "denoiser.heads",
-            self.heads,
-        )?;
-        in_range("denoiser.ff_size", self.ff_size, 1, MAX_FEEDFORWARD)?;
-        in_range("denoiser.clip_dim", self.clip_dim, 1, MAX_WIDTH)?;
-        in_range("denoiser.max_len", self.max_len, 2, MAX_MOTION_POSITIONS)?;
-        table_fits("denoiser.max_len", self.max_len, self.latent_dim)?;
-        one_of("denoiser.activation", &self.activation, &["gelu", "relu"])
-    }
-
-    /// [`MdmConfig::check`], then the sizes against the file's tensors (no prefix).
-    pub fn validate(&self, file: &ModelFile) -> Result<()> {
-        self.check()?;
-        let c = self.latent_dim;
-        expect_shape(
-            file,
-            "embed_timestep.time_embed.0.weight",
-            &[c, c],
-            "denoiser.latent_dim",
-        )?;
-        expect_shape(
-            file,
-            "embed_text.weight",
-            &[c, self.clip_dim],
-            "denoiser.latent_dim, clip_dim",
-        )?;
-        expect_shape(
-            file,
-            "input_process.poseEmbedding.weight",
-            &[c, self.njoints],
-            "denoiser.latent_dim, njoints",
-        )?;
-        check_layers(
-            file,
-            "denoiser.layers",
-            self.layers,
-            "seqTransEncoder.layers.",
-        )?;
-        expect_shape(
-            file,
-            "seqTransEncoder.layers.0.linear1.weight",
-            &[self.ff_size, c],
-            "denoiser.ff_size, latent_dim",
-        )
-    }
-
-    /// The largest frame count a session may ask for (one row of `pe` is the condition's).
-    pub fn max_frames(&self) -> usize {
-        self.max_len - 1
-    }
 }
 
 impl TextEncoderConfig {
@@ -454,36 +315,15 @@ pub(crate) fn is_flow(parameterization: &str) -> bool {
 impl Config {
     /// Everything that needs no tensor: bounds, names, and the fields against each other.
     pub(super) fn check(&self) -> Result<()> {
-        let arch = self.architecture.as_str();
-        let (max_frames, motion_dim) = match (&self.denoiser, &self.text_encoder) {
-            (DenoiserConfig::Flame(d), TextConfig::Bert(t)) => {
-                d.check()?;
+        match &self.text_encoder {
+            TextConfig::Bert(t) => {
                 t.check()?;
-                (d.max_frames(), d.motion_dim)
             }
-            (DenoiserConfig::Mdm(d), TextConfig::Clip(c)) => {
-                d.check()?;
-                c.check()?;
-                if c.clip.projection_dim != d.clip_dim {
-                    return Err(bad_file!(
-                        "config text_encoder.projection_dim {} differs from denoiser.clip_dim {}",
-                        c.clip.projection_dim,
-                        d.clip_dim
-                    ));
-                }
-                (d.max_frames(), d.njoints)
-            }
-            _ => {
-                // Say what is wrong with the kind before pairing it.
-                if let TextConfig::Bert(t) = &self.text_encoder {
-                    t.check()?;
-                }
-                return Err(bad_file!(
-                    "architecture `{arch}` cannot use a `{}` text encoder",
-                    self.text_encoder.kind()
-                ));
-            }
-        };
+            TextConfig::Clip(c) => c.check()?,
+        }
+        // The family's own sections, and the others as it needs them.
+        self.denoiser.check(self)?;
+        let (max_frames, motion_dim) = (self.denoiser.max_frames(), self.denoiser.feature_dim());
 
         let m = &self.motion;
         let names: Vec<&str> = Format::ALL.iter().map(|f| f.name()).collect();
@@ -515,7 +355,7 @@ impl Config {
             .schedule
             .parse()
             .map_err(|_| unknown("diffusion.schedule", &dc.schedule, SCHEDULES))?;
-        let variance: Variance = dc
+        let _: Variance = dc
             .variance
             .parse()
             .map_err(|_| unknown("diffusion.variance", &dc.variance, VARIANCES))?;
@@ -529,46 +369,6 @@ impl Config {
                     all.extend(["velocity", "flow"]);
                     unknown("diffusion.parameterization", &dc.parameterization, &all)
                 })?;
-        }
-        match (arch, flow) {
-            ("motionfm", false) => {
-                return Err(bad_file!(
-                    "config diffusion.parameterization `{}`: a motionfm model predicts a \
-                     velocity (`velocity` or `flow`)",
-                    dc.parameterization
-                ))
-            }
-            ("flame" | "mdm", true) => {
-                return Err(bad_file!(
-                    "config diffusion.parameterization `{}` is for motionfm models; {arch} \
-                     takes {}",
-                    dc.parameterization,
-                    PARAMETERIZATIONS.join(", ")
-                ))
-            }
-            _ => {}
-        }
-        if variance == Variance::LearnedRange && arch != "flame" {
-            return Err(bad_file!(
-                "config diffusion.variance `learned_range` needs a denoiser that outputs variance \
-                 values (flame); {arch} takes fixed_small or fixed_large"
-            ));
-        }
-        if dc.uncond == "zeros" && arch == "flame" {
-            return Err(bad_file!(
-                "config diffusion.uncond `zeros`: FLAME models need `empty_prompt`"
-            ));
-        }
-        if let DenoiserConfig::Mdm(d) = &self.denoiser {
-            // The time input selects a row of the positional table: step t (MDM) or
-            // trunc(1000 t) for t in [0, 1] (Motion Flow Matching).
-            let rows = if flow { 1001 } else { dc.num_timesteps };
-            if d.max_len < rows {
-                return Err(bad_file!(
-                    "config denoiser.max_len {} has no row for every time input ({rows} needed)",
-                    d.max_len
-                ));
-            }
         }
         if !flow {
             // The schedule must give betas in (0, 1) (a short linear schedule does not).
@@ -614,10 +414,7 @@ impl Config {
             }
             TextConfig::Clip(c) => c.clip.validate(file, prefix)?,
         }
-        match &self.denoiser {
-            DenoiserConfig::Flame(d) => d.validate(file),
-            DenoiserConfig::Mdm(d) => d.validate(file),
-        }
+        self.denoiser.validate(file)
     }
 }
 
@@ -637,6 +434,47 @@ const PARAMETERIZATIONS: &[&str] = &[
 ];
 
 // The lists above are exactly what the parsers take.
+/// The text encoder kinds a family takes (`bert`/`roberta`/`clip`).
+pub(crate) fn expect_text(cfg: &Config, kinds: &[&str]) -> Result<()> {
+    if !kinds.contains(&cfg.text_encoder.kind()) {
+        return Err(bad_file!(
+            "architecture `{}` cannot use a `{}` text encoder",
+            cfg.architecture,
+            cfg.text_encoder.kind()
+        ));
+    }
+    Ok(())
+}
+
+/// A family's parameterization: a velocity (flow matching) when `flow`, else a diffusion one.
+pub(crate) fn expect_flow(cfg: &Config, flow: bool) -> Result<()> {
+    let (p, arch) = (&cfg.diffusion.parameterization, &cfg.architecture);
+    match (flow, is_flow(p)) {
+        (true, false) => Err(bad_file!(
+            "config diffusion.parameterization `{p}`: a {arch} model predicts a velocity \
+             (`velocity` or `flow`)"
+        )),
+        (false, true) => Err(bad_file!(
+            "config diffusion.parameterization `{p}` is for flow-matching models; {arch} takes {}",
+            PARAMETERIZATIONS.join(", ")
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// `learned_range` needs a network that outputs variance values; most families do not.
+pub(crate) fn refuse_learned_range(cfg: &Config) -> Result<()> {
+    let v: Variance = cfg.diffusion.variance.parse()?;
+    if v == Variance::LearnedRange {
+        return Err(bad_file!(
+            "config diffusion.variance `learned_range` needs a denoiser that outputs variance \
+             values (flame); {} takes fixed_small or fixed_large",
+            cfg.architecture
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -9,7 +9,7 @@ use super::errors::Fail;
 use super::{FlameModelInfo, FlameProgressCallback, FlamePromptInfo, FlameSampler, FlameWhich};
 use crate::error::{invalid_arg, Error};
 use crate::models::Model;
-use crate::session::Session;
+use crate::session::{Session, Which};
 
 /// A loaded model: immutable, shareable by any number of sessions and threads.
 pub struct FlameModel {
@@ -87,6 +87,8 @@ impl FlameModel {
             } else {
                 self.joint_parents.as_ptr()
             },
+            latent: m.is_latent() as u32,
+            sample_dim: m.sample_dim() as u32,
         }
     }
 }
@@ -281,34 +283,44 @@ impl SessionState {
         ))
     }
 
+    fn which(which: i32) -> Result<Which, Fail> {
+        match which {
+            w if w == FlameWhich::Sample as i32 => Ok(Which::Sample),
+            w if w == FlameWhich::Estimate as i32 => Ok(Which::Estimate),
+            w => Err(invalid_arg!("unknown `which` {w} (0 sample, 1 estimate)").into()),
+        }
+    }
+
+    /// The motion of `which` (decoded for latent models) and its frame count.
+    fn motion(&mut self, which: i32) -> Result<(&[f32], usize), Fail> {
+        let which = Self::which(which)?;
+        self.session.motion(which).map_err(|e| match (e, which) {
+            (Error::WrongState(_), Which::Sample) => {
+                Error::WrongState("no sample yet: the first step draws x_T".into()).into()
+            }
+            (Error::WrongState(_), Which::Estimate) => {
+                Error::WrongState("no clean-motion estimate yet: run a step first".into()).into()
+            }
+            (e, _) => e.into(),
+        })
+    }
+
+    /// Frames a read of `which` returns now.
+    pub(crate) fn read_frames(&mut self, which: i32) -> Result<usize, Fail> {
+        Ok(self.motion(which)?.1)
+    }
+
     pub(crate) fn read(
-        &self,
+        &mut self,
         which: i32,
         layout: i32,
         convention: i32,
         flags: u32,
     ) -> Result<Vec<f32>, Fail> {
-        let which = match which {
-            w if w == FlameWhich::Sample as i32 => FlameWhich::Sample,
-            w if w == FlameWhich::Estimate as i32 => FlameWhich::Estimate,
-            w => return Err(invalid_arg!("unknown `which` {w} (0 sample, 1 estimate)").into()),
-        };
-        let features = match which {
-            FlameWhich::Sample => self.session.sample().ok_or_else(|| {
-                Error::WrongState("no sample yet: the first step draws x_T".into())
-            })?,
-            FlameWhich::Estimate => self.session.x0_estimate().ok_or_else(|| {
-                Error::WrongState("no clean-motion estimate yet: run a step first".into())
-            })?,
-        };
-        let model = self.session.model();
+        let model = Arc::clone(self.session.model());
+        let (features, frames) = self.motion(which)?;
         Ok(super::poses::read(
-            model,
-            features,
-            self.session.frames(),
-            layout,
-            convention,
-            flags,
+            &model, features, frames, layout, convention, flags,
         )?)
     }
 }

@@ -220,6 +220,13 @@ pub struct FlameModelInfo {
     pub joint_names: *const *const c_char,
     /// `joint_count` parent indices, -1 for the root.
     pub joint_parents: *const i32,
+    /// Nonzero when the model samples a latent that its decoder turns into motion (MoLA): the
+    /// frames a read returns are then the length the decoder decides
+    /// ([`flame_session_read_frames`]), and masks and reference motions do not apply.
+    pub latent: u32,
+    /// Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
+    /// width of [`flame_session_set_initial_noise`]'s rows.
+    pub sample_dim: u32,
 }
 
 /// What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
@@ -693,7 +700,8 @@ pub unsafe extern "C" fn flame_session_prompt_info(
     })
 }
 
-/// Sets the initial noise x_T explicitly: `len` = frames × feature_dim values, frame-major.
+/// Sets the initial noise x_T explicitly: `len` = rows × dim values, frame-major, as
+/// [`flame_session_sample_shape`] says (frames × feature_dim, or a latent model's latent).
 /// Only before the first step (or after a reset).
 ///
 /// # Safety
@@ -978,6 +986,11 @@ pub unsafe extern "C" fn flame_session_progress(
 /// [`FlameLayout`], converted to a [`FlameConvention`], with post-processing `flags`
 /// ([`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]).
 ///
+/// The values are `frames` frames of the layout's per-frame size. `frames` is the session's
+/// frame count, except for latent models (`FlameModelInfo.latent` nonzero): their decoder
+/// decides the valid length, which [`flame_session_read_frames`] reports (the same for every
+/// layout until the next step).
+///
 /// With `out` NULL, `*out_len` receives the required number of floats and nothing else is
 /// done. Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len`
 /// set to the required length) and `*out_len` receives the number written. Reading the sample
@@ -1018,6 +1031,56 @@ pub unsafe extern "C" fn flame_session_read(
             }
             std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
             out_len.write(values.len());
+            Ok(())
+        })
+    })
+}
+
+/// The shape of the sampled space: `*out_rows` rows of `*out_dim` values (the session's frames
+/// × feature_dim, or for a latent model the latent's rows × channels). Either pointer may be
+/// NULL.
+///
+/// # Safety
+/// `session` is a live session; non-NULL pointers point to writable `uint32_t`s.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_sample_shape(
+    session: *const FlameSession,
+    out_rows: *mut u32,
+    out_dim: *mut u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let (rows, dim) =
+            s.with(|st| Ok((st.session.sample_rows(), st.session.model().sample_dim())))?;
+        if !out_rows.is_null() {
+            out_rows.write(rows as u32);
+        }
+        if !out_dim.is_null() {
+            out_dim.write(dim as u32);
+        }
+        Ok(())
+    })
+}
+
+/// How many frames [`flame_session_read`] of `which` returns now: the session's frames, or a
+/// latent model's valid length (decoded on first read after each step).
+///
+/// # Safety
+/// `session` is a live session; `out_frames` points to a writable `uint32_t`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_read_frames(
+    session: *const FlameSession,
+    which: i32,
+    out_frames: *mut u32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if out_frames.is_null() {
+            return Err(invalid_arg!("`out_frames` is NULL").into());
+        }
+        s.with(|st| {
+            let frames = st.read_frames(which)?;
+            out_frames.write(u32::try_from(frames).unwrap_or(u32::MAX));
             Ok(())
         })
     })

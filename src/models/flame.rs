@@ -7,17 +7,198 @@
 //! The decoder is post-LN with ReLU feed-forward and no final norm; the output splits into the
 //! predicted noise ε and the variance interpolation value v.
 
+use std::any::Any;
+use std::sync::Arc;
+
+use serde::Deserialize;
+
 use crate::checkpoint::{ModelFile, Tensor};
-use crate::config::FlameConfig;
-use crate::error::{invalid_arg, Result};
+use crate::config::validate::{
+    check_eps, check_layers, expect_flow, expect_shape, expect_text, heads_divide, in_range,
+    one_of, table_fits,
+};
+use crate::config::{
+    section, Config, MAX_FEEDFORWARD, MAX_LAYERS, MAX_MOTION_POSITIONS, MAX_WIDTH,
+};
+use crate::edit::EditMethod;
+use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 use crate::text::TextOutput;
 
 use super::layers::{activation, sized, Attention, CrossAttention, LayerNorm, Linear};
-use super::Cancel;
+use super::{condition_views, Cancel, Condition, Denoiser, Family, FamilyConfig, TextModel};
+
+/// The family's entry in [`super::FAMILIES`].
+pub const FAMILY: Family = Family {
+    architectures: &["flame"],
+    parse: |arch, v| Ok(Arc::new(section::<FlameConfig>(v, arch, "denoiser")?)),
+};
 
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;
+
+/// FLAME's `Text2MotionTransformer` sizes (REFERENCE 1.1): the `denoiser` section.
+#[derive(Clone, Debug, Deserialize)]
+pub struct FlameConfig {
+    pub motion_dim: usize,
+    pub model_channels: usize,
+    pub num_layers: usize,
+    pub num_heads: usize,
+    pub dim_feedforward: usize,
+    pub max_motion_length: usize,
+    #[serde(default = "relu")]
+    pub activation: String,
+    #[serde(default = "ln_eps_torch")]
+    pub layer_norm_eps: f32,
+}
+
+fn relu() -> String {
+    "relu".into()
+}
+
+fn ln_eps_torch() -> f32 {
+    1e-5
+}
+
+impl FlameConfig {
+    /// Bounds and names, without the file.
+    pub fn check(&self) -> Result<()> {
+        in_range("denoiser.motion_dim", self.motion_dim, 1, MAX_WIDTH)?;
+        in_range("denoiser.model_channels", self.model_channels, 2, MAX_WIDTH)?;
+        in_range("denoiser.num_layers", self.num_layers, 1, MAX_LAYERS)?;
+        if !self.model_channels.is_multiple_of(2) {
+            return Err(bad_file!(
+                "config denoiser.model_channels {} is not even",
+                self.model_channels
+            ));
+        }
+        heads_divide(
+            "denoiser.model_channels",
+            self.model_channels,
+            "denoiser.num_heads",
+            self.num_heads,
+        )?;
+        in_range(
+            "denoiser.dim_feedforward",
+            self.dim_feedforward,
+            1,
+            MAX_FEEDFORWARD,
+        )?;
+        in_range(
+            "denoiser.max_motion_length",
+            self.max_motion_length,
+            2,
+            MAX_MOTION_POSITIONS,
+        )?;
+        table_fits(
+            "denoiser.max_motion_length + 3",
+            self.max_motion_length + 3,
+            self.model_channels,
+        )?;
+        one_of("denoiser.activation", &self.activation, &["relu", "gelu"])?;
+        check_eps("denoiser.layer_norm_eps", self.layer_norm_eps)
+    }
+
+    /// [`FlameConfig::check`], then the sizes against the file's tensors (no prefix).
+    pub fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.check()?;
+        let (c, d) = (self.model_channels, self.motion_dim);
+        expect_shape(
+            file,
+            "motion_length_emb.weight",
+            &[self.max_motion_length, c],
+            "denoiser.max_motion_length, model_channels",
+        )?;
+        expect_shape(
+            file,
+            "input_projection.weight",
+            &[c, d],
+            "denoiser.model_channels, motion_dim",
+        )?;
+        check_layers(
+            file,
+            "denoiser.num_layers",
+            self.num_layers,
+            "tf_decoder.layers.",
+        )?;
+        expect_shape(
+            file,
+            "tf_decoder.layers.0.linear1.weight",
+            &[self.dim_feedforward, c],
+            "denoiser.dim_feedforward, model_channels",
+        )?;
+        expect_shape(
+            file,
+            "last_projection.weight",
+            &[2 * d, c],
+            "denoiser.motion_dim, model_channels",
+        )
+    }
+
+    /// The largest frame count a session may ask for.
+    pub fn max_frames(&self) -> usize {
+        self.max_motion_length - 1
+    }
+}
+
+impl FamilyConfig for FlameConfig {
+    fn architecture(&self) -> &str {
+        "flame"
+    }
+
+    fn check(&self, cfg: &Config) -> Result<()> {
+        FlameConfig::check(self)?;
+        expect_text(cfg, &["bert", "roberta"])?;
+        expect_flow(cfg, false)?;
+        if cfg.diffusion.uncond == "zeros" {
+            return Err(bad_file!(
+                "config diffusion.uncond `zeros`: FLAME models need `empty_prompt`"
+            ));
+        }
+        Ok(())
+    }
+
+    fn validate(&self, file: &ModelFile) -> Result<()> {
+        FlameConfig::validate(self, file)
+    }
+
+    fn feature_dim(&self) -> usize {
+        self.motion_dim
+    }
+
+    fn max_frames(&self) -> usize {
+        FlameConfig::max_frames(self)
+    }
+
+    fn summary(&self) -> String {
+        format!(
+            "FLAME transformer decoder, {} layers x {} channels, {} heads, ff {}",
+            self.num_layers, self.model_channels, self.num_heads, self.dim_feedforward
+        )
+    }
+
+    fn load(
+        &self,
+        file: &ModelFile,
+        _cfg: &Config,
+        text: &TextModel,
+        ty: WeightType,
+    ) -> Result<Box<dyn Denoiser>> {
+        let TextModel::Bert(t) = text else {
+            return Err(bad_file!("FLAME models need a BERT-family text encoder"));
+        };
+        Ok(Box::new(FlameDenoiser::load_with(
+            file,
+            self,
+            t.hidden_size(),
+            ty,
+        )?))
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
 
 /// One `nn.TransformerDecoderLayer` (post-LN).
 struct DecoderLayer {
@@ -424,5 +605,62 @@ impl FlameDenoiser {
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
         layer.norm3.add_norm(&mut ws.x, proj, eps);
+    }
+}
+
+impl Denoiser for FlameDenoiser {
+    fn sample_dim(&self) -> usize {
+        self.motion_dim()
+    }
+
+    fn output_dim(&self) -> usize {
+        FlameDenoiser::output_dim(self)
+    }
+
+    fn encode_prompt(&self, text: &TextModel, prompt: &str) -> Result<Condition> {
+        let TextModel::Bert(t) = text else {
+            return Err(invalid_arg!("FLAME models need a BERT-family text encoder"));
+        };
+        Ok(Condition::new(self.condition(&t.encode(prompt)?)?))
+    }
+
+    fn unconditional(&self, text: &TextModel, _uncond: &str) -> Result<Condition> {
+        // The configuration's check allows only `empty_prompt`.
+        self.encode_prompt(text, "")
+    }
+
+    fn check_condition(&self, cond: &Condition) -> Result<()> {
+        match cond.get::<FlameCondition>() {
+            Some(_) => Ok(()),
+            None => Err(invalid_arg!(
+                "the condition was made for another architecture"
+            )),
+        }
+    }
+
+    fn forward(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut super::Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let (views, n) = condition_views::<FlameCondition>(conds)?;
+        self.forward_cancellable(x, rows, t, &views[..n], out, ws.get(), cancel)
+    }
+
+    fn default_edit_method(&self) -> EditMethod {
+        EditMethod::NoisedReference
+    }
+
+    fn linear_weight_bytes(&self) -> usize {
+        FlameDenoiser::linear_weight_bytes(self)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
     }
 }

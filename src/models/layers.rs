@@ -26,6 +26,31 @@ impl Linear {
         Ok(layer)
     }
 
+    /// A `Linear(bias=False)`: weight `[out, in]` only.
+    pub(crate) fn load_no_bias(
+        file: &ModelFile,
+        name: &str,
+        n_in: usize,
+        n_out: usize,
+        ty: WeightType,
+    ) -> Result<Linear> {
+        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
+        let layer = Linear(PackedLinear::new(w.data(), None, n_in, n_out, ty));
+        file.release(&format!("{name}.weight"));
+        Ok(layer)
+    }
+
+    /// A layer from a weight `[n_out, n_in]` already in memory.
+    pub(crate) fn from_weight(
+        weight: &[f32],
+        bias: Option<&[f32]>,
+        n_in: usize,
+        n_out: usize,
+        ty: WeightType,
+    ) -> Linear {
+        Linear(PackedLinear::new(weight, bias, n_in, n_out, ty))
+    }
+
     /// Rows `rows` of a `[n, n_in]` weight and its bias, as one layer.
     fn rows(
         w: &Tensor,
@@ -165,6 +190,95 @@ impl CrossAttention {
     }
 }
 
+/// A PyTorch `Conv1d` with "same" padding (`dilation · (k − 1) / 2` on each side, k odd) over
+/// frame-major `[frames, in]` rows: gathered into `[frames, k · in]` rows (the k taps side by
+/// side, zeros past either end) and multiplied as one linear layer.
+pub(crate) struct Conv1d {
+    linear: Linear,
+    n_in: usize,
+    n_out: usize,
+    kernel: usize,
+    dilation: usize,
+}
+
+impl Conv1d {
+    /// Reads `{name}.weight` `[out, in, k]` and `{name}.bias` `[out]`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn load(
+        file: &ModelFile,
+        name: &str,
+        n_in: usize,
+        n_out: usize,
+        kernel: usize,
+        dilation: usize,
+        bias: bool,
+        ty: WeightType,
+    ) -> Result<Conv1d> {
+        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in, kernel])?;
+        let b = if bias {
+            Some(file.tensor(&format!("{name}.bias"), &[n_out])?)
+        } else {
+            None
+        };
+        // [out, in, k] → [out, k, in]: tap j of input channel i at column j · in + i.
+        let src = w.data();
+        let mut packed = vec![0.0f32; n_out * kernel * n_in];
+        for o in 0..n_out {
+            for i in 0..n_in {
+                for j in 0..kernel {
+                    packed[(o * kernel + j) * n_in + i] = src[(o * n_in + i) * kernel + j];
+                }
+            }
+        }
+        file.release(&format!("{name}.weight"));
+        Ok(Conv1d {
+            linear: Linear::from_weight(
+                &packed,
+                b.as_ref().map(|b| b.data()),
+                kernel * n_in,
+                n_out,
+                ty,
+            ),
+            n_in,
+            n_out,
+            kernel,
+            dilation,
+        })
+    }
+
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.linear.weight_bytes()
+    }
+
+    /// `y[frames, out] = act(conv(x[frames, in]))`; `cols` is scratch.
+    pub(crate) fn forward(
+        &self,
+        x: &[f32],
+        frames: usize,
+        y: &mut Vec<f32>,
+        cols: &mut Vec<f32>,
+        act: Activation,
+    ) {
+        let (n, k) = (self.n_in, self.kernel);
+        let half = (k - 1) / 2 * self.dilation;
+        let y = sized(y, frames * self.n_out);
+        if k == 1 {
+            self.linear.forward_act(x, frames, y, act);
+            return;
+        }
+        let c = sized(cols, frames * k * n);
+        for (t, row) in c.chunks_exact_mut(k * n).enumerate() {
+            for (j, tap) in row.chunks_exact_mut(n).enumerate() {
+                match (t + j * self.dilation).checked_sub(half) {
+                    Some(s) if s < frames => tap.copy_from_slice(&x[s * n..(s + 1) * n]),
+                    _ => tap.fill(0.0),
+                }
+            }
+        }
+        self.linear.forward_act(c, frames, y, act);
+    }
+}
+
 pub(crate) struct LayerNorm {
     pub(crate) weight: Tensor,
     pub(crate) bias: Tensor,
@@ -200,4 +314,73 @@ pub(crate) fn activation(name: &str) -> Activation {
 pub(crate) fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
     v.resize(n, 0.0);
     &mut v[..n]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use safetensors::tensor::{Dtype, TensorView};
+
+    fn file(tensors: &[(&str, Vec<usize>, Vec<f32>)]) -> ModelFile {
+        let bytes: Vec<Vec<u8>> = tensors
+            .iter()
+            .map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect())
+            .collect();
+        let views: Vec<(String, TensorView)> = tensors
+            .iter()
+            .zip(&bytes)
+            .map(|((n, s, _), b)| {
+                (
+                    n.to_string(),
+                    TensorView::new(Dtype::F32, s.clone(), b).unwrap(),
+                )
+            })
+            .collect();
+        ModelFile::from_bytes(&safetensors::serialize(views, &None).unwrap()).unwrap()
+    }
+
+    /// Values that differ everywhere, none zero.
+    fn values(n: usize, seed: f32) -> Vec<f32> {
+        (0..n)
+            .map(|i| ((i as f32 + seed) * 0.7311).sin() + 0.01)
+            .collect()
+    }
+
+    #[test]
+    fn conv1d_matches_the_definition() {
+        // PyTorch Conv1d(in, out, k, dilation=d, padding=d·(k−1)/2) on [in, T], written out.
+        let (n_in, n_out, frames) = (3, 5, 11);
+        for (k, d) in [(3, 1), (3, 4), (3, 9), (1, 1), (5, 2)] {
+            let w = values(n_out * n_in * k, 1.0);
+            let b = values(n_out, 2.0);
+            let f = file(&[
+                ("c.weight", vec![n_out, n_in, k], w.clone()),
+                ("c.bias", vec![n_out], b.clone()),
+            ]);
+            let conv = Conv1d::load(&f, "c", n_in, n_out, k, d, true, WeightType::F32).unwrap();
+            let x = values(frames * n_in, 3.0); // frame-major [T, in]
+            let (mut y, mut cols) = (Vec::new(), Vec::new());
+            conv.forward(&x, frames, &mut y, &mut cols, Activation::None);
+            let pad = (d * (k - 1) / 2) as isize;
+            for t in 0..frames {
+                for o in 0..n_out {
+                    let mut want = b[o] as f64;
+                    for i in 0..n_in {
+                        for j in 0..k {
+                            let s = t as isize + (j * d) as isize - pad;
+                            if (0..frames as isize).contains(&s) {
+                                want +=
+                                    (w[(o * n_in + i) * k + j] * x[s as usize * n_in + i]) as f64;
+                            }
+                        }
+                    }
+                    let got = y[t * n_out + o] as f64;
+                    assert!(
+                        (got - want).abs() < 1e-5,
+                        "k {k} d {d} t {t} o {o}: {got} vs {want}"
+                    );
+                }
+            }
+        }
+    }
 }

@@ -10,14 +10,142 @@
 //! Layout: libflame is frame-major, `[frames, njoints]` per batch row; the official tensors are
 //! `[B, njoints, 1, frames]`.
 
+use std::any::Any;
+use std::sync::Arc;
+
 use serde::Deserialize;
 
 use crate::checkpoint::ModelFile;
-use crate::error::{invalid_arg, Result};
+use crate::config::validate::{
+    check_layers, expect_flow, expect_shape, expect_text, heads_divide, in_range, is_flow, one_of,
+    refuse_learned_range, table_fits,
+};
+use crate::config::{
+    section, Config, MAX_FEEDFORWARD, MAX_LAYERS, MAX_MOTION_POSITIONS, MAX_WIDTH,
+};
+use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, AttentionScratch, WeightType};
 
 use super::layers::{activation, sized, Attention, LayerNorm, Linear};
-use super::Cancel;
+use super::{
+    check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
+    FamilyConfig, TextModel, TextVector,
+};
+
+/// The family's entry in [`super::FAMILIES`]: MDM (x0 or ε prediction) and Motion Flow
+/// Matching (velocity), one network.
+pub const FAMILY: Family = Family {
+    architectures: &["mdm", "motionfm"],
+    parse: |arch, v| {
+        Ok(Arc::new(MdmFamily {
+            flow_matching: arch == "motionfm",
+            denoiser: section(v, arch, "denoiser")?,
+        }))
+    },
+};
+
+/// An MDM-family file's configuration: the `denoiser` section and which of the two models.
+#[derive(Clone, Debug)]
+pub struct MdmFamily {
+    /// Motion Flow Matching (`motionfm`): the time input is flow time in [0, 1].
+    pub flow_matching: bool,
+    pub denoiser: MdmConfig,
+}
+
+impl FamilyConfig for MdmFamily {
+    fn architecture(&self) -> &str {
+        if self.flow_matching {
+            "motionfm"
+        } else {
+            "mdm"
+        }
+    }
+
+    fn check(&self, cfg: &Config) -> Result<()> {
+        let d = &self.denoiser;
+        d.check()?;
+        expect_text(cfg, &["clip"])?;
+        if let crate::config::TextConfig::Clip(c) = &cfg.text_encoder {
+            if c.clip.projection_dim != d.clip_dim {
+                return Err(bad_file!(
+                    "config text_encoder.projection_dim {} differs from denoiser.clip_dim {}",
+                    c.clip.projection_dim,
+                    d.clip_dim
+                ));
+            }
+        }
+        expect_flow(cfg, self.flow_matching)?;
+        refuse_learned_range(cfg)?;
+        // The time input selects a row of the positional table: step t (MDM) or
+        // trunc(1000 t) for t in [0, 1] (Motion Flow Matching).
+        let rows = if is_flow(&cfg.diffusion.parameterization) {
+            1001
+        } else {
+            cfg.diffusion.num_timesteps
+        };
+        if d.max_len < rows {
+            return Err(bad_file!(
+                "config denoiser.max_len {} has no row for every time input ({rows} needed)",
+                d.max_len
+            ));
+        }
+        Ok(())
+    }
+
+    fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.denoiser.validate(file)
+    }
+
+    fn feature_dim(&self) -> usize {
+        self.denoiser.njoints
+    }
+
+    fn max_frames(&self) -> usize {
+        self.denoiser.max_frames()
+    }
+
+    fn summary(&self) -> String {
+        let d = &self.denoiser;
+        format!(
+            "MDM trans_enc, {} layers x {}, {} heads, ff {}{}",
+            d.layers,
+            d.latent_dim,
+            d.heads,
+            d.ff_size,
+            if self.flow_matching {
+                " (velocity: Motion Flow Matching)"
+            } else {
+                ""
+            }
+        )
+    }
+
+    fn load(
+        &self,
+        file: &ModelFile,
+        _cfg: &Config,
+        text: &TextModel,
+        ty: WeightType,
+    ) -> Result<Box<dyn Denoiser>> {
+        if text.clip_projection_dim() != self.denoiser.clip_dim {
+            return Err(bad_file!(
+                "the CLIP projection has {} values, denoiser.clip_dim is {}",
+                text.clip_projection_dim(),
+                self.denoiser.clip_dim
+            ));
+        }
+        let m = MdmDenoiser::load_with(file, &self.denoiser, ty)?;
+        Ok(Box::new(if self.flow_matching {
+            m.with_time_index(TimeIndex::FlowMatching)
+        } else {
+            m
+        }))
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        &self.denoiser
+    }
+}
 
 /// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
 const LAYER_NORM_EPS: f32 = 1e-5;
@@ -53,6 +181,73 @@ fn clip_dim() -> usize {
 }
 fn max_len() -> usize {
     5000
+}
+
+impl MdmConfig {
+    /// Bounds and names, without the file.
+    pub fn check(&self) -> Result<()> {
+        in_range("denoiser.njoints", self.njoints, 1, MAX_WIDTH)?;
+        in_range("denoiser.latent_dim", self.latent_dim, 2, MAX_WIDTH)?;
+        in_range("denoiser.layers", self.layers, 1, MAX_LAYERS)?;
+        if !self.latent_dim.is_multiple_of(2) {
+            return Err(bad_file!(
+                "config denoiser.latent_dim {} is not even",
+                self.latent_dim
+            ));
+        }
+        heads_divide(
+            "denoiser.latent_dim",
+            self.latent_dim,
+            "denoiser.heads",
+            self.heads,
+        )?;
+        in_range("denoiser.ff_size", self.ff_size, 1, MAX_FEEDFORWARD)?;
+        in_range("denoiser.clip_dim", self.clip_dim, 1, MAX_WIDTH)?;
+        in_range("denoiser.max_len", self.max_len, 2, MAX_MOTION_POSITIONS)?;
+        table_fits("denoiser.max_len", self.max_len, self.latent_dim)?;
+        one_of("denoiser.activation", &self.activation, &["gelu", "relu"])
+    }
+
+    /// [`MdmConfig::check`], then the sizes against the file's tensors (no prefix).
+    pub fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.check()?;
+        let c = self.latent_dim;
+        expect_shape(
+            file,
+            "embed_timestep.time_embed.0.weight",
+            &[c, c],
+            "denoiser.latent_dim",
+        )?;
+        expect_shape(
+            file,
+            "embed_text.weight",
+            &[c, self.clip_dim],
+            "denoiser.latent_dim, clip_dim",
+        )?;
+        expect_shape(
+            file,
+            "input_process.poseEmbedding.weight",
+            &[c, self.njoints],
+            "denoiser.latent_dim, njoints",
+        )?;
+        check_layers(
+            file,
+            "denoiser.layers",
+            self.layers,
+            "seqTransEncoder.layers.",
+        )?;
+        expect_shape(
+            file,
+            "seqTransEncoder.layers.0.linear1.weight",
+            &[self.ff_size, c],
+            "denoiser.ff_size, latent_dim",
+        )
+    }
+
+    /// The largest frame count a session may ask for (one row of `pe` is the condition's).
+    pub fn max_frames(&self) -> usize {
+        self.max_len - 1
+    }
 }
 
 /// How the `t` passed to [`MdmDenoiser::forward`] becomes a row of the positional table.
@@ -364,6 +559,50 @@ impl MdmDenoiser {
         let proj = sized(&mut ws.proj, rows * c);
         layer.linear2.forward(hidden, rows, proj);
         layer.norm2.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
+    }
+}
+
+impl Denoiser for MdmDenoiser {
+    fn sample_dim(&self) -> usize {
+        self.motion_dim()
+    }
+
+    fn encode_prompt(&self, text: &TextModel, prompt: &str) -> Result<Condition> {
+        Ok(Condition::text_vector(text.clip_vector(prompt)?))
+    }
+
+    fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition> {
+        text_vector_uncond(text, uncond, self.cond_dim())
+    }
+
+    fn check_condition(&self, cond: &Condition) -> Result<()> {
+        check_text_vector(cond, self.cond_dim())
+    }
+
+    fn forward(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut super::Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let (views, n) = condition_views::<TextVector>(conds)?;
+        let mut texts = [&[][..]; super::MAX_BATCH];
+        for (t, v) in texts.iter_mut().zip(&views[..n]) {
+            *t = &v.0[..];
+        }
+        self.forward_cancellable(x, rows, t, &texts[..n], out, ws.get(), cancel)
+    }
+
+    fn linear_weight_bytes(&self) -> usize {
+        MdmDenoiser::linear_weight_bytes(self)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
     }
 }
 

@@ -1,24 +1,57 @@
-//! Denoiser networks, one file per architecture named after its paper, and [`Model`]: a loaded
+//! Model families, one file per architecture named after its paper, and [`Model`]: a loaded
 //! model file (configuration, text encoder, denoiser), immutable and shared by any number of
 //! sessions and threads.
+//!
+//! # Adding a family
+//!
+//! A family is one file here plus its converter sub-command (`tools/convert.py`); the session,
+//! the CLI, the C ABI and the bindings hold no family-specific code. The file provides:
+//!
+//! - a [`FamilyConfig`]: its sections of the model file's configuration (`denoiser`, and any of
+//!   its own such as a VAE's), parsed by the function its [`Family`] entry names, checked
+//!   against bounds and the other sections ([`FamilyConfig::check`]) and against the file's
+//!   tensor shapes ([`FamilyConfig::validate`]) before anything is allocated, and able to build
+//!   the network ([`FamilyConfig::load`]);
+//! - a [`Denoiser`]: what the sampler moves and what the network predicts —
+//!   - the sampled space: `sample_rows(frames) × sample_dim()` values (the motion's features,
+//!     or a latent);
+//!   - how a prompt becomes a [`Condition`] (an opaque value the family downcasts) and what the
+//!     unconditional input is;
+//!   - the guidance rule ([`Denoiser::guidance`]: plain classifier-free guidance by default; a
+//!     family may weight it by time or skip the unconditional pass);
+//!   - the batched forward pass, checking the cancel flag between layers;
+//!   - for latent families, a [`MotionDecoder`] turning the sample into motion features and
+//!     saying how many frames are valid (the model may decide the length).
+//!
+//! and one line in [`FAMILIES`]. The noise schedule and the samplers are shared
+//! ([`crate::diffusion`]), configured by the file's `diffusion` section; text encoders are
+//! shared too ([`TextModel`]).
 
 pub mod flame;
 mod layers;
 pub mod mdm;
+pub mod mola;
 
+use std::any::Any;
+use std::fmt;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use crate::checkpoint::{ModelFile, StoredDtype, Tensor, TOKENIZER_KEY};
-use crate::config::{Config, DenoiserConfig, TextConfig};
+use crate::config::{Config, TextConfig};
+use crate::edit::EditMethod;
 use crate::error::{bad_file, invalid_arg, Error, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
 use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
 
 pub use crate::kernels::WeightType;
-pub use flame::{FlameCondition, FlameDenoiser};
-pub use mdm::{MdmDenoiser, TimeIndex};
+pub use flame::{FlameCondition, FlameConfig, FlameDenoiser};
+pub use mdm::{MdmConfig, MdmDenoiser, TimeIndex};
+pub use mola::{MolaDenoiser, MolaFamily};
+
+/// Every family this build runs: the `architecture` values each reads, and its parser.
+pub const FAMILIES: &[Family] = &[flame::FAMILY, mdm::FAMILY, mola::FAMILY];
 
 /// Most rows one forward pass batches (conditional + unconditional rows of guidance, with room
 /// to spare).
@@ -27,6 +60,220 @@ pub const MAX_BATCH: usize = 4;
 /// Prefix of the text encoder's tensors inside a libflame file.
 pub const TEXT_PREFIX: &str = "text.";
 
+/// A model family's entry in [`FAMILIES`].
+pub struct Family {
+    /// The `architecture` values of the files this family reads.
+    pub architectures: &'static [&'static str],
+    /// Parses the family's sections out of the whole configuration JSON (`architecture` is one
+    /// of [`Family::architectures`]); bounds are checked later by [`FamilyConfig::check`].
+    pub parse: fn(architecture: &str, config: &serde_json::Value) -> Result<Arc<dyn FamilyConfig>>,
+}
+
+impl Family {
+    /// The family that reads `architecture`.
+    pub fn find(architecture: &str) -> Option<&'static Family> {
+        FAMILIES
+            .iter()
+            .find(|f| f.architectures.contains(&architecture))
+    }
+
+    /// Every `architecture` value this build reads.
+    pub fn all_architectures() -> Vec<&'static str> {
+        FAMILIES
+            .iter()
+            .flat_map(|f| f.architectures.iter().copied())
+            .collect()
+    }
+}
+
+/// A family's configuration, parsed; see the module comment.
+pub trait FamilyConfig: fmt::Debug + Send + Sync {
+    /// The file's `architecture` value.
+    fn architecture(&self) -> &str;
+    /// Bounds and names of the family's sections, and the other sections as this family needs
+    /// them (text encoder kind, parameterization, unconditional input, …). No tensor is read.
+    fn check(&self, cfg: &Config) -> Result<()>;
+    /// Every size against the file's tensor shapes (after [`FamilyConfig::check`]).
+    fn validate(&self, file: &ModelFile) -> Result<()>;
+    /// Feature channels per frame of the motion the model makes (`motion.format` must match).
+    fn feature_dim(&self) -> usize;
+    /// The largest frame count a session may ask for.
+    fn max_frames(&self) -> usize;
+    /// One line describing the denoiser's sizes (`flame info`).
+    fn summary(&self) -> String;
+    /// Builds the network from the file (after validation), with linear weights held as `ty`.
+    fn load(
+        &self,
+        file: &ModelFile,
+        cfg: &Config,
+        text: &TextModel,
+        ty: WeightType,
+    ) -> Result<Box<dyn Denoiser>>;
+    /// The concrete configuration, for code that knows the family (tests, benchmarks).
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// How a step combines the conditional and unconditional branches.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Guidance {
+    /// The conditional branch alone: one network row per evaluation.
+    Conditional,
+    /// `uncond + w · (cond − uncond)`: two rows.
+    Mix(f32),
+}
+
+/// What the session needs from a family's network; see the module comment.
+pub trait Denoiser: Send + Sync {
+    /// Channels per row of the sampled space.
+    fn sample_dim(&self) -> usize;
+    /// Rows of the sampled space for a generation of `frames` motion frames.
+    fn sample_rows(&self, frames: usize) -> usize {
+        frames
+    }
+    /// Channels per row of the network's output (more than [`Denoiser::sample_dim`] when the
+    /// network also predicts variance values, which follow the prediction in each row).
+    fn output_dim(&self) -> usize {
+        self.sample_dim()
+    }
+    /// Encodes a prompt (never blank: a blank prompt is the unconditional input).
+    fn encode_prompt(&self, text: &TextModel, prompt: &str) -> Result<Condition>;
+    /// The unconditional input of guidance, as `diffusion.uncond` names it (`empty_prompt` or
+    /// `zeros`; the family's check has refused what it cannot use).
+    fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition>;
+    /// Whether `cond` was made for this network (right type and sizes).
+    fn check_condition(&self, cond: &Condition) -> Result<()>;
+    /// The guidance rule at scale `scale` (in [0, 100]) and network time `t`. By default
+    /// classifier-free guidance: scale 1 is the conditional branch alone.
+    fn guidance(&self, scale: f32, _t: f32) -> Guidance {
+        if scale == 1.0 {
+            Guidance::Conditional
+        } else {
+            Guidance::Mix(scale)
+        }
+    }
+    /// One batched forward pass: `x` is `[batch, rows, sample_dim]`, `out` is
+    /// `[batch, rows, output_dim]`, row `b` conditioned on `conds[b]` (1..=[`MAX_BATCH`]
+    /// conditions). `t` is the network's time input. `cancel` is checked before every layer.
+    #[allow(clippy::too_many_arguments)]
+    fn forward(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()>;
+    /// For latent families: what turns the sample into motion features. `None`: the sample
+    /// is the motion.
+    fn decoder(&self) -> Option<&dyn MotionDecoder> {
+        None
+    }
+    /// What [`EditMethod::Auto`] means for this family's diffusion models (flow models always
+    /// rewrite the trajectory).
+    fn default_edit_method(&self) -> EditMethod {
+        EditMethod::ReplaceX0
+    }
+    /// Bytes of the packed linear weights (the part [`WeightType`] changes).
+    fn linear_weight_bytes(&self) -> usize;
+    /// The concrete network, for code that knows the family (tests, benchmarks).
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// Turns a latent family's sample into motion features.
+pub trait MotionDecoder: Send + Sync {
+    /// Decodes `sample` (`[rows, sample_dim]`, of a generation asked for `frames` frames) into
+    /// `out` (`[valid, feature_dim]`, only the valid frames) and returns `valid`.
+    fn decode(
+        &self,
+        sample: &[f32],
+        rows: usize,
+        frames: usize,
+        out: &mut Vec<f32>,
+        ws: &mut Workspace,
+    ) -> Result<usize>;
+    /// One line describing the decoder (`flame info`).
+    fn summary(&self) -> String;
+}
+
+/// What a denoiser is conditioned on, derived from a prompt once and reused at every step: a
+/// value of the family's own type, cheap to clone.
+#[derive(Clone)]
+pub struct Condition(Arc<dyn Any + Send + Sync>);
+
+/// A single text vector (MDM, Motion Flow Matching: CLIP's projected end-of-text features).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TextVector(pub Vec<f32>);
+
+impl Condition {
+    /// Wraps a family's condition value.
+    pub fn new<T: Any + Send + Sync>(value: T) -> Condition {
+        Condition(Arc::new(value))
+    }
+
+    /// A text vector (for families conditioned on one; see [`TextVector`]).
+    pub fn text_vector(v: Vec<f32>) -> Condition {
+        Condition::new(TextVector(v))
+    }
+
+    /// The family's value, when it is a `T`.
+    pub fn get<T: Any>(&self) -> Option<&T> {
+        self.0.downcast_ref()
+    }
+
+    /// The text vector, for conditions made by [`Condition::text_vector`].
+    pub fn as_text_vector(&self) -> Option<&[f32]> {
+        self.get::<TextVector>().map(|v| &v.0[..])
+    }
+}
+
+impl fmt::Debug for Condition {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.as_text_vector() {
+            Some(v) => write!(f, "Condition(text vector of {})", v.len()),
+            None => f.write_str("Condition(..)"),
+        }
+    }
+}
+
+/// The family's views of a batch of conditions, on the stack (a step allocates nothing):
+/// `Err` when one was made for another family.
+pub fn condition_views<'a, T: Any>(conds: &[&'a Condition]) -> Result<([&'a T; MAX_BATCH], usize)> {
+    let wrong = || invalid_arg!("a condition was made for another architecture");
+    if conds.is_empty() || conds.len() > MAX_BATCH {
+        return Err(invalid_arg!(
+            "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
+            conds.len()
+        ));
+    }
+    let first = conds[0].get::<T>().ok_or_else(wrong)?;
+    let mut views = [first; MAX_BATCH];
+    for (v, c) in views.iter_mut().zip(conds) {
+        *v = c.get::<T>().ok_or_else(wrong)?;
+    }
+    Ok((views, conds.len()))
+}
+
+/// Reusable buffers of a forward pass (and of a decode), so steps after the first do not
+/// allocate: the family keeps a value of its own type here.
+#[derive(Default)]
+pub struct Workspace(Option<Box<dyn Any + Send>>);
+
+impl Workspace {
+    /// The family's buffers, created on first use (and again if another family used this
+    /// workspace before).
+    pub fn get<T: Any + Send + Default>(&mut self) -> &mut T {
+        if !self.0.as_ref().is_some_and(|b| b.is::<T>()) {
+            self.0 = Some(Box::new(T::default()));
+        }
+        self.0
+            .as_mut()
+            .and_then(|b| b.downcast_mut())
+            .expect("set just above")
+    }
+}
+
 /// How a model file is loaded.
 #[derive(Clone, Debug, Default)]
 pub struct LoadOptions {
@@ -34,13 +281,6 @@ pub struct LoadOptions {
     /// (an f32 file can load as f16 or bf16; an f16 file as f32). Embeddings, norms and biases
     /// stay f32.
     pub weights: WeightType,
-}
-
-/// The denoiser of a model, by architecture.
-pub enum Denoiser {
-    Flame(FlameDenoiser),
-    /// MDM (x0 prediction) and Motion Flow Matching (velocity) share this network.
-    Mdm(MdmDenoiser),
 }
 
 /// The text encoder of a model, by kind.
@@ -54,24 +294,56 @@ pub enum TextModel {
     },
 }
 
-/// What a denoiser is conditioned on, derived from a prompt once and reused at every step.
-#[derive(Clone, Debug)]
-pub enum Condition {
-    Flame(FlameCondition),
-    /// MDM's text vector (CLIP's projection); zeros are the unconditional input.
-    Mdm(Vec<f32>),
+impl TextModel {
+    /// CLIP's projected end-of-text vector of `prompt`; an error for other encoders.
+    pub fn clip_vector(&self, prompt: &str) -> Result<Vec<f32>> {
+        match self {
+            TextModel::Clip { encoder, context } => Ok(encoder.encode(prompt, *context)?.projected),
+            TextModel::Bert(_) => Err(invalid_arg!("this model's text encoder is not CLIP")),
+        }
+    }
+
+    /// Width of [`TextModel::clip_vector`]'s vectors (0 for other encoders).
+    pub fn clip_projection_dim(&self) -> usize {
+        match self {
+            TextModel::Clip { encoder, .. } => encoder.projection_dim(),
+            TextModel::Bert(_) => 0,
+        }
+    }
+
+    fn linear_weight_bytes(&self) -> usize {
+        match self {
+            TextModel::Bert(t) => t.linear_weight_bytes(),
+            TextModel::Clip { encoder, .. } => encoder.linear_weight_bytes(),
+        }
+    }
 }
 
-/// Reusable buffers of a forward pass, so steps after the first do not allocate.
-#[derive(Default)]
-pub struct Workspace {
-    flame: flame::Workspace,
-    mdm: mdm::Workspace,
+/// The unconditional input of a family conditioned on one text vector of `dim` values.
+pub fn text_vector_uncond(text: &TextModel, uncond: &str, dim: usize) -> Result<Condition> {
+    match uncond {
+        "zeros" => Ok(Condition::text_vector(vec![0.0; dim])),
+        _ => Ok(Condition::text_vector(text.clip_vector("")?)),
+    }
 }
 
-/// A session's cancel flag as the forward passes see it: checked between transformer layers
-/// (never inside a kernel), so a cancelled step returns within about one layer's time.
-pub(crate) struct Cancel<'a> {
+/// Checks a text-vector condition of `dim` values.
+pub fn check_text_vector(cond: &Condition, dim: usize) -> Result<()> {
+    match cond.as_text_vector() {
+        Some(v) if v.len() == dim => Ok(()),
+        Some(v) => Err(invalid_arg!(
+            "text vector has {} values, the model expects {dim}",
+            v.len()
+        )),
+        None => Err(invalid_arg!(
+            "the condition was made for another architecture"
+        )),
+    }
+}
+
+/// A session's cancel flag as the forward passes see it: checked between layers (never inside
+/// a kernel), so a cancelled step returns within about one layer's time.
+pub struct Cancel<'a> {
     flag: &'a AtomicBool,
     /// Checks made so far in this step.
     checks: AtomicUsize,
@@ -90,13 +362,13 @@ impl<'a> Cancel<'a> {
     }
 
     /// A flag nobody raises: plain forward passes.
-    pub(crate) fn never() -> Cancel<'static> {
+    pub fn never() -> Cancel<'static> {
         static NEVER: AtomicBool = AtomicBool::new(false);
         Cancel::new(&NEVER, None)
     }
 
     /// `Err(Cancelled)` when the flag is raised; lowers it, so a cancel abandons one step.
-    pub(crate) fn check(&self) -> Result<()> {
+    pub fn check(&self) -> Result<()> {
         let n = self.checks.fetch_add(1, Ordering::Relaxed);
         if self.trip_at == Some(n) {
             self.flag.store(true, Ordering::SeqCst);
@@ -112,11 +384,11 @@ impl<'a> Cancel<'a> {
 pub struct Model {
     config: Config,
     text: TextModel,
-    denoiser: Denoiser,
+    denoiser: Box<dyn Denoiser>,
     dtype: Option<StoredDtype>,
     weights: WeightType,
     format: Format,
-    /// `motion.mean` / `motion.std`: what the denoiser's features are normalised with, if anything.
+    /// `motion.mean` / `motion.std`: what the model's features are normalised with, if anything.
     stats: Option<(Tensor, Tensor)>,
     /// The unconditional input of classifier-free guidance, computed once per model.
     uncond: OnceLock<Condition>,
@@ -163,48 +435,10 @@ impl Model {
                 context: c.max_length,
             },
         };
-        let denoiser = match (&config.denoiser, &text) {
-            (DenoiserConfig::Flame(d), TextModel::Bert(t)) => {
-                Denoiser::Flame(FlameDenoiser::load_with(&file, d, t.hidden_size(), ty)?)
-            }
-            (DenoiserConfig::Mdm(d), TextModel::Clip { encoder, .. }) => {
-                if encoder.projection_dim() != d.clip_dim {
-                    return Err(bad_file!(
-                        "the CLIP projection has {} values, denoiser.clip_dim is {}",
-                        encoder.projection_dim(),
-                        d.clip_dim
-                    ));
-                }
-                let m = MdmDenoiser::load_with(&file, d, ty)?;
-                Denoiser::Mdm(if config.architecture == "motionfm" {
-                    m.with_time_index(TimeIndex::FlowMatching)
-                } else {
-                    m
-                })
-            }
-            _ => {
-                return Err(bad_file!(
-                    "architecture `{}` cannot use a `{}` text encoder",
-                    config.architecture,
-                    config.text_encoder.kind()
-                ))
-            }
-        };
-        let dim = match &denoiser {
-            Denoiser::Flame(f) => f.motion_dim(),
-            Denoiser::Mdm(m) => m.motion_dim(),
-        };
-        let format: Format = config
-            .motion
-            .format
-            .parse()
-            .map_err(|_| bad_file!("unknown motion.format `{}`", config.motion.format))?;
-        if format.feature_dim() != dim {
-            return Err(bad_file!(
-                "motion.format `{format}` has {} features per frame, the denoiser {dim}",
-                format.feature_dim()
-            ));
-        }
+        let denoiser = config.denoiser.load(&file, &config, &text, ty)?;
+        // The configuration's check has matched the format to the family's features.
+        let format: Format = config.motion.format.parse()?;
+        let dim = format.feature_dim();
         let stats = if file.contains("motion.mean") || format.is_normalized() {
             Some((
                 file.tensor("motion.mean", &[dim])?,
@@ -242,11 +476,11 @@ impl Model {
         }
     }
 
-    pub fn denoiser(&self) -> &Denoiser {
-        &self.denoiser
+    pub fn denoiser(&self) -> &dyn Denoiser {
+        &*self.denoiser
     }
 
-    /// The motion format of the denoiser's features.
+    /// The motion format of the model's features.
     pub fn motion_format(&self) -> Format {
         self.format
     }
@@ -276,51 +510,43 @@ impl Model {
 
     /// Bytes of the denoiser's and text encoder's packed linear weights.
     pub fn linear_weight_bytes(&self) -> usize {
-        let text = match &self.text {
-            TextModel::Bert(t) => t.linear_weight_bytes(),
-            TextModel::Clip { encoder, .. } => encoder.linear_weight_bytes(),
-        };
-        text + match &self.denoiser {
-            Denoiser::Flame(f) => f.linear_weight_bytes(),
-            Denoiser::Mdm(m) => m.linear_weight_bytes(),
-        }
+        self.text.linear_weight_bytes() + self.denoiser.linear_weight_bytes()
     }
 
-    /// Feature channels per frame.
+    /// Feature channels per frame of the motion the model makes (its format's).
     pub fn motion_dim(&self) -> usize {
-        match &self.denoiser {
-            Denoiser::Flame(f) => f.motion_dim(),
-            Denoiser::Mdm(m) => m.motion_dim(),
-        }
+        self.format.feature_dim()
     }
 
-    /// Output channels per frame of the denoiser (FLAME adds its variance values).
+    /// Channels per row of the sampled space: [`Model::motion_dim`] unless the model samples
+    /// a latent.
+    pub fn sample_dim(&self) -> usize {
+        self.denoiser.sample_dim()
+    }
+
+    /// Rows of the sampled space for `frames` motion frames.
+    pub fn sample_rows(&self, frames: usize) -> usize {
+        self.denoiser.sample_rows(frames)
+    }
+
+    /// Whether the model samples a latent that a decoder turns into motion.
+    pub fn is_latent(&self) -> bool {
+        self.denoiser.decoder().is_some()
+    }
+
+    /// Output channels per row of the denoiser (FLAME adds its variance values).
     pub fn output_dim(&self) -> usize {
-        match &self.denoiser {
-            Denoiser::Flame(f) => f.output_dim(),
-            Denoiser::Mdm(m) => m.output_dim(),
-        }
+        self.denoiser.output_dim()
     }
 
     /// The largest frame count a session may ask for.
     pub fn max_frames(&self) -> usize {
-        match &self.denoiser {
-            Denoiser::Flame(f) => f.max_frames(),
-            Denoiser::Mdm(m) => m.max_frames(),
-        }
+        self.config.denoiser.max_frames()
     }
 
     /// Encodes a prompt into the denoiser's conditioning.
     pub fn encode_prompt(&self, prompt: &str) -> Result<Condition> {
-        match (&self.text, &self.denoiser) {
-            (TextModel::Bert(t), Denoiser::Flame(f)) => {
-                Ok(Condition::Flame(f.condition(&t.encode(prompt)?)?))
-            }
-            (TextModel::Clip { encoder, context }, Denoiser::Mdm(_)) => {
-                Ok(Condition::Mdm(encoder.encode(prompt, *context)?.projected))
-            }
-            _ => unreachable!("text encoder and denoiser are paired at load"),
-        }
+        self.denoiser.encode_prompt(&self.text, prompt)
     }
 
     /// How `prompt` fits the text encoder's window: tokens kept, tokens cut and the cut text.
@@ -331,113 +557,82 @@ impl Model {
         }
     }
 
-    /// The unconditional input for guidance, computed once per model: the empty prompt's
-    /// encoding (FLAME) or a zero text vector (MDM), as the model file's configuration says.
+    /// The unconditional input for guidance, computed once per model, as the configuration's
+    /// `diffusion.uncond` says (the empty prompt's encoding, or a zero text vector).
     pub fn uncond(&self) -> Result<&Condition> {
         if let Some(c) = self.uncond.get() {
             return Ok(c);
         }
-        let c = match (&self.denoiser, self.config.diffusion.uncond.as_str()) {
-            (Denoiser::Mdm(m), "zeros") => Condition::Mdm(vec![0.0; m.cond_dim()]),
-            (Denoiser::Flame(_), "zeros") => {
-                return Err(bad_file!(
-                    "FLAME models need diffusion.uncond `empty_prompt`"
-                ))
-            }
-            _ => self.encode_prompt("")?,
-        };
+        let c = self
+            .denoiser
+            .unconditional(&self.text, &self.config.diffusion.uncond)?;
         Ok(self.uncond.get_or_init(|| c))
     }
 
     /// Checks that a condition was made for this model's denoiser.
     pub fn check_condition(&self, cond: &Condition) -> Result<()> {
-        match (&self.denoiser, cond) {
-            (Denoiser::Flame(_), Condition::Flame(_)) => Ok(()),
-            (Denoiser::Mdm(m), Condition::Mdm(v)) if v.len() == m.cond_dim() => Ok(()),
-            (Denoiser::Mdm(m), Condition::Mdm(v)) => Err(invalid_arg!(
-                "text vector has {} values, the model expects {}",
-                v.len(),
-                m.cond_dim()
-            )),
-            _ => Err(invalid_arg!(
-                "the condition was made for another architecture"
-            )),
-        }
+        self.denoiser.check_condition(cond)
     }
 
-    /// One batched forward pass: `x` is `[batch, frames, motion_dim]`, `out` is
-    /// `[batch, frames, output_dim]`, row `b` conditioned on `conds[b]`. `t` is the network's
+    /// One batched forward pass: `x` is `[batch, rows, sample_dim]`, `out` is
+    /// `[batch, rows, output_dim]`, row `b` conditioned on `conds[b]`. `t` is the network's
     /// time input (a diffusion step, or flow time in [0, 1] for Motion Flow Matching).
     pub fn forward(
         &self,
         x: &[f32],
-        frames: usize,
+        rows: usize,
         t: f32,
         conds: &[&Condition],
         out: &mut [f32],
         ws: &mut Workspace,
     ) -> Result<()> {
-        self.forward_cancellable(x, frames, t, conds, out, ws, &Cancel::never())
+        self.forward_cancellable(x, rows, t, conds, out, ws, &Cancel::never())
     }
 
-    /// [`Model::forward`] that checks `cancel` before every transformer layer.
+    /// [`Model::forward`] that checks `cancel` before every layer.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn forward_cancellable<'a>(
+    pub fn forward_cancellable(
         &self,
         x: &[f32],
-        frames: usize,
+        rows: usize,
         t: f32,
-        conds: &[&'a Condition],
+        conds: &[&Condition],
         out: &mut [f32],
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        let wrong = || invalid_arg!("a condition was made for another architecture");
         if conds.is_empty() || conds.len() > MAX_BATCH {
             return Err(invalid_arg!(
                 "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
                 conds.len()
             ));
         }
-        // The per-architecture views of `conds` live on the stack: a step allocates nothing.
-        match &self.denoiser {
-            Denoiser::Flame(f) => {
-                let pick = |c: &'a Condition| match c {
-                    Condition::Flame(fc) => Ok(fc),
-                    _ => Err(wrong()),
-                };
-                let mut views = [pick(conds[0])?; MAX_BATCH];
-                for (v, c) in views.iter_mut().zip(conds) {
-                    *v = pick(c)?;
-                }
-                f.forward_cancellable(
-                    x,
-                    frames,
-                    t,
-                    &views[..conds.len()],
-                    out,
-                    &mut ws.flame,
-                    cancel,
-                )
-            }
-            Denoiser::Mdm(m) => {
-                let pick = |c: &'a Condition| match c {
-                    Condition::Mdm(v) => Ok(&v[..]),
-                    _ => Err(wrong()),
-                };
-                let mut views = [pick(conds[0])?; MAX_BATCH];
-                for (v, c) in views.iter_mut().zip(conds) {
-                    *v = pick(c)?;
-                }
-                m.forward_cancellable(
-                    x,
-                    frames,
-                    t,
-                    &views[..conds.len()],
-                    out,
-                    &mut ws.mdm,
-                    cancel,
-                )
+        self.denoiser.forward(x, rows, t, conds, out, ws, cancel)
+    }
+
+    /// Decodes a sample of a generation of `frames` frames into motion features (`[valid,
+    /// motion_dim]`, returns `valid`); for a model that samples the motion itself, a copy.
+    pub fn decode(
+        &self,
+        sample: &[f32],
+        frames: usize,
+        out: &mut Vec<f32>,
+        ws: &mut Workspace,
+    ) -> Result<usize> {
+        let rows = self.sample_rows(frames);
+        if sample.len() != rows * self.sample_dim() {
+            return Err(invalid_arg!(
+                "a sample of {frames} frames has {rows} × {} values, got {}",
+                self.sample_dim(),
+                sample.len()
+            ));
+        }
+        match self.denoiser.decoder() {
+            Some(d) => d.decode(sample, rows, frames, out, ws),
+            None => {
+                out.clear();
+                out.extend_from_slice(sample);
+                Ok(frames)
             }
         }
     }
@@ -450,5 +645,14 @@ mod tests {
     #[test]
     fn model_is_shareable() {
         assert_send_sync::<super::Model>();
+    }
+
+    #[test]
+    fn every_architecture_has_one_family() {
+        let all = super::Family::all_architectures();
+        let mut unique = all.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(all.len(), unique.len(), "{all:?}");
     }
 }

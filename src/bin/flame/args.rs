@@ -138,9 +138,14 @@ pub struct SamplingArgs {
     /// Seed of the noise
     #[arg(long, value_name = "K", default_value_t = 0)]
     pub seed: u64,
-    /// An explicit initial noise x_T (float32 .npy, frames x feature_dim)
+    /// An explicit initial noise x_T (float32 .npy, frames x feature_dim; for latent models
+    /// latent_frames x latent_channels, see `flame info`)
     #[arg(long, value_name = "FILE.npy")]
     pub noise: Option<PathBuf>,
+    /// Also write the final sample of a latent model (float32 .npy, latent_frames x
+    /// latent_channels)
+    #[arg(long, value_name = "OUT.npy")]
+    pub latent: Option<PathBuf>,
     /// Worker threads (0 = one per core)
     #[arg(long, value_name = "T", default_value_t = 0)]
     pub threads: usize,
@@ -148,7 +153,8 @@ pub struct SamplingArgs {
 
 #[derive(Args)]
 pub struct OutputArgs {
-    /// Output file: .npy (raw features), .bvh or .json (poses)
+    /// Output file: .npy (raw features in the model's normalised space, the valid frames),
+    /// .bvh or .json (poses)
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Coordinate convention of the poses [native|unity|unreal|ros|blender|gltf; default gltf

@@ -14,10 +14,10 @@ use std::time::Instant;
 use clap::Parser;
 use flame::assemble::AssembleOptions;
 use flame::checkpoint::ModelFile;
-use flame::config::{DenoiserConfig, TextConfig};
+use flame::config::TextConfig;
 use flame::models::{LoadOptions, Model};
 use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
-use flame::session::{EditParams, Session, SessionParams};
+use flame::session::{EditParams, Session, SessionParams, Which};
 
 use args::{
     AssembleArgs, Cli, Command, EditArgs, GenerateArgs, InfoArgs, ModelArgs, OnOff, OutputArgs,
@@ -200,8 +200,32 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     session.set_prompt(&a.prompt).map_err(|e| e.to_string())?;
     note_prompt_fit(&session);
     sample(&mut session)?;
+    write_latent(&session, &a.sampling)?;
+    let asked = session.frames();
+    let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
+    if model.is_latent() {
+        eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
+    }
+    outputs.write(x, frames, model, decoder.as_ref())
+}
+
+/// `--latent OUT.npy`: a latent model's final sample, `[latent_frames, latent_channels]`.
+fn write_latent(session: &Session, a: &SamplingArgs) -> Result<(), String> {
+    let Some(path) = &a.latent else {
+        return Ok(());
+    };
+    let model = session.model();
+    if !model.is_latent() {
+        return Err(format!(
+            "--latent: this {} model samples the motion itself, not a latent (use --out x.npy)",
+            model.config().architecture
+        ));
+    }
     let x = session.sample().expect("finished generation has a sample");
-    outputs.write(x, session.frames(), model, decoder.as_ref())
+    flame::npy::write_f32(path, &[session.sample_rows(), model.sample_dim()], x)
+        .map_err(|e| e.to_string())?;
+    println!("{}", path.display());
+    Ok(())
 }
 
 /// A reference motion read from the command line, in model space.
@@ -366,7 +390,8 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     session.set_prompt(&a.prompt).map_err(e)?;
     note_prompt_fit(&session);
     sample(&mut session)?;
-    let x = session.sample().expect("finished generation has a sample");
+    write_latent(&session, &a.sampling)?;
+    let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
     outputs.write(x, frames, model, decoder.as_ref())
 }
 
@@ -590,15 +615,15 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     let model = Model::from_file(file).map_err(cannot)?;
     let c = model.config();
     println!("architecture:   {}", c.architecture);
-    match &c.denoiser {
-        DenoiserConfig::Flame(d) => println!(
-            "denoiser:       {} layers, {} wide, {} heads, feed-forward {}, {} activation",
-            d.num_layers, d.model_channels, d.num_heads, d.dim_feedforward, d.activation
-        ),
-        DenoiserConfig::Mdm(d) => println!(
-            "denoiser:       {} layers, {} wide, {} heads, feed-forward {}, {} activation, text vector {}",
-            d.layers, d.latent_dim, d.heads, d.ff_size, d.activation, d.clip_dim
-        ),
+    println!("denoiser:       {}", c.denoiser.summary());
+    let frames = c.defaults.frames.min(model.max_frames());
+    if let Some(decoder) = model.denoiser().decoder() {
+        println!(
+            "sampled space:  latent of {} rows x {} channels for {frames} frames",
+            model.sample_rows(frames),
+            model.sample_dim()
+        );
+        println!("decoder:        {}", decoder.summary());
     }
     match &c.text_encoder {
         TextConfig::Bert(t) => println!(
