@@ -17,7 +17,7 @@
 #include <stdint.h>
 
 // The ABI version: bumped whenever a function's signature or a struct's layout changes.
-#define FLAME_ABI_VERSION 1
+#define FLAME_ABI_VERSION 2
 
 // libflame's version, major part.
 #define FLAME_VERSION_MAJOR 0

@@ -26,7 +26,7 @@ pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
-pub const FLAME_ABI_VERSION: u32 = 1;
+pub const FLAME_ABI_VERSION: u32 = 2;
 /// libflame's version, major part.
 pub const FLAME_VERSION_MAJOR: u32 = 0;
 /// libflame's version, minor part.
