@@ -77,7 +77,8 @@ Tensors of the file (D = latent_dim, T = text_dim, F = ff_size, P = max_len, B =
   denoiser.emb_proj.1.{weight [D, T], bias [D]}
   denoiser.query_pos.pe [P, 1, D]
   denoiser.encoder.{input_blocks.b, middle_block, output_blocks.b}.   b < B
-      self_attn.{in_proj_weight [3D, D], in_proj_bias [3D]}, self_attn.out_proj.{weight [D, D], bias}
+      self_attn.{in_proj_weight [3D, D], in_proj_bias [3D]},
+      self_attn.out_proj.{weight [D, D], bias [D]}
       linear1.{weight [F, D], bias [F]}, linear2.{weight [D, F], bias [D]}, norm{1,2}.{weight, bias}
   denoiser.encoder.linear_blocks.b.{weight [D, 2D], bias [D]}
   denoiser.encoder.norm.{weight, bias} [D]
@@ -196,7 +197,7 @@ def scheduler_cfg(spacing, uncond):
             "spacing": spacing, "steps_offset": 1, "set_alpha_to_one": False}
 
 
-# -- MoLA -------------------------------------------------------------------------------------------
+# -- MoLA ------------------------------------------------------------------------------------------
 
 def mola_denoiser_shapes(d):
     e, c, f, g, n = (d["embed_dim"], d["latent_channels"], d["ff_dim"], d["cond_dim"],
@@ -323,7 +324,7 @@ def convert_mola(args):
     return 0
 
 
-# -- MLD --------------------------------------------------------------------------------------------
+# -- MLD -------------------------------------------------------------------------------------------
 
 def mld_layer_shapes(p, d, f, cross):
     s = {}
@@ -417,7 +418,8 @@ def convert_mld(args):
     if dc["max_len"] < dc["latent_tokens"] + 2 or not 1 <= args.frames <= vc["max_len"]:
         raise ConvertError(f"{what}: position tables of {dc['max_len']} / {vc['max_len']} rows; "
                            f"need >= 3 / >= --frames {args.frames}")
-    tensors = {"denoiser." + k: v for k, v in take(den, mld_denoiser_shapes(dc), what, "denoiser.").items()}
+    kept = take(den, mld_denoiser_shapes(dc), what, "denoiser.")
+    tensors = {"denoiser." + k: v for k, v in kept.items()}
     tensors.update({"vae." + k: v for k, v in take(vae, mld_vae_shapes(vc), what, "vae.").items()})
     text_cfg, tokenizer = text_and_stats(args, text_dim, tensors)
     config = {"format_version": FORMAT_VERSION, "architecture": "mld", "denoiser": dc, "vae": vc,

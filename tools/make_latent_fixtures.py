@@ -115,7 +115,7 @@ def run_convert(argv, expect_ok=True):
     return r.stderr
 
 
-# -- independent float64 numpy implementations --------------------------------------------------
+# -- independent float64 numpy implementations -----------------------------------------------------
 
 def f64(state):
     return {k: v.double().numpy() for k, v in state.items()}
@@ -175,7 +175,8 @@ def np_mola_denoiser(w, cfg, x, t, cond):
         h = np_ln(seq, w[p + "ff_norm.gamma"], 0.0)
         u = h @ w[p + "ff.ff.0.proj.weight"].T + w[p + "ff.ff.0.proj.bias"]
         f = cfg["ff_dim"]
-        seq = seq + (u[:, :f] * np_silu(u[:, f:])) @ w[p + "ff.ff.2.weight"].T + w[p + "ff.ff.2.bias"]
+        ff = (u[:, :f] * np_silu(u[:, f:])) @ w[p + "ff.ff.2.weight"].T
+        seq = seq + ff + w[p + "ff.ff.2.bias"]
     out = (seq @ w["transformer.project_out.weight"].T)[1:].T
     return out + w["postprocess_conv.weight"][:, :, 0] @ out
 
@@ -291,7 +292,7 @@ def check_schedule(sch, want_t):
     return sch.alphas_cumprod.clone()
 
 
-# -- MoLA -----------------------------------------------------------------------------------------
+# -- MoLA ------------------------------------------------------------------------------------------
 
 def fm(x):
     """`[C, T]` -> `[T, C]`."""
@@ -323,7 +324,7 @@ def tune_flag_bias(dec, latents):
     return None
 
 
-def make_mola(tmp, tok, text_gen_seed):
+def make_mola(tmp, tok):
     torch.manual_seed(SEEDS["mola"])
     st2 = mola.Stage2(**MOLA)
     randomize(st2.denoiser, torch.Generator().manual_seed(SEEDS["mola"]))
@@ -477,7 +478,7 @@ def mola_expected(text, noise, vae_latent):
     return t, info
 
 
-# -- MLD ------------------------------------------------------------------------------------------
+# -- MLD -------------------------------------------------------------------------------------------
 
 def make_mld(tmp, tok):
     torch.manual_seed(SEEDS["mld"])
@@ -523,7 +524,6 @@ def mld_expected():
     abar = check_schedule(sch, list(range(981, 0, -20)))
     t = {"text_cond": cond[0], "text_uncond": uncond[0], "noise": noise[0],
          "timesteps": sch.timesteps.float(), "alphas_cumprod": abar}
-    ref_sinusoid = None
     from diffusers.models.embeddings import get_timestep_embedding
     ref_sinusoid = get_timestep_embedding(torch.tensor([981, 1]), MLD["text_dim"],
                                           flip_sin_to_cos=True, downscale_freq_shift=0)
@@ -586,7 +586,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         np.save(os.path.join(tmp, "mean.npy"), mean)
         np.save(os.path.join(tmp, "std.npy"), std)
-        text, noise, vae_latent = make_mola(tmp, tok, SEEDS["text"])
+        text, noise, vae_latent = make_mola(tmp, tok)
         make_mld(tmp, tok)
     t, info = mola_expected(text, noise, vae_latent)
     save(t, info, "mola_expected")

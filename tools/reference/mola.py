@@ -24,7 +24,7 @@ FLAG_THRESHOLD = 0.999
 MIN_FRAMES = 10
 
 
-# -- denoiser ---------------------------------------------------------------------------------------
+# -- denoiser --------------------------------------------------------------------------------------
 
 class FourierFeatures(nn.Module):
     """f = fl32(fl32(fl32(2pi)·t)·W) (7.3.3 rounding order), then [cos f, sin f]."""
@@ -190,7 +190,7 @@ class Stage2(nn.Module):
             setattr(self, name, m)
 
 
-# -- VAE decoder ------------------------------------------------------------------------------------
+# -- VAE decoder -----------------------------------------------------------------------------------
 
 class ResConv1D(nn.Module):
     """ReLU -> Conv(k3, dilation d, pad d) -> ReLU -> Conv(k1) + residual."""
@@ -268,7 +268,7 @@ def decode(dec, z):
     return out[:-1, :n].transpose(0, 1).contiguous(), n, out
 
 
-# -- sampling ---------------------------------------------------------------------------------------
+# -- sampling --------------------------------------------------------------------------------------
 
 def latent_frames(frames):
     return (frames + 4) // 4
@@ -293,7 +293,8 @@ def sample(den, x_T, cond, guidance, steps=50):
     for t in sch.timesteps:
         tt = t.reshape(1)
         if cfg:
-            e = den(torch.cat([x, x]), torch.cat([tt, tt]), torch.cat([cond, torch.zeros_like(cond)]))
+            e = den(torch.cat([x, x]), torch.cat([tt, tt]),
+                    torch.cat([cond, torch.zeros_like(cond)]))
             e_c, e_u = e[:1], e[1:]
             eps = e_u + guidance * (e_c - e_u)
         else:
@@ -304,7 +305,7 @@ def sample(den, x_T, cond, guidance, steps=50):
     return trace
 
 
-# -- libflame file ----------------------------------------------------------------------------------
+# -- libflame file ---------------------------------------------------------------------------------
 
 def load_libflame(path):
     """A converted libflame MoLA file -> (DiffusionTransformer, Decoder, config)."""
