@@ -31,6 +31,15 @@ the `pe` buffers are dropped. CLIP_DIR is a Hugging Face CLIP folder (config.jso
 model.safetensors of a CLIPModel or CLIPTextModelWithProjection); its text tower is stored under
 `text.` with the HF names (`text.text_model.*`, `text.text_projection.weight`). Mean/Std are the
 HumanML3D normalisation statistics (`motion.mean`, `motion.std`).
+
+  python tools/convert.py mola --vae STAGE1.pth --denoiser STAGE2.pth --clip CLIP_DIR \
+      --mean mean.npy --std std.npy --out M.safetensors [--heads 4] [--dtype ..]
+  python tools/convert.py mld --ckpt mld_humanml3d.ckpt --clip CLIP_DIR --mean Mean.npy \
+      --std Std.npy --out M.safetensors [--heads 4] [--dtype ..]
+
+mola / mld: sony/MoLA and ChenFengYe/motion-latent-diffusion latent-diffusion models; the file
+schemas (every tensor name and configuration key) are in tools/convert_latent.py's docstring and
+docs/model-files-latent.md.
 """
 import argparse
 import json
@@ -718,6 +727,12 @@ def build_parser():
     p.set_defaults(func=convert_flame)
     add_mdm_parser(sub, "mdm", "GuyTevet/motion-diffusion-model trans_enc checkpoint")
     add_mdm_parser(sub, "motionfm", "dongzhuoyao/motionfm MDM_Flow checkpoint")
+    # Run as a script, this file is `__main__`; the latent converters import it as `convert`,
+    # which must be this same module (one ConvertError class).
+    sys.modules.setdefault("convert", sys.modules[__name__])
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import convert_latent
+    convert_latent.add_parsers(sub)
     return ap
 
 
