@@ -370,7 +370,7 @@ mod tests {
             .to_string();
         assert_eq!(
             e,
-            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola)"
+            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld)"
         );
         let e =
             Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))

@@ -77,6 +77,8 @@ pub struct Session {
     seed: u64,
     rule: StepRule,
     cond: Option<Condition>,
+    /// The unconditional input set by the caller, in place of the model's.
+    uncond: Option<Condition>,
     prompt_info: Option<PromptInfo>,
     pool: Arc<WorkerPool>,
     noise: Box<dyn NoiseSource>,
@@ -183,6 +185,8 @@ struct Predictor<'a> {
     /// Rows of the sampled space.
     rows: usize,
     cond: &'a Condition,
+    /// The caller's unconditional input, if any (else the model's).
+    uncond: Option<&'a Condition>,
     /// The guidance scale; `None` when the condition is itself the unconditional input
     /// (a blank prompt), so guiding it would change nothing.
     scale: Option<f32>,
@@ -207,7 +211,13 @@ impl Predictor<'_> {
             None => Guidance::Conditional,
         };
         let uncond = match guidance {
-            Guidance::Mix(w) => Some((self.model.uncond()?, w)),
+            Guidance::Mix(w) => Some((
+                match self.uncond {
+                    Some(u) => u,
+                    None => self.model.uncond()?,
+                },
+                w,
+            )),
             Guidance::Conditional => None,
         };
         let batch = 1 + uncond.is_some() as usize;
@@ -266,6 +276,7 @@ impl Session {
             seed: params.seed,
             rule,
             cond: None,
+            uncond: None,
             prompt_info: None,
             pool,
             noise: Box::new(GaussianRng::new(params.seed)),
@@ -336,6 +347,17 @@ impl Session {
         self.model.check_condition(&cond)?;
         self.cond = Some(cond);
         self.prompt_info = None;
+        Ok(())
+    }
+
+    /// Sets the unconditional input of guidance (for example the empty prompt's text vector
+    /// computed elsewhere) in place of the model's own; `None` goes back to the model's. It
+    /// must be made for this model's architecture.
+    pub fn set_unconditional(&mut self, cond: Option<Condition>) -> Result<()> {
+        if let Some(c) = &cond {
+            self.model.check_condition(c)?;
+        }
+        self.uncond = cond;
         Ok(())
     }
 
@@ -742,6 +764,7 @@ impl Session {
             model: &model,
             rows: self.rows,
             cond: self.cond.as_ref().expect("checked in step"),
+            uncond: self.uncond.as_ref(),
             scale: (!unconditional).then_some(self.guidance),
         };
         let StepBuffers {

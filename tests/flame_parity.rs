@@ -363,7 +363,7 @@ fn bad_model_files_get_clear_errors() {
     ));
     assert_eq!(
         e,
-        "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola)"
+        "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld)"
     );
     let e = load_err(&rewrite(|m| drop(m.remove("flame.tokenizer")), |_| {}));
     assert!(e.contains("flame.tokenizer"), "{e}");

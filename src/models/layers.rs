@@ -279,6 +279,198 @@ impl Conv1d {
     }
 }
 
+/// Buffers of the post-LN layers below, grown once and reused.
+#[derive(Default)]
+pub(crate) struct LayerBuffers {
+    pub(crate) qkv: Vec<f32>,
+    pub(crate) q: Vec<f32>,
+    pub(crate) kv: Vec<f32>,
+    pub(crate) attn: Vec<f32>,
+    pub(crate) proj: Vec<f32>,
+    pub(crate) hidden: Vec<f32>,
+    pub(crate) scratch: AttentionScratch,
+}
+
+/// The sizes a post-LN layer runs with.
+#[derive(Clone, Copy)]
+pub(crate) struct LayerShape {
+    pub(crate) width: usize,
+    pub(crate) heads: usize,
+    pub(crate) ff: usize,
+    pub(crate) act: Activation,
+    pub(crate) eps: f32,
+}
+
+/// One `nn.TransformerEncoderLayer` (post-LN): self-attention, then the feed-forward.
+pub(crate) struct EncoderLayer {
+    self_attn: Attention,
+    linear1: Linear,
+    linear2: Linear,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+}
+
+impl EncoderLayer {
+    /// Reads `{p}.self_attn`, `{p}.linear1`, `{p}.linear2`, `{p}.norm1`, `{p}.norm2`.
+    pub(crate) fn load(
+        file: &ModelFile,
+        p: &str,
+        e: usize,
+        ff: usize,
+        ty: WeightType,
+    ) -> Result<EncoderLayer> {
+        Ok(EncoderLayer {
+            self_attn: Attention::load(file, &format!("{p}.self_attn"), e, ty)?,
+            linear1: Linear::load(file, &format!("{p}.linear1"), e, ff, ty)?,
+            linear2: Linear::load(file, &format!("{p}.linear2"), ff, e, ty)?,
+            norm1: LayerNorm::load(file, &format!("{p}.norm1"), e)?,
+            norm2: LayerNorm::load(file, &format!("{p}.norm2"), e)?,
+        })
+    }
+
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.self_attn.weight_bytes() + self.linear1.weight_bytes() + self.linear2.weight_bytes()
+    }
+
+    /// `x ← norm1(x + SelfAttn(x)); x ← norm2(x + FF(x))` over `batch` blocks of `seq` rows.
+    pub(crate) fn forward(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    ) {
+        let rows = batch * seq;
+        self.self_attn.self_attention(
+            x,
+            batch,
+            seq,
+            s.width,
+            s.heads,
+            &mut b.qkv,
+            &mut b.attn,
+            &mut b.proj,
+            &mut b.scratch,
+        );
+        self.norm1.add_norm(x, &b.proj[..rows * s.width], s.eps);
+        feed_forward(&self.linear1, &self.linear2, &self.norm2, x, rows, s, b);
+    }
+}
+
+/// `x ← norm(x + linear2(act(linear1(x))))`.
+fn feed_forward(
+    linear1: &Linear,
+    linear2: &Linear,
+    norm: &LayerNorm,
+    x: &mut [f32],
+    rows: usize,
+    s: LayerShape,
+    b: &mut LayerBuffers,
+) {
+    let hidden = sized(&mut b.hidden, rows * s.ff);
+    linear1.forward_act(x, rows, hidden, s.act);
+    let proj = sized(&mut b.proj, rows * s.width);
+    linear2.forward(hidden, rows, proj);
+    norm.add_norm(x, proj, s.eps);
+}
+
+/// One `nn.TransformerDecoderLayer` (post-LN): self-attention, cross-attention to a memory,
+/// then the feed-forward.
+pub(crate) struct DecoderLayer {
+    self_attn: Attention,
+    cross_attn: CrossAttention,
+    linear1: Linear,
+    linear2: Linear,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+    norm3: LayerNorm,
+}
+
+impl DecoderLayer {
+    /// Reads `{p}.self_attn`, `{p}.multihead_attn`, `{p}.linear1/2`, `{p}.norm1/2/3`.
+    pub(crate) fn load(
+        file: &ModelFile,
+        p: &str,
+        e: usize,
+        ff: usize,
+        ty: WeightType,
+    ) -> Result<DecoderLayer> {
+        Ok(DecoderLayer {
+            self_attn: Attention::load(file, &format!("{p}.self_attn"), e, ty)?,
+            cross_attn: CrossAttention::load(file, &format!("{p}.multihead_attn"), e, ty)?,
+            linear1: Linear::load(file, &format!("{p}.linear1"), e, ff, ty)?,
+            linear2: Linear::load(file, &format!("{p}.linear2"), ff, e, ty)?,
+            norm1: LayerNorm::load(file, &format!("{p}.norm1"), e)?,
+            norm2: LayerNorm::load(file, &format!("{p}.norm2"), e)?,
+            norm3: LayerNorm::load(file, &format!("{p}.norm3"), e)?,
+        })
+    }
+
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.self_attn.weight_bytes()
+            + self.cross_attn.weight_bytes()
+            + self.linear1.weight_bytes()
+            + self.linear2.weight_bytes()
+    }
+
+    /// The layer over `batch` blocks of `seq` rows; block `i` attends to rows
+    /// `memory[i · mem_len ..][..mem_len]` (no masks).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    ) {
+        let (e, rows) = (s.width, batch * seq);
+        self.self_attn.self_attention(
+            x,
+            batch,
+            seq,
+            e,
+            s.heads,
+            &mut b.qkv,
+            &mut b.attn,
+            &mut b.proj,
+            &mut b.scratch,
+        );
+        self.norm1.add_norm(x, &b.proj[..rows * e], s.eps);
+        let ca = &self.cross_attn;
+        let q = sized(&mut b.q, rows * e);
+        ca.q.forward(x, rows, q);
+        let kv = sized(&mut b.kv, batch * mem_len * 2 * e);
+        ca.kv.forward(memory, batch * mem_len, kv);
+        let attn = sized(&mut b.attn, rows * e);
+        for (i, o) in attn.chunks_exact_mut(seq * e).enumerate() {
+            let kv_i = &kv[i * mem_len * 2 * e..(i + 1) * mem_len * 2 * e];
+            b.scratch.attend(
+                &q[i * seq * e..(i + 1) * seq * e],
+                e,
+                kv_i,
+                2 * e,
+                &kv_i[e..],
+                2 * e,
+                seq,
+                mem_len,
+                s.heads,
+                e / s.heads,
+                None,
+                false,
+                o,
+            );
+        }
+        let proj = sized(&mut b.proj, rows * e);
+        ca.out_proj.forward(attn, rows, proj);
+        self.norm2.add_norm(x, proj, s.eps);
+        feed_forward(&self.linear1, &self.linear2, &self.norm3, x, rows, s, b);
+    }
+}
+
 pub(crate) struct LayerNorm {
     pub(crate) weight: Tensor,
     pub(crate) bias: Tensor,

@@ -24,9 +24,9 @@ use crate::config::{
     section, Config, MAX_FEEDFORWARD, MAX_LAYERS, MAX_MOTION_POSITIONS, MAX_WIDTH,
 };
 use crate::error::{bad_file, invalid_arg, Result};
-use crate::kernels::{self, AttentionScratch, WeightType};
+use crate::kernels::{self, WeightType};
 
-use super::layers::{activation, sized, Attention, LayerNorm, Linear};
+use super::layers::{activation, sized, EncoderLayer, LayerBuffers, LayerShape, Linear};
 use super::{
     check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
     FamilyConfig, TextModel, TextVector,
@@ -272,15 +272,6 @@ impl TimeIndex {
     }
 }
 
-/// One `nn.TransformerEncoderLayer` (post-LN).
-struct EncoderLayer {
-    self_attn: Attention,
-    linear1: Linear,
-    linear2: Linear,
-    norm1: LayerNorm,
-    norm2: LayerNorm,
-}
-
 /// `TimestepEmbedder.time_embed`: Linear → SiLU → Linear on a row of `pe`.
 struct TimeEmbed {
     fc0: Linear,
@@ -291,12 +282,7 @@ struct TimeEmbed {
 #[derive(Default)]
 pub struct Workspace {
     x: Vec<f32>,
-    /// Per-thread attention buffers.
-    scratch: AttentionScratch,
-    qkv: Vec<f32>,
-    attn: Vec<f32>,
-    proj: Vec<f32>,
-    hidden: Vec<f32>,
+    layer: LayerBuffers,
     frames: Vec<f32>,
     text: Vec<f32>,
     text_emb: Vec<f32>,
@@ -338,13 +324,7 @@ impl MdmDenoiser {
         let mut layers = Vec::with_capacity(cfg.layers);
         for n in 0..cfg.layers {
             let p = format!("seqTransEncoder.layers.{n}");
-            layers.push(EncoderLayer {
-                self_attn: Attention::load(file, &format!("{p}.self_attn"), c, ty)?,
-                linear1: Linear::load(file, &format!("{p}.linear1"), c, cfg.ff_size, ty)?,
-                linear2: Linear::load(file, &format!("{p}.linear2"), cfg.ff_size, c, ty)?,
-                norm1: LayerNorm::load(file, &format!("{p}.norm1"), c)?,
-                norm2: LayerNorm::load(file, &format!("{p}.norm2"), c)?,
-            });
+            layers.push(EncoderLayer::load(file, &p, c, cfg.ff_size, ty)?);
         }
         let pose_final = Linear::load(file, "output_process.poseFinal", c, cfg.njoints, ty)?;
         let mut pe = vec![0.0; cfg.max_len * c];
@@ -375,13 +355,7 @@ impl MdmDenoiser {
 
     /// Bytes of the packed linear weights (the part [`WeightType`] changes).
     pub fn linear_weight_bytes(&self) -> usize {
-        let layers: usize = self
-            .layers
-            .iter()
-            .map(|l| {
-                l.self_attn.weight_bytes() + l.linear1.weight_bytes() + l.linear2.weight_bytes()
-            })
-            .sum();
+        let layers: usize = self.layers.iter().map(|l| l.weight_bytes()).sum();
         layers
             + [
                 &self.embed_timestep.fc0,
@@ -516,9 +490,16 @@ impl MdmDenoiser {
             }
         }
 
+        let shape = LayerShape {
+            width: c,
+            heads: self.cfg.heads,
+            ff: self.cfg.ff_size,
+            act: activation(&self.cfg.activation),
+            eps: LAYER_NORM_EPS,
+        };
         for layer in &self.layers {
             cancel.check()?;
-            self.encoder_layer(layer, batch, seq, ws);
+            layer.forward(&mut ws.x, batch, seq, shape, &mut ws.layer);
         }
 
         // Drop the cond token and project back to features.
@@ -530,35 +511,6 @@ impl MdmDenoiser {
         }
         self.pose_final.forward(motion_out, batch * frames, out);
         Ok(())
-    }
-
-    fn encoder_layer(&self, layer: &EncoderLayer, batch: usize, seq: usize, ws: &mut Workspace) {
-        let c = self.cfg.latent_dim;
-        let heads = self.cfg.heads;
-        let rows = batch * seq;
-
-        // Self-attention: x ← norm1(x + SelfAttn(x)).
-        layer.self_attn.self_attention(
-            &ws.x,
-            batch,
-            seq,
-            c,
-            heads,
-            &mut ws.qkv,
-            &mut ws.attn,
-            &mut ws.proj,
-            &mut ws.scratch,
-        );
-        let proj = &ws.proj[..rows * c];
-        layer.norm1.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
-
-        // Feed-forward: x ← norm2(x + linear2(act(linear1(x)))).
-        let hidden = sized(&mut ws.hidden, rows * self.cfg.ff_size);
-        let act = activation(&self.cfg.activation);
-        layer.linear1.forward_act(&ws.x, rows, hidden, act);
-        let proj = sized(&mut ws.proj, rows * c);
-        layer.linear2.forward(hidden, rows, proj);
-        layer.norm2.add_norm(&mut ws.x, proj, LAYER_NORM_EPS);
     }
 }
 

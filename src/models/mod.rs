@@ -30,6 +30,7 @@
 pub mod flame;
 mod layers;
 pub mod mdm;
+pub mod mld;
 pub mod mola;
 
 use std::any::Any;
@@ -48,10 +49,11 @@ use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
 pub use crate::kernels::WeightType;
 pub use flame::{FlameCondition, FlameConfig, FlameDenoiser};
 pub use mdm::{MdmConfig, MdmDenoiser, TimeIndex};
+pub use mld::{MldDenoiser, MldFamily};
 pub use mola::{MolaDenoiser, MolaFamily};
 
 /// Every family this build runs: the `architecture` values each reads, and its parser.
-pub const FAMILIES: &[Family] = &[flame::FAMILY, mdm::FAMILY, mola::FAMILY];
+pub const FAMILIES: &[Family] = &[flame::FAMILY, mdm::FAMILY, mola::FAMILY, mld::FAMILY];
 
 /// Most rows one forward pass batches (conditional + unconditional rows of guidance, with room
 /// to spare).

@@ -414,6 +414,11 @@ impl MolaDenoiser {
         &self.cfg
     }
 
+    /// The VAE decoder.
+    pub fn vae(&self) -> &VaeDecoder {
+        &self.vae
+    }
+
     /// The denoiser alone: `x` is `[batch, rows, latent_channels]`, ε out in the same shape.
     #[allow(clippy::too_many_arguments)]
     pub fn forward_texts(

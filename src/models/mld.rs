@@ -1,0 +1,720 @@
+//! MLD (Chen et al., CVPR 2023, ChenFengYe/motion-latent-diffusion): latent diffusion of
+//! motion. A skip transformer denoises a `[latent_tokens, latent_dim]` latent under a CLIP text
+//! vector; the VAE's skip-transformer decoder turns the latent into as many HumanML3D frames as
+//! the caller asks for (REFERENCE.md section 7.2).
+//!
+//! Denoiser: the sequence `[latent tokens, time, text]` plus a learned positional table, where
+//! time = Linear → SiLU → Linear of the cos-first sinusoid of t (`text_dim` wide) and text =
+//! Linear(ReLU(vector)); a U-shaped stack of post-LN encoder layers (input blocks whose outputs
+//! are kept, a middle block, output blocks each after Linear(2D → D) over `[x, skip]`, skips last
+//! in first out) and a final LayerNorm; the latent tokens of the output are ε. Guidance mixes
+//! only above scale 1, as MLD's sampler does.
+//!
+//! VAE decoder: zero queries plus a learned positional table, one per frame, through the same
+//! U-shaped stack of post-LN decoder layers attending to the latent, an optional final
+//! LayerNorm, and Linear(D → features). Every frame is valid.
+
+use std::any::Any;
+use std::sync::Arc;
+
+use serde::Deserialize;
+
+use crate::checkpoint::{ModelFile, Tensor};
+use crate::config::validate::{
+    check_eps, check_layers, expect_flow, expect_shape, expect_text, heads_divide, in_range,
+    one_of, refuse_learned_range,
+};
+use crate::config::{
+    section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MAX_MOTION_POSITIONS, MAX_WIDTH,
+};
+use crate::error::{bad_file, invalid_arg, Result};
+use crate::kernels::{self, WeightType};
+
+use super::layers::{
+    activation, sized, DecoderLayer, EncoderLayer, LayerBuffers, LayerNorm, LayerShape, Linear,
+};
+use super::{
+    check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
+    FamilyConfig, Guidance, MotionDecoder, TextModel, TextVector, Workspace,
+};
+
+/// The family's entry in [`super::FAMILIES`].
+pub const FAMILY: Family = Family {
+    architectures: &["mld"],
+    parse: |arch, v| {
+        Ok(Arc::new(MldFamily {
+            denoiser: section(v, arch, "denoiser")?,
+            vae: section(v, arch, "vae")?,
+        }))
+    },
+};
+
+/// The denoiser's sizes: the `denoiser` section.
+#[derive(Clone, Debug, Deserialize)]
+pub struct MldConfig {
+    /// Width of the latent and of the transformer (256).
+    pub latent_dim: usize,
+    /// Tokens of the latent (1).
+    pub latent_tokens: usize,
+    /// Width of the text vector and of the time sinusoid (CLIP ViT-L/14's 768).
+    pub text_dim: usize,
+    /// Layers of the skip stack (odd: 9).
+    pub layers: usize,
+    pub heads: usize,
+    pub ff_size: usize,
+    /// Rows of the learned positional table (`query_pos.pe`).
+    pub max_len: usize,
+    #[serde(default = "gelu")]
+    pub activation: String,
+    #[serde(default = "ln_eps")]
+    pub layer_norm_eps: f32,
+}
+
+/// The VAE decoder's sizes: the `vae` section.
+#[derive(Clone, Debug, Deserialize)]
+pub struct MldVaeConfig {
+    pub latent_dim: usize,
+    /// Layers of the skip stack (odd: 9).
+    pub layers: usize,
+    pub heads: usize,
+    pub ff_size: usize,
+    /// Features per frame (263).
+    pub nfeats: usize,
+    /// Rows of the learned positional table: the most frames.
+    pub max_len: usize,
+    /// Whether the stack ends in a LayerNorm (`decoder.norm`).
+    pub final_norm: bool,
+    #[serde(default = "gelu")]
+    pub activation: String,
+    #[serde(default = "ln_eps")]
+    pub layer_norm_eps: f32,
+}
+
+fn gelu() -> String {
+    "gelu".into()
+}
+
+fn ln_eps() -> f32 {
+    1e-5
+}
+
+/// An MLD file's configuration.
+#[derive(Clone, Debug)]
+pub struct MldFamily {
+    pub denoiser: MldConfig,
+    pub vae: MldVaeConfig,
+}
+
+const D: &str = "denoiser.";
+
+/// Checks a skip stack of `layers` (odd) under `{p}`: its blocks and linear joins.
+fn check_stack(file: &ModelFile, field: &str, layers: usize, p: &str) -> Result<()> {
+    in_range(field, layers, 1, MAX_LAYERS)?;
+    if layers.is_multiple_of(2) {
+        return Err(bad_file!(
+            "config {field} {layers} is not odd (input blocks, a middle block, output blocks)"
+        ));
+    }
+    let blocks = (layers - 1) / 2;
+    for part in ["input_blocks", "output_blocks", "linear_blocks"] {
+        let prefix = format!("{p}{part}.");
+        if blocks == 0 {
+            if file.has_prefix(&prefix) {
+                return Err(bad_file!(
+                    "config {field} is 1 but the file has tensors `{prefix}*`"
+                ));
+            }
+        } else {
+            check_layers(file, field, blocks, &prefix)?;
+        }
+    }
+    Ok(())
+}
+
+impl FamilyConfig for MldFamily {
+    fn architecture(&self) -> &str {
+        "mld"
+    }
+
+    fn check(&self, cfg: &Config) -> Result<()> {
+        let (d, v) = (&self.denoiser, &self.vae);
+        in_range("denoiser.latent_dim", d.latent_dim, 1, MAX_WIDTH)?;
+        heads_divide(
+            "denoiser.latent_dim",
+            d.latent_dim,
+            "denoiser.heads",
+            d.heads,
+        )?;
+        in_range("denoiser.text_dim", d.text_dim, 2, MAX_WIDTH)?;
+        if !d.text_dim.is_multiple_of(2) {
+            return Err(bad_file!(
+                "config denoiser.text_dim {} is not even (the time sinusoid's width)",
+                d.text_dim
+            ));
+        }
+        in_range("denoiser.layers", d.layers, 1, MAX_LAYERS)?;
+        in_range("denoiser.ff_size", d.ff_size, 1, MAX_FEEDFORWARD)?;
+        in_range("denoiser.max_len", d.max_len, 3, MAX_MOTION_POSITIONS)?;
+        in_range("denoiser.latent_tokens", d.latent_tokens, 1, d.max_len - 2)?;
+        one_of("denoiser.activation", &d.activation, &["gelu", "relu"])?;
+        check_eps("denoiser.layer_norm_eps", d.layer_norm_eps)?;
+        if v.latent_dim != d.latent_dim {
+            return Err(bad_file!(
+                "config vae.latent_dim {} differs from denoiser.latent_dim {}",
+                v.latent_dim,
+                d.latent_dim
+            ));
+        }
+        heads_divide("vae.latent_dim", v.latent_dim, "vae.heads", v.heads)?;
+        in_range("vae.layers", v.layers, 1, MAX_LAYERS)?;
+        in_range("vae.ff_size", v.ff_size, 1, MAX_FEEDFORWARD)?;
+        in_range("vae.max_len", v.max_len, 1, MAX_MOTION_POSITIONS)?;
+        one_of("vae.activation", &v.activation, &["gelu", "relu"])?;
+        check_eps("vae.layer_norm_eps", v.layer_norm_eps)?;
+        let features = cfg
+            .motion
+            .format
+            .parse::<crate::motion::Format>()
+            .map(|f| f.feature_dim())
+            .unwrap_or(0);
+        if v.nfeats != features {
+            return Err(bad_file!(
+                "config vae.nfeats {} differs from motion.format `{}`'s {features} features",
+                v.nfeats,
+                cfg.motion.format
+            ));
+        }
+        expect_text(cfg, &["clip"])?;
+        if let TextConfig::Clip(c) = &cfg.text_encoder {
+            if c.clip.projection_dim != d.text_dim {
+                return Err(bad_file!(
+                    "config text_encoder.projection_dim {} differs from denoiser.text_dim {}",
+                    c.clip.projection_dim,
+                    d.text_dim
+                ));
+            }
+        }
+        expect_flow(cfg, false)?;
+        refuse_learned_range(cfg)
+    }
+
+    fn validate(&self, file: &ModelFile) -> Result<()> {
+        let (d, v) = (&self.denoiser, &self.vae);
+        let e = d.latent_dim;
+        let shape =
+            |name: &str, want: &[usize], fields: &str| expect_shape(file, name, want, fields);
+        shape(
+            &format!("{D}query_pos.pe"),
+            &[d.max_len, 1, e],
+            "denoiser.max_len, latent_dim",
+        )?;
+        shape(
+            &format!("{D}time_embedding.linear_1.weight"),
+            &[e, d.text_dim],
+            "denoiser.latent_dim, text_dim",
+        )?;
+        shape(
+            &format!("{D}emb_proj.1.weight"),
+            &[e, d.text_dim],
+            "denoiser.latent_dim, text_dim",
+        )?;
+        check_stack(file, "denoiser.layers", d.layers, &format!("{D}encoder."))?;
+        shape(
+            &format!("{D}encoder.middle_block.linear1.weight"),
+            &[d.ff_size, e],
+            "denoiser.ff_size, latent_dim",
+        )?;
+        shape(
+            "vae.query_pos_decoder.pe",
+            &[v.max_len, 1, e],
+            "vae.max_len, latent_dim",
+        )?;
+        check_stack(file, "vae.layers", v.layers, "vae.decoder.")?;
+        shape(
+            "vae.decoder.middle_block.linear1.weight",
+            &[v.ff_size, e],
+            "vae.ff_size, latent_dim",
+        )?;
+        if v.final_norm != file.contains("vae.decoder.norm.weight") {
+            return Err(bad_file!(
+                "config vae.final_norm is {} but the file {} `vae.decoder.norm.weight`",
+                v.final_norm,
+                if v.final_norm { "has no" } else { "has" }
+            ));
+        }
+        shape(
+            "vae.final_layer.weight",
+            &[v.nfeats, e],
+            "vae.nfeats, latent_dim",
+        )
+    }
+
+    fn feature_dim(&self) -> usize {
+        self.vae.nfeats
+    }
+
+    fn max_frames(&self) -> usize {
+        self.vae.max_len
+    }
+
+    fn summary(&self) -> String {
+        let d = &self.denoiser;
+        format!(
+            "MLD skip transformer, {} layers x {}, {} heads, ff {}, latent {} x {}",
+            d.layers, d.latent_dim, d.heads, d.ff_size, d.latent_tokens, d.latent_dim
+        )
+    }
+
+    fn load(
+        &self,
+        file: &ModelFile,
+        _cfg: &Config,
+        _text: &TextModel,
+        ty: WeightType,
+    ) -> Result<Box<dyn Denoiser>> {
+        Ok(Box::new(MldDenoiser::load(file, self, ty)?))
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// A layer of a skip stack: runs over `batch` blocks of `seq` rows, with the memory rows of
+/// the block (decoder layers) or none.
+trait StackLayer {
+    fn load(file: &ModelFile, p: &str, e: usize, ff: usize, ty: WeightType) -> Result<Self>
+    where
+        Self: Sized;
+    fn weight_bytes(&self) -> usize;
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    );
+}
+
+impl StackLayer for EncoderLayer {
+    fn load(file: &ModelFile, p: &str, e: usize, ff: usize, ty: WeightType) -> Result<Self> {
+        EncoderLayer::load(file, p, e, ff, ty)
+    }
+    fn weight_bytes(&self) -> usize {
+        EncoderLayer::weight_bytes(self)
+    }
+    fn run(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        _memory: &[f32],
+        _mem_len: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    ) {
+        self.forward(x, batch, seq, s, b)
+    }
+}
+
+impl StackLayer for DecoderLayer {
+    fn load(file: &ModelFile, p: &str, e: usize, ff: usize, ty: WeightType) -> Result<Self> {
+        DecoderLayer::load(file, p, e, ff, ty)
+    }
+    fn weight_bytes(&self) -> usize {
+        DecoderLayer::weight_bytes(self)
+    }
+    fn run(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    ) {
+        self.forward(x, batch, seq, memory, mem_len, s, b)
+    }
+}
+
+/// MLD's U-shaped stack (`input_blocks`, `middle_block`, `output_blocks`, `linear_blocks`,
+/// `norm`).
+struct SkipStack<L> {
+    input: Vec<L>,
+    middle: L,
+    output: Vec<L>,
+    joins: Vec<Linear>,
+    norm: Option<LayerNorm>,
+    shape: LayerShape,
+}
+
+/// Buffers of a skip stack's forward pass.
+#[derive(Default)]
+struct StackBuffers {
+    layer: LayerBuffers,
+    skips: Vec<Vec<f32>>,
+    cat: Vec<f32>,
+}
+
+impl<L: StackLayer> SkipStack<L> {
+    fn load(
+        file: &ModelFile,
+        p: &str,
+        layers: usize,
+        norm: bool,
+        shape: LayerShape,
+        ty: WeightType,
+    ) -> Result<SkipStack<L>> {
+        let (e, ff) = (shape.width, shape.ff);
+        let blocks = (layers - 1) / 2;
+        let load = |name: String| L::load(file, &format!("{p}{name}"), e, ff, ty);
+        Ok(SkipStack {
+            input: (0..blocks)
+                .map(|i| load(format!("input_blocks.{i}")))
+                .collect::<Result<_>>()?,
+            middle: load("middle_block".into())?,
+            output: (0..blocks)
+                .map(|i| load(format!("output_blocks.{i}")))
+                .collect::<Result<_>>()?,
+            joins: (0..blocks)
+                .map(|i| Linear::load(file, &format!("{p}linear_blocks.{i}"), 2 * e, e, ty))
+                .collect::<Result<_>>()?,
+            norm: if norm {
+                Some(LayerNorm::load(file, &format!("{p}norm"), e)?)
+            } else {
+                None
+            },
+            shape,
+        })
+    }
+
+    fn weight_bytes(&self) -> usize {
+        self.input
+            .iter()
+            .chain(&self.output)
+            .chain([&self.middle])
+            .map(|l| l.weight_bytes())
+            .sum::<usize>()
+            + self.joins.iter().map(|l| l.weight_bytes()).sum::<usize>()
+    }
+
+    /// The stack over `batch` blocks of `seq` rows in `x`, checking `cancel` before each layer.
+    #[allow(clippy::too_many_arguments)]
+    fn forward(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        b: &mut StackBuffers,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let (s, e) = (self.shape, self.shape.width);
+        let rows = batch * seq;
+        b.skips.resize_with(self.input.len(), Vec::new);
+        for (layer, skip) in self.input.iter().zip(b.skips.iter_mut()) {
+            cancel.check()?;
+            layer.run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+            skip.clear();
+            skip.extend_from_slice(x);
+        }
+        cancel.check()?;
+        self.middle
+            .run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+        for (i, (layer, join)) in self.output.iter().zip(&self.joins).enumerate() {
+            cancel.check()?;
+            // Skips last in, first out: output block i joins input block n − 1 − i.
+            let skip = &b.skips[self.input.len() - 1 - i];
+            let cat = sized(&mut b.cat, rows * 2 * e);
+            for ((c, xr), sr) in cat
+                .chunks_exact_mut(2 * e)
+                .zip(x.chunks_exact(e))
+                .zip(skip.chunks_exact(e))
+            {
+                c[..e].copy_from_slice(xr);
+                c[e..].copy_from_slice(sr);
+            }
+            join.forward(cat, rows, x);
+            layer.run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+        }
+        if let Some(n) = &self.norm {
+            kernels::layer_norm(x, e, n.weight.data(), n.bias.data(), s.eps);
+        }
+        Ok(())
+    }
+}
+
+/// MLD's denoiser and VAE decoder.
+pub struct MldDenoiser {
+    cfg: MldFamily,
+    time: [Linear; 2],
+    emb_proj: Linear,
+    /// `query_pos.pe` `[max_len, D]`.
+    pe: Tensor,
+    encoder: SkipStack<EncoderLayer>,
+    vae: VaeDecoder,
+}
+
+/// Reusable buffers of the denoiser.
+#[derive(Default)]
+pub struct MldWorkspace {
+    sinusoid: Vec<f32>,
+    hidden: Vec<f32>,
+    time: Vec<f32>,
+    text: Vec<f32>,
+    texts: Vec<f32>,
+    x: Vec<f32>,
+    stack: StackBuffers,
+}
+
+impl MldDenoiser {
+    /// Reads the tensors (official names under `denoiser.` and `vae.`), in module order.
+    pub fn load(file: &ModelFile, cfg: &MldFamily, ty: WeightType) -> Result<MldDenoiser> {
+        let d = &cfg.denoiser;
+        let e = d.latent_dim;
+        let lin =
+            |name: &str, n_in, n_out| Linear::load(file, &format!("{D}{name}"), n_in, n_out, ty);
+        let shape = LayerShape {
+            width: e,
+            heads: d.heads,
+            ff: d.ff_size,
+            act: activation(&d.activation),
+            eps: d.layer_norm_eps,
+        };
+        Ok(MldDenoiser {
+            time: [
+                lin("time_embedding.linear_1", d.text_dim, e)?,
+                lin("time_embedding.linear_2", e, e)?,
+            ],
+            emb_proj: lin("emb_proj.1", d.text_dim, e)?,
+            pe: file.tensor(&format!("{D}query_pos.pe"), &[d.max_len, 1, e])?,
+            encoder: SkipStack::load(file, &format!("{D}encoder."), d.layers, true, shape, ty)?,
+            vae: VaeDecoder::load(file, &cfg.vae, ty)?,
+            cfg: cfg.clone(),
+        })
+    }
+
+    pub fn config(&self) -> &MldFamily {
+        &self.cfg
+    }
+
+    /// The VAE decoder.
+    pub fn vae(&self) -> &VaeDecoder {
+        &self.vae
+    }
+
+    /// The denoiser alone: `x` is `[batch, latent_tokens, latent_dim]`, ε out the same.
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_texts(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        texts: &[&[f32]],
+        out: &mut [f32],
+        ws: &mut MldWorkspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let d = &self.cfg.denoiser;
+        let (e, l, batch) = (d.latent_dim, d.latent_tokens, texts.len());
+        if rows != l || x.len() != batch * l * e || out.len() != batch * l * e {
+            return Err(invalid_arg!(
+                "forward buffers do not match batch {batch} × {l} latent tokens × {e}"
+            ));
+        }
+        if let Some(v) = texts.iter().find(|v| v.len() != d.text_dim) {
+            return Err(invalid_arg!(
+                "text vector has {} values, the model expects {}",
+                v.len(),
+                d.text_dim
+            ));
+        }
+        let seq = l + 2;
+        let sin = sized(&mut ws.sinusoid, d.text_dim);
+        kernels::sinusoid_cos_first(t, sin);
+        let hidden = sized(&mut ws.hidden, e);
+        self.time[0].forward(sin, 1, hidden);
+        kernels::silu(hidden);
+        let time = sized(&mut ws.time, e);
+        self.time[1].forward(hidden, 1, time);
+        let texts_in = sized(&mut ws.texts, batch * d.text_dim);
+        for (dst, v) in texts_in.chunks_exact_mut(d.text_dim).zip(texts) {
+            dst.copy_from_slice(v);
+        }
+        kernels::relu(texts_in);
+        let text = sized(&mut ws.text, batch * e);
+        self.emb_proj.forward(texts_in, batch, text);
+        let xs = sized(&mut ws.x, batch * seq * e);
+        let pe = &self.pe.data()[..seq * e];
+        for b in 0..batch {
+            let blk = &mut xs[b * seq * e..(b + 1) * seq * e];
+            blk[..l * e].copy_from_slice(&x[b * l * e..(b + 1) * l * e]);
+            blk[l * e..(l + 1) * e].copy_from_slice(time);
+            blk[(l + 1) * e..].copy_from_slice(&text[b * e..(b + 1) * e]);
+            kernels::add_inplace(blk, pe);
+        }
+        self.encoder
+            .forward(xs, batch, seq, &[], 0, &mut ws.stack, cancel)?;
+        for b in 0..batch {
+            out[b * l * e..(b + 1) * l * e].copy_from_slice(&xs[b * seq * e..][..l * e]);
+        }
+        Ok(())
+    }
+}
+
+impl Denoiser for MldDenoiser {
+    fn sample_dim(&self) -> usize {
+        self.cfg.denoiser.latent_dim
+    }
+
+    /// The latent's tokens, whatever the length.
+    fn sample_rows(&self, _frames: usize) -> usize {
+        self.cfg.denoiser.latent_tokens
+    }
+
+    fn encode_prompt(&self, text: &TextModel, prompt: &str) -> Result<Condition> {
+        Ok(Condition::text_vector(text.clip_vector(prompt)?))
+    }
+
+    fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition> {
+        text_vector_uncond(text, uncond, self.cfg.denoiser.text_dim)
+    }
+
+    fn check_condition(&self, cond: &Condition) -> Result<()> {
+        check_text_vector(cond, self.cfg.denoiser.text_dim)
+    }
+
+    /// As MLD's sampler: guidance mixes only above scale 1 (below, the conditional pass alone).
+    fn guidance(&self, scale: f32, _t: f32) -> Guidance {
+        if scale > 1.0 {
+            Guidance::Mix(scale)
+        } else {
+            Guidance::Conditional
+        }
+    }
+
+    fn forward(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let (views, n) = condition_views::<TextVector>(conds)?;
+        let mut texts = [&[][..]; super::MAX_BATCH];
+        for (t, v) in texts.iter_mut().zip(&views[..n]) {
+            *t = &v.0[..];
+        }
+        self.forward_texts(x, rows, t, &texts[..n], out, ws.get(), cancel)
+    }
+
+    fn decoder(&self) -> Option<&dyn MotionDecoder> {
+        Some(&self.vae)
+    }
+
+    fn linear_weight_bytes(&self) -> usize {
+        self.encoder.weight_bytes()
+            + self.time[0].weight_bytes()
+            + self.time[1].weight_bytes()
+            + self.emb_proj.weight_bytes()
+            + self.vae.weight_bytes()
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// MLD's VAE decoder.
+pub struct VaeDecoder {
+    cfg: MldVaeConfig,
+    /// `query_pos_decoder.pe` `[max_len, D]`.
+    pe: Tensor,
+    decoder: SkipStack<DecoderLayer>,
+    final_layer: Linear,
+}
+
+/// Reusable buffers of the decoder.
+#[derive(Default)]
+pub struct VaeWorkspace {
+    x: Vec<f32>,
+    stack: StackBuffers,
+}
+
+impl VaeDecoder {
+    fn load(file: &ModelFile, v: &MldVaeConfig, ty: WeightType) -> Result<VaeDecoder> {
+        let e = v.latent_dim;
+        let shape = LayerShape {
+            width: e,
+            heads: v.heads,
+            ff: v.ff_size,
+            act: activation(&v.activation),
+            eps: v.layer_norm_eps,
+        };
+        Ok(VaeDecoder {
+            pe: file.tensor("vae.query_pos_decoder.pe", &[v.max_len, 1, e])?,
+            decoder: SkipStack::load(file, "vae.decoder.", v.layers, v.final_norm, shape, ty)?,
+            final_layer: Linear::load(file, "vae.final_layer", e, v.nfeats, ty)?,
+            cfg: v.clone(),
+        })
+    }
+
+    fn weight_bytes(&self) -> usize {
+        self.decoder.weight_bytes() + self.final_layer.weight_bytes()
+    }
+
+    /// Decodes a latent of `rows` tokens into `frames` frames of features.
+    pub fn decode_frames(
+        &self,
+        latent: &[f32],
+        rows: usize,
+        frames: usize,
+        out: &mut Vec<f32>,
+        ws: &mut VaeWorkspace,
+    ) -> Result<()> {
+        let e = self.cfg.latent_dim;
+        if frames == 0 || frames > self.cfg.max_len {
+            return Err(invalid_arg!(
+                "frames {frames} outside 1..={}",
+                self.cfg.max_len
+            ));
+        }
+        let x = sized(&mut ws.x, frames * e);
+        x.copy_from_slice(&self.pe.data()[..frames * e]);
+        self.decoder
+            .forward(x, 1, frames, latent, rows, &mut ws.stack, &Cancel::never())?;
+        let y = sized(out, frames * self.cfg.nfeats);
+        self.final_layer.forward(x, frames, y);
+        Ok(())
+    }
+}
+
+impl MotionDecoder for VaeDecoder {
+    fn decode(
+        &self,
+        sample: &[f32],
+        rows: usize,
+        frames: usize,
+        out: &mut Vec<f32>,
+        ws: &mut Workspace,
+    ) -> Result<usize> {
+        self.decode_frames(sample, rows, frames, out, ws.get())?;
+        Ok(frames)
+    }
+
+    fn summary(&self) -> String {
+        format!(
+            "MLD VAE decoder, {} layers x {}, {} heads, any length up to {} frames",
+            self.cfg.layers, self.cfg.latent_dim, self.cfg.heads, self.cfg.max_len
+        )
+    }
+}
