@@ -4,9 +4,15 @@
 
 use std::path::{Path, PathBuf};
 
-/// A path inside the repository.
+/// A path inside the repository (the workspace root, also from a member crate's tests under
+/// `crates/NAME`).
 pub fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = match manifest.parent() {
+        Some(crates) if crates.ends_with("crates") => crates.parent().unwrap_or(manifest),
+        _ => manifest,
+    };
+    root.join(path)
 }
 
 /// The largest absolute difference of two equally long slices.
