@@ -9,12 +9,12 @@ use std::collections::HashSet;
 #[path = "../../../tests/common/mod.rs"]
 mod common;
 
+use flame::motion::rotation::{self, Mat3};
+use flame::motion::{Convention, Format, Poses, ReadOptions};
 use flame_demo::corpus::{self, CorpusMotion};
 use flame_demo::rig::{joint, FPS};
 use flame_demo::sentences::normalize;
 use flame_demo::{classify, Confusion, Family};
-use flame::motion::rotation::{self, Mat3};
-use flame::motion::{Convention, Format, Poses, ReadOptions};
 
 fn decode(m: &CorpusMotion) -> Poses {
     Poses::decode(

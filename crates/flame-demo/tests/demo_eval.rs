@@ -22,11 +22,11 @@ use std::sync::Arc;
 mod common;
 
 use common::{demo_model, repo};
-use flame_demo::classify::{self, Features};
-use flame_demo::{Confusion, Family};
 use flame::models::Model;
 use flame::motion::{Convention, Poses};
 use flame::session::{Session, SessionParams};
+use flame_demo::classify::{self, Features};
+use flame_demo::{Confusion, Family};
 
 const SEEDS: [u64; 3] = [0, 1, 2];
 /// What the issue asks of a demo model (the shipped one measures 0.927).
