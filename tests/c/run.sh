@@ -206,8 +206,10 @@ fi
 # shellcheck disable=SC2317  # called through step
 stripped() {
     local so="$1/libflame.so" built="$ROOT/target/release/libflame.so"
-    if readelf -SW "$so" "$1/libflame.a" | grep -E '\.debug_|\.llvmbc'; then
-        echo "debug sections or bitcode left in the installed libraries"
+    local left
+    left="$(readelf -SW "$so" "$1/libflame.a" | grep -cE '\.debug_|\.llvmbc')"
+    if [ "$left" -gt 0 ]; then
+        echo "$left debug or bitcode sections left in the installed libraries"
         return 1
     fi
     readelf -SW "$1/libflame.so.debug" | grep -qF .debug_line || {
@@ -235,7 +237,7 @@ packaging() {
         "$prefix/lib/libflame.a" "$pc/flame.pc" "$pc/flame-static.pc" \
         "$prefix/lib/cmake/flame/flameConfig.cmake" \
         "$prefix/lib/cmake/flame/flameConfigVersion.cmake" "$prefix/lib/libflame.so.debug"
-    step "installed libraries: stripped, debug info apart" "$OUT/install-stripped.log" \
+    step "installed libraries stripped" "$OUT/install-stripped.log" \
         stripped "$prefix/lib"
 
     local cb="$WORK/cmake-build"
