@@ -4,13 +4,14 @@
 
 use std::path::{Path, PathBuf};
 
-/// A path inside the repository (the workspace root, also from a member crate's tests under
-/// `crates/NAME`).
+/// A path inside the repository: the workspace root, which is the runtime's manifest folder and
+/// two levels above a member crate's (`crates/NAME`).
 pub fn repo(path: &str) -> PathBuf {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let root = match manifest.parent() {
-        Some(crates) if crates.ends_with("crates") => crates.parent().unwrap_or(manifest),
-        _ => manifest,
+    let root = if env!("CARGO_PKG_NAME") == "flame" {
+        manifest.to_path_buf()
+    } else {
+        manifest.join("../..")
     };
     root.join(path)
 }
