@@ -2,13 +2,19 @@
 # Builds libflame (release) and installs it under PREFIX for C and C++ consumers:
 #
 #   PREFIX/include/flame.h, flame.hpp
-#   PREFIX/lib/libflame.so (macOS: libflame.dylib), PREFIX/lib/libflame.a
+#   PREFIX/lib/libflame.so (macOS: libflame.dylib), PREFIX/lib/libflame.a, both without debug info
+#   PREFIX/lib/libflame.so.debug (macOS: libflame.dylib.dSYM), the shared library's debug info
 #   PREFIX/lib/pkgconfig/flame.pc, flame-static.pc
 #   PREFIX/lib/cmake/flame/flameConfig.cmake, flameConfigVersion.cmake
 #
 # usage: packaging/install.sh PREFIX
 # Environment: DESTDIR (staged install: files go to $DESTDIR$PREFIX, paths inside them name
-# PREFIX), FLAME_LIBDIR (default lib), CARGO_TARGET_DIR (as cargo), CARGO (default cargo).
+# PREFIX), FLAME_LIBDIR (default lib), CARGO_TARGET_DIR (as cargo), CARGO (default cargo),
+# FLAME_STRIP=0 (install the libraries as cargo built them, debug info inside), OBJCOPY.
+#
+# The release profile builds with line tables (debug = 1: backtraces, profilers); the installed
+# libraries leave them out (packaging/strip.sh): the shared library's go to libflame.so.debug,
+# which gdb finds through the library's .gnu_debuglink (delete it if unwanted).
 # Linux and macOS; on Windows build with cargo and copy the files by hand (see README).
 set -euo pipefail
 
@@ -35,7 +41,7 @@ VERSION_MINOR="$(echo "$VERSION" | cut -d. -f2)"
 # when the build is already fresh).
 LOG="$(mktemp)"
 trap 'rm -f "$LOG"' EXIT
-if ! "$CARGO" rustc --release --lib --quiet -- --print native-static-libs 2>"$LOG"; then
+if ! "$CARGO" rustc --release --lib -p flame --quiet -- --print native-static-libs 2>"$LOG"; then
     cat "$LOG" >&2
     exit 1
 fi
@@ -67,8 +73,15 @@ POINTER_BYTES=$(($(getconf LONG_BIT) / 8))
 
 install -d "$DEST/include" "$DEST/$LIBDIR/pkgconfig" "$DEST/$LIBDIR/cmake/flame"
 install -m 644 include/flame.h bindings/cpp/flame.hpp "$DEST/include/"
-install -m 755 "$TARGET_DIR/release/$SHARED" "$DEST/$LIBDIR/"
-install -m 644 "$TARGET_DIR/release/libflame.a" "$DEST/$LIBDIR/"
+if [ "${FLAME_STRIP:-1}" = 0 ]; then
+    install -m 755 "$TARGET_DIR/release/$SHARED" "$DEST/$LIBDIR/"
+    install -m 644 "$TARGET_DIR/release/libflame.a" "$DEST/$LIBDIR/"
+else
+    bash packaging/strip.sh shared "$TARGET_DIR/release/$SHARED" "$DEST/$LIBDIR/$SHARED"
+    bash packaging/strip.sh static "$TARGET_DIR/release/libflame.a" "$DEST/$LIBDIR/libflame.a"
+    chmod 755 "$DEST/$LIBDIR/$SHARED"
+    chmod 644 "$DEST/$LIBDIR/libflame.a"
+fi
 
 fill() {
     sed -e "s|@PREFIX@|$PREFIX|g" -e "s|@LIBDIR@|$LIBDIR|g" -e "s|@VERSION@|$VERSION|g" \

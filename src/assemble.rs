@@ -15,7 +15,7 @@
 //! in a `HashMap`, whose order changes from one process to the next).
 //!
 //! [`AssembleOptions::actions`] records the action families the denoiser was trained on under
-//! [`ACTIONS_KEY`] (the CLI passes the demo corpus's families, `flame::demo::Family::ALL`, when it
+//! [`ACTIONS_KEY`] (the CLI passes the demo corpus's families, `flame_demo::Family::ALL`, when it
 //! assembles the demo model); `flame info` prints them and `flame generate` warns about prompts
 //! that name none of them.
 //!

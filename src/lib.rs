@@ -15,8 +15,6 @@ pub mod checkpoint;
 /// cbindgen:ignore
 pub mod config;
 /// cbindgen:ignore
-pub mod demo;
-/// cbindgen:ignore
 pub mod diffusion;
 /// cbindgen:ignore
 pub mod edit;

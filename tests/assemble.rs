@@ -268,7 +268,7 @@ fn metadata_keys_in_file_order(bytes: &[u8]) -> Vec<String> {
 fn assembly_gives_the_same_bytes_every_time() {
     let dir = scratch("repeat");
     let (den, text) = split(&fixture("flame_tiny.safetensors"), &dir, &Split::default());
-    let demo: Vec<String> = flame::demo::Family::ALL
+    let demo: Vec<String> = flame_demo::Family::ALL
         .iter()
         .map(|f| f.name().to_string())
         .collect();

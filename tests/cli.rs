@@ -420,7 +420,7 @@ fn assembled_actions_are_printed_and_checked_against_the_prompt() {
     let o = flame(&["assemble", &den, &text, &demo, "--demo-actions"]);
     assert_ok(&o);
     let info = stdout(&flame(&["info", &demo]));
-    let names: Vec<&str> = flame::demo::Family::ALL.iter().map(|f| f.name()).collect();
+    let names: Vec<&str> = flame_demo::Family::ALL.iter().map(|f| f.name()).collect();
     assert!(
         info.contains(&format!("trained on:     {}\n", names.join(", "))),
         "{info}"

@@ -7,10 +7,10 @@
 //! by the whole offset. Measured: kept parts up to 162 mm/frame (the swinging foot), seam offset
 //! 335 mm, blended seams 166 mm/frame (bound 266), unblended 232 mm/frame.
 
-use flame::demo::corpus;
-use flame::demo::family::Family;
 use flame::edit::paste_with_seams;
 use flame::motion::{Convention, Format, Poses, ReadOptions};
+use flame_demo::corpus;
+use flame_demo::Family;
 
 const DIM: usize = 147;
 const SEAM: usize = 4;

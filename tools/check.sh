@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The project's test command (README "Build and test"): formatting, lints, the Rust tests, the
-# C ABI tests (shared and static library, C++ wrapper, packaging; valgrind when CI=true or
-# FLAME_VALGRIND=1), the language bindings' tests, the BVH round trip through Blender and a
-# short run of every fuzz target.
+# The project's test command (README "Build and test"): formatting, lints and the Rust tests of
+# every crate of the workspace (the runtime and crates/flame-demo), the C ABI tests (shared and
+# static library, C++ wrapper, packaging; valgrind when CI=true or FLAME_VALGRIND=1), the
+# language bindings' tests, the BVH round trip through Blender and a short run of every fuzz
+# target.
 #
 # Every stage runs even when an earlier one failed; the last line says which passed and which
 # failed, and the exit status is non-zero when any failed. Python runs only inside a virtual
@@ -69,7 +70,7 @@ run_stage() {
 rust_tests() {
     mkdir -p "$(dirname "$skips")"
     rm -f "$skips"
-    cargo test
+    cargo test --workspace
     local rc=$?
     # Tests that need what is not here (real weights) say so in this file (tests/common).
     if [ -s "$skips" ]; then
@@ -92,8 +93,8 @@ fuzz_smoke() {
 
 for stage in "${stages[@]}"; do
     case "$stage" in
-        fmt) run_stage fmt cargo fmt --check ;;
-        clippy) run_stage clippy cargo clippy --all-targets -- -D warnings ;;
+        fmt) run_stage fmt cargo fmt --all --check ;;
+        clippy) run_stage clippy cargo clippy --workspace --all-targets -- -D warnings ;;
         rust) run_stage rust rust_tests ;;
         c) run_stage c bash tests/c/run.sh ;;
         bindings) run_stage bindings bash tests/bindings/run_all.sh ;;

@@ -11,9 +11,10 @@
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
 #    2 steps) and with FLAME_TEST_QUICK=1;
-# 5. packaging/install.sh installs a release build into a temporary prefix, and CMake
-#    (find_package(flame)) and pkg-config consumers are built against it and run
-#    (FLAME_PACKAGING=0 skips; needs cmake and pkg-config: tools/install_test_deps.sh).
+# 5. packaging/install.sh installs a release build into a temporary prefix (libraries stripped
+#    of debug info, which stays in libflame.so.debug), and CMake (find_package(flame)) and
+#    pkg-config consumers are built against it and run (FLAME_PACKAGING=0 skips; needs cmake and
+#    pkg-config: tools/install_test_deps.sh).
 #
 # Each test program ends with "N passed, N failed"; this script adds them up (a build error, a
 # crash or a valgrind error counts as one failure), prints each step's time, and ends with the
@@ -199,6 +200,34 @@ else
 fi
 
 # ---- 5. packaging --------------------------------------------------------------------------
+# stripped LIBDIR: the installed libraries have no debug sections (nor embedded bitcode), the
+# shared one exports what cargo's build exports and names its debug file, which has them
+# (packaging/strip.sh).
+# shellcheck disable=SC2317  # called through step
+stripped() {
+    local so="$1/libflame.so" built="$ROOT/target/release/libflame.so"
+    local left
+    left="$(readelf -SW "$so" "$1/libflame.a" | grep -cE '\.debug_|\.llvmbc')"
+    if [ "$left" -gt 0 ]; then
+        echo "$left debug or bitcode sections left in the installed libraries"
+        return 1
+    fi
+    readelf -SW "$1/libflame.so.debug" | grep -qF .debug_line || {
+        echo "libflame.so.debug has no .debug_line"
+        return 1
+    }
+    readelf -p .gnu_debuglink "$so" | grep -qF libflame.so.debug || {
+        echo "libflame.so names no libflame.so.debug"
+        return 1
+    }
+    diff <(nm -D --defined-only "$built" | awk '{print $3}' | sort) \
+        <(nm -D --defined-only "$so" | awk '{print $3}' | sort) || {
+        echo "the installed libflame.so exports other symbols than $built"
+        return 1
+    }
+    ls -l "$built" "$ROOT/target/release/libflame.a" "$so" "$1/libflame.a" "$1/libflame.so.debug"
+}
+
 packaging() {
     local prefix="$WORK/prefix" pc="$WORK/prefix/lib/pkgconfig"
     step "packaging/install.sh (release build)" "$OUT/install.log" \
@@ -207,7 +236,9 @@ packaging() {
         "$prefix/include/flame.h" "$prefix/include/flame.hpp" "$prefix/lib/libflame.so" \
         "$prefix/lib/libflame.a" "$pc/flame.pc" "$pc/flame-static.pc" \
         "$prefix/lib/cmake/flame/flameConfig.cmake" \
-        "$prefix/lib/cmake/flame/flameConfigVersion.cmake"
+        "$prefix/lib/cmake/flame/flameConfigVersion.cmake" "$prefix/lib/libflame.so.debug"
+    step "installed libraries stripped" "$OUT/install-stripped.log" \
+        stripped "$prefix/lib"
 
     local cb="$WORK/cmake-build"
     if step "cmake consumer: configure + build" "$OUT/cmake-consumer.log" \

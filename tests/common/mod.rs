@@ -4,9 +4,16 @@
 
 use std::path::{Path, PathBuf};
 
-/// A path inside the repository.
+/// A path inside the repository: the workspace root, which is the runtime's manifest folder and
+/// two levels above a member crate's (`crates/NAME`).
 pub fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = if env!("CARGO_PKG_NAME") == "flame" {
+        manifest.to_path_buf()
+    } else {
+        manifest.join("../..")
+    };
+    root.join(path)
 }
 
 /// The largest absolute difference of two equally long slices.

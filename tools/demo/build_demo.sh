@@ -54,8 +54,8 @@ if [[ -f "$CORPUS/corpus.jsonl" ]]; then
 elif (( SMOKE )); then
     python3 tools/demo/fake_corpus.py --out "$CORPUS" --count 48 --seed "$SEED"
 else
-    cargo run --release --bin flame-corpus -- generate --out "$CORPUS" --count "$CORPUS_COUNT" \
-        --seed "$SEED"
+    cargo run --release -p flame-demo --bin flame-corpus -- generate --out "$CORPUS" \
+        --count "$CORPUS_COUNT" --seed "$SEED"
 fi
 took
 

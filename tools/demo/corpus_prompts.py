@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Write a family<TAB>prompt file of TRAINING sentences for tests/demo_eval.rs
+"""Write a family<TAB>prompt file of TRAINING sentences for crates/flame-demo/tests/demo_eval.rs
 (`FLAME_DEMO_EVAL_PROMPTS`): settings such as the guidance scale are chosen on these, never on
 the held-out prompts of tests/fixtures/demo_eval_prompts.tsv.
 

@@ -5,6 +5,27 @@
 //! `-ed`, `-d`, `-ing`, a doubled final consonant as in `running`, a dropped final `e` as in
 //! `waving`). Synonyms the corpus also uses (`jog`, `stroll`, ...) are not known here.
 
+/// The demo corpus's action families in table order (`flame_demo::Family::ALL`'s names, which the
+/// runtime does not link): what `flame assemble --demo-actions` records. tests/cli.rs and
+/// tests/assemble.rs check that the two lists agree.
+pub const DEMO_FAMILIES: [&str; 15] = [
+    "walk",
+    "run",
+    "jump",
+    "hop",
+    "wave",
+    "clap",
+    "punch",
+    "kick",
+    "squat",
+    "crouch",
+    "turn",
+    "raise_arms",
+    "bow",
+    "side_step",
+    "stand",
+];
+
 /// Whether `prompt` has a word that is one of `actions` or an inflection of it.
 pub fn mentions_any(prompt: &str, actions: &[String]) -> bool {
     let keywords: Vec<String> = actions
@@ -53,10 +74,7 @@ mod tests {
     use super::*;
 
     fn demo() -> Vec<String> {
-        flame::demo::Family::ALL
-            .iter()
-            .map(|f| f.name().to_string())
-            .collect()
+        DEMO_FAMILIES.iter().map(|f| f.to_string()).collect()
     }
 
     #[test]

@@ -174,10 +174,7 @@ fn default_model() -> Result<PathBuf, String> {
 /// The demo corpus's action families, recorded in the demo model when it is assembled.
 fn demo_options() -> AssembleOptions {
     AssembleOptions {
-        actions: flame::demo::Family::ALL
-            .iter()
-            .map(|f| f.name().to_string())
-            .collect(),
+        actions: actions::DEMO_FAMILIES.map(str::to_string).to_vec(),
     }
 }
 

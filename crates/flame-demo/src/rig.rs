@@ -14,8 +14,8 @@
 
 use std::sync::OnceLock;
 
-use crate::motion::rotation::{self as rot, Mat3, Vec3, IDENTITY};
-use crate::motion::skeleton::Skeleton;
+use flame::motion::rotation::{self as rot, Mat3, Vec3, IDENTITY};
+use flame::motion::skeleton::Skeleton;
 
 /// Frames per second of every corpus motion (FLAME's rate).
 pub const FPS: f64 = 20.0;
@@ -377,7 +377,7 @@ pub const TOE_OUT: f64 = 0.08;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::motion::{Convention, Format, Poses, ReadOptions};
+    use flame::motion::{Convention, Format, Poses, ReadOptions};
 
     fn decode(poses: &[Pose]) -> Vec<Vec3> {
         let f = Rig::get().encode(poses);

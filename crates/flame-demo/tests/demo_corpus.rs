@@ -1,17 +1,20 @@
-//! The procedural demo corpus and its rule-based classifier (`flame::demo`, docs/demo_corpus.md):
+//! The procedural demo corpus and its rule-based classifier (`flame_demo`, docs/demo_corpus.md):
 //! classifier accuracy on the corpus, physical plausibility measured on decoded motions,
 //! determinism, descriptions and evaluation prompts, and the `flame-corpus` CLI round trip.
 //! Run with `-- --nocapture` to see the confusion table and the measured bounds.
 
 use std::collections::HashSet;
-use std::path::PathBuf;
 
-use flame::demo::corpus::{self, CorpusMotion};
-use flame::demo::rig::{joint, FPS};
-use flame::demo::sentences::normalize;
-use flame::demo::{classify, Confusion, Family};
+// The repository's test helpers (tests/common), shared with the runtime's tests.
+#[path = "../../../tests/common/mod.rs"]
+mod common;
+
 use flame::motion::rotation::{self, Mat3};
 use flame::motion::{Convention, Format, Poses, ReadOptions};
+use flame_demo::corpus::{self, CorpusMotion};
+use flame_demo::rig::{joint, FPS};
+use flame_demo::sentences::normalize;
+use flame_demo::{classify, Confusion, Family};
 
 fn decode(m: &CorpusMotion) -> Poses {
     Poses::decode(
@@ -227,8 +230,7 @@ fn same_seed_same_corpus_other_seed_other_corpus() {
 }
 
 fn eval_prompts() -> Vec<(Family, String)> {
-    let path =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/demo_eval_prompts.tsv");
+    let path = common::repo("tests/fixtures/demo_eval_prompts.tsv");
     std::fs::read_to_string(path)
         .unwrap()
         .lines()
@@ -326,7 +328,7 @@ fn cli_generates_and_checks_a_corpus() {
     // The same motion as joint positions (what `flame generate --positions` writes) gets the
     // same label; any other shape is refused with a message.
     let (_, features) = flame::npy::read_f32(&dir.join("motions/000000.npy")).unwrap();
-    let positions: Vec<f32> = flame::demo::classify::positions_of(&features, frames)
+    let positions: Vec<f32> = flame_demo::classify::positions_of(&features, frames)
         .unwrap()
         .iter()
         .flat_map(|p| p.map(|v| v as f32))

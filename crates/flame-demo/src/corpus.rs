@@ -15,7 +15,7 @@ use super::actions::{self, Detail, Dice, Place};
 use super::family::Family;
 use super::rig::{Pose, Rig, FPS};
 use super::sentences;
-use crate::error::{Error, Result};
+use flame::error::{Error, Result};
 
 /// Written into `summary.json`; bump when the same seed would give different motions.
 pub const GENERATOR_VERSION: &str = "flame-demo-corpus/1";
@@ -157,7 +157,7 @@ pub fn write(dir: &Path, motions: &[CorpusMotion], seed: u64) -> Result<()> {
     let mdir = dir.join("motions");
     std::fs::create_dir_all(&mdir).map_err(|e| io_err(&mdir, e))?;
     motions.par_iter().try_for_each(|m| {
-        crate::npy::write_f32(
+        flame::npy::write_f32(
             &mdir.join(format!("{}.npy", m.id)),
             &[m.frames, 147],
             &m.features,
@@ -217,7 +217,7 @@ pub fn read_entries(dir: &Path) -> Result<Vec<Entry>> {
     let path = dir.join("corpus.jsonl");
     let text = std::fs::read_to_string(&path).map_err(|e| io_err(&path, e))?;
     let bad = |n: usize, what: &str| {
-        crate::error::Error::InvalidArgument(format!("{} line {}: {what}", path.display(), n + 1))
+        flame::error::Error::InvalidArgument(format!("{} line {}: {what}", path.display(), n + 1))
     };
     let mut out = Vec::new();
     for (n, line) in text

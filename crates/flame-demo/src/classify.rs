@@ -36,7 +36,7 @@
 
 use super::family::Family;
 use super::rig::joint::*;
-use crate::motion::rotation::Vec3;
+use flame::motion::rotation::Vec3;
 
 /// Both feet this high (m) = off the ground.
 pub const AIRBORNE: f64 = 0.05;
@@ -322,14 +322,14 @@ pub fn classify(positions: &[Vec3], frames: usize, fps: f64) -> Family {
 }
 
 /// Decodes `[frames × 147]` `smpl24_6d` features and classifies them.
-pub fn classify_features(features: &[f32], frames: usize, fps: f64) -> crate::Result<Family> {
+pub fn classify_features(features: &[f32], frames: usize, fps: f64) -> flame::Result<Family> {
     let positions = positions_of(features, frames)?;
     Ok(classify(&positions, frames, fps))
 }
 
 /// SMPL-24 joint positions (native world) of `smpl24_6d` features, via the library's decoder.
-pub fn positions_of(features: &[f32], frames: usize) -> crate::Result<Vec<Vec3>> {
-    use crate::motion::{Convention, Format, Poses, ReadOptions};
+pub fn positions_of(features: &[f32], frames: usize) -> flame::Result<Vec<Vec3>> {
+    use flame::motion::{Convention, Format, Poses, ReadOptions};
     Ok(Poses::decode(
         Format::Smpl24Rot6d,
         features,

@@ -9,6 +9,10 @@
 //! - [`classify`]: the rule-based classifier.
 //!
 //! `docs/demo_corpus.md` documents the families, variations, vocabulary, rules and accuracy.
+//!
+//! A crate of its own beside the runtime (`flame`): the tests, the `flame-corpus` tool and the
+//! demo training scripts use it; the libraries engines link (`libflame.so`, `libflame.a`) do not
+//! carry it.
 
 pub mod actions;
 pub mod classify;

@@ -1,4 +1,4 @@
-//! `flame-corpus`: writes the procedural demo corpus and classifies motions (see `flame::demo`).
+//! `flame-corpus`: writes the procedural demo corpus and classifies motions (see `flame_demo`).
 //!
 //! - `flame-corpus generate --out DIR [--count 4000] [--seed 0]`
 //! - `flame-corpus classify FILE.npy` — prints the family (and the measured features with `-v`)
@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use flame::demo::{classify, corpus, Confusion, Family};
+use flame_demo::{classify, corpus, Confusion, Family};
 
 const USAGE: &str = "usage: flame-corpus generate --out DIR [--count N] [--seed S]
        flame-corpus classify [-v] FEATURES.npy|POSITIONS.npy
@@ -92,7 +92,7 @@ fn classify_file(args: &[String]) -> Result<(), String> {
             path.display()
         ));
     }
-    let f = classify::features(&positions, frames, flame::demo::rig::FPS);
+    let f = classify::features(&positions, frames, flame_demo::rig::FPS);
     println!("{}", classify::decide(&f));
     if verbose {
         eprintln!("{f:#?}");
@@ -102,11 +102,11 @@ fn classify_file(args: &[String]) -> Result<(), String> {
 
 /// Classifies the frames `range` of a motion.
 fn part(positions: &[[f64; 3]], range: std::ops::Range<usize>) -> Family {
-    let j = flame::demo::rig::joint::JOINTS;
+    let j = flame_demo::rig::joint::JOINTS;
     classify::classify(
         &positions[range.start * j..range.end * j],
         range.len(),
-        flame::demo::rig::FPS,
+        flame_demo::rig::FPS,
     )
 }
 

@@ -1,9 +1,9 @@
 //! The demo model understands sentences it was not trained on: each held-out prompt of
 //! tests/fixtures/demo_eval_prompts.tsv (new wording and synonyms, none among the corpus's
-//! sentences, see tests/demo_corpus.rs) is generated with 3 seeds at the model's defaults, as
+//! sentences, see crates/flame-demo/tests/demo_corpus.rs) is generated with 3 seeds at the model's defaults, as
 //! `flame generate` would, and the motion is labelled by the rule-based classifier of
-//! `flame::demo::classify`; at least 80% must be the intended family. Prints the confusion table
-//! (`cargo test --test demo_eval -- --nocapture`).
+//! `flame_demo::classify`; at least 80% must be the intended family. Prints the confusion table
+//! (`cargo test -p flame-demo --test demo_eval -- --nocapture`).
 //!
 //! The model: `$FLAME_DEMO_MODEL`, else models/demo/flame_demo.safetensors when assembled, else
 //! the committed denoiser assembled here with `$FLAME_MINILM_DIR`. Skipped without any of them
@@ -17,14 +17,16 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
+// The repository's test helpers (tests/common), shared with the runtime's tests.
+#[path = "../../../tests/common/mod.rs"]
 mod common;
 
 use common::{demo_model, repo};
-use flame::demo::classify::{self, Features};
-use flame::demo::{Confusion, Family};
 use flame::models::Model;
 use flame::motion::{Convention, Poses};
 use flame::session::{Session, SessionParams};
+use flame_demo::classify::{self, Features};
+use flame_demo::{Confusion, Family};
 
 const SEEDS: [u64; 3] = [0, 1, 2];
 /// What the issue asks of a demo model (the shipped one measures 0.927).

@@ -15,8 +15,8 @@ use super::family::Family;
 use super::rig::{
     forward, left, sub, Foot, Pose, Rig, FPS, HANG, SIDE, STANCE_HALF_WIDTH, TOE_OUT,
 };
-use crate::motion::rotation::Vec3;
-use crate::rng::GaussianRng;
+use flame::motion::rotation::Vec3;
+use flame::rng::GaussianRng;
 
 /// How fast an action is performed, as the sentences say it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
