@@ -21,6 +21,10 @@
 //! }
 //! ```
 //!
+//! Each family reads its own sections (`denoiser`, and MoLA's and MLD's `vae`) and checks them
+//! itself ([`crate::models::FamilyConfig`]); the rows below for `flame`, `mdm` and the latent
+//! families are those checks. MoLA and MLD schemas: docs/model-files-latent.md.
+//!
 //! MDM and Motion Flow Matching files (`"architecture": "mdm"` / `"motionfm"`) have the
 //! denoiser `{"njoints", "latent_dim", "layers", "heads", "ff_size", "activation", "clip_dim",
 //! "max_len"}` and a CLIP text encoder `{"kind": "clip", "vocab_size", "width", "layers",
@@ -40,7 +44,7 @@
 //! | field | bound | checked against |
 //! |---|---|---|
 //! | `format_version` | 1 | |
-//! | `architecture` | `flame`, `mdm`, `motionfm` | the text encoder's kind (flame: bert/roberta; others: clip) |
+//! | `architecture` | `flame`, `mdm`, `motionfm`, `mola`, `mld` | the text encoder's kind (flame: bert/roberta; others: clip) |
 //! | flame `denoiser.motion_dim` | 1..=W, = the format's features | `input_projection.weight` `[C, motion_dim]`, `last_projection.weight` `[2·motion_dim, C]` |
 //! | flame `denoiser.model_channels` (C) | 2..=W, even | `input_projection.weight` |
 //! | flame `denoiser.num_layers` | 1..=L | `tf_decoder.layers.{n−1}.*` present, `.{n}.*` absent |
