@@ -21,6 +21,10 @@
 //! }
 //! ```
 //!
+//! A model sampled with diffusers' `DDIMScheduler` (MoLA, MLD) adds its spacing to `diffusion`,
+//! e.g. `"spacing": "trailing", "set_alpha_to_one": false` (MoLA) or `"spacing": "leading",
+//! "steps_offset": 1, "set_alpha_to_one": false` (MLD).
+//!
 //! MDM and Motion Flow Matching files (`"architecture": "mdm"` / `"motionfm"`) have the
 //! denoiser `{"njoints", "latent_dim", "layers", "heads", "ff_size", "activation", "clip_dim",
 //! "max_len"}` and a CLIP text encoder `{"kind": "clip", "vocab_size", "width", "layers",
@@ -83,8 +87,11 @@
 //! | `diffusion.parameterization` | `epsilon`/`eps`, `x0`/`sample`/`start_x`, `v`/`v_prediction`; `velocity`/`flow` for (and only for) motionfm | |
 //! | `diffusion.variance` | `learned_range` (flame only), `fixed_small`, `fixed_large` | |
 //! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame) | |
+//! | `diffusion.spacing` | `respace` (default), `leading`, `trailing`; diffusion models only | |
+//! | `diffusion.steps_offset` | 0 (default) ..num_timesteps; `leading` and `trailing` only; `leading`: (defaults.steps − 1)·(num_timesteps div steps) + offset < num_timesteps | |
+//! | `diffusion.set_alpha_to_one` | `true` (default); `false` needs `leading` or `trailing` | |
 //! | `defaults.sampler` | `ddpm`, `ddim` (diffusion); `euler`, `heun`, `midpoint` (motionfm) | |
-//! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm) | |
+//! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm); a count the spacing can take | |
 //! | `defaults.guidance` | finite, in [0, 100] (also a session's) | |
 //! | `defaults.eta` | finite, in [0, 1] | |
 //! | `defaults.frames` | 1..=max frames (max_motion_length − 1, max_len − 1) | |
@@ -250,6 +257,18 @@ pub struct DiffusionConfig {
     /// The unconditional input of classifier-free guidance: `empty_prompt` (FLAME) or `zeros`.
     #[serde(default = "empty_prompt")]
     pub uncond: String,
+    /// How sampling steps are picked from the training steps: `respace` (guided-diffusion's
+    /// respaced process, the default), `leading` or `trailing` (diffusers' `DDIMScheduler`).
+    #[serde(default = "respace")]
+    pub spacing: String,
+    /// diffusers' `steps_offset`, added to every `leading` timestep (MLD: 1); `trailing`
+    /// ignores it, as diffusers does.
+    #[serde(default)]
+    pub steps_offset: usize,
+    /// diffusers' `set_alpha_to_one`: the last step goes to ᾱ = 1 (true) or to the training
+    /// table's ᾱ_0 (false: MoLA, MLD).
+    #[serde(default = "yes")]
+    pub set_alpha_to_one: bool,
 }
 
 /// Sampling defaults a session starts from.
@@ -271,6 +290,12 @@ fn gelu() -> String {
 }
 fn empty_prompt() -> String {
     "empty_prompt".into()
+}
+fn respace() -> String {
+    "respace".into()
+}
+fn yes() -> bool {
+    true
 }
 fn ln_eps_torch() -> f32 {
     1e-5
