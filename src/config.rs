@@ -96,7 +96,7 @@
 //! | `defaults.eta` | finite, in [0, 1] | |
 //! | `defaults.frames` | 1..=max frames (max_motion_length − 1, max_len − 1) | |
 //!
-//! The schedule, parameterization and variance names ignore case and surrounding spaces, as the
+//! The schedule, parameterization, variance and spacing names ignore case and surrounding spaces, as the
 //! sampler does. The per-part checks ([`FlameConfig::validate`], [`MdmConfig::validate`],
 //! [`TextEncoderConfig::validate`], [`ClipConfig::validate`]) are also what each loader runs
 //! first when used on its own.
@@ -554,6 +554,95 @@ mod tests {
         ] {
             Config::from_json(&with(section, key, value.into())).unwrap();
         }
+    }
+
+    #[test]
+    fn diffusers_spacing_fields() {
+        let c = Config::from_json(EXAMPLE).unwrap();
+        let d = &c.diffusion;
+        assert_eq!(
+            (d.spacing.as_str(), d.steps_offset, d.set_alpha_to_one),
+            ("respace", 0, true)
+        );
+        let diffusion = |fields: &[(&str, serde_json::Value)], steps: u64| {
+            let mut v: serde_json::Value = serde_json::from_str(EXAMPLE).unwrap();
+            for (k, x) in fields {
+                v["diffusion"][*k] = x.clone();
+            }
+            v["defaults"]["steps"] = steps.into();
+            Config::from_json(&v.to_string())
+        };
+        // MoLA's and MLD's settings load (trailing keeps an offset it ignores, as diffusers does).
+        for (spacing, offset) in [("trailing", 1), ("leading", 1), ("Leading", 19)] {
+            let f = [
+                ("spacing", spacing.into()),
+                ("steps_offset", offset.into()),
+                ("set_alpha_to_one", false.into()),
+            ];
+            let c = diffusion(&f, 50).unwrap();
+            assert!(!c.diffusion.set_alpha_to_one);
+        }
+        for (fields, steps, needle) in [
+            (
+                vec![("spacing", "linspace".into())],
+                50,
+                "unknown config diffusion.spacing `linspace` (accepted: respace, leading, trailing)",
+            ),
+            (
+                vec![("steps_offset", 1.into())],
+                50,
+                "config diffusion.steps_offset 1 needs diffusion.spacing `leading` or `trailing`",
+            ),
+            (
+                vec![("set_alpha_to_one", false.into())],
+                50,
+                "config diffusion.set_alpha_to_one false needs diffusion.spacing `leading`",
+            ),
+            (
+                vec![("spacing", "leading".into()), ("steps_offset", 1000.into())],
+                50,
+                "config diffusion.steps_offset 1000 is outside 0..1000",
+            ),
+            (
+                vec![("spacing", "leading".into()), ("steps_offset", 20.into())],
+                50,
+                "config defaults.steps 50: leading spacing with 50 steps and steps_offset 20 reaches timestep 1000",
+            ),
+            (
+                vec![("spacing", "trailing".into())],
+                61,
+                "config defaults.steps 61: trailing spacing cannot take 61 steps over 1000",
+            ),
+            (
+                vec![("steps_offset", (-1).into())],
+                50,
+                "does not match the flame schema",
+            ),
+            (
+                vec![("set_alpha_to_one", "no".into())],
+                50,
+                "does not match the flame schema",
+            ),
+        ] {
+            let e = diffusion(&fields, steps).unwrap_err();
+            assert!(matches!(e, crate::Error::BadModelFile(_)), "{e}");
+            assert!(e.to_string().contains(needle), "{fields:?}: {e}");
+        }
+        // A flow-matching model has no timesteps to space.
+        let path = format!(
+            "{}/tests/fixtures/motionfm_tiny.safetensors",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let file = ModelFile::open(std::path::Path::new(&path)).unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(file.metadata(CONFIG_KEY).unwrap()).unwrap();
+        Config::from_json(&v.to_string()).unwrap();
+        v["diffusion"]["spacing"] = "trailing".into();
+        let e = Config::from_json(&v.to_string()).unwrap_err().to_string();
+        assert!(
+            e.contains("a flow-matching model has no diffusion timesteps"),
+            "{e}"
+        );
     }
 
     #[test]

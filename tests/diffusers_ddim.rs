@@ -56,7 +56,13 @@ fn ints(v: &serde_json::Value) -> Vec<i64> {
 }
 
 /// MoLA's and MLD's `diffusion` section (scaled_linear 0.00085–0.012 over 1000 steps).
-fn config(spacing: &str, steps_offset: usize, set_alpha_to_one: bool, pred: &str, clip: bool) -> DiffusionConfig {
+fn config(
+    spacing: &str,
+    steps_offset: usize,
+    set_alpha_to_one: bool,
+    pred: &str,
+    clip: bool,
+) -> DiffusionConfig {
     DiffusionConfig {
         num_timesteps: 1000,
         schedule: "scaled_linear".into(),
@@ -111,7 +117,10 @@ fn alphas_cumprod_is_diffusers_float32_table() {
     assert_eq!(got.len(), 1000);
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     let got32: Vec<f32> = got.iter().map(|&a| a as f32).collect();
-    assert!(got.iter().all(|&a| f64::from(a as f32) == a), "widened f32 values");
+    assert!(
+        got.iter().all(|&a| f64::from(a as f32) == a),
+        "widened f32 values"
+    );
     assert_eq!(bits(&got32), bits(&want));
 }
 
@@ -132,12 +141,18 @@ fn timesteps_match_set_timesteps() {
             // diffusers' trailing rule gives one timestep too many, the last at −1.
             assert_eq!((want.len(), want.last()), (n + 1, Some(&-1)), "{key}");
             let msg = got.unwrap_err().to_string();
-            assert!(msg.contains(&format!("cannot take {n} steps")), "{key}: {msg}");
+            assert!(
+                msg.contains(&format!("cannot take {n} steps")),
+                "{key}: {msg}"
+            );
             refused += 1;
         } else if want[0] >= 1000 {
             // Leading 1000 steps + offset 1 starts at t = 1000, past diffusers' own table.
             let msg = got.unwrap_err().to_string();
-            assert!(msg.contains("past the last training step 999"), "{key}: {msg}");
+            assert!(
+                msg.contains("past the last training step 999"),
+                "{key}: {msg}"
+            );
             refused += 1;
         } else {
             let got: Vec<i64> = got.unwrap().iter().map(|&t| t as i64).collect();

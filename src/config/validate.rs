@@ -6,7 +6,8 @@
 
 use crate::checkpoint::ModelFile;
 use crate::diffusion::{
-    betas, diffusers_alphas_cumprod, diffusers_timesteps, BetaSchedule, Parameterization, Schedule, Spacing, Variance,
+    betas, diffusers_alphas_cumprod, diffusers_timesteps, BetaSchedule, Parameterization, Schedule,
+    Spacing, Variance,
 };
 use crate::error::{bad_file, Result};
 use crate::models::mdm::MdmConfig;
@@ -459,12 +460,13 @@ fn inner(e: crate::Error) -> String {
 /// `diffusion.spacing`, `steps_offset` and `set_alpha_to_one`: a known spacing, and the two
 /// diffusers fields left at their defaults unless diffusers' spacing uses them.
 fn check_spacing(dc: &DiffusionConfig, flow: bool) -> Result<Spacing> {
-    one_of(
-        "diffusion.spacing",
-        &dc.spacing,
-        &["respace", "leading", "trailing"],
-    )?;
-    let spacing: Spacing = dc.spacing.parse()?;
+    // Case and surrounding spaces ignored, as for the other diffusion names.
+    let spacing: Spacing = dc.spacing.parse().map_err(|_| {
+        bad_file!(
+            "unknown config diffusion.spacing `{}` (accepted: respace, leading, trailing)",
+            dc.spacing
+        )
+    })?;
     if flow && spacing.is_diffusers() {
         return Err(bad_file!(
             "config diffusion.spacing `{spacing}`: a flow-matching model has no diffusion \
@@ -671,9 +673,8 @@ impl Config {
         };
         in_range("defaults.steps", df.steps, 1, max_steps)?;
         if spacing.is_diffusers() {
-            diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset).map_err(
-                |e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)),
-            )?;
+            diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset)
+                .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
         }
         in_range_f32("defaults.guidance", df.guidance, 0.0, MAX_GUIDANCE, false)?;
         in_range_f32("defaults.eta", df.eta, 0.0, 1.0, false)?;

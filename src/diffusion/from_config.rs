@@ -102,7 +102,10 @@ pub fn build_sampler(
         .variance
         .parse()
         .map_err(|_| bad("variance", &dc.variance))?;
-    let spacing: Spacing = dc.spacing.parse().map_err(|_| bad("spacing", &dc.spacing))?;
+    let spacing: Spacing = dc
+        .spacing
+        .parse()
+        .map_err(|_| bad("spacing", &dc.spacing))?;
     let t = dc.num_timesteps;
     let base = betas(schedule, t);
     let clip = choice.clip_denoised.unwrap_or(dc.clip_denoised);
@@ -179,5 +182,155 @@ fn respaced_steps(num_timesteps: usize, spec: &str, steps: Option<usize>) -> Res
             kept.len()
         )),
         _ => Ok(kept),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diffusion::{space_timesteps_ddim_stride, Convention};
+
+    fn dc(spacing: &str, parameterization: &str) -> DiffusionConfig {
+        DiffusionConfig {
+            num_timesteps: 1000,
+            schedule: "scaled_linear".into(),
+            parameterization: parameterization.into(),
+            variance: "fixed_small".into(),
+            clip_denoised: false,
+            uncond: "zeros".into(),
+            spacing: spacing.into(),
+            steps_offset: 1,
+            set_alpha_to_one: false,
+        }
+    }
+
+    fn defaults() -> Defaults {
+        Defaults {
+            sampler: "ddim".into(),
+            steps: 50,
+            guidance: 1.0,
+            eta: 0.0,
+            frames: 1,
+        }
+    }
+
+    fn choice(method: Method, steps: Option<usize>, respacing: Option<&str>) -> SamplerChoice<'_> {
+        SamplerChoice {
+            method,
+            steps,
+            respacing,
+            eta: None,
+            clip_denoised: None,
+        }
+    }
+
+    fn diffusion(c: &DiffusionConfig, ch: &SamplerChoice) -> Result<DiffusionSampler> {
+        match build_sampler(c, &defaults(), ch)? {
+            BuiltSampler::Diffusion(d) => Ok(d),
+            BuiltSampler::Flow(_) => panic!("a diffusion sampler"),
+        }
+    }
+
+    fn err(c: &DiffusionConfig, ch: &SamplerChoice) -> String {
+        match build_sampler(c, &defaults(), ch) {
+            Err(e @ Error::InvalidArgument(_)) => e.to_string(),
+            other => panic!("{ch:?} gave {other:?}"),
+        }
+    }
+
+    #[test]
+    fn respace_takes_steps_or_a_respacing_string() {
+        let mut c = dc("respace", "epsilon");
+        c.steps_offset = 0;
+        c.set_alpha_to_one = true;
+        let s = diffusion(&c, &choice(Method::Ddpm, Some(10), None)).unwrap();
+        assert_eq!(s.timestep_map(), space_timesteps(1000, &[10]).unwrap());
+        assert_eq!(s.convention(), Convention::GuidedDiffusion);
+        let s = diffusion(&c, &choice(Method::Ddim, None, None)).unwrap();
+        assert_eq!(s.num_steps(), 50, "the file's default");
+        // "ddim50" keeps every 20th step, unlike the section rule's 50 steps.
+        let ddim50 = choice(Method::Ddim, None, Some("ddim50"));
+        let s = diffusion(&c, &ddim50).unwrap();
+        assert_eq!(
+            s.timestep_map(),
+            space_timesteps_ddim_stride(1000, 50).unwrap()
+        );
+        let s = diffusion(&c, &choice(Method::Ddim, Some(50), Some("ddim50"))).unwrap();
+        assert_eq!(s.num_steps(), 50);
+        // Five sections of 200 steps: 15 + 15 + 8 + 6 + 6 = 50 kept steps.
+        let sections = choice(Method::Ddpm, Some(50), Some("15,15,8,6,6"));
+        let s = diffusion(&c, &sections).unwrap();
+        assert_eq!(
+            s.timestep_map(),
+            space_timesteps(1000, &[15, 15, 8, 6, 6]).unwrap()
+        );
+        let e = err(&c, &choice(Method::Ddpm, Some(49), Some("15,15,8,6,6")));
+        assert!(
+            e.contains("steps 49 disagrees with respacing \"15,15,8,6,6\", which keeps 50"),
+            "{e}"
+        );
+        let e = err(&c, &choice(Method::Ddpm, None, Some(" ")));
+        assert!(e.contains("respacing is empty"), "{e}");
+        let e = err(&c, &choice(Method::Ddpm, None, Some("ddimx")));
+        assert!(
+            e.contains("respacing \"ddimx\" over 1000 training steps"),
+            "{e}"
+        );
+        let e = err(&c, &choice(Method::Ddpm, None, Some("ddim999")));
+        assert!(e.contains("cannot create exactly 999 steps"), "{e}");
+        let e = err(&c, &choice(Method::Ddpm, Some(1001), None));
+        assert!(e.contains("steps 1001 outside 1..=1000"), "{e}");
+    }
+
+    #[test]
+    fn diffusers_spacing_takes_steps_only() {
+        let mld = dc("leading", "epsilon");
+        let s = diffusion(&mld, &choice(Method::Ddim, None, None)).unwrap();
+        assert_eq!(s.convention(), Convention::Diffusers);
+        assert_eq!((s.model_timestep(49), s.model_timestep(0)), (981.0, 1.0));
+        let mola = dc("trailing", "epsilon");
+        let s = diffusion(&mola, &choice(Method::Ddim, Some(10), None)).unwrap();
+        assert_eq!((s.model_timestep(9), s.model_timestep(0)), (999.0, 99.0));
+        let e = err(&mola, &choice(Method::Ddim, None, Some("ddim50")));
+        assert!(
+            e.contains("respacing \"ddim50\" is guided-diffusion's")
+                && e.contains("diffusers' `trailing` timesteps"),
+            "{e}"
+        );
+        let e = err(&mola, &choice(Method::Ddim, Some(61), None));
+        assert!(e.contains("cannot take 61 steps"), "{e}");
+        let mut far = dc("leading", "epsilon");
+        far.steps_offset = 30;
+        let e = err(&far, &choice(Method::Ddim, None, None));
+        assert!(e.contains("reaches timestep 1010"), "{e}");
+    }
+
+    #[test]
+    fn families_and_eta() {
+        let flow = dc("respace", "velocity");
+        let euler = choice(Method::Ode(OdeMethod::Euler), Some(7), None);
+        match build_sampler(&flow, &defaults(), &euler).unwrap() {
+            BuiltSampler::Flow(f) => assert_eq!(f.num_steps(), 7),
+            other => panic!("{other:?}"),
+        }
+        let e = err(
+            &flow,
+            &choice(Method::Ode(OdeMethod::Heun), None, Some("ddim10")),
+        );
+        assert!(
+            e.contains("this flow-matching model integrates an ODE"),
+            "{e}"
+        );
+        let e = err(&flow, &choice(Method::Ddim, None, None));
+        assert!(e.contains("sampler ddim needs a diffusion model"), "{e}");
+        let c = dc("leading", "epsilon");
+        let e = err(&c, &choice(Method::Ode(OdeMethod::Midpoint), None, None));
+        assert!(
+            e.contains("sampler midpoint needs a flow-matching model"),
+            "{e}"
+        );
+        let mut bad_eta = choice(Method::Ddim, None, None);
+        bad_eta.eta = Some(f32::NAN);
+        assert!(err(&c, &bad_eta).contains("eta must be a finite value"));
     }
 }

@@ -335,6 +335,74 @@ mod tests {
     }
 
     #[test]
+    fn absurd_section_counts_are_errors_not_overflows() {
+        let huge = format!("{},1", usize::MAX);
+        assert!(parse_timestep_respacing(1000, &huge).is_err());
+        assert!(parse_timestep_respacing(1000, &format!("ddim{}", usize::MAX)).is_err());
+        assert!(parse_timestep_respacing(10, &"1,".repeat(20)[..39]).is_err());
+    }
+
+    #[test]
+    fn spacing_names() {
+        for s in [Spacing::Respace, Spacing::Leading, Spacing::Trailing] {
+            assert_eq!(s.name().parse::<Spacing>().unwrap(), s);
+        }
+        assert_eq!(" Trailing ".parse::<Spacing>().unwrap(), Spacing::Trailing);
+        assert!("linspace".parse::<Spacing>().is_err());
+        assert_eq!(Spacing::default(), Spacing::Respace);
+        assert!(!Spacing::Respace.is_diffusers() && Spacing::Leading.is_diffusers());
+    }
+
+    #[test]
+    fn leading_by_hand() {
+        // T div N = 20: k·20 + offset for k = 49..0 (MLD: offset 1 → 981 … 1).
+        let mld = diffusers_timesteps(Spacing::Leading, 1000, 50, 1).unwrap();
+        assert_eq!(mld, (0..50).rev().map(|k| 20 * k + 1).collect::<Vec<_>>());
+        // 7 steps: ratio 142, 852 … 0 (the top 148 steps are never visited).
+        let l7 = diffusers_timesteps(Spacing::Leading, 1000, 7, 0).unwrap();
+        assert_eq!(l7, [852, 710, 568, 426, 284, 142, 0]);
+        // The largest offset that keeps 980 + offset < 1000, and one past it.
+        assert_eq!(
+            diffusers_timesteps(Spacing::Leading, 1000, 50, 19).unwrap()[0],
+            999
+        );
+        let e = diffusers_timesteps(Spacing::Leading, 1000, 50, 20).unwrap_err();
+        assert!(e.to_string().contains("reaches timestep 1000"), "{e}");
+    }
+
+    #[test]
+    fn trailing_by_hand() {
+        // MoLA: 1000/50 = 20 → 1000, 980, …, 20, minus one.
+        let mola = diffusers_timesteps(Spacing::Trailing, 1000, 50, 1).unwrap();
+        assert_eq!(mola, (1..=50).rev().map(|k| 20 * k - 1).collect::<Vec<_>>());
+        // 1000/16 = 62.5: 937.5 and 812.5 round half to even (938, 812), then minus one.
+        let t16 = diffusers_timesteps(Spacing::Trailing, 1000, 16, 0).unwrap();
+        assert_eq!(&t16[..4], [999, 937, 874, 811]);
+        assert_eq!(t16.len(), 16);
+        // The offset has no effect.
+        assert_eq!(
+            diffusers_timesteps(Spacing::Trailing, 1000, 16, 7).unwrap(),
+            t16
+        );
+        // ⌈1000/(1000/61)⌉ = 62 in floating point: diffusers would append a step at −1.
+        let e = diffusers_timesteps(Spacing::Trailing, 1000, 61, 0).unwrap_err();
+        assert!(e.to_string().contains("gives 62 timesteps"), "{e}");
+        assert_eq!(
+            diffusers_timesteps(Spacing::Trailing, 4, 4, 0).unwrap(),
+            [3, 2, 1, 0]
+        );
+    }
+
+    #[test]
+    fn diffusers_spacing_errors() {
+        for sp in [Spacing::Leading, Spacing::Trailing] {
+            assert!(diffusers_timesteps(sp, 1000, 0, 0).is_err());
+            assert!(diffusers_timesteps(sp, 1000, 1001, 0).is_err());
+        }
+        assert!(diffusers_timesteps(Spacing::Respace, 1000, 10, 0).is_err());
+    }
+
+    #[test]
     fn respaced_betas_reproduce_kept_alpha_bars() {
         let ac = [0.9, 0.72, 0.504, 0.3];
         let (b, map) = respaced_betas(&ac, &[3, 0, 2, 2]).unwrap();

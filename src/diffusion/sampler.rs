@@ -151,9 +151,9 @@ pub struct DiffusionSampler {
 
 fn check_eta(kind: SamplerKind) -> Result<()> {
     match kind {
-        SamplerKind::Ddim { eta } if !(eta.is_finite() && eta >= 0.0) => Err(invalid_arg!(
-            "DDIM eta must be finite and >= 0, got {eta}"
-        )),
+        SamplerKind::Ddim { eta } if !(eta.is_finite() && eta >= 0.0) => {
+            Err(invalid_arg!("DDIM eta must be finite and >= 0, got {eta}"))
+        }
         _ => Ok(()),
     }
 }
@@ -930,6 +930,139 @@ mod tests {
         // t = 0: ᾱ_prev = 1, so the result is x̂0.
         s.step(0, &X_T, &PRED, None, None, &mut a, &mut x0).unwrap();
         assert_close(&a, &x0.map(|v| v as f64), 1e-7);
+    }
+
+    fn toy_diffusers(
+        ts: &[usize],
+        to_one: bool,
+        param: Parameterization,
+        clip: bool,
+        eta: f32,
+    ) -> DiffusionSampler {
+        DiffusionSampler::new_diffusers(
+            &[0.1, 0.2, 0.3],
+            ts,
+            to_one,
+            SamplerKind::Ddim { eta },
+            param,
+            Variance::FixedSmall,
+            clip,
+        )
+        .unwrap()
+    }
+
+    /// The toy process's diffusers table: ᾱ = [0.9, 0.72, 0.504] through f32.
+    fn toy_table() -> [f64; 3] {
+        let a = [0.9f32, 0.8, 0.7].map(f64::from);
+        [a[0], a[0] * a[1], a[0] * a[1] * a[2]].map(|v| f64::from(v as f32))
+    }
+
+    #[test]
+    fn diffusers_pairs_follow_prev_equals_t_minus_ratio() {
+        let tab = toy_table();
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.convention(), Convention::Diffusers);
+        assert_eq!(s.timestep_map(), [0, 1, 2]);
+        assert_eq!(s.alphas_cumprod(), tab);
+        // Without set_alpha_to_one the last step goes to ᾱ_0 itself.
+        assert_eq!(s.schedule().alphas_cumprod_prev, [tab[0], tab[0], tab[1]]);
+        let s = toy_diffusers(&[0, 1, 2], true, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.schedule().alphas_cumprod_prev, [1.0, tab[0], tab[1]]);
+        // Two steps over T = 3: ratio 3 div 2 = 1, so t = 2 goes to 1, not to the next step 0.
+        let s = toy_diffusers(&[2, 0], true, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.schedule().alphas_cumprod_prev, [1.0, tab[1]]);
+        let mk = |ts: &[usize]| {
+            DiffusionSampler::new_diffusers(
+                &[0.1, 0.2, 0.3],
+                ts,
+                true,
+                SamplerKind::Ddim { eta: 0.0 },
+                Parameterization::Epsilon,
+                Variance::FixedSmall,
+                false,
+            )
+        };
+        assert!(mk(&[]).is_err());
+        assert!(mk(&[1, 1]).is_err());
+        assert!(mk(&[3]).is_err());
+    }
+
+    #[test]
+    fn diffusers_ddim_step_by_hand() {
+        let tab = toy_table();
+        let (ab, abp) = (tab[2], tab[1]);
+        // ε-prediction: x̂0 = (x − √(1−ᾱ)ε)/√ᾱ, x_prev = √ᾱ_prev·x̂0 + √(1−ᾱ_prev)·ε.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.0);
+        let (mut xp, mut x0) = ([0.0f32; 3], [0.0f32; 3]);
+        s.step(2, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        let want_x0: Vec<f64> = (0..3)
+            .map(|i| (X_T[i] as f64 - (1.0 - ab).sqrt() * PRED[i] as f64) / ab.sqrt())
+            .collect();
+        let want: Vec<f64> = (0..3)
+            .map(|i| abp.sqrt() * want_x0[i] + (1.0 - abp).sqrt() * PRED[i] as f64)
+            .collect();
+        assert_close(&x0, &want_x0, 1e-6);
+        assert_close(&xp, &want, 1e-6);
+        // The last step from ᾱ_0 to ᾱ_0 returns x_t.
+        s.step(0, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        assert_close(&xp, &X_T.map(f64::from), 1e-6);
+        // x0-prediction with the clamp: the direction uses ε of the UNclamped prediction.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::X0, true, 0.0);
+        let pred = [1.5f32, -2.0, 0.3];
+        s.step(2, &X_T, &pred, None, None, &mut xp, &mut x0)
+            .unwrap();
+        assert_eq!(x0, [1.0, -1.0, 0.3]);
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let eps = (X_T[i] as f64 - ab.sqrt() * pred[i] as f64) / (1.0 - ab).sqrt();
+                abp.sqrt() * x0[i] as f64 + (1.0 - abp).sqrt() * eps
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+        // v-prediction: x̂0 = √ᾱ·x − √(1−ᾱ)·v, ε = √ᾱ·v + √(1−ᾱ)·x.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::V, false, 0.0);
+        s.step(2, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let (x, v) = (X_T[i] as f64, PRED[i] as f64);
+                let x0 = ab.sqrt() * x - (1.0 - ab).sqrt() * v;
+                let eps = ab.sqrt() * v + (1.0 - ab).sqrt() * x;
+                abp.sqrt() * x0 + (1.0 - abp).sqrt() * eps
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+    }
+
+    #[test]
+    fn diffusers_eta_adds_noise_at_the_last_step_too() {
+        let tab = toy_table();
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.5);
+        assert!(s.needs_noise(0) && s.needs_noise(2) && !s.needs_noise(3));
+        // t = 0 goes from ᾱ_0 to ᾱ_0: σ² = 0, so the noise term vanishes there.
+        let (mut xp, mut x0) = ([0.0f32; 3], [0.0f32; 3]);
+        s.step(0, &X_T, &PRED, None, Some(&Z), &mut xp, &mut x0)
+            .unwrap();
+        assert_close(&xp, &X_T.map(f64::from), 1e-6);
+        // t = 1: σ = η·√((1−ᾱ_prev)/(1−ᾱ)·(1 − ᾱ/ᾱ_prev)).
+        let (ab, abp) = (tab[1], tab[0]);
+        let sigma = 0.5 * ((1.0 - abp) / (1.0 - ab) * (1.0 - ab / abp)).sqrt();
+        s.step(1, &X_T, &PRED, None, Some(&Z), &mut xp, &mut x0)
+            .unwrap();
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let x0 = (X_T[i] as f64 - (1.0 - ab).sqrt() * PRED[i] as f64) / ab.sqrt();
+                abp.sqrt() * x0
+                    + (1.0 - abp - sigma * sigma).sqrt() * PRED[i] as f64
+                    + sigma * Z[i] as f64
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+        assert!(s
+            .step(1, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .is_err());
     }
 
     #[test]

@@ -243,7 +243,11 @@ impl Schedule {
     }
 
     /// Every derived table, from checked betas, ᾱ and ᾱ_prev (REFERENCE 1.8).
-    fn from_tables(betas: Vec<f64>, alphas_cumprod: Vec<f64>, alphas_cumprod_prev: Vec<f64>) -> Self {
+    fn from_tables(
+        betas: Vec<f64>,
+        alphas_cumprod: Vec<f64>,
+        alphas_cumprod_prev: Vec<f64>,
+    ) -> Self {
         let n = betas.len();
         let map = |f: &dyn Fn(usize) -> f64| (0..n).map(f).collect::<Vec<f64>>();
         let (b, ac, acp) = (&betas, &alphas_cumprod, &alphas_cumprod_prev);
@@ -438,6 +442,57 @@ mod tests {
             (1.0 / 0.72 - 1.0f64).sqrt(),
             1e-14
         ));
+    }
+
+    #[test]
+    fn diffusers_table_by_hand() {
+        // β = [0.1, 0.2, 0.3] in f32; α in f32; running product in f64, stored as f32.
+        let got = diffusers_alphas_cumprod(&[0.1, 0.2, 0.3]);
+        let a: Vec<f64> = [0.1f32, 0.2, 0.3]
+            .iter()
+            .map(|&b| f64::from(1.0f32 - b))
+            .collect();
+        let want = [a[0], a[0] * a[1], a[0] * a[1] * a[2]].map(|v| f64::from(v as f32));
+        assert_eq!(got, want);
+        assert!(close(got[2], 0.504, 1e-7));
+    }
+
+    #[test]
+    fn tables_from_alpha_bar_pairs() {
+        // Steps 0.72 → 0.9 and 0.504 → 0.72 of the β = [0.1, 0.2, 0.3] process, and a last
+        // step that stays at ᾱ (β = 0: the sample is kept).
+        let s = Schedule::from_alpha_bars(&[0.72, 0.504, 0.9], &[0.9, 0.72, 0.9]).unwrap();
+        assert!(close(s.betas[0], 0.2, 1e-14));
+        assert!(close(s.betas[1], 0.3, 1e-14));
+        assert_eq!(s.betas[2], 0.0);
+        assert!(close(s.posterior_variance[1], 0.3 * 0.28 / 0.496, 1e-14));
+        assert_eq!(s.posterior_mean_coef1[2], 0.0);
+        assert_eq!(s.posterior_mean_coef2[2], 1.0);
+        // The guided-diffusion tables agree with `new` on the same process.
+        let n = Schedule::new(&[0.1, 0.2, 0.3]).unwrap();
+        let p = Schedule::from_alpha_bars(&n.alphas_cumprod, &n.alphas_cumprod_prev).unwrap();
+        for i in 0..3 {
+            assert!(close(
+                p.posterior_mean_coef2[i].max(1e-300),
+                n.posterior_mean_coef2[i].max(1e-300),
+                1e-12
+            ));
+            assert!(close(p.betas[i], n.betas[i], 1e-12));
+        }
+        for (ac, acp) in [
+            (&[0.5][..], &[0.4][..]),
+            (&[1.0], &[1.0]),
+            (&[0.0], &[0.5]),
+            (&[0.5], &[1.5]),
+            (&[f64::NAN], &[1.0]),
+            (&[0.5, 0.4], &[1.0]),
+            (&[], &[]),
+        ] {
+            assert!(
+                Schedule::from_alpha_bars(ac, acp).is_err(),
+                "{ac:?} {acp:?}"
+            );
+        }
     }
 
     #[test]
