@@ -748,7 +748,7 @@ fn build_rule(model: &Model, params: &SessionParams) -> Result<StepRule> {
     };
     Ok(
         match diffusion::build_sampler(&cfg.diffusion, &cfg.defaults, &choice)? {
-            diffusion::BuiltSampler::Diffusion(d) => StepRule::Diffusion(Box::new(d)),
+            diffusion::BuiltSampler::Diffusion(d) => StepRule::Diffusion(d),
             diffusion::BuiltSampler::Flow(f) => StepRule::Flow(f),
         },
     )

@@ -95,7 +95,7 @@ fn sampler(dc: &DiffusionConfig, steps: usize, eta: f32) -> DiffusionSampler {
         clip_denoised: None,
     };
     match build_sampler(dc, &defaults(50), &choice).unwrap() {
-        BuiltSampler::Diffusion(d) => d,
+        BuiltSampler::Diffusion(d) => *d,
         BuiltSampler::Flow(_) => panic!("a diffusion sampler"),
     }
 }

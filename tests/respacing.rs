@@ -75,7 +75,7 @@ fn with_diffusion(name: &str, edit: impl Fn(&mut serde_json::Value)) -> Vec<u8> 
     edit(&mut cfg["diffusion"]);
     meta[CONFIG_KEY] = cfg.to_string().into();
     let mut text = header.to_string().into_bytes();
-    while text.len() % 8 != 0 {
+    while !text.len().is_multiple_of(8) {
         text.push(b' ');
     }
     let mut out = (text.len() as u64).to_le_bytes().to_vec();

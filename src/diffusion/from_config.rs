@@ -34,7 +34,7 @@ pub struct SamplerChoice<'a> {
 /// The sampler [`build_sampler`] made.
 #[derive(Debug, Clone)]
 pub enum BuiltSampler {
-    Diffusion(DiffusionSampler),
+    Diffusion(Box<DiffusionSampler>),
     Flow(FlowSampler),
 }
 
@@ -140,7 +140,7 @@ pub fn build_sampler(
             )?
         }
     };
-    Ok(BuiltSampler::Diffusion(sampler))
+    Ok(BuiltSampler::Diffusion(Box::new(sampler)))
 }
 
 fn method_name(m: Method) -> &'static str {
@@ -226,7 +226,7 @@ mod tests {
 
     fn diffusion(c: &DiffusionConfig, ch: &SamplerChoice) -> Result<DiffusionSampler> {
         match build_sampler(c, &defaults(), ch)? {
-            BuiltSampler::Diffusion(d) => Ok(d),
+            BuiltSampler::Diffusion(d) => Ok(*d),
             BuiltSampler::Flow(_) => panic!("a diffusion sampler"),
         }
     }
