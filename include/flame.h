@@ -246,7 +246,10 @@ typedef struct FlameModelInfo {
 } FlameModelInfo;
 
 // Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
-// negative `eta`/`guidance`) means "the model file's default".
+// negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
+//
+// Version 1 of this struct ended after `threads` (40 bytes); a caller built against it passes
+// `struct_size = 40` and gets no respacing.
 typedef struct FlameSessionParams {
   // `sizeof(FlameSessionParams)`.
   uint32_t struct_size;
@@ -265,6 +268,13 @@ typedef struct FlameSessionParams {
   // Worker threads this session creates and owns: 1 to [`FLAME_MAX_THREADS`], or 0 = one per
   // core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
   uint32_t threads;
+  // NULL = none, or a NUL-terminated guided-diffusion respacing string choosing which
+  // training steps to sample: `"ddimN"` (every k-th step, N steps), `"N"` (N evenly spread
+  // steps) or section counts `"15,15,8,6,6"`. It sets the step count (a nonzero `steps` must
+  // agree). Only for models with `diffusion.spacing` `respace` (FLAME, MDM); a model with
+  // diffusers spacing or a flow model refuses it (`INVALID_ARGUMENT`). Read only during
+  // [`flame_session_new`] (since version 2 of this struct).
+  const char *respacing;
 } FlameSessionParams;
 
 // Editing settings of a session. Initialise with [`flame_edit_params_default`].

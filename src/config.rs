@@ -25,6 +25,10 @@
 //! itself ([`crate::models::FamilyConfig`]); the rows below for `flame`, `mdm` and the latent
 //! families are those checks. MoLA and MLD schemas: docs/model-files-latent.md.
 //!
+//! A model sampled with diffusers' `DDIMScheduler` (MoLA, MLD) adds its spacing to `diffusion`,
+//! e.g. `"spacing": "trailing", "set_alpha_to_one": false` (MoLA) or `"spacing": "leading",
+//! "steps_offset": 1, "set_alpha_to_one": false` (MLD).
+//!
 //! MDM and Motion Flow Matching files (`"architecture": "mdm"` / `"motionfm"`) have the
 //! denoiser `{"njoints", "latent_dim", "layers", "heads", "ff_size", "activation", "clip_dim",
 //! "max_len"}` and a CLIP text encoder `{"kind": "clip", "vocab_size", "width", "layers",
@@ -87,13 +91,16 @@
 //! | `diffusion.parameterization` | `epsilon`/`eps`, `x0`/`sample`/`start_x`, `v`/`v_prediction`; `velocity`/`flow` for (and only for) motionfm | |
 //! | `diffusion.variance` | `learned_range` (flame only), `fixed_small`, `fixed_large` | |
 //! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame) | |
+//! | `diffusion.spacing` | `respace` (default), `leading`, `trailing`; diffusion models only | |
+//! | `diffusion.steps_offset` | 0 (default) ..num_timesteps; `leading` and `trailing` only; `leading`: (defaults.steps − 1)·(num_timesteps div steps) + offset < num_timesteps | |
+//! | `diffusion.set_alpha_to_one` | `true` (default); `false` needs `leading` or `trailing` | |
 //! | `defaults.sampler` | `ddpm`, `ddim` (diffusion); `euler`, `heun`, `midpoint` (motionfm) | |
-//! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm) | |
+//! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm); a count the spacing can take | |
 //! | `defaults.guidance` | finite, in [0, 100] (also a session's) | |
 //! | `defaults.eta` | finite, in [0, 1] | |
 //! | `defaults.frames` | 1..=max frames (max_motion_length − 1, max_len − 1) | |
 //!
-//! The schedule, parameterization and variance names ignore case and surrounding spaces, as the
+//! The schedule, parameterization, variance and spacing names ignore case and surrounding spaces, as the
 //! sampler does. The per-part checks ([`FlameConfig::validate`], [`MdmConfig::validate`],
 //! [`TextEncoderConfig::validate`], [`ClipConfig::validate`]) are also what each loader runs
 //! first when used on its own.
@@ -228,6 +235,18 @@ pub struct DiffusionConfig {
     /// The unconditional input of classifier-free guidance: `empty_prompt` (FLAME) or `zeros`.
     #[serde(default = "empty_prompt")]
     pub uncond: String,
+    /// How sampling steps are picked from the training steps: `respace` (guided-diffusion's
+    /// respaced process, the default), `leading` or `trailing` (diffusers' `DDIMScheduler`).
+    #[serde(default = "respace")]
+    pub spacing: String,
+    /// diffusers' `steps_offset`, added to every `leading` timestep (MLD: 1); `trailing`
+    /// ignores it, as diffusers does.
+    #[serde(default)]
+    pub steps_offset: usize,
+    /// diffusers' `set_alpha_to_one`: the last step goes to ᾱ = 1 (true) or to the training
+    /// table's ᾱ_0 (false: MoLA, MLD).
+    #[serde(default = "yes")]
+    pub set_alpha_to_one: bool,
 }
 
 /// Sampling defaults a session starts from.
@@ -246,6 +265,12 @@ fn gelu() -> String {
 }
 fn empty_prompt() -> String {
     "empty_prompt".into()
+}
+fn respace() -> String {
+    "respace".into()
+}
+fn yes() -> bool {
+    true
 }
 
 /// Reads section `name` of a family's configuration (`v` is the whole JSON) into `T`, or an
@@ -513,6 +538,95 @@ mod tests {
         ] {
             Config::from_json(&with(section, key, value.into())).unwrap();
         }
+    }
+
+    #[test]
+    fn diffusers_spacing_fields() {
+        let c = Config::from_json(EXAMPLE).unwrap();
+        let d = &c.diffusion;
+        assert_eq!(
+            (d.spacing.as_str(), d.steps_offset, d.set_alpha_to_one),
+            ("respace", 0, true)
+        );
+        let diffusion = |fields: &[(&str, serde_json::Value)], steps: u64| {
+            let mut v: serde_json::Value = serde_json::from_str(EXAMPLE).unwrap();
+            for (k, x) in fields {
+                v["diffusion"][*k] = x.clone();
+            }
+            v["defaults"]["steps"] = steps.into();
+            Config::from_json(&v.to_string())
+        };
+        // MoLA's and MLD's settings load (trailing keeps an offset it ignores, as diffusers does).
+        for (spacing, offset) in [("trailing", 1), ("leading", 1), ("Leading", 19)] {
+            let f = [
+                ("spacing", spacing.into()),
+                ("steps_offset", offset.into()),
+                ("set_alpha_to_one", false.into()),
+            ];
+            let c = diffusion(&f, 50).unwrap();
+            assert!(!c.diffusion.set_alpha_to_one);
+        }
+        for (fields, steps, needle) in [
+            (
+                vec![("spacing", "linspace".into())],
+                50,
+                "unknown config diffusion.spacing `linspace` (accepted: respace, leading, trailing)",
+            ),
+            (
+                vec![("steps_offset", 1.into())],
+                50,
+                "config diffusion.steps_offset 1 needs diffusion.spacing `leading` or `trailing`",
+            ),
+            (
+                vec![("set_alpha_to_one", false.into())],
+                50,
+                "config diffusion.set_alpha_to_one false needs diffusion.spacing `leading`",
+            ),
+            (
+                vec![("spacing", "leading".into()), ("steps_offset", 1000.into())],
+                50,
+                "config diffusion.steps_offset 1000 is outside 0..1000",
+            ),
+            (
+                vec![("spacing", "leading".into()), ("steps_offset", 20.into())],
+                50,
+                "config defaults.steps 50: leading spacing with 50 steps and steps_offset 20 reaches timestep 1000",
+            ),
+            (
+                vec![("spacing", "trailing".into())],
+                61,
+                "config defaults.steps 61: trailing spacing cannot take 61 steps over 1000",
+            ),
+            (
+                vec![("steps_offset", (-1).into())],
+                50,
+                "does not match the flame schema",
+            ),
+            (
+                vec![("set_alpha_to_one", "no".into())],
+                50,
+                "does not match the flame schema",
+            ),
+        ] {
+            let e = diffusion(&fields, steps).unwrap_err();
+            assert!(matches!(e, crate::Error::BadModelFile(_)), "{e}");
+            assert!(e.to_string().contains(needle), "{fields:?}: {e}");
+        }
+        // A flow-matching model has no timesteps to space.
+        let path = format!(
+            "{}/tests/fixtures/motionfm_tiny.safetensors",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let file = ModelFile::open(std::path::Path::new(&path)).unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(file.metadata(CONFIG_KEY).unwrap()).unwrap();
+        Config::from_json(&v.to_string()).unwrap();
+        v["diffusion"]["spacing"] = "trailing".into();
+        let e = Config::from_json(&v.to_string()).unwrap_err().to_string();
+        assert!(
+            e.contains("a flow-matching model has no diffusion timesteps"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use crate::diffusion::flow::{FlowSampler, FlowScratch, OdeMethod};
-use crate::diffusion::{self, DiffusionSampler, SamplerKind, X0Replacement};
+use crate::diffusion::{self, DiffusionSampler, X0Replacement};
 use crate::edit;
 pub use crate::edit::{EditMethod, EditParams};
 use crate::error::{invalid_arg, Error, Result};
@@ -57,6 +57,10 @@ pub struct SessionParams {
     pub frames: Option<usize>,
     pub steps: Option<usize>,
     pub sampler: Option<Sampler>,
+    /// A guided-diffusion respacing string (`"ddim50"`, `"10"`, `"15,15,8,6,6"`) choosing
+    /// which training steps to sample; it sets the step count (an explicit `steps` must
+    /// agree). Only for models with `diffusion.spacing` `respace`.
+    pub respacing: Option<String>,
     pub eta: Option<f32>,
     /// Classifier-free guidance scale in [0, [`MAX_GUIDANCE`]]: 0 = unconditional, 1 = the
     /// prompt alone (no unconditional pass), above 1 strengthens the prompt.
@@ -835,78 +839,32 @@ impl Session {
     }
 }
 
-/// Builds the step rule the parameters ask for: a respaced diffusion sampler, or a flow
-/// sampler for velocity-predicting models.
+/// Builds the step rule the parameters ask for ([`diffusion::build_sampler`]).
 fn build_rule(model: &Model, params: &SessionParams) -> Result<StepRule> {
     let cfg = model.config();
-    let dc = &cfg.diffusion;
-    let steps = params.steps.unwrap_or(cfg.defaults.steps);
     let sampler = params
         .sampler
         .map_or_else(|| cfg.defaults.sampler.parse(), Ok)?;
-    let flow_model = matches!(dc.parameterization.as_str(), "velocity" | "flow");
     let method = match sampler {
-        Sampler::Euler => Some(OdeMethod::Euler),
-        Sampler::Heun => Some(OdeMethod::Heun),
-        Sampler::Midpoint => Some(OdeMethod::Midpoint),
-        Sampler::Ddpm | Sampler::Ddim => None,
+        Sampler::Ddpm => diffusion::Method::Ddpm,
+        Sampler::Ddim => diffusion::Method::Ddim,
+        Sampler::Euler => diffusion::Method::Ode(OdeMethod::Euler),
+        Sampler::Heun => diffusion::Method::Ode(OdeMethod::Heun),
+        Sampler::Midpoint => diffusion::Method::Ode(OdeMethod::Midpoint),
     };
-    match (flow_model, method) {
-        (true, Some(m)) => {
-            if steps == 0 || steps > 10_000 {
-                return Err(invalid_arg!("steps {steps} outside 1..=10000"));
-            }
-            return Ok(StepRule::Flow(FlowSampler::new(m, steps)?));
-        }
-        (true, None) => {
-            return Err(invalid_arg!(
-                "sampler {sampler:?} needs a diffusion model; this flow-matching model takes euler, heun or midpoint"
-            ))
-        }
-        (false, Some(_)) => {
-            return Err(invalid_arg!(
-                "sampler {sampler:?} needs a flow-matching model; this diffusion model takes ddpm or ddim"
-            ))
-        }
-        (false, None) => {}
-    }
-    if steps == 0 || steps > dc.num_timesteps {
-        return Err(invalid_arg!(
-            "steps {steps} outside 1..={}",
-            dc.num_timesteps
-        ));
-    }
-    let kind = match sampler {
-        Sampler::Ddim => {
-            let eta = params.eta.unwrap_or(cfg.defaults.eta);
-            if !(eta.is_finite() && eta >= 0.0) {
-                return Err(invalid_arg!("eta must be a finite value >= 0"));
-            }
-            SamplerKind::Ddim { eta }
-        }
-        _ => SamplerKind::Ddpm,
+    let choice = diffusion::SamplerChoice {
+        method,
+        steps: params.steps,
+        respacing: params.respacing.as_deref(),
+        eta: params.eta,
+        clip_denoised: params.clip_denoised,
     };
-    let bad = |what: &str, v: &str| {
-        crate::error::bad_file!("config diffusion.{what} `{v}` is not supported")
-    };
-    let schedule = dc
-        .schedule
-        .parse()
-        .map_err(|_| bad("schedule", &dc.schedule))?;
-    let param = dc
-        .parameterization
-        .parse()
-        .map_err(|_| bad("parameterization", &dc.parameterization))?;
-    let variance = dc
-        .variance
-        .parse()
-        .map_err(|_| bad("variance", &dc.variance))?;
-    let betas = diffusion::betas(schedule, dc.num_timesteps);
-    let kept = diffusion::space_timesteps(dc.num_timesteps, &[steps])?;
-    let clip = params.clip_denoised.unwrap_or(dc.clip_denoised);
-    Ok(StepRule::Diffusion(Box::new(DiffusionSampler::new(
-        &betas, &kept, kind, param, variance, clip,
-    )?)))
+    Ok(
+        match diffusion::build_sampler(&cfg.diffusion, &cfg.defaults, &choice)? {
+            diffusion::BuiltSampler::Diffusion(d) => StepRule::Diffusion(d),
+            diffusion::BuiltSampler::Flow(f) => StepRule::Flow(f),
+        },
+    )
 }
 
 /// Splits rows of `od` channels into the first `d` (prediction) and the rest (variance value).

@@ -129,6 +129,7 @@ fn one_forward_with_guidance_matches_reference() {
 
 fn session(m: &Arc<Model>, e: &Expected, sampler: Sampler, threads: usize) -> Session {
     let params = SessionParams {
+        respacing: None,
         frames: Some(e.frames()),
         steps: Some(10),
         sampler: Some(sampler),

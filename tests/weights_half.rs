@@ -27,6 +27,7 @@ fn load(name: &str, weights: WeightType) -> Arc<Model> {
 /// The features after a whole seeded 10-step DDIM generation with guidance.
 fn generate(model: &Arc<Model>, threads: usize) -> Vec<f32> {
     let params = SessionParams {
+        respacing: None,
         frames: Some(40),
         steps: Some(10),
         sampler: Some(Sampler::Ddim),

@@ -89,7 +89,8 @@ struct ModelParams : FlameModelParams {
 };
 
 // Settings of one generation; the defaults come from flame_session_params_default (every
-// setting from the model file, seed 0, one thread per core).
+// setting from the model file, seed 0, one thread per core). `respacing` is a plain
+// `const char*`: it must stay valid until the Session is constructed.
 struct SessionParams : FlameSessionParams {
     SessionParams() : FlameSessionParams() { detail::check(flame_session_params_default(this)); }
 };

@@ -235,7 +235,8 @@ namespace Flame
     }
 
     /// <summary>Mirror of the C struct FlameSessionParams. Start from Default(): zero frames or
-    /// steps, sampler Default and a negative eta or guidance mean "the model file's default".</summary>
+    /// steps, sampler Default, a negative eta or guidance and a null respacing mean "the model
+    /// file's default".</summary>
     [StructLayout(LayoutKind.Sequential)]
     public struct FlameSessionParams
     {
@@ -250,6 +251,10 @@ namespace Flame
         /// <summary>Worker threads the session creates and owns; 0 = one per core; at most
         /// FlameNative.MaxThreads (more: InvalidArgument).</summary>
         public uint threads;
+        /// <summary>NUL-terminated UTF-8 respacing string, or IntPtr.Zero for none; set it
+        /// through FlameModel.NewSession(p, respacing), which keeps the bytes pinned for the
+        /// call.</summary>
+        public IntPtr respacing;
 
         public static FlameSessionParams Default()
         {
@@ -630,6 +635,28 @@ namespace Flame
             FlameException.Check(FlameNative.flame_session_new(Handle, ref p, out h));
             int frames = p.frames != 0 ? (int)p.frames : Info.DefaultFrames;
             return new FlameSession(h, frames, Info.FeatureDim);
+        }
+
+        /// <summary>Starts a generation whose training steps a guided-diffusion respacing string
+        /// picks: "ddim50" (every 20th of 1000), "50" (50 evenly spread) or section counts
+        /// "15,15,8,6,6"; null = none. It sets the step count (a nonzero p.steps must agree).
+        /// FLAME and MDM models take it; flow models and models with diffusers spacing (MoLA,
+        /// MLD) refuse it (InvalidArgument).</summary>
+        public FlameSession NewSession(FlameSessionParams p, string respacing)
+        {
+            var bytes = FlameNative.Utf8Z(respacing);
+            if (bytes == null)
+                return NewSession(p);
+            var pin = GCHandle.Alloc(bytes, GCHandleType.Pinned);
+            try
+            {
+                p.respacing = pin.AddrOfPinnedObject();
+                return NewSession(p);
+            }
+            finally
+            {
+                pin.Free();
+            }
         }
 
         public void Dispose()

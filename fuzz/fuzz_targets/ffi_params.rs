@@ -121,7 +121,7 @@ fuzz_target!(|data: &[u8]| {
     }
 
     let model = models().0[which_model as usize % 3];
-    let sp = FlameSessionParams {
+    let mut sp = FlameSessionParams {
         struct_size: input.u32(),
         frames: input.u32(),
         steps: input.u32(),
@@ -130,7 +130,16 @@ fuzz_target!(|data: &[u8]| {
         guidance: input.f32(),
         seed: input.u64(),
         threads: input.u32() % MAX_THREADS,
+        respacing: ptr::null(),
     };
+    // A short respacing string from the input (made of "ddim", digits, commas), or none.
+    let spec: [u8; 8] = input.bytes();
+    let alphabet = b"ddim0123456789,,x";
+    let spec: Vec<u8> = spec.iter().map(|&b| alphabet[b as usize % alphabet.len()]).collect();
+    let spec = std::ffi::CString::new(spec).unwrap();
+    if actions & 64 != 0 {
+        sp.respacing = spec.as_ptr();
+    }
     let mut session = ptr::null_mut();
     let params = if actions & 2 != 0 {
         ptr::null()

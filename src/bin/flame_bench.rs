@@ -227,6 +227,7 @@ fn main() {
             clip_denoised: None,
             seed: 1,
             threads,
+            respacing: None,
         };
         let mut session = Session::new(Arc::clone(&model), &params).expect("session");
         let mut text_ms = Vec::new();

@@ -5,7 +5,10 @@
 //! module comment of [`crate::config`].
 
 use crate::checkpoint::ModelFile;
-use crate::diffusion::{betas, BetaSchedule, Parameterization, Schedule, Variance};
+use crate::diffusion::{
+    betas, diffusers_alphas_cumprod, diffusers_timesteps, BetaSchedule, Parameterization, Schedule,
+    Spacing, Variance,
+};
 use crate::error::{bad_file, Result};
 use crate::motion::Format;
 use crate::session::Sampler;
@@ -307,6 +310,72 @@ impl ClipTextConfig {
     }
 }
 
+/// The message of an `InvalidArgument` (other errors in full).
+fn inner(e: crate::Error) -> String {
+    match e {
+        crate::Error::InvalidArgument(m) => m,
+        other => other.to_string(),
+    }
+}
+
+/// `diffusion.spacing`, `steps_offset` and `set_alpha_to_one`: a known spacing, and the two
+/// diffusers fields left at their defaults unless diffusers' spacing uses them.
+fn check_spacing(dc: &DiffusionConfig, flow: bool) -> Result<Spacing> {
+    // Case and surrounding spaces ignored, as for the other diffusion names.
+    let spacing: Spacing = dc.spacing.parse().map_err(|_| {
+        bad_file!(
+            "unknown config diffusion.spacing `{}` (accepted: respace, leading, trailing)",
+            dc.spacing
+        )
+    })?;
+    if flow && spacing.is_diffusers() {
+        return Err(bad_file!(
+            "config diffusion.spacing `{spacing}`: a flow-matching model has no diffusion \
+             timesteps to space (leave it `respace` or absent)"
+        ));
+    }
+    if dc.steps_offset >= dc.num_timesteps {
+        return Err(bad_file!(
+            "config diffusion.steps_offset {} is outside 0..{}",
+            dc.steps_offset,
+            dc.num_timesteps
+        ));
+    }
+    if !spacing.is_diffusers() && dc.steps_offset != 0 {
+        return Err(bad_file!(
+            "config diffusion.steps_offset {} needs diffusion.spacing `leading` or `trailing` \
+             (diffusers' DDIM); `{spacing}` has no offset",
+            dc.steps_offset
+        ));
+    }
+    if !spacing.is_diffusers() && !dc.set_alpha_to_one {
+        return Err(bad_file!(
+            "config diffusion.set_alpha_to_one false needs diffusion.spacing `leading` or \
+             `trailing` (diffusers' DDIM); `{spacing}` always ends at ᾱ = 1"
+        ));
+    }
+    Ok(spacing)
+}
+
+/// diffusers' float32 ᾱ table must fall strictly inside (0, 1), as every step needs (a β
+/// below f32's resolution next to 1, or an underflow, would break it).
+fn check_diffusers_table(dc: &DiffusionConfig, schedule: BetaSchedule) -> Result<()> {
+    let table = diffusers_alphas_cumprod(&betas(schedule, dc.num_timesteps));
+    let mut prev = 1.0;
+    for (i, &a) in table.iter().enumerate() {
+        if !(a > 0.0 && a < prev) {
+            return Err(bad_file!(
+                "config diffusion.schedule `{}` with num_timesteps {}: diffusers' float32 \
+                 alphas_cumprod[{i}] = {a} does not fall below {prev} and above 0",
+                dc.schedule,
+                dc.num_timesteps
+            ));
+        }
+        prev = a;
+    }
+    Ok(())
+}
+
 /// Whether the parameterization names a flow-matching model (a velocity predictor).
 pub(crate) fn is_flow(parameterization: &str) -> bool {
     matches!(parameterization, "velocity" | "flow")
@@ -370,6 +439,7 @@ impl Config {
                     unknown("diffusion.parameterization", &dc.parameterization, &all)
                 })?;
         }
+        let spacing = check_spacing(dc, flow)?;
         if !flow {
             // The schedule must give betas in (0, 1) (a short linear schedule does not).
             Schedule::new(&betas(schedule, dc.num_timesteps)).map_err(|e| {
@@ -383,6 +453,9 @@ impl Config {
                     dc.num_timesteps
                 )
             })?;
+            if spacing.is_diffusers() {
+                check_diffusers_table(dc, schedule)?;
+            }
         }
 
         let df = &self.defaults;
@@ -399,6 +472,10 @@ impl Config {
             dc.num_timesteps
         };
         in_range("defaults.steps", df.steps, 1, max_steps)?;
+        if spacing.is_diffusers() {
+            diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset)
+                .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
+        }
         in_range_f32("defaults.guidance", df.guidance, 0.0, MAX_GUIDANCE, false)?;
         in_range_f32("defaults.eta", df.eta, 0.0, 1.0, false)?;
         in_range("defaults.frames", df.frames, 1, max_frames)

@@ -1,19 +1,26 @@
-//! Diffusion: noise schedules, respacing, the DDPM/DDIM samplers, and the fixed-step ODE
-//! samplers of flow matching ([`flow`]). Samplers drive any denoiser through plain slices: they
-//! never know which network produced a prediction.
+//! Diffusion: noise schedules, timestep spacing (guided-diffusion's respacing and diffusers'
+//! leading/trailing), the DDPM/DDIM samplers, the fixed-step ODE samplers of flow matching
+//! ([`flow`]), and [`build_sampler`], which picks and builds one from a model's configuration.
+//! Samplers drive any denoiser through plain slices: they never know which network produced a
+//! prediction.
 //!
 //! Semantics follow OpenAI guided-diffusion (`gaussian_diffusion.py`, `respace.py`) as used by
-//! FLAME and MDM: f64 tables, f32 per-step arithmetic (see [`DiffusionSampler::step`]).
+//! FLAME and MDM: f64 tables, f32 per-step arithmetic (see [`DiffusionSampler::step`]); models
+//! with diffusers spacing (MoLA, MLD) follow diffusers' `DDIMScheduler` instead
+//! ([`DiffusionSampler::new_diffusers`]).
 
 pub mod flow;
+mod from_config;
 mod respace;
 mod sampler;
 mod schedule;
 
+pub use from_config::{build_sampler, BuiltSampler, Method, SamplerChoice};
 pub use respace::{
-    parse_timestep_respacing, respaced_betas, space_timesteps, space_timesteps_ddim_stride,
+    diffusers_timesteps, parse_timestep_respacing, respaced_betas, space_timesteps,
+    space_timesteps_ddim_stride, Spacing,
 };
 pub use sampler::{
-    guide, DiffusionSampler, Parameterization, SamplerKind, Variance, X0Replacement,
+    guide, Convention, DiffusionSampler, Parameterization, SamplerKind, Variance, X0Replacement,
 };
-pub use schedule::{betas, BetaSchedule, Schedule};
+pub use schedule::{betas, diffusers_alphas_cumprod, BetaSchedule, Schedule};

@@ -1,8 +1,119 @@
-//! Timestep respacing: which of the T training steps a shorter sampling run keeps
-//! (guided-diffusion `respace.py`, REFERENCE 1.9). The respaced schedule itself is built by
-//! [`super::DiffusionSampler::new`] via [`respaced_betas`].
+//! Timestep spacing: which of the T training steps a shorter sampling run keeps. Two families:
+//! guided-diffusion's `respace.py` (REFERENCE 1.9; the respaced schedule itself is built by
+//! [`super::DiffusionSampler::new`] via [`respaced_betas`]) and diffusers' `"leading"` and
+//! `"trailing"` spacings of `DDIMScheduler.set_timesteps` (REFERENCE 7.1, 7.2), whose steps keep
+//! the training table's ᾱ ([`super::DiffusionSampler::new_diffusers`]).
 
-use crate::error::{invalid_arg, Result};
+use std::fmt;
+use std::str::FromStr;
+
+use crate::error::{invalid_arg, Error, Result};
+
+/// How a model's sampling steps are chosen from its training steps (`diffusion.spacing`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Spacing {
+    /// guided-diffusion's section rule ([`space_timesteps`]) and respaced process (FLAME, MDM).
+    #[default]
+    Respace,
+    /// diffusers' default: t = k·(T div N) + `steps_offset`, k = N−1..0 (MLD: 981, 961, …, 1).
+    Leading,
+    /// diffusers' `round(arange(T, 0, −T/N)) − 1` (MoLA: 999, 979, …, 19).
+    Trailing,
+}
+
+impl Spacing {
+    /// The config name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Spacing::Respace => "respace",
+            Spacing::Leading => "leading",
+            Spacing::Trailing => "trailing",
+        }
+    }
+
+    /// Whether steps follow diffusers' `DDIMScheduler` (leading or trailing).
+    pub fn is_diffusers(self) -> bool {
+        self != Spacing::Respace
+    }
+}
+
+impl fmt::Display for Spacing {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Spacing {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "respace" => Ok(Spacing::Respace),
+            "leading" => Ok(Spacing::Leading),
+            "trailing" => Ok(Spacing::Trailing),
+            _ => Err(invalid_arg!(
+                "timestep spacing {s:?}: expected respace, leading or trailing"
+            )),
+        }
+    }
+}
+
+/// The `steps` timesteps of diffusers' spacing, in sampling order (descending), or an error
+/// where diffusers would index outside the training table. `Respace` is not a diffusers
+/// spacing and is refused.
+pub fn diffusers_timesteps(
+    spacing: Spacing,
+    num_timesteps: usize,
+    steps: usize,
+    steps_offset: usize,
+) -> Result<Vec<usize>> {
+    let t = num_timesteps;
+    if steps == 0 || steps > t {
+        return Err(invalid_arg!("steps {steps} outside 1..={t}"));
+    }
+    match spacing {
+        Spacing::Leading => {
+            let ratio = t / steps;
+            let last = (steps - 1) * ratio + steps_offset;
+            if last >= t {
+                return Err(invalid_arg!(
+                    "leading spacing with {steps} steps and steps_offset {steps_offset} \
+                     reaches timestep {last}, past the last training step {}",
+                    t - 1
+                ));
+            }
+            Ok((0..steps).rev().map(|k| k * ratio + steps_offset).collect())
+        }
+        Spacing::Trailing => trailing_timesteps(t, steps),
+        Spacing::Respace => Err(invalid_arg!(
+            "respace is guided-diffusion's spacing, not a diffusers one"
+        )),
+    }
+}
+
+/// numpy's `round(arange(T, 0, −T/N)) − 1` exactly: arange fills `T + i·δ` with
+/// δ = (T − T/N) − T and has ⌈T/(T/N)⌉ elements; round is half-to-even.
+fn trailing_timesteps(t: usize, steps: usize) -> Result<Vec<usize>> {
+    let tf = t as f64;
+    let ratio = tf / steps as f64;
+    let delta = (tf - ratio) - tf;
+    let len = (-tf / -ratio).ceil() as usize;
+    if len != steps {
+        // diffusers then appends a step at −1, which indexes ᾱ from the end of the table.
+        return Err(invalid_arg!(
+            "trailing spacing cannot take {steps} steps over {t}: diffusers' rule gives {len} \
+             timesteps (the last at −1) for this count; choose another step count"
+        ));
+    }
+    // With N ≤ T the smallest value is about T/N ≥ 1, so no step falls below 0.
+    (0..len)
+        .map(|i| {
+            let v = (tf + i as f64 * delta).round_ties_even() - 1.0;
+            (v >= 0.0).then_some(v as usize).ok_or_else(|| {
+                invalid_arg!("trailing spacing with {steps} steps over {t} reaches timestep {v}")
+            })
+        })
+        .collect()
+}
 
 /// The section rule: split `0..num_timesteps` into `sections.len()` nearly equal parts (the first
 /// `T % n` parts one step longer) and take `sections[i]` evenly spread steps from part `i`,
@@ -19,7 +130,8 @@ pub fn space_timesteps(num_timesteps: usize, sections: &[usize]) -> Result<Vec<u
     let size_per = num_timesteps / sections.len();
     let extra = num_timesteps % sections.len();
     let mut start = 0usize;
-    let mut steps = Vec::with_capacity(sections.iter().sum());
+    // Capacity from T, not from the counts: a count may be absurd (it is refused below).
+    let mut steps = Vec::with_capacity(num_timesteps.min(1 << 20));
     for (i, &count) in sections.iter().enumerate() {
         let size = size_per + usize::from(i < extra);
         if count == 0 {
@@ -220,6 +332,74 @@ mod tests {
         );
         assert!(parse_timestep_respacing(1000, "ddimx").is_err());
         assert!(parse_timestep_respacing(1000, "fast").is_err());
+    }
+
+    #[test]
+    fn absurd_section_counts_are_errors_not_overflows() {
+        let huge = format!("{},1", usize::MAX);
+        assert!(parse_timestep_respacing(1000, &huge).is_err());
+        assert!(parse_timestep_respacing(1000, &format!("ddim{}", usize::MAX)).is_err());
+        assert!(parse_timestep_respacing(10, &"1,".repeat(20)[..39]).is_err());
+    }
+
+    #[test]
+    fn spacing_names() {
+        for s in [Spacing::Respace, Spacing::Leading, Spacing::Trailing] {
+            assert_eq!(s.name().parse::<Spacing>().unwrap(), s);
+        }
+        assert_eq!(" Trailing ".parse::<Spacing>().unwrap(), Spacing::Trailing);
+        assert!("linspace".parse::<Spacing>().is_err());
+        assert_eq!(Spacing::default(), Spacing::Respace);
+        assert!(!Spacing::Respace.is_diffusers() && Spacing::Leading.is_diffusers());
+    }
+
+    #[test]
+    fn leading_by_hand() {
+        // T div N = 20: k·20 + offset for k = 49..0 (MLD: offset 1 → 981 … 1).
+        let mld = diffusers_timesteps(Spacing::Leading, 1000, 50, 1).unwrap();
+        assert_eq!(mld, (0..50).rev().map(|k| 20 * k + 1).collect::<Vec<_>>());
+        // 7 steps: ratio 142, 852 … 0 (the top 148 steps are never visited).
+        let l7 = diffusers_timesteps(Spacing::Leading, 1000, 7, 0).unwrap();
+        assert_eq!(l7, [852, 710, 568, 426, 284, 142, 0]);
+        // The largest offset that keeps 980 + offset < 1000, and one past it.
+        assert_eq!(
+            diffusers_timesteps(Spacing::Leading, 1000, 50, 19).unwrap()[0],
+            999
+        );
+        let e = diffusers_timesteps(Spacing::Leading, 1000, 50, 20).unwrap_err();
+        assert!(e.to_string().contains("reaches timestep 1000"), "{e}");
+    }
+
+    #[test]
+    fn trailing_by_hand() {
+        // MoLA: 1000/50 = 20 → 1000, 980, …, 20, minus one.
+        let mola = diffusers_timesteps(Spacing::Trailing, 1000, 50, 1).unwrap();
+        assert_eq!(mola, (1..=50).rev().map(|k| 20 * k - 1).collect::<Vec<_>>());
+        // 1000/16 = 62.5: 937.5 and 812.5 round half to even (938, 812), then minus one.
+        let t16 = diffusers_timesteps(Spacing::Trailing, 1000, 16, 0).unwrap();
+        assert_eq!(&t16[..4], [999, 937, 874, 811]);
+        assert_eq!(t16.len(), 16);
+        // The offset has no effect.
+        assert_eq!(
+            diffusers_timesteps(Spacing::Trailing, 1000, 16, 7).unwrap(),
+            t16
+        );
+        // ⌈1000/(1000/61)⌉ = 62 in floating point: diffusers would append a step at −1.
+        let e = diffusers_timesteps(Spacing::Trailing, 1000, 61, 0).unwrap_err();
+        assert!(e.to_string().contains("gives 62 timesteps"), "{e}");
+        assert_eq!(
+            diffusers_timesteps(Spacing::Trailing, 4, 4, 0).unwrap(),
+            [3, 2, 1, 0]
+        );
+    }
+
+    #[test]
+    fn diffusers_spacing_errors() {
+        for sp in [Spacing::Leading, Spacing::Trailing] {
+            assert!(diffusers_timesteps(sp, 1000, 0, 0).is_err());
+            assert!(diffusers_timesteps(sp, 1000, 1001, 0).is_err());
+        }
+        assert!(diffusers_timesteps(Spacing::Respace, 1000, 10, 0).is_err());
     }
 
     #[test]

@@ -1,15 +1,17 @@
 //! DDPM and DDIM reverse steps on plain f32 slices.
 //!
-//! The numerics mirror guided-diffusion's `p_sample` / `ddim_sample` as run by PyTorch: each
-//! step gathers its coefficients from the f64 tables, casts them to f32, and does every
-//! elementwise operation in f32 in the reference's order, so trajectories track a PyTorch run to
-//! f32 rounding.
+//! Two conventions. guided-diffusion's (FLAME, MDM): the numerics mirror `p_sample` /
+//! `ddim_sample` as run by PyTorch: each step gathers its coefficients from the f64 tables,
+//! casts them to f32, and does every elementwise operation in f32 in the reference's order, so
+//! trajectories track a PyTorch run to f32 rounding. diffusers' (MoLA, MLD;
+//! [`DiffusionSampler::new_diffusers`]): the steps of `DDIMScheduler.step`, with its float32
+//! ᾱ table and its float32 arithmetic, the direction term using the network's own ε.
 
 use std::fmt;
 use std::str::FromStr;
 
 use super::respace::respaced_betas;
-use super::schedule::Schedule;
+use super::schedule::{diffusers_alphas_cumprod, Schedule};
 use crate::error::{invalid_arg, Error, Result};
 
 /// What the network predicts.
@@ -124,6 +126,17 @@ impl FromStr for SamplerKind {
     }
 }
 
+/// Whose formulas a sampler's steps follow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Convention {
+    /// guided-diffusion: f64 tables of the respaced process; DDIM re-derives ε from x̂0.
+    GuidedDiffusion,
+    /// diffusers `DDIMScheduler`: f32 ᾱ of the training table, f32 coefficients, DDIM steps
+    /// along the network's ε (computed before any clamp or edit of x̂0), noise at every step
+    /// when η > 0.
+    Diffusers,
+}
+
 /// A (possibly respaced) diffusion process ready to run reverse steps.
 #[derive(Debug, Clone)]
 pub struct DiffusionSampler {
@@ -133,6 +146,16 @@ pub struct DiffusionSampler {
     param: Parameterization,
     variance: Variance,
     clip_denoised: bool,
+    convention: Convention,
+}
+
+fn check_eta(kind: SamplerKind) -> Result<()> {
+    match kind {
+        SamplerKind::Ddim { eta } if !(eta.is_finite() && eta >= 0.0) => {
+            Err(invalid_arg!("DDIM eta must be finite and >= 0, got {eta}"))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Checks that an optional companion slice has the sample's length.
@@ -155,11 +178,7 @@ impl DiffusionSampler {
         variance: Variance,
         clip_denoised: bool,
     ) -> Result<Self> {
-        if let SamplerKind::Ddim { eta } = kind {
-            if !(eta.is_finite() && eta >= 0.0) {
-                return Err(invalid_arg!("DDIM eta must be finite and >= 0, got {eta}"));
-            }
-        }
+        check_eta(kind)?;
         let base = Schedule::new(base_betas)?;
         let (betas, timestep_map) = respaced_betas(&base.alphas_cumprod, use_timesteps)?;
         let sched = Schedule::new(&betas)?;
@@ -170,6 +189,56 @@ impl DiffusionSampler {
             param,
             variance,
             clip_denoised,
+            convention: Convention::GuidedDiffusion,
+        })
+    }
+
+    /// diffusers' `DDIMScheduler` over `timesteps` (original steps, e.g. from
+    /// [`super::diffusers_timesteps`], any order, no repeats): the ᾱ table is
+    /// [`super::diffusers_alphas_cumprod`] of `base_betas`; the step at t goes to
+    /// prev = t − T div N, whose ᾱ is the table's, or for prev < 0 `final_alpha_cumprod`: 1 with
+    /// `set_alpha_to_one`, else ᾱ_0 of the table. DDPM steps use the same (ᾱ, ᾱ_prev) pairs.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new_diffusers(
+        base_betas: &[f64],
+        timesteps: &[usize],
+        set_alpha_to_one: bool,
+        kind: SamplerKind,
+        param: Parameterization,
+        variance: Variance,
+        clip_denoised: bool,
+    ) -> Result<Self> {
+        check_eta(kind)?;
+        Schedule::new(base_betas)?;
+        let table = diffusers_alphas_cumprod(base_betas);
+        let mut map = timesteps.to_vec();
+        map.sort_unstable();
+        if map.is_empty() || map.windows(2).any(|w| w[0] == w[1]) {
+            return Err(invalid_arg!(
+                "diffusers timesteps: none given, or one repeated"
+            ));
+        }
+        if let Some(bad) = map.iter().find(|&&t| t >= table.len()) {
+            return Err(invalid_arg!(
+                "diffusers timesteps: step {bad} is out of range for T = {}",
+                table.len()
+            ));
+        }
+        let ratio = table.len() / map.len();
+        let last = if set_alpha_to_one { 1.0 } else { table[0] };
+        let ac: Vec<f64> = map.iter().map(|&t| table[t]).collect();
+        let acp: Vec<f64> = map
+            .iter()
+            .map(|&t| t.checked_sub(ratio).map_or(last, |p| table[p]))
+            .collect();
+        Ok(DiffusionSampler {
+            sched: Schedule::from_alpha_bars(&ac, &acp)?,
+            timestep_map: map,
+            kind,
+            param,
+            variance,
+            clip_denoised,
+            convention: Convention::Diffusers,
         })
     }
 
@@ -186,14 +255,20 @@ impl DiffusionSampler {
         self.timestep_map[t] as f32
     }
 
-    /// Whether step `t` consumes noise (DDPM: t ≠ 0; DDIM: t ≠ 0 and η > 0).
+    /// Whether step `t` consumes noise (DDPM: t ≠ 0; DDIM: η > 0 and t ≠ 0, or any t in the
+    /// diffusers convention, which adds σ·z at the last step too).
     pub fn needs_noise(&self, t: usize) -> bool {
-        t != 0
-            && t < self.num_steps()
+        let last_too = self.convention == Convention::Diffusers;
+        t < self.num_steps()
             && match self.kind {
-                SamplerKind::Ddpm => true,
-                SamplerKind::Ddim { eta } => eta > 0.0,
+                SamplerKind::Ddpm => t != 0,
+                SamplerKind::Ddim { eta } => eta > 0.0 && (t != 0 || last_too),
             }
+    }
+
+    /// Whose formulas the steps follow.
+    pub fn convention(&self) -> Convention {
+        self.convention
     }
 
     /// Whether [`DiffusionSampler::step`] needs the variance channel.
@@ -257,6 +332,9 @@ impl DiffusionSampler {
     }
 
     fn predict_x0_unchecked(&self, t: usize, x_t: &[f32], pred: &[f32], x0: &mut [f32]) {
+        if self.convention == Convention::Diffusers {
+            return self.predict_x0_diffusers(t, x_t, pred, x0);
+        }
         let s = &self.sched;
         // x̂0 = a·x_t − b·pred for ε (a = √(1/ᾱ), b = √(1/ᾱ − 1)) and v (a = √ᾱ, b = √(1 − ᾱ)).
         let (a, b) = match self.param {
@@ -282,6 +360,39 @@ impl DiffusionSampler {
             for o in x0.iter_mut() {
                 *o = o.clamp(-1.0, 1.0);
             }
+        }
+    }
+
+    /// √ᾱ_t and √(1 − ᾱ_t) as diffusers computes them: from the f32 ᾱ, in f32.
+    fn diffusers_roots(&self, t: usize) -> (f32, f32) {
+        let ab = self.sched.alphas_cumprod[t] as f32;
+        (ab.sqrt(), (1.0 - ab).sqrt())
+    }
+
+    /// `DDIMScheduler.step`'s `pred_original_sample`, then the clamp if `clip_denoised`.
+    fn predict_x0_diffusers(&self, t: usize, x_t: &[f32], pred: &[f32], x0: &mut [f32]) {
+        let (a, b) = self.diffusers_roots(t);
+        let pairs = x0.iter_mut().zip(x_t.iter().zip(pred));
+        match self.param {
+            Parameterization::Epsilon => pairs.for_each(|(o, (&x, &p))| *o = (x - b * p) / a),
+            Parameterization::X0 => x0.copy_from_slice(pred),
+            Parameterization::V => pairs.for_each(|(o, (&x, &p))| *o = a * x - b * p),
+        }
+        if self.clip_denoised {
+            for o in x0.iter_mut() {
+                *o = o.clamp(-1.0, 1.0);
+            }
+        }
+    }
+
+    /// `DDIMScheduler.step`'s `pred_epsilon` (from the unclamped prediction) into `eps`.
+    fn epsilon_diffusers(&self, t: usize, x_t: &[f32], pred: &[f32], eps: &mut [f32]) {
+        let (a, b) = self.diffusers_roots(t);
+        let pairs = eps.iter_mut().zip(x_t.iter().zip(pred));
+        match self.param {
+            Parameterization::Epsilon => eps.copy_from_slice(pred),
+            Parameterization::X0 => pairs.for_each(|(o, (&x, &p))| *o = (x - a * p) / b),
+            Parameterization::V => pairs.for_each(|(o, (&x, &p))| *o = a * p + b * x),
         }
     }
 
@@ -347,15 +458,51 @@ impl DiffusionSampler {
             None
         };
 
+        let diffusers_ddim = match self.kind {
+            SamplerKind::Ddim { eta } if self.convention == Convention::Diffusers => Some(eta),
+            _ => None,
+        };
+        if diffusers_ddim.is_some() {
+            // x_prev holds ε until the step overwrites it: no scratch buffer.
+            self.epsilon_diffusers(t, x_t, pred, x_prev);
+        }
         self.predict_x0_unchecked(t, x_t, pred, x0);
         if let Some(r) = replace {
             crate::edit::impose(x0, r.reference, r.keep);
         }
-        match self.kind {
-            SamplerKind::Ddpm => self.ddpm(t, x_t, var_pred, noise, x_prev, x0),
-            SamplerKind::Ddim { eta } => self.ddim(t, eta, x_t, noise, x_prev, x0),
+        match (self.kind, diffusers_ddim) {
+            (_, Some(eta)) => self.ddim_diffusers(t, eta, noise, x_prev, x0),
+            (SamplerKind::Ddpm, _) => self.ddpm(t, x_t, var_pred, noise, x_prev, x0),
+            (SamplerKind::Ddim { eta }, _) => self.ddim(t, eta, x_t, noise, x_prev, x0),
         }
         Ok(())
+    }
+
+    /// `DDIMScheduler.step` from ε (in `eps_then_x_prev`) and x̂0: σ² = η²·(1 − ᾱ_prev)/(1 − ᾱ)·
+    /// (1 − ᾱ/ᾱ_prev), x_prev = √ᾱ_prev·x̂0 + √(1 − ᾱ_prev − σ²)·ε + σ·z, all in f32.
+    fn ddim_diffusers(
+        &self,
+        t: usize,
+        eta: f32,
+        noise: Option<&[f32]>,
+        eps_then_x_prev: &mut [f32],
+        x0: &[f32],
+    ) {
+        let ab = self.sched.alphas_cumprod[t] as f32;
+        let ab_prev = self.sched.alphas_cumprod_prev[t] as f32;
+        let variance = ((1.0 - ab_prev) / (1.0 - ab)) * (1.0 - ab / ab_prev);
+        let sigma = eta * variance.sqrt();
+        let c_x0 = ab_prev.sqrt();
+        // The clamp only replaces the NaN of a rounding-negative argument.
+        let c_eps = (1.0 - ab_prev - sigma * sigma).max(0.0).sqrt();
+        for (o, &a) in eps_then_x_prev.iter_mut().zip(x0) {
+            *o = c_x0 * a + c_eps * *o;
+        }
+        if let Some(z) = noise {
+            for (o, &zz) in eps_then_x_prev.iter_mut().zip(z) {
+                *o += sigma * zz;
+            }
+        }
     }
 
     /// `p_sample`: mean = c1·x̂0 + c2·x_t; x_{t−1} = mean + exp(0.5·log σ²)·z for t ≠ 0. At t = 0
@@ -783,6 +930,139 @@ mod tests {
         // t = 0: ᾱ_prev = 1, so the result is x̂0.
         s.step(0, &X_T, &PRED, None, None, &mut a, &mut x0).unwrap();
         assert_close(&a, &x0.map(|v| v as f64), 1e-7);
+    }
+
+    fn toy_diffusers(
+        ts: &[usize],
+        to_one: bool,
+        param: Parameterization,
+        clip: bool,
+        eta: f32,
+    ) -> DiffusionSampler {
+        DiffusionSampler::new_diffusers(
+            &[0.1, 0.2, 0.3],
+            ts,
+            to_one,
+            SamplerKind::Ddim { eta },
+            param,
+            Variance::FixedSmall,
+            clip,
+        )
+        .unwrap()
+    }
+
+    /// The toy process's diffusers table: ᾱ = [0.9, 0.72, 0.504] through f32.
+    fn toy_table() -> [f64; 3] {
+        let a = [0.9f32, 0.8, 0.7].map(f64::from);
+        [a[0], a[0] * a[1], a[0] * a[1] * a[2]].map(|v| f64::from(v as f32))
+    }
+
+    #[test]
+    fn diffusers_pairs_follow_prev_equals_t_minus_ratio() {
+        let tab = toy_table();
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.convention(), Convention::Diffusers);
+        assert_eq!(s.timestep_map(), [0, 1, 2]);
+        assert_eq!(s.alphas_cumprod(), tab);
+        // Without set_alpha_to_one the last step goes to ᾱ_0 itself.
+        assert_eq!(s.schedule().alphas_cumprod_prev, [tab[0], tab[0], tab[1]]);
+        let s = toy_diffusers(&[0, 1, 2], true, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.schedule().alphas_cumprod_prev, [1.0, tab[0], tab[1]]);
+        // Two steps over T = 3: ratio 3 div 2 = 1, so t = 2 goes to 1, not to the next step 0.
+        let s = toy_diffusers(&[2, 0], true, Parameterization::Epsilon, false, 0.0);
+        assert_eq!(s.schedule().alphas_cumprod_prev, [1.0, tab[1]]);
+        let mk = |ts: &[usize]| {
+            DiffusionSampler::new_diffusers(
+                &[0.1, 0.2, 0.3],
+                ts,
+                true,
+                SamplerKind::Ddim { eta: 0.0 },
+                Parameterization::Epsilon,
+                Variance::FixedSmall,
+                false,
+            )
+        };
+        assert!(mk(&[]).is_err());
+        assert!(mk(&[1, 1]).is_err());
+        assert!(mk(&[3]).is_err());
+    }
+
+    #[test]
+    fn diffusers_ddim_step_by_hand() {
+        let tab = toy_table();
+        let (ab, abp) = (tab[2], tab[1]);
+        // ε-prediction: x̂0 = (x − √(1−ᾱ)ε)/√ᾱ, x_prev = √ᾱ_prev·x̂0 + √(1−ᾱ_prev)·ε.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.0);
+        let (mut xp, mut x0) = ([0.0f32; 3], [0.0f32; 3]);
+        s.step(2, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        let want_x0: Vec<f64> = (0..3)
+            .map(|i| (X_T[i] as f64 - (1.0 - ab).sqrt() * PRED[i] as f64) / ab.sqrt())
+            .collect();
+        let want: Vec<f64> = (0..3)
+            .map(|i| abp.sqrt() * want_x0[i] + (1.0 - abp).sqrt() * PRED[i] as f64)
+            .collect();
+        assert_close(&x0, &want_x0, 1e-6);
+        assert_close(&xp, &want, 1e-6);
+        // The last step from ᾱ_0 to ᾱ_0 returns x_t.
+        s.step(0, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        assert_close(&xp, &X_T.map(f64::from), 1e-6);
+        // x0-prediction with the clamp: the direction uses ε of the UNclamped prediction.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::X0, true, 0.0);
+        let pred = [1.5f32, -2.0, 0.3];
+        s.step(2, &X_T, &pred, None, None, &mut xp, &mut x0)
+            .unwrap();
+        assert_eq!(x0, [1.0, -1.0, 0.3]);
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let eps = (X_T[i] as f64 - ab.sqrt() * pred[i] as f64) / (1.0 - ab).sqrt();
+                abp.sqrt() * x0[i] as f64 + (1.0 - abp).sqrt() * eps
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+        // v-prediction: x̂0 = √ᾱ·x − √(1−ᾱ)·v, ε = √ᾱ·v + √(1−ᾱ)·x.
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::V, false, 0.0);
+        s.step(2, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .unwrap();
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let (x, v) = (X_T[i] as f64, PRED[i] as f64);
+                let x0 = ab.sqrt() * x - (1.0 - ab).sqrt() * v;
+                let eps = ab.sqrt() * v + (1.0 - ab).sqrt() * x;
+                abp.sqrt() * x0 + (1.0 - abp).sqrt() * eps
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+    }
+
+    #[test]
+    fn diffusers_eta_adds_noise_at_the_last_step_too() {
+        let tab = toy_table();
+        let s = toy_diffusers(&[2, 1, 0], false, Parameterization::Epsilon, false, 0.5);
+        assert!(s.needs_noise(0) && s.needs_noise(2) && !s.needs_noise(3));
+        // t = 0 goes from ᾱ_0 to ᾱ_0: σ² = 0, so the noise term vanishes there.
+        let (mut xp, mut x0) = ([0.0f32; 3], [0.0f32; 3]);
+        s.step(0, &X_T, &PRED, None, Some(&Z), &mut xp, &mut x0)
+            .unwrap();
+        assert_close(&xp, &X_T.map(f64::from), 1e-6);
+        // t = 1: σ = η·√((1−ᾱ_prev)/(1−ᾱ)·(1 − ᾱ/ᾱ_prev)).
+        let (ab, abp) = (tab[1], tab[0]);
+        let sigma = 0.5 * ((1.0 - abp) / (1.0 - ab) * (1.0 - ab / abp)).sqrt();
+        s.step(1, &X_T, &PRED, None, Some(&Z), &mut xp, &mut x0)
+            .unwrap();
+        let want: Vec<f64> = (0..3)
+            .map(|i| {
+                let x0 = (X_T[i] as f64 - (1.0 - ab).sqrt() * PRED[i] as f64) / ab.sqrt();
+                abp.sqrt() * x0
+                    + (1.0 - abp - sigma * sigma).sqrt() * PRED[i] as f64
+                    + sigma * Z[i] as f64
+            })
+            .collect();
+        assert_close(&xp, &want, 1e-6);
+        assert!(s
+            .step(1, &X_T, &PRED, None, None, &mut xp, &mut x0)
+            .is_err());
     }
 
     #[test]

@@ -136,6 +136,22 @@ fn scaled_linear_betas(t: usize) -> Vec<f64> {
         .collect()
 }
 
+/// diffusers' `alphas_cumprod` for `betas`: each β rounded to f32 (diffusers keeps its betas in
+/// float32; the scaled_linear betas are f32 already), α = 1 − β in f32, and `torch.cumprod` as
+/// its CPU kernel computes it — the running product in f64, each entry stored as f32
+/// (REFERENCE 7.3.3; a plain f32 running product differs in 944 of the 1000 scaled_linear
+/// entries). The f32 values are returned widened to f64.
+pub fn diffusers_alphas_cumprod(betas: &[f64]) -> Vec<f64> {
+    let mut acc = 1.0f64;
+    betas
+        .iter()
+        .map(|&b| {
+            acc *= f64::from(1.0f32 - b as f32);
+            f64::from(acc as f32)
+        })
+        .collect()
+}
+
 /// The float64 tables guided-diffusion derives from a beta sequence (REFERENCE 1.8), plus the two
 /// log-variance tables the sampler's variance modes read.
 #[derive(Debug, Clone, PartialEq)]
@@ -174,26 +190,72 @@ impl Schedule {
             return Err(invalid_arg!("betas[{i}] = {b} is outside (0, 1)"));
         }
         let n = betas.len();
-        let alphas: Vec<f64> = betas.iter().map(|b| 1.0 - b).collect();
         // numpy cumprod is a sequential running product.
         let mut alphas_cumprod = Vec::with_capacity(n);
         let mut acc = 1.0f64;
-        for (i, a) in alphas.iter().enumerate() {
-            acc = if i == 0 { *a } else { acc * a };
+        for (i, b) in betas.iter().enumerate() {
+            let a = 1.0 - b;
+            acc = if i == 0 { a } else { acc * a };
             alphas_cumprod.push(acc);
         }
         let mut alphas_cumprod_prev = Vec::with_capacity(n);
         alphas_cumprod_prev.push(1.0);
         alphas_cumprod_prev.extend_from_slice(&alphas_cumprod[..n - 1]);
+        Ok(Self::from_tables(
+            betas.to_vec(),
+            alphas_cumprod,
+            alphas_cumprod_prev,
+        ))
+    }
 
+    /// The tables of a process whose step `i` goes from ᾱ_i = `alphas_cumprod[i]` to
+    /// `alphas_cumprod_prev[i]` (diffusers' per-step pairs, where ᾱ_prev need not be the
+    /// previous entry): β_i = 1 − ᾱ_i/ᾱ_prev,i. Needs 0 < ᾱ_i ≤ ᾱ_prev,i ≤ 1 and ᾱ_i < 1; a
+    /// step with ᾱ_prev = ᾱ (β = 0, diffusers' last leading step at t = 0 without
+    /// `set_alpha_to_one`) leaves the sample unchanged.
+    pub fn from_alpha_bars(alphas_cumprod: &[f64], alphas_cumprod_prev: &[f64]) -> Result<Self> {
+        if alphas_cumprod.is_empty() || alphas_cumprod.len() != alphas_cumprod_prev.len() {
+            return Err(invalid_arg!(
+                "alpha bars: {} values and {} previous values",
+                alphas_cumprod.len(),
+                alphas_cumprod_prev.len()
+            ));
+        }
+        let pairs = alphas_cumprod.iter().zip(alphas_cumprod_prev);
+        if let Some((i, (a, p))) = pairs
+            .enumerate()
+            .find(|(_, (a, p))| !(**a > 0.0 && **a < 1.0 && **a <= **p && **p <= 1.0))
+        {
+            return Err(invalid_arg!(
+                "alpha bar {i}: {a} after {p} is not a step of 0 < ᾱ ≤ ᾱ_prev ≤ 1, ᾱ < 1"
+            ));
+        }
+        let betas = alphas_cumprod
+            .iter()
+            .zip(alphas_cumprod_prev)
+            .map(|(a, p)| 1.0 - a / p)
+            .collect();
+        Ok(Self::from_tables(
+            betas,
+            alphas_cumprod.to_vec(),
+            alphas_cumprod_prev.to_vec(),
+        ))
+    }
+
+    /// Every derived table, from checked betas, ᾱ and ᾱ_prev (REFERENCE 1.8).
+    fn from_tables(
+        betas: Vec<f64>,
+        alphas_cumprod: Vec<f64>,
+        alphas_cumprod_prev: Vec<f64>,
+    ) -> Self {
+        let n = betas.len();
         let map = |f: &dyn Fn(usize) -> f64| (0..n).map(f).collect::<Vec<f64>>();
-        let ac = &alphas_cumprod;
-        let acp = &alphas_cumprod_prev;
+        let (b, ac, acp) = (&betas, &alphas_cumprod, &alphas_cumprod_prev);
         let sqrt_alphas_cumprod = map(&|i| ac[i].sqrt());
         let sqrt_one_minus_alphas_cumprod = map(&|i| (1.0 - ac[i]).sqrt());
         let sqrt_recip_alphas_cumprod = map(&|i| (1.0 / ac[i]).sqrt());
         let sqrt_recipm1_alphas_cumprod = map(&|i| (1.0 / ac[i] - 1.0).sqrt());
-        let posterior_variance = map(&|i| betas[i] * (1.0 - acp[i]) / (1.0 - ac[i]));
+        let posterior_variance = map(&|i| b[i] * (1.0 - acp[i]) / (1.0 - ac[i]));
         // With a single step there is no σ̃²_1; entry 0 is then log 0 = −∞, which is harmless
         // because the sampler never adds noise at t = 0.
         let first = if n > 1 {
@@ -208,13 +270,13 @@ impl Schedule {
                 posterior_variance[i].ln()
             }
         });
-        let posterior_mean_coef1 = map(&|i| betas[i] * acp[i].sqrt() / (1.0 - ac[i]));
-        let posterior_mean_coef2 = map(&|i| (1.0 - acp[i]) * alphas[i].sqrt() / (1.0 - ac[i]));
-        let log_betas = map(&|i| betas[i].ln());
-        let fixed_large_log_variance = map(&|i| if i == 0 { first.ln() } else { betas[i].ln() });
+        let posterior_mean_coef1 = map(&|i| b[i] * acp[i].sqrt() / (1.0 - ac[i]));
+        let posterior_mean_coef2 = map(&|i| (1.0 - acp[i]) * (1.0 - b[i]).sqrt() / (1.0 - ac[i]));
+        let log_betas = map(&|i| b[i].ln());
+        let fixed_large_log_variance = map(&|i| if i == 0 { first.ln() } else { b[i].ln() });
 
-        Ok(Schedule {
-            betas: betas.to_vec(),
+        Schedule {
+            betas,
             alphas_cumprod,
             alphas_cumprod_prev,
             sqrt_alphas_cumprod,
@@ -227,7 +289,7 @@ impl Schedule {
             posterior_mean_coef2,
             log_betas,
             fixed_large_log_variance,
-        })
+        }
     }
 
     /// Number of timesteps T.
@@ -380,6 +442,57 @@ mod tests {
             (1.0 / 0.72 - 1.0f64).sqrt(),
             1e-14
         ));
+    }
+
+    #[test]
+    fn diffusers_table_by_hand() {
+        // β = [0.1, 0.2, 0.3] in f32; α in f32; running product in f64, stored as f32.
+        let got = diffusers_alphas_cumprod(&[0.1, 0.2, 0.3]);
+        let a: Vec<f64> = [0.1f32, 0.2, 0.3]
+            .iter()
+            .map(|&b| f64::from(1.0f32 - b))
+            .collect();
+        let want = [a[0], a[0] * a[1], a[0] * a[1] * a[2]].map(|v| f64::from(v as f32));
+        assert_eq!(got, want);
+        assert!(close(got[2], 0.504, 1e-7));
+    }
+
+    #[test]
+    fn tables_from_alpha_bar_pairs() {
+        // Steps 0.72 → 0.9 and 0.504 → 0.72 of the β = [0.1, 0.2, 0.3] process, and a last
+        // step that stays at ᾱ (β = 0: the sample is kept).
+        let s = Schedule::from_alpha_bars(&[0.72, 0.504, 0.9], &[0.9, 0.72, 0.9]).unwrap();
+        assert!(close(s.betas[0], 0.2, 1e-14));
+        assert!(close(s.betas[1], 0.3, 1e-14));
+        assert_eq!(s.betas[2], 0.0);
+        assert!(close(s.posterior_variance[1], 0.3 * 0.28 / 0.496, 1e-14));
+        assert_eq!(s.posterior_mean_coef1[2], 0.0);
+        assert_eq!(s.posterior_mean_coef2[2], 1.0);
+        // The guided-diffusion tables agree with `new` on the same process.
+        let n = Schedule::new(&[0.1, 0.2, 0.3]).unwrap();
+        let p = Schedule::from_alpha_bars(&n.alphas_cumprod, &n.alphas_cumprod_prev).unwrap();
+        for i in 0..3 {
+            assert!(close(
+                p.posterior_mean_coef2[i].max(1e-300),
+                n.posterior_mean_coef2[i].max(1e-300),
+                1e-12
+            ));
+            assert!(close(p.betas[i], n.betas[i], 1e-12));
+        }
+        for (ac, acp) in [
+            (&[0.5][..], &[0.4][..]),
+            (&[1.0], &[1.0]),
+            (&[0.0], &[0.5]),
+            (&[0.5], &[1.5]),
+            (&[f64::NAN], &[1.0]),
+            (&[0.5, 0.4], &[1.0]),
+            (&[], &[]),
+        ] {
+            assert!(
+                Schedule::from_alpha_bars(ac, acp).is_err(),
+                "{ac:?} {acp:?}"
+            );
+        }
     }
 
     #[test]

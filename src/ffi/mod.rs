@@ -165,7 +165,10 @@ pub struct FlameModelParams {
 const MODEL_PARAMS_V1: usize = 8;
 
 /// Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
-/// negative `eta`/`guidance`) means "the model file's default".
+/// negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
+///
+/// Version 1 of this struct ended after `threads` (40 bytes); a caller built against it passes
+/// `struct_size = 40` and gets no respacing.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct FlameSessionParams {
@@ -186,7 +189,17 @@ pub struct FlameSessionParams {
     /// Worker threads this session creates and owns: 1 to [`FLAME_MAX_THREADS`], or 0 = one per
     /// core (at most [`FLAME_MAX_THREADS`]); more is `INVALID_ARGUMENT`.
     pub threads: u32,
+    /// NULL = none, or a NUL-terminated guided-diffusion respacing string choosing which
+    /// training steps to sample: `"ddimN"` (every k-th step, N steps), `"N"` (N evenly spread
+    /// steps) or section counts `"15,15,8,6,6"`. It sets the step count (a nonzero `steps` must
+    /// agree). Only for models with `diffusion.spacing` `respace` (FLAME, MDM); a model with
+    /// diffusers spacing or a flow model refuses it (`INVALID_ARGUMENT`). Read only during
+    /// [`flame_session_new`] (since version 2 of this struct).
+    pub respacing: *const c_char,
 }
+
+/// Size of version 1 of [`FlameSessionParams`] (up to `threads`, padded: 40 bytes).
+const SESSION_PARAMS_V1: usize = std::mem::offset_of!(FlameSessionParams, respacing);
 
 /// What [`flame_model_info`] reports. Strings and arrays belong to the model and stay valid
 /// until it is freed.
@@ -490,22 +503,45 @@ pub unsafe extern "C" fn flame_model_info(
 pub unsafe extern "C" fn flame_session_params_default(
     params: *mut FlameSessionParams,
 ) -> FlameStatus {
-    guard(|| {
-        let p = FlameSessionParams {
-            struct_size: std::mem::size_of::<FlameSessionParams>() as u32,
-            frames: 0,
-            steps: 0,
-            sampler: FlameSampler::Default as i32,
-            eta: -1.0,
-            guidance: -1.0,
-            seed: 0,
-            threads: 0,
-        };
-        write_out(params, p, "params")
-    })
+    guard(|| write_out(params, default_session_params(), "params"))
 }
 
-fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
+fn default_session_params() -> FlameSessionParams {
+    FlameSessionParams {
+        struct_size: std::mem::size_of::<FlameSessionParams>() as u32,
+        frames: 0,
+        steps: 0,
+        sampler: FlameSampler::Default as i32,
+        eta: -1.0,
+        guidance: -1.0,
+        seed: 0,
+        threads: 0,
+        respacing: std::ptr::null(),
+    }
+}
+
+/// Reads the caller's session params: only the `struct_size` bytes it declares (at least
+/// version 1's), later fields keeping their defaults (`respacing` NULL).
+unsafe fn session_params_in(params: *const FlameSessionParams) -> Result<SessionParams, Fail> {
+    // SAFETY: the caller's struct is readable for at least its first field.
+    let declared = std::ptr::read_unaligned(params as *const u32);
+    check_size(declared, SESSION_PARAMS_V1, "params")?;
+    let full = std::mem::size_of::<FlameSessionParams>();
+    let n = if declared as usize >= full {
+        full
+    } else {
+        SESSION_PARAMS_V1
+    };
+    let mut p = default_session_params();
+    // SAFETY: the caller's struct is readable for the `declared` ≥ n bytes it says it has, and
+    // `p` is a plain-data struct of at least n bytes.
+    std::ptr::copy_nonoverlapping(params as *const u8, &mut p as *mut _ as *mut u8, n);
+    session_params(&p)
+}
+
+/// # Safety
+/// `p.respacing` is NULL or a NUL-terminated string.
+unsafe fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
     let nonzero = |v: u32| (v != 0).then_some(v as usize);
     let default_if_negative = |v: f32, name: &str| -> Result<Option<f32>, Fail> {
         if v.is_nan() {
@@ -536,6 +572,10 @@ fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> {
         clip_denoised: None,
         seed: p.seed,
         threads: p.threads as usize,
+        respacing: match p.respacing.is_null() {
+            true => None,
+            false => Some(str_arg(p.respacing, "respacing")?.to_owned()),
+        },
     })
 }
 
@@ -612,12 +652,7 @@ pub unsafe extern "C" fn flame_session_new(
         let p = if params.is_null() {
             SessionParams::default()
         } else {
-            check_size(
-                (*params).struct_size,
-                std::mem::size_of::<FlameSessionParams>(),
-                "params",
-            )?;
-            session_params(&*params)?
+            session_params_in(params)?
         };
         let s = Session::new(Arc::clone(m.model()), &p)?;
         write_out(

@@ -352,7 +352,8 @@ static void test_session_new(const FlameModel *m) {
     CHECK(s == NULL);
 
     BAD_SESSION(struct_size, 0, "struct_size");
-    BAD_SESSION(struct_size, (uint32_t)sizeof(FlameSessionParams) - 1, "struct_size");
+    /* One byte short of version 1's 40 bytes (version 2 added `respacing`). */
+    BAD_SESSION(struct_size, 39, "struct_size");
     BAD_SESSION(frames, FLAME_TINY_MAX_FRAMES + 1, "frames");
     BAD_SESSION(frames, UINT32_MAX, "frames");
     BAD_SESSION(steps, 1001, "steps");
@@ -368,6 +369,47 @@ static void test_session_new(const FlameModel *m) {
         q.sampler = FLAME_SAMPLER_DDIM;
         q.eta = INFINITY;
         check_bad_session(m, &q, "eta", __LINE__);
+    }
+
+    /* A respacing string: "ddim50" keeps every 20th of the 1000 steps; a count no stride
+     * gives, or one that disagrees with `steps`, is refused. */
+    {
+        FlameSessionParams q;
+        flame_session_params_default(&q);
+        CHECK(q.respacing == NULL);
+        q.threads = 1;
+        q.respacing = "ddim50";
+        FlameSession *r = NULL;
+        CHECK_OK(flame_session_new(m, &q, &r));
+        uint32_t d = 99, t = 0;
+        CHECK_OK(flame_session_progress(r, &d, &t));
+        CHECK(d == 0 && t == 50);
+        flame_session_free(r);
+        q.steps = 40;
+        check_bad_session(m, &q, "steps 40 disagrees with respacing", __LINE__);
+        q.steps = 0;
+        q.respacing = "ddim999";
+        check_bad_session(m, &q, "cannot create exactly 999 steps", __LINE__);
+    }
+    /* A caller built against version 1 (struct_size 40, no `respacing`): the bytes after it
+     * are never read, so garbage there changes nothing. */
+    {
+        struct {
+            FlameSessionParams p;
+            unsigned char poison[16];
+        } v1;
+        memset(&v1, 0xA5, sizeof v1);
+        flame_session_params_default(&v1.p);
+        memset((unsigned char *)&v1.p + 40, 0xA5, sizeof v1 - 40);
+        v1.p.struct_size = 40;
+        v1.p.threads = 1;
+        v1.p.steps = 7;
+        FlameSession *r = NULL;
+        CHECK_OK(flame_session_new(m, &v1.p, &r));
+        uint32_t d = 99, t = 0;
+        CHECK_OK(flame_session_progress(r, &d, &t));
+        CHECK(t == 7);
+        flame_session_free(r);
     }
 
     /* Boundaries that are allowed: the largest frame count and step count; NULL params. */

@@ -169,6 +169,19 @@ static void test_errors() {
     p = reference_params();
     p.sampler = 7;
     CHECK_THROWS(flame::Session(model, p), FLAME_STATUS_INVALID_ARGUMENT, "sampler 7");
+    p = reference_params();
+    p.respacing = "ddim999";
+    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "cannot create exactly 999");
+    /* The section rule's "N" is what `steps` N gives: the same bits. */
+    {
+        const std::string spec = std::to_string(ref_steps);
+        p = reference_params();
+        p.respacing = spec.c_str();
+        p.steps = 0;
+        flame::Session r = model.session(p);
+        flame::Session plain = model.session(reference_params());
+        CHECK(same(run(r), run(plain)));
+    }
 
     flame::Session s = model.session(reference_params());
     CHECK_THROWS(s.step(), FLAME_STATUS_WRONG_STATE, "prompt");

@@ -279,6 +279,7 @@ class _SessionParams(ctypes.Structure):
         ("guidance", ctypes.c_float),
         ("seed", ctypes.c_uint64),
         ("threads", ctypes.c_uint32),
+        ("respacing", ctypes.c_char_p),
     ]
 
 
@@ -588,11 +589,15 @@ class Model:
         guidance: Optional[float] = None,
         seed: int = 0,
         threads: int = 0,
+        respacing: Optional[str] = None,
     ) -> "Session":
         """Starts a generation. None takes the model file's default; `sampler` is "ddpm",
         "ddim", "euler", "heun", "midpoint" or a Sampler value; `threads` 0 = one per core, at most
-        MAX_THREADS (the session owns its threads)."""
-        return Session(self, frames, steps, sampler, eta, guidance, seed, threads)
+        MAX_THREADS (the session owns its threads). `respacing` is a guided-diffusion respacing
+        string ("ddim50", "50", "15,15,8,6,6") choosing which training steps to sample; it sets
+        the step count (`steps`, if given, must agree) and is refused by flow models and models
+        with diffusers spacing."""
+        return Session(self, frames, steps, sampler, eta, guidance, seed, threads, respacing)
 
     def close(self) -> None:
         handle, self._handle = self._handle, None
@@ -663,7 +668,8 @@ ProgressFn = Callable[[int, int], None]
 class Session:
     """One generation on a model. Methods raise FlameError when libflame reports a failure."""
 
-    def __init__(self, model: Model, frames, steps, sampler, eta, guidance, seed, threads):
+    def __init__(self, model: Model, frames, steps, sampler, eta, guidance, seed, threads,
+                 respacing=None):
         self._handle: Optional[int] = None
         # Held by every call but cancel(), so close() from another thread waits for a running
         # step instead of freeing the session under it. Reentrant: a progress callback may call
@@ -687,6 +693,10 @@ class Session:
         p.guidance = -1.0 if guidance is None else guidance
         p.seed = seed
         p.threads = _uint32("threads", threads)
+        if respacing is not None:
+            if "\0" in respacing:
+                raise ValueError("respacing contains a NUL character")
+            p.respacing = respacing.encode("utf-8")  # kept alive by `p` until the call returns
         out = _P()
         _check(_lib().flame_session_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
         self._handle = out.value

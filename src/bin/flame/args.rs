@@ -126,6 +126,11 @@ pub struct SamplingArgs {
     /// Sampling steps, respaced from the trained ones [default: the model's]
     #[arg(long, value_name = "S")]
     pub steps: Option<usize>,
+    /// Which training steps to sample, as a guided-diffusion respacing string: "ddimN" (every
+    /// k-th step), "N" (N evenly spread) or section counts "15,15,8,6,6"; sets the step count.
+    /// Only for FLAME/MDM-style models (diffusion.spacing `respace`)
+    #[arg(long, value_name = "SPEC")]
+    pub respacing: Option<String>,
     /// Sampler [ddpm|ddim (diffusion) or euler|heun|midpoint (flow matching); default: the model's]
     #[arg(long, value_name = "NAME", value_parser = lib::<Sampler>)]
     pub sampler: Option<Sampler>,

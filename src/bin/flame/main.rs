@@ -47,6 +47,7 @@ fn session_params(s: &SamplingArgs) -> SessionParams {
         frames: s.frames,
         steps: s.steps,
         sampler: s.sampler,
+        respacing: s.respacing.clone(),
         eta: s.eta,
         guidance: s.guidance,
         clip_denoised: None,

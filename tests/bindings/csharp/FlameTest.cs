@@ -60,6 +60,7 @@ static class FlameTest
             Run("HalfWeights", TestHalfWeights);
             Run("StepsEstimateReset", TestStepsEstimateReset);
             Run("SessionErrors", TestSessionErrors);
+            Run("Respacing", TestRespacing);
             Run("PromptInfo", TestPromptInfo);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
@@ -263,6 +264,7 @@ static class FlameTest
         Check(sp.struct_size == Marshal.SizeOf(typeof(FlameSessionParams)), "sizeof FlameSessionParams " + sp.struct_size + " vs " + Marshal.SizeOf(typeof(FlameSessionParams)));
         Check(sp.frames == 0 && sp.steps == 0 && sp.sampler == 0 && sp.eta < 0 && sp.guidance < 0 && sp.seed == 0 && sp.threads == 0, "session defaults");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
+        Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "respacing") == 40 && sp.respacing == IntPtr.Zero, "respacing field");
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
         var ep = FlameEditParams.Default();
         Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
@@ -375,6 +377,34 @@ static class FlameTest
             Check(s.StepsLeft == 10, "reset restarts");
             Check(BitEqual(RunAll(s), reference), "reset reproduces");
         }
+    }
+
+    // "ddim4" keeps {0, 250, 500, 750} of the 1000 steps, as do four one-step sections
+    // "1,1,1,1"; "4" keeps {0, 333, 666, 999}, as steps = 4 does.
+    static void TestRespacing()
+    {
+        Func<uint, string, float[]> run = (steps, spec) =>
+        {
+            var p = RefParams();
+            p.frames = 8;
+            p.steps = steps;
+            using (var s = model.NewSession(p, spec))
+            {
+                Check(s.StepsTotal == 4, "4 steps for " + spec);
+                s.SetPrompt(RefPrompt);
+                return RunAll(s);
+            }
+        };
+        var stride = run(0, "ddim4");
+        Check(BitEqual(stride, run(0, "1,1,1,1")), "ddim4 = 1,1,1,1");
+        Check(BitEqual(stride, run(4, "ddim4")), "agreeing steps");
+        var sections = run(0, "4");
+        Check(BitEqual(sections, run(4, null)), "\"4\" = steps 4");
+        Check(!BitEqual(stride, sections), "ddim4 differs from 4");
+        var q = RefParams();
+        q.steps = 5;
+        Throws(FlameStatus.InvalidArgument, "steps 5 disagrees with respacing \"ddim4\"", () => model.NewSession(q, "ddim4").Dispose());
+        Throws(FlameStatus.InvalidArgument, "cannot create exactly 999 steps", () => model.NewSession(RefParams(), "ddim999").Dispose());
     }
 
     static void TestSessionErrors()

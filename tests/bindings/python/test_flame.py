@@ -268,6 +268,25 @@ def test_session_errors(model):
     expect_error(Status.INVALID_ARGUMENT, "needs a flow-matching model", model.session, sampler="euler")
 
 
+def test_respacing_picks_the_training_steps(model):
+    # "ddim4" keeps {0, 250, 500, 750} of the 1000 steps, as do four one-step sections
+    # "1,1,1,1"; "4" keeps {0, 333, 666, 999}, as `steps=4` does.
+    def run(**kw):
+        with model.session(frames=8, sampler="ddim", seed=5, threads=1, **kw) as s:
+            assert s.progress == (0, 4)
+            s.set_prompt(REF_PROMPT)
+            return s.run().tobytes()
+    stride = run(respacing="ddim4")
+    assert stride == run(respacing="1,1,1,1") == run(respacing="ddim4", steps=4)
+    assert run(respacing="4") == run(steps=4) != stride
+    expect_error(Status.INVALID_ARGUMENT, "steps 5 disagrees with respacing \"ddim4\"",
+                 model.session, respacing="ddim4", steps=5)
+    expect_error(Status.INVALID_ARGUMENT, "cannot create exactly 999 steps", model.session,
+                 respacing="ddim999")
+    with pytest.raises(ValueError):
+        model.session(respacing="ddim4\0")
+
+
 # The fixture's RoBERTa window is 20 tokens, <s> and </s> included (its config).
 WINDOW = 20
 LONG_PROMPT = ("a person walks forward, turns left, raises both arms, waves with the right hand, "

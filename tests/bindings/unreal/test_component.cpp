@@ -126,6 +126,27 @@ int main(int argc, char** argv) {
     }
     CHECK(WaitForThreads(), "workers exited");
 
+    {   // Respacing "10" keeps the 10 steps the section rule gives Steps = 10: the CLI's bits.
+        // A string no stride can space fails the generation with libflame's message.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 0, true);
+        CHECK(c.Respacing.IsEmpty(), "no respacing by default");
+        c.Respacing = FString(TEXT("10"));
+        bool finished = false, succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate with respacing");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(succeeded && c.StepsTotal == 10, "succeeded: %s (%d steps)", c.LastError.Utf8().c_str(), c.StepsTotal);
+        CHECK(std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0, "respacing 10 = steps 10");
+        finished = false;
+        c.Respacing = FString(TEXT("ddim999"));
+        CHECK(c.Generate(), "Generate with a bad respacing");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(!succeeded && c.LastError.Utf8().find("cannot create exactly 999 steps") != std::string::npos,
+              "%s", c.LastError.Utf8().c_str());
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
     {   // The defaults: local quaternions x, y, z, w and root locations in Unreal's convention.
         UFlameMotionComponent defaults;
         CHECK(defaults.Layout == FLAME_LAYOUT_LOCAL_QUAT_XYZW && defaults.Convention == FLAME_CONVENTION_UNREAL, "defaults");

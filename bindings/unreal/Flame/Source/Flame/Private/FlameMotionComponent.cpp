@@ -31,6 +31,13 @@ static FString FlameFailure(FlameStatus Status)
  * the worker also holds whenever it publishes or changes Session, so the session is never
  * cancelled after it was freed. The worker never holds Lock while stepping.
  */
+/** Params with `respacing` set to Spec, for one call. */
+static const FlameSessionParams* WithRespacing(FlameSessionParams& Params, const ANSICHAR* Spec)
+{
+	Params.respacing = Spec;
+	return &Params;
+}
+
 struct FFlameJob
 {
 	/** Counts this job in FFlameModule::ActiveWorkers. First member, so destroyed last: after
@@ -44,7 +51,8 @@ struct FFlameJob
 	// Inputs, fixed before the worker starts.
 	FString Path;
 	FString Prompt;
-	FlameSessionParams Params;
+	FlameSessionParams Params; // respacing stays null here: see Respacing
+	FString Respacing;         // empty = none; passed as UTF-8 for flame_session_new only
 	int32 Layout = 0;
 	int32 Convention = 0;
 	uint32 Flags = 0;
@@ -125,7 +133,8 @@ private:
 			return false;
 		}
 		FlameSession* S = nullptr;
-		Status = flame_session_new(M->Handle, &Params, &S);
+		// The UTF-8 temporary lives until the end of the full expression, past the call.
+		Status = flame_session_new(M->Handle, WithRespacing(Params, Respacing.IsEmpty() ? nullptr : TCHAR_TO_UTF8(*Respacing)), &S);
 		if (Status != FLAME_STATUS_OK)
 		{
 			Failure = FlameFailure(Status);
@@ -291,6 +300,7 @@ bool UFlameMotionComponent::Generate()
 	NewJob->Params.steps = (uint32)FMath::Max(Steps, 0);
 	NewJob->Params.sampler = bUseDdim ? FLAME_SAMPLER_DDIM : FLAME_SAMPLER_DEFAULT;
 	NewJob->Params.guidance = Guidance;
+	NewJob->Respacing = Respacing;
 	NewJob->Params.seed = (uint64)FMath::Max(Seed, 0);
 	NewJob->Params.threads = (uint32)FMath::Max(Threads, 0);
 	NewJob->Layout = Layout;

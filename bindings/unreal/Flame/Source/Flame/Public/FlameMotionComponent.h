@@ -41,6 +41,12 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
 	int32 Steps = 50;
 
+	/** Which training steps to sample, as a guided-diffusion respacing string: "ddim50" (every
+	 *  20th of 1000), "50" (50 evenly spread) or section counts "15,15,8,6,6"; empty = none. It
+	 *  sets the step count (a nonzero Steps must agree). FLAME and MDM models only. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	FString Respacing;
+
 	/** DDIM (few steps) instead of the model's default sampler. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	bool bUseDdim = true;
