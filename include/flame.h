@@ -248,8 +248,8 @@ typedef struct FlameModelInfo {
 // Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
 // negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
 //
-// Version 1 of this struct ended after `threads` (40 bytes); a caller built against it passes
-// `struct_size = 40` and gets no respacing.
+// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets); a caller built
+// against it passes its `sizeof` and gets no respacing.
 typedef struct FlameSessionParams {
   // `sizeof(FlameSessionParams)`.
   uint32_t struct_size;

@@ -147,6 +147,43 @@ fn flow_and_diffusers_spaced_models_refuse_a_respacing() {
     assert_eq!(run(&trailing, &params(Some(10), None)).len(), 8 * 263);
     let e = refused(&trailing, &params(Some(61), None));
     assert!(e.contains("trailing spacing cannot take 61 steps"), "{e}");
+
+    // `flame info` names the spacing; `--respacing` is refused with the library's reason.
+    let dir = std::env::temp_dir().join(format!("flame_trailing_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("mdm_trailing.safetensors");
+    std::fs::write(&file, &bytes).unwrap();
+    let info = cli(&["info", file.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        text.contains(
+            "spacing:        trailing (diffusers DDIM), steps_offset 1, set_alpha_to_one false"
+        ),
+        "{text}"
+    );
+    let o = cli(&[
+        "generate",
+        "--model",
+        file.to_str().unwrap(),
+        "--prompt",
+        "a person jumps",
+        "--frames",
+        "8",
+        "--sampler",
+        "ddim",
+        "--respacing",
+        "ddim10",
+        "--threads",
+        "1",
+        "--out",
+        dir.join("x.npy").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.code() == Some(1) && err.contains("guided-diffusion's"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 unsafe fn last_error() -> String {

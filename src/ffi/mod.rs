@@ -167,8 +167,8 @@ const MODEL_PARAMS_V1: usize = 8;
 /// Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
 /// negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
 ///
-/// Version 1 of this struct ended after `threads` (40 bytes); a caller built against it passes
-/// `struct_size = 40` and gets no respacing.
+/// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets); a caller built
+/// against it passes its `sizeof` and gets no respacing.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct FlameSessionParams {
@@ -198,7 +198,8 @@ pub struct FlameSessionParams {
     pub respacing: *const c_char,
 }
 
-/// Size of version 1 of [`FlameSessionParams`] (up to `threads`, padded: 40 bytes).
+/// Size of version 1 of [`FlameSessionParams`]: up to `threads` (40 bytes on 64-bit targets,
+/// where the padding after `threads` is where `respacing` now starts).
 const SESSION_PARAMS_V1: usize = std::mem::offset_of!(FlameSessionParams, respacing);
 
 /// What [`flame_model_info`] reports. Strings and arrays belong to the model and stay valid

@@ -649,6 +649,12 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         "diffusion:      {} steps, {} schedule, predicts {}, {} variance, clip_denoised {}",
         df.num_timesteps, df.schedule, df.parameterization, df.variance, df.clip_denoised
     );
+    if df.spacing != "respace" {
+        println!(
+            "spacing:        {} (diffusers DDIM), steps_offset {}, set_alpha_to_one {}",
+            df.spacing, df.steps_offset, df.set_alpha_to_one
+        );
+    }
     let s = &c.defaults;
     println!(
         "defaults:       sampler {}, {} steps, guidance {}, eta {}, {} frames",
