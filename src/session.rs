@@ -385,6 +385,7 @@ impl Session {
             return Err(invalid_arg!("initial noise contains NaN or infinity"));
         }
         self.initial_noise = Some(x_t.to_vec());
+        self.decoded = Default::default();
         Ok(())
     }
 
@@ -400,6 +401,7 @@ impl Session {
         self.stepped = false;
         self.noise = Box::new(GaussianRng::new(self.seed));
         self.edit.noise_step = None;
+        self.decoded = Default::default();
         self.failed = None;
         self.cancel.store(false, Ordering::SeqCst);
     }

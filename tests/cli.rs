@@ -536,3 +536,66 @@ fn thread_counts_above_the_bound_are_refused() {
     assert!(!Path::new(out).exists(), "nothing written");
     assert_ok(&run("256"));
 }
+
+#[test]
+fn latent_models_report_their_latent_and_the_frames_they_chose() {
+    let mola = repo("tests/fixtures/mola_tiny.safetensors")
+        .display()
+        .to_string();
+    let info = flame(&["info", &mola]);
+    assert_ok(&info);
+    let text = stdout(&info);
+    assert!(text.contains("architecture:   mola\n"), "{text}");
+    assert!(
+        text.contains("sampled space:  latent of 50 rows x 16 channels for 196 frames"),
+        "{text}"
+    );
+    assert!(text.contains("decoder:        MoLA VAE decoder"), "{text}");
+
+    let d = scratch("latent");
+    let (out, latent) = (d.join("m.npy"), d.join("z.npy"));
+    let o = generate_with(
+        &mola,
+        "a person walks",
+        &[
+            "--frames",
+            "60",
+            "--out",
+            out.to_str().unwrap(),
+            "--latent",
+            latent.to_str().unwrap(),
+        ],
+    );
+    assert_ok(&o);
+    let (zs, z) = flame::npy::read_f32(&latent).unwrap();
+    assert_eq!(zs, vec![16, 16], "(60 + 4) // 4 latent rows of 16 channels");
+    let (ms, _) = flame::npy::read_f32(&out).unwrap();
+    assert_eq!(ms[1], 263);
+    assert!(
+        stderr(&o).contains(&format!(
+            "{} frames (the length the model's decoder chose; 60 asked)",
+            ms[0]
+        )),
+        "{}",
+        stderr(&o)
+    );
+    // The written latent goes back in as the initial noise; a wrong shape is refused.
+    let o = generate_with(
+        &mola,
+        "a person walks",
+        &["--frames", "60", "--noise", latent.to_str().unwrap(), "--out", out.to_str().unwrap()],
+    );
+    assert_ok(&o);
+    flame::npy::write_f32(&latent, &[15, 16], &z[..15 * 16]).unwrap();
+    let o = generate_with(
+        &mola,
+        "a person walks",
+        &["--frames", "60", "--noise", latent.to_str().unwrap(), "--out", out.to_str().unwrap()],
+    );
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("expected 256 (16 rows × 16)"), "{}", stderr(&o));
+    // --latent on a model that samples the motion itself.
+    let o = generate(&["--out", out.to_str().unwrap(), "--latent", latent.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("samples the motion itself"), "{}", stderr(&o));
+}

@@ -206,3 +206,23 @@ fn masks_and_references_are_refused_with_a_reason() {
     let e = s.set_mask(&vec![0; 16 * 16]).unwrap_err().to_string();
     assert!(e.contains("samples a latent"), "{e}");
 }
+
+#[test]
+fn a_reset_or_new_noise_decodes_the_new_generation() {
+    let fresh = |noise: &[f32]| {
+        let mut s = session(11.0, 1);
+        s.set_initial_noise(noise).unwrap();
+        s.step().unwrap();
+        s.motion(Which::Sample).map(|(x, _)| x.to_vec()).unwrap()
+    };
+    let other: Vec<f32> = expected("noise").iter().map(|v| -v).collect();
+    let mut s = session(11.0, 1);
+    s.step().unwrap();
+    let first = s.motion(Which::Sample).map(|(x, _)| x.to_vec()).unwrap();
+    s.reset();
+    s.set_initial_noise(&other).unwrap();
+    s.step().unwrap();
+    let (again, _) = s.motion(Which::Sample).unwrap();
+    assert_eq!(max_abs_diff(again, &fresh(&other)), 0.0);
+    assert!(first.len() != again.len() || max_abs_diff(&first, again) > 0.0);
+}

@@ -390,6 +390,13 @@ impl Config {
             }
             TextConfig::Clip(c) => c.check()?,
         }
+        // Before the family's checks, which may compare their sizes with it.
+        in_range(
+            "diffusion.num_timesteps",
+            self.diffusion.num_timesteps,
+            1,
+            MAX_TIMESTEPS,
+        )?;
         // The family's own sections, and the others as it needs them.
         self.denoiser.check(self)?;
         let (max_frames, motion_dim) = (self.denoiser.max_frames(), self.denoiser.feature_dim());
@@ -407,12 +414,6 @@ impl Config {
         in_range_f32("motion.fps", m.fps, 0.0, MAX_FPS, true)?;
 
         let dc = &self.diffusion;
-        in_range(
-            "diffusion.num_timesteps",
-            dc.num_timesteps,
-            1,
-            MAX_TIMESTEPS,
-        )?;
         // Exactly what the sampler's parsers take (they ignore case and surrounding spaces).
         let unknown = |field: &str, value: &str, accepted: &[&str]| {
             bad_file!(

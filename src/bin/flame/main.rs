@@ -190,6 +190,7 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     let model = &loaded.model;
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(model);
+    check_latent_arg(model, &a.sampling)?;
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     if let Some(noise) = &a.sampling.noise {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
@@ -207,18 +208,26 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     outputs.write(x, frames, model, decoder.as_ref())
 }
 
-/// `--latent OUT.npy`: a latent model's final sample, `[latent_frames, latent_channels]`.
-fn write_latent(session: &Session, a: &SamplingArgs) -> Result<(), String> {
+/// Before any work: `--latent` needs a latent model and a writable path.
+fn check_latent_arg(model: &Model, a: &SamplingArgs) -> Result<(), String> {
     let Some(path) = &a.latent else {
         return Ok(());
     };
-    let model = session.model();
     if !model.is_latent() {
         return Err(format!(
             "--latent: this {} model samples the motion itself, not a latent (use --out x.npy)",
             model.config().architecture
         ));
     }
+    paths::check_writable(path)
+}
+
+/// `--latent OUT.npy`: a latent model's final sample, `[latent_frames, latent_channels]`.
+fn write_latent(session: &Session, a: &SamplingArgs) -> Result<(), String> {
+    let Some(path) = &a.latent else {
+        return Ok(());
+    };
+    let model = session.model();
     let x = session.sample().expect("finished generation has a sample");
     flame::npy::write_f32(path, &[session.sample_rows(), model.sample_dim()], x)
         .map_err(|e| e.to_string())?;
@@ -362,6 +371,7 @@ fn edit(a: &EditArgs) -> Result<(), String> {
         params.steps = Some(30);
     }
     let decoder = outputs.decoder(model);
+    check_latent_arg(model, &a.sampling)?;
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     let frames = session.frames();
     if reference.frames > frames {
