@@ -1513,6 +1513,114 @@ static FlameModel *load_fixture(const char *name) {
     return load_or_die(path);
 }
 
+/* ---- read frames and sample shape ------------------------------------------------------- */
+
+/* flame_session_read_frames and flame_session_sample_shape on a non-latent model of
+ * `dim` features (`joints` joints): the frames of a read are the session's, the sampled space
+ * is frames × feature_dim, and both agree with what flame_session_read and
+ * flame_session_set_noise take. */
+static void check_frames_and_shape(const FlameModel *m, uint32_t dim, uint32_t joints,
+                                   uint32_t frames, int32_t sampler) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT, WS = FLAME_STATUS_WRONG_STATE;
+    FlameModelInfo info;
+    memset(&info, 0, sizeof info);
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_model_info(m, &info));
+    CHECK(info.latent == 0);
+    CHECK(info.feature_dim == dim && info.sample_dim == dim && info.joint_count == joints);
+
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = frames;
+    p.steps = 2;
+    p.sampler = sampler;
+    p.seed = 1;
+    p.threads = 1;
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    if (!s) {
+        return;
+    }
+
+    /* The shape is known from the start (it sizes the initial noise); either pointer may be
+     * NULL. */
+    uint32_t rows = 0, cols = 0;
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+    rows = cols = 7;
+    CHECK_OK(flame_session_sample_shape(s, &rows, NULL));
+    CHECK(rows == frames && cols == 7);
+    CHECK_OK(flame_session_sample_shape(s, NULL, &cols));
+    CHECK(cols == dim);
+    CHECK_OK(flame_session_sample_shape(s, NULL, NULL));
+    CHECK_ERROR_MENTIONS(flame_session_sample_shape(NULL, &rows, &cols), INV, "session");
+
+    /* Nothing to read before the first step; a wrong `which` is an argument error first. */
+    uint32_t got = 12345;
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS, "no sample");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_ESTIMATE, &got), WS, "estimate");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, 2, &got), INV, "which");
+    CHECK(got == 12345); /* outputs only on success */
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, NULL), INV,
+                         "out_frames");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(NULL, FLAME_WHICH_SAMPLE, &got), INV,
+                         "session");
+
+    /* set_noise takes exactly rows × dim values. */
+    size_t len = (size_t)frames * dim;
+    float *noise = (float *)calloc(len + 1, sizeof(float));
+    for (size_t i = 0; i < len + 1; i++) {
+        noise[i] = 0.5f * sinf(0.1f * (float)i);
+    }
+    CHECK_STATUS(flame_session_set_noise(s, noise, len - 1), INV);
+    CHECK_STATUS(flame_session_set_noise(s, noise, len + 1), INV);
+    CHECK_OK(flame_session_set_noise(s, noise, len));
+    free(noise);
+
+    CHECK_OK(flame_session_set_prompt(s, REF_PROMPT));
+    CHECK_OK(flame_session_step(s, NULL));
+    for (int32_t which = FLAME_WHICH_SAMPLE; which <= FLAME_WHICH_ESTIMATE; which++) {
+        got = 0;
+        CHECK_OK(flame_session_read_frames(s, which, &got));
+        CHECK(got == frames);
+        /* The frames of a read: its length over the layout's per-frame size. */
+        size_t n = 0;
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_FEATURES, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * dim);
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_GLOBAL_POSITIONS, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * joints * 3);
+    }
+    got = 12345;
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, -1, &got), INV, "which");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, 2, &got), INV, "which");
+    CHECK(got == 12345);
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+
+    /* After a reset there is nothing to read again; the shape stays. */
+    CHECK_OK(flame_session_reset(s));
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS);
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_ESTIMATE, &got), WS);
+    CHECK(got == 12345);
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+    flame_session_free(s);
+
+    /* frames = 0 takes the model's default frame count. */
+    p.frames = 0;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == info.default_frames && cols == dim);
+    flame_session_free(s);
+}
+
+static void test_read_frames_and_sample_shape(const FlameModel *m) {
+    check_frames_and_shape(m, FLAME_TINY_DIM, 24, 12, FLAME_SAMPLER_DDIM);
+    FlameModel *mdm = load_fixture("mdm_tiny.safetensors");
+    check_frames_and_shape(mdm, 263, 22, 16, FLAME_SAMPLER_DDIM);
+    flame_model_free(mdm);
+}
+
 /* A small session on another model family, with a reference of `dim` smooth values. */
 static FlameSession *family_session(const FlameModel *m, uint32_t frames, int32_t sampler) {
     FlameSessionParams p;
@@ -2167,6 +2275,7 @@ int main(int argc, char **argv) {
     TIMED(test_session_new(m));
     TIMED(test_null_arguments(m));
     TIMED(test_wrong_state(m));
+    TIMED(test_read_frames_and_sample_shape(m));
     TIMED(test_reset(m));
     TIMED(test_prompt_info(m));
     TIMED(test_read(m));
