@@ -833,3 +833,58 @@ def test_editing_other_families():
         s.set_task_mask("predict")
         x = s.run()
         assert x[:4].tobytes() == r[:4].tobytes() and not np.array_equal(x[4:], r[4:])
+
+
+# --- the sampled space and the frames of a read (ABI 2) ---------------------------------------
+# No latent fixture model is in tests/fixtures yet: these check the non-latent families, where
+# the sampled space is the motion itself (frames × feature_dim) and a read has the session's
+# frames.
+
+
+@pytest.mark.parametrize(
+    "name, dim, joints, sampler",
+    [("flame_tiny.safetensors", DIM, 24, "ddim"), ("mdm_tiny.safetensors", 263, 22, "ddim"),
+     ("motionfm_tiny.safetensors", None, None, "euler")],
+)
+def test_sample_shape_and_read_frames(name, dim, joints, sampler):
+    with flame.Model.load(FIXTURES / name) as m, \
+            m.session(frames=12, steps=2, sampler=sampler, seed=1, threads=1) as s:
+        i = m.info
+        dim = dim or i.feature_dim
+        assert i.feature_dim == dim and (joints is None or i.joint_count == joints)
+        assert (i.latent, i.sample_dim) == (False, dim)
+        assert (m.latent, m.sample_dim) == (False, dim)
+        assert s.sample_shape == (12, dim)
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read_frames)
+        expect_error(Status.WRONG_STATE, "no clean-motion estimate", s.read_frames, "estimate")
+        expect_error(Status.INVALID_ARGUMENT, "unknown `which` 2", s.read_frames, 2)
+        with pytest.raises(ValueError):
+            s.read_frames("noisy")
+        noise = np.random.default_rng(2).standard_normal((12, dim)).astype(np.float32)
+        # The same number of values in another 2-D shape is refused by the binding...
+        with pytest.raises(ValueError, match=r"\[12, %d\]" % dim):
+            s.set_noise(noise.T)
+        # ... a flat array of another length by libflame.
+        expect_error(Status.INVALID_ARGUMENT, "12 rows", s.set_noise, noise.ravel()[:-1])
+        s.set_noise(noise.ravel())
+        s.set_prompt(REF_PROMPT)
+        s.step()
+        assert s.read_frames() == s.read_frames("estimate") == s.read_frames(flame.Which.SAMPLE) == 12
+        assert s.read().shape == (12, dim)
+        assert s.read("estimate", Layout.GLOBAL_POSITIONS).shape == (12, i.joint_count, 3)
+        s.reset()
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read_frames)
+        assert s.sample_shape == (12, dim)
+    with flame.Model.load(FIXTURES / name) as m, m.session(sampler=sampler, steps=1) as s:
+        assert s.sample_shape == (m.info.default_frames, dim)  # frames=None: the model's default
+
+
+def test_read_is_shaped_by_the_frames_libflame_reports(model, reference):
+    """read() shapes by flame_session_read_frames, not by the frames the session was made with
+    (a latent model's decoder decides its own length): a wrong Session.frames changes nothing."""
+    with ref_session(model) as s:
+        s.run()
+        s.frames = 5
+        out = s.read()
+        assert out.shape == (24, DIM) and out.tobytes() == reference.tobytes()
+        assert s.read("sample", Layout.LOCAL_QUAT_XYZW).shape == (24, 24, 4)
