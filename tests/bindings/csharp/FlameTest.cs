@@ -76,6 +76,7 @@ static class FlameTest
             Run("ShortReference", TestShortReference);
             Run("ReferencePoses", TestReferencePoses);
             Run("EditOtherFamilies", TestEditOtherFamilies);
+            Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -264,6 +265,10 @@ static class FlameTest
         Check(sp.frames == 0 && sp.steps == 0 && sp.sampler == 0 && sp.eta < 0 && sp.guidance < 0 && sp.seed == 0 && sp.threads == 0, "session defaults");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
+        // ABI 2: two uint32 after the five pointers (C on x86-64: offsetof latent 88, sizeof 96).
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "latent") == 88 || IntPtr.Size == 4, "offset of latent");
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "sample_dim") == 92 || IntPtr.Size == 4, "offset of sample_dim");
+        Check(Marshal.SizeOf(typeof(FlameModelInfo)) == 96 || IntPtr.Size == 4, "sizeof FlameModelInfo " + Marshal.SizeOf(typeof(FlameModelInfo)));
         var ep = FlameEditParams.Default();
         Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
         // FlamePromptInfo: six uint32 then a pointer, no padding (C: sizeof 32, offsetof dropped 24 on x86-64).
@@ -941,6 +946,52 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "`rotations` is NULL",
                    () => FlameException.Check(FlameNative.flame_session_set_reference_poses(s.Handle, root, (UIntPtr)root.Length, null, (UIntPtr)10,
                                                                                             (uint)RefFrames, FlameLayout.Local6d, 0)));
+        }
+    }
+
+    // No latent fixture model exists yet: the non-latent families, whose sampled space is the
+    // motion (frames × feature_dim) and whose reads have the session's frames.
+    static void TestSampleShapeAndReadFrames()
+    {
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        var cases = new[] { new { File = "flame_tiny.safetensors", Dim = 147, Joints = 24, Sampler = FlameSampler.Ddim },
+                            new { File = "mdm_tiny.safetensors", Dim = 263, Joints = 22, Sampler = FlameSampler.Ddim } };
+        foreach (var c in cases)
+        {
+            using (var m = FlameModel.Load(Path.Combine(dir, c.File), 1))
+            {
+                var i = m.Info;
+                Check(!i.Latent && i.SampleDim == c.Dim && i.FeatureDim == c.Dim && i.JointCount == c.Joints, c.File + ": info latent/sample_dim");
+                var p = FlameSessionParams.Default();
+                p.frames = 12;
+                p.steps = 2;
+                p.sampler = (int)c.Sampler;
+                p.seed = 1;
+                p.threads = 1;
+                using (var s = m.NewSession(p))
+                {
+                    int rows, dim;
+                    s.SampleShape(out rows, out dim);
+                    Check(rows == 12 && dim == c.Dim, c.File + ": sample shape " + rows + "x" + dim);
+                    Throws(FlameStatus.WrongState, "no sample yet", () => s.ReadFrames(FlameWhich.Sample));
+                    Throws(FlameStatus.WrongState, "no clean-motion estimate", () => s.ReadFrames(FlameWhich.Estimate));
+                    Throws(FlameStatus.InvalidArgument, "unknown `which` 2", () => s.ReadFrames((FlameWhich)2));
+                    Throws(FlameStatus.InvalidArgument, "12 rows", () => s.SetNoise(new float[rows * dim - 1]));
+                    var noise = new float[rows * dim];
+                    for (int k = 0; k < noise.Length; k++)
+                        noise[k] = (float)Math.Sin(0.1 * k);
+                    s.SetNoise(noise);
+                    s.SetPrompt(RefPrompt);
+                    s.Step();
+                    Check(s.ReadFrames(FlameWhich.Sample) == 12 && s.ReadFrames(FlameWhich.Estimate) == 12, c.File + ": read frames");
+                    int frames;
+                    var x = s.Read(FlameWhich.Estimate, FlameLayout.GlobalPositions, FlameConvention.Native, 0, out frames);
+                    Check(frames == 12 && x.Length == frames * c.Joints * 3, c.File + ": Read(..., out frames) " + frames + ", " + x.Length);
+                    Check(s.ReadLength(FlameWhich.Sample, FlameLayout.Features, 0, 0) == s.ReadFrames(FlameWhich.Sample) * c.Dim, c.File + ": length = frames × dim");
+                    s.Reset();
+                    Throws(FlameStatus.WrongState, "no sample yet", () => s.ReadFrames(FlameWhich.Sample));
+                }
+            }
         }
     }
 
