@@ -288,6 +288,26 @@ int main(int argc, char** argv) {
     }
     CHECK(WaitForThreads(), "workers exited");
 
+    {   // Frames = 0: the model's default (the fixture's 200), as flame_session_read_frames
+        // reports it for every published pose (a latent model's decoded length would differ
+        // from the session's frames; no latent fixture model exists yet).
+        UFlameMotionComponent c;
+        Configure(c, argv[1], 0, 2, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW);
+        bool finished = false, succeeded = false, allFrames = true;
+        int poses = 0;
+        c.OnProgress.AddLambda([&](int32, int32) {
+            poses++;
+            allFrames = allFrames && c.GetFrameCount() == 200 && c.GetValuesPerFrame() == 24 * 4 &&
+                        c.RootLocations.Num() == 200 * 3;
+        });
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(succeeded && poses >= 1 && allFrames, "default frames: %d poses, %d frames x %d", poses,
+              c.GetFrameCount(), c.GetValuesPerFrame());
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
     {   // Errors reach LastError and OnFinished(false).
         UFlameMotionComponent c;
         Configure(c, "/nonexistent/model.safetensors", Frames, 10, true);
