@@ -77,6 +77,7 @@ static class FlameTest
             Run("ReferencePoses", TestReferencePoses);
             Run("EditOtherFamilies", TestEditOtherFamilies);
             Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
+            Run("LatentModel", TestLatentModel);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -949,8 +950,8 @@ static class FlameTest
         }
     }
 
-    // No latent fixture model exists yet: the non-latent families, whose sampled space is the
-    // motion (frames × feature_dim) and whose reads have the session's frames.
+    // The families that sample the motion itself: the sampled space is frames × feature_dim and
+    // a read has the session's frames (the latent model: TestLatentModel).
     static void TestSampleShapeAndReadFrames()
     {
         string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
@@ -991,6 +992,64 @@ static class FlameTest
                     s.Reset();
                     Throws(FlameStatus.WrongState, "no sample yet", () => s.ReadFrames(FlameWhich.Sample));
                 }
+            }
+        }
+    }
+
+    // A latent model (tests/fixtures/mola_tiny.safetensors, MoLA): 60 frames are a latent of
+    // 60 / 4 + 1 = 16 rows × 16 channels (tests/fixtures/mola_expected.json); the decoder decides
+    // how many frames a read has. Reference: the CLI with the same latent noise.
+    static void TestLatentModel()
+    {
+        string mola = Path.Combine(Path.GetDirectoryName(Path.GetFullPath(modelPath)), "mola_tiny.safetensors");
+        var noise = new float[16 * 16];
+        var rng = new Random(4);
+        for (int i = 0; i < noise.Length; i++)
+            noise[i] = (float)(Math.Sqrt(-2 * Math.Log(1 - rng.NextDouble())) * Math.Cos(2 * Math.PI * rng.NextDouble()));
+        string noisePath = Path.Combine(tmpDir, "latent_noise.npy"), outPath = Path.Combine(tmpDir, "latent_out.npy");
+        Npy.Write(noisePath, noise, 16, 16);
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + mola + "\" --prompt \"" + RefPrompt + "\" --frames 60 --steps 4 --sampler ddim --seed 3 --threads 1 " +
+            "--noise \"" + noisePath + "\" --out \"" + outPath + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI on the latent model: exit code " + proc.ExitCode);
+        }
+        int[] shape;
+        var expected = Npy.Read(outPath, out shape);
+        using (var m = FlameModel.Load(mola, 1))
+        {
+            var i = m.Info;
+            Check(i.Latent && i.SampleDim == 16 && i.FeatureDim == 263 && i.JointCount == 22 && i.Architecture == "mola", "latent model info");
+            var p = FlameSessionParams.Default();
+            p.frames = 60;
+            p.steps = 4;
+            p.sampler = (int)FlameSampler.Ddim;
+            p.seed = 3;
+            p.threads = 1;
+            using (var s = m.NewSession(p))
+            {
+                int rows, dim;
+                s.SampleShape(out rows, out dim);
+                Check(rows == 16 && dim == 16, "latent sample shape " + rows + "x" + dim);
+                Throws(FlameStatus.InvalidArgument, "16 rows", () => s.SetNoise(new float[60 * 263]));
+                Throws(FlameStatus.InvalidArgument, "samples a latent", () => s.SetReference(new float[60 * 263]));
+                s.SetNoise(noise);
+                s.SetPrompt(RefPrompt);
+                var x = RunAll(s);
+                int frames = s.ReadFrames(FlameWhich.Sample);
+                Check(shape.Length == 2 && shape[0] == frames && shape[1] == 263 && frames != s.Frames,
+                      "frames " + frames + " = the CLI's " + string.Join("x", shape) + ", not the session's " + s.Frames);
+                Check(BitEqual(x, expected), "latent model: features = CLI --noise");
+                int posFrames;
+                var pos = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Native, 0, out posFrames);
+                Check(posFrames == frames && pos.Length == frames * 22 * 3, "positions: " + posFrames + " frames, " + pos.Length + " values");
             }
         }
     }
