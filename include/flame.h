@@ -241,7 +241,7 @@ typedef struct FlameModelInfo {
   // ([`flame_session_read_frames`]), and masks and reference motions do not apply.
   uint32_t latent;
   // Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
-  // width of [`flame_session_set_initial_noise`]'s rows.
+  // width of [`flame_session_set_noise`]'s rows.
   uint32_t sample_dim;
 } FlameModelInfo;
 

@@ -11,6 +11,7 @@
 //       std::vector<float> preview = session.read(FLAME_WHICH_ESTIMATE);
 //   }
 //   std::vector<float> motion = session.read();  // raw features, frames x feature_dim
+//   // frames = session.read_frames(): the session's, or the length a latent model decodes
 //   std::vector<float> quats = session.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
 //                                           FLAME_CONVENTION_UNITY);  // frames x joints x 4
 //
@@ -118,6 +119,28 @@ struct ModelInfo {
     std::string text_encoder;
     std::vector<std::string> joint_names;
     std::vector<int32_t> joint_parents;
+    // The model samples a latent that its decoder turns into motion (MoLA): a read's frames are
+    // then Session::read_frames(), the length the decoder decides, and masks and reference
+    // motions do not apply.
+    bool latent = false;
+    // Channels per row of the sampled space (feature_dim, or the latent's channels).
+    uint32_t sample_dim = 0;
+};
+
+// The shape of a session's sampled space, what Session::set_noise takes: rows x dim values
+// (frames x feature_dim, or a latent model's latent).
+struct SampleShape {
+    uint32_t rows = 0;
+    uint32_t dim = 0;
+    std::size_t size() const noexcept { return static_cast<std::size_t>(rows) * dim; }
+};
+
+// What Session::read_motion returns: `frames` frames of values, frame-major.
+struct Motion {
+    std::vector<float> values;
+    uint32_t frames = 0;
+    // Values per frame of the layout read (0 when there are no frames).
+    std::size_t per_frame() const noexcept { return frames ? values.size() / frames : 0; }
 };
 
 // What Session::prompt_info reports about the last prompt, copied (`dropped` stays valid after
@@ -203,6 +226,8 @@ public:
                                                                             : "");
             info.joint_parents.push_back(c.joint_parents ? c.joint_parents[j] : -1);
         }
+        info.latent = c.latent != 0;
+        info.sample_dim = c.sample_dim;
         return info;
     }
 
@@ -270,7 +295,8 @@ public:
         return info;
     }
 
-    // x_T, frames x feature_dim; only before the first step (or after reset()).
+    // x_T, sample_shape().rows x sample_shape().dim values (frames x feature_dim, or a latent
+    // model's latent), frame-major; only before the first step (or after reset()).
     void set_noise(const float* noise, std::size_t len) {
         detail::check(flame_session_set_noise(handle_, noise, len));
     }
@@ -391,8 +417,36 @@ public:
         return p;
     }
 
+    // The shape of the sampled space (what set_noise takes); known from the start.
+    SampleShape sample_shape() const {
+        SampleShape shape;
+        detail::check(flame_session_sample_shape(handle_, &shape.rows, &shape.dim));
+        return shape;
+    }
+
+    // Frames a read of `which` returns now: the session's frames, or a latent model's valid
+    // length (decided anew after each step). Throws WRONG_STATE before there is anything to
+    // read.
+    uint32_t read_frames(FlameWhich which = FLAME_WHICH_SAMPLE) const {
+        uint32_t frames = 0;
+        detail::check(flame_session_read_frames(handle_, which, &frames));
+        return frames;
+    }
+
+    // read() with the frames its values span.
+    Motion read_motion(FlameWhich which = FLAME_WHICH_SAMPLE,
+                       FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                       FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                       uint32_t flags = 0) const {
+        Motion m;
+        m.values = read(which, layout, convention, flags);
+        m.frames = read_frames(which);  // no step in between: the frames of that read
+        return m;
+    }
+
     // The sample (or estimate) in a layout, converted to a convention, with read flags
-    // (FLAME_READ_SMOOTH, FLAME_READ_RAW_SIGNS). The default is the raw features.
+    // (FLAME_READ_SMOOTH, FLAME_READ_RAW_SIGNS): read_frames(which) frames of the layout's
+    // values, frame-major. The default is the raw features.
     std::vector<float> read(FlameWhich which = FLAME_WHICH_SAMPLE,
                             FlameLayout layout = FLAME_LAYOUT_FEATURES,
                             FlameConvention convention = FLAME_CONVENTION_NATIVE,

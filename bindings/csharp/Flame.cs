@@ -212,6 +212,13 @@ namespace Flame
         public IntPtr joint_names;
         /// <summary>joint_count int32 parent indices, -1 for the root (may be NULL if 0).</summary>
         public IntPtr joint_parents;
+        /// <summary>Nonzero when the model samples a latent that its decoder turns into motion
+        /// (MoLA): a read's frames are then the length the decoder decides
+        /// (flame_session_read_frames), and masks and reference motions do not apply.</summary>
+        public uint latent;
+        /// <summary>Channels per row of the sampled space (feature_dim, or the latent's
+        /// channels): the width of flame_session_set_noise's rows.</summary>
+        public uint sample_dim;
 
         public string Architecture { get { return FlameNative.Utf8(architecture); } }
         public string MotionFormat { get { return FlameNative.Utf8(motion_format); } }
@@ -355,7 +362,7 @@ namespace Flame
         public const string Lib = "flame";
 #endif
         /// <summary>FLAME_ABI_VERSION of the header these declarations mirror.</summary>
-        public const uint AbiVersion = 1;
+        public const uint AbiVersion = 2;
         /// <summary>FLAME_MAX_THREADS: the most worker threads a load or a session may ask for.</summary>
         public const uint MaxThreads = 256;
         /// <summary>FLAME_ROOT_TRANSLATION: the root translation in flame_session_keep_joints.</summary>
@@ -455,6 +462,14 @@ namespace Flame
         public static extern FlameStatus flame_session_read(FlameSessionHandle session, int which, int layout, int convention, uint flags,
                                                             [Out] float[] output, UIntPtr len, out UIntPtr outLen);
 
+        /// <summary>rows × dim of the sampled space (what flame_session_set_noise takes).</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_sample_shape(FlameSessionHandle session, out uint rows, out uint dim);
+
+        /// <summary>Frames a flame_session_read of which returns now.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_read_frames(FlameSessionHandle session, int which, out uint frames);
+
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern IntPtr flame_last_error();
 
@@ -531,9 +546,16 @@ namespace Flame
         public string Architecture, MotionFormat, TextEncoder;
         public string[] JointNames;
         public int[] JointParents;
+        /// <summary>The model samples a latent that its decoder turns into motion (MoLA): a
+        /// read's frames are FlameSession.ReadFrames, and masks and references do not apply.</summary>
+        public bool Latent;
+        /// <summary>Channels per row of the sampled space (FeatureDim, or the latent's channels).</summary>
+        public int SampleDim;
 
         internal ModelInfo(FlameModelInfo i)
         {
+            Latent = i.latent != 0;
+            SampleDim = (int)i.sample_dim;
             FeatureDim = (int)i.feature_dim;
             JointCount = (int)i.joint_count;
             MaxFrames = (int)i.max_frames;
@@ -673,7 +695,9 @@ namespace Flame
         static readonly ProgressCallback Trampoline = OnProgress;
 
         public FlameSessionHandle Handle { get; private set; }
-        /// <summary>Frames this session generates.</summary>
+        /// <summary>Frames this session was asked for (what a reference or mask spans). A read's
+        /// frames are ReadFrames: the same, except for a latent model, whose decoder decides
+        /// the valid length.</summary>
         public int Frames { get; private set; }
         /// <summary>Feature channels per frame.</summary>
         public int FeatureDim { get; private set; }
@@ -706,7 +730,8 @@ namespace Flame
             return new PromptInfo(raw);  // copies `dropped` before the session can free it
         }
 
-        /// <summary>Sets x_T (Frames × FeatureDim floats); before the first step only.</summary>
+        /// <summary>Sets x_T: rows × dim floats of SampleShape (Frames × FeatureDim, or a latent
+        /// model's latent), frame-major; before the first step only.</summary>
         public void SetNoise(float[] noise)
         {
             if (noise == null)
@@ -847,7 +872,27 @@ namespace Flame
             FlameException.Check(FlameNative.flame_session_progress(Handle, out done, out total));
         }
 
-        /// <summary>Floats Read would return.</summary>
+        /// <summary>The shape of the sampled space, what SetNoise takes: Frames × FeatureDim, or
+        /// a latent model's latent rows × channels.</summary>
+        public void SampleShape(out int rows, out int dim)
+        {
+            uint r, d;
+            FlameException.Check(FlameNative.flame_session_sample_shape(Handle, out r, out d));
+            rows = (int)r;
+            dim = (int)d;
+        }
+
+        /// <summary>Frames a Read of which returns now: Frames, or a latent model's valid
+        /// length (decided anew after each step). Throws with status WrongState before there
+        /// is anything to read.</summary>
+        public int ReadFrames(FlameWhich which)
+        {
+            uint frames;
+            FlameException.Check(FlameNative.flame_session_read_frames(Handle, (int)which, out frames));
+            return (int)frames;
+        }
+
+        /// <summary>Floats Read would return: ReadFrames(which) × the layout's values per frame.</summary>
         public int ReadLength(FlameWhich which, int layout, int convention, uint flags)
         {
             UIntPtr n;
@@ -860,6 +905,15 @@ namespace Flame
         {
             var output = new float[ReadLength(which, layout, convention, flags)];
             ReadInto(output, which, layout, convention, flags);
+            return output;
+        }
+
+        /// <summary>Read, and the frames the values span (ReadFrames): the values per frame are
+        /// the array's length / frames.</summary>
+        public float[] Read(FlameWhich which, int layout, int convention, uint flags, out int frames)
+        {
+            var output = Read(which, layout, convention, flags);
+            frames = ReadFrames(which);  // no step in between: the same read
             return output;
         }
 

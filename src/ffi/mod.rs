@@ -239,7 +239,7 @@ pub struct FlameModelInfo {
     /// ([`flame_session_read_frames`]), and masks and reference motions do not apply.
     pub latent: u32,
     /// Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
-    /// width of [`flame_session_set_initial_noise`]'s rows.
+    /// width of [`flame_session_set_noise`]'s rows.
     pub sample_dim: u32,
 }
 

@@ -27,6 +27,10 @@ trap 'rm -rf "$work"' EXIT
 
 "$FLAME_CLI" generate --model "$model" --prompt "a person walks forward and waves." \
     --frames 24 --steps 10 --sampler ddim --seed 3 --threads 1 --out "$work/reference.npy" >/dev/null 2>&1
+# A latent model (MoLA): the decoder decides the frames of what the component publishes.
+latent_model="$ROOT/tests/fixtures/mola_tiny.safetensors"
+"$FLAME_CLI" generate --model "$latent_model" --prompt "a person walks forward and waves." \
+    --frames 60 --steps 4 --sampler ddim --seed 3 --threads 1 --out "$work/latent_reference.npy" >/dev/null 2>&1
 
 # The engine headers the plugin includes, each standing for ue_stub.h.
 stubs="$work/include"
@@ -46,4 +50,5 @@ g++ -std=c++17 -g -O1 -Wall -Wextra -Werror -fsanitize=address,undefined -fno-sa
     tests/bindings/unreal/test_component.cpp \
     -L"$work" -lflame -lpthread -o "$work/test_component"
 
-LD_LIBRARY_PATH="$work" "$work/test_component" "$model" "$work/reference.npy"
+LD_LIBRARY_PATH="$work" "$work/test_component" "$model" "$work/reference.npy" "$latent_model" \
+    "$work/latent_reference.npy"

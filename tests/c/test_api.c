@@ -1555,6 +1555,192 @@ static FlameModel *load_fixture(const char *name) {
     return load_or_die(path);
 }
 
+/* ---- read frames and sample shape ------------------------------------------------------- */
+
+/* flame_session_read_frames and flame_session_sample_shape on a non-latent model of
+ * `dim` features (`joints` joints): the frames of a read are the session's, the sampled space
+ * is frames × feature_dim, and both agree with what flame_session_read and
+ * flame_session_set_noise take. */
+static void check_frames_and_shape(const FlameModel *m, uint32_t dim, uint32_t joints,
+                                   uint32_t frames, int32_t sampler) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT, WS = FLAME_STATUS_WRONG_STATE;
+    FlameModelInfo info;
+    memset(&info, 0, sizeof info);
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_model_info(m, &info));
+    CHECK(info.latent == 0);
+    CHECK(info.feature_dim == dim && info.sample_dim == dim && info.joint_count == joints);
+
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = frames;
+    p.steps = 2;
+    p.sampler = sampler;
+    p.seed = 1;
+    p.threads = 1;
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    if (!s) {
+        return;
+    }
+
+    /* The shape is known from the start (it sizes the initial noise); either pointer may be
+     * NULL. */
+    uint32_t rows = 0, cols = 0;
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+    rows = cols = 7;
+    CHECK_OK(flame_session_sample_shape(s, &rows, NULL));
+    CHECK(rows == frames && cols == 7);
+    CHECK_OK(flame_session_sample_shape(s, NULL, &cols));
+    CHECK(cols == dim);
+    CHECK_OK(flame_session_sample_shape(s, NULL, NULL));
+    CHECK_ERROR_MENTIONS(flame_session_sample_shape(NULL, &rows, &cols), INV, "session");
+
+    /* Nothing to read before the first step; a wrong `which` is an argument error first. */
+    uint32_t got = 12345;
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS, "no sample");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_ESTIMATE, &got), WS, "estimate");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, 2, &got), INV, "which");
+    CHECK(got == 12345); /* outputs only on success */
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, NULL), INV,
+                         "out_frames");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(NULL, FLAME_WHICH_SAMPLE, &got), INV,
+                         "session");
+
+    /* set_noise takes exactly rows × dim values. */
+    size_t len = (size_t)frames * dim;
+    float *noise = (float *)calloc(len + 1, sizeof(float));
+    for (size_t i = 0; i < len + 1; i++) {
+        noise[i] = 0.5f * sinf(0.1f * (float)i);
+    }
+    CHECK_STATUS(flame_session_set_noise(s, noise, len - 1), INV);
+    CHECK_STATUS(flame_session_set_noise(s, noise, len + 1), INV);
+    CHECK_OK(flame_session_set_noise(s, noise, len));
+    free(noise);
+
+    CHECK_OK(flame_session_set_prompt(s, REF_PROMPT));
+    CHECK_OK(flame_session_step(s, NULL));
+    for (int32_t which = FLAME_WHICH_SAMPLE; which <= FLAME_WHICH_ESTIMATE; which++) {
+        got = 0;
+        CHECK_OK(flame_session_read_frames(s, which, &got));
+        CHECK(got == frames);
+        /* The frames of a read: its length over the layout's per-frame size. */
+        size_t n = 0;
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_FEATURES, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * dim);
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_GLOBAL_POSITIONS, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * joints * 3);
+    }
+    got = 12345;
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, -1, &got), INV, "which");
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, 2, &got), INV, "which");
+    CHECK(got == 12345);
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+
+    /* After a reset there is nothing to read again; the shape stays. */
+    CHECK_OK(flame_session_reset(s));
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS);
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_ESTIMATE, &got), WS);
+    CHECK(got == 12345);
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == frames && cols == dim);
+    flame_session_free(s);
+
+    /* frames = 0 takes the model's default frame count. */
+    p.frames = 0;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    CHECK_OK(flame_session_sample_shape(s, &rows, &cols));
+    CHECK(rows == info.default_frames && cols == dim);
+    flame_session_free(s);
+}
+
+/* A latent model (tests/fixtures/mola_tiny.safetensors, MoLA): 60 frames are a latent of
+ * 60 / 4 + 1 = 16 rows of 16 channels (tests/fixtures/mola_expected.json), and its decoder
+ * cuts the 64 frames it writes to a valid length of 10..63 frames, which every read has. */
+static void test_latent_frames_and_shape(void) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT, WS = FLAME_STATUS_WRONG_STATE;
+    FlameModel *m = load_fixture("mola_tiny.safetensors");
+    FlameModelInfo info;
+    memset(&info, 0, sizeof info);
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_model_info(m, &info));
+    CHECK(info.latent != 0 && info.sample_dim == 16);
+    CHECK(info.feature_dim == 263 && info.joint_count == 22);
+    CHECK(strcmp(info.architecture, "mola") == 0);
+
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = 60;
+    p.steps = 3;
+    p.seed = 3;
+    p.threads = 1;
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    uint32_t rows = 0, dim = 0, got = 12345;
+    CHECK_OK(flame_session_sample_shape(s, &rows, &dim));
+    CHECK(rows == 16 && dim == 16);
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS);
+    CHECK(got == 12345);
+    /* The noise is the latent, not the motion. */
+    float *noise = (float *)calloc((size_t)60 * 263, sizeof(float));
+    CHECK_ERROR_MENTIONS(flame_session_set_noise(s, noise, (size_t)60 * 263), INV, "16 rows");
+    for (size_t i = 0; i < (size_t)rows * dim; i++) {
+        noise[i] = 1.5f * sinf(0.37f * (float)i);
+    }
+    CHECK_OK(flame_session_set_noise(s, noise, (size_t)rows * dim));
+    /* Masks and references do not apply to a latent. */
+    CHECK_ERROR_MENTIONS(flame_session_set_reference(s, noise, 60, 263), INV, "samples a latent");
+    CHECK_OK(run_to_end(s, REF_PROMPT));
+    for (int32_t which = FLAME_WHICH_SAMPLE; which <= FLAME_WHICH_ESTIMATE; which++) {
+        got = 0;
+        CHECK_OK(flame_session_read_frames(s, which, &got));
+        CHECK(got >= 10 && got <= 4 * rows - 1);
+        size_t n = 0;
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_FEATURES, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * 263);
+        CHECK_OK(flame_session_read(s, which, FLAME_LAYOUT_GLOBAL_POSITIONS, 0, 0, NULL, 0, &n));
+        CHECK(n == (size_t)got * 22 * 3);
+    }
+    CHECK_ERROR_MENTIONS(flame_session_read_frames(s, 7, &got), INV, "which");
+
+    /* After a reset, a generation from another noise reads as a fresh session's. */
+    for (size_t i = 0; i < (size_t)rows * dim; i++) {
+        noise[i] = 2.0f * cosf(0.11f * (float)i);
+    }
+    CHECK_OK(flame_session_reset(s));
+    CHECK_STATUS(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &got), WS);
+    CHECK_OK(flame_session_set_noise(s, noise, (size_t)rows * dim));
+    FlameStatus st = run_to_end(s, REF_PROMPT);
+    CHECK_OK(st);
+    FlameSession *fresh = NULL;
+    CHECK_OK(flame_session_new(m, &p, &fresh));
+    CHECK_OK(flame_session_set_noise(fresh, noise, (size_t)rows * dim));
+    CHECK_OK(run_to_end(fresh, REF_PROMPT));
+    size_t na = 0, nb = 0;
+    float *a = read_features(s, FLAME_WHICH_SAMPLE, &na, &st);
+    float *b = read_features(fresh, FLAME_WHICH_SAMPLE, &nb, &st);
+    CHECK(a != NULL && b != NULL);
+    CHECK_KNOWN_BUG(a && b && na == nb && memcmp(a, b, na * sizeof(float)) == 0,
+                    "Session::motion keeps a latent model's decoded motion across reset: the "
+                    "same step count after a reset reads the previous generation's decode");
+    free(a);
+    free(b);
+    free(noise);
+    flame_session_free(fresh);
+    flame_session_free(s);
+    flame_model_free(m);
+}
+
+static void test_read_frames_and_sample_shape(const FlameModel *m) {
+    check_frames_and_shape(m, FLAME_TINY_DIM, 24, 12, FLAME_SAMPLER_DDIM);
+    FlameModel *mdm = load_fixture("mdm_tiny.safetensors");
+    check_frames_and_shape(mdm, 263, 22, 16, FLAME_SAMPLER_DDIM);
+    flame_model_free(mdm);
+    test_latent_frames_and_shape();
+}
+
 /* A small session on another model family, with a reference of `dim` smooth values. */
 static FlameSession *family_session(const FlameModel *m, uint32_t frames, int32_t sampler) {
     FlameSessionParams p;
@@ -2209,6 +2395,7 @@ int main(int argc, char **argv) {
     TIMED(test_session_new(m));
     TIMED(test_null_arguments(m));
     TIMED(test_wrong_state(m));
+    TIMED(test_read_frames_and_sample_shape(m));
     TIMED(test_reset(m));
     TIMED(test_prompt_info(m));
     TIMED(test_read(m));

@@ -492,6 +492,89 @@ static void test_cancel() {
     CHECK_NOTHROW(s.step());  // retried
 }
 
+// Model info's latent/sample_dim, sample_shape(), read_frames() and read_motion() on the
+// families that sample the motion itself: the sampled space is frames x feature_dim and a read
+// has the session's frames.
+static void test_sample_shape_and_read_frames() {
+    std::string dir = g_model_path.substr(0, g_model_path.find_last_of('/') + 1);
+    struct Case {
+        const char *file;
+        uint32_t dim, joints;
+    };
+    for (const Case &c : {Case{"flame_tiny.safetensors", FLAME_TINY_DIM, 24},
+                          Case{"mdm_tiny.safetensors", 263, 22}}) {
+        flame::Model model = flame::Model::load(dir + c.file);
+        flame::ModelInfo info = model.info();
+        CHECK(!info.latent && info.sample_dim == c.dim && info.feature_dim == c.dim);
+        CHECK(info.joint_count == c.joints);
+        flame::SessionParams p;
+        p.frames = 12;
+        p.steps = 2;
+        p.sampler = FLAME_SAMPLER_DDIM;
+        p.seed = 1;
+        p.threads = 1;
+        flame::Session s = model.session(p);
+        flame::SampleShape shape = s.sample_shape();
+        CHECK(shape.rows == 12 && shape.dim == c.dim && shape.size() == 12u * c.dim);
+        CHECK_THROWS(s.read_frames(), FLAME_STATUS_WRONG_STATE, "no sample yet");
+        CHECK_THROWS(s.read_frames(FLAME_WHICH_ESTIMATE), FLAME_STATUS_WRONG_STATE,
+                     "no clean-motion estimate");
+        CHECK_THROWS(s.read_motion(), FLAME_STATUS_WRONG_STATE, "no sample yet");
+        CHECK_THROWS(s.read_frames(static_cast<FlameWhich>(2)), FLAME_STATUS_INVALID_ARGUMENT,
+                     "unknown `which` 2");
+        std::vector<float> noise(shape.size());
+        for (std::size_t i = 0; i < noise.size(); i++) {
+            noise[i] = 0.5f * std::sin(0.1f * static_cast<float>(i));
+        }
+        CHECK_THROWS(s.set_noise(noise.data(), noise.size() - 1), FLAME_STATUS_INVALID_ARGUMENT,
+                     "12 rows");
+        CHECK_NOTHROW(s.set_noise(noise));
+        s.set_prompt(REF_PROMPT);
+        s.step();
+        CHECK(s.read_frames() == 12 && s.read_frames(FLAME_WHICH_ESTIMATE) == 12);
+        flame::Motion m = s.read_motion(FLAME_WHICH_ESTIMATE, FLAME_LAYOUT_GLOBAL_POSITIONS);
+        CHECK(m.frames == 12 && m.values.size() == 12u * c.joints * 3);
+        CHECK(m.per_frame() == c.joints * 3);
+        flame::Motion f = s.read_motion();
+        CHECK(f.frames == 12 && f.per_frame() == c.dim && same(f.values, s.read()));
+        s.reset();
+        CHECK_THROWS(s.read_frames(), FLAME_STATUS_WRONG_STATE, "no sample yet");
+        CHECK(s.sample_shape().rows == 12);
+    }
+    flame::Motion empty;
+    CHECK(empty.per_frame() == 0);
+}
+
+// A latent model (tests/fixtures/mola_tiny.safetensors, MoLA): 60 frames are a latent of
+// 60 / 4 + 1 = 16 x 16 (tests/fixtures/mola_expected.json); reads have the decoder's length.
+static void test_latent_model() {
+    std::string dir = g_model_path.substr(0, g_model_path.find_last_of('/') + 1);
+    flame::Model model = flame::Model::load(dir + "mola_tiny.safetensors");
+    flame::ModelInfo info = model.info();
+    CHECK(info.latent && info.sample_dim == 16 && info.feature_dim == 263);
+    flame::SessionParams p;
+    p.frames = 60;
+    p.steps = 3;
+    p.seed = 3;
+    p.threads = 1;
+    flame::Session s = model.session(p);
+    flame::SampleShape shape = s.sample_shape();
+    CHECK(shape.rows == 16 && shape.dim == 16);
+    CHECK_THROWS(s.set_noise(std::vector<float>(60 * 263)), FLAME_STATUS_INVALID_ARGUMENT,
+                 "16 rows");
+    std::vector<float> noise(shape.size());
+    for (std::size_t i = 0; i < noise.size(); i++) {
+        noise[i] = 1.5f * std::sin(0.37f * static_cast<float>(i));
+    }
+    CHECK_NOTHROW(s.set_noise(noise));
+    run(s);
+    flame::Motion m = s.read_motion();
+    CHECK(m.frames == s.read_frames() && m.frames >= 10 && m.frames <= 63);
+    CHECK(m.per_frame() == 263 && m.values.size() == m.frames * 263u);
+    flame::Motion pos = s.read_motion(FLAME_WHICH_ESTIMATE, FLAME_LAYOUT_GLOBAL_POSITIONS);
+    CHECK(pos.frames == s.read_frames(FLAME_WHICH_ESTIMATE) && pos.per_frame() == 22 * 3);
+}
+
 int main(int argc, char **argv) {
     if (argc != 3 && argc != 4) {
         std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS]\n", argv[0]);
@@ -541,6 +624,8 @@ int main(int argc, char **argv) {
         test_session_outlives_model();
         test_progress_exception();
         test_cancel();
+        test_sample_shape_and_read_frames();
+        test_latent_model();
     } catch (const std::exception &e) {
         check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
     }

@@ -25,7 +25,7 @@ import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence, Union
+from typing import Callable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -56,7 +56,7 @@ __all__ = [
 ]
 
 # The ABI version these bindings were written against (FLAME_ABI_VERSION in flame.h).
-ABI_VERSION = 1
+ABI_VERSION = 2
 
 # The most worker threads a load or a session may ask for (FLAME_MAX_THREADS); more is refused
 # with Status.INVALID_ARGUMENT. 0 means one per core, capped at this bound.
@@ -254,6 +254,8 @@ class _ModelInfo(ctypes.Structure):
         ("text_encoder", ctypes.c_char_p),
         ("joint_names", ctypes.POINTER(ctypes.c_char_p)),
         ("joint_parents", ctypes.POINTER(ctypes.c_int32)),
+        ("latent", ctypes.c_uint32),
+        ("sample_dim", ctypes.c_uint32),
     ]
 
 
@@ -349,6 +351,8 @@ def _signatures():
             _status,
             [_P, i32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
         ),
+        "flame_session_sample_shape": (_status, [_P, pu32, pu32]),
+        "flame_session_read_frames": (_status, [_P, i32, pu32]),
         "flame_last_error": (ctypes.c_char_p, []),
         "flame_status_string": (ctypes.c_char_p, [i32]),
     }
@@ -460,6 +464,13 @@ class ModelInfo:
     text_encoder: str
     joint_names: List[str]
     joint_parents: List[int]
+    # True when the model samples a latent that its decoder turns into motion (MoLA): a read's
+    # frames are then the length the decoder decides (Session.read_frames), and masks and
+    # reference motions do not apply.
+    latent: bool
+    # Channels per row of the sampled space (feature_dim, or the latent's channels): the width
+    # of Session.set_noise's rows.
+    sample_dim: int
 
 
 def _text(p: Optional[bytes]) -> str:
@@ -577,8 +588,20 @@ class Model:
                 text_encoder=_text(raw.text_encoder),
                 joint_names=names,
                 joint_parents=parents,
+                latent=bool(raw.latent),
+                sample_dim=raw.sample_dim,
             )
         return self._info
+
+    @property
+    def latent(self) -> bool:
+        """Whether the model samples a latent that its decoder turns into motion (ModelInfo.latent)."""
+        return self.info.latent
+
+    @property
+    def sample_dim(self) -> int:
+        """Channels per row of the sampled space (ModelInfo.sample_dim)."""
+        return self.info.sample_dim
 
     def session(
         self,
@@ -745,9 +768,23 @@ class Session:
                 dropped=_text(raw.dropped),
             )
 
+    @property
+    def sample_shape(self) -> Tuple[int, int]:
+        """(rows, dim) of the sampled space, what set_noise takes: (frames, feature_dim), or a
+        latent model's latent rows and channels."""
+        rows, dim = ctypes.c_uint32(), ctypes.c_uint32()
+        self._call(_lib().flame_session_sample_shape, ctypes.byref(rows), ctypes.byref(dim))
+        return rows.value, dim.value
+
     def set_noise(self, noise) -> None:
-        """Sets x_T explicitly ([frames, feature_dim] or flat); before the first step only."""
+        """Sets x_T explicitly: sample_shape values, [rows, dim] or flat ([frames, feature_dim]
+        for models that sample the motion itself); before the first step only. A 2-D array of
+        another shape is refused with ValueError, a flat one of another length by libflame."""
         a = _f32(noise, "noise")
+        if a.ndim != 1:
+            shape = self.sample_shape
+            if a.shape != shape:
+                raise ValueError(f"noise must be shaped {list(shape)} (Session.sample_shape), got {a.shape}")
         self._call(_lib().flame_session_set_noise, _ptr(a, ctypes.c_float), a.size)
 
     def set_reference(self, features) -> None:
@@ -847,7 +884,8 @@ class Session:
         return left.value
 
     def run(self) -> np.ndarray:
-        """Runs every remaining step and returns the final sample's features."""
+        """Runs every remaining step and returns the final motion's features,
+        [read_frames(), feature_dim]."""
         while self.steps_left > 0:
             self.step()
         return self.read()
@@ -874,6 +912,22 @@ class Session:
         done, total = self.progress
         return total - done
 
+    @staticmethod
+    def _which(which: Union[str, int]) -> int:
+        if isinstance(which, str):
+            if which not in _WHICH:
+                raise ValueError(f"unknown which {which!r} (sample, estimate)")
+            return _WHICH[which]
+        return int(which)
+
+    def read_frames(self, which: Union[str, int] = "sample") -> int:
+        """How many frames read(which) returns now: the session's frames, or a latent model's
+        valid length, which its decoder decides anew after every step. Raises FlameError
+        (WRONG_STATE) before there is anything to read."""
+        frames = ctypes.c_uint32()
+        self._call(_lib().flame_session_read_frames, self._which(which), ctypes.byref(frames))
+        return frames.value
+
     def read(
         self,
         which: Union[str, int] = "sample",
@@ -883,34 +937,32 @@ class Session:
     ) -> np.ndarray:
         """The current sample ("sample") or clean-motion estimate ("estimate") as float32 in a
         Layout, Convention and ReadFlags, which go to libflame as plain integers. Shaped
-        [frames, ...] as the layout says (Layout.FEATURES: [frames, feature_dim]); a layout
-        not named in Layout comes back [frames, -1]."""
-        if isinstance(which, str):
-            if which not in _WHICH:
-                raise ValueError(f"unknown which {which!r} (sample, estimate)")
-            w = _WHICH[which]
-        else:
-            w = int(which)
+        [read_frames(which), ...] as the layout says (Layout.FEATURES: [frames, feature_dim]); a
+        layout not named in Layout comes back [frames, -1]. The frames are the session's, except
+        for a latent model (Model.latent), whose decoder decides the valid length."""
+        w = self._which(which)
         lib = _lib()
         n = ctypes.c_size_t()
+        frames = ctypes.c_uint32()
         with self._lock:
             h = self._h()
             _check(lib.flame_session_read(h, w, layout, convention, flags, None, 0, ctypes.byref(n)))
+            _check(lib.flame_session_read_frames(h, w, ctypes.byref(frames)))
             out = np.empty(n.value, dtype=np.float32)
             _check(
                 lib.flame_session_read(
                     h, w, layout, convention, flags, _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)
                 )
             )
-        return self._shaped(out[: n.value], layout)
+        return self._shaped(out[: n.value], frames.value, layout)
 
-    def _shaped(self, values: np.ndarray, layout: int) -> np.ndarray:
+    def _shaped(self, values: np.ndarray, frames: int, layout: int) -> np.ndarray:
         """[frames, ...] with the layout's trailing shape when the count agrees with it."""
         trailing = _LAYOUT_SHAPES.get(layout, lambda d, j: (-1,))(self.feature_dim, self.joint_count)
-        if self.frames and values.size == self.frames * int(np.prod(trailing)) and -1 not in trailing:
-            return values.reshape((self.frames,) + trailing)
-        if self.frames and values.size % self.frames == 0:
-            return values.reshape(self.frames, -1)
+        if -1 not in trailing and values.size == frames * int(np.prod(trailing)):
+            return values.reshape((frames,) + trailing)
+        if frames and values.size % frames == 0:
+            return values.reshape(frames, -1)
         return values
 
     def close(self) -> None:

@@ -77,6 +77,8 @@ static class FlameTest
             Run("ShortReference", TestShortReference);
             Run("ReferencePoses", TestReferencePoses);
             Run("EditOtherFamilies", TestEditOtherFamilies);
+            Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
+            Run("LatentModel", TestLatentModel);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -266,6 +268,10 @@ static class FlameTest
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "respacing") == 40 && sp.respacing == IntPtr.Zero, "respacing field");
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
+        // ABI 2: two uint32 after the five pointers (C on x86-64: offsetof latent 88, sizeof 96).
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "latent") == 88 || IntPtr.Size == 4, "offset of latent");
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "sample_dim") == 92 || IntPtr.Size == 4, "offset of sample_dim");
+        Check(Marshal.SizeOf(typeof(FlameModelInfo)) == 96 || IntPtr.Size == 4, "sizeof FlameModelInfo " + Marshal.SizeOf(typeof(FlameModelInfo)));
         var ep = FlameEditParams.Default();
         Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
         // FlamePromptInfo: six uint32 then a pointer, no padding (C: sizeof 32, offsetof dropped 24 on x86-64).
@@ -971,6 +977,110 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "`rotations` is NULL",
                    () => FlameException.Check(FlameNative.flame_session_set_reference_poses(s.Handle, root, (UIntPtr)root.Length, null, (UIntPtr)10,
                                                                                             (uint)RefFrames, FlameLayout.Local6d, 0)));
+        }
+    }
+
+    // The families that sample the motion itself: the sampled space is frames × feature_dim and
+    // a read has the session's frames (the latent model: TestLatentModel).
+    static void TestSampleShapeAndReadFrames()
+    {
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        var cases = new[] { new { File = "flame_tiny.safetensors", Dim = 147, Joints = 24, Sampler = FlameSampler.Ddim },
+                            new { File = "mdm_tiny.safetensors", Dim = 263, Joints = 22, Sampler = FlameSampler.Ddim } };
+        foreach (var c in cases)
+        {
+            using (var m = FlameModel.Load(Path.Combine(dir, c.File), 1))
+            {
+                var i = m.Info;
+                Check(!i.Latent && i.SampleDim == c.Dim && i.FeatureDim == c.Dim && i.JointCount == c.Joints, c.File + ": info latent/sample_dim");
+                var p = FlameSessionParams.Default();
+                p.frames = 12;
+                p.steps = 2;
+                p.sampler = (int)c.Sampler;
+                p.seed = 1;
+                p.threads = 1;
+                using (var s = m.NewSession(p))
+                {
+                    int rows, dim;
+                    s.SampleShape(out rows, out dim);
+                    Check(rows == 12 && dim == c.Dim, c.File + ": sample shape " + rows + "x" + dim);
+                    Throws(FlameStatus.WrongState, "no sample yet", () => s.ReadFrames(FlameWhich.Sample));
+                    Throws(FlameStatus.WrongState, "no clean-motion estimate", () => s.ReadFrames(FlameWhich.Estimate));
+                    Throws(FlameStatus.InvalidArgument, "unknown `which` 2", () => s.ReadFrames((FlameWhich)2));
+                    Throws(FlameStatus.InvalidArgument, "12 rows", () => s.SetNoise(new float[rows * dim - 1]));
+                    var noise = new float[rows * dim];
+                    for (int k = 0; k < noise.Length; k++)
+                        noise[k] = (float)Math.Sin(0.1 * k);
+                    s.SetNoise(noise);
+                    s.SetPrompt(RefPrompt);
+                    s.Step();
+                    Check(s.ReadFrames(FlameWhich.Sample) == 12 && s.ReadFrames(FlameWhich.Estimate) == 12, c.File + ": read frames");
+                    int frames;
+                    var x = s.Read(FlameWhich.Estimate, FlameLayout.GlobalPositions, FlameConvention.Native, 0, out frames);
+                    Check(frames == 12 && x.Length == frames * c.Joints * 3, c.File + ": Read(..., out frames) " + frames + ", " + x.Length);
+                    Check(s.ReadLength(FlameWhich.Sample, FlameLayout.Features, 0, 0) == s.ReadFrames(FlameWhich.Sample) * c.Dim, c.File + ": length = frames × dim");
+                    s.Reset();
+                    Throws(FlameStatus.WrongState, "no sample yet", () => s.ReadFrames(FlameWhich.Sample));
+                }
+            }
+        }
+    }
+
+    // A latent model (tests/fixtures/mola_tiny.safetensors, MoLA): 60 frames are a latent of
+    // 60 / 4 + 1 = 16 rows × 16 channels (tests/fixtures/mola_expected.json); the decoder decides
+    // how many frames a read has. Reference: the CLI with the same latent noise.
+    static void TestLatentModel()
+    {
+        string mola = Path.Combine(Path.GetDirectoryName(Path.GetFullPath(modelPath)), "mola_tiny.safetensors");
+        var noise = new float[16 * 16];
+        var rng = new Random(4);
+        for (int i = 0; i < noise.Length; i++)
+            noise[i] = (float)(Math.Sqrt(-2 * Math.Log(1 - rng.NextDouble())) * Math.Cos(2 * Math.PI * rng.NextDouble()));
+        string noisePath = Path.Combine(tmpDir, "latent_noise.npy"), outPath = Path.Combine(tmpDir, "latent_out.npy");
+        Npy.Write(noisePath, noise, 16, 16);
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + mola + "\" --prompt \"" + RefPrompt + "\" --frames 60 --steps 4 --sampler ddim --seed 3 --threads 1 " +
+            "--noise \"" + noisePath + "\" --out \"" + outPath + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI on the latent model: exit code " + proc.ExitCode);
+        }
+        int[] shape;
+        var expected = Npy.Read(outPath, out shape);
+        using (var m = FlameModel.Load(mola, 1))
+        {
+            var i = m.Info;
+            Check(i.Latent && i.SampleDim == 16 && i.FeatureDim == 263 && i.JointCount == 22 && i.Architecture == "mola", "latent model info");
+            var p = FlameSessionParams.Default();
+            p.frames = 60;
+            p.steps = 4;
+            p.sampler = (int)FlameSampler.Ddim;
+            p.seed = 3;
+            p.threads = 1;
+            using (var s = m.NewSession(p))
+            {
+                int rows, dim;
+                s.SampleShape(out rows, out dim);
+                Check(rows == 16 && dim == 16, "latent sample shape " + rows + "x" + dim);
+                Throws(FlameStatus.InvalidArgument, "16 rows", () => s.SetNoise(new float[60 * 263]));
+                Throws(FlameStatus.InvalidArgument, "samples a latent", () => s.SetReference(new float[60 * 263]));
+                s.SetNoise(noise);
+                s.SetPrompt(RefPrompt);
+                var x = RunAll(s);
+                int frames = s.ReadFrames(FlameWhich.Sample);
+                Check(shape.Length == 2 && shape[0] == frames && shape[1] == 263 && frames != s.Frames,
+                      "frames " + frames + " = the CLI's " + string.Join("x", shape) + ", not the session's " + s.Frames);
+                Check(BitEqual(x, expected), "latent model: features = CLI --noise");
+                int posFrames;
+                var pos = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Native, 0, out posFrames);
+                Check(posFrames == frames && pos.Length == frames * 22 * 3, "positions: " + posFrames + " frames, " + pos.Length + " values");
+            }
         }
     }
 

@@ -852,3 +852,149 @@ def test_editing_other_families():
         s.set_task_mask("predict")
         x = s.run()
         assert x[:4].tobytes() == r[:4].tobytes() and not np.array_equal(x[4:], r[4:])
+
+
+# --- the sampled space and the frames of a read (ABI 2) ---------------------------------------
+# The families that sample the motion itself: the sampled space is frames × feature_dim and a
+# read has the session's frames (the latent model's tests follow).
+
+
+@pytest.mark.parametrize(
+    "name, dim, joints, sampler",
+    [("flame_tiny.safetensors", DIM, 24, "ddim"), ("mdm_tiny.safetensors", 263, 22, "ddim"),
+     ("motionfm_tiny.safetensors", None, None, "euler")],
+)
+def test_sample_shape_and_read_frames(name, dim, joints, sampler):
+    with flame.Model.load(FIXTURES / name) as m, \
+            m.session(frames=12, steps=2, sampler=sampler, seed=1, threads=1) as s:
+        i = m.info
+        dim = dim or i.feature_dim
+        assert i.feature_dim == dim and (joints is None or i.joint_count == joints)
+        assert (i.latent, i.sample_dim) == (False, dim)
+        assert (m.latent, m.sample_dim) == (False, dim)
+        assert s.sample_shape == (12, dim)
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read_frames)
+        expect_error(Status.WRONG_STATE, "no clean-motion estimate", s.read_frames, "estimate")
+        expect_error(Status.INVALID_ARGUMENT, "unknown `which` 2", s.read_frames, 2)
+        with pytest.raises(ValueError):
+            s.read_frames("noisy")
+        noise = np.random.default_rng(2).standard_normal((12, dim)).astype(np.float32)
+        # The same number of values in another 2-D shape is refused by the binding...
+        with pytest.raises(ValueError, match=r"\[12, %d\]" % dim):
+            s.set_noise(noise.T)
+        # ... a flat array of another length by libflame.
+        expect_error(Status.INVALID_ARGUMENT, "12 rows", s.set_noise, noise.ravel()[:-1])
+        s.set_noise(noise.ravel())
+        s.set_prompt(REF_PROMPT)
+        s.step()
+        assert s.read_frames() == s.read_frames("estimate") == s.read_frames(flame.Which.SAMPLE) == 12
+        assert s.read().shape == (12, dim)
+        assert s.read("estimate", Layout.GLOBAL_POSITIONS).shape == (12, i.joint_count, 3)
+        s.reset()
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read_frames)
+        assert s.sample_shape == (12, dim)
+    with flame.Model.load(FIXTURES / name) as m, m.session(sampler=sampler, steps=1) as s:
+        assert s.sample_shape == (m.info.default_frames, dim)  # frames=None: the model's default
+
+
+def test_read_is_shaped_by_the_frames_libflame_reports(model, reference):
+    """read() shapes by flame_session_read_frames, not by the frames the session was made with
+    (a latent model's decoder decides its own length): a wrong Session.frames changes nothing."""
+    with ref_session(model) as s:
+        s.run()
+        s.frames = 5
+        out = s.read()
+        assert out.shape == (24, DIM) and out.tobytes() == reference.tobytes()
+        assert s.read("sample", Layout.LOCAL_QUAT_XYZW).shape == (24, 24, 4)
+
+
+# --- a latent model (MoLA): tests/fixtures/mola_tiny.safetensors ------------------------------
+# Random weights; a CLIP text tower of one layer, so prompts encode, meaninglessly. 60 frames
+# are a latent of 60 / 4 + 1 = 16 rows of 16 channels (tests/fixtures/mola_expected.json:
+# frames 60, latent_frames 16); its VAE decoder writes 4 × 16 = 64 frames and cuts them to the
+# valid length at its flag (at least 10, at most 63). Reference: the `flame generate` CLI.
+
+MOLA = FIXTURES / "mola_tiny.safetensors"
+MOLA_SETTINGS = dict(frames=60, steps=4, sampler="ddim", seed=3, threads=1)
+
+
+def mola_cli(tmp_path, noise=None, prompt=REF_PROMPT):
+    s = MOLA_SETTINGS
+    cmd = [cli_path(), "generate", "--model", str(MOLA), "--prompt", prompt,
+           "--frames", str(s["frames"]), "--steps", str(s["steps"]), "--sampler", s["sampler"],
+           "--seed", str(s["seed"]), "--threads", str(s["threads"]), "--out", str(tmp_path / "out.npy")]
+    if noise is not None:
+        np.save(tmp_path / "noise.npy", noise)
+        cmd += ["--noise", str(tmp_path / "noise.npy")]
+    done = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return np.load(tmp_path / "out.npy"), done.stdout + done.stderr
+
+
+@pytest.fixture(scope="module")
+def mola():
+    with flame.Model.load(MOLA) as m:
+        yield m
+
+
+def test_latent_model_info(mola):
+    i = mola.info
+    assert (i.architecture, i.motion_format, i.feature_dim, i.joint_count) == ("mola", "humanml263", 263, 22)
+    assert (i.latent, i.sample_dim) == (True, 16)
+    assert (mola.latent, mola.sample_dim) == (True, 16)
+    with mola.session(**MOLA_SETTINGS) as s:
+        assert s.sample_shape == (16, 16)
+    with mola.session(steps=1) as s:
+        assert s.sample_shape == (i.default_frames // 4 + 1, 16)  # 196 frames: 50 rows
+
+
+@pytest.mark.parametrize("noise_seed", [None, 1, 4])
+def test_latent_read_matches_cli(mola, tmp_path, noise_seed):
+    """The frames of a read are the decoder's, not the session's: read() is the CLI's output,
+    bit for bit, with its frame count, and every layout has read_frames() frames."""
+    noise = None
+    if noise_seed is not None:
+        noise = np.random.default_rng(noise_seed).standard_normal((16, 16)).astype(np.float32)
+    expected, log = mola_cli(tmp_path, noise)
+    assert f"{expected.shape[0]} frames (the length the model's decoder chose; 60 asked)" in log
+    with mola.session(**MOLA_SETTINGS) as s:
+        if noise is not None:
+            s.set_noise(noise)
+        s.set_prompt(REF_PROMPT)
+        out = s.run()
+        frames = s.read_frames()
+        assert out.dtype == np.float32 and out.shape == expected.shape == (frames, 263)
+        assert out.tobytes() == expected.tobytes()
+        assert 10 <= frames <= 63
+        assert frames != 60  # the session's frames would give another shape (these decode to 63, 11)
+        assert s.read("sample", Layout.GLOBAL_POSITIONS).shape == (frames, 22, 3)
+        assert s.read("sample", Layout.FOOT_CONTACTS).shape == (frames, 4)
+        est = s.read("estimate")
+        assert est.shape == (s.read_frames("estimate"), 263) and np.isfinite(est).all()
+
+
+def test_latent_noise_and_editing_errors(mola):
+    with mola.session(**MOLA_SETTINGS) as s:
+        with pytest.raises(ValueError, match=r"\[16, 16\]"):
+            s.set_noise(np.zeros((60, 263)))  # the motion's shape is not the sampled space
+        expect_error(Status.INVALID_ARGUMENT, "16 rows", s.set_noise, np.zeros(60 * 263))
+        expect_error(Status.WRONG_STATE, "no sample yet", s.read_frames)
+        expect_error(Status.INVALID_ARGUMENT, "samples a latent", s.set_reference, np.zeros((60, 263)))
+        expect_error(Status.INVALID_ARGUMENT, "samples a latent", s.set_mask, np.ones((60, 263)))
+
+
+@pytest.mark.xfail(strict=True, reason="known bug: Session::motion keeps the decoded motion of "
+                   "the step count it was made at, so after reset() a new noise or prompt reads "
+                   "the previous generation's decode at the same step")
+def test_latent_read_after_reset_is_the_new_generation(mola):
+    noise = np.random.default_rng(4).standard_normal((16, 16)).astype(np.float32)
+    with mola.session(**MOLA_SETTINGS) as s, mola.session(**MOLA_SETTINGS) as fresh:
+        s.set_prompt(REF_PROMPT)
+        s.step()
+        s.read()
+        s.reset()
+        s.set_noise(noise)
+        s.step()
+        fresh.set_prompt(REF_PROMPT)
+        fresh.set_noise(noise)
+        fresh.step()
+        assert s.read().tobytes() == fresh.read().tobytes()

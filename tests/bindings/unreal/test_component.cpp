@@ -3,8 +3,9 @@
  * (ue_stubs/ue_stub.h) and run against the real libflame: FFlameModule and UFlameMotionComponent
  * driven the way the engine would (StartupModule, Generate, TickComponent every frame, EndPlay).
  *
- * usage: test_component MODEL REFERENCE_NPY
- * Reference: the `flame` CLI's features for the same settings (tests/bindings/run_unreal.sh).
+ * usage: test_component MODEL REFERENCE_NPY LATENT_MODEL LATENT_REFERENCE_NPY
+ * Reference: the `flame` CLI's features for the same settings (tests/bindings/run_unreal.sh), for
+ * the FLAME fixture and for a latent one (MoLA, whose decoder decides the frame count).
  * Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
  */
 #include <chrono>
@@ -66,6 +67,15 @@ static std::vector<float> NpyData(const char* path, size_t count) {
     return data;
 }
 
+/* The row count of a 2-D .npy file's shape (0 when there is none). */
+static int NpyRows(const char* path) {
+    std::ifstream f(path, std::ios::binary);
+    std::string header(256, '\0');
+    f.read(&header[0], (std::streamsize)header.size());
+    const size_t at = header.find("'shape': (");
+    return at == std::string::npos ? 0 : std::atoi(header.c_str() + at + 10);
+}
+
 static void Configure(UFlameMotionComponent& c, const char* model, int frames, int steps, bool ddim,
                       int layout = 0 /* FLAME_LAYOUT_FEATURES */, int convention = 0) {
     c.Layout = layout;
@@ -83,8 +93,8 @@ static void Configure(UFlameMotionComponent& c, const char* model, int frames, i
 }
 
 int main(int argc, char** argv) {
-    if (argc != 3) {
-        std::fprintf(stderr, "usage: test_component MODEL REFERENCE_NPY\n");
+    if (argc != 5) {
+        std::fprintf(stderr, "usage: test_component MODEL REFERENCE_NPY LATENT_MODEL LATENT_REFERENCE_NPY\n");
         return 2;
     }
     const int Frames = 24, Dim = 147;
@@ -306,6 +316,50 @@ int main(int argc, char** argv) {
         CHECK(c.Generate(), "Generate short");
         CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished short");
         CHECK(!c.bPromptTruncated && c.PromptDropped.IsEmpty() && warnings() == before + 1, "a short prompt fits, no warning");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // Frames = 0: the model's default (the fixture's 200), as flame_session_read_frames
+        // reports it for every published pose.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], 0, 2, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW);
+        bool finished = false, succeeded = false, allFrames = true;
+        int poses = 0;
+        c.OnProgress.AddLambda([&](int32, int32) {
+            poses++;
+            allFrames = allFrames && c.GetFrameCount() == 200 && c.GetValuesPerFrame() == 24 * 4 &&
+                        c.RootLocations.Num() == 200 * 3;
+        });
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(succeeded && poses >= 1 && allFrames, "default frames: %d poses, %d frames x %d", poses,
+              c.GetFrameCount(), c.GetValuesPerFrame());
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // A latent model: every published pose has the frames libflame reports for its read, and
+        // the final one is the CLI's output, frame count and bits (not the 60 frames asked).
+        const int LatentFrames = NpyRows(argv[4]), LatentDim = 263;
+        std::vector<float> latentReference = NpyData(argv[4], (size_t)LatentFrames * LatentDim);
+        UFlameMotionComponent c;
+        Configure(c, argv[3], 60, 4, true);
+        bool finished = false, succeeded = false, consistent = true;
+        c.OnProgress.AddLambda([&](int32, int32) {
+            consistent = consistent && c.GetFrameCount() >= 10 && c.GetValuesPerFrame() == LatentDim &&
+                         c.Pose.Num() == c.GetFrameCount() * LatentDim && c.RootLocations.Num() == c.GetFrameCount() * 3;
+        });
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate (latent)");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished (latent)");
+        CHECK(succeeded && consistent, "latent: %s", c.LastError.Utf8().c_str());
+        CHECK(LatentFrames >= 10 && LatentFrames != 60 && c.GetFrameCount() == LatentFrames,
+              "latent frames %d, the CLI's %d", c.GetFrameCount(), LatentFrames);
+        CHECK(c.Pose.Num() == LatentFrames * LatentDim &&
+                  std::memcmp(c.Pose.GetData(), latentReference.data(), latentReference.size() * 4) == 0,
+              "latent Pose = the CLI's features");
+        CHECK(c.GetFramePose(LatentFrames - 1).Num() == LatentDim && c.GetFramePose(LatentFrames).Num() == 0,
+              "GetFramePose at the decoded length");
     }
     CHECK(WaitForThreads(), "workers exited");
 

@@ -69,7 +69,7 @@ struct FFlameJob
 	TArray<float> Latest;
 	TArray<float> LatestRoot;
 	bool bLatestIsNew = false;
-	int32 Frames = 0;
+	int32 LatestFrames = 0; // frames of Latest and LatestRoot, as flame_session_read_frames says
 	int32 StepsDone = 0;
 	int32 StepsTotal = 0;
 	bool bFinished = false;
@@ -143,7 +143,6 @@ private:
 		{
 			FScopeLock Guard(&Lock);
 			Model = M;
-			Frames = Params.frames != 0 ? (int32)Params.frames : (int32)Info.default_frames;
 			for (uint32 J = 0; Info.joint_names != nullptr && J < Info.joint_count; J++)
 			{
 				JointNames.Add(UTF8_TO_TCHAR(Info.joint_names[J]));
@@ -231,7 +230,14 @@ private:
 				return false;
 			}
 			const int32 Which = (bPreviewEstimate && Left > 0) ? FLAME_WHICH_ESTIMATE : FLAME_WHICH_SAMPLE;
-			Status = Read(S, Which, Layout, Buffer);
+			// The frames of this read: the session's, or the length a latent model decodes,
+			// which may change from step to step.
+			uint32 ReadFrames = 0;
+			Status = flame_session_read_frames(S, Which, &ReadFrames);
+			if (Status == FLAME_STATUS_OK)
+			{
+				Status = Read(S, Which, Layout, Buffer);
+			}
 			if (Status == FLAME_STATUS_OK)
 			{
 				Status = Read(S, Which, FLAME_LAYOUT_ROOT_TRANSLATION, RootBuffer);
@@ -247,6 +253,7 @@ private:
 			FScopeLock Guard(&Lock);
 			Swap(Latest, Buffer); // the worker refills the game thread's previous buffers
 			Swap(LatestRoot, RootBuffer);
+			LatestFrames = (int32)ReadFrames;
 			bLatestIsNew = true;
 			StepsDone = (int32)Done;
 			StepsTotal = (int32)Total;
@@ -396,7 +403,7 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		{
 			Swap(Pose, Job->Latest);
 			Swap(RootLocations, Job->LatestRoot);
-			PoseFrames = Job->Frames;
+			PoseFrames = Job->LatestFrames;
 			Job->bLatestIsNew = false;
 			bNewPose = true;
 			JointNames = Job->JointNames;

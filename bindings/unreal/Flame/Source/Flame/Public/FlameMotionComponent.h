@@ -128,6 +128,8 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	TArray<float> Pose;
 
+	/** Frames of the latest Pose, as libflame reports them (flame_session_read_frames): Frames
+	 *  (or the model's default), except for a latent model, whose decoder decides the length. */
 	UFUNCTION(BlueprintPure, Category = "Flame")
 	int32 GetFrameCount() const { return PoseFrames; }
 
