@@ -982,9 +982,6 @@ def test_latent_noise_and_editing_errors(mola):
         expect_error(Status.INVALID_ARGUMENT, "samples a latent", s.set_mask, np.ones((60, 263)))
 
 
-@pytest.mark.xfail(strict=True, reason="known bug: Session::motion keeps the decoded motion of "
-                   "the step count it was made at, so after reset() a new noise or prompt reads "
-                   "the previous generation's decode at the same step")
 def test_latent_read_after_reset_is_the_new_generation(mola):
     noise = np.random.default_rng(4).standard_normal((16, 16)).astype(np.float32)
     with mola.session(**MOLA_SETTINGS) as s, mola.session(**MOLA_SETTINGS) as fresh:
