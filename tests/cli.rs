@@ -583,19 +583,46 @@ fn latent_models_report_their_latent_and_the_frames_they_chose() {
     let o = generate_with(
         &mola,
         "a person walks",
-        &["--frames", "60", "--noise", latent.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        &[
+            "--frames",
+            "60",
+            "--noise",
+            latent.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
     );
     assert_ok(&o);
     flame::npy::write_f32(&latent, &[15, 16], &z[..15 * 16]).unwrap();
     let o = generate_with(
         &mola,
         "a person walks",
-        &["--frames", "60", "--noise", latent.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        &[
+            "--frames",
+            "60",
+            "--noise",
+            latent.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
     );
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("expected 256 (16 rows × 16)"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("expected 256 (16 rows × 16)"),
+        "{}",
+        stderr(&o)
+    );
     // --latent on a model that samples the motion itself.
-    let o = generate(&["--out", out.to_str().unwrap(), "--latent", latent.to_str().unwrap()]);
+    let o = generate(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--latent",
+        latent.to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("samples the motion itself"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("samples the motion itself"),
+        "{}",
+        stderr(&o)
+    );
 }
