@@ -89,6 +89,19 @@ class BuildPyWithLibrary(build_py):
         dest.parent.mkdir(parents=True, exist_ok=True)
         print(f"libflame: packing {lib}", flush=True)
         shutil.copyfile(lib, dest)  # a plain copy: always the newest bytes, whatever the mtimes
+        strip_debug(dest)
+
+
+def strip_debug(path):
+    """Ships the library without its debug info (about 30 of its 35 MB on Linux), as
+    packaging/install.sh does; FLAME_STRIP=0 keeps it. Needs binutils' objcopy (Linux)."""
+    if os.environ.get("FLAME_STRIP", "1") == "0" or not sys.platform.startswith("linux"):
+        return
+    objcopy = shutil.which("objcopy")
+    if objcopy is None:
+        print("libflame: objcopy not found, packing the library with its debug info", flush=True)
+        return
+    subprocess.run([objcopy, "--strip-debug", str(path)], check=True)
 
 
 class NativeDistribution(Distribution):
