@@ -552,20 +552,34 @@ fn latent_models_report_their_latent_and_the_frames_they_chose() {
     );
     assert!(text.contains("decoder:        MoLA VAE decoder"), "{text}");
 
-    let d = scratch("latent");
-    let (out, latent) = (d.join("m.npy"), d.join("z.npy"));
-    let o = generate_with(
-        &mola,
-        "a person walks",
-        &[
+    // 60 frames, 3 steps (generate_with's 16 frames would be 5 latent rows).
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "generate",
+            "--model",
+            &mola,
+            "--prompt",
+            "a person walks",
             "--frames",
             "60",
-            "--out",
-            out.to_str().unwrap(),
-            "--latent",
-            latent.to_str().unwrap(),
-        ],
-    );
+            "--steps",
+            "3",
+            "--seed",
+            "3",
+            "--threads",
+            "1",
+        ];
+        args.extend_from_slice(extra);
+        flame(&args)
+    };
+    let d = scratch("latent");
+    let (out, latent) = (d.join("m.npy"), d.join("z.npy"));
+    let o = run(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--latent",
+        latent.to_str().unwrap(),
+    ]);
     assert_ok(&o);
     let (zs, z) = flame::npy::read_f32(&latent).unwrap();
     assert_eq!(zs, vec![16, 16], "(60 + 4) // 4 latent rows of 16 channels");
@@ -580,32 +594,20 @@ fn latent_models_report_their_latent_and_the_frames_they_chose() {
         stderr(&o)
     );
     // The written latent goes back in as the initial noise; a wrong shape is refused.
-    let o = generate_with(
-        &mola,
-        "a person walks",
-        &[
-            "--frames",
-            "60",
-            "--noise",
-            latent.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ],
-    );
+    let o = run(&[
+        "--noise",
+        latent.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_ok(&o);
     flame::npy::write_f32(&latent, &[15, 16], &z[..15 * 16]).unwrap();
-    let o = generate_with(
-        &mola,
-        "a person walks",
-        &[
-            "--frames",
-            "60",
-            "--noise",
-            latent.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ],
-    );
+    let o = run(&[
+        "--noise",
+        latent.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
     assert!(
         stderr(&o).contains("expected 256 (16 rows × 16)"),
