@@ -60,14 +60,28 @@ max_len() {
     esac
 }
 
-# Seeds that are too big to commit are taken from the test fixtures.
+# Seeds that are too big to commit are taken from the test fixtures: whole files for
+# model_file, and for model_header each fixture's header after its pick byte (0, 1, 2).
 extra_seeds() {
-    if [[ $1 == model_file ]]; then
-        local d=target/seeds/model_file
-        mkdir -p "$d"
-        cp "$root"/tests/fixtures/{flame_tiny,mdm_tiny,motionfm_tiny,flame_tiny_f16}.safetensors "$d/"
-        echo "$d"
-    fi
+    local fixtures=(flame_tiny mdm_tiny motionfm_tiny) d i f n
+    case $1 in
+        model_file)
+            d=target/seeds/model_file
+            mkdir -p "$d"
+            cp "$root"/tests/fixtures/{flame_tiny,mdm_tiny,motionfm_tiny,flame_tiny_f16}.safetensors "$d/"
+            echo "$d"
+            ;;
+        model_header)
+            d=target/seeds/model_header
+            mkdir -p "$d"
+            for i in 0 1 2; do
+                f=$root/tests/fixtures/${fixtures[i]}.safetensors
+                n=$(od -An -t u8 -N 8 "$f" | tr -d ' ')
+                { printf "\\x0$i"; tail -c +9 "$f" | head -c "$n"; } >"$d/${fixtures[i]}"
+            done
+            echo "$d"
+            ;;
+    esac
 }
 
 failed=0
