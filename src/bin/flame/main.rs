@@ -202,7 +202,7 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     write_latent(&session, &a.sampling)?;
     let asked = session.frames();
     let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
-    if model.is_latent() {
+    if model.is_latent() && frames != asked {
         eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
     }
     outputs.write(x, frames, model, decoder.as_ref())
