@@ -28,8 +28,8 @@ use crate::kernels::{self, WeightType};
 
 use super::layers::{activation, sized, EncoderLayer, LayerBuffers, LayerShape, Linear};
 use super::{
-    check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
-    FamilyConfig, TextModel, TextVector,
+    check_text_vector, text_vector_uncond, text_vector_views, Cancel, Condition, Denoiser, Family,
+    FamilyConfig, TextModel,
 };
 
 /// The family's entry in [`super::FAMILIES`]: MDM (x0 or ε prediction) and Motion Flow
@@ -541,11 +541,7 @@ impl Denoiser for MdmDenoiser {
         ws: &mut super::Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        let (views, n) = condition_views::<TextVector>(conds)?;
-        let mut texts = [&[][..]; super::MAX_BATCH];
-        for (t, v) in texts.iter_mut().zip(&views[..n]) {
-            *t = &v.0[..];
-        }
+        let (texts, n) = text_vector_views(conds)?;
         self.forward_cancellable(x, rows, t, &texts[..n], out, ws.get(), cancel)
     }
 

@@ -34,8 +34,8 @@ use super::layers::{
     activation, sized, DecoderLayer, EncoderLayer, LayerBuffers, LayerNorm, LayerShape, Linear,
 };
 use super::{
-    check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
-    FamilyConfig, Guidance, MotionDecoder, TextModel, TextVector, Workspace,
+    check_text_vector, text_vector_uncond, text_vector_views, Cancel, Condition, Denoiser, Family,
+    FamilyConfig, Guidance, MotionDecoder, TextModel, Workspace,
 };
 
 /// The family's entry in [`super::FAMILIES`].
@@ -609,11 +609,7 @@ impl Denoiser for MldDenoiser {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        let (views, n) = condition_views::<TextVector>(conds)?;
-        let mut texts = [&[][..]; super::MAX_BATCH];
-        for (t, v) in texts.iter_mut().zip(&views[..n]) {
-            *t = &v.0[..];
-        }
+        let (texts, n) = text_vector_views(conds)?;
         self.forward_texts(x, rows, t, &texts[..n], out, ws.get(), cancel)
     }
 

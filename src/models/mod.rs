@@ -257,6 +257,16 @@ pub fn condition_views<'a, T: Any>(conds: &[&'a Condition]) -> Result<([&'a T; M
     Ok((views, conds.len()))
 }
 
+/// The text vectors of a batch of [`TextVector`] conditions, on the stack.
+pub fn text_vector_views<'a>(conds: &[&'a Condition]) -> Result<([&'a [f32]; MAX_BATCH], usize)> {
+    let (views, n) = condition_views::<TextVector>(conds)?;
+    let mut texts = [&[][..]; MAX_BATCH];
+    for (t, v) in texts.iter_mut().zip(&views[..n]) {
+        *t = &v.0[..];
+    }
+    Ok((texts, n))
+}
+
 /// Reusable buffers of a forward pass (and of a decode), so steps after the first do not
 /// allocate: the family keeps a value of its own type here.
 #[derive(Default)]

@@ -35,8 +35,8 @@ use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 
 use super::layers::{sized, Conv1d, Linear};
 use super::{
-    check_text_vector, condition_views, text_vector_uncond, Cancel, Condition, Denoiser, Family,
-    FamilyConfig, Guidance, MotionDecoder, TextModel, TextVector, Workspace,
+    check_text_vector, text_vector_uncond, text_vector_views, Cancel, Condition, Denoiser, Family,
+    FamilyConfig, Guidance, MotionDecoder, TextModel, Workspace,
 };
 
 /// The family's entry in [`super::FAMILIES`].
@@ -644,11 +644,7 @@ impl Denoiser for MolaDenoiser {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        let (views, n) = condition_views::<TextVector>(conds)?;
-        let mut texts = [&[][..]; super::MAX_BATCH];
-        for (t, v) in texts.iter_mut().zip(&views[..n]) {
-            *t = &v.0[..];
-        }
+        let (texts, n) = text_vector_views(conds)?;
         self.forward_texts(x, rows, t, &texts[..n], out, ws.get(), cancel)
     }
 
