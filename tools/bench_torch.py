@@ -16,6 +16,12 @@ What is timed (as people run these models today):
             (eta 0) update.
   gen       `steps` such steps, text features computed once.
 
+MoLA and MLD (latent models) run the whole generation as the references sample: `steps` guided
+DDIM (eta 0) steps through `diffusers`' DDIMScheduler configured as each release (set_timesteps,
+then `scheduler.step` per step), then the VAE decode of the final latent (MoLA: with its
+valid-length cut). `gen` includes the decode, `decode` is also timed on its own (RESULT
+`decode_ms`). The text vector is random (CLIP is not in the reference modules; text is not timed).
+
     python3 tools/bench_torch.py --gemm [--threads 2] [--runs 9]
 
 prints GFLOP/s of `torch.nn.functional.linear` (x · Wᵀ + b, f32) on the shapes
@@ -34,6 +40,8 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__))))
 from reference import flame as ref_flame  # noqa: E402
 from reference import mdm as ref_mdm  # noqa: E402
+from reference import mld as ref_mld  # noqa: E402
+from reference import mola as ref_mola  # noqa: E402
 
 PROMPT = "a person walks forward, turns around and waves with the right hand"
 
@@ -89,6 +97,76 @@ def mdm_runner(path, frames, guidance):
     return None, feats, x, step
 
 
+def mola_runner(path, frames, guidance):
+    """-> (denoise(x, t) -> eps, decode(z), x_T, scheduler) for one guided MoLA generation."""
+    den, dec, cfg = ref_mola.load_libflame(path)
+    d = cfg["denoiser"]
+    torch.manual_seed(0)
+    x = torch.randn(1, d["latent_channels"], ref_mola.latent_frames(frames))
+    cond = torch.randn(1, d["cond_dim"])
+    conds = torch.cat([cond, torch.zeros_like(cond)])
+    cfg_on = not (guidance == 0 or guidance == 1.0)
+
+    def denoise(x, t):
+        tt = t.reshape(1)
+        if not cfg_on:
+            return den(x, tt, cond)
+        e = den(torch.cat([x, x]), torch.cat([tt, tt]), conds)
+        return e[1:] + guidance * (e[:1] - e[1:])
+
+    return denoise, lambda z: ref_mola.decode(dec, z), x, ref_mola.make_scheduler()
+
+
+def mld_runner(path, frames, guidance):
+    den, dec, cfg = ref_mld.load_libflame(path)
+    d = cfg["denoiser"]
+    torch.manual_seed(0)
+    z = torch.randn(1, d["latent_tokens"], d["latent_dim"])
+    cond, uncond = torch.randn(1, d["text_dim"]), torch.randn(1, d["text_dim"])
+    conds = torch.cat([uncond, cond])
+
+    def denoise(z, t):
+        tt = t.reshape(1)
+        if guidance <= 1.0:
+            return den(z, tt, cond)
+        e = den(torch.cat([z, z]), torch.cat([tt, tt]), conds)
+        return e[:1] + guidance * (e[1:] - e[:1])
+
+    return denoise, lambda z: dec(z, frames), z, ref_mld.make_scheduler()
+
+
+def latent_bench(arch, a):
+    """The whole generation of a latent model: `steps` scheduler steps, then the VAE decode."""
+    runner = mola_runner if arch == "mola" else mld_runner
+    with torch.inference_mode():
+        denoise, decode, x_t, sch = runner(a.model, a.frames, a.guidance)
+        # Warm-up: one step and one decode.
+        sch.set_timesteps(a.steps)
+        decode(sch.step(denoise(x_t, sch.timesteps[0]), sch.timesteps[0], x_t, eta=0.0)
+               .prev_sample)
+        steps, gens, decodes = [], [], []
+        for _ in range(a.runs):
+            t0 = time.perf_counter()
+            sch.set_timesteps(a.steps)
+            x = x_t
+            for t in sch.timesteps:
+                ts = time.perf_counter()
+                x = sch.step(denoise(x, t), t, x, eta=0.0).prev_sample
+                steps.append((time.perf_counter() - ts) * 1e3)
+            td = time.perf_counter()
+            decode(x)
+            decodes.append((time.perf_counter() - td) * 1e3)
+            gens.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median
+    print(f"torch {torch.__version__} eager, {arch}, frames {a.frames}, {a.steps} DDIM steps "
+          f"(diffusers), guidance {a.guidance}, {a.threads} threads, {a.runs} runs (medians):")
+    print(f"  one guided step    {med(steps):9.2f} ms")
+    print(f"  VAE decode         {med(decodes):9.2f} ms")
+    print(f"  whole generation   {med(gens):9.2f} ms  ({a.steps} steps and the decode)")
+    print(f"RESULT impl=torch frames={a.frames} text_ms=nan step_ms={med(steps):.2f} "
+          f"gen_ms={med(gens):.2f} decode_ms={med(decodes):.2f}")
+
+
 # The shapes of `flame-bench gemm` (M x K x N).
 GEMM_SHAPES = [
     ("attn qkv", 398, 768, 2304), ("attn q/out", 398, 768, 768), ("ffn up", 398, 768, 2048),
@@ -135,6 +213,9 @@ def main():
     from safetensors import safe_open
     with safe_open(a.model, "pt") as f:
         arch = json.loads(f.metadata()["flame.config"])["architecture"]
+    if arch in ("mola", "mld"):
+        latent_bench(arch, a)
+        return
     runner = flame_runner if arch == "flame" else mdm_runner
     with torch.inference_mode():
         encode, feats, x0, step = runner(a.model, a.frames, a.guidance)

@@ -4,7 +4,9 @@
 //! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] [--threads 2]
 //!  [--runs 5] [--weights f32|f16|bf16]` also prints GFLOP/s of a step (linear layers and
 //! attention counted from the configuration) and the peak resident memory (VmHWM), and one
-//! `RESULT` line per frame count for tools/bench.sh.
+//! `RESULT` line per frame count for tools/bench.sh. For a latent model (MoLA, MLD) the whole
+//! generation also decodes the final latent through the family's VAE decoder, and that decode is
+//! timed on its own as well (`decode_ms`).
 //!
 //! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
 //! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
@@ -22,8 +24,8 @@ use std::time::Instant;
 
 use flame::config::TextConfig;
 use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType};
-use flame::models::{FlameConfig, MdmConfig};
-use flame::models::{LoadOptions, Model};
+use flame::models::{FlameConfig, MdmConfig, MldFamily, MolaFamily};
+use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -152,6 +154,32 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
             let attn = d.layers as f64 * b * 2.0 * s * s * c;
             (lin, attn)
         }
+    } else if let Some(m) = any.downcast_ref::<MolaFamily>() {
+        let d = &m.denoiser;
+        let (e, ff, c) = (
+            d.embed_dim as f64,
+            d.ff_dim as f64,
+            d.latent_channels as f64,
+        );
+        // Four frames per latent row, the global token in front (REFERENCE 7.3.1).
+        let s = ((frames + 4) / 4) as f64 + 1.0;
+        let r = b * s;
+        // qkv, out, SwiGLU in (value + gate rows) and out.
+        let layer = r * e * (3.0 * e + e + 2.0 * ff + ff);
+        let lin = d.depth as f64 * layer + b * (s - 1.0) * (2.0 * c * c + 2.0 * c * e);
+        let attn = d.depth as f64 * b * 2.0 * s * s * e;
+        (lin, attn)
+    } else if let Some(m) = any.downcast_ref::<MldFamily>() {
+        let d = &m.denoiser;
+        let (e, ff) = (d.latent_dim as f64, d.ff_size as f64);
+        // The latent tokens, then the time and the text tokens.
+        let s = d.latent_tokens as f64 + 2.0;
+        let r = b * s;
+        // Layers (in/out projections, feed-forward) and the skip joins ([2D] -> D).
+        let joins = (d.layers / 2) as f64;
+        let lin = d.layers as f64 * r * e * (4.0 * e + 2.0 * ff) + joins * r * 2.0 * e * e;
+        let attn = d.layers as f64 * b * 2.0 * s * s * e;
+        (lin, attn)
     } else {
         // A family this count does not know: no GFLOP/s figures.
         (0.0, 0.0)
@@ -238,6 +266,18 @@ fn main() {
         }
         let mut step_ms = Vec::new();
         let mut gen_ms = Vec::new();
+        let mut decode_ms = Vec::new();
+        // The decode runs on a pool of the same size as the session's (whose pool is its own).
+        let latent = model.is_latent();
+        let pool = flame::pool::WorkerPool::new(threads).expect("pool");
+        let (mut decoded, mut ws) = (Vec::new(), Workspace::default());
+        let mut decode = |session: &Session| {
+            let t = Instant::now();
+            let sample = session.sample().expect("sample");
+            pool.install(|| model.decode(sample, frames, &mut decoded, &mut ws))
+                .expect("decode");
+            t.elapsed().as_secs_f64() * 1e3
+        };
         for _ in 0..runs {
             session.reset();
             let g = Instant::now();
@@ -245,6 +285,9 @@ fn main() {
                 let t = Instant::now();
                 session.step().expect("step");
                 step_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            if latent {
+                decode_ms.push(decode(&session));
             }
             gen_ms.push(g.elapsed().as_secs_f64() * 1e3);
         }
@@ -256,8 +299,13 @@ fn main() {
             session.step().expect("step");
         }
         let profiled = g.elapsed().as_secs_f64();
-        kernels::profile::enable(false);
         let prof = kernels::profile::take();
+        // The decode's own accounting.
+        let decode_prof = latent.then(|| {
+            let ms = decode(&session);
+            (ms, kernels::profile::take())
+        });
+        kernels::profile::enable(false);
         let lin_gflops = prof.linear_flop / prof.linear_seconds / 1e9;
         let attn_gflops = prof.attention_flop / prof.attention_seconds / 1e9;
         let lin_share = prof.linear_seconds / profiled;
@@ -273,16 +321,33 @@ fn main() {
         println!("  text encoding      {text:9.2} ms");
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
             2.0 * (lin + attn) / 1e9, 2.0 * lin / 1e9, 2.0 * attn / 1e9);
-        println!("  whole generation   {gen:9.2} ms");
+        let decode_med = (!decode_ms.is_empty()).then(|| median(decode_ms));
+        if let Some(d) = decode_med {
+            println!("  VAE decode         {d:9.2} ms  (once, after the last step)");
+            println!("  whole generation   {gen:9.2} ms  ({steps} steps and the decode)");
+        } else {
+            println!("  whole generation   {gen:9.2} ms");
+        }
         println!(
             "  inside the kernels {lin_gflops:9.1} GFLOP/s in linear layers ({:.0}% of the time), \
              {attn_gflops:.1} GFLOP/s in attention ({:.0}%)",
             lin_share * 100.0,
             attn_share * 100.0
         );
+        if let Some((ms, p)) = decode_prof {
+            let (lin, attn) = (p.linear_seconds * 1e3, p.attention_seconds * 1e3);
+            println!(
+                "  inside the decode  {:9.1} GFLOP/s in linear layers and convolutions ({lin:.1} of \
+                 {ms:.1} ms), {:.1} GFLOP/s in attention ({attn:.1} ms); {:.2} GFLOP",
+                p.linear_flop / p.linear_seconds / 1e9,
+                p.attention_flop / p.attention_seconds.max(1e-12) / 1e9,
+                (p.linear_flop + p.attention_flop) / 1e9
+            );
+        }
         println!("  peak RSS (VmHWM)   {:9.1} MiB", status_mib("VmHWM:"));
+        let decode_field = decode_med.map_or(String::new(), |d| format!(" decode_ms={d:.2}"));
         println!(
-            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} linear_gflops={lin_gflops:.1} linear_share={lin_share:.3} attention_gflops={attn_gflops:.1} hwm_mib={:.1}",
+            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} linear_gflops={lin_gflops:.1} linear_share={lin_share:.3} attention_gflops={attn_gflops:.1} hwm_mib={:.1}{decode_field}",
             weights.name(),
             status_mib("VmHWM:")
         );
