@@ -10,6 +10,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use common::rel_diff;
 use flame::checkpoint::ModelFile;
 use flame::models::{Condition, MldDenoiser, Model, Workspace};
 use flame::session::{Session, SessionParams, Which};
@@ -30,15 +31,6 @@ fn expected(name: &str) -> Vec<f32> {
 
 fn model() -> Arc<Model> {
     Arc::new(Model::load(fixture("mld_tiny.safetensors")).unwrap())
-}
-
-/// Largest difference relative to max(1, |reference|).
-fn rel_diff(got: &[f32], want: &[f32]) -> f32 {
-    assert_eq!(got.len(), want.len());
-    got.iter()
-        .zip(want)
-        .map(|(g, w)| (g - w).abs() / w.abs().max(1.0))
-        .fold(0.0, f32::max)
 }
 
 #[test]

@@ -11,7 +11,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use common::max_abs_diff;
+use common::{max_abs_diff, rel_diff};
 use flame::checkpoint::ModelFile;
 use flame::models::mola::VaeWorkspace;
 use flame::models::{Condition, Model, MolaDenoiser};
@@ -44,15 +44,6 @@ fn mola(model: &Model) -> &MolaDenoiser {
         .as_any()
         .downcast_ref::<MolaDenoiser>()
         .expect("a MoLA model")
-}
-
-/// Largest difference relative to max(1, |reference|).
-fn rel_diff(got: &[f32], want: &[f32]) -> f32 {
-    assert_eq!(got.len(), want.len());
-    got.iter()
-        .zip(want)
-        .map(|(g, w)| (g - w).abs() / w.abs().max(1.0))
-        .fold(0.0, f32::max)
 }
 
 #[test]

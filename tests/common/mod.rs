@@ -17,6 +17,15 @@ pub fn repo(path: &str) -> PathBuf {
 }
 
 /// The largest absolute difference of two equally long slices.
+/// Largest difference relative to max(1, |reference|).
+pub fn rel_diff(got: &[f32], want: &[f32]) -> f32 {
+    assert_eq!(got.len(), want.len());
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| (g - w).abs() / w.abs().max(1.0))
+        .fold(0.0, f32::max)
+}
+
 pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
