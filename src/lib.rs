@@ -36,6 +36,8 @@ pub mod rng;
 /// cbindgen:ignore
 pub mod session;
 /// cbindgen:ignore
+pub mod targets;
+/// cbindgen:ignore
 pub mod text;
 
 pub use error::{Error, Result};

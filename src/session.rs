@@ -13,6 +13,7 @@ use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Cancel, Condition, Guidance, Model, Workspace};
 use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
+use crate::targets::{self, PositionTargets, TargetParams, TargetScratch};
 use crate::text::PromptInfo;
 
 /// The largest classifier-free guidance scale a session (and a model file's default) accepts.
@@ -106,6 +107,11 @@ pub struct Session {
     /// Why a step failed (non-finite values); steps are refused until a reset.
     failed: Option<String>,
     edit: Edit,
+    /// Joint positions the sampler is steered toward, and how strongly.
+    targets: Option<PositionTargets>,
+    target_params: TargetParams,
+    /// L at the latest step's clean-motion estimate (before its guidance moved it).
+    target_loss: Option<f64>,
 }
 
 /// A latent sample decoded into motion features, and which state of the session it shows.
@@ -171,6 +177,7 @@ struct StepBuffers {
     /// The step's clean-motion estimate, moved into the session only when the step completes.
     x0_next: Vec<f32>,
     flow: FlowScratch,
+    targets: TargetScratch,
 }
 
 /// Buffers of one guided network evaluation.
@@ -181,6 +188,8 @@ struct ForwardBuffers {
     pred_uncond: Vec<f32>,
     unused: Vec<f32>,
     ws: Workspace,
+    /// A flow step's implied end point, for position targets.
+    x1: Vec<f32>,
 }
 
 /// What a guided network evaluation needs besides its buffers.
@@ -298,6 +307,9 @@ impl Session {
             cancel_at: None,
             failed: None,
             edit: Edit::default(),
+            targets: None,
+            target_params: TargetParams::default(),
+            target_loss: None,
         })
     }
 
@@ -403,7 +415,71 @@ impl Session {
         self.edit.noise_step = None;
         self.decoded = Default::default();
         self.failed = None;
+        self.target_loss = None;
         self.cancel.store(false, Ordering::SeqCst);
+    }
+
+    /// Steers the following steps toward joint positions ([`crate::targets`]): the targets
+    /// cover the first [`PositionTargets::frames`] frames (at most the session's), in the
+    /// model's motion format. Replaces earlier targets; a mask and reference still keep their
+    /// values (targets steer the rest).
+    pub fn set_position_targets(&mut self, targets: PositionTargets) -> Result<()> {
+        targets::supported(&self.model)?;
+        let format = self.model.motion_format();
+        if targets.format() != format {
+            return Err(invalid_arg!(
+                "the position targets are for {} joints; this model's motion is {format}",
+                targets.format()
+            ));
+        }
+        if targets.frames() > self.frames {
+            return Err(invalid_arg!(
+                "position targets cover {} frames; the session has {}",
+                targets.frames(),
+                self.frames
+            ));
+        }
+        self.targets = Some(targets);
+        Ok(())
+    }
+
+    /// [`Session::set_position_targets`] from `[frames × joints × 3]` values in `convention`,
+    /// one mask flag per value (nonzero = constrained) or `None` (NaN = free).
+    pub fn set_position_target_values(
+        &mut self,
+        values: &[f32],
+        mask: Option<&[u8]>,
+        convention: crate::motion::Convention,
+    ) -> Result<()> {
+        let t = PositionTargets::new(self.model.motion_format(), values, mask, convention)?;
+        self.set_position_targets(t)
+    }
+
+    /// Removes the position targets: unguided from the next step on.
+    pub fn clear_position_targets(&mut self) {
+        self.targets = None;
+        self.target_loss = None;
+    }
+
+    pub fn position_targets(&self) -> Option<&PositionTargets> {
+        self.targets.as_ref()
+    }
+
+    /// How strongly targets steer (scale and schedule).
+    pub fn set_target_params(&mut self, params: &TargetParams) -> Result<()> {
+        params.validate()?;
+        self.target_params = *params;
+        Ok(())
+    }
+
+    pub fn target_params(&self) -> &TargetParams {
+        &self.target_params
+    }
+
+    /// The targets' loss `Σ‖(P(x̂) − c)⊙m‖₂` (metres) at the latest step's clean-motion
+    /// estimate, before that step's guidance; `None` before a guided step.
+    pub fn target_loss(&self) -> Option<f64> {
+        self.target_loss
     }
 
     /// A flag another thread may set to abandon the current or next step.
@@ -781,7 +857,27 @@ impl Session {
             x_prev,
             x0_next,
             flow,
+            targets: target_scratch,
         } = &mut self.bufs;
+        let mut loss = None;
+        let targets = self
+            .targets
+            .as_ref()
+            .filter(|_| self.target_params.scale > 0.0);
+        let params = self.target_params;
+        let rows = self.rows;
+        // The targets' pull at noise level `tau` on an estimate x̂ (or, for a flow step, on
+        // the velocity that implies it; see `targets::pull`).
+        let mut pull = |x_hat: &mut [f32], tau: f64, velocity: Option<(&mut [f32], f32)>| {
+            let Some(targets) = targets else {
+                return Ok(());
+            };
+            cancel.check()?;
+            let rho = params.rho(tau);
+            let l = targets::pull(&model, targets, x_hat, rows, rho, velocity, target_scratch)?;
+            loss = Some(l);
+            Ok::<(), Error>(())
+        };
         x_prev.resize(len, 0.0);
         x0_next.resize(len, 0.0);
         let n = self.rule.num_steps();
@@ -799,7 +895,11 @@ impl Session {
                     None
                 };
                 let v = (model.output_dim() > model.motion_dim()).then_some(&var[..]);
-                sampler.step_replacing(t, x_t, pred, v, z, replace, x_prev, x0_next)?;
+                let tau = sampler.model_timestep(t) as f64 / model.config().diffusion.num_timesteps as f64;
+                let mut guide = |x0: &mut [f32]| pull(x0, tau, None);
+                let guide: Option<&mut dyn FnMut(&mut [f32]) -> Result<()>> =
+                    targets.is_some().then_some(&mut guide);
+                sampler.step_guided(t, x_t, pred, v, z, replace, guide, x_prev, x0_next)?;
             }
             StepRule::Flow(sampler) => {
                 // Flow time runs forwards: the first step is k = 0 at t = 0 (noise).
@@ -808,6 +908,16 @@ impl Session {
                 let mut velocity = |tk: f32, x: &[f32], v: &mut [f32]| {
                     p.predict(fwd, x, tk, pred, var, cancel)?;
                     v.copy_from_slice(pred);
+                    if targets.is_some() && tk < 1.0 {
+                        // The velocity's implied end point x̂1 = x + (1 − t)·v.
+                        let left = 1.0 - tk;
+                        let mut x1 = std::mem::take(&mut fwd.x1);
+                        x1.clear();
+                        x1.extend(x.iter().zip(v.iter()).map(|(&a, &b)| a + left * b));
+                        let pulled = pull(&mut x1, left as f64, Some((v, left)));
+                        fwd.x1 = x1;
+                        pulled?;
+                    }
                     Ok(())
                 };
                 sampler.step(k, x_t, &mut velocity, flow, x_prev, x0_next)?;
@@ -826,6 +936,9 @@ impl Session {
         }
         std::mem::swap(&mut self.x, x_prev);
         std::mem::swap(&mut self.x0, x0_next);
+        if loss.is_some() {
+            self.target_loss = loss;
+        }
         self.remaining -= 1;
         self.stepped = true;
         if self.remaining == 0 && self.edit.params.paste {

@@ -431,6 +431,26 @@ impl DiffusionSampler {
         x_prev: &mut [f32],
         x0: &mut [f32],
     ) -> Result<()> {
+        self.step_guided(t, x_t, pred, var_pred, noise, replace, None, x_prev, x0)
+    }
+
+    /// [`DiffusionSampler::step_replacing`] with gradient guidance (MPGD, [`crate::targets`]):
+    /// `guide` moves x̂0 (after the clamp and the replacement) before the step is taken from it;
+    /// DDIM keeps the ε of the unguided x̂0, DDPM takes the posterior mean at the guided one.
+    /// The replacement's kept values are imposed again after `guide`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_guided(
+        &self,
+        t: usize,
+        x_t: &[f32],
+        pred: &[f32],
+        var_pred: Option<&[f32]>,
+        noise: Option<&[f32]>,
+        replace: Option<X0Replacement>,
+        guide: Option<&mut dyn FnMut(&mut [f32]) -> Result<()>>,
+        x_prev: &mut [f32],
+        x0: &mut [f32],
+    ) -> Result<()> {
         self.check_t(t)?;
         let n = x_t.len();
         check_len("pred", pred.len(), n)?;
@@ -467,15 +487,57 @@ impl DiffusionSampler {
             self.epsilon_diffusers(t, x_t, pred, x_prev);
         }
         self.predict_x0_unchecked(t, x_t, pred, x0);
-        if let Some(r) = replace {
+        if let Some(r) = &replace {
             crate::edit::impose(x0, r.reference, r.keep);
         }
+        let mut eps_ready = diffusers_ddim.is_some();
+        // DDPM under guidance: x_t as the moved x̂0 and the step's own ε would have made it.
+        let mut x_t_kept_eps: Option<Vec<f32>> = None;
+        if let Some(guide) = guide {
+            if let (SamplerKind::Ddim { .. }, false) = (self.kind, eps_ready) {
+                // MPGD keeps the step's own ε: derive it before x̂0 moves.
+                self.epsilon_from_x0(t, x_t, x0, x_prev);
+                eps_ready = true;
+            }
+            let before = (self.kind == SamplerKind::Ddpm).then(|| x0.to_vec());
+            guide(x0)?;
+            if let Some(r) = &replace {
+                crate::edit::impose(x0, r.reference, r.keep);
+            }
+            if let Some(before) = before {
+                // Keeping ε moves x_t by √ᾱ_t·δ; the posterior mean then moves by
+                // (c1 + c2·√ᾱ_t)·δ = √ᾱ_{t−1}·δ, as DDIM's step does.
+                let a = self.sched.sqrt_alphas_cumprod[t] as f32;
+                x_t_kept_eps = Some(
+                    x_t.iter()
+                        .zip(x0.iter().zip(&before))
+                        .map(|(&x, (&new, &old))| x + a * (new - old))
+                        .collect(),
+                );
+            }
+        }
+        let x_t = x_t_kept_eps.as_deref().unwrap_or(x_t);
         match (self.kind, diffusers_ddim) {
             (_, Some(eta)) => self.ddim_diffusers(t, eta, noise, x_prev, x0),
             (SamplerKind::Ddpm, _) => self.ddpm(t, x_t, var_pred, noise, x_prev, x0),
-            (SamplerKind::Ddim { eta }, _) => self.ddim(t, eta, x_t, noise, x_prev, x0),
+            (SamplerKind::Ddim { eta }, _) => {
+                if !eps_ready {
+                    self.epsilon_from_x0(t, x_t, x0, x_prev);
+                }
+                self.ddim(t, eta, noise, x_prev, x0)
+            }
         }
         Ok(())
+    }
+
+    /// guided-diffusion's `_predict_eps_from_xstart`: ε = (x_t/√ᾱ − x̂0)/√(1/ᾱ − 1).
+    fn epsilon_from_x0(&self, t: usize, x_t: &[f32], x0: &[f32], eps: &mut [f32]) {
+        let s = &self.sched;
+        let recip = s.sqrt_recip_alphas_cumprod[t] as f32;
+        let recipm1 = s.sqrt_recipm1_alphas_cumprod[t] as f32;
+        for ((e, &a), &x) in eps.iter_mut().zip(x0).zip(x_t) {
+            *e = (recip * x - a) / recipm1;
+        }
     }
 
     /// `DDIMScheduler.step` from ε (in `eps_then_x_prev`) and x̂0: σ² = η²·(1 − ᾱ_prev)/(1 − ᾱ)·
@@ -546,20 +608,17 @@ impl DiffusionSampler {
         }
     }
 
-    /// `ddim_sample`: ε re-derived from the (clamped) x̂0, then
+    /// `ddim_sample` from ε (in `eps_then_x_prev`, re-derived from the clamped x̂0) and x̂0:
     /// x_{t−1} = √ᾱ_prev·x̂0 + √(1 − ᾱ_prev − σ²)·ε + σ·z.
     fn ddim(
         &self,
         t: usize,
         eta: f32,
-        x_t: &[f32],
         noise: Option<&[f32]>,
-        x_prev: &mut [f32],
+        eps_then_x_prev: &mut [f32],
         x0: &[f32],
     ) {
         let s = &self.sched;
-        let recip = s.sqrt_recip_alphas_cumprod[t] as f32;
-        let recipm1 = s.sqrt_recipm1_alphas_cumprod[t] as f32;
         let ab = s.alphas_cumprod[t] as f32;
         let ab_prev = s.alphas_cumprod_prev[t] as f32;
         let sigma = eta * ((1.0 - ab_prev) / (1.0 - ab)).sqrt() * (1.0 - ab / ab_prev).sqrt();
@@ -567,12 +626,11 @@ impl DiffusionSampler {
         // Mathematically ≥ 0; the clamp only replaces a NaN the reference would produce from a
         // rounding-negative argument.
         let c_eps = (1.0 - ab_prev - sigma * sigma).max(0.0).sqrt();
-        for ((o, &a), &x) in x_prev.iter_mut().zip(x0).zip(x_t) {
-            let eps = (recip * x - a) / recipm1;
-            *o = a * c_x0 + c_eps * eps;
+        for (o, &a) in eps_then_x_prev.iter_mut().zip(x0) {
+            *o = a * c_x0 + c_eps * *o;
         }
         if let Some(z) = noise {
-            for (o, &zz) in x_prev.iter_mut().zip(z) {
+            for (o, &zz) in eps_then_x_prev.iter_mut().zip(z) {
                 *o += sigma * zz;
             }
         }

@@ -18,6 +18,7 @@ use crate::checkpoint::ModelFile;
 use crate::error::{invalid_arg, Error};
 use crate::models::{LoadOptions, Model, WeightType};
 use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
+use crate::targets::{TargetParams, TargetSchedule};
 
 use errors::{catch_quietly, guard, Fail};
 pub use errors::{flame_last_error, flame_status_string, FlameStatus};
@@ -89,6 +90,29 @@ pub struct FlameEditParams {
     pub paste: u32,
     /// Frames over which a seam's offset fades out (default 4; 0 = no blending).
     pub seam_frames: u32,
+}
+
+/// How the weight of position targets changes with the noise level τ (0 = clean, 1 = noise).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameTargetSchedule {
+    /// `4·τ·(1 − τ)`: nothing at either end, full strength half way (MoLA's MPGD; default).
+    Mpgd = 0,
+    /// The same weight at every step.
+    Constant = 1,
+}
+
+/// How strongly position targets steer ([`flame_session_set_position_targets`]). Initialise
+/// with [`flame_target_params_default`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameTargetParams {
+    /// `sizeof(FlameTargetParams)`.
+    pub struct_size: u32,
+    /// The step size `s` of `ρ = s·w(τ)`, in [0, 100] (default 0.6, MoLA's edit scale; 0 = off).
+    pub scale: f32,
+    /// A [`FlameTargetSchedule`] value.
+    pub schedule: i32,
 }
 
 /// Named groups of channels for [`flame_session_keep_part`].
@@ -630,6 +654,135 @@ pub unsafe extern "C" fn flame_session_set_edit_params(
             seam_frames: p.seam_frames as usize,
         };
         s.with(|st| Ok(st.session.set_edit_params(&e)?))
+    })
+}
+
+/// Fills `*params` with the target defaults: scale 0.6, the MPGD schedule.
+///
+/// # Safety
+/// `params` points to writable memory for a `FlameTargetParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_target_params_default(
+    params: *mut FlameTargetParams,
+) -> FlameStatus {
+    guard(|| {
+        let d = TargetParams::default();
+        let p = FlameTargetParams {
+            struct_size: std::mem::size_of::<FlameTargetParams>() as u32,
+            scale: d.scale,
+            schedule: FlameTargetSchedule::Mpgd as i32,
+        };
+        write_out(params, p, "params")
+    })
+}
+
+/// Sets how strongly position targets steer.
+///
+/// # Safety
+/// `session` is a live session; `params` points to a valid `FlameTargetParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_target_params(
+    session: *mut FlameSession,
+    params: *const FlameTargetParams,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let p = params
+            .as_ref()
+            .ok_or_else(|| Fail::from(invalid_arg!("`params` is NULL")))?;
+        check_size(
+            p.struct_size,
+            std::mem::size_of::<FlameTargetParams>(),
+            "params",
+        )?;
+        let schedule = u32::try_from(p.schedule)
+            .map_err(|_| invalid_arg!("unknown target schedule {}", p.schedule))
+            .and_then(TargetSchedule::from_u32)?;
+        let t = TargetParams {
+            scale: p.scale,
+            schedule,
+        };
+        s.with(|st| Ok(st.session.set_target_params(&t)?))
+    })
+}
+
+/// Steers the following steps toward joint positions: `targets` = `frames` × joints × 3 floats
+/// (x, y, z per joint, the joints of the model's skeleton as [`FlameModelInfo::joint_count`] counts
+/// them, frame-major), in `convention` (a [`FlameConvention`]) and its unit (metres or
+/// centimetres), covering the motion's first `frames` frames (1 <= frames <= the session's
+/// frames; `targets_len` must be a multiple of joints × 3). `mask` = one byte per value of
+/// `targets` (nonzero = constrained), or NULL: then a NaN value is free and every other value
+/// is constrained. A constrained value must be finite and at least one must be constrained.
+/// Each step then moves its clean-motion estimate down the gradient of the sum over frames and
+/// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see the README). A mask and reference
+/// set for editing still keep their values. Replaces earlier targets; on error nothing changes.
+///
+/// # Safety
+/// `session` is a live session; `targets` points to `targets_len` floats; `mask` is NULL or
+/// points to `mask_len` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_position_targets(
+    session: *mut FlameSession,
+    targets: *const f32,
+    targets_len: usize,
+    mask: *const u8,
+    mask_len: usize,
+    convention: i32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let values = slice_arg(targets, targets_len, "targets")?;
+        let mask = match mask.is_null() {
+            true if mask_len == 0 => None,
+            true => {
+                return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into())
+            }
+            false => Some(slice_arg(mask, mask_len, "mask")?),
+        };
+        let convention = poses::convention(convention)?;
+        s.with(|st| {
+            Ok(st
+                .session
+                .set_position_target_values(values, mask, convention)?)
+        })
+    })
+}
+
+/// Removes the position targets.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_clear_position_targets(
+    session: *mut FlameSession,
+) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.with(|st| {
+            st.session.clear_position_targets();
+            Ok(())
+        })
+    })
+}
+
+/// The position targets' loss (the sum of distances, in metres, over constrained joints and
+/// frames) at the latest step's clean-motion estimate, before that step's guidance, in `*loss`.
+/// FLAME_STATUS_WRONG_STATE before a guided step.
+///
+/// # Safety
+/// `session` is a live session; `loss` points to writable memory for a double.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_target_loss(
+    session: *const FlameSession,
+    loss: *mut f64,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let l = s.with(|st| {
+            st.session.target_loss().ok_or_else(|| {
+                Error::WrongState("no step has been guided by position targets yet".into()).into()
+            })
+        })?;
+        write_out(loss, l, "loss")
     })
 }
 

@@ -197,6 +197,26 @@ pub trait MotionDecoder: Send + Sync {
     ) -> Result<usize>;
     /// One line describing the decoder (`flame info`).
     fn summary(&self) -> String;
+    /// Whether [`MotionDecoder::vjp`] is implemented.
+    fn has_vjp(&self) -> bool {
+        false
+    }
+    /// The reverse-mode product gradient guidance needs: decodes `sample` (`[rows,
+    /// sample_dim]`), hands `loss` the features of every decoded frame (`[frames,
+    /// feature_dim]`, model space, before any length cut) to write their gradient into its third
+    /// argument (same shape), and writes the gradient with respect to `sample` into `d_sample`.
+    fn vjp(
+        &self,
+        _sample: &[f32],
+        _rows: usize,
+        _loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        _d_sample: &mut Vec<f32>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        Err(crate::error::invalid_arg!(
+            "this model's decoder has no gradient: position targets do not apply"
+        ))
+    }
 }
 
 /// What a denoiser is conditioned on, derived from a prompt once and reused at every step: a

@@ -711,6 +711,18 @@ pub struct VaeWorkspace {
     out: Vec<f32>,
 }
 
+/// Buffers of [`VaeDecoder::backward`]: the saved activations and the gradients.
+#[derive(Default)]
+pub struct VaeGradWorkspace {
+    saved: Vec<Vec<f32>>,
+    x: Vec<f32>,
+    h: Vec<f32>,
+    g: Vec<f32>,
+    g2: Vec<f32>,
+    cols: Vec<f32>,
+    features: Vec<f32>,
+}
+
 impl VaeDecoder {
     fn load(file: &ModelFile, cfg: &MolaFamily, ty: WeightType) -> Result<VaeDecoder> {
         let v = &cfg.vae;
@@ -800,6 +812,103 @@ impl VaeDecoder {
         &out[..t * self.cfg.output_dim]
     }
 
+    /// The decoder's reverse-mode product (MPGD, REFERENCE 7.1): a forward pass that keeps each
+    /// activation the backward needs, `loss` on the features of every decoded frame (flag
+    /// dropped: its gradient is 0), then the chain backwards — conv transposes, ReLU masks, the
+    /// residual sums and the ×2 upsampling's pair sums — into `d_sample` (`[rows,
+    /// latent_channels]`).
+    pub fn backward(
+        &self,
+        latent: &[f32],
+        rows: usize,
+        loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        d_sample: &mut Vec<f32>,
+        ws: &mut VaeGradWorkspace,
+    ) -> Result<()> {
+        let w = self.cfg.width;
+        let od = self.cfg.output_dim;
+        let VaeGradWorkspace {
+            saved,
+            x,
+            h,
+            g,
+            g2,
+            cols,
+            features,
+        } = ws;
+        // Forward, saving: the first conv's output, per block its input and its inner ReLU's
+        // output, and the last hidden ReLU's output.
+        let blocks: usize = self.stages.iter().map(|(b, _)| b.len()).sum();
+        saved.resize_with(2 * blocks + 2, Vec::new);
+        let mut slot = saved.iter_mut();
+        self.first.forward(latent, rows, x, cols, Activation::Relu);
+        let first_out = slot.next().expect("sized above");
+        first_out.clone_from(x);
+        let mut t = rows;
+        for (stage_blocks, up) in &self.stages {
+            for b in stage_blocks {
+                let input = slot.next().expect("sized above");
+                input.clear();
+                input.extend_from_slice(&x[..t * w]);
+                h.clone_from(input);
+                kernels::relu(h);
+                let inner = slot.next().expect("sized above");
+                b.conv1.forward(h, t, inner, cols, Activation::Relu);
+                b.conv2.forward(inner, t, h, cols, Activation::None);
+                kernels::add_inplace(&mut x[..t * w], &h[..t * w]);
+            }
+            let hh = sized(h, 2 * t * w);
+            for (i, f) in x[..t * w].chunks_exact(w).enumerate() {
+                hh[2 * i * w..(2 * i + 1) * w].copy_from_slice(f);
+                hh[(2 * i + 1) * w..(2 * i + 2) * w].copy_from_slice(f);
+            }
+            t *= 2;
+            up.forward(h, t, x, cols, Activation::None);
+        }
+        let hidden = slot.next().expect("sized above");
+        self.last_hidden.forward(x, t, hidden, cols, Activation::Relu);
+        self.out.forward(hidden, t, h, cols, Activation::None);
+
+        // The loss on the features; the flag channel's gradient is 0.
+        let fd = od - 1;
+        features.clear();
+        for f in h[..t * od].chunks_exact(od) {
+            features.extend_from_slice(&f[..fd]);
+        }
+        g.clear();
+        g.resize(t * fd, 0.0);
+        loss(features, t, g)?;
+        let d_raw = sized(g2, t * od);
+        for (d, s) in d_raw.chunks_exact_mut(od).zip(g.chunks_exact(fd)) {
+            d[..fd].copy_from_slice(s);
+            d[fd] = 0.0;
+        }
+
+        // Backward.
+        let mut saved = saved.iter().rev();
+        self.out.backward_input(g2, t, g, cols);
+        crate::grad::relu_backward(saved.next().expect("saved"), g);
+        self.last_hidden.backward_input(g, t, g2, cols);
+        // g2 = d(x) at the last stage's output.
+        for (stage_blocks, up) in self.stages.iter().rev() {
+            up.backward_input(g2, t, g, cols);
+            t /= 2;
+            crate::grad::upsample_nearest2_backward(g, t, w, g2);
+            for b in stage_blocks.iter().rev() {
+                let inner = saved.next().expect("saved");
+                let input = saved.next().expect("saved");
+                b.conv2.backward_input(g2, t, g, cols);
+                crate::grad::relu_backward(inner, g);
+                b.conv1.backward_input(g, t, x, cols);
+                crate::grad::relu_backward(input, x);
+                kernels::add_inplace(&mut g2[..t * w], &x[..t * w]);
+            }
+        }
+        crate::grad::relu_backward(saved.next().expect("saved"), g2);
+        self.first.backward_input(g2, rows, d_sample, cols);
+        Ok(())
+    }
+
     /// The valid length of a raw output of `frames` frames (see the module comment).
     pub fn valid_frames(&self, raw: &[f32], frames: usize) -> usize {
         let od = self.cfg.output_dim;
@@ -834,6 +943,21 @@ impl MotionDecoder for VaeDecoder {
             out.extend_from_slice(&f[..od - 1]);
         }
         Ok(valid)
+    }
+
+    fn has_vjp(&self) -> bool {
+        true
+    }
+
+    fn vjp(
+        &self,
+        sample: &[f32],
+        rows: usize,
+        loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        d_sample: &mut Vec<f32>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        self.backward(sample, rows, loss, d_sample, ws.get())
     }
 
     fn summary(&self) -> String {

@@ -173,6 +173,15 @@ pub fn root_path_channels(format: Format) -> Vec<usize> {
     }
 }
 
+/// The joints of the lower body (pelvis and legs) that exist in `format`, ascending.
+pub(crate) fn lower_body_joints(format: Format) -> Vec<usize> {
+    let joints = format.skeleton().joint_count();
+    std::iter::once(0)
+        .chain(LEG_JOINTS)
+        .filter(|&j| j < joints)
+        .collect()
+}
+
 /// The channels of a body part (ascending, no repeats). Lower and upper body partition the
 /// features.
 pub fn part_channels(format: Format, part: BodyPart) -> Vec<usize> {

@@ -10,6 +10,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use flame::models::WeightType;
 use flame::motion::{Convention, QuatOrder, Task};
 use flame::session::{EditMethod, Sampler};
+use flame::targets::TargetSchedule;
 
 const ABOUT: &str =
     "Text to human motion on the CPU with libflame models (FLAME, MDM, Motion Flow Matching).";
@@ -87,6 +88,23 @@ pub enum Command {
 }
 
 /// The library's `FromStr`, its message without the error kind's prefix.
+/// How `flame edit` imposes the reference: a library editing method, or position guidance
+/// toward the reference's joint positions (MoLA's MPGD).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum EditChoice {
+    Method(EditMethod),
+    Mpgd,
+}
+
+fn edit_choice(s: &str) -> Result<EditChoice, String> {
+    if s == "mpgd" {
+        return Ok(EditChoice::Mpgd);
+    }
+    lib::<EditMethod>(s)
+        .map(EditChoice::Method)
+        .map_err(|e| e.replace("rewrite-trajectory)", "rewrite-trajectory or mpgd)"))
+}
+
 fn lib<T>(s: &str) -> Result<T, String>
 where
     T: FromStr,
@@ -204,9 +222,19 @@ pub enum OnOff {
 pub struct EditArgs {
     #[command(flatten)]
     pub model: ModelArgs,
-    /// The reference motion: .npy features or a BVH written by libflame
-    #[arg(long, value_name = "FILE")]
-    pub reference: PathBuf,
+    /// The reference motion: .npy features or a BVH written by libflame (optional with --targets)
+    #[arg(long, value_name = "FILE", required_unless_present = "targets")]
+    pub reference: Option<PathBuf>,
+    /// Joint positions to steer toward: float32 .npy [frames, joints, 3], metres, in the
+    /// --convention's axes, NaN = unconstrained
+    #[arg(long, value_name = "FILE.npy")]
+    pub targets: Option<PathBuf>,
+    /// Step size of the position guidance (MoLA's edit scale) [default 0.6]
+    #[arg(long, value_name = "S")]
+    pub target_scale: Option<f32>,
+    /// How the position guidance weight follows the noise level [mpgd|constant; default mpgd]
+    #[arg(long, value_name = "SCHEDULE", value_parser = lib::<TargetSchedule>)]
+    pub target_schedule: Option<TargetSchedule>,
     /// What to generate the rest of
     #[arg(long, value_name = "TEXT")]
     pub prompt: String,
@@ -219,9 +247,10 @@ pub struct EditArgs {
     /// Joints to keep on every frame, by index or name (`root` = the root path)
     #[arg(long, value_name = "J,...")]
     pub keep_joints: Option<String>,
-    /// Editing algorithm [auto|noised-reference|replace-x0|rewrite-trajectory]
-    #[arg(long, value_name = "METHOD", value_parser = lib::<EditMethod>)]
-    pub method: Option<EditMethod>,
+    /// Editing algorithm [auto|noised-reference|replace-x0|rewrite-trajectory|mpgd]; mpgd steers
+    /// toward the reference's joint positions (auto picks it for latent models)
+    #[arg(long, value_name = "METHOD", value_parser = edit_choice)]
+    pub method: Option<EditChoice>,
     /// Flow models: the fraction of the steps during which the trajectory is rewritten [default 0.2]
     #[arg(long, value_name = "F", allow_negative_numbers = true)]
     pub edit_till: Option<f32>,

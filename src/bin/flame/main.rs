@@ -17,10 +17,12 @@ use flame::checkpoint::ModelFile;
 use flame::config::TextConfig;
 use flame::models::{LoadOptions, Model};
 use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
-use flame::session::{EditParams, Session, SessionParams, Which};
+use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
+use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
-    AssembleArgs, Cli, Command, EditArgs, GenerateArgs, InfoArgs, ModelArgs, OnOff, OutputArgs,
+    AssembleArgs, Cli, Command, EditArgs, EditChoice, GenerateArgs, InfoArgs, ModelArgs, OnOff,
+    OutputArgs,
     SamplingArgs,
 };
 
@@ -338,16 +340,18 @@ fn edit_mask(
 
 fn edit(a: &EditArgs) -> Result<(), String> {
     let outputs = Outputs::new(&a.output)?;
-    reference_kind(&a.reference)?;
-    paths::check_readable(&a.reference)?;
-    if let Some(noise) = &a.sampling.noise {
-        paths::check_readable(noise)?;
+    if let Some(reference) = &a.reference {
+        reference_kind(reference)?;
+        paths::check_readable(reference)?;
+    }
+    for path in [&a.sampling.noise, &a.targets].into_iter().flatten() {
+        paths::check_readable(path)?;
     }
     let mut edit = EditParams {
         paste: a.paste == OnOff::On,
         ..EditParams::default()
     };
-    if let Some(m) = a.method {
+    if let Some(EditChoice::Method(m)) = a.method {
         edit.method = m;
     }
     if let Some(t) = a.edit_till {
@@ -356,12 +360,42 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     if let Some(n) = a.seam_frames {
         edit.seam_frames = n;
     }
+    let mut target_params = TargetParams::default();
+    if let Some(s) = a.target_scale {
+        target_params.scale = s;
+    }
+    if let Some(s) = a.target_schedule {
+        target_params.schedule = s;
+    }
+    target_params.validate().map_err(|e| e.to_string())?;
     let mut params = session_params(&a.sampling);
     let loaded = load_model(&a.model)?;
     note_unknown_actions(&loaded, &a.prompt);
     let model = &loaded.model;
-    let reference = read_reference(&a.reference, model, a.reference_convention)?;
-    params.frames = params.frames.or(Some(reference.frames));
+    let reference = match &a.reference {
+        Some(r) => Some(read_reference(r, model, a.reference_convention)?),
+        None => None,
+    };
+    let targets = match &a.targets {
+        Some(t) => Some(read_targets(t, model.motion_format(), outputs.convention)?),
+        None => None,
+    };
+    // MoLA's MPGD for latent models (their sample is not the motion, so no mask applies).
+    let mpgd = match a.method {
+        Some(EditChoice::Mpgd) => true,
+        Some(EditChoice::Method(EditMethod::Auto)) | None => model.is_latent(),
+        Some(EditChoice::Method(_)) => false,
+    };
+    if mpgd && reference.is_some() && targets.is_some() {
+        return Err(
+            "--method mpgd steers toward the reference's joint positions; give --reference or --targets, not both"
+                .into(),
+        );
+    }
+    params.frames = params
+        .frames
+        .or(reference.as_ref().map(|r| r.frames))
+        .or(targets.as_ref().map(|t| t.frames()));
     let flow = matches!(
         model.config().diffusion.parameterization.as_str(),
         "velocity" | "flow"
@@ -374,23 +408,46 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     check_latent_arg(model, &a.sampling)?;
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     let frames = session.frames();
-    if reference.frames > frames {
-        return Err(format!(
-            "the reference has {} frames, more than the {frames} to generate (give --frames)",
-            reference.frames
-        ));
-    }
-    let mask = edit_mask(a, model.motion_format(), frames, reference.frames)?;
-    eprintln!(
-        "keeping {} of {} values ({:.0}%)",
-        mask.kept_count(),
-        mask.flags().len(),
-        100.0 * mask.kept_count() as f64 / mask.flags().len() as f64
-    );
     let e = |e: flame::Error| e.to_string();
-    session.set_edit_params(&edit).map_err(e)?;
-    session.set_reference(&reference.features).map_err(e)?;
-    session.set_mask_from(&mask).map_err(e)?;
+    session.set_target_params(&target_params).map_err(e)?;
+    if let Some(reference) = &reference {
+        if reference.frames > frames {
+            return Err(format!(
+                "the reference has {} frames, more than the {frames} to generate (give --frames)",
+                reference.frames
+            ));
+        }
+        let mask = edit_mask(a, model.motion_format(), frames, reference.frames)?;
+        if mpgd {
+            let t = reference_targets(model, reference, &mask)?;
+            eprintln!(
+                "steering {} joint coordinates over {} frames toward the reference (MPGD, scale {})",
+                t.constrained(),
+                t.frames(),
+                target_params.scale
+            );
+            session.set_position_targets(t).map_err(e)?;
+        } else {
+            eprintln!(
+                "keeping {} of {} values ({:.0}%)",
+                mask.kept_count(),
+                mask.flags().len(),
+                100.0 * mask.kept_count() as f64 / mask.flags().len() as f64
+            );
+            session.set_edit_params(&edit).map_err(e)?;
+            session.set_reference(&reference.features).map_err(e)?;
+            session.set_mask_from(&mask).map_err(e)?;
+        }
+    }
+    if let Some(t) = targets {
+        eprintln!(
+            "steering {} joint coordinates over {} frames toward --targets (scale {})",
+            t.constrained(),
+            t.frames(),
+            target_params.scale
+        );
+        session.set_position_targets(t).map_err(e)?;
+    }
     if let Some(noise) = &a.sampling.noise {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
         session.set_initial_noise(&x).map_err(e)?;
@@ -398,9 +455,61 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     session.set_prompt(&a.prompt).map_err(e)?;
     note_prompt_fit(&session);
     sample(&mut session)?;
+    if let Some(loss) = session.target_loss() {
+        eprintln!("position targets: loss {loss:.4} m at the last step's estimate");
+    }
     write_latent(&session, &a.sampling)?;
     let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
     outputs.write(x, frames, model, decoder.as_ref())
+}
+
+/// `--targets`: float32 `[frames, joints, 3]` positions in `convention`, NaN = free.
+fn read_targets(
+    path: &Path,
+    format: Format,
+    convention: Convention,
+) -> Result<PositionTargets, String> {
+    let (shape, x) = flame::npy::read_f32(path).map_err(|e| e.to_string())?;
+    let joints = format.skeleton().joint_count();
+    if shape.len() != 3 || shape[1] != joints || shape[2] != 3 {
+        return Err(format!(
+            "cannot use {}: shape {shape:?}, expected [frames, {joints}, 3] joint positions",
+            path.display()
+        ));
+    }
+    PositionTargets::new(format, &x, None, convention)
+        .map_err(|e| format!("cannot use {}: {e}", path.display()))
+}
+
+/// MPGD's control from a reference: the joint positions of the reference on the frames and
+/// joints the edit keeps (a joint is kept on a frame when the mask keeps any of its values;
+/// the root path is the pelvis).
+fn reference_targets(
+    model: &Model,
+    reference: &Reference,
+    mask: &Mask,
+) -> Result<PositionTargets, String> {
+    let format = model.motion_format();
+    let dim = format.feature_dim();
+    let frames = reference.frames;
+    let features = &reference.features[..frames * dim];
+    let poses = Poses::decode(format, features, frames, &model.read_options(0.0, true))
+        .map_err(|e| e.to_string())?;
+    let positions = poses.positions(Convention::Native);
+    let joints = format.skeleton().joint_count();
+    let mut keep = vec![false; frames * joints];
+    let root = motion::mask::root_path_channels(format);
+    for (f, flags) in mask.flags().chunks_exact(dim).take(frames).enumerate() {
+        for j in 0..joints {
+            let channels = motion::mask::joint_channels(format, j).map_err(|e| e.to_string())?;
+            let mut kept = channels.iter().any(|&c| flags[c]);
+            if j == 0 {
+                kept |= root.iter().any(|&c| flags[c]);
+            }
+            keep[f * joints + j] = kept;
+        }
+    }
+    PositionTargets::from_positions(format, &positions, frames, &keep).map_err(|e| e.to_string())
 }
 
 /// Runs every step, reporting progress on stderr.
