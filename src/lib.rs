@@ -22,6 +22,8 @@ pub mod edit;
 pub mod error;
 pub mod ffi;
 /// cbindgen:ignore
+pub mod grad;
+/// cbindgen:ignore
 pub mod kernels;
 /// cbindgen:ignore
 pub mod models;

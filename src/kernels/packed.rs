@@ -198,6 +198,38 @@ impl PackedWeights {
         self.lines.len() * 64
     }
 
+    /// The weight back as `[n, k]` row-major f32: the values as stored (narrowed for f16 and
+    /// bf16, widened exactly), the panel padding dropped. Used to build derived layers (the
+    /// transpose a backward pass multiplies by) only when they are needed.
+    pub fn unpack(&self) -> Vec<f32> {
+        let (n, k) = (self.n, self.k);
+        let mut w = vec![0.0f32; n * k];
+        let at = |col: usize, p: usize| ((col / NR) * k + p) * NR + col % NR;
+        match self.ty {
+            WeightType::F32 => {
+                let src = self.f32s();
+                for (col, row) in w.chunks_exact_mut(k.max(1)).take(n).enumerate() {
+                    for (p, v) in row.iter_mut().enumerate() {
+                        *v = src[at(col, p)];
+                    }
+                }
+            }
+            ty => {
+                let src = self.u16s();
+                for (col, row) in w.chunks_exact_mut(k.max(1)).take(n).enumerate() {
+                    for (p, v) in row.iter_mut().enumerate() {
+                        let bits = src[at(col, p)];
+                        *v = match ty {
+                            WeightType::F16 => f16::from_bits(bits).to_f32(),
+                            _ => bf16::from_bits(bits).to_f32(),
+                        };
+                    }
+                }
+            }
+        }
+        w
+    }
+
     fn values(&self) -> usize {
         self.n.div_ceil(NR) * self.k * NR
     }
@@ -208,6 +240,20 @@ impl PackedWeights {
         // SAFETY: `lines` owns at least `len * 4` bytes, 64-byte aligned, and every bit pattern
         // is a valid f32; the borrow of `self` keeps them alive and unaliased.
         unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr() as *mut f32, len) }
+    }
+
+    fn f32s(&self) -> &[f32] {
+        let len = self.values();
+        assert!(len * 4 <= self.lines.len() * 64);
+        // SAFETY: as in `f32_mut`, shared.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr() as *const f32, len) }
+    }
+
+    fn u16s(&self) -> &[u16] {
+        let len = self.values();
+        assert!(len * 2 <= self.lines.len() * 64);
+        // SAFETY: as in `f32_mut`, for u16, shared.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr() as *const u16, len) }
     }
 
     fn u16_mut(&mut self) -> &mut [u16] {
@@ -813,6 +859,22 @@ mod tests {
                             );
                         }
                     }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn unpack_returns_the_stored_weights() {
+        let mut rng = Rng::new(15);
+        for &(n, k) in &[(1, 1), (17, 5), (33, 40), (16, 3), (5, 0)] {
+            let w = rng.vec(n * k);
+            for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
+                let got = PackedWeights::pack(&w, n, k, ty).unpack();
+                let want = narrowed(&w, ty);
+                assert!(same_bits(&got, &want), "{ty:?} {n}x{k}");
+                if ty != WeightType::F32 && n * k > 0 {
+                    assert!(got != w, "{ty:?} {n}x{k}: nothing was narrowed");
                 }
             }
         }

@@ -4,12 +4,20 @@
 //! Linear weights are packed at load into the GEMM kernel's panel layout, in the weight type
 //! the caller chose ([`WeightType`]); biases and norms stay f32.
 
+use std::sync::OnceLock;
+
 use crate::checkpoint::{ModelFile, Tensor};
 use crate::error::Result;
 use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, WeightType};
 
 /// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
-pub(crate) struct Linear(PackedLinear);
+pub(crate) struct Linear {
+    packed: PackedLinear,
+    /// `Wᵀ` (`[in, out]`, no bias) for [`Linear::backward_input`], built on first use so only
+    /// models that take gradients pay its memory; `OnceLock` because models are shared across
+    /// threads.
+    transposed: OnceLock<PackedLinear>,
+}
 
 impl Linear {
     pub(crate) fn load(
@@ -35,7 +43,7 @@ impl Linear {
         ty: WeightType,
     ) -> Result<Linear> {
         let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
-        let layer = Linear(PackedLinear::new(w.data(), None, n_in, n_out, ty));
+        let layer = Linear::new(PackedLinear::new(w.data(), None, n_in, n_out, ty));
         file.release(&format!("{name}.weight"));
         Ok(layer)
     }
@@ -48,7 +56,14 @@ impl Linear {
         n_out: usize,
         ty: WeightType,
     ) -> Linear {
-        Linear(PackedLinear::new(weight, bias, n_in, n_out, ty))
+        Linear::new(PackedLinear::new(weight, bias, n_in, n_out, ty))
+    }
+
+    fn new(packed: PackedLinear) -> Linear {
+        Linear {
+            packed,
+            transposed: OnceLock::new(),
+        }
     }
 
     /// Rows `rows` of a `[n, n_in]` weight and its bias, as one layer.
@@ -61,23 +76,46 @@ impl Linear {
     ) -> Linear {
         let weight = &w.data()[rows.start * n_in..rows.end * n_in];
         let bias = &b.data()[rows.clone()];
-        Linear(PackedLinear::new(weight, Some(bias), n_in, rows.len(), ty))
+        Linear::new(PackedLinear::new(weight, Some(bias), n_in, rows.len(), ty))
     }
 
     /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
     pub(crate) fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        self.0.forward(x, rows, y, Activation::None);
+        self.packed.forward(x, rows, y, Activation::None);
     }
 
     /// `y = act(x · Wᵀ + b)`, the activation applied as each output tile is finished.
     pub(crate) fn forward_act(&self, x: &[f32], rows: usize, y: &mut [f32], act: Activation) {
-        self.0.forward(x, rows, y, act);
+        self.packed.forward(x, rows, y, act);
+    }
+
+    /// The vector-Jacobian product with respect to the input: `dx[rows, in] = dy[rows, out] · W`
+    /// (overwritten). The bias does not enter it.
+    pub(crate) fn backward_input(&self, dy: &[f32], rows: usize, dx: &mut [f32]) {
+        let t = self.transposed.get_or_init(|| {
+            let w = self.packed.weights();
+            let (n_in, n_out) = (w.inputs(), w.outputs());
+            let wt = transpose(&w.unpack(), n_out, n_in);
+            PackedLinear::new(&wt, None, n_out, n_in, w.weight_type())
+        });
+        t.forward(dy, rows, dx, Activation::None);
     }
 
     /// Bytes of packed weights.
     pub(crate) fn weight_bytes(&self) -> usize {
-        self.0.weights().bytes()
+        self.packed.weights().bytes()
     }
+}
+
+/// `[rows, cols]` row-major → `[cols, rows]`.
+fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; m.len()];
+    for r in 0..rows {
+        for c in 0..cols {
+            t[c * rows + r] = m[r * cols + c];
+        }
+    }
+    t
 }
 
 /// Reads `nn.MultiheadAttention`'s packed `in_proj_weight` `[3E, E]` (rows q, k, v) and bias.
@@ -276,6 +314,44 @@ impl Conv1d {
             }
         }
         self.linear.forward_act(c, frames, y, act);
+    }
+
+    /// The vector-Jacobian product with respect to the input `x [frames, in]` for an upstream
+    /// gradient `dy [frames, out]` of the convolution before any activation (the caller applies
+    /// the activation's backward first). The transpose of [`Conv1d::forward`]'s gather: the
+    /// column gradient `dy · W` is scattered back onto the frames each tap read (col2im), taps
+    /// that fell into the padding dropped. `dx` is resized to `frames · in` and overwritten;
+    /// `cols` is scratch.
+    // Until a decoder's backward chain calls it, only the tests do.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub(crate) fn backward_input(
+        &self,
+        dy: &[f32],
+        frames: usize,
+        dx: &mut Vec<f32>,
+        cols: &mut Vec<f32>,
+    ) {
+        let (n, k) = (self.n_in, self.kernel);
+        let dx = sized(dx, frames * n);
+        if k == 1 {
+            self.linear.backward_input(dy, frames, dx);
+            return;
+        }
+        let half = (k - 1) / 2 * self.dilation;
+        let dcols = sized(cols, frames * k * n);
+        self.linear.backward_input(dy, frames, dcols);
+        dx.fill(0.0);
+        for (t, row) in dcols.chunks_exact(k * n).enumerate() {
+            for (j, tap) in row.chunks_exact(n).enumerate() {
+                if let Some(s) = (t + j * self.dilation).checked_sub(half) {
+                    if s < frames {
+                        for (d, &g) in dx[s * n..(s + 1) * n].iter_mut().zip(tap) {
+                            *d += g;
+                        }
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -536,6 +612,28 @@ mod tests {
         (0..n)
             .map(|i| ((i as f32 + seed) * 0.7311).sin() + 0.01)
             .collect()
+    }
+
+    #[test]
+    fn the_transpose_is_built_once_on_first_use_in_the_weight_type() {
+        let (n_in, n_out, rows) = (3, 17, 2);
+        let w = values(n_out * n_in, 4.0);
+        for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
+            let layer = Linear::from_weight(&w, None, n_in, n_out, ty);
+            assert!(layer.transposed.get().is_none());
+            let dy = values(rows * n_out, 5.0);
+            let mut dx = vec![0.0; rows * n_in];
+            layer.backward_input(&dy, rows, &mut dx);
+            let t = layer.transposed.get().expect("built by the first call");
+            assert_eq!(t.weights().weight_type(), ty);
+            assert_eq!((t.inputs(), t.outputs()), (n_out, n_in));
+            let first = t as *const PackedLinear;
+            layer.backward_input(&dy, rows, &mut dx);
+            assert_eq!(
+                layer.transposed.get().unwrap() as *const PackedLinear,
+                first
+            );
+        }
     }
 
     #[test]

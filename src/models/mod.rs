@@ -28,7 +28,7 @@
 //! shared too ([`TextModel`]).
 
 pub mod flame;
-mod layers;
+pub(crate) mod layers;
 pub mod mdm;
 pub mod mld;
 pub mod mola;

@@ -61,7 +61,7 @@ pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
 /// `recover_root_rot_pos`: per frame, `R(q_root)` (world → facing frame) and the root position.
 /// θ is the exclusive cumulative sum of dim 0 (half the yaw change); the planar velocity of frame
 /// t−1 is rotated into the world by `qinv(q_root[t])` and accumulated; the height is dim 3.
-fn root_track(x: &[f64], dim: usize) -> (Vec<Mat3>, Vec<Vec3>) {
+pub(crate) fn root_track(x: &[f64], dim: usize) -> (Vec<Mat3>, Vec<Vec3>) {
     let (mut theta, mut planar) = (0.0f64, [0.0f64; 2]);
     let (mut rots, mut positions) = (Vec::new(), Vec::new());
     let mut prev: Option<&[f64]> = None;
@@ -84,7 +84,7 @@ fn root_track(x: &[f64], dim: usize) -> (Vec<Mat3>, Vec<Vec3>) {
 
 /// `recover_from_ric` for one frame: joints 1..21 are stored in the facing frame relative to the
 /// root's x and z (y absolute); joint 0 is the root.
-fn ric_positions(row: &[f64], r_root: &Mat3, root: &Vec3, out: &mut [Vec3]) {
+pub(crate) fn ric_positions(row: &[f64], r_root: &Mat3, root: &Vec3, out: &mut [Vec3]) {
     let to_world = rotation::transpose(r_root);
     out[0] = *root;
     for (j, p) in row[RIC..RIC + 63].chunks_exact(3).enumerate() {

@@ -65,7 +65,7 @@
 pub mod bvh;
 pub mod convention;
 pub mod format;
-mod humanml263;
+pub(crate) mod humanml263;
 pub mod json;
 pub mod layout;
 pub mod mask;
