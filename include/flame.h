@@ -293,6 +293,17 @@ typedef struct FlameEditParams {
   uint32_t seam_frames;
 } FlameEditParams;
 
+// How strongly position targets steer ([`flame_session_set_position_targets`]). Initialise
+// with [`flame_target_params_default`].
+typedef struct FlameTargetParams {
+  // `sizeof(FlameTargetParams)`.
+  uint32_t struct_size;
+  // The step size `s` of `ρ = s·w(τ)`, in [0, 100] (default 0.6, MoLA's edit scale; 0 = off).
+  float scale;
+  // A [`FlameTargetSchedule`] value.
+  int32_t schedule;
+} FlameTargetParams;
+
 // What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
 // encoder's window. Set `struct_size = sizeof(FlamePromptInfo)` first.
 typedef struct FlamePromptInfo {
@@ -386,6 +397,54 @@ enum FlameStatus flame_edit_params_default(struct FlameEditParams *params);
 // `session` is a live session; `params` points to a valid `FlameEditParams`.
 enum FlameStatus flame_session_set_edit_params(struct FlameSession *session,
                                                const struct FlameEditParams *params);
+
+// Fills `*params` with the target defaults: scale 0.6, the MPGD schedule.
+//
+// # Safety
+// `params` points to writable memory for a `FlameTargetParams`.
+enum FlameStatus flame_target_params_default(struct FlameTargetParams *params);
+
+// Sets how strongly position targets steer.
+//
+// # Safety
+// `session` is a live session; `params` points to a valid `FlameTargetParams`.
+enum FlameStatus flame_session_set_target_params(struct FlameSession *session,
+                                                 const struct FlameTargetParams *params);
+
+// Steers the following steps toward joint positions: `targets` = `frames` × joints × 3 floats
+// (x, y, z per joint, the joints of the model's skeleton as [`FlameModelInfo::joint_count`] counts
+// them, frame-major), in `convention` (a [`FlameConvention`]) and its unit (metres or
+// centimetres), covering the motion's first `frames` frames (1 <= frames <= the session's
+// frames; `targets_len` must be a multiple of joints × 3). `mask` = one byte per value of
+// `targets` (nonzero = constrained), or NULL: then a NaN value is free and every other value
+// is constrained. A constrained value must be finite and at least one must be constrained.
+// Each step then moves its clean-motion estimate down the gradient of the sum over frames and
+// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see the README). A mask and reference
+// set for editing still keep their values. Replaces earlier targets; on error nothing changes.
+//
+// # Safety
+// `session` is a live session; `targets` points to `targets_len` floats; `mask` is NULL or
+// points to `mask_len` bytes.
+enum FlameStatus flame_session_set_position_targets(struct FlameSession *session,
+                                                    const float *targets,
+                                                    size_t targets_len,
+                                                    const uint8_t *mask,
+                                                    size_t mask_len,
+                                                    int32_t convention);
+
+// Removes the position targets.
+//
+// # Safety
+// `session` is a live session.
+enum FlameStatus flame_session_clear_position_targets(struct FlameSession *session);
+
+// The position targets' loss (the sum of distances, in metres, over constrained joints and
+// frames) at the latest step's clean-motion estimate, before that step's guidance, in `*loss`.
+// FLAME_STATUS_WRONG_STATE before a guided step.
+//
+// # Safety
+// `session` is a live session; `loss` points to writable memory for a double.
+enum FlameStatus flame_session_target_loss(const struct FlameSession *session, double *loss);
 
 // Starts a generation on `model`. `params` may be NULL for the defaults. The session keeps
 // the model alive; free it with [`flame_session_free`].

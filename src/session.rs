@@ -895,9 +895,10 @@ impl Session {
                     None
                 };
                 let v = (model.output_dim() > model.motion_dim()).then_some(&var[..]);
-                let tau = sampler.model_timestep(t) as f64 / model.config().diffusion.num_timesteps as f64;
+                let tau = sampler.model_timestep(t) as f64
+                    / model.config().diffusion.num_timesteps as f64;
                 let mut guide = |x0: &mut [f32]| pull(x0, tau, None);
-                let guide: Option<&mut dyn FnMut(&mut [f32]) -> Result<()>> =
+                let guide: Option<&mut diffusion::X0Guide> =
                     targets.is_some().then_some(&mut guide);
                 sampler.step_guided(t, x_t, pred, v, z, replace, guide, x_prev, x0_next)?;
             }

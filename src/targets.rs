@@ -48,10 +48,9 @@ impl TargetSchedule {
     }
 
     pub fn from_u32(v: u32) -> Result<TargetSchedule> {
-        TargetSchedule::ALL
-            .get(v as usize)
-            .copied()
-            .ok_or_else(|| invalid_arg!("unknown target schedule {v} (expected 0 mpgd or 1 constant)"))
+        TargetSchedule::ALL.get(v as usize).copied().ok_or_else(|| {
+            invalid_arg!("unknown target schedule {v} (expected 0 mpgd or 1 constant)")
+        })
     }
 
     /// The weight at noise level `tau`.
@@ -69,7 +68,9 @@ impl FromStr for TargetSchedule {
         TargetSchedule::ALL
             .into_iter()
             .find(|k| k.name() == s)
-            .ok_or_else(|| invalid_arg!("unknown target schedule `{s}` (expected mpgd or constant)"))
+            .ok_or_else(|| {
+                invalid_arg!("unknown target schedule `{s}` (expected mpgd or constant)")
+            })
     }
 }
 
@@ -131,7 +132,7 @@ impl PositionTargets {
     ) -> Result<PositionTargets> {
         let joints = format.skeleton().joint_count();
         let per_frame = joints * 3;
-        if targets.is_empty() || targets.len() % per_frame != 0 {
+        if targets.is_empty() || !targets.len().is_multiple_of(per_frame) {
             return Err(invalid_arg!(
                 "position targets hold {} values; expected frames x {joints} joints x 3 (a multiple of {per_frame}, at least one frame)",
                 targets.len()
@@ -201,7 +202,9 @@ impl PositionTargets {
                 keep.len()
             ));
         }
-        if let Some(i) = (0..positions.len()).find(|&i| keep[i] && !positions[i].iter().all(|v| v.is_finite())) {
+        if let Some(i) =
+            (0..positions.len()).find(|&i| keep[i] && !positions[i].iter().all(|v| v.is_finite()))
+        {
             return Err(invalid_arg!(
                 "reference position of joint {} at frame {} is not finite",
                 i % joints,
@@ -261,7 +264,12 @@ impl PositionTargets {
     /// The loss `L` on native joint positions `[frames × joints]`.
     pub fn loss(&self, positions: &[Vec3]) -> f64 {
         let mut g = vec![[0.0; 3]; self.target.len()];
-        grad::l2_norm_sum_grad(&positions[..self.target.len()], &self.target, &self.weight, &mut g)
+        grad::l2_norm_sum_grad(
+            &positions[..self.target.len()],
+            &self.target,
+            &self.weight,
+            &mut g,
+        )
     }
 }
 
@@ -394,12 +402,19 @@ fn motion_loss(
     let dim = format.feature_dim();
     let n = targets.frames;
     let opts = model.read_options(0.0, true);
-    let TargetScratch { x: xd, pos, d_pos, .. } = scratch;
+    let TargetScratch {
+        x: xd, pos, d_pos, ..
+    } = scratch;
     denormalized(&x[..n * dim], dim, &opts, xd);
     grad::positions(format, xd, n, pos)?;
     d_pos.clear();
     d_pos.resize(pos.len(), [0.0; 3]);
-    Ok(grad::l2_norm_sum_grad(pos, &targets.target, &targets.weight, d_pos))
+    Ok(grad::l2_norm_sum_grad(
+        pos,
+        &targets.target,
+        &targets.weight,
+        d_pos,
+    ))
 }
 
 /// `x · std + mean` in f64 (or `x` for formats that are not normalised).
@@ -463,19 +478,31 @@ mod tests {
             let joints = m.motion_format().skeleton().joint_count();
             let mut values = vec![0.0f32; frames * joints * 3];
             rng.fill(&mut values);
-            let t = PositionTargets::new(m.motion_format(), &values, None, Convention::Native)
-                .unwrap();
+            let t =
+                PositionTargets::new(m.motion_format(), &values, None, Convention::Native).unwrap();
             let mut s = TargetScratch::default();
             gradient(&m, &t, &x, rows, &mut s).unwrap();
-            let analytic: f64 = s.grad.iter().zip(&dir).map(|(&g, &d)| g as f64 * d as f64).sum();
+            let analytic: f64 = s
+                .grad
+                .iter()
+                .zip(&dir)
+                .map(|(&g, &d)| g as f64 * d as f64)
+                .sum();
             let h = 1e-3f32;
             let at = |sign: f32, s: &mut TargetScratch| {
-                let y: Vec<f32> = x.iter().zip(&dir).map(|(&a, &d)| a + sign * h * d).collect();
+                let y: Vec<f32> = x
+                    .iter()
+                    .zip(&dir)
+                    .map(|(&a, &d)| a + sign * h * d)
+                    .collect();
                 gradient(&m, &t, &y, rows, s).unwrap()
             };
             let numeric = (at(1.0, &mut s) - at(-1.0, &mut s)) / (2.0 * h as f64);
             let rel = (analytic - numeric).abs() / numeric.abs().max(1e-3);
-            assert!(rel < 2e-2, "{file}: analytic {analytic} vs numeric {numeric}");
+            assert!(
+                rel < 2e-2,
+                "{file}: analytic {analytic} vs numeric {numeric}"
+            );
         }
     }
 }

@@ -64,10 +64,16 @@ fn session(case: Case, seed: u64) -> Session {
     match case {
         Case::FlameDdpm | Case::FlameDdim => s.set_prompt("a person walks forward.").unwrap(),
         Case::Mola => s
-            .set_condition(Condition::text_vector(text("mola_expected.safetensors", "text")))
+            .set_condition(Condition::text_vector(text(
+                "mola_expected.safetensors",
+                "text",
+            )))
             .unwrap(),
         _ => s
-            .set_condition(Condition::text_vector(text("mdm_expected.safetensors", "text")))
+            .set_condition(Condition::text_vector(text(
+                "mdm_expected.safetensors",
+                "text",
+            )))
             .unwrap(),
     }
     s
@@ -237,7 +243,10 @@ fn targets_in_any_read_convention_are_the_same_targets() {
         let t = PositionTargets::new(format, &flat(&poses.positions(c)), None, c).unwrap();
         assert_eq!(t.constrained(), reference.constrained());
         let at_source = t.loss(&native);
-        assert!(at_source < 1e-3, "{c}: loss {at_source} at the motion the targets came from");
+        assert!(
+            at_source < 1e-3,
+            "{c}: loss {at_source} at the motion the targets came from"
+        );
         let (a, b) = (t.loss(&elsewhere), reference.loss(&elsewhere));
         assert!((a - b).abs() < 1e-4 * b.max(1.0), "{c}: {a} vs {b}");
     }
@@ -249,7 +258,8 @@ fn bad_targets_are_refused_and_change_nothing() {
     let j = joints(&s);
     let n = FRAMES * j * 3;
     let good = vec![0.1f32; n];
-    let cases: Vec<(Vec<f32>, Option<Vec<u8>>, &str)> = vec![
+    type Bad = (Vec<f32>, Option<Vec<u8>>, &'static str);
+    let cases: Vec<Bad> = vec![
         (vec![0.1; n - 1], None, "multiple"),
         (Vec::new(), None, "multiple"),
         (vec![0.1; (FRAMES + 1) * j * 3], None, "session has"),
@@ -304,4 +314,3 @@ fn bad_targets_are_refused_and_change_nothing() {
         .unwrap();
     assert_eq!(s.position_targets().unwrap().constrained(), n - 1);
 }
-

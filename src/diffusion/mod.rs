@@ -21,6 +21,7 @@ pub use respace::{
     space_timesteps_ddim_stride, Spacing,
 };
 pub use sampler::{
-    guide, Convention, DiffusionSampler, Parameterization, SamplerKind, Variance, X0Replacement,
+    guide, Convention, DiffusionSampler, Parameterization, SamplerKind, Variance, X0Guide,
+    X0Replacement,
 };
 pub use schedule::{betas, diffusers_alphas_cumprod, BetaSchedule, Schedule};

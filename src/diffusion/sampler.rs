@@ -447,7 +447,7 @@ impl DiffusionSampler {
         var_pred: Option<&[f32]>,
         noise: Option<&[f32]>,
         replace: Option<X0Replacement>,
-        guide: Option<&mut dyn FnMut(&mut [f32]) -> Result<()>>,
+        guide: Option<&mut X0Guide>,
         x_prev: &mut [f32],
         x0: &mut [f32],
     ) -> Result<()> {
@@ -666,6 +666,9 @@ impl DiffusionSampler {
         Ok(())
     }
 }
+
+/// Moves a step's clean-motion estimate x̂0 in place (gradient guidance).
+pub type X0Guide<'a> = dyn FnMut(&mut [f32]) -> Result<()> + 'a;
 
 /// The reference values that replace x̂0's kept values (one flag per value, `true` = keep).
 #[derive(Clone, Copy, Debug)]

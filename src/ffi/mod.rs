@@ -734,9 +734,7 @@ pub unsafe extern "C" fn flame_session_set_position_targets(
         let values = slice_arg(targets, targets_len, "targets")?;
         let mask = match mask.is_null() {
             true if mask_len == 0 => None,
-            true => {
-                return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into())
-            }
+            true => return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into()),
             false => Some(slice_arg(mask, mask_len, "mask")?),
         };
         let convention = poses::convention(convention)?;

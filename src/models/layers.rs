@@ -323,7 +323,6 @@ impl Conv1d {
     /// that fell into the padding dropped. `dx` is resized to `frames · in` and overwritten;
     /// `cols` is scratch.
     // Until a decoder's backward chain calls it, only the tests do.
-    #[cfg_attr(not(test), allow(dead_code))]
     pub(crate) fn backward_input(
         &self,
         dy: &[f32],

@@ -183,6 +183,10 @@ pub trait Denoiser: Send + Sync {
     fn as_any(&self) -> &dyn Any;
 }
 
+/// Writes the gradient of a loss on `[frames, feature_dim]` motion features (first argument,
+/// `frames` the second) into the third argument.
+pub type FeatureLoss<'a> = dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()> + 'a;
+
 /// Turns a latent family's sample into motion features.
 pub trait MotionDecoder: Send + Sync {
     /// Decodes `sample` (`[rows, sample_dim]`, of a generation asked for `frames` frames) into
@@ -209,7 +213,7 @@ pub trait MotionDecoder: Send + Sync {
         &self,
         _sample: &[f32],
         _rows: usize,
-        _loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        _loss: &mut FeatureLoss,
         _d_sample: &mut Vec<f32>,
         _ws: &mut Workspace,
     ) -> Result<()> {

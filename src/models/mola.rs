@@ -36,7 +36,7 @@ use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 use super::layers::{sized, Conv1d, Linear};
 use super::{
     check_text_vector, text_vector_uncond, text_vector_views, Cancel, Condition, Denoiser, Family,
-    FamilyConfig, Guidance, MotionDecoder, TextModel, Workspace,
+    FamilyConfig, FeatureLoss, Guidance, MotionDecoder, TextModel, Workspace,
 };
 
 /// The family's entry in [`super::FAMILIES`].
@@ -821,7 +821,7 @@ impl VaeDecoder {
         &self,
         latent: &[f32],
         rows: usize,
-        loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        loss: &mut FeatureLoss,
         d_sample: &mut Vec<f32>,
         ws: &mut VaeGradWorkspace,
     ) -> Result<()> {
@@ -866,7 +866,8 @@ impl VaeDecoder {
             up.forward(h, t, x, cols, Activation::None);
         }
         let hidden = slot.next().expect("sized above");
-        self.last_hidden.forward(x, t, hidden, cols, Activation::Relu);
+        self.last_hidden
+            .forward(x, t, hidden, cols, Activation::Relu);
         self.out.forward(hidden, t, h, cols, Activation::None);
 
         // The loss on the features; the flag channel's gradient is 0.
@@ -953,7 +954,7 @@ impl MotionDecoder for VaeDecoder {
         &self,
         sample: &[f32],
         rows: usize,
-        loss: &mut dyn FnMut(&[f32], usize, &mut [f32]) -> Result<()>,
+        loss: &mut FeatureLoss,
         d_sample: &mut Vec<f32>,
         ws: &mut Workspace,
     ) -> Result<()> {

@@ -22,8 +22,7 @@ use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
     AssembleArgs, Cli, Command, EditArgs, EditChoice, GenerateArgs, InfoArgs, ModelArgs, OnOff,
-    OutputArgs,
-    SamplingArgs,
+    OutputArgs, SamplingArgs,
 };
 
 fn main() -> ExitCode {
