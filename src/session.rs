@@ -282,6 +282,7 @@ impl Session {
         let n = rule.num_steps();
         let rows = model.sample_rows(frames);
         let len = rows * model.sample_dim();
+        let target_params = TargetParams::for_model(&model);
         Ok(Session {
             model,
             frames,
@@ -308,7 +309,7 @@ impl Session {
             failed: None,
             edit: Edit::default(),
             targets: None,
-            target_params: TargetParams::default(),
+            target_params,
             target_loss: None,
         })
     }

@@ -93,6 +93,21 @@ impl Default for TargetParams {
 }
 
 impl TargetParams {
+    /// What a session of `model` starts with: scale 0.6 and, for latent families, MoLA's MPGD
+    /// schedule; motion-space families (FLAME, MDM, Motion Flow Matching) take the constant
+    /// schedule, since their network re-predicts the estimate at every step and a pull that
+    /// fades out by the last steps is mostly undone (demo numbers in the README).
+    pub fn for_model(model: &Model) -> TargetParams {
+        TargetParams {
+            scale: 0.6,
+            schedule: if model.is_latent() {
+                TargetSchedule::Mpgd
+            } else {
+                TargetSchedule::Constant
+            },
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         if !(self.scale.is_finite() && (0.0..=MAX_TARGET_SCALE).contains(&self.scale)) {
             return Err(invalid_arg!(
@@ -284,6 +299,7 @@ pub(crate) struct TargetScratch {
     /// `∇L` with respect to the sample, written by [`gradient`].
     grad: Vec<f32>,
     trial: Vec<f32>,
+    moved: Vec<f32>,
 }
 
 /// `∇L` at `sample` (`[rows, sample_dim]`, the model's space) into `scratch.grad`; returns L.
@@ -358,35 +374,69 @@ pub(crate) fn pull(
     scratch: &mut TargetScratch,
 ) -> Result<f64> {
     let loss = gradient(model, targets, x_hat, rows, scratch)?;
-    let mut r = rho as f32;
-    if model.denoiser().decoder().is_none() {
-        let mut trial = std::mem::take(&mut scratch.trial);
-        let mut halvings = 0;
-        loop {
+    if model.denoiser().decoder().is_some() {
+        // MoLA's MPGD: one plain step of size ρ.
+        apply(x_hat, velocity, rho as f32, &scratch.grad);
+        return Ok(loss);
+    }
+    // Motion-space families: up to MAX_ITERATIONS backtracking gradient steps on a copy of
+    // the estimate (each step at most ρ, halved until the loss does not grow), then the
+    // estimate (or the velocity) moved by the total.
+    let mut moved = std::mem::take(&mut scratch.moved);
+    let mut trial = std::mem::take(&mut scratch.trial);
+    moved.clear();
+    moved.extend_from_slice(x_hat);
+    let mut current = loss;
+    // The step size adapts: halved until the loss does not grow, doubled (up to 16·ρ) after a
+    // step taken at once.
+    let mut step = rho as f32;
+    for iteration in 0..MAX_ITERATIONS {
+        if iteration > 0 {
+            current = gradient(model, targets, &moved, rows, scratch)?;
+        }
+        let mut r = step;
+        let mut accepted = None;
+        for halving in 0..=MAX_HALVINGS {
             trial.clear();
-            trial.extend(x_hat.iter().zip(&scratch.grad).map(|(&x, &g)| x - r * g));
-            let moved = motion_loss(model, targets, &trial, scratch)?;
-            if moved <= loss || halvings == MAX_HALVINGS {
+            trial.extend(moved.iter().zip(&scratch.grad).map(|(&x, &g)| x - r * g));
+            let l = motion_loss(model, targets, &trial, scratch)?;
+            if l <= current {
+                accepted = Some(l);
+                step = if halving == 0 { (2.0 * r).min(16.0 * rho as f32) } else { r };
                 break;
             }
             r *= 0.5;
-            halvings += 1;
         }
-        scratch.trial = trial;
-        if halvings == MAX_HALVINGS {
-            // No step size lowered the loss: the estimate stays.
-            r = 0.0;
+        let Some(l) = accepted else { break };
+        std::mem::swap(&mut moved, &mut trial);
+        // Stop once an iteration gains less than 0.1% of the loss.
+        if current - l <= 1e-3 * current {
+            break;
         }
     }
+    // The total move as a gradient-like direction of unit step: grad = x̂ − moved.
+    for ((g, &x), &m) in scratch.grad.iter_mut().zip(x_hat.iter()).zip(&moved) {
+        *g = x - m;
+    }
+    apply(x_hat, velocity, 1.0, &scratch.grad);
+    scratch.moved = moved;
+    scratch.trial = trial;
+    Ok(loss)
+}
+
+/// `out ← out − r·g` on the estimate, or `v ← v − r/(1 − t)·g` on a flow velocity.
+fn apply(x_hat: &mut [f32], velocity: Option<(&mut [f32], f32)>, r: f32, g: &[f32]) {
     let (out, r) = match velocity {
         Some((v, left)) => (v, r / left),
         None => (x_hat, r),
     };
-    for (v, &g) in out.iter_mut().zip(&scratch.grad) {
+    for (v, &g) in out.iter_mut().zip(g) {
         *v -= r * g;
     }
-    Ok(loss)
 }
+
+/// Gradient steps per guidance update of a motion-space family.
+const MAX_ITERATIONS: usize = 100;
 
 /// Halvings of the step size before a motion-space update gives up.
 const MAX_HALVINGS: usize = 12;

@@ -232,7 +232,8 @@ pub struct EditArgs {
     /// Step size of the position guidance (MoLA's edit scale) [default 0.6]
     #[arg(long, value_name = "S")]
     pub target_scale: Option<f32>,
-    /// How the position guidance weight follows the noise level [mpgd|constant; default mpgd]
+    /// How the position guidance weight follows the noise level [mpgd|constant; default mpgd
+    /// for latent models, constant for the others]
     #[arg(long, value_name = "SCHEDULE", value_parser = lib::<TargetSchedule>)]
     pub target_schedule: Option<TargetSchedule>,
     /// What to generate the rest of

@@ -359,14 +359,14 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     if let Some(n) = a.seam_frames {
         edit.seam_frames = n;
     }
-    let mut target_params = TargetParams::default();
-    if let Some(s) = a.target_scale {
-        target_params.scale = s;
+    if let Some(scale) = a.target_scale {
+        // Checked before the model loads.
+        let p = TargetParams {
+            scale,
+            ..TargetParams::default()
+        };
+        p.validate().map_err(|e| e.to_string())?;
     }
-    if let Some(s) = a.target_schedule {
-        target_params.schedule = s;
-    }
-    target_params.validate().map_err(|e| e.to_string())?;
     let mut params = session_params(&a.sampling);
     let loaded = load_model(&a.model)?;
     note_unknown_actions(&loaded, &a.prompt);
@@ -408,6 +408,14 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     let frames = session.frames();
     let e = |e: flame::Error| e.to_string();
+    // The family's defaults (see `TargetParams::for_model`), then what the command line says.
+    let mut target_params = *session.target_params();
+    if let Some(s) = a.target_scale {
+        target_params.scale = s;
+    }
+    if let Some(s) = a.target_schedule {
+        target_params.schedule = s;
+    }
     session.set_target_params(&target_params).map_err(e)?;
     if let Some(reference) = &reference {
         if reference.frames > frames {
@@ -420,10 +428,11 @@ fn edit(a: &EditArgs) -> Result<(), String> {
         if mpgd {
             let t = reference_targets(model, reference, &mask)?;
             eprintln!(
-                "steering {} joint coordinates over {} frames toward the reference (MPGD, scale {})",
+                "steering {} joint coordinates over {} frames toward the reference (MPGD, scale {}, {} schedule)",
                 t.constrained(),
                 t.frames(),
-                target_params.scale
+                target_params.scale,
+                target_params.schedule.name()
             );
             session.set_position_targets(t).map_err(e)?;
         } else {
@@ -440,10 +449,11 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     }
     if let Some(t) = targets {
         eprintln!(
-            "steering {} joint coordinates over {} frames toward --targets (scale {})",
+            "steering {} joint coordinates over {} frames toward --targets (scale {}, {} schedule)",
             t.constrained(),
             t.frames(),
-            target_params.scale
+            target_params.scale,
+            target_params.schedule.name()
         );
         session.set_position_targets(t).map_err(e)?;
     }
