@@ -889,15 +889,15 @@ class Session:
         a = _f32(targets, "targets")
         if a.ndim != 1 and (a.ndim != 3 or a.shape[1:] != (self.joint_count, 3)):
             raise ValueError(f"targets must be shaped [frames, {self.joint_count}, 3], got {a.shape}")
-        m = None
+        m, m_ptr = None, None
         if mask is not None:
             m = np.asarray(mask)
             m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
+            # An empty mask is still a mask (libflame refuses its length), not "no mask" (NULL).
+            m_ptr = _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8)
         self._call(
             _lib().flame_session_set_position_targets,
-            _ptr(a, ctypes.c_float), a.size,
-            _ptr(m, ctypes.c_uint8) if m is not None and m.size else None, 0 if m is None else m.size,
-            convention,
+            _ptr(a, ctypes.c_float), a.size, m_ptr, 0 if m is None else m.size, convention,
         )
 
     def clear_position_targets(self) -> None:
