@@ -185,6 +185,14 @@ typedef enum FlameWeights {
   FLAME_WEIGHTS_BF16 = 2,
 } FlameWeights;
 
+// How the weight of position targets changes with the noise level τ (0 = clean, 1 = noise).
+typedef enum FlameTargetSchedule {
+  // `4·τ·(1 − τ)`: nothing at either end, full strength half way (MoLA's MPGD; default).
+  FLAME_TARGET_SCHEDULE_MPGD = 0,
+  // The same weight at every step.
+  FLAME_TARGET_SCHEDULE_CONSTANT = 1,
+} FlameTargetSchedule;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
 

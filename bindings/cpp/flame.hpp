@@ -102,6 +102,12 @@ struct EditParams : FlameEditParams {
     EditParams() : FlameEditParams() { detail::check(flame_edit_params_default(this)); }
 };
 
+// How strongly position targets steer (Session::set_target_params); the defaults come from
+// flame_target_params_default (scale 0.6, FLAME_TARGET_SCHEDULE_MPGD).
+struct TargetParams : FlameTargetParams {
+    TargetParams() : FlameTargetParams() { detail::check(flame_target_params_default(this)); }
+};
+
 // What Model::info reports, copied: it stays valid after the model is gone.
 struct ModelInfo {
     uint32_t feature_dim = 0;
@@ -376,6 +382,49 @@ public:
     }
 
     void clear_edit() { detail::check(flame_session_clear_edit(handle_)); }
+
+    // Steers the following steps toward joint positions: targets = frames x joints x 3 floats
+    // (x, y, z per joint of the model's skeleton, frame-major) in `convention` and its unit
+    // (metres; centimetres for FLAME_CONVENTION_UNREAL), covering the first frames (1..the
+    // session's). `mask` = one byte per value (nonzero = constrained), or nullptr with
+    // mask_len 0: then a NaN is free and every other value constrained. Replaces earlier
+    // targets; on error nothing changes.
+    void set_position_targets(const float* targets, std::size_t targets_len, const uint8_t* mask,
+                              std::size_t mask_len,
+                              FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        detail::check(flame_session_set_position_targets(handle_, targets, targets_len, mask,
+                                                         mask_len, convention));
+    }
+    // NaN = free.
+    void set_position_targets(const std::vector<float>& targets,
+                              FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        set_position_targets(targets.data(), targets.size(), nullptr, 0, convention);
+    }
+    // With a mask of one byte per value (its length is checked by the library).
+    void set_position_targets(const std::vector<float>& targets, const std::vector<uint8_t>& mask,
+                              FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        // A non-null pointer even for an empty mask: an empty mask is not "no mask".
+        static const uint8_t none = 0;
+        set_position_targets(targets.data(), targets.size(), mask.empty() ? &none : mask.data(),
+                             mask.size(), convention);
+    }
+
+    // Removes the position targets: unguided from the next step on.
+    void clear_position_targets() { detail::check(flame_session_clear_position_targets(handle_)); }
+
+    // How strongly position targets steer: scale and schedule.
+    void set_target_params(const TargetParams& params = TargetParams()) {
+        detail::check(flame_session_set_target_params(handle_, &params));
+    }
+
+    // The position targets' loss (metres, summed over constrained joints and frames) at the
+    // latest step's clean-motion estimate, before that step's pull; throws WRONG_STATE before a
+    // guided step (none since the targets were set or the session reset, or scale 0).
+    double target_loss() const {
+        double loss = 0;
+        detail::check(flame_session_target_loss(handle_, &loss));
+        return loss;
+    }
 
     // Runs after every step on the stepping thread; an empty function removes it. An exception
     // it throws is caught at the C boundary and rethrown by the step() that ran it (the step

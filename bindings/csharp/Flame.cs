@@ -104,6 +104,16 @@ namespace Flame
         Path = 3,
     }
 
+    /// <summary>How the pull of position targets changes with the noise level τ (1 = noise;
+    /// FlameTargetParams.schedule).</summary>
+    public enum FlameTargetSchedule
+    {
+        /// <summary>4·τ·(1 − τ): nothing at either end, full strength half way (MoLA's MPGD; default).</summary>
+        Mpgd = 0,
+        /// <summary>The same weight at every step.</summary>
+        Constant = 1,
+    }
+
     /// <summary>Pose layouts of FlameSession.Read (enum FlameLayout; J = joint count). Plain
     /// integers, passed through unchanged, so a layout the library adds works before it is
     /// named here.</summary>
@@ -294,6 +304,25 @@ namespace Flame
         }
     }
 
+    /// <summary>Mirror of the C struct FlameTargetParams: how strongly position targets steer
+    /// (FlameSession.SetTargetParams). Start from Default(): scale 0.6, the MPGD schedule.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameTargetParams
+    {
+        public uint struct_size;
+        /// <summary>The step size s of ρ = s·w(τ), in [0, 100] (0 = off).</summary>
+        public float scale;
+        /// <summary>A FlameTargetSchedule value.</summary>
+        public int schedule;
+
+        public static FlameTargetParams Default()
+        {
+            var p = new FlameTargetParams();
+            FlameException.Check(FlameNative.flame_target_params_default(out p));
+            return p;
+        }
+    }
+
     /// <summary>Mirror of the C struct FlamePromptInfo: how the last prompt fitted the text
     /// encoder's window. Six uint then a pointer (32 bytes on 64-bit targets, 28 on 32-bit; no
     /// padding either way). `dropped` belongs to the session until its next prompt: use
@@ -400,6 +429,22 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_edit_params(FlameSessionHandle session, ref FlameEditParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_target_params_default(out FlameTargetParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_target_params(FlameSessionHandle session, ref FlameTargetParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_position_targets(FlameSessionHandle session, float[] targets, UIntPtr targetsLen,
+                                                                            byte[] mask, UIntPtr maskLen, int convention);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_clear_position_targets(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_target_loss(FlameSessionHandle session, out double loss);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_new(FlameModelHandle model, ref FlameSessionParams p, out FlameSessionHandle session);
@@ -828,6 +873,61 @@ namespace Flame
             FlameException.Check(FlameNative.flame_session_set_reference_poses(Handle, root, (UIntPtr)root.Length, rotations,
                                                                                (UIntPtr)rotations.Length, (uint)(root.Length / 3),
                                                                                layout, convention));
+        }
+
+        /// <summary>Steers the following steps toward joint positions: targets = frames × joints
+        /// × 3 floats (x, y, z per joint of the model's skeleton, frame-major) in convention and
+        /// its unit (metres; centimetres for FlameConvention.Unreal), covering the first frames
+        /// (1..Frames). A NaN is free, every other value constrained. Replaces earlier targets; on
+        /// error nothing changes.</summary>
+        public void SetPositionTargets(float[] targets, int convention)
+        {
+            SetPositionTargets(targets, (byte[])null, convention);
+        }
+
+        /// <summary>As SetPositionTargets(targets, convention), with mask = one flag per value of
+        /// targets (true = constrained; a free value's number does not matter).</summary>
+        public void SetPositionTargets(float[] targets, bool[] mask, int convention)
+        {
+            if (mask == null)
+                throw new ArgumentNullException("mask");
+            var bytes = new byte[mask.Length];
+            for (int i = 0; i < mask.Length; i++)
+                bytes[i] = mask[i] ? (byte)1 : (byte)0;
+            SetPositionTargets(targets, bytes, convention);
+        }
+
+        /// <summary>mask: one byte per value of targets (nonzero = constrained), or null (NaN =
+        /// free).</summary>
+        public void SetPositionTargets(float[] targets, byte[] mask, int convention)
+        {
+            if (targets == null)
+                throw new ArgumentNullException("targets");
+            FlameException.Check(FlameNative.flame_session_set_position_targets(Handle, targets, (UIntPtr)targets.Length, mask,
+                                                                                (UIntPtr)(mask == null ? 0 : mask.Length), convention));
+        }
+
+        /// <summary>Removes the position targets: unguided from the next step on.</summary>
+        public void ClearPositionTargets()
+        {
+            FlameException.Check(FlameNative.flame_session_clear_position_targets(Handle));
+        }
+
+        /// <summary>How strongly position targets steer; start p from FlameTargetParams.Default().</summary>
+        public void SetTargetParams(FlameTargetParams p)
+        {
+            FlameException.Check(FlameNative.flame_session_set_target_params(Handle, ref p));
+        }
+
+        /// <summary>The position targets' loss at the latest step's clean-motion estimate, before
+        /// that step's pull: the sum over constrained joints and frames of their distance to the
+        /// target, in metres. Throws FlameException (WrongState) before a guided step (none yet
+        /// since the targets were set or the session reset, or scale 0).</summary>
+        public double TargetLoss()
+        {
+            double loss;
+            FlameException.Check(FlameNative.flame_session_target_loss(Handle, out loss));
+            return loss;
         }
 
         public void ClearEdit()

@@ -5,9 +5,9 @@
 #
 # 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
 # 2. the CLI writes the reference features the tests must match bit for bit;
-# 3. test_api, test_threads and test_hardening (C11), each linked against the shared and the
-#    static library, test_cancel (C11, shared) and test_cpp (C++17, shared), all with -Wall
-#    -Wextra -Werror, are built and run;
+# 3. test_api, test_threads, test_hardening and test_targets (C11), each linked against the
+#    shared and the static library, test_cancel (C11, shared) and test_cpp (C++17, shared), all
+#    with -Wall -Wextra -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
 #    2 steps) and with FLAME_TEST_QUICK=1;
@@ -146,6 +146,8 @@ compile test_threads_shared gcc "${CFLAGS[@]}" tests/c/test_threads.c "${SHARED_
 compile test_threads_static gcc "${CFLAGS[@]}" tests/c/test_threads.c "${STATIC_LIBS[@]}"
 compile test_hardening_shared gcc "${CFLAGS[@]}" tests/c/test_hardening.c "${SHARED_LIBS[@]}"
 compile test_hardening_static gcc "${CFLAGS[@]}" tests/c/test_hardening.c "${STATIC_LIBS[@]}"
+compile test_targets_shared gcc "${CFLAGS[@]}" tests/c/test_targets.c "${SHARED_LIBS[@]}"
+compile test_targets_static gcc "${CFLAGS[@]}" tests/c/test_targets.c "${STATIC_LIBS[@]}"
 compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 
@@ -157,6 +159,8 @@ for kind in shared static; do
         "$OUT/test_threads_$kind" "$MODEL"
     built "test_hardening_$kind" && run_test "test_hardening ($kind)" \
         "$OUT/test_hardening_$kind.log" "$OUT/test_hardening_$kind" "$ROOT/tests/fixtures"
+    built "test_targets_$kind" && run_test "test_targets ($kind)" \
+        "$OUT/test_targets_$kind.log" "$OUT/test_targets_$kind" "$ROOT/tests/fixtures"
 done
 built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_shared.log" \
     "$OUT/test_cancel_shared" "$MODEL"
@@ -187,6 +191,9 @@ if [ "$use_valgrind" = 1 ]; then
             "$OUT/test_threads_valgrind.log" "${VALGRIND[@]}" "$OUT/test_threads_shared" "$MODEL"
         built test_hardening_shared && run_test "test_hardening (shared, valgrind)" \
             "$OUT/test_hardening_valgrind.log" "${VALGRIND[@]}" "$OUT/test_hardening_shared" \
+            "$ROOT/tests/fixtures"
+        built test_targets_shared && run_test "test_targets (shared, valgrind)" \
+            "$OUT/test_targets_valgrind.log" "${VALGRIND[@]}" "$OUT/test_targets_shared" \
             "$ROOT/tests/fixtures"
         built test_cancel_shared && run_test "test_cancel (shared, valgrind)" \
             "$OUT/test_cancel_valgrind.log" "${VALGRIND[@]}" "$OUT/test_cancel_shared" "$MODEL"

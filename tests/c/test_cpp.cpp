@@ -396,6 +396,123 @@ static void test_reference_poses() {
                  FLAME_STATUS_INVALID_ARGUMENT, "rotations");
 }
 
+// Position targets: defaults, errors, and what they do (scale 0 and cleared targets change
+// nothing; the defaults pull the pelvis toward a path).
+static void test_position_targets() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::SessionParams p;
+    p.frames = 16;
+    p.steps = 20;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.guidance = 2.5f;
+    p.seed = 7;
+    p.threads = 1;
+    const char *prompt = "a person walks forward.";
+    const std::size_t F = 16, J = 24;
+    const FlameConvention UE = FLAME_CONVENTION_UNREAL;
+
+    flame::TargetParams d;
+    CHECK(d.struct_size == sizeof(FlameTargetParams) && d.scale == 0.6f &&
+          d.schedule == FLAME_TARGET_SCHEDULE_MPGD);
+
+    flame::Session plain = model.session(p);
+    std::vector<float> unguided = run(plain, prompt);
+    std::vector<float> pos = plain.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_GLOBAL_POSITIONS, UE);
+    // From where the unguided pelvis starts, +5 cm in X and -4 cm in Y per frame at the
+    // unguided height (Unreal: Z up, centimetres); every other joint free.
+    std::vector<float> target(F * J * 3, NAN);
+    for (std::size_t f = 0; f < F; ++f) {
+        target[f * J * 3] = pos[0] + 5.0f * static_cast<float>(f);
+        target[f * J * 3 + 1] = pos[1] - 4.0f * static_cast<float>(f);
+        target[f * J * 3 + 2] = pos[f * J * 3 + 2];
+    }
+    auto median_error = [&](const std::vector<float> &x) {
+        std::vector<double> e(F);
+        for (std::size_t f = 0; f < F; ++f) {
+            double s2 = 0;
+            for (std::size_t k = 0; k < 3; ++k) {
+                double v = x[f * J * 3 + k] - target[f * J * 3 + k];
+                s2 += v * v;
+            }
+            e[f] = std::sqrt(s2);
+        }
+        std::sort(e.begin(), e.end());
+        return e[F / 2];
+    };
+
+    flame::Session s = model.session(p);
+    CHECK_NOTHROW(s.set_position_targets(target, UE));
+    CHECK_THROWS(s.target_loss(), FLAME_STATUS_WRONG_STATE, "no step has been guided");
+    std::vector<float> guided = run(s, prompt);
+    double loss = s.target_loss();
+    CHECK(std::isfinite(loss) && loss > 0.0);
+    double before = median_error(pos);
+    double after = median_error(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_GLOBAL_POSITIONS, UE));
+    CHECK(before > 5.0 && after < 0.5 * before);
+    CHECK_NOTHROW(s.clear_position_targets());
+    CHECK_THROWS(s.target_loss(), FLAME_STATUS_WRONG_STATE, "guided");
+    s.reset();
+    CHECK(same(run(s, prompt), unguided));
+
+    // Scale 0: the unguided run; the same constraint as a mask: the NaN form's result.
+    flame::Session z = model.session(p);
+    CHECK_NOTHROW(z.set_position_targets(target, UE));
+    flame::TargetParams off;
+    off.scale = 0.0f;
+    off.schedule = FLAME_TARGET_SCHEDULE_CONSTANT;
+    CHECK_NOTHROW(z.set_target_params(off));
+    CHECK(same(run(z, prompt), unguided));
+    std::vector<float> values(target.size());
+    std::vector<uint8_t> mask(target.size());
+    for (std::size_t i = 0; i < target.size(); ++i) {
+        mask[i] = !std::isnan(target[i]);
+        values[i] = mask[i] ? target[i] : 123.0f;
+    }
+    flame::Session m = model.session(p);
+    CHECK_NOTHROW(m.set_position_targets(values, mask, UE));
+    CHECK(same(run(m, prompt), guided));
+
+    // Errors: the library's messages.
+    const FlameStatus INV = FLAME_STATUS_INVALID_ARGUMENT;
+    std::vector<float> t(2 * J * 3, 0.1f);
+    std::vector<float> bad = t;
+    bad[J * 3 + 5 * 3 + 1] = NAN;
+    std::vector<uint8_t> all(t.size(), 1);
+    CHECK_THROWS(m.set_position_targets(bad, all), INV, "frame 1, joint 5, axis 1 is NaN");
+    bad[J * 3 + 5 * 3 + 1] = INFINITY;
+    CHECK_THROWS(m.set_position_targets(bad), INV, "is inf but constrained");
+    CHECK_THROWS(m.set_position_targets(std::vector<float>(t.size() - 1)), INV, "multiple of 72");
+    CHECK_THROWS(m.set_position_targets(t, std::vector<uint8_t>(t.size() - 1, 1)), INV,
+                 "the target mask has 143 flags");
+    CHECK_THROWS(m.set_position_targets(t, std::vector<uint8_t>()), INV, "0 flags");
+    CHECK_THROWS(m.set_position_targets(t, std::vector<uint8_t>(t.size(), 0)), INV,
+                 "constrain nothing");
+    CHECK_THROWS(m.set_position_targets(std::vector<float>(t.size(), NAN)), INV,
+                 "constrain nothing");
+    CHECK_THROWS(m.set_position_targets(std::vector<float>(17 * J * 3)), INV,
+                 "cover 17 frames; the session has 16");
+    CHECK_THROWS(m.set_position_targets(t, static_cast<FlameConvention>(6)), INV, "convention");
+    CHECK_THROWS(m.set_position_targets(nullptr, 72, nullptr, 0), INV, "`targets` is NULL");
+    CHECK_THROWS(m.set_position_targets(t.data(), t.size(), nullptr, 5), INV, "`mask` is NULL");
+    for (float scale : {-0.1f, NAN, 100.5f, INFINITY}) {
+        flame::TargetParams q;
+        q.scale = scale;
+        CHECK_THROWS(m.set_target_params(q), INV, "target scale");
+    }
+    for (int32_t schedule : {2, -1}) {
+        flame::TargetParams q;
+        q.schedule = schedule;
+        CHECK_THROWS(m.set_target_params(q), INV, "unknown target schedule " + std::to_string(schedule));
+    }
+    flame::TargetParams small;
+    small.struct_size = 8;
+    CHECK_THROWS(m.set_target_params(small), INV, "struct_size");
+    CHECK_NOTHROW(m.set_target_params());
+    flame::Session empty;
+    CHECK_THROWS(empty.clear_position_targets(), INV, "session");
+    CHECK_THROWS(empty.target_loss(), INV, "session");
+}
+
 static void test_moves() {
     flame::Model a = flame::Model::load(g_model_path);
     flame::Model b = std::move(a);
@@ -620,6 +737,7 @@ int main(int argc, char **argv) {
         test_editing();
         test_edit_params_tasks_parts();
         test_reference_poses();
+        test_position_targets();
         test_moves();
         test_session_outlives_model();
         test_progress_exception();

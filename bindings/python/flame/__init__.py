@@ -48,6 +48,7 @@ __all__ = [
     "EditParams",
     "BodyPart",
     "EditTask",
+    "TargetSchedule",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
@@ -169,6 +170,14 @@ class EditTask:
     PREDICT = 1  # keep frames [0, L/4)
     UPPER_BODY = 2  # keep the lower body on every frame
     PATH = 3  # keep the root path on every frame
+
+
+class TargetSchedule:
+    """FlameTargetSchedule values for Session.set_target_params (or their names: "mpgd",
+    "constant"): how the pull of position targets changes with the noise level τ (1 = noise)."""
+
+    MPGD = 0  # 4·τ·(1 − τ): nothing at either end, full strength half way (MoLA's MPGD)
+    CONSTANT = 1  # the same weight at every step
 
 
 @dataclass
@@ -295,6 +304,14 @@ class _EditParams(ctypes.Structure):
     ]
 
 
+class _TargetParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("scale", ctypes.c_float),
+        ("schedule", ctypes.c_int32),
+    ]
+
+
 _ProgressCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32)
 
 _P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
@@ -323,6 +340,14 @@ def _signatures():
         "flame_session_params_default": (_status, [ctypes.POINTER(_SessionParams)]),
         "flame_edit_params_default": (_status, [ctypes.POINTER(_EditParams)]),
         "flame_session_set_edit_params": (_status, [_P, ctypes.POINTER(_EditParams)]),
+        "flame_target_params_default": (_status, [ctypes.POINTER(_TargetParams)]),
+        "flame_session_set_target_params": (_status, [_P, ctypes.POINTER(_TargetParams)]),
+        "flame_session_set_position_targets": (
+            _status,
+            [_P, pf32, size_t, ctypes.POINTER(ctypes.c_uint8), size_t, i32],
+        ),
+        "flame_session_clear_position_targets": (_status, [_P]),
+        "flame_session_target_loss": (_status, [_P, ctypes.POINTER(ctypes.c_double)]),
         "flame_session_new": (
             _status,
             [_P, ctypes.POINTER(_SessionParams), ctypes.POINTER(_P)],
@@ -663,6 +688,7 @@ _EDIT_METHODS = {"auto": EditMethod.AUTO, "noised-reference": EditMethod.NOISED_
                  "replace-x0": EditMethod.REPLACE_X0, "rewrite-trajectory": EditMethod.REWRITE_TRAJECTORY}
 _BODY_PARTS = {"root-path": BodyPart.ROOT_PATH, "lower-body": BodyPart.LOWER_BODY,
                "upper-body": BodyPart.UPPER_BODY, "arms": BodyPart.ARMS, "legs": BodyPart.LEGS}
+_TARGET_SCHEDULES = {"mpgd": TargetSchedule.MPGD, "constant": TargetSchedule.CONSTANT}
 _TASKS = {"inbetween": EditTask.INBETWEEN, "predict": EditTask.PREDICT,
           "upper-body": EditTask.UPPER_BODY, "path": EditTask.PATH}
 
@@ -852,6 +878,53 @@ class Session:
 
     def clear_edit(self) -> None:
         self._call(_lib().flame_session_clear_edit)
+
+    def set_position_targets(self, targets, mask=None, convention: int = Convention.NATIVE) -> None:
+        """Steers the following steps toward joint positions: `targets` [frames, joint_count, 3]
+        (or flat) x, y, z per joint in `convention` and its unit (metres, or centimetres for
+        Convention.UNREAL), covering the motion's first frames (1 to the session's). `mask`, of
+        the same shape, says which values are constrained (nonzero/True); without one a NaN is
+        free and every other value constrained. Constrained values must be finite and something
+        must be constrained. Replaces earlier targets; on error nothing changes."""
+        a = _f32(targets, "targets")
+        if a.ndim != 1 and (a.ndim != 3 or a.shape[1:] != (self.joint_count, 3)):
+            raise ValueError(f"targets must be shaped [frames, {self.joint_count}, 3], got {a.shape}")
+        m, m_ptr = None, None
+        if mask is not None:
+            m = np.asarray(mask)
+            m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
+            # An empty mask is still a mask (libflame refuses its length), not "no mask" (NULL).
+            m_ptr = _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8)
+        self._call(
+            _lib().flame_session_set_position_targets,
+            _ptr(a, ctypes.c_float), a.size, m_ptr, 0 if m is None else m.size, convention,
+        )
+
+    def clear_position_targets(self) -> None:
+        """Removes the position targets: unguided from the next step on."""
+        self._call(_lib().flame_session_clear_position_targets)
+
+    def set_target_params(self, scale: Optional[float] = None,
+                          schedule: Union[None, int, str] = None) -> None:
+        """How strongly position targets steer: `scale` s of ρ = s·w(τ), in [0, 100] (0 = off),
+        and the `schedule` w (a TargetSchedule value or name). None keeps the library's default
+        (0.6, "mpgd")."""
+        raw = _TargetParams()
+        _check(_lib().flame_target_params_default(ctypes.byref(raw)))
+        if scale is not None:
+            raw.scale = scale
+        if schedule is not None:
+            raw.schedule = _named(schedule, _TARGET_SCHEDULES, "target schedule")
+        self._call(_lib().flame_session_set_target_params, ctypes.byref(raw))
+
+    def target_loss(self) -> float:
+        """The position targets' loss at the latest step's clean-motion estimate, before that
+        step's pull: the sum over constrained joints and frames of their distance to the
+        target, in metres. Raises FlameError (WRONG_STATE) before a guided step (none yet since
+        the targets were set or the session reset, or scale 0)."""
+        loss = ctypes.c_double()
+        self._call(_lib().flame_session_target_loss, ctypes.byref(loss))
+        return loss.value
 
     def set_progress(self, callback: Optional[ProgressFn]) -> None:
         """Calls `callback(steps_done, steps_total)` after every step, on the stepping thread.

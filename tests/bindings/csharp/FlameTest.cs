@@ -77,6 +77,8 @@ static class FlameTest
             Run("ShortReference", TestShortReference);
             Run("ReferencePoses", TestReferencePoses);
             Run("EditOtherFamilies", TestEditOtherFamilies);
+            Run("PositionTargets", TestPositionTargets);
+            Run("PositionTargetErrors", TestPositionTargetErrors);
             Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
             Run("LatentModel", TestLatentModel);
             Run("TwoThreads", TestTwoThreads);
@@ -245,6 +247,7 @@ static class FlameTest
         CheckValues("FLAME_BODY_PART_", EnumValues(typeof(FlameBodyPart)));
         CheckValues("FLAME_EDIT_TASK_", EnumValues(typeof(FlameEditTask)));
         CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
+        CheckValues("FLAME_TARGET_SCHEDULE_", EnumValues(typeof(FlameTargetSchedule)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
         Check(header.Contains("#define FLAME_MAX_THREADS " + FlameNative.MaxThreads + "\n"), "FLAME_MAX_THREADS");
@@ -277,6 +280,9 @@ static class FlameTest
         // FlamePromptInfo: six uint32 then a pointer, no padding (C: sizeof 32, offsetof dropped 24 on x86-64).
         Check(Marshal.SizeOf(typeof(FlamePromptInfo)) == 24 + IntPtr.Size, "sizeof FlamePromptInfo " + Marshal.SizeOf(typeof(FlamePromptInfo)));
         Check((int)Marshal.OffsetOf(typeof(FlamePromptInfo), "dropped") == 24, "offset of dropped");
+        var tp = FlameTargetParams.Default();
+        Check(tp.struct_size == Marshal.SizeOf(typeof(FlameTargetParams)) && tp.struct_size == 12, "sizeof FlameTargetParams " + tp.struct_size);
+        Check(tp.scale == 0.6f && tp.schedule == (int)FlameTargetSchedule.Mpgd, "target defaults");
         Check(ep.method == (int)FlameEditMethod.Auto && ep.edit_till == 0.2f && ep.paste == 1 && ep.seam_frames == 4, "edit defaults");
     }
 
@@ -977,6 +983,188 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "`rotations` is NULL",
                    () => FlameException.Check(FlameNative.flame_session_set_reference_poses(s.Handle, root, (UIntPtr)root.Length, null, (UIntPtr)10,
                                                                                             (uint)RefFrames, FlameLayout.Local6d, 0)));
+        }
+    }
+
+    // --- position targets -----------------------------------------------------------------
+
+    const int TargetFrames = 16, Joints = 24;
+
+    static FlameSession TargetSession()
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = TargetFrames;
+        p.steps = 20;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.guidance = 2.5f;
+        p.seed = 7;
+        p.threads = 1;
+        var s = model.NewSession(p);
+        s.SetPrompt("a person walks forward.");
+        return s;
+    }
+
+    /// <summary>From where the unguided pelvis starts, a line across the ground in the Unreal
+    /// convention (Z up, centimetres: +5 cm in X, -4 cm in Y per frame) at the unguided height;
+    /// every other joint NaN (free).</summary>
+    static float[] PelvisPath(float[] unguided)
+    {
+        var t = new float[TargetFrames * Joints * 3];
+        for (int i = 0; i < t.Length; i++)
+            t[i] = float.NaN;
+        for (int f = 0; f < TargetFrames; f++)
+        {
+            int at = f * Joints * 3;
+            t[at] = unguided[0] + 5f * f;
+            t[at + 1] = unguided[1] - 4f * f;
+            t[at + 2] = unguided[at + 2];
+        }
+        return t;
+    }
+
+    static double MedianPelvisError(float[] positions, float[] target)
+    {
+        var e = new double[TargetFrames];
+        for (int f = 0; f < TargetFrames; f++)
+        {
+            double d = 0;
+            for (int k = 0; k < 3; k++)
+            {
+                double x = positions[f * Joints * 3 + k] - target[f * Joints * 3 + k];
+                d += x * x;
+            }
+            e[f] = Math.Sqrt(d);
+        }
+        Array.Sort(e);
+        return e[TargetFrames / 2];
+    }
+
+    static void TestPositionTargets()
+    {
+        float[] unguided, pUnguided, guided;
+        using (var plain = TargetSession())
+        {
+            unguided = RunAll(plain);
+            pUnguided = plain.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unreal, 0);
+        }
+        var target = PelvisPath(pUnguided);
+        using (var s = TargetSession())
+        {
+            s.SetPositionTargets(target, FlameConvention.Unreal);
+            Throws(FlameStatus.WrongState, "no step has been guided", () => s.TargetLoss());
+            guided = RunAll(s);
+            double loss = s.TargetLoss();
+            Check(!double.IsNaN(loss) && !double.IsInfinity(loss) && loss > 0, "target loss " + loss);
+            var pGuided = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unreal, 0);
+            double before = MedianPelvisError(pUnguided, target), after = MedianPelvisError(pGuided, target);
+            Check(before > 5 && after < 0.5 * before, "median pelvis error " + before + " cm unguided, " + after + " cm guided");
+            s.Reset();
+            Throws(FlameStatus.WrongState, "guided", () => s.TargetLoss());
+            Check(BitEqual(RunAll(s), guided), "reset replays the guided run");
+            s.ClearPositionTargets();
+            Throws(FlameStatus.WrongState, "guided", () => s.TargetLoss());
+            s.Reset();
+            Check(BitEqual(RunAll(s), unguided), "cleared targets: the unguided run, bit for bit");
+        }
+        using (var s = TargetSession())
+        {
+            s.SetPositionTargets(target, FlameConvention.Unreal);
+            var p = FlameTargetParams.Default();
+            p.scale = 0;
+            p.schedule = (int)FlameTargetSchedule.Constant;
+            s.SetTargetParams(p);
+            Check(BitEqual(RunAll(s), unguided), "scale 0: the unguided run, bit for bit");
+            Throws(FlameStatus.WrongState, "guided", () => s.TargetLoss());
+        }
+        using (var s = TargetSession())
+        {
+            // The same constraint as a mask (free values arbitrary) = the NaN form.
+            var values = new float[target.Length];
+            var mask = new bool[target.Length];
+            for (int i = 0; i < target.Length; i++)
+            {
+                mask[i] = !float.IsNaN(target[i]);
+                values[i] = mask[i] ? target[i] : 123f;
+            }
+            s.SetPositionTargets(values, mask, FlameConvention.Unreal);
+            Check(BitEqual(RunAll(s), guided), "a mask = NaN for free values");
+            var p = FlameTargetParams.Default();
+            p.schedule = (int)FlameTargetSchedule.Constant;
+            s.SetTargetParams(p);
+            s.Reset();
+            var constant = RunAll(s);
+            Check(!BitEqual(constant, guided) && !BitEqual(constant, unguided), "the constant schedule is another guided result");
+        }
+    }
+
+    static void TestPositionTargetErrors()
+    {
+        int n = 2 * Joints * 3;
+        var t = new float[n];
+        for (int i = 0; i < n; i++)
+            t[i] = 0.1f;
+        using (var s = TargetSession())
+        {
+            var bad = (float[])t.Clone();
+            bad[Joints * 3 + 5 * 3 + 1] = float.NaN;
+            var mask = new bool[n];
+            for (int i = 0; i < n; i++)
+                mask[i] = true;
+            Throws(FlameStatus.InvalidArgument, "frame 1, joint 5, axis 1 is NaN but constrained", () => s.SetPositionTargets(bad, mask, 0));
+            mask[Joints * 3 + 5 * 3 + 1] = false;
+            s.SetPositionTargets(bad, mask, 0);
+            bad[7] = float.PositiveInfinity;
+            Throws(FlameStatus.InvalidArgument, "frame 0, joint 2, axis 1 is inf but constrained", () => s.SetPositionTargets(bad, 0));
+            Throws(FlameStatus.InvalidArgument, "multiple of 72", () => s.SetPositionTargets(new float[n - 1], 0));
+            Throws(FlameStatus.InvalidArgument, "hold 0 values", () => s.SetPositionTargets(new float[0], 0));
+            Throws(FlameStatus.InvalidArgument, "the target mask has 143 flags", () => s.SetPositionTargets(t, new bool[n - 1], 0));
+            Throws(FlameStatus.InvalidArgument, "the target mask has 0 flags", () => s.SetPositionTargets(t, new byte[0], 0));
+            Throws(FlameStatus.InvalidArgument, "constrain nothing", () => s.SetPositionTargets(t, new bool[n], 0));
+            var free = new float[n];
+            for (int i = 0; i < n; i++)
+                free[i] = float.NaN;
+            Throws(FlameStatus.InvalidArgument, "constrain nothing", () => s.SetPositionTargets(free, 0));
+            Throws(FlameStatus.InvalidArgument, "cover 17 frames; the session has 16", () => s.SetPositionTargets(new float[17 * Joints * 3], 0));
+            Throws(FlameStatus.InvalidArgument, "convention", () => s.SetPositionTargets(t, 6));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPositionTargets(null, 0));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPositionTargets(t, (bool[])null, 0));
+            Throws(FlameStatus.InvalidArgument, "`targets` is NULL",
+                   () => FlameException.Check(FlameNative.flame_session_set_position_targets(s.Handle, null, (UIntPtr)72, null, UIntPtr.Zero, 0)));
+            Throws(FlameStatus.InvalidArgument, "`mask` is NULL",
+                   () => FlameException.Check(FlameNative.flame_session_set_position_targets(s.Handle, t, (UIntPtr)n, null, (UIntPtr)n, 0)));
+
+            foreach (float scale in new[] { -0.1f, float.NaN, 100.5f, float.PositiveInfinity })
+            {
+                var p = FlameTargetParams.Default();
+                p.scale = scale;
+                Throws(FlameStatus.InvalidArgument, "target scale", () => s.SetTargetParams(p));
+            }
+            foreach (int schedule in new[] { 2, -1 })
+            {
+                var p = FlameTargetParams.Default();
+                p.schedule = schedule;
+                Throws(FlameStatus.InvalidArgument, "unknown target schedule " + schedule, () => s.SetTargetParams(p));
+            }
+            var sized = FlameTargetParams.Default();
+            sized.struct_size = 8;
+            Throws(FlameStatus.InvalidArgument, "struct_size", () => s.SetTargetParams(sized));
+            var ok = FlameTargetParams.Default();
+            ok.scale = 100;
+            s.SetTargetParams(ok);
+            ok.scale = 0;
+            s.SetTargetParams(ok);
+            s.ClearPositionTargets();
+            s.ClearPositionTargets();
+        }
+        using (var none = new FlameSessionHandle())
+        {
+            var p = FlameTargetParams.Default();
+            double loss;
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_set_target_params(none, ref p)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_clear_position_targets(none)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(FlameNative.flame_session_target_loss(none, out loss)));
+            Throws(FlameStatus.InvalidArgument, "`session` is NULL",
+                   () => FlameException.Check(FlameNative.flame_session_set_position_targets(none, t, (UIntPtr)n, null, UIntPtr.Zero, 0)));
         }
     }
 

@@ -102,7 +102,8 @@ def test_every_header_function_is_bound():
     [("FLAME_STATUS_", Status), ("FLAME_SAMPLER_", flame.Sampler), ("FLAME_WHICH_", flame.Which),
      ("FLAME_LAYOUT_", Layout), ("FLAME_CONVENTION_", Convention), ("FLAME_READ_", ReadFlags),
      ("FLAME_EDIT_METHOD_", flame.EditMethod), ("FLAME_BODY_PART_", flame.BodyPart),
-     ("FLAME_EDIT_TASK_", flame.EditTask), ("FLAME_WEIGHTS_", flame.Weights)],
+     ("FLAME_EDIT_TASK_", flame.EditTask), ("FLAME_WEIGHTS_", flame.Weights),
+     ("FLAME_TARGET_SCHEDULE_", flame.TargetSchedule)],
 )
 def test_named_values_match_the_header(prefix, names):
     import re
@@ -852,6 +853,140 @@ def test_editing_other_families():
         s.set_task_mask("predict")
         x = s.run()
         assert x[:4].tobytes() == r[:4].tobytes() and not np.array_equal(x[4:], r[4:])
+
+
+# --- position targets ---------------------------------------------------------------------------
+
+TARGET_SETTINGS = dict(frames=16, steps=20, sampler="ddim", guidance=2.5, seed=7, threads=1)
+
+
+def target_session(model):
+    s = model.session(**TARGET_SETTINGS)
+    s.set_prompt("a person walks forward.")
+    return s
+
+
+def pelvis_path(unguided):
+    """From where the unguided pelvis starts, a line across the ground in the Unreal convention
+    (Z up, centimetres: +5 cm in X, -4 cm in Y per frame) at the unguided height; every other
+    joint NaN (free)."""
+    frames = unguided.shape[0]
+    t = np.full(unguided.shape, np.nan, dtype=np.float32)
+    f = np.arange(frames, dtype=np.float32)
+    t[:, 0, 0] = unguided[0, 0, 0] + 5.0 * f
+    t[:, 0, 1] = unguided[0, 0, 1] - 4.0 * f
+    t[:, 0, 2] = unguided[:, 0, 2]
+    return t
+
+
+def median_pelvis_error(positions, target):
+    return float(np.median(np.linalg.norm(positions[:, 0] - target[:, 0], axis=1)))
+
+
+def test_position_targets_steer(model):
+    with target_session(model) as plain:
+        unguided = plain.run()
+        p_unguided = plain.read("sample", Layout.GLOBAL_POSITIONS, Convention.UNREAL)
+    target = pelvis_path(p_unguided)
+    with target_session(model) as s:
+        s.set_position_targets(target, convention=Convention.UNREAL)
+        expect_error(Status.WRONG_STATE, "no step has been guided", s.target_loss)
+        guided = s.run()
+        loss = s.target_loss()
+        assert np.isfinite(loss) and loss > 0
+        p_guided = s.read("sample", Layout.GLOBAL_POSITIONS, Convention.UNREAL)
+        before, after = median_pelvis_error(p_unguided, target), median_pelvis_error(p_guided, target)
+        assert before > 5.0, before  # centimetres: the path is off the unguided motion
+        assert after < 0.5 * before, (before, after)
+        # reset replays it; cleared targets then reset: the unguided run, bit for bit
+        s.reset()
+        expect_error(Status.WRONG_STATE, "guided", s.target_loss)
+        assert s.run().tobytes() == guided.tobytes()
+        s.clear_position_targets()
+        expect_error(Status.WRONG_STATE, "guided", s.target_loss)
+        s.reset()
+        assert s.run().tobytes() == unguided.tobytes()
+    # scale 0: the unguided run, bit for bit, and no loss
+    with target_session(model) as s:
+        s.set_position_targets(target.reshape(-1), convention=Convention.UNREAL)  # flat
+        s.set_target_params(scale=0.0, schedule="constant")
+        assert s.run().tobytes() == unguided.tobytes()
+        expect_error(Status.WRONG_STATE, "guided", s.target_loss)
+    # the same constraint as a mask (free values arbitrary) = the NaN form
+    with target_session(model) as s:
+        mask = ~np.isnan(target)
+        s.set_position_targets(np.where(mask, target, 123.0), mask=mask, convention=Convention.UNREAL)
+        s.set_target_params(scale=0.6, schedule=flame.TargetSchedule.MPGD)  # the defaults
+        assert s.run().tobytes() == guided.tobytes()
+        s.set_target_params(schedule="constant")
+        s.reset()
+        constant = s.run()
+        assert constant.tobytes() not in (guided.tobytes(), unguided.tobytes())
+
+
+def test_position_target_errors(model):
+    j = model.info.joint_count
+    t = np.full((2, j, 3), 0.1, dtype=np.float32)
+    with target_session(model) as s:
+        bad = t.copy()
+        bad[1, 5, 1] = np.nan
+        mask = np.ones(t.shape, dtype=bool)
+        expect_error(Status.INVALID_ARGUMENT, "frame 1, joint 5, axis 1 is NaN but constrained",
+                     s.set_position_targets, bad, mask)
+        mask[1, 5, 1] = False
+        s.set_position_targets(bad, mask)  # masked out: its value does not matter
+        bad[0, 2, 1] = np.inf
+        expect_error(Status.INVALID_ARGUMENT, "frame 0, joint 2, axis 1 is inf but constrained",
+                     s.set_position_targets, bad)
+        expect_error(Status.INVALID_ARGUMENT, "multiple of 72", s.set_position_targets, t.reshape(-1)[:-1])
+        expect_error(Status.INVALID_ARGUMENT, "hold 0 values", s.set_position_targets, np.zeros(0))
+        expect_error(Status.INVALID_ARGUMENT, "the target mask has 143 flags",
+                     s.set_position_targets, t, np.ones(143))
+        expect_error(Status.INVALID_ARGUMENT, "the target mask has 0 flags",
+                     s.set_position_targets, t, np.ones(0))
+        expect_error(Status.INVALID_ARGUMENT, "constrain nothing", s.set_position_targets, t, np.zeros(t.shape))
+        expect_error(Status.INVALID_ARGUMENT, "constrain nothing", s.set_position_targets, np.full(t.shape, np.nan))
+        expect_error(Status.INVALID_ARGUMENT, "cover 17 frames; the session has 16",
+                     s.set_position_targets, np.zeros((17, j, 3)))
+        expect_error(Status.INVALID_ARGUMENT, "convention", s.set_position_targets, t, convention=6)
+        with pytest.raises(ValueError):
+            s.set_position_targets(np.zeros((2, j - 1, 3)))
+        with pytest.raises(ValueError):
+            s.set_position_targets(np.zeros((2, j * 3)))
+        for scale in (-0.1, float("nan"), 100.5, float("inf")):
+            expect_error(Status.INVALID_ARGUMENT, "target scale", s.set_target_params, scale=scale)
+        expect_error(Status.INVALID_ARGUMENT, "unknown target schedule 2", s.set_target_params, schedule=2)
+        expect_error(Status.INVALID_ARGUMENT, "unknown target schedule -1", s.set_target_params, schedule=-1)
+        with pytest.raises(ValueError):
+            s.set_target_params(schedule="linear")
+        s.set_target_params(scale=0.0)
+        s.set_target_params(scale=100.0, schedule="CONSTANT")
+        s.clear_position_targets()
+        s.clear_position_targets()
+
+
+def test_target_params_struct_through_ctypes(model):
+    import ctypes
+
+    lib = flame._lib()
+    raw = flame._TargetParams()
+    assert lib.flame_target_params_default(ctypes.byref(raw)) == Status.OK
+    assert raw.struct_size == ctypes.sizeof(flame._TargetParams) == 12
+    assert raw.scale == np.float32(0.6) and raw.schedule == flame.TargetSchedule.MPGD
+    assert lib.flame_target_params_default(None) == Status.INVALID_ARGUMENT
+    with target_session(model) as s:
+        raw.struct_size = 8
+        assert lib.flame_session_set_target_params(s._h(), ctypes.byref(raw)) == Status.INVALID_ARGUMENT
+        assert b"struct_size" in lib.flame_last_error()
+        assert lib.flame_session_set_target_params(s._h(), None) == Status.INVALID_ARGUMENT
+        assert lib.flame_session_set_position_targets(s._h(), None, 72, None, 0, 0) == Status.INVALID_ARGUMENT
+        assert b"`targets` is NULL" in lib.flame_last_error()
+        t = np.zeros(72, dtype=np.float32)
+        assert lib.flame_session_set_position_targets(
+            s._h(), flame._ptr(t, ctypes.c_float), 72, None, 72, 0) == Status.INVALID_ARGUMENT
+        assert b"`mask` is NULL" in lib.flame_last_error()
+        assert lib.flame_session_target_loss(s._h(), None) == Status.WRONG_STATE
+    assert lib.flame_session_clear_position_targets(None) == Status.INVALID_ARGUMENT
 
 
 # --- the sampled space and the frames of a read (ABI 2) ---------------------------------------

@@ -8,6 +8,7 @@
  * the FLAME fixture and for a latent one (MoLA, whose decoder decides the frame count).
  * Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
  */
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <climits>
@@ -280,6 +281,90 @@ int main(int argc, char** argv) {
         c.EditTask = -1;  // back to plain generation: the CLI's features
         generate("plain");
         CHECK(succeeded && std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0, "plain again");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // Position targets: the pelvis pinned to a path across the ground (Unreal convention,
+        // centimetres), from where the unguided pelvis starts, +5 cm in X and -4 cm in Y per
+        // frame, Z free (NaN). The guided pelvis follows it; scale 0 = the unguided run.
+        const int TF = 16, J = 24;
+        UFlameMotionComponent c;
+        Configure(c, argv[1], TF, 20, true, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_UNREAL);
+        c.Guidance = 2.5f;
+        c.Seed = 7;
+        c.Prompt = FString(TEXT("a person walks forward."));
+        CHECK(c.TargetFrames.Num() == 0 && c.TargetScale == 0.6f && c.TargetSchedule == 0 && c.TargetLoss == -1.f,
+              "target defaults");
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        auto generate = [&](const char* what) {
+            const int before = finishedCalls;
+            CHECK(c.Generate(), "Generate (%s): %s", what, c.LastError.Utf8().c_str());
+            CHECK(TickUntil(c, [&] { return finishedCalls > before; }), "finished (%s)", what);
+        };
+        generate("unguided");
+        CHECK(succeeded && c.Pose.Num() == TF * J * 3 && c.TargetLoss == -1.f, "unguided: %s", c.LastError.Utf8().c_str());
+        std::vector<float> unguided(c.Pose.GetData(), c.Pose.GetData() + c.Pose.Num());
+        if (unguided.size() == (size_t)TF * J * 3) {
+            auto pelvisError = [&](const TArray<float>& pose) {
+                std::vector<double> e;
+                for (int f = 0; f < TF; f++) {
+                    const double dx = pose[f * J * 3] - (unguided[0] + 5.0 * f);
+                    const double dy = pose[f * J * 3 + 1] - (unguided[1] - 4.0 * f);
+                    e.push_back(std::sqrt(dx * dx + dy * dy));
+                }
+                std::sort(e.begin(), e.end());
+                return e[TF / 2];
+            };
+            TArray<float> unguidedPose = c.Pose;
+            for (int f = 0; f < TF; f++) {
+                c.AddJointTarget(f, 0, FVector(unguided[0] + 5.0 * f, unguided[1] - 4.0 * f, std::nan("")));
+            }
+            generate("guided");
+            const double before = pelvisError(unguidedPose), after = pelvisError(c.Pose);
+            CHECK(succeeded && c.TargetLoss > 0.f && std::isfinite(c.TargetLoss), "guided: %s, loss %f",
+                  c.LastError.Utf8().c_str(), (double)c.TargetLoss);
+            CHECK(before > 5.0 && after < 0.5 * before, "median pelvis error %.2f cm unguided, %.2f cm guided", before, after);
+
+            c.TargetScale = 0.f;
+            generate("scale 0");
+            CHECK(succeeded && c.TargetLoss == -1.f &&
+                      std::memcmp(c.Pose.GetData(), unguided.data(), unguided.size() * 4) == 0,
+                  "scale 0: the unguided run");
+
+            c.TargetScale = 100.5f;
+            generate("scale out of range");
+            CHECK(!succeeded && c.LastError.Utf8().find("target scale") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+            c.TargetScale = 0.6f;
+            c.TargetSchedule = 2;
+            generate("unknown schedule");
+            CHECK(!succeeded && c.LastError.Utf8().find("unknown target schedule 2") != std::string::npos, "%s",
+                  c.LastError.Utf8().c_str());
+            c.TargetSchedule = 0;
+            c.AddJointTarget(TF, 0, FVector(0, 0, 0));
+            generate("a frame past the session's");
+            CHECK(!succeeded && c.LastError.Utf8().find("cover 17 frames; the session has 16") != std::string::npos, "%s",
+                  c.LastError.Utf8().c_str());
+            c.ClearJointTargets();
+            c.AddJointTarget(0, J, FVector(0, 0, 0));
+            generate("an unknown joint");
+            CHECK(!succeeded && c.LastError.Utf8().find("position target 0: frame 0, joint 24 (the model has 24 joints)") == 0,
+                  "%s", c.LastError.Utf8().c_str());
+            c.ClearJointTargets();
+            c.AddJointTarget(0, 0, FVector(std::nan(""), std::nan(""), std::nan("")));
+            generate("nothing constrained");
+            CHECK(!succeeded && c.LastError.Utf8().find("constrain nothing") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+            c.ClearJointTargets();
+            c.TargetJoints.Add(0);
+            generate("arrays of different lengths");
+            CHECK(!succeeded && c.LastError.Utf8().find("hold 0, 1 and 0 entries") != std::string::npos, "%s",
+                  c.LastError.Utf8().c_str());
+            c.ClearJointTargets();
+            generate("no targets");
+            CHECK(succeeded && c.TargetLoss == -1.f && std::memcmp(c.Pose.GetData(), unguided.data(), unguided.size() * 4) == 0,
+                  "cleared targets: the unguided run");
+        }
     }
     CHECK(WaitForThreads(), "workers exited");
 

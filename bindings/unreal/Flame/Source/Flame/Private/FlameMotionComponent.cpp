@@ -6,6 +6,8 @@
 #include "Misc/Paths.h"
 #include "Misc/ScopeLock.h"
 
+#include <limits>
+
 // Last: the C header defines a few unprefixed names.
 #include "flame.h"
 
@@ -60,6 +62,10 @@ struct FFlameJob
 	int32 EditTask = -1; // -1: no edit
 	TArray<float> EditReference;
 	FlameEditParams EditParams;
+	TArray<int32> TargetFrames;
+	TArray<int32> TargetJoints;
+	TArray<FVector> TargetLocations;
+	FlameTargetParams TargetParams;
 
 	FCriticalSection Lock;
 	// Guarded by Lock:
@@ -82,6 +88,7 @@ struct FFlameJob
 	uint32 PromptTokens = 0;
 	uint32 PromptKept = 0;
 	FString PromptDropped;
+	double TargetLoss = -1.0; // after the last step; -1 without targets
 
 	void Cancel()
 	{
@@ -156,10 +163,16 @@ private:
 			}
 			Session = S;
 		}
-		const bool bOk = Edit(S, Info.feature_dim, Failure) && Step(S, Failure);
+		const bool bOk = Edit(S, Info.feature_dim, Failure) && Targets(S, Info.joint_count, Failure) && Step(S, Failure);
+		double Loss = -1.0;
+		if (bOk && TargetFrames.Num() > 0 && flame_session_target_loss(S, &Loss) != FLAME_STATUS_OK)
+		{
+			Loss = -1.0; // scale 0: no step was guided
+		}
 		{
 			FScopeLock Guard(&Lock);
 			Session = nullptr;
+			TargetLoss = Loss;
 		}
 		flame_session_free(S);
 		return bOk;
@@ -185,6 +198,58 @@ private:
 		if (Status == FLAME_STATUS_OK)
 		{
 			Status = flame_session_set_task_mask(S, EditTask);
+		}
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		return true;
+	}
+
+	/** Sets the position targets when there are any: frames × joints × 3 values, NaN where
+	 *  no target (or a target's NaN component) leaves a value free. */
+	bool Targets(FlameSession* S, uint32 Joints, FString& Failure)
+	{
+		const int32 N = TargetFrames.Num();
+		if (N == 0 && TargetJoints.Num() == 0 && TargetLocations.Num() == 0)
+		{
+			return true;
+		}
+		if (TargetJoints.Num() != N || TargetLocations.Num() != N)
+		{
+			Failure = FString::Printf(TEXT("TargetFrames, TargetJoints and TargetLocations hold %d, %d and %d entries, not the same number"),
+				N, TargetJoints.Num(), TargetLocations.Num());
+			return false;
+		}
+		int32 Frames = 0;
+		for (int32 I = 0; I < N; I++)
+		{
+			if (TargetFrames[I] < 0 || TargetJoints[I] < 0 || TargetJoints[I] >= (int32)Joints)
+			{
+				Failure = FString::Printf(TEXT("position target %d: frame %d, joint %d (the model has %u joints)"),
+					I, TargetFrames[I], TargetJoints[I], Joints);
+				return false;
+			}
+			Frames = FMath::Max(Frames, TargetFrames[I] + 1);
+		}
+		TArray<float> Values;
+		Values.SetNumUninitialized(Frames * (int32)Joints * 3);
+		for (int32 I = 0; I < Values.Num(); I++)
+		{
+			Values[I] = std::numeric_limits<float>::quiet_NaN();
+		}
+		for (int32 I = 0; I < N; I++)
+		{
+			float* V = Values.GetData() + ((int64)TargetFrames[I] * Joints + TargetJoints[I]) * 3;
+			V[0] = (float)TargetLocations[I].X;
+			V[1] = (float)TargetLocations[I].Y;
+			V[2] = (float)TargetLocations[I].Z;
+		}
+		FlameStatus Status = flame_session_set_target_params(S, &TargetParams);
+		if (Status == FLAME_STATUS_OK)
+		{
+			Status = flame_session_set_position_targets(S, Values.GetData(), (size_t)Values.Num(), nullptr, 0, Convention);
 		}
 		if (Status != FLAME_STATUS_OK)
 		{
@@ -321,12 +386,19 @@ bool UFlameMotionComponent::Generate()
 	NewJob->EditParams.edit_till = EditTill;
 	NewJob->EditParams.paste = bEditPaste ? 1u : 0u;
 	NewJob->EditParams.seam_frames = (uint32)FMath::Max(EditSeamFrames, 0);
+	NewJob->TargetFrames = TargetFrames;
+	NewJob->TargetJoints = TargetJoints;
+	NewJob->TargetLocations = TargetLocations;
+	flame_target_params_default(&NewJob->TargetParams);
+	NewJob->TargetParams.scale = TargetScale;
+	NewJob->TargetParams.schedule = TargetSchedule;
 	if (Model.IsValid() && Model->Path == NewJob->Path)
 	{
 		NewJob->Model = Model;
 	}
 
 	LastError.Reset();
+	TargetLoss = -1.f;
 	bPromptTruncated = false;
 	PromptDropped.Reset();
 	StepsDone = 0;
@@ -336,6 +408,20 @@ bool UFlameMotionComponent::Generate()
 	// lambda holds the job, never the component, so the component may go away first.
 	Async(EAsyncExecution::Thread, [NewJob]() { NewJob->Run(); });
 	return true;
+}
+
+void UFlameMotionComponent::AddJointTarget(int32 Frame, int32 Joint, FVector Location)
+{
+	TargetFrames.Add(Frame);
+	TargetJoints.Add(Joint);
+	TargetLocations.Add(Location);
+}
+
+void UFlameMotionComponent::ClearJointTargets()
+{
+	TargetFrames.Reset();
+	TargetJoints.Reset();
+	TargetLocations.Reset();
 }
 
 void UFlameMotionComponent::Cancel()
@@ -417,6 +503,7 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			bSucceeded = Job->bSucceeded;
 			LastError = Job->Error;
 			Model = Job->Model;
+			TargetLoss = (float)Job->TargetLoss;
 		}
 	}
 	if (bWarnTruncated)

@@ -112,6 +112,41 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Editing", meta = (ClampMin = "0"))
 	int32 EditSeamFrames = 4;
 
+	/** Position targets (MoLA's MPGD guidance): the frames, joints and locations of joints to
+	 *  steer the motion toward, entry i being joint TargetJoints[i] at frame TargetFrames[i]
+	 *  at TargetLocations[i], in Convention (centimetres by default). A NaN component leaves
+	 *  that axis free. Empty = no targets. See AddJointTarget. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets")
+	TArray<int32> TargetFrames;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets")
+	TArray<int32> TargetJoints;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets")
+	TArray<FVector> TargetLocations;
+
+	/** How strongly targets steer, in [0, 100] (0 = off; libflame's default 0.6). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets", meta = (ClampMin = "0", ClampMax = "100"))
+	float TargetScale = 0.6f;
+
+	/** A FlameTargetSchedule value: 0 = MPGD (4·τ·(1 − τ), the default), 1 = constant. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets")
+	int32 TargetSchedule = 0;
+
+	/** Pins a joint (an index of JointNames) at a frame to a location in Convention, for the
+	 *  next Generate. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Targets")
+	void AddJointTarget(int32 Frame, int32 Joint, FVector Location);
+
+	/** Removes every position target. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Targets")
+	void ClearJointTargets();
+
+	/** The targets' loss after the last generation's final step (metres, summed over the
+	 *  targets' joints and frames); -1 when it had no targets. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Targets")
+	float TargetLoss = -1.f;
+
 	/** Starts a generation on a background thread (the model is loaded there once and kept).
 	 *  False if one is already running or libflame is unavailable (see LastError). */
 	UFUNCTION(BlueprintCallable, Category = "Flame")
