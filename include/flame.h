@@ -406,7 +406,9 @@ enum FlameStatus flame_edit_params_default(struct FlameEditParams *params);
 enum FlameStatus flame_session_set_edit_params(struct FlameSession *session,
                                                const struct FlameEditParams *params);
 
-// Fills `*params` with the target defaults: scale 0.6, the MPGD schedule.
+// Fills `*params` with MoLA's target defaults: scale 0.6, the MPGD schedule. A session that
+// never receives target params uses its family's defaults instead: MPGD for latent models,
+// the constant schedule for FLAME, MDM and Motion Flow Matching (see the README).
 //
 // # Safety
 // `params` points to writable memory for a `FlameTargetParams`.

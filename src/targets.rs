@@ -402,7 +402,11 @@ pub(crate) fn pull(
             let l = motion_loss(model, targets, &trial, scratch)?;
             if l <= current {
                 accepted = Some(l);
-                step = if halving == 0 { (2.0 * r).min(16.0 * rho as f32) } else { r };
+                step = if halving == 0 {
+                    (2.0 * r).min(16.0 * rho as f32)
+                } else {
+                    r
+                };
                 break;
             }
             r *= 0.5;

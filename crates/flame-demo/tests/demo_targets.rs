@@ -138,8 +138,14 @@ fn the_pelvis_follows_a_path_on_the_ground() {
         println!(
             "seed {seed}: pelvis to path, median over {FRAMES} frames: unguided {before:.3} m, guided {after:.3} m"
         );
-        assert!(after < 0.10, "seed {seed}: guided pelvis {after} m from the path");
-        assert!(before > 0.5, "seed {seed}: the unguided motion already follows the path");
+        assert!(
+            after < 0.10,
+            "seed {seed}: guided pelvis {after} m from the path"
+        );
+        assert!(
+            before > 0.5,
+            "seed {seed}: the unguided motion already follows the path"
+        );
     }
 }
 
@@ -168,7 +174,13 @@ fn the_right_wrist_reaches_above_the_head() {
         println!(
             "seed {seed}: right wrist to its target at frame {frame}: unguided {before:.3} m, guided {after:.3} m"
         );
-        assert!(after < 0.10, "seed {seed}: guided wrist {after} m from its target");
-        assert!(before > 0.3, "seed {seed}: the unguided wrist is already there");
+        assert!(
+            after < 0.10,
+            "seed {seed}: guided wrist {after} m from its target"
+        );
+        assert!(
+            before > 0.3,
+            "seed {seed}: the unguided wrist is already there"
+        );
     }
 }
