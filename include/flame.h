@@ -421,6 +421,15 @@ enum FlameStatus flame_target_params_default(struct FlameTargetParams *params);
 enum FlameStatus flame_session_set_target_params(struct FlameSession *session,
                                                  const struct FlameTargetParams *params);
 
+// The session's target params in `*params`: the family's defaults (scale 0.6; MPGD for latent
+// models, the constant schedule for FLAME, MDM and Motion Flow Matching) until
+// [`flame_session_set_target_params`] changes them. Start from these to change one field.
+//
+// # Safety
+// `session` is a live session; `params` points to writable memory for a `FlameTargetParams`.
+enum FlameStatus flame_session_target_params(const struct FlameSession *session,
+                                             struct FlameTargetParams *params);
+
 // Steers the following steps toward joint positions: `targets` = `frames` × joints × 3 floats
 // (x, y, z per joint, the joints of the model's skeleton as [`FlameModelInfo::joint_count`] counts
 // them, frame-major), in `convention` (a [`FlameConvention`]) and its unit (metres or

@@ -417,6 +417,14 @@ public:
         detail::check(flame_session_set_target_params(handle_, &params));
     }
 
+    // The session's target params: the family's defaults (0.6; MPGD for latent models, constant
+    // for the others) until set_target_params changes them.
+    TargetParams target_params() const {
+        TargetParams p;
+        detail::check(flame_session_target_params(handle_, &p));
+        return p;
+    }
+
     // The position targets' loss (metres, summed over constrained joints and frames) at the
     // latest step's clean-motion estimate, before that step's pull; throws WRONG_STATE before a
     // guided step (none since the targets were set or the session reset, or scale 0).

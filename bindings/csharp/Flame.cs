@@ -436,6 +436,9 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_target_params(FlameSessionHandle session, ref FlameTargetParams p);
 
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern FlameStatus flame_session_target_params(FlameSessionHandle session, out FlameTargetParams p);
+
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_position_targets(FlameSessionHandle session, float[] targets, UIntPtr targetsLen,
                                                                             byte[] mask, UIntPtr maskLen, int convention);
@@ -917,6 +920,14 @@ namespace Flame
         public void SetTargetParams(FlameTargetParams p)
         {
             FlameException.Check(FlameNative.flame_session_set_target_params(Handle, ref p));
+        }
+
+        /// <summary>The session's target params: the family's defaults (0.6; MPGD for latent
+        /// models, constant for the others) until SetTargetParams changes them.</summary>
+        public FlameTargetParams TargetParams()
+        {
+            FlameException.Check(FlameNative.flame_session_target_params(Handle, out FlameTargetParams p));
+            return p;
         }
 
         /// <summary>The position targets' loss at the latest step's clean-motion estimate, before

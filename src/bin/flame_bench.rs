@@ -8,6 +8,9 @@
 //! generation also decodes the final latent through the family's VAE decoder, and that decode is
 //! timed on its own as well (`decode_ms`).
 //!
+//! `--targets` adds the cost of position targets: the same steps with a pelvis path on every
+//! frame, interleaved run by run with the plain ones.
+//!
 //! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
 //! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
 //!
@@ -196,6 +199,47 @@ fn status_mib(key: &str) -> f64 {
         .map_or(0.0, |kb| kb / 1024.0)
 }
 
+/// `--targets`: the cost of position targets (the pelvis on a straight path on every frame,
+/// the session's target defaults) next to the same steps without them, interleaved run by run.
+fn target_bench(model: &Model, session: &mut Session, runs: usize) {
+    let format = model.motion_format();
+    let joints = format.skeleton().joint_count();
+    let frames = session.frames();
+    let mut values = vec![f32::NAN; frames * joints * 3];
+    for f in 0..frames {
+        values[f * joints * 3..f * joints * 3 + 3].copy_from_slice(&[0.05 * f as f32, 0.9, 0.0]);
+    }
+    let (mut plain, mut guided) = (Vec::new(), Vec::new());
+    for _ in 0..runs {
+        for with_targets in [false, true] {
+            session.clear_position_targets();
+            if with_targets {
+                session
+                    .set_position_target_values(&values, None, flame::motion::Convention::Native)
+                    .expect("targets");
+            }
+            session.reset();
+            while session.steps_left() > 0 {
+                let t = Instant::now();
+                session.step().expect("step");
+                let ms = t.elapsed().as_secs_f64() * 1e3;
+                if with_targets {
+                    guided.push(ms)
+                } else {
+                    plain.push(ms)
+                }
+            }
+        }
+    }
+    session.clear_position_targets();
+    let (p, g) = (median(plain), median(guided));
+    println!(
+        "  step with targets  {g:9.2} ms  (pelvis path on every frame, {} schedule; without: {p:.2} ms, x{:.2})",
+        session.target_params().schedule.name(),
+        g / p
+    );
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.first().map(String::as_str) == Some("gemm") {
@@ -321,6 +365,9 @@ fn main() {
         println!("  text encoding      {text:9.2} ms");
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
             2.0 * (lin + attn) / 1e9, 2.0 * lin / 1e9, 2.0 * attn / 1e9);
+        if args.iter().any(|a| a == "--targets") {
+            target_bench(&model, &mut session, runs);
+        }
         let decode_med = (!decode_ms.is_empty()).then(|| median(decode_ms));
         if let Some(d) = decode_med {
             println!("  VAE decode         {d:9.2} ms  (once, after the last step)");

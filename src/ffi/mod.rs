@@ -708,6 +708,31 @@ pub unsafe extern "C" fn flame_session_set_target_params(
     })
 }
 
+/// The session's target params in `*params`: the family's defaults (scale 0.6; MPGD for latent
+/// models, the constant schedule for FLAME, MDM and Motion Flow Matching) until
+/// [`flame_session_set_target_params`] changes them. Start from these to change one field.
+///
+/// # Safety
+/// `session` is a live session; `params` points to writable memory for a `FlameTargetParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_target_params(
+    session: *const FlameSession,
+    params: *mut FlameTargetParams,
+) -> FlameStatus {
+    guard(|| {
+        let p = session_ref(session)?.with(|st| Ok(*st.session.target_params()))?;
+        let out = FlameTargetParams {
+            struct_size: std::mem::size_of::<FlameTargetParams>() as u32,
+            scale: p.scale,
+            schedule: match p.schedule {
+                TargetSchedule::Mpgd => FlameTargetSchedule::Mpgd,
+                TargetSchedule::Constant => FlameTargetSchedule::Constant,
+            } as i32,
+        };
+        write_out(params, out, "params")
+    })
+}
+
 /// Steers the following steps toward joint positions: `targets` = `frames` × joints × 3 floats
 /// (x, y, z per joint, the joints of the model's skeleton as [`FlameModelInfo::joint_count`] counts
 /// them, frame-major), in `convention` (a [`FlameConvention`]) and its unit (metres or

@@ -137,6 +137,13 @@ static void test_set_target_params(const FlameModel *m) {
     CHECK_ERROR_MENTIONS(flame_session_set_target_params(NULL, &p), INV, "session");
     FlameSession *s = new_session(m);
     CHECK_ERROR_MENTIONS(flame_session_set_target_params(s, NULL), INV, "params");
+    /* A session starts with its family's defaults: FLAME takes the constant schedule. */
+    FlameTargetParams got;
+    CHECK_ERROR_MENTIONS(flame_session_target_params(NULL, &got), INV, "session");
+    CHECK_ERROR_MENTIONS(flame_session_target_params(s, NULL), INV, "params");
+    CHECK_OK(flame_session_target_params(s, &got));
+    CHECK(got.struct_size == sizeof got && got.scale == 0.6f &&
+          got.schedule == FLAME_TARGET_SCHEDULE_CONSTANT);
     CHECK_OK(flame_session_set_target_params(s, &p));
     /* struct_size: less than the struct is refused; a larger (newer) caller is accepted. */
     uint32_t sizes[] = {0, 4, (uint32_t)sizeof p - 1};
@@ -146,6 +153,8 @@ static void test_set_target_params(const FlameModel *m) {
     }
     flame_target_params_default(&p);
     CHECK_OK(set_params(s, 0.0f, FLAME_TARGET_SCHEDULE_MPGD));
+    CHECK_OK(flame_session_target_params(s, &got));
+    CHECK(got.scale == 0.0f && got.schedule == FLAME_TARGET_SCHEDULE_MPGD);
     CHECK_OK(set_params(s, 100.0f, FLAME_TARGET_SCHEDULE_CONSTANT));
     CHECK_ERROR_MENTIONS(set_params(s, 0.6f, 2), INV, "unknown target schedule 2");
     CHECK_ERROR_MENTIONS(set_params(s, 0.6f, -1), INV, "unknown target schedule -1");
@@ -318,7 +327,8 @@ static void test_generation(const FlameModel *m) {
     free(x);
     flame_session_free(s);
 
-    /* The defaults (0.6, MPGD) pull the pelvis to the path. */
+    /* The session's defaults (0.6, the constant schedule for this family) pull the pelvis to
+     * the path. */
     s = new_session(m);
     CHECK_OK(flame_session_set_position_targets(s, target, tn, NULL, 0, FLAME_CONVENTION_UNREAL));
     float *guided = run(s, &n);
@@ -365,8 +375,8 @@ static void test_generation(const FlameModel *m) {
     CHECK(same_bits(x, n, guided, n_plain));
     free(x);
 
-    /* The constant schedule is another, also guided, result. */
-    CHECK_OK(set_params(s, 0.6f, FLAME_TARGET_SCHEDULE_CONSTANT));
+    /* The MPGD schedule is another, also guided, result. */
+    CHECK_OK(set_params(s, 0.6f, FLAME_TARGET_SCHEDULE_MPGD));
     CHECK_OK(flame_session_reset(s));
     x = run(s, &n);
     CHECK(x && !same_bits(x, n, guided, n_plain) && !same_bits(x, n, unguided, n_plain));

@@ -342,6 +342,7 @@ def _signatures():
         "flame_session_set_edit_params": (_status, [_P, ctypes.POINTER(_EditParams)]),
         "flame_target_params_default": (_status, [ctypes.POINTER(_TargetParams)]),
         "flame_session_set_target_params": (_status, [_P, ctypes.POINTER(_TargetParams)]),
+        "flame_session_target_params": (_status, [_P, ctypes.POINTER(_TargetParams)]),
         "flame_session_set_position_targets": (
             _status,
             [_P, pf32, size_t, ctypes.POINTER(ctypes.c_uint8), size_t, i32],
@@ -907,15 +908,22 @@ class Session:
     def set_target_params(self, scale: Optional[float] = None,
                           schedule: Union[None, int, str] = None) -> None:
         """How strongly position targets steer: `scale` s of ρ = s·w(τ), in [0, 100] (0 = off),
-        and the `schedule` w (a TargetSchedule value or name). None keeps the library's default
-        (0.6, "mpgd")."""
+        and the `schedule` w (a TargetSchedule value or name). None keeps the session's current
+        value (at first the family's default: 0.6, "mpgd" for latent models, "constant" for the
+        others)."""
         raw = _TargetParams()
-        _check(_lib().flame_target_params_default(ctypes.byref(raw)))
+        self._call(_lib().flame_session_target_params, ctypes.byref(raw))
         if scale is not None:
             raw.scale = scale
         if schedule is not None:
             raw.schedule = _named(schedule, _TARGET_SCHEDULES, "target schedule")
         self._call(_lib().flame_session_set_target_params, ctypes.byref(raw))
+
+    def target_params(self) -> Tuple[float, "TargetSchedule"]:
+        """The session's (scale, schedule) for position targets."""
+        raw = _TargetParams()
+        self._call(_lib().flame_session_target_params, ctypes.byref(raw))
+        return raw.scale, TargetSchedule(raw.schedule)
 
     def target_loss(self) -> float:
         """The position targets' loss at the latest step's clean-motion estimate, before that

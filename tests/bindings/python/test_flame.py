@@ -916,12 +916,14 @@ def test_position_targets_steer(model):
     with target_session(model) as s:
         mask = ~np.isnan(target)
         s.set_position_targets(np.where(mask, target, 123.0), mask=mask, convention=Convention.UNREAL)
-        s.set_target_params(scale=0.6, schedule=flame.TargetSchedule.MPGD)  # the defaults
+        # this family's session defaults
+        assert s.target_params() == (pytest.approx(0.6), flame.TargetSchedule.CONSTANT)
+        s.set_target_params(scale=0.6, schedule=flame.TargetSchedule.CONSTANT)
         assert s.run().tobytes() == guided.tobytes()
-        s.set_target_params(schedule="constant")
+        s.set_target_params(schedule="mpgd")
         s.reset()
-        constant = s.run()
-        assert constant.tobytes() not in (guided.tobytes(), unguided.tobytes())
+        mpgd = s.run()
+        assert mpgd.tobytes() not in (guided.tobytes(), unguided.tobytes())
 
 
 def test_position_target_errors(model):

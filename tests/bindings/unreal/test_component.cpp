@@ -293,7 +293,7 @@ int main(int argc, char** argv) {
         c.Guidance = 2.5f;
         c.Seed = 7;
         c.Prompt = FString(TEXT("a person walks forward."));
-        CHECK(c.TargetFrames.Num() == 0 && c.TargetScale == 0.6f && c.TargetSchedule == 0 && c.TargetLoss == -1.f,
+        CHECK(c.TargetFrames.Num() == 0 && c.TargetScale == 0.6f && c.TargetSchedule == -1 && c.TargetLoss == -1.f,
               "target defaults");
         int finishedCalls = 0;
         bool succeeded = false;
@@ -341,7 +341,7 @@ int main(int argc, char** argv) {
             generate("unknown schedule");
             CHECK(!succeeded && c.LastError.Utf8().find("unknown target schedule 2") != std::string::npos, "%s",
                   c.LastError.Utf8().c_str());
-            c.TargetSchedule = 0;
+            c.TargetSchedule = -1;
             c.AddJointTarget(TF, 0, FVector(0, 0, 0));
             generate("a frame past the session's");
             CHECK(!succeeded && c.LastError.Utf8().find("cover 17 frames; the session has 16") != std::string::npos, "%s",

@@ -246,7 +246,17 @@ private:
 			V[1] = (float)TargetLocations[I].Y;
 			V[2] = (float)TargetLocations[I].Z;
 		}
-		FlameStatus Status = flame_session_set_target_params(S, &TargetParams);
+		FlameTargetParams Params;
+		FlameStatus Status = flame_session_target_params(S, &Params);
+		if (Status == FLAME_STATUS_OK)
+		{
+			Params.scale = TargetParams.scale;
+			if (TargetParams.schedule >= 0)
+			{
+				Params.schedule = TargetParams.schedule;
+			}
+			Status = flame_session_set_target_params(S, &Params);
+		}
 		if (Status == FLAME_STATUS_OK)
 		{
 			Status = flame_session_set_position_targets(S, Values.GetData(), (size_t)Values.Num(), nullptr, 0, Convention);

@@ -129,9 +129,10 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets", meta = (ClampMin = "0", ClampMax = "100"))
 	float TargetScale = 0.6f;
 
-	/** A FlameTargetSchedule value: 0 = MPGD (4·τ·(1 − τ), the default), 1 = constant. */
+	/** A FlameTargetSchedule value: 0 = MPGD (4·τ·(1 − τ)), 1 = constant, -1 (default) = the
+	 *  model family's (MPGD for latent models, constant for the others). */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Targets")
-	int32 TargetSchedule = 0;
+	int32 TargetSchedule = -1;
 
 	/** Pins a joint (an index of JointNames) at a frame to a location in Convention, for the
 	 *  next Generate. */
