@@ -451,6 +451,22 @@ enum FlameStatus flame_session_set_position_targets(struct FlameSession *session
                                                     size_t mask_len,
                                                     int32_t convention);
 
+// Position targets for an editing task (`task` as in [`flame_session_set_task_mask`]) from a
+// reference motion: `frames` × `dim` model-space features (what a session of this model
+// produces), 1 <= `frames` <= the session's frames. The reference's joint positions become
+// targets where the task keeps them: `path` the pelvis on every frame, `upper-body` the pelvis
+// and legs on every frame, `inbetween` and `predict` every joint on the frames their masks
+// keep (MoLA's MPGD tasks; for latent models, whose sample is not the motion, this is how a
+// reference edits). Replaces earlier targets.
+//
+// # Safety
+// `session` is a live session; `features` points to `frames * dim` floats.
+enum FlameStatus flame_session_set_task_targets(struct FlameSession *session,
+                                                const float *features,
+                                                uint32_t frames,
+                                                uint32_t dim,
+                                                int32_t task);
+
 // Removes the position targets.
 //
 // # Safety

@@ -456,6 +456,29 @@ impl Session {
         self.set_position_targets(t)
     }
 
+    /// Position targets for an editing task from a reference motion (`[frames, feature_dim]`
+    /// model-space features, what a session of this model produces; 1 ≤ frames ≤ the
+    /// session's): its joint positions where the task keeps them (see
+    /// [`PositionTargets::from_task`]; MoLA's MPGD tasks).
+    pub fn set_task_targets(&mut self, features: &[f32], task: crate::motion::Task) -> Result<()> {
+        let model = Arc::clone(&self.model);
+        let format = model.motion_format();
+        let dim = format.feature_dim();
+        let frames = features.len() / dim;
+        if frames == 0 || features.len() % dim != 0 || frames > self.frames {
+            return Err(invalid_arg!(
+                "the reference holds {} values; 1..={} frames of {dim} features expected",
+                features.len(),
+                self.frames
+            ));
+        }
+        let poses =
+            crate::motion::Poses::decode(format, features, frames, &model.read_options(0.0, true))?;
+        let positions = poses.positions(crate::motion::Convention::Native);
+        let t = PositionTargets::from_task(format, &positions, frames, task)?;
+        self.set_position_targets(t)
+    }
+
     /// Removes the position targets: unguided from the next step on.
     pub fn clear_position_targets(&mut self) {
         self.targets = None;

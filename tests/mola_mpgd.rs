@@ -94,3 +94,33 @@ fn mpgd_edits_match_the_reference_step_by_step() {
         );
     }
 }
+
+#[test]
+fn task_targets_from_a_reference_are_the_official_controls() {
+    // `path` and `upper_edit` taken from the reference motion by `Session::set_task_targets`
+    // constrain what the official controls do (the pelvis at frame 0, whose x and z the official
+    // control leaves free, sits exactly on its target there), so the edit is the same.
+    let model = Arc::new(Model::load(fixture("mola_tiny.safetensors")).unwrap());
+    for (task, name) in [
+        (flame::motion::Task::Path, "path"),
+        (flame::motion::Task::UpperBody, "upper_edit"),
+    ] {
+        let params = SessionParams {
+            frames: Some(24),
+            guidance: Some(11.0),
+            threads: 1,
+            ..Default::default()
+        };
+        let mut s = Session::new(Arc::clone(&model), &params).unwrap();
+        s.set_condition(Condition::text_vector(expected("text")))
+            .unwrap();
+        s.set_initial_noise(&expected("noise")).unwrap();
+        s.set_task_targets(&expected("reference_features"), task)
+            .unwrap();
+        assert_eq!(s.target_params().schedule, TargetSchedule::Mpgd);
+        s.run().unwrap();
+        let xs = expected(&format!("{name}_xs"));
+        let d = rel_diff(s.sample().unwrap(), &xs[49 * 112..]);
+        assert!(d <= TOL, "{name}: final latent {d:e}");
+    }
+}

@@ -376,6 +376,14 @@ public:
         detail::check(flame_session_set_task_mask(handle_, task));
     }
 
+    // Position targets for an editing task from a reference motion (frames x dim model-space
+    // features): its joint positions where the task keeps them (MoLA's MPGD tasks).
+    void set_task_targets(const std::vector<float>& features, uint32_t frames, uint32_t dim,
+                          FlameEditTask task) {
+        check_size(features.size(), frames, dim, "features");
+        detail::check(flame_session_set_task_targets(handle_, features.data(), frames, dim, task));
+    }
+
     // How the session edits: method, edit_till (flow models), final paste and seam blending.
     void set_edit_params(const EditParams& params = EditParams()) {
         detail::check(flame_session_set_edit_params(handle_, &params));

@@ -486,6 +486,9 @@ namespace Flame
         public static extern FlameStatus flame_session_set_task_mask(FlameSessionHandle session, int task);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_task_targets(FlameSessionHandle session, float[] features, uint frames, uint dim, int task);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_reference_poses(FlameSessionHandle session, float[] root, UIntPtr rootLen,
                                                                            float[] rotations, UIntPtr rotationsLen, uint frames,
                                                                            int layout, int convention);
@@ -799,6 +802,15 @@ namespace Flame
         {
             CheckLength(features, features == null ? 0 : features.Length, frames, dim, "features");
             FlameException.Check(FlameNative.flame_session_set_reference(Handle, features, (uint)frames, (uint)dim));
+        }
+
+        /// <summary>Position targets for an editing task from a reference motion (frames ×
+        /// FeatureDim model-space features): its joint positions where the task keeps them
+        /// (MoLA's MPGD tasks; how a latent model edits).</summary>
+        public void SetTaskTargets(float[] features, int frames, FlameEditTask task)
+        {
+            CheckLength(features, features == null ? 0 : features.Length, frames, FeatureDim, "features");
+            FlameException.Check(FlameNative.flame_session_set_task_targets(Handle, features, (uint)frames, (uint)FeatureDim, (int)task));
         }
 
         /// <summary>The keep-mask, Frames × FeatureDim values: true keeps the reference value.</summary>

@@ -773,6 +773,47 @@ pub unsafe extern "C" fn flame_session_set_position_targets(
     })
 }
 
+/// Position targets for an editing task (`task` as in [`flame_session_set_task_mask`]) from a
+/// reference motion: `frames` × `dim` model-space features (what a session of this model
+/// produces), 1 <= `frames` <= the session's frames. The reference's joint positions become
+/// targets where the task keeps them: `path` the pelvis on every frame, `upper-body` the pelvis
+/// and legs on every frame, `inbetween` and `predict` every joint on the frames their masks
+/// keep (MoLA's MPGD tasks; for latent models, whose sample is not the motion, this is how a
+/// reference edits). Replaces earlier targets.
+///
+/// # Safety
+/// `session` is a live session; `features` points to `frames * dim` floats.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_task_targets(
+    session: *mut FlameSession,
+    features: *const f32,
+    frames: u32,
+    dim: u32,
+    task: i32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let task = usize::try_from(task)
+            .ok()
+            .and_then(|t| crate::motion::Task::ALL.get(t).copied())
+            .ok_or_else(|| invalid_arg!("unknown editing task {task} (0..=3)"))?;
+        let n = (frames as usize)
+            .checked_mul(dim as usize)
+            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+        let values = slice_arg(features, n, "features")?;
+        s.with(|st| {
+            let (f, d) = (st.session.frames(), st.session.model().motion_dim());
+            if frames == 0 || frames as usize > f || dim as usize != d {
+                return Err(invalid_arg!(
+                    "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
+                )
+                .into());
+            }
+            Ok(st.session.set_task_targets(values, task)?)
+        })
+    })
+}
+
 /// Removes the position targets.
 ///
 /// # Safety

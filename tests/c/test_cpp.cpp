@@ -472,6 +472,15 @@ static void test_position_targets() {
     CHECK_NOTHROW(m.set_position_targets(values, mask, UE));
     CHECK(same(run(m, prompt), guided));
 
+    // Task targets from a reference motion (the unguided features): a guided run.
+    flame::Session k = model.session(p);
+    const uint32_t dim = 147, kf = (uint32_t)(unguided.size() / dim);
+    CHECK_NOTHROW(k.set_task_targets(unguided, kf, dim, FLAME_EDIT_TASK_PATH));
+    std::vector<float> pathed = run(k, prompt);
+    CHECK(std::isfinite(k.target_loss()) && !same(pathed, unguided));
+    CHECK_THROWS(k.set_task_targets(unguided, kf, dim, (FlameEditTask)7), FLAME_STATUS_INVALID_ARGUMENT,
+                 "unknown editing task 7");
+
     // Errors: the library's messages.
     const FlameStatus INV = FLAME_STATUS_INVALID_ARGUMENT;
     std::vector<float> t(2 * J * 3, 0.1f);

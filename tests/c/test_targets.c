@@ -393,6 +393,45 @@ static void test_generation(const FlameModel *m) {
     flame_session_free(plain);
 }
 
+/* ---- flame_session_set_task_targets ------------------------------------------------------- */
+
+static void test_task_targets(const FlameModel *m) {
+    FlameSession *plain = new_session(m);
+    size_t n = 0;
+    float *reference = run(plain, &n);
+    flame_session_free(plain);
+    if (!reference) {
+        return;
+    }
+    uint32_t dim = 147, frames = (uint32_t)(n / dim);
+    CHECK(frames == (uint32_t)g_frames);
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(NULL, reference, frames, dim, 3), INV, "session");
+    FlameSession *s = new_session(m);
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, NULL, frames, dim, 3), INV, "features");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, frames, dim, -1), INV, "unknown editing task -1");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, frames, dim, 4), INV, "unknown editing task 4");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, frames, dim - 1, 3), INV, "reference shape");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, 0, dim, 3), INV, "reference shape");
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, frames + 1, dim, 3), INV, "reference shape");
+    double loss = -1;
+    CHECK_STATUS(flame_session_target_loss(s, &loss), FLAME_STATUS_WRONG_STATE);
+    /* Every task from the reference: a guided generation with a finite loss. */
+    for (int32_t task = 0; task < 4; task++) {
+        CHECK_OK(flame_session_set_task_targets(s, reference, frames, dim, task));
+        CHECK_OK(flame_session_reset(s));
+        float *x = run(s, &n);
+        free(x);
+        CHECK_OK(flame_session_target_loss(s, &loss));
+        CHECK(isfinite(loss) && loss >= 0.0);
+    }
+    float bad = reference[5];
+    reference[5] = NAN;
+    CHECK_ERROR_MENTIONS(flame_session_set_task_targets(s, reference, frames, dim, 3), INV, "not finite");
+    reference[5] = bad;
+    flame_session_free(s);
+    free(reference);
+}
+
 int main(int argc, char **argv) {
     if (argc != 2) {
         fprintf(stderr, "usage: %s FIXTURES_DIR\n", argv[0]);
@@ -411,6 +450,7 @@ int main(int argc, char **argv) {
     test_set_position_targets_errors(m);
     test_target_loss(m);
     test_generation(m);
+    test_task_targets(m);
     flame_model_free(m);
     printf("test_targets: %.2f s\n", now_seconds() - t0);
     return check_summary();

@@ -364,6 +364,7 @@ def _signatures():
         "flame_session_keep_joints": (_status, [_P, ctypes.POINTER(i32), size_t]),
         "flame_session_keep_part": (_status, [_P, i32, u32, u32]),
         "flame_session_set_task_mask": (_status, [_P, i32]),
+        "flame_session_set_task_targets": (_status, [_P, pf32, u32, u32, i32]),
         "flame_session_set_reference_poses": (
             _status,
             [_P, pf32, size_t, pf32, size_t, u32, i32, i32],
@@ -848,6 +849,16 @@ class Session:
     def set_task_mask(self, task: Union[int, str]) -> None:
         """Replaces the mask with a standard editing task's (an EditTask value or name)."""
         self._call(_lib().flame_session_set_task_mask, _named(task, _TASKS, "editing task"))
+
+    def set_task_targets(self, features, task: Union[int, str]) -> None:
+        """Position targets for an editing task (an EditTask value or name) from a reference
+        motion, [frames, feature_dim] model-space features: its joint positions where the task
+        keeps them (path: the pelvis; upper-body: pelvis and legs; inbetween/predict: every
+        joint on the kept frames). MoLA's MPGD tasks; how a latent model edits."""
+        a = _f32(features, "features")
+        frames, dim = _frames_by_dim(a, self.feature_dim, "features")
+        self._call(_lib().flame_session_set_task_targets, _ptr(a, ctypes.c_float), frames, dim,
+                   _named(task, _TASKS, "editing task"))
 
     def set_reference_poses(self, root, rotations, layout: int, convention: int = Convention.NATIVE) -> None:
         """A smpl24_6d reference from poses, the inverse of read(): `root` [frames, 3] pelvis

@@ -79,6 +79,7 @@ static class FlameTest
             Run("EditOtherFamilies", TestEditOtherFamilies);
             Run("PositionTargets", TestPositionTargets);
             Run("PositionTargetErrors", TestPositionTargetErrors);
+            Run("TaskTargets", TestTaskTargets);
             Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
             Run("LatentModel", TestLatentModel);
             Run("TwoThreads", TestTwoThreads);
@@ -1094,6 +1095,20 @@ static class FlameTest
             s.Reset();
             var mpgd = RunAll(s);
             Check(!BitEqual(mpgd, guided) && !BitEqual(mpgd, unguided), "the MPGD schedule is another guided result");
+        }
+    }
+
+    static void TestTaskTargets()
+    {
+        float[] reference;
+        using (var plain = TargetSession())
+            reference = RunAll(plain);
+        using (var s = TargetSession())
+        {
+            s.SetTaskTargets(reference, s.Frames, FlameEditTask.Path);
+            var pathed = RunAll(s);
+            Check(!BitEqual(pathed, reference) && !double.IsNaN(s.TargetLoss()), "task targets from a reference steer");
+            Throws(FlameStatus.InvalidArgument, "unknown editing task 9", () => s.SetTaskTargets(reference, s.Frames, (FlameEditTask)9));
         }
     }
 

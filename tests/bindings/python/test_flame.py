@@ -926,6 +926,25 @@ def test_position_targets_steer(model):
         assert mpgd.tobytes() not in (guided.tobytes(), unguided.tobytes())
 
 
+def test_task_targets(model):
+    with target_session(model) as plain:
+        reference = plain.run()
+    with target_session(model) as s:
+        for task in ("path", "upper-body", "inbetween", "predict"):
+            s.set_task_targets(reference, task)
+            s.reset()
+            s.run()
+            loss = s.target_loss()
+            assert np.isfinite(loss) and loss >= 0, (task, loss)
+        expect_error(Status.INVALID_ARGUMENT, "reference shape", s.set_task_targets,
+                     np.zeros((s.frames + 1, s.feature_dim), np.float32), "path")
+        bad = reference.copy()
+        bad[0, 0] = np.nan
+        expect_error(Status.INVALID_ARGUMENT, "not finite", s.set_task_targets, bad, "path")
+        with pytest.raises((ValueError, FlameError)):
+            s.set_task_targets(reference, "fly")
+
+
 def test_position_target_errors(model):
     j = model.info.joint_count
     t = np.full((2, j, 3), 0.1, dtype=np.float32)
