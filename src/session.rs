@@ -465,7 +465,7 @@ impl Session {
         let format = model.motion_format();
         let dim = format.feature_dim();
         let frames = features.len() / dim;
-        if frames == 0 || features.len() % dim != 0 || frames > self.frames {
+        if frames == 0 || !features.len().is_multiple_of(dim) || frames > self.frames {
             return Err(invalid_arg!(
                 "the reference holds {} values; 1..={} frames of {dim} features expected",
                 features.len(),
