@@ -253,3 +253,195 @@ fn preview_writes_a_png_next_to_any_output() {
     ]);
     assert!(!ok && err.contains("--preview must end in .png"), "{err}");
 }
+
+/// `--targets`: a pelvis path in the glTF convention (Y up, metres), NaN elsewhere, with no
+/// reference; the result's pelvis (read back with `--positions`) is nearer the path than the
+/// unguided motion's. Then bad targets files.
+#[test]
+fn targets_steer_from_the_command_line() {
+    let m = model();
+    let joints = 24;
+    let plain = tmp("targets_plain.npy");
+    let plain_pos = tmp("targets_plain_pos.npy");
+    let (ok, err) = generate_walk(
+        &plain,
+        &[
+            "--positions",
+            plain_pos.to_str().unwrap(),
+            "--convention",
+            "gltf",
+        ],
+    );
+    assert!(ok, "{err}");
+    let (_, p) = flame::npy::read_f32(&plain_pos).unwrap();
+    let mut t = vec![f32::NAN; FRAMES * joints * 3];
+    for f in 0..FRAMES {
+        let at = f * joints * 3;
+        // From the unguided start, 5 cm per frame along glTF's +x on the ground (x, z).
+        t[at] = p[0] + 0.05 * f as f32;
+        t[at + 2] = p[2];
+    }
+    let targets = tmp("targets.npy");
+    flame::npy::write_f32(&targets, &[FRAMES, joints, 3], &t).unwrap();
+    let out = tmp("targets_out.npy");
+    let pos = tmp("targets_pos.npy");
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &m,
+        "--targets",
+        targets.to_str().unwrap(),
+        "--prompt",
+        "a person walks forward",
+        "--frames",
+        "24",
+        "--steps",
+        "4",
+        "--seed",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+        "--positions",
+        pos.to_str().unwrap(),
+        "--convention",
+        "gltf",
+    ]);
+    assert!(ok, "{err}");
+    assert!(err.contains("steering 48 joint coordinates over 24 frames toward --targets (scale 0.6, constant schedule)"), "{err}");
+    assert!(err.contains("position targets: loss"), "{err}");
+    let (_, q) = flame::npy::read_f32(&pos).unwrap();
+    let miss = |p: &[f32]| -> f32 {
+        (0..FRAMES)
+            .map(|f| {
+                let (a, at) = (&p[f * joints * 3..], f * joints * 3);
+                ((a[0] - t[at]).powi(2) + (a[2] - t[at + 2]).powi(2)).sqrt()
+            })
+            .sum::<f32>()
+            / FRAMES as f32
+    };
+    let (before, after) = (miss(&p), miss(&q));
+    assert!(after < 0.5 * before, "{before} -> {after}");
+
+    // Bad targets: wrong shape, a constrained infinity, a scale out of range.
+    let bad = tmp("targets_bad.npy");
+    flame::npy::write_f32(&bad, &[FRAMES, 22, 3], &vec![0.0; FRAMES * 22 * 3]).unwrap();
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &m,
+        "--targets",
+        bad.to_str().unwrap(),
+        "--prompt",
+        "a",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("expected [frames, 24, 3] joint positions"),
+        "{err}"
+    );
+    let mut inf = t.clone();
+    inf[3] = f32::INFINITY;
+    flame::npy::write_f32(&bad, &[FRAMES, joints, 3], &inf).unwrap();
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &m,
+        "--targets",
+        bad.to_str().unwrap(),
+        "--prompt",
+        "a",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("is inf but constrained"), "{err}");
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &m,
+        "--targets",
+        targets.to_str().unwrap(),
+        "--target-scale",
+        "101",
+        "--prompt",
+        "a",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("target scale must be"), "{err}");
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &m,
+        "--prompt",
+        "a",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("--reference"), "{err}");
+}
+
+/// A latent model edits by MPGD (`--method auto`): the reference's pelvis becomes the target.
+#[test]
+fn a_latent_model_edits_by_mpgd() {
+    let mola = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/mola_tiny.safetensors")
+        .display()
+        .to_string();
+    let reference = tmp("mola_ref.npy");
+    let (ok, err) = run(&[
+        "generate",
+        "--model",
+        &mola,
+        "--prompt",
+        "a person walks",
+        "--frames",
+        "24",
+        "--steps",
+        "5",
+        "--seed",
+        "1",
+        "--out",
+        reference.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let out = tmp("mola_out.npy");
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &mola,
+        "--reference",
+        reference.to_str().unwrap(),
+        "--task",
+        "path",
+        "--prompt",
+        "a person runs",
+        "--frames",
+        "24",
+        "--steps",
+        "5",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("toward the reference (MPGD, scale 0.6, mpgd schedule)"),
+        "{err}"
+    );
+    let (ok, err) = run(&[
+        "edit",
+        "--model",
+        &mola,
+        "--reference",
+        reference.to_str().unwrap(),
+        "--task",
+        "path",
+        "--method",
+        "replace-x0",
+        "--prompt",
+        "a",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("samples a latent"), "{err}");
+}

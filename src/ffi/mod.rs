@@ -797,18 +797,9 @@ pub unsafe extern "C" fn flame_session_set_task_targets(
             .ok()
             .and_then(|t| crate::motion::Task::ALL.get(t).copied())
             .ok_or_else(|| invalid_arg!("unknown editing task {task} (0..=3)"))?;
-        let n = (frames as usize)
-            .checked_mul(dim as usize)
-            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
-        let values = slice_arg(features, n, "features")?;
+        let values = reference_arg(features, frames, dim)?;
         s.with(|st| {
-            let (f, d) = (st.session.frames(), st.session.model().motion_dim());
-            if frames == 0 || frames as usize > f || dim as usize != d {
-                return Err(invalid_arg!(
-                    "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
-                )
-                .into());
-            }
+            check_reference_shape(st, frames, dim)?;
             Ok(st.session.set_task_targets(values, task)?)
         })
     })
@@ -989,21 +980,36 @@ pub unsafe extern "C" fn flame_session_set_reference(
 ) -> FlameStatus {
     guard(|| {
         let s = session_ref(session)?;
-        let n = (frames as usize)
-            .checked_mul(dim as usize)
-            .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
-        let values = slice_arg(features, n, "features")?;
+        let values = reference_arg(features, frames, dim)?;
         s.with(|st| {
-            let (f, d) = (st.session.frames(), st.session.model().motion_dim());
-            if frames == 0 || frames as usize > f || dim as usize != d {
-                return Err(invalid_arg!(
-                    "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
-                )
-                .into());
-            }
+            check_reference_shape(st, frames, dim)?;
             Ok(st.session.set_reference(values)?)
         })
     })
+}
+
+/// A reference motion's `frames × dim` features.
+unsafe fn reference_arg<'a>(
+    features: *const f32,
+    frames: u32,
+    dim: u32,
+) -> Result<&'a [f32], Fail> {
+    let n = (frames as usize)
+        .checked_mul(dim as usize)
+        .ok_or_else(|| invalid_arg!("frames × dim overflows"))?;
+    slice_arg(features, n, "features")
+}
+
+/// A reference holds 1..=the session's frames of the model's features.
+fn check_reference_shape(st: &handles::SessionState, frames: u32, dim: u32) -> Result<(), Fail> {
+    let (f, d) = (st.session.frames(), st.session.model().motion_dim());
+    if frames == 0 || frames as usize > f || dim as usize != d {
+        return Err(invalid_arg!(
+            "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
+        )
+        .into());
+    }
+    Ok(())
 }
 
 /// Sets the keep-mask: `frames` × `dim` bytes, 1 = keep the reference value, 0 = generate it.

@@ -779,7 +779,6 @@ impl VaeDecoder {
         rows: usize,
         ws: &'w mut VaeWorkspace,
     ) -> &'w [f32] {
-        let w = self.cfg.width;
         let VaeWorkspace {
             x,
             h,
@@ -787,14 +786,41 @@ impl VaeDecoder {
             cols,
             out,
         } = ws;
+        let t = self.forward(latent, rows, [x, h, h2, cols, out], None);
+        &out[..t * self.cfg.output_dim]
+    }
+
+    /// The decoder's forward pass into `out` (buffers `[x, h, h2, cols, out]`); returns the
+    /// decoded frames. With `saved`, it keeps what [`VaeDecoder::backward`] needs, in order:
+    /// the first conv's output, per residual block its input and its inner ReLU's output, the
+    /// last hidden ReLU's output.
+    fn forward(
+        &self,
+        latent: &[f32],
+        rows: usize,
+        [x, h, h2, cols, out]: [&mut Vec<f32>; 5],
+        mut saved: Option<&mut [Vec<f32>]>,
+    ) -> usize {
+        let w = self.cfg.width;
+        let mut slot = 0;
+        let mut keep = |v: &[f32]| {
+            if let Some(s) = saved.as_deref_mut() {
+                s[slot].clear();
+                s[slot].extend_from_slice(v);
+            }
+            slot += 1;
+        };
         self.first.forward(latent, rows, x, cols, Activation::Relu);
+        keep(x);
         let mut t = rows;
         for (blocks, up) in &self.stages {
             for b in blocks {
+                keep(&x[..t * w]);
                 h.clear();
                 h.extend_from_slice(&x[..t * w]);
                 kernels::relu(h);
                 b.conv1.forward(h, t, h2, cols, Activation::Relu);
+                keep(h2);
                 b.conv2.forward(h2, t, h, cols, Activation::None);
                 kernels::add_inplace(&mut x[..t * w], &h[..t * w]);
             }
@@ -808,8 +834,9 @@ impl VaeDecoder {
             up.forward(h, t, x, cols, Activation::None);
         }
         self.last_hidden.forward(x, t, h, cols, Activation::Relu);
+        keep(h);
         self.out.forward(h, t, out, cols, Activation::None);
-        &out[..t * self.cfg.output_dim]
+        t
     }
 
     /// The decoder's reverse-mode product (MPGD, REFERENCE 7.1): a forward pass that keeps each
@@ -836,39 +863,9 @@ impl VaeDecoder {
             cols,
             features,
         } = ws;
-        // Forward, saving: the first conv's output, per block its input and its inner ReLU's
-        // output, and the last hidden ReLU's output.
         let blocks: usize = self.stages.iter().map(|(b, _)| b.len()).sum();
         saved.resize_with(2 * blocks + 2, Vec::new);
-        let mut slot = saved.iter_mut();
-        self.first.forward(latent, rows, x, cols, Activation::Relu);
-        let first_out = slot.next().expect("sized above");
-        first_out.clone_from(x);
-        let mut t = rows;
-        for (stage_blocks, up) in &self.stages {
-            for b in stage_blocks {
-                let input = slot.next().expect("sized above");
-                input.clear();
-                input.extend_from_slice(&x[..t * w]);
-                h.clone_from(input);
-                kernels::relu(h);
-                let inner = slot.next().expect("sized above");
-                b.conv1.forward(h, t, inner, cols, Activation::Relu);
-                b.conv2.forward(inner, t, h, cols, Activation::None);
-                kernels::add_inplace(&mut x[..t * w], &h[..t * w]);
-            }
-            let hh = sized(h, 2 * t * w);
-            for (i, f) in x[..t * w].chunks_exact(w).enumerate() {
-                hh[2 * i * w..(2 * i + 1) * w].copy_from_slice(f);
-                hh[(2 * i + 1) * w..(2 * i + 2) * w].copy_from_slice(f);
-            }
-            t *= 2;
-            up.forward(h, t, x, cols, Activation::None);
-        }
-        let hidden = slot.next().expect("sized above");
-        self.last_hidden
-            .forward(x, t, hidden, cols, Activation::Relu);
-        self.out.forward(hidden, t, h, cols, Activation::None);
+        let mut t = self.forward(latent, rows, [x, g2, g, cols, h], Some(saved));
 
         // The loss on the features; the flag channel's gradient is 0.
         let fd = od - 1;
