@@ -890,6 +890,11 @@ impl Session {
             .filter(|_| self.target_params.scale > 0.0);
         let params = self.target_params;
         let rows = self.rows;
+        // What an active edit keeps does not move under the targets' pull.
+        let kept = match (&self.edit.keep, active) {
+            (Some(k), true) => Some(&k[..]),
+            _ => None,
+        };
         // The targets' pull at noise level `tau` on an estimate x̂ (or, for a flow step, on
         // the velocity that implies it; see `targets::pull`).
         let mut pull = |x_hat: &mut [f32], tau: f64, velocity: Option<(&mut [f32], f32)>| {
@@ -898,7 +903,16 @@ impl Session {
             };
             cancel.check()?;
             let rho = params.rho(tau);
-            let l = targets::pull(&model, targets, x_hat, rows, rho, velocity, target_scratch)?;
+            let l = targets::pull(
+                &model,
+                targets,
+                x_hat,
+                rows,
+                rho,
+                velocity,
+                kept,
+                target_scratch,
+            )?;
             loss = Some(l);
             Ok::<(), Error>(())
         };

@@ -363,7 +363,9 @@ fn gradient(
 /// plain step `r = ρ`; motion-space families halve `r` from ρ until the loss at the moved
 /// estimate is no larger than at `x_hat` (their positions cost no network evaluation, and
 /// humanml263's integrated root makes a plain step's size grow with the number of frames).
+/// Values `kept` (an editing mask's) do not move: the mask keeps them, targets steer the rest.
 /// Returns the loss at `x_hat`.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn pull(
     model: &Model,
     targets: &PositionTargets,
@@ -371,9 +373,18 @@ pub(crate) fn pull(
     rows: usize,
     rho: f64,
     velocity: Option<(&mut [f32], f32)>,
+    kept: Option<&[bool]>,
     scratch: &mut TargetScratch,
 ) -> Result<f64> {
+    let freeze = |grad: &mut [f32]| {
+        if let Some(kept) = kept {
+            for (g, _) in grad.iter_mut().zip(kept).filter(|(_, &k)| k) {
+                *g = 0.0;
+            }
+        }
+    };
     let loss = gradient(model, targets, x_hat, rows, scratch)?;
+    freeze(&mut scratch.grad);
     if model.denoiser().decoder().is_some() {
         // MoLA's MPGD: one plain step of size ρ.
         apply(x_hat, velocity, rho as f32, &scratch.grad);
@@ -393,6 +404,7 @@ pub(crate) fn pull(
     for iteration in 0..MAX_ITERATIONS {
         if iteration > 0 {
             current = gradient(model, targets, &moved, rows, scratch)?;
+            freeze(&mut scratch.grad);
         }
         let mut r = step;
         let mut accepted = None;

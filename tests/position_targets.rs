@@ -320,3 +320,58 @@ fn bad_targets_are_refused_and_change_nothing() {
         .unwrap();
     assert_eq!(s.position_targets().unwrap().constrained(), n - 1);
 }
+
+#[test]
+fn a_mask_keeps_its_values_and_targets_steer_the_rest() {
+    // FLAME tiny: keep the reference's lower body (root path, pelvis, legs), steer the right
+    // wrist (joint 21) toward a point on every frame.
+    let mut plain = session(Case::FlameDdim, 11);
+    plain.run().unwrap();
+    let reference = plain.sample().unwrap().to_vec();
+    let unguided = positions(&mut plain);
+    let format = plain.model().motion_format();
+    let mask =
+        flame::motion::Mask::for_task(format, FRAMES, flame::motion::Task::UpperBody).unwrap();
+    let j = joints(&plain);
+    let mut values = vec![f32::NAN; FRAMES * j * 3];
+    for f in 0..FRAMES {
+        let w = unguided[f * j + 21];
+        let at = (f * j + 21) * 3;
+        values[at..at + 3].copy_from_slice(&[w[0] as f32 + 0.15, w[1] as f32, w[2] as f32 + 0.15]);
+    }
+    let wrist_error = |p: &[[f64; 3]]| -> f64 {
+        (0..FRAMES)
+            .map(|f| {
+                let (a, at) = (p[f * j + 21], (f * j + 21) * 3);
+                (0..3)
+                    .map(|k| (a[k] - values[at + k] as f64).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+            / FRAMES as f64
+    };
+    let edit = |with_targets: bool| {
+        let mut s = session(Case::FlameDdim, 12);
+        s.set_reference(&reference).unwrap();
+        s.set_mask_from(&mask).unwrap();
+        if with_targets {
+            s.set_position_target_values(&values, None, Convention::Native)
+                .unwrap();
+        }
+        s.run().unwrap();
+        let x = s.sample().unwrap().to_vec();
+        (x, positions(&mut s))
+    };
+    let (masked, p_masked) = edit(false);
+    let (both, p_both) = edit(true);
+    for (i, &keep) in mask.flags().iter().enumerate() {
+        if keep {
+            assert_eq!(both[i], reference[i], "kept value {i} changed");
+            assert_eq!(masked[i], reference[i]);
+        }
+    }
+    let (before, after) = (wrist_error(&p_masked), wrist_error(&p_both));
+    println!("wrist to target with the lower body kept: {before:.3} m without targets, {after:.3} m with");
+    assert!(after < 0.5 * before, "{before} -> {after}");
+}

@@ -930,11 +930,12 @@ class Session:
             raw.schedule = _named(schedule, _TARGET_SCHEDULES, "target schedule")
         self._call(_lib().flame_session_set_target_params, ctypes.byref(raw))
 
-    def target_params(self) -> Tuple[float, "TargetSchedule"]:
-        """The session's (scale, schedule) for position targets."""
+    def target_params(self) -> Tuple[float, int]:
+        """The session's (scale, schedule) for position targets (a TargetSchedule value): the
+        family's defaults until set_target_params changes them."""
         raw = _TargetParams()
         self._call(_lib().flame_session_target_params, ctypes.byref(raw))
-        return raw.scale, TargetSchedule(raw.schedule)
+        return raw.scale, raw.schedule
 
     def target_loss(self) -> float:
         """The position targets' loss at the latest step's clean-motion estimate, before that
