@@ -375,3 +375,27 @@ fn a_mask_keeps_its_values_and_targets_steer_the_rest() {
     println!("wrist to target with the lower body kept: {before:.3} m without targets, {after:.3} m with");
     assert!(after < 0.5 * before, "{before} -> {after}");
 }
+
+#[test]
+fn a_decoder_without_a_backward_refuses_targets() {
+    // MLD's transformer VAE decoder has no reverse-mode product here.
+    let model = Arc::new(Model::load(fixture("mld_tiny.safetensors")).unwrap());
+    let mut s = Session::new(
+        Arc::clone(&model),
+        &SessionParams {
+            frames: Some(FRAMES),
+            threads: 1,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let values = vec![0.1f32; FRAMES * 22 * 3];
+    let err = s
+        .set_position_target_values(&values, None, Convention::Native)
+        .unwrap_err();
+    assert!(
+        matches!(err, Error::InvalidArgument(_)) && err.to_string().contains("gradient"),
+        "{err}"
+    );
+    assert!(s.position_targets().is_none());
+}
