@@ -163,11 +163,18 @@ impl ModelFile {
         // SAFETY: the mapping is read-only; a file truncated by another process while mapped is
         // outside what any mmap-based loader can defend against and is documented as such.
         let map = unsafe { Mmap::map(&file) }.map_err(io)?;
-        Self::from_backing(Backing::Mapped(map), path.display().to_string())
+        let header = parse_header(&map)?;
+        Ok(Self::from_backing(
+            Backing::Mapped(map),
+            header,
+            path.display().to_string(),
+        ))
     }
 
-    /// Copies `bytes` (the whole file) and validates them.
+    /// Validates `bytes` (the whole file) and copies them. The header is checked first, so
+    /// bytes that are not a model file are refused without copying them.
     pub fn from_bytes(bytes: &[u8]) -> Result<ModelFile> {
+        let header = parse_header(bytes)?;
         let mut words = vec![0u64; bytes.len().div_ceil(8)];
         // SAFETY: `words` has room for `bytes.len()` bytes and the regions do not overlap.
         unsafe {
@@ -177,18 +184,22 @@ impl ModelFile {
                 bytes.len(),
             )
         };
-        Self::from_backing(
+        Ok(Self::from_backing(
             Backing::Heap {
                 words,
                 len: bytes.len(),
             },
+            header,
             "<memory>".into(),
-        )
+        ))
     }
 
-    fn from_backing(backing: Backing, source: String) -> Result<ModelFile> {
-        let bytes = backing.bytes();
-        let (header_len, meta) = parse_header(bytes)?;
+    /// The file over `backing`, whose bytes `parse_header` has validated as `(header_len, meta)`.
+    fn from_backing(
+        backing: Backing,
+        (header_len, meta): (usize, Metadata),
+        source: String,
+    ) -> ModelFile {
         let data_start = 8 + header_len;
         let mut entries = HashMap::new();
         for (name, info) in meta.tensors() {
@@ -204,12 +215,12 @@ impl ModelFile {
             );
         }
         let metadata = meta.metadata().clone().unwrap_or_default();
-        Ok(ModelFile {
+        ModelFile {
             backing: Arc::new(backing),
             entries,
             metadata,
             source,
-        })
+        }
     }
 
     /// Where the file came from (a path, or `<memory>`).

@@ -19,7 +19,7 @@
 set -euo pipefail
 
 CARGO_FUZZ_VERSION=0.13.2
-ALL_TARGETS=(npy bvh pose_reference prompt ffi_params model_config model_header model_file)
+ALL_TARGETS=(npy bvh pose_reference prompt ffi_params model_config model_header model_load model_file)
 
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -50,34 +50,60 @@ cd fuzz
 # -a: debug assertions (and so overflow checks) on, as in the test builds.
 cargo fuzz build -a --sanitizer "$sanitizer"
 
-# Longest input per target: model files are ~1 MB, their headers ~72 KB.
+# Longest input per target: model files are ~0.6 to 1.1 MB, their headers up to ~72 KB (~20 KB
+# without the tokenizer text). Prompts: the library takes any length (it tokenizes the whole
+# text, then truncates to the encoder's window); 512 bytes is several times any window here
+# (at most 93 tokens), and tokenizing costs ~5 to 10 us a byte instrumented, so longer inputs
+# would only slow the target (see docs/fuzzing.md).
 max_len() {
     case $1 in
         model_file) echo 1200000 ;;
-        model_header) echo 80000 ;;
-        prompt | bvh) echo 16384 ;;
+        model_load) echo 80000 ;;
+        model_header) echo 32768 ;;
+        bvh) echo 16384 ;;
+        prompt) echo 512 ;;
         *) echo 4096 ;;
     esac
 }
 
-# Seeds that are too big to commit are taken from the test fixtures: whole files for
-# model_file, and for model_header each fixture's header after its pick byte (0, 1, 2).
+# Fixture model files: the five families, then the f16 FLAME.
+fixtures=(flame_tiny mdm_tiny motionfm_tiny mld_tiny mola_tiny flame_tiny_f16)
+
+# Fixture `$1`'s safetensors header (its first 8 bytes give the length).
+fixture_header() {
+    local f=$root/tests/fixtures/$1.safetensors n
+    n=$(od -An -t u8 -N 8 "$f" | tr -d ' ')
+    tail -c +9 "$f" | head -c "$n"
+}
+
+# Seeds that are too big to commit are made from the test fixtures: whole files for model_file;
+# for model_load each family's header after its pick byte (0 to 4, the order of
+# MODEL_FIXTURES), for model_header the same without the `flame.tokenizer` entry (padded with
+# spaces to a multiple of 8, as safetensors writers pad, so f32 data stays aligned).
 extra_seeds() {
-    local fixtures=(flame_tiny mdm_tiny motionfm_tiny) d i f n
+    local d i
     case $1 in
         model_file)
             d=target/seeds/model_file
             mkdir -p "$d"
-            cp "$root"/tests/fixtures/{flame_tiny,mdm_tiny,motionfm_tiny,flame_tiny_f16}.safetensors "$d/"
+            for i in "${fixtures[@]}"; do cp "$root/tests/fixtures/$i.safetensors" "$d/"; done
+            echo "$d"
+            ;;
+        model_load)
+            d=target/seeds/model_load
+            mkdir -p "$d"
+            for i in 0 1 2 3 4; do
+                { printf "\\x0$i"; fixture_header "${fixtures[i]}"; } >"$d/${fixtures[i]}"
+            done
             echo "$d"
             ;;
         model_header)
             d=target/seeds/model_header
             mkdir -p "$d"
-            for i in 0 1 2; do
-                f=$root/tests/fixtures/${fixtures[i]}.safetensors
-                n=$(od -An -t u8 -N 8 "$f" | tr -d ' ')
-                { printf "\\x0$i"; tail -c +9 "$f" | head -c "$n"; } >"$d/${fixtures[i]}"
+            for i in 0 1 2 3 4; do
+                { printf "\\x0$i"; fixture_header "${fixtures[i]}" | perl -0777 -pe '
+                    s/,"flame\.tokenizer":"(?:[^"\\]|\\.)*"|"flame\.tokenizer":"(?:[^"\\]|\\.)*",?//;
+                    s/ +$//; $_ .= " " x (-length() % 8)'; } >"$d/${fixtures[i]}"
             done
             echo "$d"
             ;;

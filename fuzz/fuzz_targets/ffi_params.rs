@@ -146,7 +146,10 @@ fuzz_target!(|data: &[u8]| {
     // A short respacing string from the input (made of "ddim", digits, commas), or none.
     let spec: [u8; 8] = input.bytes();
     let alphabet = b"ddim0123456789,,x";
-    let spec: Vec<u8> = spec.iter().map(|&b| alphabet[b as usize % alphabet.len()]).collect();
+    let spec: Vec<u8> = spec
+        .iter()
+        .map(|&b| alphabet[b as usize % alphabet.len()])
+        .collect();
     let spec = std::ffi::CString::new(spec).unwrap();
     if actions & 64 != 0 {
         sp.respacing = spec.as_ptr();

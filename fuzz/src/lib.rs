@@ -8,6 +8,17 @@ pub static FIXTURES: [&[u8]; 3] = [
     include_bytes!("../../tests/fixtures/motionfm_tiny.safetensors"),
 ];
 
+/// Every fixture model family: [`FIXTURES`] and the latent models (MLD, MoLA). The model
+/// header targets pick from these; the others keep [`FIXTURES`], which their seeds' pick bytes
+/// were made for.
+pub static MODEL_FIXTURES: [&[u8]; 5] = [
+    FIXTURES[0],
+    FIXTURES[1],
+    FIXTURES[2],
+    include_bytes!("../../tests/fixtures/mld_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/mola_tiny.safetensors"),
+];
+
 /// A safetensors file's header JSON text and its tensor data.
 pub fn split(file: &[u8]) -> (&[u8], &[u8]) {
     let n = u64::from_le_bytes(file[..8].try_into().expect("8 bytes")) as usize;
@@ -21,6 +32,16 @@ pub fn join(header: &[u8], data: &[u8]) -> Vec<u8> {
     out.extend_from_slice(header);
     out.extend_from_slice(data);
     out
+}
+
+/// [`join`] into a buffer kept across executions: a fresh 1 MB vector per input (pages mapped,
+/// faulted in and unmapped again under AddressSanitizer) cost more than parsing the header.
+pub fn join_into<'a>(buf: &'a mut Vec<u8>, header: &[u8], data: &[u8]) -> &'a [u8] {
+    buf.clear();
+    buf.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    buf.extend_from_slice(header);
+    buf.extend_from_slice(data);
+    buf
 }
 
 /// Fixture `i`'s file with its `flame.config` metadata replaced by `config`.
