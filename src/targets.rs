@@ -4,11 +4,16 @@
 //! and runs the motion format's forward kinematics; the products are in [`crate::grad`].
 //!
 //! The rule per sampler (the session applies it, see [`TargetParams`]):
-//! - diffusion: after the step's x̂0 (guided, clamped, masked values kept), `x̂0 ← x̂0 − ρ·∇L`
-//!   and the step continues from it; DDIM keeps the step's ORIGINAL ε (MPGD), DDPM takes the
-//!   posterior mean at the new x̂0. The mask's kept values are imposed again afterwards.
+//! - diffusion: after the step's x̂0 (guided, clamped, masked values kept), x̂0 moves down the
+//!   gradient and the step continues from it; DDIM keeps the step's ORIGINAL ε (MPGD), DDPM
+//!   takes the posterior mean at the moved x̂0 and at the x_t that it and ε make. The mask's
+//!   kept values are imposed again afterwards.
 //! - flow matching: the velocity's implied end point `x̂1 = x + (1 − t)·v` is moved the same
-//!   way, i.e. `v ← v − ρ/(1 − t)·∇L(x̂1)`.
+//!   way, i.e. `v ← v + δ/(1 − t)` for the move δ of x̂1.
+//!
+//! How far it moves ([`pull`]): latent families take MoLA's one plain step `−ρ·∇L`;
+//! motion-space families up to 100 backtracking gradient steps of at most ρ each. Values an
+//! editing mask keeps never move.
 //!
 //! `ρ = s·w(τ)` with τ the noise level (diffusion: `timestep / num_timesteps`; flow: `1 − t`):
 //! [`TargetSchedule::Mpgd`] `w = 4·τ·(1 − τ)` (MoLA's `4·s·t·(1000 − t)/1000²`), or
