@@ -10,25 +10,12 @@
 //! tensor table and the configuration.
 #![no_main]
 
-use std::cell::RefCell;
-
-use flame::checkpoint::ModelFile;
 use flame::config::Config;
-use flame_fuzz::{join_into, split, MODEL_FIXTURES};
+use flame_fuzz::header_over_fixture;
 use libfuzzer_sys::fuzz_target;
 
-thread_local! {
-    static FILE: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
-}
-
 fuzz_target!(|data: &[u8]| {
-    let Some((&pick, header)) = data.split_first() else {
-        return;
-    };
-    let (_, tensors) = split(MODEL_FIXTURES[pick as usize % MODEL_FIXTURES.len()]);
-    FILE.with_borrow_mut(|buf| {
-        if let Ok(file) = ModelFile::from_bytes(join_into(buf, header, tensors)) {
-            let _ = Config::from_file(&file);
-        }
-    });
+    if let Some(Ok(file)) = header_over_fixture(data) {
+        let _ = Config::from_file(&file);
+    }
 });

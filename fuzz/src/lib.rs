@@ -56,3 +56,17 @@ pub fn with_config(i: usize, config: &str) -> Vec<u8> {
     }
     join(&text, data)
 }
+
+/// A mutated header (`data` after its first byte) followed by the tensor data of the fixture
+/// the first byte picks, parsed as a whole file (`None` for empty input). The file is assembled
+/// in a buffer kept across inputs: a fresh 1 MB vector per input is a large part of a run.
+pub fn header_over_fixture(data: &[u8]) -> Option<flame::Result<flame::checkpoint::ModelFile>> {
+    thread_local! {
+        static FILE: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    let (&pick, header) = data.split_first()?;
+    let (_, tensors) = split(MODEL_FIXTURES[pick as usize % MODEL_FIXTURES.len()]);
+    Some(FILE.with_borrow_mut(|buf| {
+        flame::checkpoint::ModelFile::from_bytes(join_into(buf, header, tensors))
+    }))
+}

@@ -491,35 +491,34 @@ impl DiffusionSampler {
             crate::edit::impose(x0, r.reference, r.keep);
         }
         let mut eps_ready = diffusers_ddim.is_some();
-        // DDPM under guidance: x_t as the moved x̂0 and the step's own ε would have made it.
-        let mut x_t_kept_eps: Option<Vec<f32>> = None;
+        // DDPM under guidance: x_prev holds the move δ of x̂0 until the step overwrites it.
+        let mut x_t_moved_by = None;
         if let Some(guide) = guide {
             if let (SamplerKind::Ddim { .. }, false) = (self.kind, eps_ready) {
                 // MPGD keeps the step's own ε: derive it before x̂0 moves.
                 self.epsilon_from_x0(t, x_t, x0, x_prev);
                 eps_ready = true;
             }
-            let before = (self.kind == SamplerKind::Ddpm).then(|| x0.to_vec());
+            let ddpm = self.kind == SamplerKind::Ddpm;
+            if ddpm {
+                x_prev.copy_from_slice(x0);
+            }
             guide(x0)?;
             if let Some(r) = &replace {
                 crate::edit::impose(x0, r.reference, r.keep);
             }
-            if let Some(before) = before {
+            if ddpm {
                 // Keeping ε moves x_t by √ᾱ_t·δ; the posterior mean then moves by
                 // (c1 + c2·√ᾱ_t)·δ = √ᾱ_{t−1}·δ, as DDIM's step does.
-                let a = self.sched.sqrt_alphas_cumprod[t] as f32;
-                x_t_kept_eps = Some(
-                    x_t.iter()
-                        .zip(x0.iter().zip(&before))
-                        .map(|(&x, (&new, &old))| x + a * (new - old))
-                        .collect(),
-                );
+                for (d, &new) in x_prev.iter_mut().zip(x0.iter()) {
+                    *d = new - *d;
+                }
+                x_t_moved_by = Some(self.sched.sqrt_alphas_cumprod[t] as f32);
             }
         }
-        let x_t = x_t_kept_eps.as_deref().unwrap_or(x_t);
         match (self.kind, diffusers_ddim) {
             (_, Some(eta)) => self.ddim_diffusers(t, eta, noise, x_prev, x0),
-            (SamplerKind::Ddpm, _) => self.ddpm(t, x_t, var_pred, noise, x_prev, x0),
+            (SamplerKind::Ddpm, _) => self.ddpm(t, x_t, x_t_moved_by, var_pred, noise, x_prev, x0),
             (SamplerKind::Ddim { eta }, _) => {
                 if !eps_ready {
                     self.epsilon_from_x0(t, x_t, x0, x_prev);
@@ -569,10 +568,13 @@ impl DiffusionSampler {
 
     /// `p_sample`: mean = c1·x̂0 + c2·x_t; x_{t−1} = mean + exp(0.5·log σ²)·z for t ≠ 0. At t = 0
     /// the noise term is skipped rather than multiplied by 0 (identical unless it is not finite).
+    /// With `x_t_moved_by = Some(a)`, `x_prev` holds δ on entry and x_t is taken as x_t + a·δ.
+    #[allow(clippy::too_many_arguments)]
     fn ddpm(
         &self,
         t: usize,
         x_t: &[f32],
+        x_t_moved_by: Option<f32>,
         var_pred: Option<&[f32]>,
         noise: Option<&[f32]>,
         x_prev: &mut [f32],
@@ -582,6 +584,10 @@ impl DiffusionSampler {
         let c1 = s.posterior_mean_coef1[t] as f32;
         let c2 = s.posterior_mean_coef2[t] as f32;
         for ((o, &a), &x) in x_prev.iter_mut().zip(x0).zip(x_t) {
+            let x = match x_t_moved_by {
+                Some(m) => x + m * *o,
+                None => x,
+            };
             *o = c1 * a + c2 * x;
         }
         let Some(z) = noise else { return };

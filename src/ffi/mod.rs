@@ -304,6 +304,19 @@ fn check_size(struct_size: u32, needed: usize, what: &str) -> Result<(), Fail> {
     Ok(())
 }
 
+/// A parameter struct passed in: not NULL, and declaring at least this library's size.
+unsafe fn struct_arg<'a, T>(
+    ptr: *const T,
+    struct_size: impl FnOnce(&T) -> u32,
+    name: &str,
+) -> Result<&'a T, Fail> {
+    let p = ptr
+        .as_ref()
+        .ok_or_else(|| Fail::from(invalid_arg!("`{name}` is NULL")))?;
+    check_size(struct_size(p), std::mem::size_of::<T>(), name)?;
+    Ok(p)
+}
+
 /// Writes through an out-pointer after checking it.
 unsafe fn write_out<T>(out: *mut T, value: T, name: &str) -> Result<(), Fail> {
     if out.is_null() {
@@ -636,14 +649,7 @@ pub unsafe extern "C" fn flame_session_set_edit_params(
 ) -> FlameStatus {
     guard(|| {
         let s = session_ref(session)?;
-        let p = params
-            .as_ref()
-            .ok_or_else(|| Fail::from(invalid_arg!("`params` is NULL")))?;
-        check_size(
-            p.struct_size,
-            std::mem::size_of::<FlameEditParams>(),
-            "params",
-        )?;
+        let p = struct_arg(params, |p| p.struct_size, "params")?;
         let method = u32::try_from(p.method)
             .map_err(|_| invalid_arg!("unknown edit method {}", p.method))
             .and_then(EditMethod::from_u32)?;
@@ -689,14 +695,7 @@ pub unsafe extern "C" fn flame_session_set_target_params(
 ) -> FlameStatus {
     guard(|| {
         let s = session_ref(session)?;
-        let p = params
-            .as_ref()
-            .ok_or_else(|| Fail::from(invalid_arg!("`params` is NULL")))?;
-        check_size(
-            p.struct_size,
-            std::mem::size_of::<FlameTargetParams>(),
-            "params",
-        )?;
+        let p = struct_arg(params, |p| p.struct_size, "params")?;
         let schedule = u32::try_from(p.schedule)
             .map_err(|_| invalid_arg!("unknown target schedule {}", p.schedule))
             .and_then(TargetSchedule::from_u32)?;
