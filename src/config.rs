@@ -258,6 +258,10 @@ pub struct Defaults {
     #[serde(default)]
     pub eta: f32,
     pub frames: usize,
+    /// The respacing string sessions use when they ask for neither a step count nor a
+    /// respacing (FineMoGen: `"15,15,8,6,6"`); models with `diffusion.spacing` `respace` only.
+    #[serde(default)]
+    pub respacing: Option<String>,
 }
 
 fn gelu() -> String {

@@ -38,6 +38,8 @@ pub mod rng;
 /// cbindgen:ignore
 pub mod session;
 /// cbindgen:ignore
+pub mod stages;
+/// cbindgen:ignore
 pub mod targets;
 /// cbindgen:ignore
 pub mod text;

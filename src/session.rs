@@ -13,6 +13,7 @@ use crate::error::{invalid_arg, Error, Result};
 use crate::models::{Cancel, Condition, Guidance, Model, Workspace};
 use crate::pool::WorkerPool;
 use crate::rng::{GaussianRng, NoiseSource};
+use crate::stages::Stage;
 use crate::targets::{self, PositionTargets, TargetParams, TargetScratch};
 use crate::text::PromptInfo;
 
@@ -112,6 +113,9 @@ pub struct Session {
     target_params: TargetParams,
     /// L at the latest step's clean-motion estimate (before its guidance moved it).
     target_loss: Option<f64>,
+    /// The frames of each stage when the condition has several: the sample is
+    /// `[stages, longest stage, dim]` and the motion their concatenation.
+    staged: Option<Vec<usize>>,
 }
 
 /// A latent sample decoded into motion features, and which state of the session it shows.
@@ -311,6 +315,7 @@ impl Session {
             targets: None,
             target_params,
             target_loss: None,
+            staged: None,
         })
     }
 
@@ -347,8 +352,60 @@ impl Session {
             };
             Ok((cond, info))
         })?;
+        self.use_condition(cond, Some(info))
+    }
+
+    /// Sets prompts per time stage, each with its frame count (adding up to the session's
+    /// frames) and optional texts per body part: FineMoGen's temporal composition and its
+    /// part texts. Other families take one stage without part texts, as a plain prompt. A
+    /// condition of several stages samples `[stages, longest stage, motion_dim]` (the official
+    /// batch layout: [`Session::sample_rows`], [`Session::set_initial_noise`]) and
+    /// [`Session::motion`] concatenates the stages' frames. Between steps, stages may change
+    /// their texts, not their frame counts (that changes the sample's layout: reset first).
+    pub fn set_prompt_stages(&mut self, stages: &[Stage]) -> Result<()> {
+        crate::stages::check(stages, self.frames)?;
+        let model = Arc::clone(&self.model);
+        let cond = self.pool.install(|| model.encode_stages(stages))?;
+        self.use_condition(cond, None)
+    }
+
+    /// Sample rows a condition lays out: one per frame (or the model's latent rows), or the
+    /// longest stage's frames per stage.
+    fn rows_for(&self, cond: &Condition) -> usize {
+        match cond.stage_frames() {
+            Some(f) => f.len() * f.iter().copied().max().unwrap_or(0),
+            None => self.model.sample_rows(self.frames),
+        }
+    }
+
+    /// Makes `cond` the session's condition, resizing the sample to its layout (only before
+    /// the first step, and only when no edit is set).
+    fn use_condition(&mut self, cond: Condition, info: Option<PromptInfo>) -> Result<()> {
+        let rows = self.rows_for(&cond);
+        if rows != self.rows {
+            if self.started {
+                return Err(Error::WrongState(format!(
+                    "the new prompt lays the sample out in {rows} rows, the generation has {}: \
+                     stage frame counts can change only before the first step (reset first)",
+                    self.rows
+                )));
+            }
+            let len = rows * self.model.sample_dim();
+            if self.initial_noise.as_ref().is_some_and(|n| n.len() != len) {
+                return Err(invalid_arg!(
+                    "the initial noise was set for {} rows; this prompt needs {rows} rows × {}: set the noise after the prompt",
+                    self.rows,
+                    self.model.sample_dim()
+                ));
+            }
+            self.rows = rows;
+            self.x = vec![0.0; len];
+            self.x0 = vec![0.0; len];
+            self.decoded = Default::default();
+        }
+        self.staged = cond.stage_frames().map(<[usize]>::to_vec);
         self.cond = Some(cond);
-        self.prompt_info = Some(info);
+        self.prompt_info = info;
         Ok(())
     }
 
@@ -362,9 +419,16 @@ impl Session {
     /// a prompt. It must be made for this model's architecture.
     pub fn set_condition(&mut self, cond: Condition) -> Result<()> {
         self.model.check_condition(&cond)?;
-        self.cond = Some(cond);
-        self.prompt_info = None;
-        Ok(())
+        if let Some(f) = cond.stage_frames() {
+            let total: usize = f.iter().sum();
+            if total != self.frames {
+                return Err(invalid_arg!(
+                    "the condition's stages cover {total} frames, the session has {}",
+                    self.frames
+                ));
+            }
+        }
+        self.use_condition(cond, None)
     }
 
     /// Sets the unconditional input of guidance (for example the empty prompt's text vector
@@ -426,6 +490,9 @@ impl Session {
     /// values (targets steer the rest).
     pub fn set_position_targets(&mut self, targets: PositionTargets) -> Result<()> {
         targets::supported(&self.model)?;
+        if self.staged.is_some() {
+            return self.check_editable();
+        }
         let format = self.model.motion_format();
         if targets.format() != format {
             return Err(invalid_arg!(
@@ -549,11 +616,23 @@ impl Session {
         if !ready {
             return Err(Error::WrongState(what.into()));
         }
-        if !self.model.is_latent() {
+        if !self.model.is_latent() && self.staged.is_none() {
             return Ok((&x[..], self.frames));
         }
         let at = self.rule.num_steps() - self.remaining + usize::from(self.started);
         let d = &mut self.decoded[which as usize];
+        if let (Some(stages), true) = (&self.staged, d.at != Some(at)) {
+            // The stages' valid frames, concatenated in order.
+            let dim = self.model.sample_dim();
+            let t = stages.iter().copied().max().unwrap_or(0);
+            d.features.clear();
+            for (i, &f) in stages.iter().enumerate() {
+                d.features
+                    .extend_from_slice(&x[i * t * dim..(i * t + f) * dim]);
+            }
+            d.frames = self.frames;
+            d.at = Some(at);
+        }
         if d.at != Some(at) {
             let model = &self.model;
             let frames = self.frames;
@@ -569,6 +648,12 @@ impl Session {
 
     /// Refuses mask and reference editing on a latent model (its sample is not the motion).
     fn check_editable(&self) -> Result<()> {
+        if self.staged.is_some() {
+            return Err(invalid_arg!(
+                "a prompt of several time stages samples one row per stage, not the motion: \
+                 masks, reference motions and position targets apply to single-prompt generations"
+            ));
+        }
         if self.model.is_latent() {
             return Err(invalid_arg!(
                 "this {} model samples a latent, not the motion: masks and reference motions \
@@ -847,6 +932,9 @@ impl Session {
         // Resolved before anything is drawn, so a bad combination leaves the session as it was.
         let method = self.resolve_method(self.edit.params.method)?;
         let active = self.edit_active()?;
+        if self.staged.is_some() && (active || self.targets.is_some()) {
+            self.check_editable()?;
+        }
         if !self.started {
             match &self.initial_noise {
                 Some(x) => self.x.copy_from_slice(x),

@@ -429,7 +429,11 @@ impl Config {
             .variance
             .parse()
             .map_err(|_| unknown("diffusion.variance", &dc.variance, VARIANCES))?;
-        one_of("diffusion.uncond", &dc.uncond, &["empty_prompt", "zeros"])?;
+        one_of(
+            "diffusion.uncond",
+            &dc.uncond,
+            self.denoiser.unconditional_inputs(),
+        )?;
         let flow = is_flow(&dc.parameterization);
         if !flow {
             dc.parameterization
@@ -476,6 +480,22 @@ impl Config {
         if spacing.is_diffusers() {
             diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset)
                 .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
+        }
+        if let Some(spec) = &df.respacing {
+            if flow || spacing.is_diffusers() {
+                return Err(bad_file!(
+                    "config defaults.respacing `{spec}` needs diffusion.spacing `respace`"
+                ));
+            }
+            let kept = crate::diffusion::parse_timestep_respacing(dc.num_timesteps, spec)
+                .map_err(|e| bad_file!("config defaults.respacing `{spec}`: {}", inner(e)))?;
+            if kept.len() != df.steps {
+                return Err(bad_file!(
+                    "config defaults.respacing `{spec}` keeps {} steps, defaults.steps is {}",
+                    kept.len(),
+                    df.steps
+                ));
+            }
         }
         in_range_f32("defaults.guidance", df.guidance, 0.0, MAX_GUIDANCE, false)?;
         in_range_f32("defaults.eta", df.eta, 0.0, 1.0, false)?;

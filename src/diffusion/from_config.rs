@@ -109,7 +109,12 @@ pub fn build_sampler(
     let t = dc.num_timesteps;
     let base = betas(schedule, t);
     let clip = choice.clip_denoised.unwrap_or(dc.clip_denoised);
-    let sampler = match (spacing, choice.respacing) {
+    // The file's default respacing applies when the session asks for neither.
+    let respacing = choice.respacing.or(match choice.steps {
+        None => defaults.respacing.as_deref(),
+        Some(_) => None,
+    });
+    let sampler = match (spacing, respacing) {
         (Spacing::Respace, Some(spec)) => {
             let kept = respaced_steps(t, spec, choice.steps)?;
             DiffusionSampler::new(&base, &kept, kind, param, variance, clip)?

@@ -27,6 +27,7 @@
 //! ([`crate::diffusion`]), configured by the file's `diffusion` section; text encoders are
 //! shared too ([`TextModel`]).
 
+pub mod finemogen;
 pub mod flame;
 pub(crate) mod layers;
 pub mod mdm;
@@ -44,16 +45,24 @@ use crate::config::{Config, TextConfig};
 use crate::edit::EditMethod;
 use crate::error::{bad_file, invalid_arg, Error, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
+use crate::stages::Stage;
 use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
 
 pub use crate::kernels::WeightType;
+pub use finemogen::{FinemogenDenoiser, FinemogenFamily};
 pub use flame::{FlameCondition, FlameConfig, FlameDenoiser};
 pub use mdm::{MdmConfig, MdmDenoiser, TimeIndex};
 pub use mld::{MldDenoiser, MldFamily};
 pub use mola::{MolaDenoiser, MolaFamily};
 
 /// Every family this build runs: the `architecture` values each reads, and its parser.
-pub const FAMILIES: &[Family] = &[flame::FAMILY, mdm::FAMILY, mola::FAMILY, mld::FAMILY];
+pub const FAMILIES: &[Family] = &[
+    flame::FAMILY,
+    mdm::FAMILY,
+    mola::FAMILY,
+    mld::FAMILY,
+    finemogen::FAMILY,
+];
 
 /// Most rows one forward pass batches (conditional + unconditional rows of guidance, with room
 /// to spare).
@@ -103,6 +112,10 @@ pub trait FamilyConfig: fmt::Debug + Send + Sync {
     fn max_frames(&self) -> usize;
     /// One line describing the denoiser's sizes (`flame info`).
     fn summary(&self) -> String;
+    /// The `diffusion.uncond` values the family reads.
+    fn unconditional_inputs(&self) -> &'static [&'static str] {
+        &["empty_prompt", "zeros"]
+    }
     /// Builds the network from the file (after validation), with linear weights held as `ty`.
     fn load(
         &self,
@@ -139,6 +152,11 @@ pub trait Denoiser: Send + Sync {
     }
     /// Encodes a prompt (never blank: a blank prompt is the unconditional input).
     fn encode_prompt(&self, text: &TextModel, prompt: &str) -> Result<Condition>;
+    /// Encodes prompts per time stage and body part (checked by [`crate::stages::check`]);
+    /// `None` when the family takes one prompt only.
+    fn encode_stages(&self, _text: &TextModel, _stages: &[Stage]) -> Option<Result<Condition>> {
+        None
+    }
     /// The unconditional input of guidance, as `diffusion.uncond` names it (`empty_prompt` or
     /// `zeros`; the family's check has refused what it cannot use).
     fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition>;
@@ -224,9 +242,13 @@ pub trait MotionDecoder: Send + Sync {
 }
 
 /// What a denoiser is conditioned on, derived from a prompt once and reused at every step: a
-/// value of the family's own type, cheap to clone.
+/// value of the family's own type, cheap to clone. A condition of several time stages also
+/// says their frame counts: its sample is laid out `[stages, longest stage, sample_dim]`.
 #[derive(Clone)]
-pub struct Condition(Arc<dyn Any + Send + Sync>);
+pub struct Condition {
+    value: Arc<dyn Any + Send + Sync>,
+    stages: Option<Arc<[usize]>>,
+}
 
 /// A single text vector (MDM, Motion Flow Matching: CLIP's projected end-of-text features).
 #[derive(Clone, Debug, PartialEq)]
@@ -235,7 +257,23 @@ pub struct TextVector(pub Vec<f32>);
 impl Condition {
     /// Wraps a family's condition value.
     pub fn new<T: Any + Send + Sync>(value: T) -> Condition {
-        Condition(Arc::new(value))
+        Condition {
+            value: Arc::new(value),
+            stages: None,
+        }
+    }
+
+    /// Wraps a family's condition of several time stages of `frames` frames each.
+    pub fn with_stages<T: Any + Send + Sync>(value: T, frames: Vec<usize>) -> Condition {
+        Condition {
+            value: Arc::new(value),
+            stages: (frames.len() > 1).then(|| frames.into()),
+        }
+    }
+
+    /// The frames of each stage, for a condition of two or more stages.
+    pub fn stage_frames(&self) -> Option<&[usize]> {
+        self.stages.as_deref()
     }
 
     /// A text vector (for families conditioned on one; see [`TextVector`]).
@@ -245,7 +283,7 @@ impl Condition {
 
     /// The family's value, when it is a `T`.
     pub fn get<T: Any>(&self) -> Option<&T> {
-        self.0.downcast_ref()
+        self.value.downcast_ref()
     }
 
     /// The text vector, for conditions made by [`Condition::text_vector`].
@@ -583,6 +621,21 @@ impl Model {
     /// Encodes a prompt into the denoiser's conditioning.
     pub fn encode_prompt(&self, prompt: &str) -> Result<Condition> {
         self.denoiser.encode_prompt(&self.text, prompt)
+    }
+
+    /// Encodes prompts per time stage (and body part): the family's own encoding, or for a
+    /// family that takes one prompt, one stage without part texts as that prompt.
+    pub fn encode_stages(&self, stages: &[Stage]) -> Result<Condition> {
+        if let Some(c) = self.denoiser.encode_stages(&self.text, stages) {
+            return c;
+        }
+        match stages {
+            [one] if !one.has_parts() => self.encode_prompt(&one.text),
+            _ => Err(invalid_arg!(
+                "this {} model takes one prompt per generation (a single stage without part texts); prompts per time stage and body part are FineMoGen's",
+                self.config.architecture
+            )),
+        }
     }
 
     /// How `prompt` fits the text encoder's window: tokens kept, tokens cut and the cut text.
