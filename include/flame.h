@@ -312,6 +312,28 @@ typedef struct FlameTargetParams {
   int32_t schedule;
 } FlameTargetParams;
 
+// One time stage of a prompt for [`flame_session_set_prompt_stages`]: a whole-body text, a
+// frame count, and optionally a text per body part (NULL or empty: the part follows `text`).
+// The part fields are the HuMMan-MoGen annotation's; FineMoGen reads them, other families take
+// one stage without them. Set `struct_size = sizeof(FlameStage)`.
+typedef struct FlameStage {
+  // `sizeof(FlameStage)`; every stage of an array has the same.
+  uint32_t struct_size;
+  // Frames of this stage (1 to the model's stage length; the stages add up to the session's).
+  uint32_t frames;
+  // What the whole body does (UTF-8, NUL-terminated).
+  const char *text;
+  const char *head;
+  // The spine.
+  const char *stem;
+  const char *left_arm;
+  const char *right_arm;
+  const char *left_leg;
+  const char *right_leg;
+  // The root's trajectory.
+  const char *pelvis;
+} FlameStage;
+
 // What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
 // encoder's window. Set `struct_size = sizeof(FlamePromptInfo)` first.
 typedef struct FlamePromptInfo {
@@ -510,6 +532,19 @@ enum FlameStatus flame_session_reset(struct FlameSession *session);
 // # Safety
 // `session` is a live session; `prompt` a NUL-terminated string.
 enum FlameStatus flame_session_set_prompt(struct FlameSession *session, const char *prompt);
+
+// Sets prompts per time stage (and body part): `count` stages in order, their frames adding
+// up to the session's. FineMoGen composes them (the sample is then laid out
+// `[count, longest stage, motion_dim]`: see [`flame_session_sample_shape`]); other families
+// take one stage without part texts as a plain prompt and refuse more (INVALID_ARGUMENT). A
+// stage's frame counts can change only before the first step (WRONG_STATE after).
+//
+// # Safety
+// `session` is a live session; `stages` points to `count` `FlameStage`s whose non-NULL
+// strings are NUL-terminated.
+enum FlameStatus flame_session_set_prompt_stages(struct FlameSession *session,
+                                                 const struct FlameStage *stages,
+                                                 size_t count);
 
 // Reports how the last prompt fitted the text encoder's window (tokens kept, whether it was
 // cut and the text that was dropped). `WRONG_STATE` before a prompt is set.

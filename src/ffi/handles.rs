@@ -247,6 +247,16 @@ impl SessionState {
         Ok(())
     }
 
+    /// Sets prompts per stage; [`SessionState::prompt_info`] has no fit to report after it.
+    pub(crate) fn set_prompt_stages(
+        &mut self,
+        stages: &[crate::stages::Stage],
+    ) -> Result<(), Fail> {
+        self.session.set_prompt_stages(stages)?;
+        self.dropped = cstring("");
+        Ok(())
+    }
+
     /// The last prompt's fit; `dropped` points into the state, valid until the next prompt.
     pub(crate) fn prompt_info(&self) -> Result<FlamePromptInfo, Fail> {
         let info = self

@@ -115,6 +115,30 @@ pub struct FlameTargetParams {
     pub schedule: i32,
 }
 
+/// One time stage of a prompt for [`flame_session_set_prompt_stages`]: a whole-body text, a
+/// frame count, and optionally a text per body part (NULL or empty: the part follows `text`).
+/// The part fields are the HuMMan-MoGen annotation's; FineMoGen reads them, other families take
+/// one stage without them. Set `struct_size = sizeof(FlameStage)`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameStage {
+    /// `sizeof(FlameStage)`; every stage of an array has the same.
+    pub struct_size: u32,
+    /// Frames of this stage (1 to the model's stage length; the stages add up to the session's).
+    pub frames: u32,
+    /// What the whole body does (UTF-8, NUL-terminated).
+    pub text: *const c_char,
+    pub head: *const c_char,
+    /// The spine.
+    pub stem: *const c_char,
+    pub left_arm: *const c_char,
+    pub right_arm: *const c_char,
+    pub left_leg: *const c_char,
+    pub right_leg: *const c_char,
+    /// The root's trajectory.
+    pub pelvis: *const c_char,
+}
+
 /// Named groups of channels for [`flame_session_keep_part`].
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -915,6 +939,72 @@ pub unsafe extern "C" fn flame_session_set_prompt(
         let s = session_ref(session)?;
         let text = str_arg(prompt, "prompt")?;
         s.with(|st| st.set_prompt(text))
+    })
+}
+
+/// Sets prompts per time stage (and body part): `count` stages in order, their frames adding
+/// up to the session's. FineMoGen composes them (the sample is then laid out
+/// `[count, longest stage, motion_dim]`: see [`flame_session_sample_shape`]); other families
+/// take one stage without part texts as a plain prompt and refuse more (INVALID_ARGUMENT). A
+/// stage's frame counts can change only before the first step (WRONG_STATE after).
+///
+/// # Safety
+/// `session` is a live session; `stages` points to `count` `FlameStage`s whose non-NULL
+/// strings are NUL-terminated.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_prompt_stages(
+    session: *mut FlameSession,
+    stages: *const FlameStage,
+    count: usize,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if count == 0 || count > 1024 {
+            return Err(invalid_arg!("{count} stages: give 1 to 1024").into());
+        }
+        let first = struct_arg(stages, |st| st.struct_size, "stages[0]")?;
+        // A newer header's larger struct: step by its size, read the fields this library knows.
+        let stride = first.struct_size as usize;
+        if !stride.is_multiple_of(std::mem::align_of::<FlameStage>()) || stride > 1 << 16 {
+            return Err(invalid_arg!(
+                "stages[0].struct_size {stride} is not the size of a FlameStage"
+            )
+            .into());
+        }
+        let mut out = Vec::with_capacity(count);
+        for i in 0..count {
+            let st = &*((stages as *const u8).add(i * stride) as *const FlameStage);
+            if st.struct_size != first.struct_size {
+                return Err(invalid_arg!(
+                    "stages[{i}].struct_size is {}, stages[0]'s {}",
+                    st.struct_size,
+                    first.struct_size
+                )
+                .into());
+            }
+            let text = str_arg(st.text, &format!("stages[{i}].text"))?;
+            let part = |p: *const c_char, name: &str| -> Result<Option<String>, Fail> {
+                if p.is_null() {
+                    return Ok(None);
+                }
+                let t = str_arg(p, &format!("stages[{i}].{name}"))?;
+                Ok((!t.trim().is_empty()).then(|| t.to_string()))
+            };
+            out.push(crate::stages::Stage {
+                text: text.to_string(),
+                frames: st.frames as usize,
+                parts: [
+                    part(st.head, "head")?,
+                    part(st.stem, "stem")?,
+                    part(st.left_arm, "left_arm")?,
+                    part(st.right_arm, "right_arm")?,
+                    part(st.left_leg, "left_leg")?,
+                    part(st.right_leg, "right_leg")?,
+                    part(st.pelvis, "pelvis")?,
+                ],
+            });
+        }
+        s.with(|st| st.set_prompt_stages(&out))
     })
 }
 

@@ -204,8 +204,17 @@ pub struct GenerateArgs {
     #[command(flatten)]
     pub model: ModelArgs,
     /// The sentence to turn into a motion
-    #[arg(long, value_name = "TEXT")]
-    pub prompt: String,
+    #[arg(long, value_name = "TEXT", required_unless_present_any = ["stage", "prompt_file"], conflicts_with_all = ["stage", "prompt_file"])]
+    pub prompt: Option<String>,
+    /// One time stage: its text and frame count, repeated in order (FineMoGen's temporal
+    /// composition; the frames add up to the motion's)
+    #[arg(long, value_name = "TEXT@FRAMES", conflicts_with = "prompt_file")]
+    pub stage: Vec<String>,
+    /// Stages with texts per body part, in the HuMMan-MoGen layout: {"fps": 30, "stages":
+    /// [{"start_frame", "end_frame", "all", "head", "stem", "left_arm", "right_arm",
+    /// "left_leg", "right_leg", "pelvis"}]} (frames converted to the model's fps)
+    #[arg(long, value_name = "FILE.json")]
+    pub prompt_file: Option<PathBuf>,
     #[command(flatten)]
     pub sampling: SamplingArgs,
     #[command(flatten)]

@@ -18,6 +18,7 @@ use flame::config::TextConfig;
 use flame::models::{LoadOptions, Model};
 use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
+use flame::stages::Stage;
 use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
@@ -185,20 +186,46 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     if let Some(noise) = &a.sampling.noise {
         paths::check_readable(noise)?;
     }
-    let params = session_params(&a.sampling);
+    let mut params = session_params(&a.sampling);
     let loaded = load_model(&a.model)?;
-    note_unknown_actions(&loaded, &a.prompt);
     let model = &loaded.model;
+    let stages = read_stages(a, model)?;
+    if let Some(stages) = &stages {
+        let total: usize = stages.iter().map(|s| s.frames).sum();
+        match params.frames {
+            Some(f) if f != total => {
+                return Err(format!(
+                    "--frames {f}: the stages add up to {total} frames (leave --frames out)"
+                ))
+            }
+            _ => params.frames = Some(total),
+        }
+        for s in stages {
+            note_unknown_actions(&loaded, &s.text);
+        }
+    }
+    if let Some(prompt) = &a.prompt {
+        note_unknown_actions(&loaded, prompt);
+    }
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(model);
     check_latent_arg(model, &a.sampling)?;
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
+    match (&stages, &a.prompt) {
+        (Some(stages), _) => session
+            .set_prompt_stages(stages)
+            .map_err(|e| e.to_string())?,
+        (None, Some(prompt)) => {
+            session.set_prompt(prompt).map_err(|e| e.to_string())?;
+            note_prompt_fit(&session);
+        }
+        (None, None) => unreachable!("clap requires --prompt, --stage or --prompt-file"),
+    }
+    // After the prompt: stages lay the noise out [stages, longest stage, features].
     if let Some(noise) = &a.sampling.noise {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
         session.set_initial_noise(&x).map_err(|e| e.to_string())?;
     }
-    session.set_prompt(&a.prompt).map_err(|e| e.to_string())?;
-    note_prompt_fit(&session);
     sample(&mut session)?;
     write_latent(&session, &a.sampling)?;
     let asked = session.frames();
@@ -207,6 +234,25 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
         eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
     }
     outputs.write(x, frames, model, decoder.as_ref())
+}
+
+/// `--stage` (repeated) or `--prompt-file`, if given.
+fn read_stages(a: &GenerateArgs, model: &Model) -> Result<Option<Vec<Stage>>, String> {
+    if let Some(path) = &a.prompt_file {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        let stages = flame::stages::from_prompt_file(&text, model.config().motion.fps)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        return Ok(Some(stages));
+    }
+    if a.stage.is_empty() {
+        return Ok(None);
+    }
+    a.stage
+        .iter()
+        .map(|s| flame::stages::parse_stage(s).map_err(|e| format!("--stage: {e}")))
+        .collect::<Result<Vec<_>, _>>()
+        .map(Some)
 }
 
 /// Before any work: `--latent` needs a latent model and a writable path.
