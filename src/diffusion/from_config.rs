@@ -216,6 +216,7 @@ mod tests {
             guidance: 1.0,
             eta: 0.0,
             frames: 1,
+            respacing: None,
         }
     }
 
@@ -241,6 +242,33 @@ mod tests {
             Err(e @ Error::InvalidArgument(_)) => e.to_string(),
             other => panic!("{ch:?} gave {other:?}"),
         }
+    }
+
+    #[test]
+    fn a_default_respacing_applies_when_neither_steps_nor_respacing_are_asked() {
+        let c = dc("respace", "x0");
+        let mut d = defaults();
+        d.respacing = Some("15,15,8,6,6".into());
+        let built = |ch: &SamplerChoice| match build_sampler(&c, &d, ch).unwrap() {
+            BuiltSampler::Diffusion(s) => s,
+            BuiltSampler::Flow(_) => panic!("a diffusion model"),
+        };
+        // REFERENCE 9.11: the kept steps of FineMoGen's "15,15,8,6,6", ascending.
+        let s = built(&choice(Method::Ddim, None, None));
+        let map = s.timestep_map();
+        assert_eq!(map.len(), 50);
+        assert_eq!(&map[..5], &[0, 14, 28, 43, 57]);
+        assert_eq!(&map[14..16], &[199, 200]);
+        assert_eq!(&map[44..], &[800, 840, 880, 919, 959, 999]);
+        // An explicit step count or respacing wins.
+        assert_eq!(
+            built(&choice(Method::Ddim, Some(10), None)).timestep_map(),
+            space_timesteps(1000, &[10]).unwrap()
+        );
+        assert_eq!(
+            built(&choice(Method::Ddim, None, Some("ddim50"))).timestep_map(),
+            space_timesteps_ddim_stride(1000, 50).unwrap()
+        );
     }
 
     #[test]

@@ -516,10 +516,8 @@ impl Moe {
                 .sum::<usize>()
     }
 
-    /// Slots per expert for `n` tokens: `k · ⌊f · ⌈n / E⌉⌋` (tutel).
     fn capacity(&self, n: usize) -> usize {
-        let per = n.div_ceil(self.experts.len());
-        self.topk * (self.capacity_factor as f64 * per as f64) as usize
+        capacity(n, self.experts.len(), self.topk, self.capacity_factor)
     }
 
     /// Routes `n` tokens `x` (`[n, dim]`, the embedding already added) and writes
@@ -541,60 +539,15 @@ impl Moe {
             let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
             row.iter_mut().for_each(|v| *v /= norm);
         }
-        let scores = sized(&mut ws.scores, n * e);
+        let mut scores_buf = std::mem::take(&mut ws.scores);
+        let scores = sized(&mut scores_buf, n * e);
         self.similarity.forward(gp, n, scores);
         for row in scores.chunks_exact_mut(e) {
             row.iter_mut().for_each(|v| *v *= self.logit_scale);
             kernels::softmax_rows(row, e);
         }
-        // Top-k per token (ties: the lower expert), gates renormalised before any drop.
-        ws.choice.clear();
-        ws.gates.clear();
-        for row in scores.chunks_exact(e) {
-            let start = ws.choice.len();
-            for _ in 0..k {
-                let mut best = usize::MAX;
-                for (x, &s) in row.iter().enumerate() {
-                    let taken = ws.choice[start..].contains(&(x as u32));
-                    if !taken && (best == usize::MAX || s > row[best]) {
-                        best = x;
-                    }
-                }
-                ws.choice.push(best as u32);
-            }
-            let sum: f32 = ws.choice[start..].iter().map(|&c| row[c as usize]).sum();
-            let denom = sum.max(f32::EPSILON);
-            for &c in &ws.choice[start..] {
-                ws.gates.push(row[c as usize] / denom);
-            }
-        }
-        // Batch-prioritised slots: tokens by descending top-1 score (stable: the lower index
-        // first among equal scores); choice r of a token queues after every earlier choice.
-        ws.order.clear();
-        ws.order.extend(0..n as u32);
-        let top1 = |t: u32| scores[t as usize * e + ws.choice[t as usize * k] as usize];
-        ws.order.sort_by(|&a, &b| top1(b).total_cmp(&top1(a)));
-        let cap = self.capacity(n);
-        ws.count.clear();
-        ws.count.resize(e, 0);
-        for list in ws.routed.iter_mut() {
-            list.clear();
-        }
-        ws.routed.resize_with(e, Vec::new);
-        let mut dropped = 0;
-        for r in 0..k {
-            for &t in &ws.order {
-                let i = t as usize * k + r;
-                let x = ws.choice[i] as usize;
-                let slot = ws.count[x];
-                ws.count[x] += 1;
-                if slot >= cap {
-                    dropped += 1;
-                } else if (t as usize) < used {
-                    ws.routed[x].push((t, ws.gates[i]));
-                }
-            }
-        }
+        let dropped = route(scores, e, k, self.capacity(n), used, ws);
+        ws.scores = scores_buf;
         // Each expert on the tokens routed to it; Σ gates · outputs per token.
         let (d, h) = (self.dim, self.hidden);
         let mix = sized(&mut ws.mix, used * d);
@@ -623,6 +576,76 @@ impl Moe {
         self.proj.forward(mix, used, &mut y[..used * self.proj_out]);
         dropped
     }
+}
+
+/// Slots per expert for `n` tokens: `k · ⌊f · ⌈n / E⌉⌋` (tutel; `f` a Python float).
+fn capacity(n: usize, experts: usize, k: usize, f: f32) -> usize {
+    k * (f as f64 * n.div_ceil(experts) as f64) as usize
+}
+
+/// tutel's routing of `scores` (`[n, e]`, softmax over the experts): each token's top-`k`
+/// experts (ties: the lower expert) with gates renormalised over them before any drop; slots by
+/// batch priority — tokens by descending top-1 score (stable: the lower index first among equal
+/// scores), choice `r` of every token queued after all choices before `r`; a choice whose slot
+/// is `cap` or more is dropped. Fills `ws.routed[expert]` with `(token, gate)` for the tokens
+/// below `used` and returns the dropped choices (of all tokens).
+fn route(
+    scores: &[f32],
+    e: usize,
+    k: usize,
+    cap: usize,
+    used: usize,
+    ws: &mut MoeScratch,
+) -> usize {
+    let n = scores.len() / e;
+    // Top-k per token (ties: the lower expert), gates renormalised before any drop.
+    ws.choice.clear();
+    ws.gates.clear();
+    for row in scores.chunks_exact(e) {
+        let start = ws.choice.len();
+        for _ in 0..k {
+            let mut best = usize::MAX;
+            for (x, &s) in row.iter().enumerate() {
+                let taken = ws.choice[start..].contains(&(x as u32));
+                if !taken && (best == usize::MAX || s > row[best]) {
+                    best = x;
+                }
+            }
+            ws.choice.push(best as u32);
+        }
+        let sum: f32 = ws.choice[start..].iter().map(|&c| row[c as usize]).sum();
+        let denom = sum.max(f32::EPSILON);
+        for &c in &ws.choice[start..] {
+            ws.gates.push(row[c as usize] / denom);
+        }
+    }
+    // Batch-prioritised slots: tokens by descending top-1 score (stable: the lower index
+    // first among equal scores); choice r of a token queues after every earlier choice.
+    ws.order.clear();
+    ws.order.extend(0..n as u32);
+    let top1 = |t: u32| scores[t as usize * e + ws.choice[t as usize * k] as usize];
+    ws.order.sort_by(|&a, &b| top1(b).total_cmp(&top1(a)));
+    ws.count.clear();
+    ws.count.resize(e, 0);
+    for list in ws.routed.iter_mut() {
+        list.clear();
+    }
+    ws.routed.resize_with(e, Vec::new);
+    let mut dropped = 0;
+    for r in 0..k {
+        for &t in &ws.order {
+            let i = t as usize * k + r;
+            let x = ws.choice[i] as usize;
+            let slot = ws.count[x];
+            ws.count[x] += 1;
+            if slot >= cap {
+                dropped += 1;
+            } else if (t as usize) < used {
+                ws.routed[x].push((t, ws.gates[i]));
+            }
+        }
+    }
+    dropped
 }
 
 /// Buffers of [`Moe::forward`].
@@ -782,6 +805,7 @@ pub struct FinemogenWorkspace {
     tt: Vec<f32>,
     tpl: [Vec<f32>; 4],
     coef: Vec<f32>,
+    acat: Vec<f32>,
     acc: Vec<f32>,
     styl: (Vec<f32>, Vec<f32>),
     mlp: Vec<f32>,
@@ -1263,47 +1287,28 @@ impl FinemogenDenoiser {
                 });
                 let tn = if text.is_some() { nt } else { 0 };
                 let len = tn + row.frames;
-                // keys / values `[len, p]`: text tokens first, then the valid frames.
-                let keys = sized(&mut ws.keys, len * p);
+                // Keys transposed `[p, len]` (one key channel per row) and values `[len, p]`:
+                // text tokens first, then the valid frames.
+                let kt = sized(&mut ws.keys, p * len);
                 let vals = sized(&mut ws.vals, len * p);
                 if let Some(tf) = text {
                     for (j, src) in tf.chunks_exact(2 * p).enumerate() {
-                        keys[j * p..(j + 1) * p].copy_from_slice(&src[..p]);
+                        for (d, &k) in src[..p].iter().enumerate() {
+                            kt[d * len + j] = k;
+                        }
                         vals[j * p..(j + 1) * p].copy_from_slice(&src[p..]);
                     }
                 }
                 for k in 0..row.frames {
                     let src = &feat[((b * t + k) * GROUPS + hh) * 3 * p..][..3 * p];
-                    keys[(tn + k) * p..(tn + k + 1) * p].copy_from_slice(&src[p..2 * p]);
+                    for (d, &key) in src[p..2 * p].iter().enumerate() {
+                        kt[d * len + tn + k] = key;
+                    }
                     vals[(tn + k) * p..(tn + k + 1) * p].copy_from_slice(&src[2 * p..]);
                 }
-                // Column softmax of the keys.
-                for d in 0..p {
-                    let max = (0..len)
-                        .map(|j| keys[j * p + d])
-                        .fold(f32::NEG_INFINITY, f32::max);
-                    let mut sum = 0f32;
-                    for j in 0..len {
-                        let e = (keys[j * p + d] - max).exp();
-                        keys[j * p + d] = e;
-                        sum += e;
-                    }
-                    let inv = 1.0 / sum;
-                    for j in 0..len {
-                        keys[j * p + d] *= inv;
-                    }
-                }
+                kernels::softmax_rows(kt, len);
                 let g = &mut g_all[(b * GROUPS + hh) * gsz..][..gsz];
-                g.fill(0.0);
-                for j in 0..len {
-                    let v = &vals[j * p..(j + 1) * p];
-                    for d in 0..p {
-                        let w = keys[j * p + d];
-                        for (a, &bv) in g[d * p..(d + 1) * p].iter_mut().zip(v) {
-                            *a += w * bv;
-                        }
-                    }
-                }
+                kernels::matmul_nn(kt, vals, g, p, len, p);
             }
         }
         // Anchors and Taylor coefficients of every template row.
@@ -1358,26 +1363,22 @@ impl FinemogenDenoiser {
                     }
                     kernels::softmax_rows(cr, nj);
                 }
-                let acc = sized(&mut ws.acc, 4 * p);
-                for k in 0..t {
-                    let tk = k as f32 / len_unit + row.start as f32 / len_unit;
-                    acc.fill(0.0);
-                    let cr = &coef[k * nj..(k + 1) * nj];
-                    for (gi, cj) in cr.chunks_exact(p).enumerate() {
-                        for (j, &w) in cj.iter().enumerate() {
-                            let r = ((g0 + gi) * GROUPS + hh) * p + j;
-                            for q in 0..4 {
-                                let a = &ws.tpl[q][r * p..(r + 1) * p];
-                                for (o, &v) in acc[q * p..(q + 1) * p].iter_mut().zip(a) {
-                                    *o += w * v;
-                                }
-                            }
-                        }
+                // The group's coefficients `[templates, a0 | a1 | a2 | a3]`, mixed by one GEMM.
+                let acat = sized(&mut ws.acat, nj * 4 * p);
+                for (j, dst) in acat.chunks_exact_mut(4 * p).enumerate() {
+                    let r = ((g0 + j / p) * GROUPS + hh) * p + j % p;
+                    for q in 0..4 {
+                        dst[q * p..(q + 1) * p].copy_from_slice(&ws.tpl[q][r * p..(r + 1) * p]);
                     }
+                }
+                let acc = sized(&mut ws.acc, t * 4 * p);
+                kernels::matmul_nn(coef, acat, acc, t, nj, 4 * p);
+                for (k, a) in acc.chunks_exact(4 * p).enumerate() {
+                    let tk = k as f32 / len_unit + row.start as f32 / len_unit;
                     let (t2, t3) = (tk * tk, tk * tk * tk);
                     let dst = &mut ytmp[(b * t + k) * l + hh * p..][..p];
                     for (i, o) in dst.iter_mut().enumerate() {
-                        *o = acc[i] + acc[p + i] * tk + acc[2 * p + i] * t2 + acc[3 * p + i] * t3;
+                        *o = a[i] + a[p + i] * tk + a[2 * p + i] * t2 + a[3 * p + i] * t3;
                     }
                 }
             }
@@ -1542,5 +1543,84 @@ impl Denoiser for FinemogenDenoiser {
 
     fn as_any(&self) -> &dyn Any {
         self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_parts_partition_the_features_and_the_body_permutes_them() {
+        let g = group_indices();
+        let sizes: Vec<usize> = g.iter().map(Vec::len).collect();
+        assert_eq!(sizes, [24, 36, 48, 48, 48, 48, 11, 263]);
+        let mut parts: Vec<usize> = g[..PART_COUNT].iter().flatten().copied().collect();
+        parts.sort_unstable();
+        assert_eq!(parts, (0..263).collect::<Vec<_>>());
+        let mut body = g[PART_COUNT].clone();
+        assert_eq!(
+            &body[..11],
+            &[0, 1, 2, 3, 193, 194, 195, 259, 260, 261, 262]
+        );
+        // Joint 1: ric 4..7, rot6d 67..73, local velocity 196..199.
+        assert_eq!(
+            &body[11..23],
+            &[4, 5, 6, 67, 68, 69, 70, 71, 72, 196, 197, 198]
+        );
+        assert_ne!(body, (0..263).collect::<Vec<_>>());
+        body.sort_unstable();
+        assert_eq!(body, (0..263).collect::<Vec<_>>());
+        // Head: joints 12 and 15.
+        assert_eq!(&g[0][..3], &[37, 38, 39]);
+        assert_eq!(&g[0][12..15], &[46, 47, 48]);
+    }
+
+    #[test]
+    fn capacity_is_tutels() {
+        // REFERENCE 9.7: k·⌊1.5·⌈n/16⌉⌋ — 30 slots for one prompt's text rows (2 × 77 tokens),
+        // 588 for one 196-frame motion (2 × 196 × 8).
+        assert_eq!(capacity(154, 16, 2, 1.5), 30);
+        assert_eq!(capacity(3136, 16, 2, 1.5), 588);
+        // ⌈5/4⌉ = 2, ⌊1.25·2⌋ = 2.
+        assert_eq!(capacity(5, 4, 1, 1.25), 2);
+    }
+
+    fn routed(ws: &MoeScratch) -> Vec<Vec<(u32, f32)>> {
+        ws.routed.clone()
+    }
+
+    #[test]
+    fn routing_follows_priority_and_queues_second_choices_after_first_ones() {
+        // Top-1: t0 → e0 (0.6), t1 → e1 (0.7), t2 → e0 (0.55); priority t1, t0, t2; two slots.
+        // First choices: e1 ← t1, e0 ← t0, t2. Second choices queue after e0's two and e1's
+        // one: t1 → e0 slot 2 (dropped), t0 → e1 slot 1, t2 → e1 slot 2 (dropped).
+        let scores = [0.6, 0.4, 0.3, 0.7, 0.55, 0.45];
+        let mut ws = MoeScratch::default();
+        let dropped = route(&scores, 2, 2, 2, 3, &mut ws);
+        assert_eq!(dropped, 2);
+        assert_eq!(
+            routed(&ws),
+            vec![vec![(0, 0.6), (2, 0.55)], vec![(1, 0.7), (0, 0.4)]]
+        );
+        // Tokens past `used` compete for slots but are not routed.
+        let dropped = route(&scores, 2, 2, 2, 1, &mut ws);
+        assert_eq!(dropped, 2);
+        assert_eq!(routed(&ws), vec![vec![(0, 0.6)], vec![(0, 0.4)]]);
+    }
+
+    #[test]
+    fn routing_breaks_ties_by_token_order_and_renormalises_top_k() {
+        // Equal tokens (a text row and its null copy): the first keeps the one slot.
+        let scores = [0.5, 0.3, 0.2, 0.5, 0.3, 0.2];
+        let mut ws = MoeScratch::default();
+        assert_eq!(route(&scores, 3, 1, 1, 2, &mut ws), 1);
+        assert_eq!(routed(&ws), vec![vec![(0, 1.0)], vec![], vec![]]);
+        // Top-2 of [0.5, 0.3, 0.2]: gates 0.5/0.8 and 0.3/0.8, before any drop.
+        assert_eq!(route(&scores[..3], 3, 2, 1, 1, &mut ws), 0);
+        assert_eq!(
+            routed(&ws),
+            vec![vec![(0, 0.625)], vec![(0, 0.375)], vec![]]
+        );
     }
 }
