@@ -174,7 +174,7 @@ pub fn from_prompt_file(text: &str, model_fps: f32) -> Result<Vec<Stage>> {
     let mut out = Vec::with_capacity(file.stages.len());
     let mut expect = 0.0;
     for (i, s) in file.stages.into_iter().enumerate() {
-        let ok = |v: f64| v.is_finite() && v >= 0.0 && v <= 1e7 && v.fract() == 0.0;
+        let ok = |v: f64| (0.0..=1e7).contains(&v) && v.fract() == 0.0;
         if !ok(s.start_frame) || !ok(s.end_frame) || s.end_frame <= s.start_frame {
             return Err(invalid_arg!(
                 "prompt file: stage {i} runs from frame {} to {}: whole frame numbers, start < end",

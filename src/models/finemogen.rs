@@ -685,6 +685,7 @@ impl Stylization {
     }
 
     /// `x ← x + block(h)` over `rows` rows; `silu_emb` is SiLU(time embedding).
+    #[allow(clippy::too_many_arguments)]
     fn add(
         &self,
         x: &mut [f32],
