@@ -83,6 +83,7 @@ fn defaults(steps: usize) -> Defaults {
         guidance: 1.0,
         eta: 0.0,
         frames: 1,
+        respacing: None,
     }
 }
 
