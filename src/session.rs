@@ -381,6 +381,7 @@ impl Session {
     /// Makes `cond` the session's condition, resizing the sample to its layout (only before
     /// the first step, and only when no edit is set).
     fn use_condition(&mut self, cond: Condition, info: Option<PromptInfo>) -> Result<()> {
+        self.model.denoiser().check_frames(&cond, self.frames)?;
         let rows = self.rows_for(&cond);
         if rows != self.rows {
             if self.started {
@@ -450,12 +451,19 @@ impl Session {
             ));
         }
         if x_t.len() != self.x.len() {
+            let layout = match &self.staged {
+                Some(f) => format!(
+                    "{} stages × {} frames (the longest) × {}",
+                    f.len(),
+                    self.rows / f.len(),
+                    self.model.sample_dim()
+                ),
+                None => format!("{} rows × {}", self.rows, self.model.sample_dim()),
+            };
             return Err(invalid_arg!(
-                "initial noise has {} values, expected {} ({} rows × {})",
+                "initial noise has {} values, expected {} ({layout})",
                 x_t.len(),
-                self.x.len(),
-                self.rows,
-                self.model.sample_dim()
+                self.x.len()
             ));
         }
         if x_t.iter().any(|v| !v.is_finite()) {

@@ -1484,6 +1484,16 @@ impl Denoiser for FinemogenDenoiser {
         ))
     }
 
+    fn check_frames(&self, cond: &Condition, frames: usize) -> Result<()> {
+        let max = self.cfg.max_seq_len;
+        if cond.stage_frames().is_none() && frames > max {
+            return Err(invalid_arg!(
+                "{frames} frames for one prompt: FineMoGen generates at most {max} frames per prompt or stage (give stages for longer motions)"
+            ));
+        }
+        Ok(())
+    }
+
     /// w(t) = 1 + scale·t/T on x̂0, and always both row groups (the null rows take expert
     /// slots from the text rows, also at w = 1).
     fn guidance(&self, scale: f32, t: f32) -> Guidance {

@@ -162,6 +162,11 @@ pub trait Denoiser: Send + Sync {
     fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition>;
     /// Whether `cond` was made for this network (right type and sizes).
     fn check_condition(&self, cond: &Condition) -> Result<()>;
+    /// Whether `cond` can condition a generation of `frames` frames (checked when a session
+    /// takes it, so a prompt that cannot run is refused before the first step).
+    fn check_frames(&self, _cond: &Condition, _frames: usize) -> Result<()> {
+        Ok(())
+    }
     /// The guidance rule at scale `scale` (in [0, 100]) and network time `t`. By default
     /// classifier-free guidance: scale 1 is the conditional branch alone.
     fn guidance(&self, scale: f32, _t: f32) -> Guidance {
