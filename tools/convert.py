@@ -40,6 +40,12 @@ HumanML3D normalisation statistics (`motion.mean`, `motion.std`).
 mola / mld: sony/MoLA and ChenFengYe/motion-latent-diffusion latent-diffusion models; the file
 schemas (every tensor name and configuration key) are in tools/convert_latent.py's docstring and
 docs/model-files-latent.md.
+
+  python tools/convert.py finemogen --ckpt latest.pth [--clip CLIP_DIR|ViT-B-32.pt] \
+      [--tokenizer tokenizer.json] --mean mean.npy --std std.npy --out M.safetensors [--dtype ..]
+
+finemogen: mingyuan-zhang/FineMoGen (HumanML3D); CLIP from the checkpoint's model.clip.* when
+present; schema in tools/convert_finemogen.py's docstring and docs/model-files-finemogen.md.
 """
 import argparse
 import json
@@ -731,8 +737,10 @@ def build_parser():
     # which must be this same module (one ConvertError class).
     sys.modules.setdefault("convert", sys.modules[__name__])
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import convert_finemogen
     import convert_latent
     convert_latent.add_parsers(sub)
+    convert_finemogen.add_parsers(sub)
     return ap
 
 

@@ -27,7 +27,7 @@ use std::time::Instant;
 
 use flame::config::TextConfig;
 use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType};
-use flame::models::{FlameConfig, MdmConfig, MldFamily, MolaFamily};
+use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily};
 use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 
@@ -182,6 +182,25 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
         let joins = (d.layers / 2) as f64;
         let lin = d.layers as f64 * r * e * (4.0 * e + 2.0 * ff) + joins * r * 2.0 * e * e;
         let attn = d.layers as f64 * b * 2.0 * s * s * e;
+        (lin, attn)
+    } else if let Some(m) = any.downcast_ref::<FinemogenFamily>() {
+        let d = &m.denoiser;
+        let (p, ffn, te) = (d.part_dim as f64, d.ffn_dim as f64, d.time_embed_dim as f64);
+        let (l, tokens, rows) = (8.0 * p, b * f * 8.0, b * f);
+        // One prompt: the text MoE runs once per prompt, not per step. Mixtures counted as if
+        // no choice were dropped.
+        let moe = tokens
+            * (p * d.gate_dim as f64
+                + d.gate_dim as f64 * d.num_experts as f64
+                + d.topk as f64 * 2.0 * p * d.motion_expert_hidden as f64
+                + p * 3.0 * p);
+        let templates = b * 8.0 * p * (5.0 * p * ffn + 4.0 * ffn * p + ffn);
+        let styl = 2.0 * (rows * l * l + te * 2.0 * l);
+        let sffn = tokens * 2.0 * p * ffn;
+        let lin = d.num_layers as f64 * (moe + templates + styl + sffn) + rows * 2.0 * 526.0 * p;
+        // The templates (key softmax · values) and the per-frame read-back: attention-like.
+        let attn =
+            d.num_layers as f64 * b * 8.0 * ((d.max_text_len as f64 + f) * p * p + f * p * 4.0 * p);
         (lin, attn)
     } else {
         // A family this count does not know: no GFLOP/s figures.
@@ -381,6 +400,14 @@ fn main() {
             lin_share * 100.0,
             attn_share * 100.0
         );
+        if prof.moe_seconds > 0.0 {
+            let per_step = prof.moe_seconds * 1e3 / steps as f64;
+            println!(
+                "  mixture of experts {per_step:9.2} ms per step ({:.0}% of the time: gate, routing, experts; {:.1} GFLOP/s)",
+                prof.moe_seconds / profiled * 100.0,
+                prof.moe_flop / prof.moe_seconds / 1e9
+            );
+        }
         if let Some((ms, p)) = decode_prof {
             let (lin, attn) = (p.linear_seconds * 1e3, p.attention_seconds * 1e3);
             println!(
@@ -394,8 +421,9 @@ fn main() {
         println!("  peak RSS (VmHWM)   {:9.1} MiB", status_mib("VmHWM:"));
         let decode_field = decode_med.map_or(String::new(), |d| format!(" decode_ms={d:.2}"));
         println!(
-            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} linear_gflops={lin_gflops:.1} linear_share={lin_share:.3} attention_gflops={attn_gflops:.1} hwm_mib={:.1}{decode_field}",
+            "RESULT impl=flame weights={} frames={frames} text_ms={text:.2} step_ms={step:.2} gen_ms={gen:.2} gflops={gflops:.1} linear_gflops={lin_gflops:.1} linear_share={lin_share:.3} attention_gflops={attn_gflops:.1} moe_ms={:.2} hwm_mib={:.1}{decode_field}",
             weights.name(),
+            prof.moe_seconds * 1e3 / steps as f64,
             status_mib("VmHWM:")
         );
     }

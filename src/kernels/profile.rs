@@ -11,6 +11,8 @@ static LINEAR_NS: AtomicU64 = AtomicU64::new(0);
 static LINEAR_FLOP: AtomicU64 = AtomicU64::new(0);
 static ATTENTION_NS: AtomicU64 = AtomicU64::new(0);
 static ATTENTION_FLOP: AtomicU64 = AtomicU64::new(0);
+static MOE_NS: AtomicU64 = AtomicU64::new(0);
+static MOE_FLOP: AtomicU64 = AtomicU64::new(0);
 
 /// Totals since the last [`take`].
 #[derive(Clone, Copy, Debug, Default)]
@@ -19,6 +21,10 @@ pub struct Profile {
     pub linear_flop: f64,
     pub attention_seconds: f64,
     pub attention_flop: f64,
+    /// Mixtures of experts as a whole (gate, routing, experts, projection), their linear
+    /// layers also counted in `linear_*`.
+    pub moe_seconds: f64,
+    pub moe_flop: f64,
 }
 
 /// Starts or stops the accounting (process-wide).
@@ -34,6 +40,8 @@ pub fn take() -> Profile {
         linear_flop: s(&LINEAR_FLOP),
         attention_seconds: s(&ATTENTION_NS) * 1e-9,
         attention_flop: s(&ATTENTION_FLOP),
+        moe_seconds: s(&MOE_NS) * 1e-9,
+        moe_flop: s(&MOE_FLOP),
     }
 }
 
@@ -41,6 +49,7 @@ pub fn take() -> Profile {
 pub(crate) enum Kind {
     Linear,
     Attention,
+    Moe,
 }
 
 /// Runs `f`, charging its wall time and `flop` to `kind` when accounting is on.
@@ -55,6 +64,7 @@ pub(crate) fn timed<R>(kind: Kind, flop: usize, f: impl FnOnce() -> R) -> R {
     let (time, ops) = match kind {
         Kind::Linear => (&LINEAR_NS, &LINEAR_FLOP),
         Kind::Attention => (&ATTENTION_NS, &ATTENTION_FLOP),
+        Kind::Moe => (&MOE_NS, &MOE_FLOP),
     };
     time.fetch_add(ns, Ordering::Relaxed);
     ops.fetch_add(flop as u64, Ordering::Relaxed);

@@ -531,6 +531,22 @@ impl Moe {
         y: &mut [f32],
         ws: &mut MoeScratch,
     ) -> usize {
+        // Charged as if no choice were dropped: gate, experts of k choices, projection.
+        let (d, h, g, e) = (self.dim, self.hidden, self.gate_dim, self.experts.len());
+        let flop = 2 * (n * (d * g + g * e) + used * (self.topk * 2 * d * h + d * self.proj_out));
+        kernels::profile::timed(kernels::profile::Kind::Moe, flop, || {
+            self.forward_untimed(x, n, used, y, ws)
+        })
+    }
+
+    fn forward_untimed(
+        &self,
+        x: &[f32],
+        n: usize,
+        used: usize,
+        y: &mut [f32],
+        ws: &mut MoeScratch,
+    ) -> usize {
         let (e, k, g) = (self.experts.len(), self.topk, self.gate_dim);
         // Cosine gate: normalize(proj(x)) · normalize(sim) · scale, softmax over the experts.
         let gp = sized(&mut ws.gate, n * g);
