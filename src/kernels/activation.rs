@@ -65,6 +65,16 @@ unsafe fn gelu_slice_avx2(x: &mut [f32]) {
     x.iter_mut().for_each(|v| *v = gelu_one(*v));
 }
 
+/// GELU's tanh approximation (PyTorch `approximate="tanh"`, DiT's MLP):
+/// `0.5·x·(1 + tanh(√(2/π)·(x + 0.044715·x³)))`, in f64.
+pub fn gelu_tanh(x: &mut [f32]) {
+    const C: f64 = 0.7978845608028654; // √(2/π)
+    map_inplace(x, |v| {
+        let v = v as f64;
+        (0.5 * v * (1.0 + (C * (v + 0.044715 * v * v * v)).tanh())) as f32
+    });
+}
+
 /// CLIP's `x · sigmoid(1.702 x)`.
 pub fn quick_gelu(x: &mut [f32]) {
     // exp overflowing to +inf for very negative x gives x / inf = -0, the correct limit.

@@ -22,7 +22,7 @@ pub mod profile;
 #[cfg(test)]
 mod testutil;
 
-pub use activation::{gelu_erf, quick_gelu, relu, silu, softmax_rows, tanh};
+pub use activation::{gelu_erf, gelu_tanh, quick_gelu, relu, silu, softmax_rows, tanh};
 pub use attention::{multi_head_attention, AttentionScratch};
 pub use elementwise::{add_bias, add_inplace, scale_inplace};
 pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};

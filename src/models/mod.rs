@@ -33,6 +33,7 @@ pub(crate) mod layers;
 pub mod mdm;
 pub mod mld;
 pub mod mola;
+pub mod omg;
 
 use std::any::Any;
 use std::fmt;
@@ -54,6 +55,7 @@ pub use flame::{FlameCondition, FlameConfig, FlameDenoiser};
 pub use mdm::{MdmConfig, MdmDenoiser, TimeIndex};
 pub use mld::{MldDenoiser, MldFamily};
 pub use mola::{MolaDenoiser, MolaFamily};
+pub use omg::{OmgDenoiser, OmgFamily};
 
 /// Every family this build runs: the `architecture` values each reads, and its parser.
 pub const FAMILIES: &[Family] = &[
@@ -62,6 +64,7 @@ pub const FAMILIES: &[Family] = &[
     mola::FAMILY,
     mld::FAMILY,
     finemogen::FAMILY,
+    omg::FAMILY,
 ];
 
 /// Most rows one forward pass batches (conditional + unconditional rows of guidance, with room
