@@ -160,6 +160,27 @@ struct PromptInfo {
     std::string dropped;         // the text cut off, UTF-8 ("" when nothing was)
 };
 
+// One time stage of a prompt for Session::set_prompt_stages: what the whole body does (`text`)
+// for `frames` frames, and optionally what single body parts do (the HuMMan-MoGen annotation's
+// fields; "" = the part follows `text`). FineMoGen models compose stages and read the part
+// texts; other models take one stage without part texts.
+//
+//   session.set_prompt_stages({{"a person walks forward", 24}, {"a person jumps", 31}});
+struct Stage {
+    Stage() = default;
+    Stage(std::string text_, uint32_t frames_) : text(std::move(text_)), frames(frames_) {}
+
+    std::string text;
+    uint32_t frames = 0;
+    std::string head;
+    std::string stem;  // the spine
+    std::string left_arm;
+    std::string right_arm;
+    std::string left_leg;
+    std::string right_leg;
+    std::string pelvis;  // the root's trajectory
+};
+
 // Steps done and the total of a generation.
 struct Progress {
     uint32_t done = 0;
@@ -284,6 +305,31 @@ public:
             throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`prompt` contains a NUL byte");
         }
         detail::check(flame_session_set_prompt(handle_, prompt.c_str()));
+    }
+
+    // Prompts per time stage, in order; their frames must add up to the session's. A FineMoGen
+    // model composes them: its sample is then laid out stages x the longest stage rows
+    // (sample_shape(), and what set_noise takes), while read() still returns the session's
+    // frames, the stages one after the other. Any other model takes exactly one stage without
+    // part texts, as set_prompt(stage.text), and refuses more (INVALID_ARGUMENT). Stage frame
+    // counts can change only before the first step (WRONG_STATE after; reset() first).
+    void set_prompt_stages(const std::vector<Stage>& stages) {
+        std::vector<FlameStage> c(stages.size());
+        for (std::size_t i = 0; i < stages.size(); ++i) {
+            const Stage& s = stages[i];
+            FlameStage& st = c[i];
+            st.struct_size = sizeof st;
+            st.frames = s.frames;
+            st.text = text_arg(s.text, i, "text", false);
+            st.head = text_arg(s.head, i, "head", true);
+            st.stem = text_arg(s.stem, i, "stem", true);
+            st.left_arm = text_arg(s.left_arm, i, "left_arm", true);
+            st.right_arm = text_arg(s.right_arm, i, "right_arm", true);
+            st.left_leg = text_arg(s.left_leg, i, "left_leg", true);
+            st.right_leg = text_arg(s.right_leg, i, "right_leg", true);
+            st.pelvis = text_arg(s.pelvis, i, "pelvis", true);
+        }
+        detail::check(flame_session_set_prompt_stages(handle_, c.data(), c.size()));
     }
 
     // How the last prompt fitted the text encoder's window; throws WRONG_STATE before a prompt.
@@ -567,6 +613,16 @@ private:
                 hook->error = std::current_exception();
             }
         }
+    }
+
+    // A stage's text for the C call (valid while `s` is): NULL for an empty part text.
+    static const char* text_arg(const std::string& s, std::size_t stage, const char* name,
+                                bool part) {
+        if (s.find('\0') != std::string::npos) {
+            throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`stages[" + std::to_string(stage) + "]." +
+                                                           name + "` contains a NUL byte");
+        }
+        return part && s.empty() ? nullptr : s.c_str();
     }
 
     static void check_size(std::size_t size, uint32_t frames, uint32_t dim, const char* name) {

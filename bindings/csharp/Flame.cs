@@ -20,6 +20,7 @@
 // that call returns (cancel first so it returns soon).
 
 using System;
+using System.Collections.Generic;
 using System.Runtime.InteropServices;
 using System.Text;
 
@@ -345,6 +346,52 @@ namespace Flame
         public IntPtr dropped;
     }
 
+    /// <summary>Mirror of the C struct FlameStage: one time stage of a prompt, its texts as
+    /// NUL-terminated UTF-8 pointers (IntPtr.Zero = none). Two uint then eight pointers (72
+    /// bytes on 64-bit targets, 40 on 32-bit). Use FlameSession.SetPromptStages with Stage
+    /// objects, which marshals the strings.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameStage
+    {
+        public uint struct_size;
+        public uint frames;
+        public IntPtr text;
+        public IntPtr head;
+        public IntPtr stem;
+        public IntPtr left_arm;
+        public IntPtr right_arm;
+        public IntPtr left_leg;
+        public IntPtr right_leg;
+        public IntPtr pelvis;
+    }
+
+    /// <summary>One time stage of a prompt for FlameSession.SetPromptStages: what the whole body
+    /// does (Text) for Frames frames, and optionally what single body parts do (the HuMMan-MoGen
+    /// annotation's fields; null or "" = the part follows Text). FineMoGen models compose stages
+    /// and read the part texts; other models take one stage without part texts.</summary>
+    public sealed class Stage
+    {
+        public string Text;
+        public int Frames;
+        public string Head;
+        /// <summary>The spine.</summary>
+        public string Stem;
+        public string LeftArm;
+        public string RightArm;
+        public string LeftLeg;
+        public string RightLeg;
+        /// <summary>The root's trajectory.</summary>
+        public string Pelvis;
+
+        public Stage() { }
+
+        public Stage(string text, int frames)
+        {
+            Text = text;
+            Frames = frames;
+        }
+    }
+
     /// <summary>Called after every step, on the stepping thread (FlameProgressCallback).</summary>
     [UnmanagedFunctionPointer(CallingConvention.Cdecl)]
     public delegate void ProgressCallback(IntPtr userData, uint stepsDone, uint stepsTotal);
@@ -460,6 +507,10 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_prompt(FlameSessionHandle session, byte[] prompt);
+
+        /// <param name="stages">count FlameStage values, their strings valid for the call.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_prompt_stages(FlameSessionHandle session, [In] FlameStage[] stages, UIntPtr count);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_prompt_info(FlameSessionHandle session, ref FlamePromptInfo info);
@@ -768,6 +819,64 @@ namespace Flame
             if (prompt == null)
                 throw new ArgumentNullException("prompt");
             FlameException.Check(FlameNative.flame_session_set_prompt(Handle, FlameNative.Utf8Z(prompt)));
+        }
+
+        /// <summary>Sets prompts per time stage, in order; their Frames must add up to Frames. A
+        /// FineMoGen model composes them: its sample is then laid out stages × the longest stage
+        /// rows (SampleShape, and what SetNoise takes), while Read still returns Frames frames,
+        /// the stages one after the other. Any other model takes exactly one stage without part
+        /// texts, as SetPrompt(stage.Text), and refuses more (FlameException, InvalidArgument).
+        /// Stage frame counts can change only before the first step (WrongState after; Reset
+        /// first); texts may change between steps. The strings are copied to pinned UTF-8 for
+        /// the call only.</summary>
+        public void SetPromptStages(params Stage[] stages)
+        {
+            if (stages == null)
+                throw new ArgumentNullException("stages");
+            var raw = new FlameStage[stages.Length];
+            var pins = new List<GCHandle>();
+            try
+            {
+                for (int i = 0; i < stages.Length; i++)
+                {
+                    var st = stages[i];
+                    if (st == null)
+                        throw new ArgumentNullException("stages[" + i + "]");
+                    if (st.Text == null)
+                        throw new ArgumentNullException("stages[" + i + "].Text");
+                    if (st.Frames < 0)
+                        throw new ArgumentOutOfRangeException("stages[" + i + "].Frames", st.Frames, "a stage's frames cannot be negative");
+                    raw[i].struct_size = (uint)Marshal.SizeOf(typeof(FlameStage));
+                    raw[i].frames = (uint)st.Frames;
+                    raw[i].text = Pin(st.Text, "stages[" + i + "].Text", pins);
+                    raw[i].head = Pin(st.Head, "stages[" + i + "].Head", pins);
+                    raw[i].stem = Pin(st.Stem, "stages[" + i + "].Stem", pins);
+                    raw[i].left_arm = Pin(st.LeftArm, "stages[" + i + "].LeftArm", pins);
+                    raw[i].right_arm = Pin(st.RightArm, "stages[" + i + "].RightArm", pins);
+                    raw[i].left_leg = Pin(st.LeftLeg, "stages[" + i + "].LeftLeg", pins);
+                    raw[i].right_leg = Pin(st.RightLeg, "stages[" + i + "].RightLeg", pins);
+                    raw[i].pelvis = Pin(st.Pelvis, "stages[" + i + "].Pelvis", pins);
+                }
+                FlameException.Check(FlameNative.flame_session_set_prompt_stages(Handle, raw, (UIntPtr)raw.Length));
+            }
+            finally
+            {
+                foreach (var pin in pins)
+                    pin.Free();
+            }
+        }
+
+        /// <summary>s as pinned NUL-terminated UTF-8 (IntPtr.Zero for null), its handle added to
+        /// pins for the caller to free.</summary>
+        static IntPtr Pin(string s, string name, List<GCHandle> pins)
+        {
+            if (s == null)
+                return IntPtr.Zero;
+            if (s.IndexOf('\0') >= 0)
+                throw new ArgumentException(name + " contains a NUL character", name);
+            var pin = GCHandle.Alloc(FlameNative.Utf8Z(s), GCHandleType.Pinned);
+            pins.Add(pin);
+            return pin.AddrOfPinnedObject();
         }
 
         /// <summary>How the last prompt fitted the text encoder's window: its tokens, those

@@ -5,9 +5,9 @@
 #
 # 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
 # 2. the CLI writes the reference features the tests must match bit for bit;
-# 3. test_api, test_threads, test_hardening and test_targets (C11), each linked against the
-#    shared and the static library, test_cancel (C11, shared) and test_cpp (C++17, shared), all
-#    with -Wall -Wextra -Werror, are built and run;
+# 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
+#    against the shared and the static library, test_cancel (C11, shared) and test_cpp (C++17,
+#    shared), all with -Wall -Wextra -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
 #    2 steps) and with FLAME_TEST_QUICK=1;
@@ -128,6 +128,19 @@ reference() { # NAME FRAMES STEPS
 }
 step "reference (CLI, 24 frames, 10 steps)" "$OUT/ref.log" reference ref 24 10 || finish
 step "reference (CLI, 8 frames, 2 steps)" "$OUT/ref_quick.log" reference ref_quick 8 2 || finish
+# Prompts per time stage on FineMoGen (test_stages), when its fixture is there.
+FMG_MODEL="$ROOT/tests/fixtures/finemogen_tiny.safetensors"
+STAGES_ARGS=("$ROOT/tests/fixtures")
+# shellcheck disable=SC2317  # called through step
+stages_reference() {
+    "$LIB/flame" generate --model "$FMG_MODEL" --stage "a person walks forward@24" \
+        --stage "a person jumps@31" --frames 55 --steps 4 --sampler ddim --seed 1 --threads 1 \
+        --out "$OUT/stages_ref.npy"
+}
+if [ -f "$FMG_MODEL" ]; then
+    step "reference (CLI, FineMoGen stages 24 + 31)" "$OUT/stages_ref.log" stages_reference &&
+        STAGES_ARGS+=("$OUT/stages_ref.npy")
+fi
 
 # ---- 3. compile and run --------------------------------------------------------------------
 BUILT=()
@@ -148,6 +161,8 @@ compile test_hardening_shared gcc "${CFLAGS[@]}" tests/c/test_hardening.c "${SHA
 compile test_hardening_static gcc "${CFLAGS[@]}" tests/c/test_hardening.c "${STATIC_LIBS[@]}"
 compile test_targets_shared gcc "${CFLAGS[@]}" tests/c/test_targets.c "${SHARED_LIBS[@]}"
 compile test_targets_static gcc "${CFLAGS[@]}" tests/c/test_targets.c "${STATIC_LIBS[@]}"
+compile test_stages_shared gcc "${CFLAGS[@]}" tests/c/test_stages.c "${SHARED_LIBS[@]}"
+compile test_stages_static gcc "${CFLAGS[@]}" tests/c/test_stages.c "${STATIC_LIBS[@]}"
 compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 
@@ -161,6 +176,8 @@ for kind in shared static; do
         "$OUT/test_hardening_$kind.log" "$OUT/test_hardening_$kind" "$ROOT/tests/fixtures"
     built "test_targets_$kind" && run_test "test_targets ($kind)" \
         "$OUT/test_targets_$kind.log" "$OUT/test_targets_$kind" "$ROOT/tests/fixtures"
+    built "test_stages_$kind" && run_test "test_stages ($kind)" \
+        "$OUT/test_stages_$kind.log" "$OUT/test_stages_$kind" "${STAGES_ARGS[@]}"
 done
 built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_shared.log" \
     "$OUT/test_cancel_shared" "$MODEL"
@@ -195,6 +212,9 @@ if [ "$use_valgrind" = 1 ]; then
         built test_targets_shared && run_test "test_targets (shared, valgrind)" \
             "$OUT/test_targets_valgrind.log" "${VALGRIND[@]}" "$OUT/test_targets_shared" \
             "$ROOT/tests/fixtures"
+        built test_stages_shared && run_test "test_stages (shared, valgrind)" \
+            "$OUT/test_stages_valgrind.log" "${VALGRIND[@]}" "$OUT/test_stages_shared" \
+            "${STAGES_ARGS[@]}"
         built test_cancel_shared && run_test "test_cancel (shared, valgrind)" \
             "$OUT/test_cancel_valgrind.log" "${VALGRIND[@]}" "$OUT/test_cancel_shared" "$MODEL"
         built test_cpp_shared && run_test "test_cpp (shared, valgrind)" \

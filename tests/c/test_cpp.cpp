@@ -701,6 +701,79 @@ static void test_latent_model() {
     CHECK(pos.frames == s.read_frames(FLAME_WHICH_ESTIMATE) && pos.per_frame() == 22 * 3);
 }
 
+// Prompts per time stage (flame::Stage, Session::set_prompt_stages). On a model that takes one
+// prompt (MDM) one stage is set_prompt with its text, bit for bit, and more are refused; on
+// FineMoGen (tests/fixtures/finemogen_tiny.safetensors, skipped when absent) 24 + 31 frames
+// sample 2 x 31 rows and read back as 55 finite frames.
+static void test_prompt_stages() {
+    std::string dir = g_model_path.substr(0, g_model_path.find_last_of('/') + 1);
+    flame::Model mdm = flame::Model::load(dir + "mdm_tiny.safetensors");
+    flame::SessionParams p;
+    p.frames = 16;
+    p.steps = 3;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.seed = 5;
+    p.threads = 1;
+    std::vector<float> plain;
+    {
+        flame::Session s = mdm.session(p);
+        plain = run(s, REF_PROMPT);
+    }
+    {
+        flame::Session s = mdm.session(p);
+        s.set_prompt_stages({{REF_PROMPT, 16}});
+        CHECK(s.sample_shape().rows == 16 && s.sample_shape().dim == 263);
+        while (s.step() > 0) {
+        }
+        CHECK(same(s.read(), plain));
+    }
+    {
+        flame::Session s = mdm.session(p);
+        CHECK_THROWS(s.set_prompt_stages({{"a person walks", 8}, {"a person jumps", 8}}),
+                     FLAME_STATUS_INVALID_ARGUMENT, "a single stage without part texts");
+        flame::Stage part{"a person walks", 16};
+        part.left_arm = "waves";
+        CHECK_THROWS(s.set_prompt_stages({part}), FLAME_STATUS_INVALID_ARGUMENT,
+                     "a single stage without part texts");
+        CHECK_THROWS(s.set_prompt_stages({}), FLAME_STATUS_INVALID_ARGUMENT, "0 stages");
+        CHECK_THROWS(s.set_prompt_stages({{REF_PROMPT, 15}}), FLAME_STATUS_INVALID_ARGUMENT,
+                     "the stages cover 15 frames, the session has 16");
+        CHECK_THROWS(s.set_prompt_stages({{"", 16}}), FLAME_STATUS_INVALID_ARGUMENT,
+                     "stage 0 has no text");
+        flame::Stage nul{REF_PROMPT, 16};
+        nul.pelvis = std::string("a\0b", 3);
+        CHECK_THROWS(s.set_prompt_stages({nul}), FLAME_STATUS_INVALID_ARGUMENT,
+                     "`stages[0].pelvis` contains a NUL byte");
+        CHECK_THROWS(s.step(), FLAME_STATUS_WRONG_STATE, "prompt");  // nothing was set
+    }
+
+    std::FILE *f = std::fopen((dir + "finemogen_tiny.safetensors").c_str(), "rb");
+    if (!f) {
+        std::printf("skip FineMoGen stages: no %sfinemogen_tiny.safetensors\n", dir.c_str());
+        return;
+    }
+    std::fclose(f);
+    flame::Model fmg = flame::Model::load(dir + "finemogen_tiny.safetensors");
+    p.frames = 55;
+    p.steps = 4;
+    p.seed = 1;
+    flame::Session s = fmg.session(p);
+    s.set_prompt_stages({{"a person walks forward", 24}, {"a person jumps", 31}});
+    CHECK(s.sample_shape().rows == 2 * 31 && s.sample_shape().dim == 263);
+    while (s.step() > 0) {
+    }
+    flame::Motion m = s.read_motion();
+    CHECK(m.frames == 55 && m.values.size() == 55u * 263);
+    CHECK(std::all_of(m.values.begin(), m.values.end(), [](float v) { return std::isfinite(v); }));
+    s.reset();
+    s.step();
+    CHECK_THROWS(s.set_prompt_stages({{"a person walks", 25}, {"a person jumps", 30}}),
+                 FLAME_STATUS_WRONG_STATE, "before the first step");
+    flame::Stage waving{"a person jumps", 31};
+    waving.right_arm = "waves";
+    CHECK_NOTHROW(s.set_prompt_stages({{"a person walks", 24}, waving}));
+}
+
 int main(int argc, char **argv) {
     if (argc != 3 && argc != 4) {
         std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS]\n", argv[0]);
@@ -753,6 +826,7 @@ int main(int argc, char **argv) {
         test_cancel();
         test_sample_shape_and_read_frames();
         test_latent_model();
+        test_prompt_stages();
     } catch (const std::exception &e) {
         check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
     }

@@ -37,6 +37,7 @@ __all__ = [
     "PromptInfo",
     "PromptTruncatedWarning",
     "Session",
+    "Stage",
     "Status",
     "Sampler",
     "Which",
@@ -181,6 +182,28 @@ class TargetSchedule:
 
 
 @dataclass
+class Stage:
+    """One time stage of a prompt (FlameStage) for Session.set_prompt_stages: what the whole body
+    does (`text`) for `frames` frames, and optionally what single body parts do (the HuMMan-MoGen
+    annotation's fields; None or "" = the part follows `text`). FineMoGen models compose
+    stages and read the part texts; other models take one stage without part texts."""
+
+    text: str
+    frames: int
+    head: Optional[str] = None
+    stem: Optional[str] = None  # the spine
+    left_arm: Optional[str] = None
+    right_arm: Optional[str] = None
+    left_leg: Optional[str] = None
+    right_leg: Optional[str] = None
+    pelvis: Optional[str] = None  # the root's trajectory
+
+
+# The body-part fields of Stage, in FlameStage's order.
+_STAGE_PARTS = ("head", "stem", "left_arm", "right_arm", "left_leg", "right_leg", "pelvis")
+
+
+@dataclass
 class EditParams:
     """FlameEditParams: the editing algorithm (an EditMethod value or its name, "auto",
     "noised-reference", "replace-x0", "rewrite-trajectory"), `edit_till` (flow models: the
@@ -265,6 +288,21 @@ class _ModelInfo(ctypes.Structure):
         ("joint_parents", ctypes.POINTER(ctypes.c_int32)),
         ("latent", ctypes.c_uint32),
         ("sample_dim", ctypes.c_uint32),
+    ]
+
+
+class _Stage(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("frames", ctypes.c_uint32),
+        ("text", ctypes.c_char_p),
+        ("head", ctypes.c_char_p),
+        ("stem", ctypes.c_char_p),
+        ("left_arm", ctypes.c_char_p),
+        ("right_arm", ctypes.c_char_p),
+        ("left_leg", ctypes.c_char_p),
+        ("right_leg", ctypes.c_char_p),
+        ("pelvis", ctypes.c_char_p),
     ]
 
 
@@ -356,6 +394,7 @@ def _signatures():
         "flame_session_free": (None, [_P]),
         "flame_session_reset": (_status, [_P]),
         "flame_session_set_prompt": (_status, [_P, ctypes.c_char_p]),
+        "flame_session_set_prompt_stages": (_status, [_P, ctypes.POINTER(_Stage), size_t]),
         "flame_session_prompt_info": (_status, [_P, ctypes.POINTER(_PromptInfo)]),
         "flame_session_set_noise": (_status, [_P, pf32, size_t]),
         "flame_session_set_reference": (_status, [_P, pf32, u32, u32]),
@@ -778,6 +817,36 @@ class Session:
                 PromptTruncatedWarning,
                 stacklevel=2,
             )
+
+    def set_prompt_stages(self, stages: Sequence[Stage]) -> None:
+        """Sets prompts per time stage (a sequence of Stage), in order; their frames must add up
+        to the session's. A FineMoGen model composes them: its sample is then laid out
+        [len(stages), longest stage, sample_dim] (sample_shape, and what set_noise takes), while
+        read() still returns the session's frames, the stages one after the other. Any other
+        model takes exactly one stage without part texts, as set_prompt(stage.text), and refuses
+        more (FlameError, INVALID_ARGUMENT). Stage frame counts can change only before the first
+        step (WRONG_STATE after; reset() first); texts may change between steps."""
+        stages = list(stages)
+        raw = (_Stage * max(len(stages), 1))()
+        for i, st in enumerate(stages):
+            if not isinstance(st, Stage):
+                raise TypeError(f"stages[{i}] is a {type(st).__name__}, not a flame.Stage")
+            if not isinstance(st.frames, int) or not 0 <= st.frames <= 0xFFFFFFFF:
+                raise ValueError(f"stages[{i}].frames {st.frames!r} is not a uint32")
+            r = raw[i]
+            r.struct_size = ctypes.sizeof(_Stage)
+            r.frames = st.frames
+            # The bytes objects stay referenced by `raw` until the call returns.
+            for name in ("text",) + _STAGE_PARTS:
+                value = getattr(st, name)
+                if value is None:
+                    continue
+                if not isinstance(value, str):
+                    raise TypeError(f"stages[{i}].{name} is a {type(value).__name__}, not a str")
+                if "\0" in value:
+                    raise ValueError(f"stages[{i}].{name} contains a NUL character")
+                setattr(r, name, value.encode("utf-8"))
+        self._call(_lib().flame_session_set_prompt_stages, raw if stages else None, len(stages))
 
     def prompt_info(self) -> PromptInfo:
         """How the last prompt fitted the text encoder's window (a PromptInfo). Raises

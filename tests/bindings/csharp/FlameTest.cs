@@ -77,6 +77,9 @@ static class FlameTest
             Run("ShortReference", TestShortReference);
             Run("ReferencePoses", TestReferencePoses);
             Run("EditOtherFamilies", TestEditOtherFamilies);
+            Run("PromptStages", TestPromptStages);
+            Run("PromptStageErrors", TestPromptStageErrors);
+            Run("FineMoGenStages", TestFineMoGenStages);
             Run("PositionTargets", TestPositionTargets);
             Run("PositionTargetErrors", TestPositionTargetErrors);
             Run("TaskTargets", TestTaskTargets);
@@ -285,6 +288,10 @@ static class FlameTest
         Check(tp.struct_size == Marshal.SizeOf(typeof(FlameTargetParams)) && tp.struct_size == 12, "sizeof FlameTargetParams " + tp.struct_size);
         Check(tp.scale == 0.6f && tp.schedule == (int)FlameTargetSchedule.Mpgd, "target defaults");
         Check(ep.method == (int)FlameEditMethod.Auto && ep.edit_till == 0.2f && ep.paste == 1 && ep.seam_frames == 4, "edit defaults");
+        // FlameStage: two uint32 then eight pointers (C: sizeof 72, offsetof text 8 on x86-64).
+        Check(Marshal.SizeOf(typeof(FlameStage)) == 8 + 8 * IntPtr.Size, "sizeof FlameStage " + Marshal.SizeOf(typeof(FlameStage)));
+        Check((int)Marshal.OffsetOf(typeof(FlameStage), "text") == 8 &&
+              (int)Marshal.OffsetOf(typeof(FlameStage), "pelvis") == 8 + 7 * IntPtr.Size, "offsets of FlameStage");
     }
 
     static void TestLoadErrors()
@@ -1337,6 +1344,135 @@ static class FlameTest
                 s.SetTaskMask(FlameEditTask.Predict);
                 var x = RunAll(s);
                 Check(SameFrames(x, r, d, 0, 4) && !SameFrames(x, r, d, 4, 16), "flow: PREDICT keeps the first quarter");
+            }
+        }
+    }
+
+    // --- prompts per time stage ------------------------------------------------------------
+
+    static FlameSessionParams StageParams(uint frames)
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = frames;
+        p.steps = 3;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.seed = 5;
+        p.threads = 1;
+        return p;
+    }
+
+    static FlameModel LoadFixture(string file)
+    {
+        return FlameModel.Load(Path.Combine(Path.GetDirectoryName(Path.GetFullPath(modelPath)), file), 1);
+    }
+
+    /// <summary>An MDM generation of 16 frames, its prompt set by set.</summary>
+    static float[] MdmRun(FlameModel mdm, Action<FlameSession> set)
+    {
+        using (var s = mdm.NewSession(StageParams(16)))
+        {
+            set(s);
+            int rows, dim;
+            s.SampleShape(out rows, out dim);
+            Check(rows == 16 && dim == 263, "one stage: sample shape " + rows + "x" + dim);
+            return RunAll(s);
+        }
+    }
+
+    // A model that takes one prompt (MDM): one stage without part texts is SetPrompt with its
+    // text, bit for bit (empty part texts are none); two stages or a part text are refused.
+    static void TestPromptStages()
+    {
+        using (var mdm = LoadFixture("mdm_tiny.safetensors"))
+        {
+            var plain = MdmRun(mdm, s => s.SetPrompt(RefPrompt));
+            Check(BitEqual(MdmRun(mdm, s => s.SetPromptStages(new Stage(RefPrompt, 16))), plain), "one stage = SetPrompt");
+            var empty = new Stage(RefPrompt, 16) { Head = "", LeftArm = "", Pelvis = "" };
+            Check(BitEqual(MdmRun(mdm, s => s.SetPromptStages(empty)), plain), "empty part texts = none");
+            Check(!BitEqual(MdmRun(mdm, s => s.SetPromptStages(new Stage("a person jumps", 16))), plain), "another text differs");
+            using (var s = mdm.NewSession(StageParams(16)))
+            {
+                Throws(FlameStatus.InvalidArgument, "this mdm model takes one prompt per generation (a single stage without part texts)",
+                       () => s.SetPromptStages(new Stage("a person walks", 8), new Stage("a person jumps", 8)));
+                Throws(FlameStatus.InvalidArgument, "a single stage without part texts",
+                       () => s.SetPromptStages(new Stage("a person walks", 16) { RightArm = "waves" }));
+                Throws(FlameStatus.WrongState, "prompt", () => s.Step());
+            }
+        }
+    }
+
+    static void TestPromptStageErrors()
+    {
+        using (var mdm = LoadFixture("mdm_tiny.safetensors"))
+        using (var s = mdm.NewSession(StageParams(16)))
+        {
+            Throws(FlameStatus.InvalidArgument, "0 stages", () => s.SetPromptStages());
+            Throws(FlameStatus.InvalidArgument, "stage 0 has no text", () => s.SetPromptStages(new Stage("", 16)));
+            Throws(FlameStatus.InvalidArgument, "stage 1 has 0 frames", () => s.SetPromptStages(new Stage("a", 16), new Stage("b", 0)));
+            Throws(FlameStatus.InvalidArgument, "the stages cover 15 frames, the session has 16", () => s.SetPromptStages(new Stage(RefPrompt, 15)));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPromptStages(null));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPromptStages(new Stage(RefPrompt, 8), null));
+            ThrowsManaged<ArgumentNullException>(() => s.SetPromptStages(new Stage(null, 16)));
+            ThrowsManaged<ArgumentOutOfRangeException>(() => s.SetPromptStages(new Stage(RefPrompt, -1)));
+            ThrowsManaged<ArgumentException>(() => s.SetPromptStages(new Stage(RefPrompt, 16) { Stem = "a\0b" }));
+            // A failed call changes nothing: the prompt set before it stays.
+            s.SetPrompt(RefPrompt);
+            Throws(FlameStatus.InvalidArgument, "add up", () => s.SetPromptStages(new Stage(RefPrompt, 17)));
+            Check(BitEqual(RunAll(s), MdmRun(mdm, t => t.SetPrompt(RefPrompt))), "a refused call keeps the prompt");
+        }
+    }
+
+    // FineMoGen (tests/fixtures/finemogen_tiny.safetensors, skipped when absent) composes the
+    // stages: 24 + 31 frames sample 2 × 31 rows and read back as 55 frames, the CLI's --stage
+    // output bit for bit; stage frame counts are fixed once stepping started.
+    static void TestFineMoGenStages()
+    {
+        string fmg = Path.Combine(Path.GetDirectoryName(Path.GetFullPath(modelPath)), "finemogen_tiny.safetensors");
+        if (!File.Exists(fmg))
+        {
+            Console.WriteLine("skip FineMoGenStages: no " + fmg);
+            return;
+        }
+        string outPath = Path.Combine(tmpDir, "stages_out.npy");
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + fmg + "\" --stage \"a person walks forward@24\" --stage \"a person jumps@31\" " +
+            "--frames 55 --steps 4 --sampler ddim --seed 1 --threads 1 --out \"" + outPath + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI with stages: exit code " + proc.ExitCode);
+        }
+        int[] shape;
+        var expected = Npy.Read(outPath, out shape);
+        using (var m = FlameModel.Load(fmg, 1))
+        {
+            var p = StageParams(55);
+            p.steps = 4;
+            p.seed = 1;
+            using (var s = m.NewSession(p))
+            {
+                int rows, dim;
+                s.SetPromptStages(new Stage("a person walks forward", 24), new Stage("a person jumps", 31));
+                s.SampleShape(out rows, out dim);
+                Check(rows == 2 * 31 && dim == 263, "stages: sample shape " + rows + "x" + dim);
+                var x = RunAll(s);
+                Check(s.ReadFrames(FlameWhich.Sample) == 55 && x.Length == 55 * 263 && x.All(v => !float.IsNaN(v) && !float.IsInfinity(v)),
+                      "55 finite frames");
+                Check(shape.Length == 2 && shape[0] == 55 && BitEqual(x, expected), "stages = the CLI's --stage output");
+                s.Reset();
+                s.Step();
+                Throws(FlameStatus.WrongState, "before the first step",
+                       () => s.SetPromptStages(new Stage("a person walks", 25), new Stage("a person jumps", 30)));
+                s.SetPromptStages(new Stage("a person jumps", 24), new Stage("a person walks", 31) { LeftArm = "waves" });
+                s.Reset();
+                s.SetPromptStages(new Stage("a person walks", 25), new Stage("a person jumps", 30));
+                s.SampleShape(out rows, out dim);
+                Check(rows == 2 * 30, "after a reset: " + rows + " rows");
             }
         }
     }

@@ -1151,3 +1151,144 @@ def test_latent_read_after_reset_is_the_new_generation(mola):
         fresh.set_noise(noise)
         fresh.step()
         assert s.read().tobytes() == fresh.read().tobytes()
+
+
+# --- prompts per time stage ------------------------------------------------------------------
+
+STAGE_SETTINGS = dict(frames=16, steps=3, sampler="ddim", seed=5, threads=1)
+
+
+@pytest.fixture(scope="module")
+def mdm():
+    with flame.Model.load(FIXTURES / "mdm_tiny.safetensors") as m:
+        yield m
+
+
+def mdm_run(mdm, set_prompt):
+    with mdm.session(**STAGE_SETTINGS) as s:
+        set_prompt(s)
+        assert s.sample_shape == (16, 263)
+        return s.run()
+
+
+def test_stage_fields_match_the_header():
+    import re
+
+    body = re.search(r"typedef struct FlameStage \{(.*?)\} FlameStage;", HEADER, re.S).group(1)
+    fields = re.findall(r"^\s*(?:const )?\w+ \*?(\w+);", body, re.M)
+    assert fields == [name for name, _ in flame._Stage._fields_]
+    assert [f.name for f in dataclasses.fields(flame.Stage)] == ["text", "frames", *fields[3:]]
+
+
+def test_one_stage_is_the_prompt(mdm):
+    """A model that takes one prompt (MDM): one stage without part texts is set_prompt with its
+    text, bit for bit; empty part texts are none."""
+    plain = mdm_run(mdm, lambda s: s.set_prompt(REF_PROMPT))
+    staged = mdm_run(mdm, lambda s: s.set_prompt_stages([flame.Stage(REF_PROMPT, 16)]))
+    assert staged.tobytes() == plain.tobytes()
+    empty = flame.Stage(REF_PROMPT, 16, head="", left_arm="", pelvis="")
+    assert mdm_run(mdm, lambda s: s.set_prompt_stages([empty])).tobytes() == plain.tobytes()
+    other = mdm_run(mdm, lambda s: s.set_prompt_stages([flame.Stage("a person jumps", 16)]))
+    assert other.tobytes() != plain.tobytes()
+
+
+@pytest.mark.parametrize("name, arch", [("mdm_tiny.safetensors", "mdm"), ("flame_tiny.safetensors", "flame")])
+def test_stages_refused_by_one_prompt_families(name, arch):
+    with flame.Model.load(FIXTURES / name) as m, m.session(frames=16, steps=2, threads=1) as s:
+        two = [flame.Stage("a person walks", 8), flame.Stage("a person jumps", 8)]
+        e = expect_error(Status.INVALID_ARGUMENT, "a single stage without part texts", s.set_prompt_stages, two)
+        assert f"this {arch} model" in e.message
+        expect_error(Status.INVALID_ARGUMENT, "a single stage without part texts", s.set_prompt_stages,
+                     [flame.Stage("a person walks", 16, right_arm="waves")])
+        expect_error(Status.WRONG_STATE, "prompt", s.step)  # nothing was set
+
+
+def test_stage_errors(mdm):
+    with mdm.session(**STAGE_SETTINGS) as s:
+        expect_error(Status.INVALID_ARGUMENT, "0 stages", s.set_prompt_stages, [])
+        expect_error(Status.INVALID_ARGUMENT, "`stages[0].text` is NULL", s.set_prompt_stages,
+                     [flame.Stage(None, 16)])
+        expect_error(Status.INVALID_ARGUMENT, "stage 0 has no text", s.set_prompt_stages, [flame.Stage(" ", 16)])
+        expect_error(Status.INVALID_ARGUMENT, "stage 1 has 0 frames", s.set_prompt_stages,
+                     [flame.Stage("a", 16), flame.Stage("b", 0)])
+        expect_error(Status.INVALID_ARGUMENT, "the stages cover 15 frames, the session has 16",
+                     s.set_prompt_stages, [flame.Stage(REF_PROMPT, 15)])
+        with pytest.raises(ValueError, match="NUL"):
+            s.set_prompt_stages([flame.Stage("a\0b", 16)])
+        with pytest.raises(ValueError, match="uint32"):
+            s.set_prompt_stages([flame.Stage(REF_PROMPT, -1)])
+        with pytest.raises(TypeError, match="flame.Stage"):
+            s.set_prompt_stages([(REF_PROMPT, 16)])
+        with pytest.raises(TypeError, match="head"):
+            s.set_prompt_stages([flame.Stage(REF_PROMPT, 16, head=3)])
+        # A failed call changes nothing: still the prompt set before it.
+        s.set_prompt(REF_PROMPT)
+        expect_error(Status.INVALID_ARGUMENT, "add up", s.set_prompt_stages, [flame.Stage(REF_PROMPT, 17)])
+        x = s.run()
+    assert x.tobytes() == mdm_run(mdm, lambda s: s.set_prompt(REF_PROMPT)).tobytes()
+
+
+def test_stage_struct_size_through_ctypes(mdm):
+    """A caller built against a newer header passes a larger FlameStage: accepted, the same
+    generation; one smaller than the struct is refused."""
+    import ctypes
+
+    class Newer(ctypes.Structure):
+        _fields_ = [("stage", flame._Stage), ("future", ctypes.c_uint64 * 2)]
+
+    plain = mdm_run(mdm, lambda s: s.set_prompt(REF_PROMPT))
+    for size, ok in ((ctypes.sizeof(Newer), True), (ctypes.sizeof(flame._Stage) - 8, False)):
+        raw = Newer()
+        raw.future[0] = raw.future[1] = 0xA5A5A5A5A5A5A5A5
+        text = REF_PROMPT.encode()
+        raw.stage.struct_size, raw.stage.frames, raw.stage.text = size, 16, text
+        with mdm.session(**STAGE_SETTINGS) as s:
+            status = flame._lib().flame_session_set_prompt_stages(
+                s._h(), ctypes.cast(ctypes.pointer(raw), ctypes.POINTER(flame._Stage)), 1)
+            if ok:
+                assert status == Status.OK
+                assert s.run().tobytes() == plain.tobytes()
+            else:
+                assert status == Status.INVALID_ARGUMENT
+                assert b"struct_size" in flame._lib().flame_last_error()
+
+
+FMG_MODEL = FIXTURES / "finemogen_tiny.safetensors"
+FMG_STAGES = [("a person walks forward", 24), ("a person jumps", 31)]
+FMG_SETTINGS = dict(frames=55, steps=4, sampler="ddim", seed=1, threads=1)
+
+
+@pytest.mark.skipif(not FMG_MODEL.is_file(), reason="no tests/fixtures/finemogen_tiny.safetensors")
+def test_finemogen_stages(tmp_path):
+    """FineMoGen composes the stages: 2 × 31 sample rows, 55 frames read back, the CLI's
+    --stage output bit for bit; stage frame counts are fixed once stepping started."""
+    out = tmp_path / "stages.npy"
+    cmd = [cli_path(), "generate", "--model", str(FMG_MODEL), "--frames", "55", "--steps", "4",
+           "--sampler", "ddim", "--seed", "1", "--threads", "1", "--out", str(out)]
+    for text, frames in FMG_STAGES:
+        cmd += ["--stage", f"{text}@{frames}"]
+    subprocess.run(cmd, check=True, capture_output=True)
+    expected = np.load(out)
+    with flame.Model.load(FMG_MODEL) as m, m.session(**FMG_SETTINGS) as s:
+        assert s.sample_shape == (55, 263)
+        s.set_prompt_stages([flame.Stage(t, f) for t, f in FMG_STAGES])
+        assert s.sample_shape == (2 * 31, 263)
+        x = s.run()
+        assert x.shape == (55, 263) and np.isfinite(x).all()
+        assert s.read_frames() == 55
+        assert x.tobytes() == expected.tobytes()
+        # Part texts change the motion.
+        s.set_prompt_stages([flame.Stage(FMG_STAGES[0][0], 24, left_arm="raises the left arm"),
+                             flame.Stage(*FMG_STAGES[1])])
+        s.reset()
+        parts = s.run()
+        assert np.isfinite(parts).all() and parts.tobytes() != x.tobytes()
+        # After the first step: new texts yes, new frame counts no (until a reset).
+        s.reset()
+        s.step()
+        expect_error(Status.WRONG_STATE, "before the first step", s.set_prompt_stages,
+                     [flame.Stage("a person walks", 25), flame.Stage("a person jumps", 30)])
+        s.set_prompt_stages([flame.Stage("a person jumps", 24), flame.Stage("a person walks", 31)])
+        s.reset()
+        s.set_prompt_stages([flame.Stage("a person walks", 25), flame.Stage("a person jumps", 30)])
+        assert s.sample_shape == (2 * 30, 263)

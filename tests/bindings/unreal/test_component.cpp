@@ -448,6 +448,91 @@ int main(int argc, char** argv) {
     }
     CHECK(WaitForThreads(), "workers exited");
 
+    {   // Prompts per time stage on a model that takes one prompt (MDM): one stage is Prompt,
+        // bit for bit; two stages, a part text or frames that do not add up fail the generation
+        // with libflame's message; ClearPromptStages goes back to Prompt.
+        const std::string model = std::string(argv[1]).substr(0, std::string(argv[1]).find_last_of('/') + 1) + "mdm_tiny.safetensors";
+        const int SF = 16, MdmDim = 263;
+        UFlameMotionComponent c;
+        Configure(c, model.c_str(), SF, 3, true);
+        CHECK(c.PromptStages.Num() == 0, "no stages by default");
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        auto generate = [&](const char* what) {
+            const int before = finishedCalls;
+            CHECK(c.Generate(), "Generate (%s): %s", what, c.LastError.Utf8().c_str());
+            CHECK(TickUntil(c, [&] { return finishedCalls > before; }), "finished (%s)", what);
+        };
+        generate("prompt");
+        CHECK(succeeded && c.Pose.Num() == SF * MdmDim, "prompt: %s", c.LastError.Utf8().c_str());
+        std::vector<float> plain(c.Pose.GetData(), c.Pose.GetData() + c.Pose.Num());
+        auto samePlain = [&] {
+            return c.Pose.Num() == (int32)plain.size() && std::memcmp(c.Pose.GetData(), plain.data(), plain.size() * 4) == 0;
+        };
+        c.AddPromptStage(FFlameStage(c.Prompt, SF));
+        c.Prompt = FString(TEXT("ignored while there are stages"));
+        generate("one stage");
+        CHECK(succeeded && samePlain() && c.GetFrameCount() == SF, "one stage = the prompt: %s", c.LastError.Utf8().c_str());
+        FFlameStage second(FString(TEXT("a person jumps")), SF / 2);
+        c.PromptStages[0].Frames = SF / 2;
+        c.AddPromptStage(second);
+        generate("two stages");
+        CHECK(!succeeded && c.LastError.Utf8().find("FLAME_STATUS_INVALID_ARGUMENT") == 0 &&
+                  c.LastError.Utf8().find("this mdm model takes one prompt per generation (a single stage without part texts)") !=
+                      std::string::npos,
+              "%s", c.LastError.Utf8().c_str());
+        c.ClearPromptStages();
+        FFlameStage part(FString(TEXT("a person walks forward and waves.")), SF);
+        part.LeftArm = FString(TEXT("waves"));
+        c.AddPromptStage(part);
+        generate("a part text");
+        CHECK(!succeeded && c.LastError.Utf8().find("a single stage without part texts") != std::string::npos, "%s",
+              c.LastError.Utf8().c_str());
+        c.PromptStages[0].LeftArm = FString();
+        c.PromptStages[0].Frames = SF - 1;
+        generate("frames that do not add up");
+        CHECK(!succeeded && c.LastError.Utf8().find("the stages cover 15 frames, the session has 16") != std::string::npos, "%s",
+              c.LastError.Utf8().c_str());
+        c.PromptStages[0].Frames = -1;
+        generate("negative frames");
+        CHECK(!succeeded && c.LastError.Utf8() == "PromptStages[0].Frames is -1", "%s", c.LastError.Utf8().c_str());
+        c.ClearPromptStages();
+        c.Prompt = FString(TEXT("a person walks forward and waves."));
+        generate("cleared stages");
+        CHECK(succeeded && c.PromptStages.Num() == 0 && samePlain(), "cleared stages: the prompt again");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // FineMoGen (tests/fixtures/finemogen_tiny.safetensors; skipped when absent) composes the
+        // stages: 24 + 31 frames publish poses of 55 frames, the final one finite.
+        const std::string model = std::string(argv[1]).substr(0, std::string(argv[1]).find_last_of('/') + 1) +
+                                  "finemogen_tiny.safetensors";
+        if (std::FILE* f = std::fopen(model.c_str(), "rb")) {
+            std::fclose(f);
+            UFlameMotionComponent c;
+            Configure(c, model.c_str(), 55, 4, true);
+            c.AddPromptStage(FFlameStage(FString(TEXT("a person walks forward")), 24));
+            FFlameStage jump(FString(TEXT("a person jumps")), 31);
+            jump.RightArm = FString(TEXT("raises the right arm"));
+            c.AddPromptStage(jump);
+            bool finished = false, succeeded = false, allFrames = true;
+            c.OnProgress.AddLambda([&](int32, int32) {
+                allFrames = allFrames && c.GetFrameCount() == 55 && c.Pose.Num() == 55 * 263 && c.RootLocations.Num() == 55 * 3;
+            });
+            c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+            CHECK(c.Generate(), "Generate (FineMoGen stages)");
+            CHECK(TickUntil(c, [&] { return finished; }), "finished (FineMoGen stages)");
+            bool finite = c.Pose.Num() == 55 * 263;
+            for (int32 i = 0; finite && i < c.Pose.Num(); i++) finite = std::isfinite(c.Pose[i]);
+            CHECK(succeeded && allFrames && finite && c.StepsDone == 4, "FineMoGen stages: %s, %d frames",
+                  c.LastError.Utf8().c_str(), c.GetFrameCount());
+        } else {
+            std::printf("skip FineMoGen stages: no %s\n", model.c_str());
+        }
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
     {   // Errors reach LastError and OnFinished(false).
         UFlameMotionComponent c;
         Configure(c, "/nonexistent/model.safetensors", Frames, 10, true);

@@ -33,13 +33,13 @@ typedef uint64_t uint64;
 #define FLAME_API
 #define PLATFORM_WINDOWS 0
 #define UCLASS(...)
+#define USTRUCT(...)
 #define UPROPERTY(...)
 #define UFUNCTION(...)
-#define GENERATED_BODY() \
- public: \
-    typedef UActorComponent Super; \
- \
- private:
+/* The access after it stays the default, as in the engine: private in a UCLASS (the engine's
+ * ends in private:), public in a USTRUCT (the engine's changes none). Super is used only by
+ * the component. */
+#define GENERATED_BODY() typedef UActorComponent Super;
 
 namespace ue_stub {
 inline std::u16string FromUtf8(const char* s) {
@@ -76,6 +76,18 @@ struct ToUtf8Temp { std::string s; operator const ANSICHAR*() const { return s.c
 }  // namespace ue_stub
 
 #define UTF8_TO_TCHAR(s) (const TCHAR*)ue_stub::FromUtf8Temp{ue_stub::FromUtf8(s)}
+
+/* The converter behind TCHAR_TO_UTF8, for a UTF-8 copy that lives as long as it does. Get()
+ * returns UTF8CHAR* in UE5 (char here): callers cast it to const ANSICHAR*. */
+class FTCHARToUTF8 {
+public:
+    explicit FTCHARToUTF8(const TCHAR* s) : s_(ue_stub::ToUtf8(s)) {}
+    const char* Get() const { return s_.c_str(); }
+    int32_t Length() const { return (int32_t)s_.size(); }
+    FTCHARToUTF8(const FTCHARToUTF8&) = delete;
+private:
+    std::string s_;
+};
 #define TCHAR_TO_UTF8(s) (const ANSICHAR*)ue_stub::ToUtf8Temp{ue_stub::ToUtf8(s)}
 
 template <typename T> struct TArray {

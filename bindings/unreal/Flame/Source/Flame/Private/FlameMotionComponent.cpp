@@ -40,6 +40,16 @@ static const FlameSessionParams* WithRespacing(FlameSessionParams& Params, const
 	return &Params;
 }
 
+/** S as NUL-terminated UTF-8 that outlives the expression (unlike TCHAR_TO_UTF8's). */
+static TArray<ANSICHAR> Utf8Z(const FString& S)
+{
+	FTCHARToUTF8 Utf8(*S);
+	TArray<ANSICHAR> Out;
+	Out.Append((const ANSICHAR*)Utf8.Get(), Utf8.Length());
+	Out.Add('\0');
+	return Out;
+}
+
 struct FFlameJob
 {
 	/** Counts this job in FFlameModule::ActiveWorkers. First member, so destroyed last: after
@@ -53,6 +63,7 @@ struct FFlameJob
 	// Inputs, fixed before the worker starts.
 	FString Path;
 	FString Prompt;
+	TArray<FFlameStage> Stages; // used instead of Prompt when not empty
 	FlameSessionParams Params; // respacing stays null here: see Respacing
 	FString Respacing;         // empty = none; passed as UTF-8 for flame_session_new only
 	int32 Layout = 0;
@@ -269,7 +280,56 @@ private:
 		return true;
 	}
 
-	bool Step(FlameSession* S, FString& Failure)
+	/** Sets Stages through flame_session_set_prompt_stages, their texts as UTF-8 for the call. */
+	bool SetStages(FlameSession* S, FString& Failure)
+	{
+		const int32 N = Stages.Num();
+		const int32 TextsPerStage = 8; // the text, then the parts in FlameStage's order
+		TArray<TArray<ANSICHAR>> Texts;
+		for (int32 I = 0; I < N; I++)
+		{
+			const FFlameStage& Stage = Stages[I];
+			if (Stage.Frames < 0)
+			{
+				Failure = FString::Printf(TEXT("PromptStages[%d].Frames is %d"), I, Stage.Frames);
+				return false;
+			}
+			const FString* Fields[TextsPerStage] = {&Stage.Text, &Stage.Head, &Stage.Stem, &Stage.LeftArm,
+				&Stage.RightArm, &Stage.LeftLeg, &Stage.RightLeg, &Stage.Pelvis};
+			for (int32 F = 0; F < TextsPerStage; F++)
+			{
+				Texts.Add(Utf8Z(*Fields[F]));
+			}
+		}
+		// Pointers into Texts only once it is complete (adding may move its buffers).
+		TArray<FlameStage> Raw;
+		Raw.SetNumUninitialized(N);
+		for (int32 I = 0; I < N; I++)
+		{
+			FlameStage& R = Raw[I];
+			TArray<ANSICHAR>* T = &Texts[I * TextsPerStage];
+			R.struct_size = sizeof(FlameStage);
+			R.frames = (uint32)Stages[I].Frames;
+			R.text = T[0].GetData();
+			R.head = T[1].GetData();
+			R.stem = T[2].GetData();
+			R.left_arm = T[3].GetData();
+			R.right_arm = T[4].GetData();
+			R.left_leg = T[5].GetData();
+			R.right_leg = T[6].GetData();
+			R.pelvis = T[7].GetData();
+		}
+		const FlameStatus Status = flame_session_set_prompt_stages(S, Raw.GetData(), (size_t)N);
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FlameFailure(Status);
+			return false;
+		}
+		return true;
+	}
+
+	/** Sets the prompt (and reports how it fitted the text encoder's window). */
+	bool SetPrompt(FlameSession* S, FString& Failure)
 	{
 		FlameStatus Status = flame_session_set_prompt(S, TCHAR_TO_UTF8(*Prompt));
 		FlamePromptInfo PromptInfo;
@@ -293,6 +353,16 @@ private:
 			PromptKept = PromptInfo.kept;
 			PromptDropped = FString(UTF8_TO_TCHAR(PromptInfo.dropped != nullptr ? PromptInfo.dropped : ""));
 		}
+		return true;
+	}
+
+	bool Step(FlameSession* S, FString& Failure)
+	{
+		if (!(Stages.Num() > 0 ? SetStages(S, Failure) : SetPrompt(S, Failure)))
+		{
+			return false;
+		}
+		FlameStatus Status = FLAME_STATUS_OK;
 		TArray<float> Buffer, RootBuffer;
 		uint32 Left = 1;
 		while (Left > 0)
@@ -377,6 +447,7 @@ bool UFlameMotionComponent::Generate()
 	TSharedPtr<FFlameJob, ESPMode::ThreadSafe> NewJob = MakeShared<FFlameJob, ESPMode::ThreadSafe>();
 	NewJob->Path = FPaths::ConvertRelativePathToFull(Path);
 	NewJob->Prompt = Prompt;
+	NewJob->Stages = PromptStages;
 	flame_session_params_default(&NewJob->Params);
 	NewJob->Params.frames = (uint32)FMath::Max(Frames, 0);
 	NewJob->Params.steps = (uint32)FMath::Max(Steps, 0);
@@ -425,6 +496,16 @@ void UFlameMotionComponent::AddJointTarget(int32 Frame, int32 Joint, FVector Loc
 	TargetFrames.Add(Frame);
 	TargetJoints.Add(Joint);
 	TargetLocations.Add(Location);
+}
+
+void UFlameMotionComponent::AddPromptStage(const FFlameStage& Stage)
+{
+	PromptStages.Add(Stage);
+}
+
+void UFlameMotionComponent::ClearPromptStages()
+{
+	PromptStages.Reset();
 }
 
 void UFlameMotionComponent::ClearJointTargets()

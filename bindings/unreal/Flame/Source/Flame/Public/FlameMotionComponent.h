@@ -13,6 +13,49 @@
 struct FFlameJob;
 struct FFlameModelRef;
 
+/** One time stage of a prompt (FlameStage): what the whole body does for Frames frames, and
+ *  optionally what single body parts do (the HuMMan-MoGen annotation's fields; empty = the
+ *  part follows Text). FineMoGen models compose stages and read the part texts; other models
+ *  take one stage without part texts. */
+USTRUCT(BlueprintType)
+struct FLAME_API FFlameStage
+{
+	GENERATED_BODY()
+
+	FFlameStage() = default;
+	FFlameStage(const FString& InText, int32 InFrames) : Text(InText), Frames(InFrames) {}
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	FString Text;
+
+	/** Frames of this stage (at least 1); the stages' frames add up to the component's Frames. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	int32 Frames = 0;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString Head;
+
+	/** The spine. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString Stem;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString LeftArm;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString RightArm;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString LeftLeg;
+
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString RightLeg;
+
+	/** The root's trajectory. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Parts")
+	FString Pelvis;
+};
+
 DECLARE_DYNAMIC_MULTICAST_DELEGATE_TwoParams(FFlameProgressSignature, int32, StepsDone, int32, StepsTotal);
 DECLARE_DYNAMIC_MULTICAST_DELEGATE_OneParam(FFlameFinishedSignature, bool, bSucceeded);
 
@@ -32,6 +75,21 @@ public:
 
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	FString Prompt = TEXT("a person walks forward and waves.");
+
+	/** Prompts per time stage, in order, used instead of Prompt when not empty; their Frames
+	 *  add up to Frames (which must then be set). FineMoGen models compose them (Pose still
+	 *  holds Frames frames, the stages one after the other); other models take exactly one
+	 *  stage without part texts, and fail the generation for more (see LastError). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stages")
+	TArray<FFlameStage> PromptStages;
+
+	/** Appends a stage to PromptStages, for the next Generate. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Stages")
+	void AddPromptStage(const FFlameStage& Stage);
+
+	/** Empties PromptStages: the next Generate uses Prompt. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Stages")
+	void ClearPromptStages();
 
 	/** Frames to generate; 0 = the model's default. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
