@@ -364,6 +364,12 @@ impl Session {
     /// their texts, not their frame counts (that changes the sample's layout: reset first).
     pub fn set_prompt_stages(&mut self, stages: &[Stage]) -> Result<()> {
         crate::stages::check(stages, self.frames)?;
+        if let [one] = stages {
+            if !one.has_parts() && !self.model.denoiser().takes_stages() {
+                // Another family's one stage is its plain prompt, with the prompt's report.
+                return self.set_prompt(&one.text);
+            }
+        }
         let model = Arc::clone(&self.model);
         let cond = self.pool.install(|| model.encode_stages(stages))?;
         self.use_condition(cond, None)
@@ -382,6 +388,14 @@ impl Session {
     /// the first step, and only when no edit is set).
     fn use_condition(&mut self, cond: Condition, info: Option<PromptInfo>) -> Result<()> {
         self.model.denoiser().check_frames(&cond, self.frames)?;
+        let staged = cond.stage_frames().map(<[usize]>::to_vec);
+        if self.started && staged != self.staged {
+            return Err(Error::WrongState(
+                "the new prompt's stage frame counts differ from the generation's: they can \
+                 change only before the first step (reset first)"
+                    .into(),
+            ));
+        }
         let rows = self.rows_for(&cond);
         if rows != self.rows {
             if self.started {
@@ -404,7 +418,7 @@ impl Session {
             self.x0 = vec![0.0; len];
             self.decoded = Default::default();
         }
-        self.staged = cond.stage_frames().map(<[usize]>::to_vec);
+        self.staged = staged;
         self.cond = Some(cond);
         self.prompt_info = info;
         Ok(())

@@ -96,6 +96,11 @@ fn stage_lengths_change_only_before_the_first_step_and_block_edits() {
     // New texts, same lengths: allowed between steps.
     s.set_prompt_stages(&[Stage::new("run", 20), Stage::new("sit", 30)])
         .unwrap();
+    // The same rows (2 × 30) in another order are other stages too.
+    match s.set_prompt_stages(&[Stage::new("walk", 30), Stage::new("jump", 20)]) {
+        Err(Error::WrongState(m)) => assert!(m.contains("reset first"), "{m}"),
+        other => panic!("{other:?}"),
+    }
     match s.set_prompt_stages(&[Stage::new("walk", 25), Stage::new("jump", 25)]) {
         Err(Error::WrongState(m)) => assert!(m.contains("reset first"), "{m}"),
         other => panic!("{other:?}"),

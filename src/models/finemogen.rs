@@ -1475,6 +1475,10 @@ impl Denoiser for FinemogenDenoiser {
         }))
     }
 
+    fn takes_stages(&self) -> bool {
+        true
+    }
+
     fn unconditional(&self, _text: &TextModel, _uncond: &str) -> Result<Condition> {
         Ok(Condition::new(FinemogenNull))
     }

@@ -160,6 +160,11 @@ pub trait Denoiser: Send + Sync {
     fn encode_stages(&self, _text: &TextModel, _stages: &[Stage]) -> Option<Result<Condition>> {
         None
     }
+    /// Whether [`Denoiser::encode_stages`] is the family's own (else one stage without part
+    /// texts is the plain prompt).
+    fn takes_stages(&self) -> bool {
+        false
+    }
     /// The unconditional input of guidance, as `diffusion.uncond` names it (`empty_prompt` or
     /// `zeros`; the family's check has refused what it cannot use).
     fn unconditional(&self, text: &TextModel, uncond: &str) -> Result<Condition>;

@@ -127,7 +127,10 @@ impl FamilyConfig for OmgFamily {
         let hd = d.d_model / d.heads;
         in_range("denoiser.rope_dims", d.rope_dims, 0, hd)?;
         if !d.rope_dims.is_multiple_of(2) {
-            return Err(bad_file!("config denoiser.rope_dims {} is not even", d.rope_dims));
+            return Err(bad_file!(
+                "config denoiser.rope_dims {} is not even",
+                d.rope_dims
+            ));
         }
         in_range_f32("denoiser.rope_base", d.rope_base, 1.0, 1e9, false)?;
         in_range("denoiser.ff_size", d.ff_size, 1, MAX_FEEDFORWARD)?;
@@ -158,7 +161,12 @@ impl FamilyConfig for OmgFamily {
                 c.attn_heads,
             )?;
             in_range("denoiser.control.experts", c.experts, 1, 1024)?;
-            in_range("denoiser.control.expert_hidden", c.expert_hidden, 1, MAX_FEEDFORWARD)?;
+            in_range(
+                "denoiser.control.expert_hidden",
+                c.expert_hidden,
+                1,
+                MAX_FEEDFORWARD,
+            )?;
             in_range("denoiser.control.gate_hidden", c.gate_hidden, 1, MAX_WIDTH)?;
             one_of(
                 "denoiser.control.expert_activation",
@@ -170,7 +178,13 @@ impl FamilyConfig for OmgFamily {
                 &c.gate_activation,
                 ACTIVATIONS,
             )?;
-            in_range_f32("denoiser.control.mask_gamma", c.mask_gamma, -1e4, 1e4, false)?;
+            in_range_f32(
+                "denoiser.control.mask_gamma",
+                c.mask_gamma,
+                -1e4,
+                1e4,
+                false,
+            )?;
             in_range_f32("denoiser.control.mask_beta", c.mask_beta, -1e4, 1e4, false)?;
             check_eps("denoiser.control.adain_eps", c.adain_eps)?;
             expect_text(cfg, &["clip"])?;
@@ -337,7 +351,8 @@ struct Block {
 impl Block {
     fn load(file: &ModelFile, p: &str, d: &OmgConfig, ty: WeightType) -> Result<Block> {
         let e = d.d_model;
-        let lin = |name: &str, n_in, n_out| Linear::load(file, &format!("{p}.{name}"), n_in, n_out, ty);
+        let lin =
+            |name: &str, n_in, n_out| Linear::load(file, &format!("{p}.{name}"), n_in, n_out, ty);
         Ok(Block {
             modulation: lin("adaLN_modulation.1", e, 6 * e)?,
             qkv: lin("attn.qkv", e, 3 * e)?,
@@ -348,10 +363,16 @@ impl Block {
     }
 
     fn weight_bytes(&self) -> usize {
-        [&self.modulation, &self.qkv, &self.proj, &self.fc1, &self.fc2]
-            .iter()
-            .map(|l| l.weight_bytes())
-            .sum()
+        [
+            &self.modulation,
+            &self.qkv,
+            &self.proj,
+            &self.fc1,
+            &self.fc2,
+        ]
+        .iter()
+        .map(|l| l.weight_bytes())
+        .sum()
     }
 }
 
@@ -459,21 +480,39 @@ impl OmgDenoiser {
     pub fn load(file: &ModelFile, fam: &OmgFamily, ty: WeightType) -> Result<OmgDenoiser> {
         let d = &fam.denoiser;
         let (f, e) = (d.input_feats, d.d_model);
-        let lin = |name: &str, n_in, n_out| Linear::load(file, &format!("{D}{name}"), n_in, n_out, ty);
+        let lin =
+            |name: &str, n_in, n_out| Linear::load(file, &format!("{D}{name}"), n_in, n_out, ty);
         let blocks = (0..d.layers)
             .map(|i| Block::load(file, &format!("{D}blocks.{i}"), d, ty))
             .collect::<Result<Vec<_>>>()?;
         let control = match &d.control {
             None => None,
             Some(c) => {
-                let (m, dt, k, x, h) = (c.control_dim, c.text_dim, c.conv_kernel, c.experts, c.expert_hidden);
+                let (m, dt, k, x, h) = (
+                    c.control_dim,
+                    c.text_dim,
+                    c.conv_kernel,
+                    c.experts,
+                    c.expert_hidden,
+                );
                 let mut layers = Vec::with_capacity(d.layers);
                 for i in 0..d.layers {
                     let p = format!("{D}control.moc.{i}");
-                    let ml = |name: &str, n_in, n_out| Linear::load(file, &format!("{p}.{name}"), n_in, n_out, ty);
+                    let ml = |name: &str, n_in, n_out| {
+                        Linear::load(file, &format!("{p}.{name}"), n_in, n_out, ty)
+                    };
                     layers.push(ControlLayer {
                         block: Block::load(file, &format!("{D}control.blocks.{i}"), d, ty)?,
-                        down: Conv1d::load(file, &format!("{D}control.down.{i}"), e, m, k, 1, true, ty)?,
+                        down: Conv1d::load(
+                            file,
+                            &format!("{D}control.down.{i}"),
+                            e,
+                            m,
+                            k,
+                            1,
+                            true,
+                            ty,
+                        )?,
                         moc: Moc {
                             q: ml("q", m, m)?,
                             k: ml("k", dt, m)?,
@@ -490,7 +529,16 @@ impl OmgDenoiser {
                                 ml("gate.4", c.gate_hidden, x)?,
                             ],
                         },
-                        up: Conv1d::load(file, &format!("{D}control.up.{i}"), m, e, k, 1, true, ty)?,
+                        up: Conv1d::load(
+                            file,
+                            &format!("{D}control.up.{i}"),
+                            m,
+                            e,
+                            k,
+                            1,
+                            true,
+                            ty,
+                        )?,
                     });
                 }
                 Some(layers)
@@ -504,7 +552,10 @@ impl OmgDenoiser {
             cfg: d.clone(),
             ty,
             x_embed: lin("x_embed", f, e)?,
-            t_embed: [lin("t_embed.mlp.0", d.time_freq_dim, e)?, lin("t_embed.mlp.2", e, e)?],
+            t_embed: [
+                lin("t_embed.mlp.0", d.time_freq_dim, e)?,
+                lin("t_embed.mlp.2", e, e)?,
+            ],
             blocks,
             final_modulation: lin("final_layer.adaLN_modulation.1", e, 2 * e)?,
             final_linear: lin("final_layer.linear", e, f)?,
@@ -529,7 +580,11 @@ impl OmgDenoiser {
         };
         let out = encoder.encode(prompt, *context)?;
         let w = c.text_dim;
-        let n = if c.text_padding { out.ids.len() } else { out.pooled_index + 1 };
+        let n = if c.text_padding {
+            out.ids.len()
+        } else {
+            out.pooled_index + 1
+        };
         Ok((out.tokens[..n * w].to_vec(), out.pooled_index))
     }
 
@@ -620,7 +675,10 @@ impl OmgDenoiser {
     /// cos and sin of `position · inv_freq` for positions `0..frames`.
     fn rotary_tables(&self, frames: usize, ws: &mut OmgWorkspace) {
         let half = self.inv_freq.len();
-        let (cos, sin) = (sized(&mut ws.cos, frames * half), sized(&mut ws.sin, frames * half));
+        let (cos, sin) = (
+            sized(&mut ws.cos, frames * half),
+            sized(&mut ws.sin, frames * half),
+        );
         for p in 0..frames {
             for (i, f) in self.inv_freq.iter().enumerate() {
                 let a = p as f32 * f;
@@ -633,7 +691,15 @@ impl OmgDenoiser {
     /// `x ← block(x)` over `rows` sequences of `frames` tokens; `mods` is the block's
     /// modulation `[6d]` (shift, scale, gate of attention; shift, scale, gate of the MLP).
     #[allow(clippy::too_many_arguments)]
-    fn block(&self, blk: &Block, x: &mut [f32], rows: usize, frames: usize, mods: &[f32], ws: &mut OmgWorkspace) {
+    fn block(
+        &self,
+        blk: &Block,
+        x: &mut [f32],
+        rows: usize,
+        frames: usize,
+        mods: &[f32],
+        ws: &mut OmgWorkspace,
+    ) {
         let d = &self.cfg;
         let (e, heads) = (d.d_model, d.heads);
         let hd = e / heads;
@@ -665,8 +731,19 @@ impl OmgDenoiser {
         for (i, o) in attn.chunks_exact_mut(frames * e).enumerate() {
             let q = &qkv[i * frames * 3 * e..(i + 1) * frames * 3 * e];
             ws.scratch.attend(
-                q, 3 * e, &q[e..], 3 * e, &q[2 * e..], 3 * e, frames, frames, heads, hd, None,
-                false, o,
+                q,
+                3 * e,
+                &q[e..],
+                3 * e,
+                &q[2 * e..],
+                3 * e,
+                frames,
+                frames,
+                heads,
+                hd,
+                None,
+                false,
+                o,
             );
         }
         let proj = sized(&mut ws.proj, n * e);
@@ -689,7 +766,14 @@ impl OmgDenoiser {
 
     /// The MoC residual of one layer for one sequence: `f` `[frames, d_m]` in, `Σ_i r_i` out
     /// in `ws.r`.
-    fn moc(&self, c: &ControlConfig, text: &LayerText, moc: &Moc, frames: usize, ws: &mut OmgWorkspace) {
+    fn moc(
+        &self,
+        c: &ControlConfig,
+        text: &LayerText,
+        moc: &Moc,
+        frames: usize,
+        ws: &mut OmgWorkspace,
+    ) {
         let m = c.control_dim;
         let n = text.k.len() / m;
         let heads = c.attn_heads;
@@ -733,7 +817,10 @@ impl OmgDenoiser {
         let fr = frames as f32;
         for ch in 0..m {
             let mean = (0..frames).map(|t| f[t * m + ch]).sum::<f32>() / fr;
-            let var = (0..frames).map(|t| (f[t * m + ch] - mean).powi(2)).sum::<f32>() / fr;
+            let var = (0..frames)
+                .map(|t| (f[t * m + ch] - mean).powi(2))
+                .sum::<f32>()
+                / fr;
             let inv = 1.0 / (var + c.adain_eps).sqrt();
             for t in 0..frames {
                 let v = &mut f[t * m + ch];
@@ -742,7 +829,9 @@ impl OmgDenoiser {
         }
         // M[t, i] = sigmoid(γ·(A[t, i] − β·max_t A[t, i])).
         for i in 0..n {
-            let max = (0..frames).map(|t| mask[t * n + i]).fold(f32::NEG_INFINITY, f32::max);
+            let max = (0..frames)
+                .map(|t| mask[t * n + i])
+                .fold(f32::NEG_INFINITY, f32::max);
             for t in 0..frames {
                 let z = c.mask_gamma * (mask[t * n + i] - c.mask_beta * max);
                 mask[t * n + i] = 1.0 / (1.0 + (-z).exp());
@@ -758,7 +847,8 @@ impl OmgDenoiser {
                 ex.fc1.forward(&f[..frames * m], frames, hid);
                 kernels::gelu_tanh(hid);
             } else {
-                ex.fc1.forward_act(&f[..frames * m], frames, hid, Activation::Gelu);
+                ex.fc1
+                    .forward_act(&f[..frames * m], frames, hid, Activation::Gelu);
             }
             let o = sized(&mut ws.out, frames * m);
             ex.fc2.forward(hid, frames, o);
@@ -794,7 +884,9 @@ impl OmgDenoiser {
             ));
         }
         if x.len() != rows * frames * f || out.len() != x.len() {
-            return Err(invalid_arg!("forward buffers do not match {rows} × {frames} frames × {f}"));
+            return Err(invalid_arg!(
+                "forward buffers do not match {rows} × {frames} frames × {f}"
+            ));
         }
         let texts: Vec<Option<&OmgCondition>> = conds
             .iter()
@@ -802,9 +894,9 @@ impl OmgDenoiser {
                 if c.get::<OmgBackbone>().is_some() {
                     Ok(None)
                 } else {
-                    c.get::<OmgCondition>()
-                        .map(Some)
-                        .ok_or_else(|| invalid_arg!("a condition was made for another architecture"))
+                    c.get::<OmgCondition>().map(Some).ok_or_else(|| {
+                        invalid_arg!("a condition was made for another architecture")
+                    })
                 }
             })
             .collect::<Result<_>>()?;
@@ -844,13 +936,20 @@ impl OmgDenoiser {
                     g.extend_from_slice(&ws.h_in[r * frames * e..(r + 1) * frames * e]);
                     self.block(&layer.block, &mut g, 1, frames, m6, ws);
                     let mut fbuf = std::mem::take(&mut ws.f);
-                    layer.down.forward(&g, frames, &mut fbuf, &mut ws.cols, Activation::None);
+                    layer
+                        .down
+                        .forward(&g, frames, &mut fbuf, &mut ws.cols, Activation::None);
                     ws.f = fbuf;
                     self.moc(cc, &text.layers[li], &layer.moc, frames, ws);
                     let r_sum = std::mem::take(&mut ws.r);
                     let mut up = std::mem::take(&mut ws.up);
-                    layer.up.forward(&r_sum, frames, &mut up, &mut ws.cols, Activation::None);
-                    kernels::add_inplace(&mut h[r * frames * e..(r + 1) * frames * e], &up[..frames * e]);
+                    layer
+                        .up
+                        .forward(&r_sum, frames, &mut up, &mut ws.cols, Activation::None);
+                    kernels::add_inplace(
+                        &mut h[r * frames * e..(r + 1) * frames * e],
+                        &up[..frames * e],
+                    );
                     ws.up = up;
                     ws.r = r_sum;
                     ws.g = g;
@@ -923,8 +1022,12 @@ impl Denoiser for OmgDenoiser {
             (Some(_), None) => Err(invalid_arg!(
                 "this OMG-style file has no ControlNet: it generates unconditionally only"
             )),
-            (Some(_), _) => Err(invalid_arg!("the condition was made for another OMG-style model")),
-            (None, _) => Err(invalid_arg!("the condition was made for another architecture")),
+            (Some(_), _) => Err(invalid_arg!(
+                "the condition was made for another OMG-style model"
+            )),
+            (None, _) => Err(invalid_arg!(
+                "the condition was made for another architecture"
+            )),
         }
     }
 
@@ -950,7 +1053,9 @@ impl Denoiser for OmgDenoiser {
         for l in self.control.iter().flatten() {
             let m = &l.moc;
             n += l.block.weight_bytes() + l.down.weight_bytes() + l.up.weight_bytes();
-            for x in [&m.q, &m.k, &m.v, &m.gamma, &m.beta, &m.gate[0], &m.gate[1], &m.gate[2]] {
+            for x in [
+                &m.q, &m.k, &m.v, &m.gamma, &m.beta, &m.gate[0], &m.gate[1], &m.gate[2],
+            ] {
                 n += x.weight_bytes();
             }
         }
