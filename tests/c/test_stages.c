@@ -355,7 +355,8 @@ static void test_finemogen(const FlameModel *m, const char *reference_npy) {
     CHECK(rows == 3 * 20);
     /* The noise follows the layout: sample_shape's rows after the stages. */
     float *noise = (float *)calloc((size_t)rows * dim, sizeof(float));
-    CHECK_ERROR_MENTIONS(flame_session_set_noise(s, noise, (size_t)FMG_FRAMES * 263), INV, "rows");
+    CHECK_ERROR_MENTIONS(flame_session_set_noise(s, noise, (size_t)FMG_FRAMES * 263), INV,
+                         "3 stages × 20 frames");
     CHECK_OK(flame_session_set_noise(s, noise, (size_t)rows * dim));
     free(noise);
     size_t n3 = 0;

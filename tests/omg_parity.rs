@@ -1,0 +1,190 @@
+//! OMG-style models against tools/reference/omg.py (the layout's definition; REFERENCE 10 and
+//! docs/omg.md for the choices), on a tiny random model with nonzero up-projections converted
+//! by `tools/convert.py omg` (tests/fixtures/omg_tiny.safetensors; expected outputs from
+//! tools/make_omg_fixtures.py in tests/fixtures/omg_expected.*).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use common::max_abs_diff;
+use flame::checkpoint::ModelFile;
+use flame::models::omg::{OmgCondition, OmgWorkspace};
+use flame::models::{Cancel, Model, OmgDenoiser};
+use flame::session::{Session, SessionParams};
+use flame::Error;
+
+const TOL: f32 = 1e-4;
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
+}
+
+fn expected(name: &str) -> Vec<f32> {
+    let f = ModelFile::open(&fixture("omg_expected.safetensors")).unwrap();
+    f.tensor_any_shape(name).unwrap().data().to_vec()
+}
+
+fn json() -> serde_json::Value {
+    let text = std::fs::read_to_string(fixture("omg_expected.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn prompt() -> String {
+    let j = json();
+    let p = &j["prompts"]["A"];
+    p.as_str().unwrap().to_string()
+}
+
+fn model() -> Arc<Model> {
+    Arc::new(Model::load(fixture("omg_tiny.safetensors")).unwrap())
+}
+
+fn omg(model: &Model) -> &OmgDenoiser {
+    model
+        .denoiser()
+        .as_any()
+        .downcast_ref::<OmgDenoiser>()
+        .expect("an OMG-style model")
+}
+
+fn frames() -> usize {
+    json()["forward"]["frames"].as_u64().unwrap() as usize
+}
+
+/// D_c and D_u of the fixture's forward, as libflame computes them.
+fn forward(m: &Model) -> (Vec<f32>, Vec<f32>) {
+    let t = json()["forward"]["t"].as_f64().unwrap() as f32;
+    let n = frames();
+    let cond = m.encode_prompt(&prompt()).unwrap();
+    let x1 = expected("forward.x");
+    let x = [x1.clone(), x1].concat();
+    let mut out = vec![0.0; x.len()];
+    let mut ws = OmgWorkspace::default();
+    omg(m)
+        .forward_with(&x, n, t, &[&cond, m.uncond().unwrap()], &mut out, &mut ws, &Cancel::never())
+        .unwrap();
+    let half = n * m.motion_dim();
+    (out[..half].to_vec(), out[half..].to_vec())
+}
+
+#[test]
+fn text_tokens_match_reference() {
+    let m = model();
+    let (tokens, eos) = omg(&m).text_tokens(m.text_model(), &prompt()).unwrap();
+    let want = expected("text.tokens");
+    assert_eq!(tokens.len(), want.len(), "SOT..EOT tokens");
+    let width = omg(&m).config().control.as_ref().unwrap().text_dim;
+    assert_eq!((eos + 1) * width, tokens.len());
+    let d = max_abs_diff(&tokens, &want);
+    assert!(d < 1e-5, "{d}");
+    let cond = m.encode_prompt(&prompt()).unwrap();
+    assert_eq!(cond.get::<OmgCondition>().unwrap().token_count(), eos + 1);
+}
+
+#[test]
+fn one_forward_matches_the_parameter_blend_not_the_output_blend() {
+    let m = model();
+    let (cond, uncond) = forward(&m);
+    let d_c = max_abs_diff(&cond, &expected("forward.cond"));
+    let d_u = max_abs_diff(&uncond, &expected("forward.uncond"));
+    let blend_outputs = expected("forward.blend_outputs");
+    let apart = max_abs_diff(&blend_outputs, &expected("forward.cond"));
+    let d_o = max_abs_diff(&cond, &blend_outputs);
+    println!("forward: D_c {d_c:.2e}, D_u {d_u:.2e}; blending outputs instead moves D_c by {apart:.2e} (libflame {d_o:.2e} from it)");
+    assert!(d_c < TOL && d_u < TOL, "{d_c} {d_u}");
+    assert!(apart > 100.0 * TOL, "the fixture must tell the two blends apart: {apart}");
+    assert!(d_o > 50.0 * TOL);
+    // The ControlNet moves the prediction.
+    assert!(max_abs_diff(&cond, &uncond) > 1e-2);
+}
+
+#[test]
+fn zero_up_projections_give_the_backbone_bit_for_bit() {
+    // The same file with every `control.up.*` tensor zeroed.
+    let bytes = std::fs::read(fixture("omg_tiny.safetensors")).unwrap();
+    let zeroed = common::zero_tensors(&bytes, |name| name.contains(".control.up."));
+    let m = Arc::new(Model::from_bytes(&zeroed).unwrap());
+    let (cond, uncond) = forward(&m);
+    assert!(cond.iter().zip(&uncond).all(|(a, b)| a.to_bits() == b.to_bits()));
+    let d = max_abs_diff(&cond, &expected("forward.zero_up"));
+    assert!(d < TOL, "{d}");
+}
+
+fn trajectory(case: &str, text: &str) {
+    let m = model();
+    let j = json();
+    let steps = j["steps"].as_array().unwrap().len();
+    let params = SessionParams {
+        frames: Some(frames()),
+        steps: Some(steps),
+        guidance: Some(j["guidance"].as_f64().unwrap() as f32),
+        seed: 5,
+        threads: 2,
+        ..Default::default()
+    };
+    let mut s = Session::new(m, &params).unwrap();
+    s.set_prompt(text).unwrap();
+    s.set_initial_noise(&expected("guided.noise")).unwrap();
+    let kept: Vec<usize> = j["steps_kept"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as usize)
+        .collect();
+    let xs = expected(&format!("{case}.x"));
+    let per = xs.len() / kept.len();
+    let mut worst = 0f32;
+    for step in 1..=steps {
+        s.step().unwrap();
+        if let Some(i) = kept.iter().position(|&k| k == step) {
+            let d = max_abs_diff(s.sample().unwrap(), &xs[i * per..(i + 1) * per]);
+            worst = worst.max(d);
+            assert!(d < TOL, "{case}: step {step}: {d}");
+        }
+    }
+    println!("{case}: {steps} steps, worst difference {worst:.2e}");
+}
+
+#[test]
+fn guided_trajectory_matches_reference() {
+    trajectory("guided", &prompt());
+}
+
+#[test]
+fn unconditional_trajectory_runs_the_backbone_alone() {
+    trajectory("uncond", "");
+}
+
+#[test]
+fn backbone_only_files_refuse_prompts_and_long_motions_are_refused() {
+    let b = Arc::new(Model::load(fixture("omg_tiny_backbone.safetensors")).unwrap());
+    match b.encode_prompt("a person walks") {
+        Err(Error::InvalidArgument(m)) => assert!(m.contains("no ControlNet"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+    let mut s = Session::new(
+        Arc::clone(&b),
+        &SessionParams {
+            frames: Some(30),
+            steps: Some(3),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert!(s.set_prompt("a person walks").is_err());
+    s.set_prompt("").unwrap();
+    s.run().unwrap();
+    let max = b.max_frames();
+    let too_long = SessionParams {
+        frames: Some(max + 1),
+        ..Default::default()
+    };
+    match Session::new(b, &too_long) {
+        Err(Error::InvalidArgument(m)) => assert!(m.contains(&format!("1..={max}")), "{m}"),
+        other => panic!("{:?}", other.map(|_| ())),
+    }
+}
