@@ -65,7 +65,15 @@ fn forward(m: &Model) -> (Vec<f32>, Vec<f32>) {
     let mut out = vec![0.0; x.len()];
     let mut ws = OmgWorkspace::default();
     omg(m)
-        .forward_with(&x, n, t, &[&cond, m.uncond().unwrap()], &mut out, &mut ws, &Cancel::never())
+        .forward_with(
+            &x,
+            n,
+            t,
+            &[&cond, m.uncond().unwrap()],
+            &mut out,
+            &mut ws,
+            &Cancel::never(),
+        )
         .unwrap();
     let half = n * m.motion_dim();
     (out[..half].to_vec(), out[half..].to_vec())
@@ -96,7 +104,10 @@ fn one_forward_matches_the_parameter_blend_not_the_output_blend() {
     let d_o = max_abs_diff(&cond, &blend_outputs);
     println!("forward: D_c {d_c:.2e}, D_u {d_u:.2e}; blending outputs instead moves D_c by {apart:.2e} (libflame {d_o:.2e} from it)");
     assert!(d_c < TOL && d_u < TOL, "{d_c} {d_u}");
-    assert!(apart > 100.0 * TOL, "the fixture must tell the two blends apart: {apart}");
+    assert!(
+        apart > 100.0 * TOL,
+        "the fixture must tell the two blends apart: {apart}"
+    );
     assert!(d_o > 50.0 * TOL);
     // The ControlNet moves the prediction.
     assert!(max_abs_diff(&cond, &uncond) > 1e-2);
@@ -109,7 +120,10 @@ fn zero_up_projections_give_the_backbone_bit_for_bit() {
     let zeroed = common::zero_tensors(&bytes, |name| name.contains(".control.up."));
     let m = Arc::new(Model::from_bytes(&zeroed).unwrap());
     let (cond, uncond) = forward(&m);
-    assert!(cond.iter().zip(&uncond).all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert!(cond
+        .iter()
+        .zip(&uncond)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
     let d = max_abs_diff(&cond, &expected("forward.zero_up"));
     assert!(d < TOL, "{d}");
 }

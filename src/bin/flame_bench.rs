@@ -27,7 +27,7 @@ use std::time::Instant;
 
 use flame::config::TextConfig;
 use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType};
-use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily};
+use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily, OmgFamily};
 use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 
@@ -201,6 +201,26 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
         // The templates (key softmax · values) and the per-frame read-back: attention-like.
         let attn =
             d.num_layers as f64 * b * 8.0 * ((d.max_text_len as f64 + f) * p * p + f * p * 4.0 * p);
+        (lin, attn)
+    } else if let Some(m) = any.downcast_ref::<OmgFamily>() {
+        let d = &m.denoiser;
+        let (e, ff) = (d.d_model as f64, d.ff_size as f64);
+        // Two rows through the backbone (D_c's and D_u's), one through the ControlNet copies;
+        // the MoC with a 16-token prompt (its experts run per token on every frame).
+        let block = f * e * (4.0 * e + 2.0 * ff);
+        let mut lin = d.layers as f64 * b * block + b * f * 2.0 * e * d.input_feats as f64;
+        let mut attn = d.layers as f64 * b * 2.0 * f * f * e;
+        if let Some(c) = &d.control {
+            let (dm, eh, k, n) = (
+                c.control_dim as f64,
+                c.expert_hidden as f64,
+                c.conv_kernel as f64,
+                16.0,
+            );
+            let moc = f * (dm * dm + n * 2.0 * dm * eh) + 2.0 * f * k * e * dm;
+            lin += d.layers as f64 * (block + moc);
+            attn += d.layers as f64 * 2.0 * f * n * dm;
+        }
         (lin, attn)
     } else {
         // A family this count does not know: no GFLOP/s figures.

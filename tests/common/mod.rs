@@ -141,7 +141,10 @@ pub fn zero_tensors(bytes: &[u8], pick: impl Fn(&str) -> bool) -> Vec<u8> {
             continue;
         }
         let off = info["data_offsets"].as_array().unwrap();
-        let (a, b) = (off[0].as_u64().unwrap() as usize, off[1].as_u64().unwrap() as usize);
+        let (a, b) = (
+            off[0].as_u64().unwrap() as usize,
+            off[1].as_u64().unwrap() as usize,
+        );
         out[base + a..base + b].fill(0);
         hit += 1;
     }
