@@ -46,6 +46,12 @@ docs/model-files-latent.md.
 
 finemogen: mingyuan-zhang/FineMoGen (HumanML3D); CLIP from the checkpoint's model.clip.* when
 present; schema in tools/convert_finemogen.py's docstring and docs/model-files-finemogen.md.
+
+  python tools/convert.py omg --ckpt model.pt --clip CLIP_DIR [--mean Mean.npy --std Std.npy] \
+      --out M.safetensors [--format humanml263 --fps 20] [--heads N | --preset base] [--dtype ..]
+
+omg: libflame's OMG-style model (no official release exists), a state dict of
+tools/reference/omg.py; options and schema in tools/convert_omg.py's docstring and docs/omg.md.
 """
 import argparse
 import json
@@ -739,8 +745,10 @@ def build_parser():
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import convert_finemogen
     import convert_latent
+    import convert_omg
     convert_latent.add_parsers(sub)
     convert_finemogen.add_parsers(sub)
+    convert_omg.add_parsers(sub)
     return ap
 
 
