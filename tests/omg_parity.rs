@@ -52,7 +52,13 @@ fn omg(model: &Model) -> &OmgDenoiser {
 }
 
 fn frames() -> usize {
-    json()["forward"]["frames"].as_u64().unwrap() as usize
+    json()["frames"].as_u64().unwrap() as usize
+}
+
+/// The fixture model with its configuration changed by `edit` (same weights).
+fn variant(edit: impl FnOnce(&mut serde_json::Value)) -> Arc<Model> {
+    let bytes = std::fs::read(fixture("omg_tiny.safetensors")).unwrap();
+    Arc::new(Model::from_bytes(&common::with_config(&bytes, edit)).unwrap())
 }
 
 /// D_c and D_u of the fixture's forward, as libflame computes them.
@@ -111,6 +117,90 @@ fn one_forward_matches_the_parameter_blend_not_the_output_blend() {
     assert!(d_o > 50.0 * TOL);
     // The ControlNet moves the prediction.
     assert!(max_abs_diff(&cond, &uncond) > 1e-2);
+}
+
+#[test]
+fn the_configuration_choices_are_read_from_the_file() {
+    // Two cross-attention heads, RoPE on 8 of 16 head dims, all 77 text positions: the same
+    // weights under each choice against the reference run with it.
+    let cases: [(&str, Box<dyn FnOnce(&mut serde_json::Value)>, bool); 4] = [
+        (
+            "forward.cond_heads2",
+            Box::new(|c| c["denoiser"]["control"]["attn_heads"] = 2.into()),
+            true,
+        ),
+        (
+            "forward.cond_rope8",
+            Box::new(|c| c["denoiser"]["rope_dims"] = 8.into()),
+            true,
+        ),
+        (
+            "forward.uncond_rope8",
+            Box::new(|c| c["denoiser"]["rope_dims"] = 8.into()),
+            false,
+        ),
+        (
+            "forward.cond_padding",
+            Box::new(|c| c["denoiser"]["control"]["text_padding"] = true.into()),
+            true,
+        ),
+    ];
+    for (key, edit, cond) in cases {
+        let m = variant(edit);
+        let (c, u) = forward(&m);
+        let got = if cond { c } else { u };
+        let d = max_abs_diff(&got, &expected(key));
+        let apart = max_abs_diff(
+            &got,
+            &expected(if cond {
+                "forward.cond"
+            } else {
+                "forward.uncond"
+            }),
+        );
+        println!("{key}: {d:.2e} (the default choice is {apart:.2e} away)");
+        assert!(d < TOL, "{key}: {d}");
+        assert!(
+            apart > 100.0 * TOL,
+            "{key} must differ from the default: {apart}"
+        );
+    }
+}
+
+#[test]
+fn three_hundred_frames_at_30_fps_through_the_backbone() {
+    // The backbone-only file says 30 fps; the rows the fixture kept of D_u at 300 frames.
+    let b = Arc::new(Model::load(fixture("omg_tiny_backbone.safetensors")).unwrap());
+    assert_eq!(b.config().motion.fps, 30.0);
+    let j = json();
+    let (frames, t) = (
+        j["long"]["frames"].as_u64().unwrap() as usize,
+        j["long"]["t"].as_f64().unwrap() as f32,
+    );
+    let f = b.motion_dim();
+    let x: Vec<f32> = (0..frames * f)
+        .map(|i| ((0.05 * (i / f) as f64 + 0.3 * (i % f) as f64).sin()) as f32)
+        .collect();
+    assert_eq!(&x[..2 * f], &expected("long.x_head")[..]);
+    let mut out = vec![0.0; x.len()];
+    let mut ws = OmgWorkspace::default();
+    omg(&b)
+        .forward_with(
+            &x,
+            frames,
+            t,
+            &[b.uncond().unwrap()],
+            &mut out,
+            &mut ws,
+            &Cancel::never(),
+        )
+        .unwrap();
+    let want = expected("long.uncond_rows");
+    for (k, row) in j["long"]["rows"].as_array().unwrap().iter().enumerate() {
+        let r = row.as_u64().unwrap() as usize;
+        let d = max_abs_diff(&out[r * f..(r + 1) * f], &want[k * f..(k + 1) * f]);
+        assert!(d < TOL, "row {r}: {d}");
+    }
 }
 
 #[test]

@@ -112,6 +112,8 @@ pub struct OmgFamily {
 
 const D: &str = "denoiser.";
 const ACTIVATIONS: &[&str] = &["gelu_tanh", "gelu"];
+/// Expert and gate activations (the paper suggests GELU or SiLU).
+const MOC_ACTIVATIONS: &[&str] = &["gelu", "gelu_tanh", "silu"];
 
 impl FamilyConfig for OmgFamily {
     fn architecture(&self) -> &str {
@@ -171,12 +173,12 @@ impl FamilyConfig for OmgFamily {
             one_of(
                 "denoiser.control.expert_activation",
                 &c.expert_activation,
-                ACTIVATIONS,
+                MOC_ACTIVATIONS,
             )?;
             one_of(
                 "denoiser.control.gate_activation",
                 &c.gate_activation,
-                ACTIVATIONS,
+                MOC_ACTIVATIONS,
             )?;
             in_range_f32(
                 "denoiser.control.mask_gamma",
@@ -330,12 +332,12 @@ impl FamilyConfig for OmgFamily {
     }
 }
 
-/// `gelu_tanh` or exact GELU, in place.
-fn activate(x: &mut [f32], tanh: bool) {
-    if tanh {
-        kernels::gelu_tanh(x);
-    } else {
-        kernels::gelu_erf(x);
+/// An activation of the configuration, in place: `gelu` (exact), `gelu_tanh` or `silu`.
+fn activate(x: &mut [f32], name: &str) {
+    match name {
+        "gelu_tanh" => kernels::gelu_tanh(x),
+        "silu" => kernels::silu(x),
+        _ => kernels::gelu_erf(x),
     }
 }
 
@@ -408,7 +410,8 @@ pub struct OmgDenoiser {
     final_modulation: Linear,
     final_linear: Linear,
     control: Option<Vec<ControlLayer>>,
-    inv_freq: Vec<f32>,
+    /// `base^(−2i/r)`, in f64: the tables are rounded to f32 once.
+    inv_freq: Vec<f64>,
 }
 
 /// One token's blended expert: `act(x·W0 + b0)·W1 + b1` as two layers.
@@ -546,7 +549,7 @@ impl OmgDenoiser {
         };
         let r = d.rope_dims;
         let inv_freq = (0..r / 2)
-            .map(|i| (d.rope_base as f64).powf(-((2 * i) as f64) / r as f64) as f32)
+            .map(|i| (d.rope_base as f64).powf(-((2 * i) as f64) / r as f64))
             .collect();
         Ok(OmgDenoiser {
             cfg: d.clone(),
@@ -600,7 +603,6 @@ impl OmgDenoiser {
         let (dt, m, h, x) = (c.text_dim, c.control_dim, c.expert_hidden, c.experts);
         let n = tokens.len() / dt;
         let eos_feat = &tokens[eos * dt..(eos + 1) * dt];
-        let gelu_tanh = c.gate_activation == "gelu_tanh";
         let mut out = Vec::with_capacity(layers.len());
         for layer in layers {
             let moc = &layer.moc;
@@ -616,10 +618,10 @@ impl OmgDenoiser {
             let gh = c.gate_hidden;
             let mut g1 = vec![0f32; n * gh];
             moc.gate[0].forward(&tokens, n, &mut g1);
-            activate(&mut g1, gelu_tanh);
+            activate(&mut g1, &c.gate_activation);
             let mut g2 = vec![0f32; n * gh];
             moc.gate[1].forward(&g1, n, &mut g2);
-            activate(&mut g2, gelu_tanh);
+            activate(&mut g2, &c.gate_activation);
             let mut omega = vec![0f32; n * x];
             moc.gate[2].forward(&g2, n, &mut omega);
             kernels::softmax_rows(&mut omega, x);
@@ -681,9 +683,9 @@ impl OmgDenoiser {
         );
         for p in 0..frames {
             for (i, f) in self.inv_freq.iter().enumerate() {
-                let a = p as f32 * f;
-                cos[p * half + i] = a.cos();
-                sin[p * half + i] = a.sin();
+                let a = p as f64 * f;
+                cos[p * half + i] = a.cos() as f32;
+                sin[p * half + i] = a.sin() as f32;
             }
         }
     }
@@ -840,16 +842,10 @@ impl OmgDenoiser {
         // Σ_i M_i ⊙ expert_i(f″).
         let r = sized(&mut ws.r, frames * m);
         r.fill(0.0);
-        let tanh = c.expert_activation == "gelu_tanh";
         for (i, ex) in text.experts.iter().enumerate() {
             let hid = sized(&mut ws.hidden, frames * c.expert_hidden);
-            if tanh {
-                ex.fc1.forward(&f[..frames * m], frames, hid);
-                kernels::gelu_tanh(hid);
-            } else {
-                ex.fc1
-                    .forward_act(&f[..frames * m], frames, hid, Activation::Gelu);
-            }
+            ex.fc1.forward(&f[..frames * m], frames, hid);
+            activate(hid, &c.expert_activation);
             let o = sized(&mut ws.out, frames * m);
             ex.fc2.forward(hid, frames, o);
             for t in 0..frames {

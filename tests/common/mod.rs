@@ -151,3 +151,23 @@ pub fn zero_tensors(bytes: &[u8], pick: impl Fn(&str) -> bool) -> Vec<u8> {
     assert!(hit > 0, "no tensor picked");
     out
 }
+
+/// A safetensors file's bytes with its `flame.config` JSON changed by `edit` (the tensors as
+/// they were).
+pub fn with_config(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let meta = header["__metadata__"].as_object_mut().unwrap();
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(meta["flame.config"].as_str().unwrap()).unwrap();
+    edit(&mut cfg);
+    meta.insert("flame.config".into(), cfg.to_string().into());
+    let mut text = serde_json::to_vec(&header).unwrap();
+    while text.len() % 8 != 0 {
+        text.push(b' ');
+    }
+    let mut out = (text.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&bytes[8 + n..]);
+    out
+}
