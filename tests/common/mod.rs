@@ -163,7 +163,7 @@ pub fn with_config(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> V
     edit(&mut cfg);
     meta.insert("flame.config".into(), cfg.to_string().into());
     let mut text = serde_json::to_vec(&header).unwrap();
-    while text.len() % 8 != 0 {
+    while !text.len().is_multiple_of(8) {
         text.push(b' ');
     }
     let mut out = (text.len() as u64).to_le_bytes().to_vec();
