@@ -123,7 +123,8 @@ fn one_forward_matches_the_parameter_blend_not_the_output_blend() {
 fn the_configuration_choices_are_read_from_the_file() {
     // Two cross-attention heads, RoPE on 8 of 16 head dims, all 77 text positions: the same
     // weights under each choice against the reference run with it.
-    let cases: [(&str, Box<dyn FnOnce(&mut serde_json::Value)>, bool); 4] = [
+    type Edit = Box<dyn FnOnce(&mut serde_json::Value)>;
+    let cases: [(&str, Edit, bool); 4] = [
         (
             "forward.cond_heads2",
             Box::new(|c| c["denoiser"]["control"]["attn_heads"] = 2.into()),
