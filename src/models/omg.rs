@@ -293,19 +293,25 @@ impl FamilyConfig for OmgFamily {
         let d = &self.denoiser;
         let control = match &d.control {
             Some(c) => format!(
-                "ControlNet on every block, MoC {} experts x {} (d_m {}, {} attention head(s), conv k{}), text {} ({})",
+                "ControlNet on every block, MoC {} experts x {} ({}; gate MLP {} wide, {}), d_m {}, {} attention head(s), conv k{}, mask gamma {} beta {}, Ada-IN eps {}, text {} ({})",
                 c.experts,
                 c.expert_hidden,
+                c.expert_activation,
+                c.gate_hidden,
+                c.gate_activation,
                 c.control_dim,
                 c.attn_heads,
                 c.conv_kernel,
+                c.mask_gamma,
+                c.mask_beta,
+                c.adain_eps,
                 c.text_dim,
                 if c.text_padding { "all 77 positions" } else { "SOT..EOT" }
             ),
             None => "backbone only (unconditional)".into(),
         };
         format!(
-            "OMG-style DiT, {} blocks x {}, {} heads (RoPE base {} on {} dims), MLP {} ({}), up to {} frames; {control}",
+            "OMG-style DiT, {} blocks x {}, {} heads (RoPE base {} on {} dims), MLP {} ({}), LayerNorm eps {}, time sinusoid {}, up to {} frames; {control}",
             d.layers,
             d.d_model,
             d.heads,
@@ -313,6 +319,8 @@ impl FamilyConfig for OmgFamily {
             d.rope_dims,
             d.ff_size,
             d.mlp_activation,
+            d.norm_eps,
+            d.time_freq_dim,
             d.max_frames
         )
     }
