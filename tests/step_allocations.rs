@@ -134,6 +134,32 @@ fn mdm_and_flow_steps_do_not_allocate() {
     }
 }
 
+fn finemogen_and_omg_steps_do_not_allocate() {
+    use flame::stages::{BodyPart, Stage};
+    let fmg = Arc::new(Model::load(fixture("finemogen_tiny.safetensors")).unwrap());
+    for threads in [1, 2] {
+        let mut s = Session::new(fmg.clone(), &params(40, threads, 6.5, 8)).unwrap();
+        s.set_prompt("a person walks forward").unwrap();
+        let n = allocations_after_first_step(s, 8);
+        assert_eq!(n, 0, "FineMoGen, {threads} threads: {n} allocations");
+        let mut s = Session::new(fmg.clone(), &params(55, threads, 6.5, 8)).unwrap();
+        s.set_prompt_stages(&[
+            Stage::new("a person walks", 24),
+            Stage::new("a person jumps", 31).with_part(BodyPart::LeftArm, "waves"),
+        ])
+        .unwrap();
+        let n = allocations_after_first_step(s, 8);
+        assert_eq!(n, 0, "FineMoGen stages, {threads} threads: {n} allocations");
+    }
+    let omg = Arc::new(Model::load(fixture("omg_tiny.safetensors")).unwrap());
+    for (threads, prompt) in [(1, "a person walks"), (2, "a person walks"), (2, "")] {
+        let mut s = Session::new(omg.clone(), &params(48, threads, 4.5, 8)).unwrap();
+        s.set_prompt(prompt).unwrap();
+        let n = allocations_after_first_step(s, 8);
+        assert_eq!(n, 0, "OMG {prompt:?}, {threads} threads: {n} allocations");
+    }
+}
+
 /// One test in this binary: the test harness's own thread allocates when a test starts or ends
 /// (its report), which would land in another test's count.
 #[test]
@@ -141,4 +167,5 @@ fn steps_do_not_allocate() {
     flame_steps_do_not_allocate();
     flame_edit_steps_do_not_allocate();
     mdm_and_flow_steps_do_not_allocate();
+    finemogen_and_omg_steps_do_not_allocate();
 }

@@ -180,6 +180,40 @@ impl PackedWeights {
     }
 
     /// Input features (`k`).
+    /// An empty f32 pack, for [`PackedWeights::repack_kn`].
+    pub fn empty() -> PackedWeights {
+        PackedWeights {
+            k: 0,
+            n: 0,
+            ty: WeightType::F32,
+            lines: Vec::new(),
+        }
+    }
+
+    /// Repacks `b` (`[k, n]` row-major: the right-hand matrix of `x · b`) as f32 in place,
+    /// reusing the allocation: for products of two activations, which change every call, so
+    /// a step that repeats the same shapes allocates nothing.
+    pub fn repack_kn(&mut self, b: &[f32], k: usize, n: usize) {
+        assert_eq!(b.len(), k * n, "repack_kn: b is not {k}x{n}");
+        let panels = n.div_ceil(NR);
+        let bytes = panels * k * NR * 4;
+        let lines = bytes.div_ceil(64);
+        if self.lines.len() < lines {
+            self.lines.resize(lines, Line([0; 64]));
+        }
+        (self.k, self.n, self.ty) = (k, n, WeightType::F32);
+        let dst = self.f32_mut();
+        for j in 0..panels {
+            for p in 0..k {
+                let row = &b[p * n..(p + 1) * n];
+                let out = &mut dst[(j * k + p) * NR..][..NR];
+                for (c, o) in out.iter_mut().enumerate() {
+                    *o = row.get(j * NR + c).copied().unwrap_or(0.0);
+                }
+            }
+        }
+    }
+
     pub fn inputs(&self) -> usize {
         self.k
     }
@@ -269,6 +303,12 @@ impl PackedWeights {
         debug_assert!(offset <= self.lines.len() * 64);
         // SAFETY: the offset is inside (or one past) the allocation for j < panels, p ≤ k.
         unsafe { (self.lines.as_ptr() as *const u8).add(offset) }
+    }
+}
+
+impl Default for PackedWeights {
+    fn default() -> PackedWeights {
+        PackedWeights::empty()
     }
 }
 
@@ -829,6 +869,28 @@ mod tests {
             v.push(Isa::Avx2);
         }
         v
+    }
+
+    #[test]
+    fn a_repacked_right_hand_matrix_gives_the_same_bits_as_its_packed_transpose() {
+        // repack_kn(b [k, n]) is pack(bᵀ [n, k]); the same buffer serves shrinking and
+        // growing shapes.
+        let mut rng = Rng::new(5);
+        let mut pw = PackedWeights::empty();
+        for &(m, k, n) in SHAPES.iter().chain(SHAPES.iter().rev()) {
+            let x = rng.vec(m * k);
+            let b = rng.vec(k * n);
+            let bt: Vec<f32> = (0..n * k).map(|i| b[(i % k) * n + i / k]).collect();
+            pw.repack_kn(&b, k, n);
+            let packed = PackedWeights::pack(&bt, n, k, WeightType::F32);
+            for isa in isas() {
+                let mut y1 = vec![0.0; m * n];
+                let mut y2 = vec![0.0; m * n];
+                linear_packed_on(isa, &x, &pw, None, Activation::None, &mut y1, m);
+                linear_packed_on(isa, &x, &packed, None, Activation::None, &mut y2, m);
+                assert!(same_bits(&y1, &y2), "{isa:?} {m}x{k}x{n}");
+            }
+        }
     }
 
     #[test]

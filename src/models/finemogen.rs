@@ -647,6 +647,10 @@ fn route(
         list.clear();
     }
     ws.routed.resize_with(e, Vec::new);
+    // No list holds more than `cap` tokens: reserved once, so later steps do not allocate.
+    for list in ws.routed.iter_mut() {
+        list.reserve(cap.min(n));
+    }
     let mut dropped = 0;
     for r in 0..k {
         for &t in &ws.order {
@@ -782,6 +786,8 @@ struct StageText {
 /// features (they depend on the text alone).
 pub struct FinemogenCondition {
     stages: Vec<StageText>,
+    /// The stages' frame counts.
+    frames: Vec<usize>,
     /// Encoded text sequences `[max_text_len, text_latent_dim]`, distinct within a stage.
     xf: Vec<Vec<f32>>,
     /// Per layer: `[sequences, max_text_len, 2·part_dim]` (key, value) from the text MoE.
@@ -792,8 +798,8 @@ pub struct FinemogenCondition {
 
 impl FinemogenCondition {
     /// The stages' frame counts.
-    pub fn stage_frames(&self) -> Vec<usize> {
-        self.stages.iter().map(|s| s.frames).collect()
+    pub fn stage_frames(&self) -> &[usize] {
+        &self.frames
     }
 
     /// The encoded text sequences (after `text_ln`), in the order the text MoE routes them.
@@ -829,6 +835,8 @@ pub struct FinemogenWorkspace {
     part_in: Vec<f32>,
     part_out: Vec<f32>,
     moe: MoeScratch,
+    /// The right-hand activations of the template products, packed.
+    rhs: kernels::PackedWeights,
     /// Dropped motion-MoE choices in the last forward pass.
     pub motion_dropped: usize,
 }
@@ -843,6 +851,27 @@ struct NetRow<'a> {
     group: (usize, usize),
     /// The condition and stage whose text it reads; `None` for a null row.
     text: Option<(&'a FinemogenCondition, usize)>,
+}
+
+/// The network rows of one forward pass, on the stack (a step allocates nothing).
+struct NetRows<'a> {
+    rows: [NetRow<'a>; MAX_BATCH * MAX_STAGES],
+    len: usize,
+}
+
+impl<'a> NetRows<'a> {
+    fn new() -> NetRows<'a> {
+        let empty = NetRow {
+            frames: 0,
+            start: 0,
+            group: (0, 0),
+            text: None,
+        };
+        NetRows {
+            rows: [empty; MAX_BATCH * MAX_STAGES],
+            len: 0,
+        }
+    }
 }
 
 impl FinemogenDenoiser {
@@ -1108,6 +1137,7 @@ impl FinemogenDenoiser {
             text_feat.push(feat);
         }
         Ok(FinemogenCondition {
+            frames: out.iter().map(|s| s.frames).collect(),
             stages: out,
             xf,
             text_feat,
@@ -1122,15 +1152,26 @@ impl FinemogenDenoiser {
         &self,
         conds: &[&'a Condition],
         rows: usize,
-    ) -> Result<(Vec<NetRow<'a>>, usize)> {
+        out: &mut NetRows<'a>,
+    ) -> Result<usize> {
         // A single stage (a plain prompt) covers the sample's rows.
-        let layout = conds
+        let whole = [rows];
+        let layout_of = |tc: &'a FinemogenCondition| -> &'a [usize] {
+            if tc.frames.len() > 1 {
+                &tc.frames
+            } else {
+                &[]
+            }
+        };
+        let mut layout: &[usize] = conds
             .iter()
             .find_map(|c| c.get::<FinemogenCondition>())
-            .map(|c| c.stage_frames())
-            .filter(|f| f.len() > 1)
-            .unwrap_or_else(|| vec![rows]);
-        let t = *layout.iter().max().expect("at least one stage");
+            .map(layout_of)
+            .unwrap_or(&[]);
+        if layout.is_empty() {
+            layout = &whole;
+        }
+        let t = layout.iter().copied().max().unwrap_or(0);
         if rows != layout.len() * t {
             return Err(invalid_arg!(
                 "a sample of {rows} rows does not match the condition's {} stages of up to {t} frames ({} rows)",
@@ -1144,7 +1185,7 @@ impl FinemogenDenoiser {
                 self.cfg.max_seq_len
             ));
         }
-        let mut out = Vec::with_capacity(conds.len() * layout.len());
+        out.len = 0;
         for c in conds {
             let text = c.get::<FinemogenCondition>();
             if text.is_none() && c.get::<FinemogenNull>().is_none() {
@@ -1153,30 +1194,27 @@ impl FinemogenDenoiser {
                 ));
             }
             if let Some(tc) = text {
-                let own = if tc.stages.len() > 1 {
-                    tc.stage_frames()
-                } else {
-                    vec![rows]
-                };
-                if own != layout {
+                let own = layout_of(tc);
+                if own != layout && !(own.is_empty() && layout.len() == 1) {
                     return Err(invalid_arg!(
                         "conditions of one batch must have the same stages"
                     ));
                 }
             }
-            let first = out.len();
+            let first = out.len;
             let mut start = 0;
             for (i, &frames) in layout.iter().enumerate() {
-                out.push(NetRow {
+                out.rows[out.len] = NetRow {
                     frames,
                     start,
                     group: (first, layout.len()),
                     text: text.map(|tc| (tc, i)),
-                });
+                };
+                out.len += 1;
                 start += frames;
             }
         }
-        Ok((out, t))
+        Ok(t)
     }
 
     /// The forward pass over network rows of `t` frames each: `x` and `out` are
@@ -1325,7 +1363,8 @@ impl FinemogenDenoiser {
                 }
                 kernels::softmax_rows(kt, len);
                 let g = &mut g_all[(b * GROUPS + hh) * gsz..][..gsz];
-                kernels::matmul_nn(kt, vals, g, p, len, p);
+                ws.rhs.repack_kn(vals, len, p);
+                kernels::linear_packed(kt, &ws.rhs, None, Activation::None, g, p);
             }
         }
         // Anchors and Taylor coefficients of every template row.
@@ -1389,7 +1428,8 @@ impl FinemogenDenoiser {
                     }
                 }
                 let acc = sized(&mut ws.acc, t * 4 * p);
-                kernels::matmul_nn(coef, acat, acc, t, nj, 4 * p);
+                ws.rhs.repack_kn(acat, nj, 4 * p);
+                kernels::linear_packed(coef, &ws.rhs, None, Activation::None, acc, t);
                 for (k, a) in acc.chunks_exact(4 * p).enumerate() {
                     let tk = k as f32 / len_unit + row.start as f32 / len_unit;
                     let (t2, t3) = (tk * tk, tk * tk * tk);
@@ -1451,8 +1491,9 @@ impl FinemogenDenoiser {
                 conds.len()
             ));
         }
-        let (net, tmax) = self.net_rows(conds, rows)?;
-        self.forward_rows(x, &net, tmax, t, out, ws, cancel)
+        let mut net = NetRows::new();
+        let tmax = self.net_rows(conds, rows, &mut net)?;
+        self.forward_rows(x, &net.rows[..net.len], tmax, t, out, ws, cancel)
     }
 }
 
@@ -1470,7 +1511,7 @@ impl Denoiser for FinemogenDenoiser {
 
     fn encode_stages(&self, text: &TextModel, stages: &[Stage]) -> Option<Result<Condition>> {
         Some(self.encode_stage_texts(text, stages).map(|c| {
-            let frames = c.stage_frames();
+            let frames = c.stage_frames().to_vec();
             Condition::with_stages(c, frames)
         }))
     }

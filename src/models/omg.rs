@@ -35,7 +35,7 @@ use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 
 use super::layers::{sized, Conv1d, Linear};
-use super::{Cancel, Condition, Denoiser, Family, FamilyConfig, TextModel, Workspace};
+use super::{Cancel, Condition, Denoiser, Family, FamilyConfig, TextModel, Workspace, MAX_BATCH};
 
 /// The family's entry in [`super::FAMILIES`].
 pub const FAMILY: Family = Family {
@@ -420,6 +420,7 @@ pub struct OmgDenoiser {
     control: Option<Vec<ControlLayer>>,
     /// `base^(−2i/r)`, in f64: the tables are rounded to f32 once.
     inv_freq: Vec<f64>,
+    unit: UnitNorm,
 }
 
 /// One token's blended expert: `act(x·W0 + b0)·W1 + b1` as two layers.
@@ -572,6 +573,10 @@ impl OmgDenoiser {
             final_linear: lin("final_layer.linear", e, f)?,
             control,
             inv_freq,
+            unit: UnitNorm {
+                ones: vec![1.0; e],
+                zeros: vec![0.0; e],
+            },
         })
     }
 
@@ -721,7 +726,7 @@ impl OmgDenoiser {
         let (shift_m, rest) = rest.split_at(e);
         let (scale_m, gate_m) = rest.split_at(e);
         let normed = sized(&mut ws.normed, n * e);
-        modulate(x, normed, e, eps, shift_a, scale_a);
+        modulate(x, normed, &self.unit, eps, shift_a, scale_a);
         let qkv = sized(&mut ws.qkv, n * 3 * e);
         blk.qkv.forward(normed, n, qkv);
         // RoPE on q and k: rotate-half pairs (i, i + r/2) of each head's first r dims.
@@ -760,7 +765,7 @@ impl OmgDenoiser {
         blk.proj.forward(attn, n, proj);
         add_gated(x, proj, gate_a, e);
         let normed = sized(&mut ws.normed, n * e);
-        modulate(x, normed, e, eps, shift_m, scale_m);
+        modulate(x, normed, &self.unit, eps, shift_m, scale_m);
         let ff = sized(&mut ws.ff, n * d.ff_size);
         let tanh = d.mlp_activation == "gelu_tanh";
         if tanh {
@@ -892,18 +897,21 @@ impl OmgDenoiser {
                 "forward buffers do not match {rows} × {frames} frames × {f}"
             ));
         }
-        let texts: Vec<Option<&OmgCondition>> = conds
-            .iter()
-            .map(|c| {
-                if c.get::<OmgBackbone>().is_some() {
-                    Ok(None)
-                } else {
-                    c.get::<OmgCondition>().map(Some).ok_or_else(|| {
-                        invalid_arg!("a condition was made for another architecture")
-                    })
-                }
-            })
-            .collect::<Result<_>>()?;
+        if rows == 0 || rows > MAX_BATCH {
+            return Err(invalid_arg!(
+                "a forward pass takes 1 to {MAX_BATCH} conditions"
+            ));
+        }
+        // Per row: the prompt's condition, or None for the backbone alone (on the stack).
+        let mut texts: [Option<&OmgCondition>; MAX_BATCH] = [None; MAX_BATCH];
+        for (slot, c) in texts.iter_mut().zip(conds) {
+            if c.get::<OmgBackbone>().is_none() {
+                *slot = Some(c.get::<OmgCondition>().ok_or_else(|| {
+                    invalid_arg!("a condition was made for another architecture")
+                })?);
+            }
+        }
+        let texts = &texts[..rows];
         let n = rows * frames;
         // c = MLP(sinusoid(t)); blocks read SiLU(c).
         let tf = sized(&mut ws.t, d.time_freq_dim);
@@ -967,7 +975,7 @@ impl OmgDenoiser {
         self.final_modulation.forward(&ws.c, 1, m2);
         let (shift, scale) = m2.split_at(e);
         let normed = sized(&mut ws.normed, n * e);
-        modulate(&h[..n * e], normed, e, d.norm_eps, shift, scale);
+        modulate(&h[..n * e], normed, &self.unit, d.norm_eps, shift, scale);
         self.final_linear.forward(normed, n, &mut out[..n * f]);
         ws.mods = mods;
         ws.h = h;
@@ -983,16 +991,21 @@ fn kernels_axpy(y: &mut [f32], a: f32, x: &[f32]) {
 }
 
 /// `out = LN(x)·(1 + scale) + shift` (LayerNorm without affine), row-wise over `e`.
-fn modulate(x: &[f32], out: &mut [f32], e: usize, eps: f32, shift: &[f32], scale: &[f32]) {
+fn modulate(x: &[f32], out: &mut [f32], ln: &UnitNorm, eps: f32, shift: &[f32], scale: &[f32]) {
     out.copy_from_slice(&x[..out.len()]);
-    let ones = vec![1.0f32; e];
-    let zeros = vec![0.0f32; e];
-    kernels::layer_norm(out, e, &ones, &zeros, eps);
+    let e = ln.ones.len();
+    kernels::layer_norm(out, e, &ln.ones, &ln.zeros, eps);
     for row in out.chunks_exact_mut(e) {
         for ((v, &a), &b) in row.iter_mut().zip(scale).zip(shift) {
             *v = *v * (1.0 + a) + b;
         }
     }
+}
+
+/// LayerNorm without affine, as a LayerNorm with γ = 1 and β = 0.
+struct UnitNorm {
+    ones: Vec<f32>,
+    zeros: Vec<f32>,
 }
 
 /// `x += gate ⊙ y`, the gate per channel.
