@@ -293,3 +293,47 @@ fn backbone_only_files_refuse_prompts_and_long_motions_are_refused() {
         other => panic!("{:?}", other.map(|_| ())),
     }
 }
+
+#[test]
+fn configurations_that_disagree_with_the_tensors_are_refused() {
+    let bad = |file: &str, edit: Box<dyn FnOnce(&mut serde_json::Value)>, want: &str| {
+        let bytes = std::fs::read(fixture(file)).unwrap();
+        match Model::from_bytes(&common::with_config(&bytes, edit)) {
+            Err(Error::BadModelFile(m)) => assert!(m.contains(want), "{m:?} lacks {want:?}"),
+            other => panic!("{want}: {:?}", other.map(|_| ())),
+        }
+    };
+    bad(
+        "omg_tiny.safetensors",
+        Box::new(|c| c["denoiser"]["d_model"] = 64.into()),
+        "tensor `denoiser.x_embed.weight` has shape [32, 263], expected [64, 263]",
+    );
+    bad(
+        "omg_tiny.safetensors",
+        Box::new(|c| c["denoiser"]["control"] = serde_json::Value::Null),
+        "config denoiser.control is null but the file has `denoiser.control.*` tensors",
+    );
+    // (with the backbone file's narrower stand-in CLIP width, so the check reaches the tensors)
+    let mut control = json()["config"]["denoiser"]["control"].clone();
+    control["text_dim"] = 8.into();
+    bad(
+        "omg_tiny_backbone.safetensors",
+        Box::new(move |c| c["denoiser"]["control"] = control),
+        "no tensor `denoiser.control.blocks.1.*`",
+    );
+    bad(
+        "omg_tiny.safetensors",
+        Box::new(|c| c["denoiser"]["control"]["conv_kernel"] = 2.into()),
+        "conv_kernel 2 is not odd",
+    );
+    bad(
+        "omg_tiny.safetensors",
+        Box::new(|c| c["denoiser"]["mlp_activation"] = "relu".into()),
+        "unknown config denoiser.mlp_activation `relu`",
+    );
+    bad(
+        "omg_tiny.safetensors",
+        Box::new(|c| c["diffusion"]["uncond"] = "zeros".into()),
+        "the unconditional branch of an OMG-style model is its backbone",
+    );
+}
