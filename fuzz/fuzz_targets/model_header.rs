@@ -2,7 +2,7 @@
 //! unchanged tensor data, through what checks it: `ModelFile::from_bytes` (header length, JSON,
 //! dtypes, shapes, data offsets against the data) and `Config::from_file` (the configuration
 //! parsed, bounded and checked against the tensor table). The first byte picks the fixture
-//! (any of the five families).
+//! (any of the seven families).
 //!
 //! Parse and validate only: the whole build of a header that passes is `model_load`'s. Seeded
 //! with the fixtures' headers without their `flame.tokenizer` text (~50 KB of the ~72 KB, a

@@ -2,7 +2,7 @@
 //! `flame.tokenizer` text) mutated on its own, followed by that fixture's unchanged tensor data,
 //! through the whole load: `ModelFile::from_bytes`, `Config::from_file` and, for a header that
 //! passes both, `Model::from_file` (the tokenizer built from the text, every tensor read,
-//! checked and packed). The first byte picks the fixture (any of the five families).
+//! checked and packed). The first byte picks the fixture (any of the seven families).
 //!
 //! The validated header's sizes are those of tensors inside the fixture's ~1 MB of data, so a
 //! configuration size that escaped validation and drives an allocation shows up here as an

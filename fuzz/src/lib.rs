@@ -8,15 +8,17 @@ pub static FIXTURES: [&[u8]; 3] = [
     include_bytes!("../../tests/fixtures/motionfm_tiny.safetensors"),
 ];
 
-/// Every fixture model family: [`FIXTURES`] and the latent models (MLD, MoLA). The model
-/// header targets pick from these; the others keep [`FIXTURES`], which their seeds' pick bytes
-/// were made for.
-pub static MODEL_FIXTURES: [&[u8]; 5] = [
+/// Every fixture model family: [`FIXTURES`], the latent models (MLD, MoLA), FineMoGen and the
+/// OMG-style model. The model header targets pick from these; the others keep [`FIXTURES`],
+/// which their seeds' pick bytes were made for.
+pub static MODEL_FIXTURES: [&[u8]; 7] = [
     FIXTURES[0],
     FIXTURES[1],
     FIXTURES[2],
     include_bytes!("../../tests/fixtures/mld_tiny.safetensors"),
     include_bytes!("../../tests/fixtures/mola_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/finemogen_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/omg_tiny.safetensors"),
 ];
 
 /// A safetensors file's header JSON text and its tensor data.
