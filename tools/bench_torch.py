@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """PyTorch eager timings of a libflame model file, for comparison with `flame-bench`.
 
-Runs the same converted checkpoint through the reference modules (tools/reference/flame.py or
-mdm.py) with `torch.set_num_threads(N)`, the same frames, steps and guidance batch (conditional +
-unconditional rows in one batch of 2), and prints medians in the format flame-bench uses, plus
-one machine-readable `RESULT` line.
+Runs the same converted checkpoint through the reference modules (tools/reference/flame.py,
+mdm.py, mola.py, mld.py or finemogen.py) with `torch.set_num_threads(N)`, the same frames, steps
+and guidance batch (conditional + unconditional rows in one batch of 2), and prints medians in
+the format flame-bench uses, plus one machine-readable `RESULT` line.
 
     python3 tools/bench_torch.py --model models/flame_base_random.safetensors \
         --frames 196 --steps 10 --threads 2 --runs 3
@@ -22,6 +22,20 @@ then `scheduler.step` per step), then the VAE decode of the final latent (MoLA: 
 valid-length cut). `gen` includes the decode, `decode` is also timed on its own (RESULT
 `decode_ms`). The text vector is random (CLIP is not in the reference modules; text is not timed).
 
+FineMoGen runs tools/reference/finemogen.py as the release samples: `text` is CLIP (all 77
+positions) and the text encoder of the prompt (`condition`); a step is the network forward with
+its in-network guidance batch (text rows + null rows), x0 = null + w(t)·(text − null) and the
+eta-0 DDIM update on x0; the whole generation is the respaced schedule (50 steps:
+"15,15,8,6,6"; other counts: that many evenly spaced). Every mixture-of-experts call (the
+wrapper: embedding, gate, routing, experts, GELU, projection) is timed through module hooks;
+RESULT `moe_ms` is their time per step (`motion_moe_ms`, `text_moe_ms` the two kinds). The
+release runs the text MoE in every step (its input, the text features, does not change);
+`--text-moe-once` computes it once with the text instead (timed with `text`), as libflame does.
+`--moe sorted` (the default) dispatches the routed tokens sorted by expert (one gather, two
+GEMMs per expert, one index_add) instead of the reference's boolean mask per expert; the
+routing is the reference's own `route`, and a check forward compares every call's output with
+the reference's MoE before timing (`--moe reference` times the reference's MoE as written).
+
     python3 tools/bench_torch.py --gemm [--threads 2] [--runs 9]
 
 prints GFLOP/s of `torch.nn.functional.linear` (x · Wᵀ + b, f32) on the shapes
@@ -38,6 +52,7 @@ import time
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__))))
+from reference import finemogen as ref_fmg  # noqa: E402
 from reference import flame as ref_flame  # noqa: E402
 from reference import mdm as ref_mdm  # noqa: E402
 from reference import mld as ref_mld  # noqa: E402
@@ -167,6 +182,173 @@ def latent_bench(arch, a):
           f"gen_ms={med(gens):.2f} decode_ms={med(decodes):.2f}")
 
 
+def sorted_moe(moe, x):
+    """`TutelMoE.forward` with the routed tokens sorted by expert: the reference's routing
+    (`route`, capacity drops), one gather, GELU(x W1ᵀ + b1) W2 + b2 per expert on its rows, and
+    Σ_k gate_k · out_k by one index_add (with top-2, two terms: their order is moot)."""
+    n = x.shape[0]
+    scores = torch.softmax(moe.gates[0](x), dim=1)
+    cap = moe.capacity(n)
+    experts, gates, slots = ref_fmg.route(scores, moe.topk, cap)
+    kept = slots < cap
+    e_k, g_k = experts[kept], gates[kept]
+    tok = torch.arange(n).unsqueeze(1).expand(n, moe.topk)[kept]
+    order = torch.argsort(e_k, stable=True)
+    tok, g_k = tok[order], g_k[order]
+    counts = torch.bincount(e_k, minlength=moe.num_experts).tolist()
+    xs, ex, outs, start = x[tok], moe.experts, [], 0
+    for e, c in enumerate(counts):
+        if c:
+            h = torch.nn.functional.gelu(
+                torch.addmm(ex.batched_fc1_bias[e], xs[start:start + c], ex.batched_fc1_w[e].t()))
+            outs.append(torch.addmm(ex.batched_fc2_bias[e], h, ex.batched_fc2_w[e]))
+        start += c
+    y = x.new_zeros(n, ex.batched_fc2_bias.shape[1])
+    if outs:  # else every choice was dropped
+        y.index_add_(0, tok, torch.cat(outs) * g_k.unsqueeze(1))
+    return y
+
+
+def install_sorted_moe(net, check):
+    """Replaces every TutelMoE's forward by `sorted_moe`; `check()` runs one forward in which
+    each call also runs the reference MoE and must match it (same routing, f32 rounding)."""
+    reference = ref_fmg.TutelMoE.forward
+    worst = [0.0]
+
+    def forward(self, x, log=None, tag=None):
+        if log is not None:
+            return reference(self, x, log, tag)
+        y = sorted_moe(self, x)
+        if worst[0] is not None:
+            r = reference(self, x)
+            err = (y - r).abs().max() / r.abs().max().clamp(min=1e-30)
+            worst[0] = max(worst[0], float(err))
+            return r
+        return y
+
+    for m in net.modules():
+        if isinstance(m, ref_fmg.TutelMoE):
+            m.forward = forward.__get__(m)
+    check()
+    err, worst[0] = worst[0], None
+    if not err <= 1e-5:
+        raise SystemExit(f"sorted MoE differs from the reference's: max relative error {err:.3g}")
+    return err
+
+
+class MoeTimer:
+    """Wall time of every FineMoGen MOE wrapper call, by kind (text, motion), via hooks."""
+
+    def __init__(self, net):
+        self.total = {"text": 0.0, "motion": 0.0}
+        self.on = False
+        for blk in net.temporal_decoder_blocks:
+            for kind, m in (("text", blk.ca_block.text_moe), ("motion", blk.ca_block.motion_moe)):
+                m.register_forward_pre_hook(self.pre)
+                m.register_forward_hook(lambda mod, i, o, k=kind: self.post(k))
+
+    def pre(self, mod, inputs):
+        self.t = time.perf_counter()
+
+    def post(self, kind):
+        if self.on:
+            self.total[kind] += time.perf_counter() - self.t
+
+
+class TextMoeOnce(torch.nn.Module):
+    """A text MoE whose output is computed once per prompt (`prime`), then reused by every
+    step: its input, LN(xf) + embedding, is the same at every step."""
+
+    def __init__(self, moe):
+        super().__init__()
+        self.moe, self.out = moe, None
+
+    def prime(self, x):
+        self.out = self.moe(x)
+
+    def forward(self, x, log=None, tag=None):
+        return self.out
+
+
+def finemogen_bench(a):
+    """FineMoGen: text, one guided step and the whole respaced generation, MoE on its own."""
+    with torch.inference_mode():
+        net, clip, tok, cfg, _, _ = ref_fmg.load_libflame(a.model)
+        stages = [ref_fmg.Stage(PROMPT, a.frames)]
+        respacing = "15,15,8,6,6" if a.steps == 50 else str(a.steps)
+        diff = ref_fmg.make_diffusion(respacing)
+        if a.text_moe_once:
+            for blk in net.temporal_decoder_blocks:
+                blk.ca_block.text_moe = TextMoeOnce(blk.ca_block.text_moe)
+
+        def enc(text):
+            ids = torch.tensor([ref_fmg.clip_ids(tok, text)])
+            return net.encode_clip_features(ref_fmg.clip_features(clip, ids))[0]
+
+        def encode():
+            xf, index, _ = ref_fmg.condition(stages, enc)
+            if a.text_moe_once:
+                for blk in net.temporal_decoder_blocks:
+                    s = blk.ca_block
+                    s.text_moe.prime(s.text_norm(xf).unsqueeze(2))
+            return xf, index
+
+        torch.manual_seed(0)
+        noise = torch.randn(1, a.frames, cfg["denoiser"]["input_feats"])
+        lengths = torch.tensor([a.frames])
+        xf, index = encode()
+        moe_err = None
+        if a.moe == "sorted":
+            moe_err = install_sorted_moe(net, lambda: net(noise, 999, lengths, xf, index, 1))
+        text = [ms(encode) for _ in range(a.runs)]
+        xf, index = encode()
+        # The sampler's float64 tables, gathered and cast as ddim_sample does, per kept step.
+        tabs = [tuple(torch.tensor(float(tb[i]), dtype=torch.float64).float()
+                      for tb in (diff.sqrt_recip_alphas_cumprod, diff.sqrt_recipm1_alphas_cumprod,
+                                 diff.alphas_cumprod_prev))
+                for i in range(diff.num_timesteps)]
+
+        def step(x, i):
+            t = int(diff.timestep_map[i])
+            w = ref_fmg.guidance_weight(t, a.guidance)
+            cond, null = net(x, t, lengths, xf, index, 1)
+            x0 = null + (cond - null) * w
+            recip, recipm1, abp = tabs[i]
+            eps = (recip * x - x0) / recipm1
+            return x0 * torch.sqrt(abp) + torch.sqrt(1 - abp) * eps
+
+        timer = MoeTimer(net)
+        step(noise, diff.num_timesteps - 1)  # warm-up
+        timer.on = True
+        steps, gens = [], []
+        for _ in range(a.runs):
+            x = noise
+            t0 = time.perf_counter()
+            for i in reversed(range(diff.num_timesteps)):
+                ts = time.perf_counter()
+                x = step(x, i)
+                steps.append((time.perf_counter() - ts) * 1e3)
+            gens.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median
+    n = a.runs * diff.num_timesteps
+    motion, txt = (timer.total[k] * 1e3 / n for k in ("motion", "text"))
+    where = "with the text" if a.text_moe_once else "every step"
+    print(f"torch {torch.__version__} eager, finemogen, frames {a.frames}, {diff.num_timesteps} "
+          f"DDIM steps ({respacing}), in-network guidance batch 2 (scale {a.guidance}), "
+          f"{a.threads} threads, {a.runs} runs (medians), MoE: {a.moe}"
+          + (f" (max relative error vs the reference's {moe_err:.1e})" if moe_err is not None
+             else ""))
+    print(f"  text encoding      {med(text):9.2f} ms")
+    print(f"  one guided step    {med(steps):9.2f} ms")
+    print(f"  whole generation   {med(gens):9.2f} ms")
+    share = (motion + txt) / (sum(steps) / n) * 100
+    print(f"  mixture of experts {motion + txt:9.2f} ms per step ({share:.0f}% of the time: "
+          f"motion {motion:.2f}, text {txt:.2f} ({where}))")
+    print(f"RESULT impl=torch frames={a.frames} text_ms={med(text):.2f} step_ms={med(steps):.2f} "
+          f"gen_ms={med(gens):.2f} moe_ms={motion + txt:.2f} motion_moe_ms={motion:.2f} "
+          f"text_moe_ms={txt:.2f}")
+
+
 # The shapes of `flame-bench gemm` (M x K x N).
 GEMM_SHAPES = [
     ("attn qkv", 398, 768, 2304), ("attn q/out", 398, 768, 768), ("ffn up", 398, 768, 2048),
@@ -199,7 +381,12 @@ def main():
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=int, help="default 3 (model) or 9 (--gemm)")
-    ap.add_argument("--guidance", type=float, default=2.5)
+    ap.add_argument("--guidance", type=float, default=2.5,
+                    help="guidance scale (FineMoGen: s of w(t) = 1 + s·t/1000)")
+    ap.add_argument("--moe", choices=("sorted", "reference"), default="sorted",
+                    help="FineMoGen: the MoE's expert dispatch (see above)")
+    ap.add_argument("--text-moe-once", action="store_true",
+                    help="FineMoGen: the text MoE once per prompt instead of every step")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.set_num_interop_threads(1)
@@ -215,6 +402,9 @@ def main():
         arch = json.loads(f.metadata()["flame.config"])["architecture"]
     if arch in ("mola", "mld"):
         latent_bench(arch, a)
+        return
+    if arch == "finemogen":
+        finemogen_bench(a)
         return
     runner = flame_runner if arch == "flame" else mdm_runner
     with torch.inference_mode():
