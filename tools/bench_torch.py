@@ -2,7 +2,7 @@
 """PyTorch eager timings of a libflame model file, for comparison with `flame-bench`.
 
 Runs the same converted checkpoint through the reference modules (tools/reference/flame.py,
-mdm.py, mola.py, mld.py or finemogen.py) with `torch.set_num_threads(N)`, the same frames, steps
+mdm.py, mola.py, mld.py, finemogen.py or omg.py) with `torch.set_num_threads(N)`, the same frames, steps
 and guidance batch (conditional + unconditional rows in one batch of 2), and prints medians in
 the format flame-bench uses, plus one machine-readable `RESULT` line.
 
@@ -349,6 +349,49 @@ def finemogen_bench(a):
           f"text_moe_ms={txt:.2f}")
 
 
+def omg_bench(a):
+    """OMG-style: CLIP's token states of the prompt (`text`), one guided step (D_u and D_c on
+    x_t, x0 = D_u + s (D_c - D_u), an eta-0 DDIM update on x0) and `steps` such steps."""
+    from reference import omg as ref_omg
+    import resource
+    with torch.inference_mode():
+        net, clip, tok, cfg, _, _ = ref_omg.load_libflame(a.model)
+        net.eval()
+        d = cfg["denoiser"]
+        padding = (d.get("control") or {}).get("text_padding", False)
+        torch.manual_seed(0)
+        x0 = torch.randn(1, a.frames, d["input_feats"])
+        texts = []
+        text = [ms(lambda: texts.append(ref_omg.batch_texts(
+            [ref_omg.encode_text(clip, tok, PROMPT, padding)]))) for _ in range(a.runs)]
+        feats = texts[-1]
+
+        def step(x, t):
+            x0_hat = ref_omg.guided_x0(net, x, float(t), feats, a.guidance)
+            return 0.8 ** 0.5 * x0_hat + 0.2 ** 0.5 * (x - 0.5 ** 0.5 * x0_hat) / 0.5 ** 0.5
+
+        step(x0, 500)  # warm-up
+        steps, gens = [], []
+        for _ in range(a.runs):
+            x = x0
+            t0 = time.perf_counter()
+            for i in range(a.steps):
+                ts = time.perf_counter()
+                x = step(x, 999 - i * (1000 // a.steps))
+                steps.append((time.perf_counter() - ts) * 1e3)
+            gens.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"torch {torch.__version__} eager, omg, frames {a.frames}, {a.steps} guided steps "
+          f"(D_u + D_c, scale {a.guidance}), {a.threads} threads, {a.runs} runs (medians)")
+    print(f"  text encoding      {med(text):9.2f} ms")
+    print(f"  one guided step    {med(steps):9.2f} ms")
+    print(f"  whole generation   {med(gens):9.2f} ms")
+    print(f"  peak RSS           {rss:9.1f} MiB")
+    print(f"RESULT impl=torch frames={a.frames} text_ms={med(text):.2f} step_ms={med(steps):.2f} "
+          f"gen_ms={med(gens):.2f} hwm_mib={rss:.1f}")
+
+
 # The shapes of `flame-bench gemm` (M x K x N).
 GEMM_SHAPES = [
     ("attn qkv", 398, 768, 2304), ("attn q/out", 398, 768, 768), ("ffn up", 398, 768, 2048),
@@ -405,6 +448,9 @@ def main():
         return
     if arch == "finemogen":
         finemogen_bench(a)
+        return
+    if arch == "omg":
+        omg_bench(a)
         return
     runner = flame_runner if arch == "flame" else mdm_runner
     with torch.inference_mode():
