@@ -577,6 +577,61 @@ pub(crate) fn activation(name: &str) -> Activation {
     }
 }
 
+/// Rotary positions (rotate-half) on the q and k of packed `[rows, 3·e]` qkv rows: in every
+/// head of `hd` dims, the pairs (i, i + half) of its first 2·half dims turn by the angle of
+/// the row's position `row % seq`; `cos` and `sin` are `[seq, half]`.
+pub(crate) fn rotate_qk(
+    qkv: &mut [f32],
+    e: usize,
+    hd: usize,
+    seq: usize,
+    cos: &[f32],
+    sin: &[f32],
+) {
+    let half = cos.len().checked_div(seq).unwrap_or(0);
+    for (r, row) in qkv.chunks_exact_mut(3 * e).enumerate() {
+        let p = r % seq;
+        let (cos, sin) = (&cos[p * half..][..half], &sin[p * half..][..half]);
+        for head in row[..2 * e].chunks_exact_mut(hd) {
+            for i in 0..half {
+                let (a, b) = (head[i], head[i + half]);
+                head[i] = a * cos[i] - b * sin[i];
+                head[i + half] = b * cos[i] + a * sin[i];
+            }
+        }
+    }
+}
+
+/// Unmasked self-attention of packed `[rows, 3·e]` qkv rows in blocks of `seq` rows, into
+/// `out` `[rows, e]`.
+pub(crate) fn self_attend(
+    scratch: &mut AttentionScratch,
+    qkv: &[f32],
+    e: usize,
+    heads: usize,
+    seq: usize,
+    out: &mut [f32],
+) {
+    for (i, o) in out.chunks_exact_mut(seq * e).enumerate() {
+        let q = &qkv[i * seq * 3 * e..(i + 1) * seq * 3 * e];
+        scratch.attend(
+            q,
+            3 * e,
+            &q[e..],
+            3 * e,
+            &q[2 * e..],
+            3 * e,
+            seq,
+            seq,
+            heads,
+            e / heads,
+            None,
+            false,
+            o,
+        );
+    }
+}
+
 /// A scratch buffer grown to `n` values (never shrunk, so later steps do not allocate).
 pub(crate) fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
     v.resize(n, 0.0);

@@ -33,7 +33,7 @@ use crate::config::{
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 
-use super::layers::{sized, Conv1d, Linear};
+use super::layers::{rotate_qk, self_attend, sized, Conv1d, Linear};
 use super::{
     check_text_vector, text_vector_uncond, text_vector_views, Cancel, Condition, Denoiser, Family,
     FamilyConfig, FeatureLoss, Guidance, MotionDecoder, TextModel, Workspace,
@@ -543,37 +543,9 @@ impl MolaDenoiser {
         let qkv = sized(&mut ws.qkv, rows * 3 * e);
         blk.to_qkv.forward(normed, rows, qkv);
         // Rotary positions on q and k: pairs (i, i + half) of the first rotary_dim dims.
-        let half = self.inv_freq.len();
-        for (r, row) in qkv.chunks_exact_mut(3 * e).enumerate() {
-            let p = r % seq;
-            let (cos, sin) = (&ws.cos[p * half..][..half], &ws.sin[p * half..][..half]);
-            for head in row[..2 * e].chunks_exact_mut(hd) {
-                for i in 0..half {
-                    let (a, b) = (head[i], head[i + half]);
-                    head[i] = a * cos[i] - b * sin[i];
-                    head[i + half] = b * cos[i] + a * sin[i];
-                }
-            }
-        }
+        rotate_qk(qkv, e, hd, seq, &ws.cos, &ws.sin);
         let attn = sized(&mut ws.attn, rows * e);
-        for (i, o) in attn.chunks_exact_mut(seq * e).enumerate() {
-            let q = &qkv[i * seq * 3 * e..(i + 1) * seq * 3 * e];
-            ws.scratch.attend(
-                q,
-                3 * e,
-                &q[e..],
-                3 * e,
-                &q[2 * e..],
-                3 * e,
-                seq,
-                seq,
-                heads,
-                hd,
-                None,
-                false,
-                o,
-            );
-        }
+        self_attend(&mut ws.scratch, qkv, e, heads, seq, attn);
         let proj = sized(&mut ws.proj, rows * e);
         blk.to_out.forward(attn, rows, proj);
         kernels::add_inplace(&mut ws.x, proj);

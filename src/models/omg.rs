@@ -34,7 +34,7 @@ use crate::config::{section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MA
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 
-use super::layers::{sized, Conv1d, Linear};
+use super::layers::{rotate_qk, self_attend, sized, Conv1d, Linear};
 use super::{Cancel, Condition, Denoiser, Family, FamilyConfig, TextModel, Workspace, MAX_BATCH};
 
 /// The family's entry in [`super::FAMILIES`].
@@ -730,37 +730,9 @@ impl OmgDenoiser {
         let qkv = sized(&mut ws.qkv, n * 3 * e);
         blk.qkv.forward(normed, n, qkv);
         // RoPE on q and k: rotate-half pairs (i, i + r/2) of each head's first r dims.
-        let half = self.inv_freq.len();
-        for (r, row) in qkv.chunks_exact_mut(3 * e).enumerate() {
-            let p = r % frames;
-            let (cos, sin) = (&ws.cos[p * half..][..half], &ws.sin[p * half..][..half]);
-            for head in row[..2 * e].chunks_exact_mut(hd) {
-                for i in 0..half {
-                    let (a, b) = (head[i], head[i + half]);
-                    head[i] = a * cos[i] - b * sin[i];
-                    head[i + half] = b * cos[i] + a * sin[i];
-                }
-            }
-        }
+        rotate_qk(qkv, e, hd, frames, &ws.cos, &ws.sin);
         let attn = sized(&mut ws.attn, n * e);
-        for (i, o) in attn.chunks_exact_mut(frames * e).enumerate() {
-            let q = &qkv[i * frames * 3 * e..(i + 1) * frames * 3 * e];
-            ws.scratch.attend(
-                q,
-                3 * e,
-                &q[e..],
-                3 * e,
-                &q[2 * e..],
-                3 * e,
-                frames,
-                frames,
-                heads,
-                hd,
-                None,
-                false,
-                o,
-            );
-        }
+        self_attend(&mut ws.scratch, qkv, e, heads, frames, attn);
         let proj = sized(&mut ws.proj, n * e);
         blk.proj.forward(attn, n, proj);
         add_gated(x, proj, gate_a, e);
