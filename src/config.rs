@@ -48,7 +48,7 @@
 //! | field | bound | checked against |
 //! |---|---|---|
 //! | `format_version` | 1 | |
-//! | `architecture` | `flame`, `mdm`, `motionfm`, `mola`, `mld` | the text encoder's kind (flame: bert/roberta; others: clip) |
+//! | `architecture` | `flame`, `mdm`, `motionfm`, `mola`, `mld`, `finemogen`, `omg` | the text encoder's kind (flame: bert/roberta; others: clip) |
 //! | flame `denoiser.motion_dim` | 1..=W, = the format's features | `input_projection.weight` `[C, motion_dim]`, `last_projection.weight` `[2·motion_dim, C]` |
 //! | flame `denoiser.model_channels` (C) | 2..=W, even | `input_projection.weight` |
 //! | flame `denoiser.num_layers` | 1..=L | `tf_decoder.layers.{n−1}.*` present, `.{n}.*` absent |
@@ -90,7 +90,7 @@
 //! | `diffusion.schedule` | `cosine`, `squaredcos_cap_v2`, `linear`, `scaled_linear` | |
 //! | `diffusion.parameterization` | `epsilon`/`eps`, `x0`/`sample`/`start_x`, `v`/`v_prediction`; `velocity`/`flow` for (and only for) motionfm | |
 //! | `diffusion.variance` | `learned_range` (flame only), `fixed_small`, `fixed_large` | |
-//! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame) | |
+//! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame); `null_text` (finemogen only), `backbone` (omg only) | |
 //! | `diffusion.spacing` | `respace` (default), `leading`, `trailing`; diffusion models only | |
 //! | `diffusion.steps_offset` | 0 (default) ..num_timesteps; `leading` and `trailing` only; `leading`: (defaults.steps − 1)·(num_timesteps div steps) + offset < num_timesteps | |
 //! | `diffusion.set_alpha_to_one` | `true` (default); `false` needs `leading` or `trailing` | |
@@ -403,7 +403,7 @@ mod tests {
             .to_string();
         assert_eq!(
             e,
-            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld)"
+            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld, finemogen, omg)"
         );
         let e =
             Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
