@@ -72,7 +72,10 @@ fn gemm_bench(args: &[String]) {
         ("text 20x768x3072", 20, 768, 3072),
         ("square 1536", 1536, 1536, 1536),
     ];
-    println!("linear GFLOP/s, {threads} threads, {ty:?} weights, median of {runs}:");
+    println!(
+        "linear GFLOP/s, {threads} threads, {ty:?} weights, {} kernel, median of {runs}:",
+        kernels::kernel_name()
+    );
     println!(
         "  {:<18} {:>16} {:>10} {:>10} {:>10}",
         "shape", "MxKxN", "packed", "cold", "sgemm"
@@ -397,9 +400,10 @@ fn main() {
         let (lin, attn) = step_macs(&model, frames);
         let gflops = 2.0 * (lin + attn) / (step * 1e-3) / 1e9;
         println!(
-            "frames {frames}, {steps} {} steps, guidance {}, {threads} threads, {runs} runs (medians):",
+            "frames {frames}, {steps} {} steps, guidance {}, {threads} threads, {} kernel, {runs} runs (medians):",
             sampler.map_or("default-sampler".to_string(), |s| format!("{s:?}")),
-            guidance
+            guidance,
+            kernels::kernel_name()
         );
         println!("  text encoding      {text:9.2} ms");
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",

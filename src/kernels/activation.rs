@@ -51,7 +51,7 @@ fn gelu_one(v: f32) -> f32 {
 /// cost of a GELU feed-forward layer's epilogue.
 fn gelu_slice(x: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if super::packed::detected_isa() == super::packed::Isa::Avx2 {
+    if super::packed::detected_isa().has_avx2() {
         // SAFETY: the CPU has AVX2 (detected).
         unsafe { gelu_slice_avx2(x) };
         return;

@@ -297,7 +297,7 @@ fn scores_qk(
     assert!(scores.len() >= rows * kp);
     assert!(rows == 0 || q.len() >= (rows - 1) * qs + hd);
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2 {
+    if isa.has_avx2() {
         // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
         unsafe { avx2::scores_qk(q, qs, kt, kts, kp, rows, hd, scale, scores) };
         return;
@@ -337,7 +337,7 @@ fn weighted_values(
     assert!(keys == 0 || v.len() >= (keys - 1) * vs + hd);
     assert!(rows == 0 || out.len() >= (rows - 1) * os + hd);
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx2 {
+    if isa.has_avx2() {
         // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
         unsafe { avx2::weighted_values(p, kp, v, vs, rows, keys, hd, out, os) };
         return;

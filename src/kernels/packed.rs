@@ -23,13 +23,15 @@ use rayon::prelude::*;
 use super::activation::{gelu_erf, relu};
 use super::gemm::SharedMut;
 
-/// Rows of a micro-tile.
+/// Rows of a micro-tile of the AVX2 and portable kernels.
 const MR: usize = 6;
+/// Rows of a micro-tile of the AVX-512 kernel: 12 accumulators of 16 lanes.
+const MR512: usize = 12;
 /// Columns of a micro-tile and of a weight panel: two 8-lane vectors.
 const NR: usize = 16;
 /// Multiply steps per K block: the panel slice (`KC × NR` weights) stays in L1.
 const KC: usize = 256;
-/// Rows per M block (a multiple of [`MR`]): the `MC × KC` block of activations stays in L2
+/// Rows per M block (a multiple of [`MR`] and [`MR512`]): the `MC × KC` block of activations stays in L2
 /// while every panel of the task streams past it.
 const MC: usize = 96;
 /// Below this many multiply-adds a fork/join costs more than a second core saves.
@@ -90,25 +92,81 @@ pub enum Activation {
 /// Which micro-kernel runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Isa {
-    /// x86-64 with AVX2, FMA and F16C.
+    /// x86-64 with AVX-512F (and AVX2, FMA, F16C): a 12×16 tile, one 16-lane vector per row.
+    Avx512,
+    /// x86-64 with AVX2, FMA and F16C: a 6×16 tile, two 8-lane vectors per row.
     Avx2,
     /// Plain Rust the compiler may vectorise; any target.
     Portable,
 }
 
-/// The best kernel this CPU runs, detected once.
+impl Isa {
+    /// Every kernel, best first.
+    pub(crate) const ALL: [Isa; 3] = [Isa::Avx512, Isa::Avx2, Isa::Portable];
+
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Isa::Avx512 => "avx512",
+            Isa::Avx2 => "avx2",
+            Isa::Portable => "portable",
+        }
+    }
+
+    /// Whether this CPU runs the kernel.
+    pub(crate) fn supported(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("fma")
+            && is_x86_feature_detected!("f16c");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx2 = false;
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => avx2 && is_x86_feature_detected!("avx512f"),
+            #[cfg(not(target_arch = "x86_64"))]
+            Isa::Avx512 => false,
+            Isa::Avx2 => avx2,
+            Isa::Portable => true,
+        }
+    }
+
+    /// Whether the AVX2 + FMA code of the other kernels (attention, activations) may run.
+    pub(crate) fn has_avx2(self) -> bool {
+        matches!(self, Isa::Avx512 | Isa::Avx2)
+    }
+
+    /// Rows of this kernel's micro-tile.
+    fn mr(self) -> usize {
+        match self {
+            Isa::Avx512 => MR512,
+            _ => MR,
+        }
+    }
+}
+
+/// The kernel in use: the best this CPU runs, or the one `FLAME_KERNEL` names (`avx512`,
+/// `avx2`, `portable`) when the CPU runs it — for comparing paths on one machine. Detected once.
 pub(crate) fn detected_isa() -> Isa {
     static ISA: OnceLock<Isa> = OnceLock::new();
     *ISA.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        if is_x86_feature_detected!("avx2")
-            && is_x86_feature_detected!("fma")
-            && is_x86_feature_detected!("f16c")
-        {
-            return Isa::Avx2;
+        let best = Isa::ALL
+            .into_iter()
+            .find(|i| i.supported())
+            .unwrap_or(Isa::Portable);
+        match std::env::var("FLAME_KERNEL") {
+            Ok(name) => Isa::ALL
+                .into_iter()
+                .find(|i| i.name() == name.trim().to_ascii_lowercase() && i.supported())
+                .unwrap_or(best),
+            Err(_) => best,
         }
-        Isa::Portable
     })
+}
+
+/// The name of the linear-layer kernel in use (`avx512`, `avx2` or `portable`), for `flame
+/// info` and the benchmarks.
+pub fn kernel_name() -> &'static str {
+    detected_isa().name()
 }
 
 /// One 64-byte line: the allocation unit of the panels, so every panel row starts aligned.
@@ -120,6 +178,75 @@ struct Line([u8; 64]);
 /// 64-byte line, so the kernel's two 32-byte loads per row never straddle lines.
 #[repr(C, align(64))]
 struct Widened([f32; KC * NR]);
+
+/// Where a micro-tile's activation rows are read.
+#[derive(Clone, Copy)]
+enum TileRows {
+    /// One pointer per row (the AVX2 and portable kernels, [`MR`] rows).
+    Pointers([*const f32; MR]),
+    /// A tile of a [`RowBlock`] (the AVX-512 kernel).
+    Packed(*const f32),
+}
+
+thread_local! {
+    /// Each thread's row block for the AVX-512 kernel, allocated on its first call.
+    static ROW_BLOCK: std::cell::RefCell<RowBlock> = std::cell::RefCell::new(RowBlock::new());
+}
+
+/// An `MC × kc` block of activation rows packed for the AVX-512 kernel: tile `t` (rows
+/// `12t..12t + 12` of the block) holds, for each step `p`, its 12 values `x[row, kb + p]`
+/// adjacent (zeros past the block's last row).
+struct RowBlock {
+    lines: Vec<Line>,
+    kc: usize,
+}
+
+impl RowBlock {
+    fn new() -> RowBlock {
+        RowBlock {
+            lines: Vec::new(),
+            kc: 0,
+        }
+    }
+
+    /// Packs rows `r0..r1` (at most [`MC`]), columns `kb..kb + kc` (at most [`KC`]) of `x`
+    /// (row stride `k`).
+    fn fill(&mut self, x: &[f32], k: usize, r0: usize, r1: usize, kb: usize, kc: usize) {
+        assert!(r1 - r0 <= MC && kc <= KC && kb + kc <= k && r1 * k <= x.len());
+        if self.lines.is_empty() {
+            self.lines = vec![Line([0; 64]); MC * KC * 4 / 64];
+        }
+        self.kc = kc;
+        // SAFETY: `lines` holds MC·KC f32s, 64-byte aligned; every bit pattern is an f32.
+        let dst =
+            unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr() as *mut f32, MC * KC) };
+        for (t, tile) in dst[..(r1 - r0).div_ceil(MR512) * MR512 * kc]
+            .chunks_exact_mut(MR512 * kc)
+            .enumerate()
+        {
+            for i in 0..MR512 {
+                let r = r0 + t * MR512 + i;
+                if r < r1 {
+                    let row = &x[r * k + kb..r * k + kb + kc];
+                    for (p, &v) in row.iter().enumerate() {
+                        tile[p * MR512 + i] = v;
+                    }
+                } else {
+                    for p in 0..kc {
+                        tile[p * MR512 + i] = 0.0;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The tile holding block row `offset` (a multiple of [`MR512`]).
+    fn tile(&self, offset: usize) -> *const f32 {
+        debug_assert!(offset.is_multiple_of(MR512) && offset < MC);
+        // SAFETY: inside the MC·KC block (offset < MC, kc ≤ KC).
+        unsafe { (self.lines.as_ptr() as *const f32).add(offset * self.kc) }
+    }
+}
 
 /// A `Linear` weight `[n, k]` packed into [`NR`]-column panels.
 pub struct PackedWeights {
@@ -356,7 +483,7 @@ pub(crate) fn linear_packed_on(
     }
     #[cfg(not(target_arch = "x86_64"))]
     let isa = match isa {
-        Isa::Avx2 => Isa::Portable,
+        Isa::Avx512 | Isa::Avx2 => Isa::Portable,
         other => other,
     };
     if m == 0 || n == 0 {
@@ -379,7 +506,8 @@ impl Job<'_> {
     fn split(&self) {
         let (job, k, n, m) = (self, self.w.k, self.w.n, self.m);
         let panels = n.div_ceil(NR);
-        let tiles = m.div_ceil(MR);
+        let mr = self.isa.mr();
+        let tiles = m.div_ceil(mr);
         let threads = rayon::current_num_threads();
         if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
             job.run(0, m, 0, panels);
@@ -396,7 +524,7 @@ impl Job<'_> {
             if by_panels {
                 job.run(0, m, lo, hi);
             } else {
-                job.run(lo * MR, (hi * MR).min(m), 0, panels);
+                job.run(lo * mr, (hi * mr).min(m), 0, panels);
             }
         });
     }
@@ -436,13 +564,41 @@ impl Job<'_> {
         // Half-precision panel slices widened once per M block (see `panel`); on the stack, so
         // a call allocates nothing.
         let mut widened = Widened([0.0; KC * NR]);
+        if self.isa == Isa::Avx512 {
+            // The AVX-512 kernel reads its 12 rows from one packed block (one pointer, each
+            // step's 12 values adjacent) rather than 12 row pointers the registers cannot hold.
+            // The block is per thread and reused, so a call allocates nothing after the first.
+            ROW_BLOCK.with(|cell| match cell.try_borrow_mut() {
+                Ok(mut block) => self.run_blocks(r0, r1, j0, j1, &mut widened, Some(&mut block)),
+                Err(_) => self.run_blocks(r0, r1, j0, j1, &mut widened, Some(&mut RowBlock::new())),
+            });
+        } else {
+            self.run_blocks(r0, r1, j0, j1, &mut widened, None);
+        }
+    }
+
+    /// [`Job::run`] over K and M blocks; `rows` is the packed row block of the AVX-512 kernel.
+    fn run_blocks(
+        &self,
+        r0: usize,
+        r1: usize,
+        j0: usize,
+        j1: usize,
+        widened: &mut Widened,
+        mut rows: Option<&mut RowBlock>,
+    ) {
+        let k = self.w.k;
         for kb in (0..k).step_by(KC) {
             let kc = KC.min(k - kb);
             let (first, last) = (kb == 0, kb + kc == k);
             for mb in (r0..r1).step_by(MC) {
                 let mb_end = (mb + MC).min(r1);
+                let packed = rows.as_deref_mut().map(|block| {
+                    block.fill(self.x, k, mb, mb_end, kb, kc);
+                    &*block
+                });
                 for j in j0..j1 {
-                    self.panel(kb, kc, first, last, mb, mb_end, j, &mut widened);
+                    self.panel(kb, kc, first, last, mb, mb_end, j, widened, packed);
                 }
             }
         }
@@ -460,6 +616,7 @@ impl Job<'_> {
         r1: usize,
         j: usize,
         widened: &mut Widened,
+        packed: Option<&RowBlock>,
     ) {
         let (k, n) = (self.w.k, self.w.n);
         let c0 = j * NR;
@@ -475,35 +632,40 @@ impl Job<'_> {
         // multiply-adds; with several row tiles to run, widening the slice once and running the
         // f32 kernel is faster. Widening is exact, so the results are the same bits.
         #[cfg(target_arch = "x86_64")]
-        if self.isa == Isa::Avx2 && ty != WeightType::F32 && r1 - r0 > MR {
+        let mr = self.isa.mr();
+        if self.isa.has_avx2() && ty != WeightType::F32 && r1 - r0 > mr {
             // SAFETY: the panel slice holds kc × NR values of `ty` (kb + kc ≤ k); `widened`
             // has room for KC × NR ≥ kc × NR; the CPU has f16c and avx2 (Isa::Avx2).
             unsafe { avx2::widen(ty, b as *const u16, widened.0.as_mut_ptr(), kc * NR) };
             b = widened.0.as_ptr() as *const u8;
             ty = WeightType::F32;
         }
-        for i0 in (r0..r1).step_by(MR) {
-            let rows = MR.min(r1 - i0);
+        for i0 in (r0..r1).step_by(mr) {
+            let rows = mr.min(r1 - i0);
             // The next tile's output rows are far apart (stride n) and, in wide layers, not in
             // cache: ask for them now so the kernel's loads (K blocks after the first) and
             // stores do not wait on memory. A hint only; it changes no result.
-            if i0 + MR < r1 {
-                self.prefetch_tile(i0 + MR, MR.min(r1 - i0 - MR), c0);
+            if i0 + mr < r1 {
+                self.prefetch_tile(i0 + mr, mr.min(r1 - i0 - mr), c0);
             } else if c0 + NR < n {
-                self.prefetch_tile(r0, MR.min(r1 - r0), c0 + NR);
+                self.prefetch_tile(r0, mr.min(r1 - r0), c0 + NR);
             }
-            // Missing rows of an edge tile repeat the last real row; their results are dropped.
-            let a: [*const f32; MR] = std::array::from_fn(|i| {
-                // SAFETY: row i0 + min(i, rows-1) < m and kb < k, inside the checked m×k.
-                unsafe { self.x.as_ptr().add((i0 + i.min(rows - 1)) * k + kb) }
-            });
+            let a = match packed {
+                Some(block) => TileRows::Packed(block.tile(i0 - r0)),
+                // Missing rows of an edge tile repeat the last real row; their results are
+                // dropped.
+                None => TileRows::Pointers(std::array::from_fn(|i| {
+                    // SAFETY: row i0 + min(i, rows-1) < m and kb < k, inside the checked m×k.
+                    unsafe { self.x.as_ptr().add((i0 + i.min(rows - 1)) * k + kb) }
+                })),
+            };
             let y = self.y.get();
-            if rows == MR && cols == NR {
-                // SAFETY: the tile rows i0..i0+MR and columns c0..c0+NR lie inside y (m×n);
+            if rows == mr && cols == NR {
+                // SAFETY: the tile rows i0..i0+mr and columns c0..c0+NR lie inside y (m×n);
                 // a and b point at kc readable steps; this task alone writes the tile.
-                unsafe { self.kernel(ty, kc, &a, b, y.add(i0 * n + c0), n, start) };
+                unsafe { self.kernel(ty, kc, a, b, y.add(i0 * n + c0), n, start) };
             } else {
-                let mut tile = [0.0f32; MR * NR];
+                let mut tile = [0.0f32; MR512 * NR];
                 for i in 0..rows {
                     if !first {
                         tile[i * NR..i * NR + cols].copy_from_slice(self.out_row(
@@ -513,8 +675,8 @@ impl Job<'_> {
                         ));
                     }
                 }
-                // SAFETY: the kernel writes MR×NR values into `tile` (ldc NR); a and b as above.
-                unsafe { self.kernel(ty, kc, &a, b, tile.as_mut_ptr(), NR, start) };
+                // SAFETY: the kernel writes mr×NR values into `tile` (ldc NR); a and b as above.
+                unsafe { self.kernel(ty, kc, a, b, tile.as_mut_ptr(), NR, start) };
                 for i in 0..rows {
                     self.out_row(i0 + i, c0, c0 + cols)
                         .copy_from_slice(&tile[i * NR..i * NR + cols]);
@@ -532,7 +694,7 @@ impl Job<'_> {
     #[inline(always)]
     fn prefetch_tile(&self, r: usize, rows: usize, c0: usize) {
         #[cfg(target_arch = "x86_64")]
-        if self.isa == Isa::Avx2 {
+        if self.isa.has_avx2() {
             use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let cols = NR.min(self.w.n - c0);
             for i in 0..rows {
@@ -571,20 +733,41 @@ impl Job<'_> {
     /// Runs the micro-kernel for this call's ISA on panel rows of type `ty`.
     ///
     /// # Safety
-    /// Each `a[i]` must be readable for `kc` values, `b` for `kc` panel rows of type `ty`,
-    /// and `c` writable (and readable unless `start` is given) for `MR` rows of `NR` values at
-    /// stride `ldc`.
+    /// `a` must be readable for `kc` steps of the kernel's rows (row pointers for the AVX2 and
+    /// portable kernels, a packed tile for the AVX-512 one), `b` for `kc` panel rows of type
+    /// `ty`, and `c` writable (and readable unless `start` is given) for `isa.mr()` rows of `NR`
+    /// values at stride `ldc`.
     #[allow(clippy::too_many_arguments)]
     unsafe fn kernel(
         &self,
         ty: WeightType,
         kc: usize,
-        a: &[*const f32; MR],
+        a: TileRows,
         b: *const u8,
         c: *mut f32,
         ldc: usize,
         start: Option<&[f32; NR]>,
     ) {
+        let a = match (self.isa, a) {
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx512, TileRows::Packed(a)) => {
+                // SAFETY: Avx512 is only chosen when the CPU has avx512f, avx2, fma and f16c;
+                // pointer contracts as documented above.
+                unsafe {
+                    match ty {
+                        WeightType::F32 => avx512::tile_f32(kc, a, b as *const f32, c, ldc, start),
+                        WeightType::F16 => avx512::tile_f16(kc, a, b as *const u16, c, ldc, start),
+                        WeightType::Bf16 => {
+                            avx512::tile_bf16(kc, a, b as *const u16, c, ldc, start)
+                        }
+                    }
+                }
+                return;
+            }
+            (_, TileRows::Pointers(a)) => a,
+            (isa, TileRows::Packed(_)) => unreachable!("{isa:?} reads row pointers"),
+        };
+        let a = &a;
         match (self.isa, ty) {
             #[cfg(target_arch = "x86_64")]
             (Isa::Avx2, ty) => {
@@ -763,6 +946,68 @@ mod avx2 {
     ));
 }
 
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    //! The 12×16 AVX-512 micro-kernel: 12 accumulators of one 16-lane vector, one panel row
+    //! (one 64-byte line) loaded and widened per step, each activation broadcast from the
+    //! packed row block. Every output is the same chain of fused multiply-adds as in the AVX2
+    //! kernel, so the two give the same bits.
+
+    use super::{MR512, NR};
+    use std::arch::x86_64::*;
+
+    macro_rules! tile_kernel {
+        ($name:ident, $elem:ty, |$b:ident, $p:ident| $load:expr) => {
+            /// `c[12×NR] (+)= a · b` over `kc` steps, `a` a tile of a `RowBlock`.
+            ///
+            /// # Safety
+            /// The CPU supports avx512f, avx2, fma and f16c; `a` readable for `kc · 12`
+            /// values, `b` for `kc` panel rows, `c` as in `Job::kernel`.
+            #[target_feature(enable = "avx512f,avx2,fma,f16c")]
+            pub(super) unsafe fn $name(
+                kc: usize,
+                a: *const f32,
+                $b: *const $elem,
+                c: *mut f32,
+                ldc: usize,
+                start: Option<&[f32; NR]>,
+            ) {
+                // SAFETY (whole body): every load/store is unaligned-tolerant and stays inside
+                // the ranges the contract grants.
+                unsafe {
+                    let mut acc = [_mm512_setzero_ps(); MR512];
+                    for (i, v) in acc.iter_mut().enumerate() {
+                        *v = match start {
+                            Some(s) => _mm512_loadu_ps(s.as_ptr()),
+                            None => _mm512_loadu_ps(c.add(i * ldc)),
+                        };
+                    }
+                    for $p in 0..kc {
+                        let b0: __m512 = $load;
+                        let ap = a.add($p * MR512);
+                        for (i, v) in acc.iter_mut().enumerate() {
+                            *v = _mm512_fmadd_ps(_mm512_set1_ps(*ap.add(i)), b0, *v);
+                        }
+                    }
+                    for (i, v) in acc.iter().enumerate() {
+                        _mm512_storeu_ps(c.add(i * ldc), *v);
+                    }
+                }
+            }
+        };
+    }
+
+    tile_kernel!(tile_f32, f32, |b, p| _mm512_loadu_ps(b.add(p * NR)));
+    tile_kernel!(tile_f16, u16, |b, p| _mm512_cvtph_ps(_mm256_loadu_si256(
+        b.add(p * NR) as *const __m256i
+    )));
+    tile_kernel!(tile_bf16, u16, |b, p| _mm512_castsi512_ps(
+        _mm512_slli_epi32::<16>(_mm512_cvtepu16_epi32(_mm256_loadu_si256(
+            b.add(p * NR) as *const __m256i
+        )))
+    ));
+}
+
 /// A `Linear` layer on packed weights: weight, optional bias, fused activation.
 #[derive(Debug)]
 pub struct PackedLinear {
@@ -863,12 +1108,13 @@ mod tests {
         (20, 384, 70),
     ];
 
+    /// Every kernel this CPU runs (the skipped ones printed).
     fn isas() -> Vec<Isa> {
-        let mut v = vec![Isa::Portable];
-        if detected_isa() == Isa::Avx2 {
-            v.push(Isa::Avx2);
+        let (run, skip): (Vec<Isa>, Vec<Isa>) = Isa::ALL.into_iter().partition(|i| i.supported());
+        if !skip.is_empty() {
+            eprintln!("kernels not supported by this CPU, skipped: {skip:?}");
         }
-        v
+        run
     }
 
     #[test]
@@ -921,6 +1167,38 @@ mod tests {
                             );
                         }
                     }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_avx512_and_avx2_kernels_give_the_same_bits() {
+        // Both run each output as the same chain of fused multiply-adds; only the tiling
+        // differs (12 vs 6 rows), so every shape, edge tiles and K blocks included, agrees bit
+        // for bit.
+        if !(Isa::Avx512.supported() && Isa::Avx2.supported()) {
+            eprintln!("the_avx512_and_avx2_kernels_give_the_same_bits: skipped, no AVX-512 here");
+            return;
+        }
+        let mut rng = Rng::new(16);
+        for &(m, k, n) in SHAPES
+            .iter()
+            .chain(&[(25, 600, 40), (97, 257, 33), (12, 16, 16)])
+        {
+            let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
+            for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
+                let packed = PackedWeights::pack(&w, n, k, ty);
+                for act in [Activation::None, Activation::Gelu] {
+                    let run = |isa| {
+                        let mut y = vec![0.0; m * n];
+                        linear_packed_on(isa, &x, &packed, Some(&bias), act, &mut y, m);
+                        y
+                    };
+                    assert!(
+                        same_bits(&run(Isa::Avx512), &run(Isa::Avx2)),
+                        "{ty:?} {act:?} {m}x{k}x{n}"
+                    );
                 }
             }
         }

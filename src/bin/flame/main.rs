@@ -812,6 +812,10 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         model.stored_dtype().map_or("-", |x| x.name())
     );
     println!(
+        "kernel:         {} (linear layers; FLAME_KERNEL=avx512|avx2|portable picks another the CPU runs)",
+        flame::kernels::kernel_name()
+    );
+    println!(
         "motion:         {} ({} features per frame, {} fps, at most {} frames)",
         c.motion.format,
         model.motion_dim(),
