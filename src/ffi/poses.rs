@@ -138,8 +138,11 @@ pub(crate) fn read(
     if layout == FlameLayout::Features as i32 {
         return Ok(features.to_vec());
     }
-    let layout = usize::try_from(layout - 1)
+    // Layout 0 (features) was handled above; `checked_sub` because the caller's value may be
+    // i32::MIN.
+    let layout = usize::try_from(layout)
         .ok()
+        .and_then(|l| l.checked_sub(1))
         .and_then(|l| LAYOUTS.get(l).copied())
         .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=9)"))?;
     let smooth = if flags & FLAME_READ_SMOOTH != 0 {
@@ -156,4 +159,29 @@ pub(crate) fn read(
         convention,
         &opts,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_layout_of_i32_min_is_an_unknown_layout() {
+        // Found by the ffi_params fuzzer: `layout - 1` overflowed (a panic in debug builds).
+        let model = Model::from_file(
+            crate::checkpoint::ModelFile::open(std::path::Path::new(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/fixtures/flame_tiny.safetensors"
+            )))
+            .unwrap(),
+        )
+        .unwrap();
+        for layout in [i32::MIN, i32::MIN + 1, -1, 99, i32::MAX] {
+            let err = read(&model, &[], 0, layout, 0, 0).unwrap_err();
+            assert!(
+                err.to_string().contains("unknown layout"),
+                "{layout}: {err}"
+            );
+        }
+    }
 }

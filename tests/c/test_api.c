@@ -753,6 +753,12 @@ static void test_read(const FlameModel *m) {
                          FLAME_STATUS_INVALID_ARGUMENT, "layout");
     CHECK_STATUS(flame_session_read(s, FLAME_WHICH_SAMPLE, -1, 0, 0, NULL, 0, &n),
                  FLAME_STATUS_INVALID_ARGUMENT);
+    /* INT32_MIN: found by the ffi_params fuzzer (layout - 1 overflowed, a panic caught as
+     * INTERNAL in a debug build). */
+    CHECK_ERROR_MENTIONS(flame_session_read(s, FLAME_WHICH_SAMPLE, INT32_MIN, 0, 0, NULL, 0, &n),
+                         FLAME_STATUS_INVALID_ARGUMENT, "layout");
+    CHECK_ERROR_MENTIONS(flame_session_read(s, FLAME_WHICH_SAMPLE, INT32_MAX, 0, 0, NULL, 0, &n),
+                         FLAME_STATUS_INVALID_ARGUMENT, "layout");
     /* An unknown convention or flag is rejected even where the layout ignores them. */
     CHECK_ERROR_MENTIONS(
         flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FEATURES, 99, 0, NULL, 0, &n),
