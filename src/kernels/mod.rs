@@ -1,5 +1,5 @@
 //! Numeric building blocks on row-major `f32` slices: linear layers on weights packed at load
-//! (`packed`: an AVX2/FMA micro-kernel with f32/f16/bf16 weights, split across the current rayon
+//! (`packed`: AVX-512, AVX2/FMA and portable micro-kernels chosen at run time, f32/f16/bf16 weights, split across the current rayon
 //! pool), attention, normalisation, activations and embeddings, plus general GEMMs on
 //! `matrixmultiply` (`gemm`: activation-by-activation products and the benchmark's baseline).
 //!
