@@ -193,6 +193,14 @@ typedef enum FlameTargetSchedule {
   FLAME_TARGET_SCHEDULE_CONSTANT = 1,
 } FlameTargetSchedule;
 
+// The container [`flame_session_write_gltf`] writes.
+typedef enum FlameGltfContainer {
+  // Binary glTF (`.glb`): what glTFast and other run-time importers load from bytes.
+  FLAME_GLTF_CONTAINER_GLB = 0,
+  // JSON glTF (`.gltf`) with the buffer embedded as a base64 data URI.
+  FLAME_GLTF_CONTAINER_GLTF = 1,
+} FlameGltfContainer;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
 
@@ -357,6 +365,22 @@ typedef struct FlamePromptInfo {
 // Called after every step with the caller's `user_data`, the steps done and the total.
 // NULL (no callback) is allowed wherever one is passed.
 typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint32_t steps_total);
+
+// How [`flame_session_write_gltf`] exports. Initialise with [`flame_gltf_params_default`].
+typedef struct FlameGltfParams {
+  // `sizeof(FlameGltfParams)`.
+  uint32_t struct_size;
+  // A [`FlameGltfContainer`] value (default GLB).
+  int32_t container;
+  // Read flags applied before posing: [`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]
+  // (default 0).
+  uint32_t flags;
+  // Animation frames per second; 0 (default) = the model's.
+  float fps;
+  // The animation's name (sanitised: letters, digits, `-`, `_`); NULL (default) = the
+  // session's prompt, sanitised, or `motion`.
+  const char *name;
+} FlameGltfParams;
 
 #ifdef __cplusplus
 extern "C" {
@@ -701,6 +725,36 @@ enum FlameStatus flame_session_read(const struct FlameSession *session,
                                     float *out,
                                     size_t len,
                                     size_t *out_len);
+
+// Fills `*params` with the glTF export defaults: GLB, no read flags, the model's frame rate,
+// the animation named after the prompt.
+//
+// # Safety
+// `params` points to writable memory for a `FlameGltfParams`.
+enum FlameStatus flame_gltf_params_default(struct FlameGltfParams *params);
+
+// Writes the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) as a glTF 2.0
+// file: the skeleton as nodes named after its joints, a skinned box figure, one animation
+// (root translation and joint rotations, LINEAR at the model's fps, glTF's convention: Y up,
+// right-handed, metres), and the prompt, architecture, seed and libflame version in
+// `asset.extras` (README "glTF export"). `params` NULL means [`flame_gltf_params_default`].
+//
+// With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done.
+// Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to
+// the size) and `*out_len` receives the bytes written. Each call builds the file afresh (a
+// few milliseconds); the size is the same for the same motion and parameters. A motion whose
+// poses are not finite in `f32` is refused (`INVALID_ARGUMENT`) before anything is written.
+//
+// # Safety
+// `session` is a live session; `params` is NULL or points to a valid `FlameGltfParams` whose
+// `name` is NULL or a NUL-terminated UTF-8 string; `out` is NULL or points to `len` writable
+// bytes; `out_len` points to a writable `size_t`.
+enum FlameStatus flame_session_write_gltf(const struct FlameSession *session,
+                                          int32_t which,
+                                          const struct FlameGltfParams *params,
+                                          uint8_t *out,
+                                          size_t len,
+                                          size_t *out_len);
 
 // The shape of the sampled space: `*out_rows` rows of `*out_dim` values (the session's frames
 // × feature_dim, or for a latent model the latent's rows × channels). Either pointer may be

@@ -327,6 +327,11 @@ impl Session {
         self.frames
     }
 
+    /// The seed of the session's noise generator.
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
     /// Total sampler steps of this generation.
     pub fn num_steps(&self) -> usize {
         self.rule.num_steps()

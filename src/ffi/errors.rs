@@ -43,7 +43,12 @@ pub enum FlameStatus {
 /// Why an entry point failed.
 pub(crate) enum Fail {
     Core(Error),
-    BufferTooSmall { needed: usize, given: usize },
+    BufferTooSmall {
+        needed: usize,
+        given: usize,
+        /// What the buffer holds: `floats`, `bytes`.
+        unit: &'static str,
+    },
 }
 
 thread_local! {
@@ -110,9 +115,13 @@ pub(crate) fn guard(f: impl FnOnce() -> Result<(), Fail>) -> FlameStatus {
             set_last_error(e.to_string());
             status
         }
-        Ok(Err(Fail::BufferTooSmall { needed, given })) => {
+        Ok(Err(Fail::BufferTooSmall {
+            needed,
+            given,
+            unit,
+        })) => {
             set_last_error(format!(
-                "buffer too small: {needed} floats needed, {given} given"
+                "buffer too small: {needed} {unit} needed, {given} given"
             ));
             FlameStatus::BufferTooSmall
         }

@@ -112,6 +112,8 @@ pub(crate) struct SessionState {
     progress: Option<Progress>,
     /// The last prompt's dropped text, which `FlamePromptInfo.dropped` points into.
     dropped: CString,
+    /// The last prompt (stages joined by `; `), for the metadata of glTF exports.
+    prompt: String,
 }
 
 // SAFETY: `user_data` is the caller's and only handed back to the caller's callback, on the
@@ -136,6 +138,7 @@ impl FlameSession {
                 session,
                 progress: None,
                 dropped: CString::default(),
+                prompt: String::new(),
             }),
         }
     }
@@ -244,6 +247,7 @@ impl SessionState {
         self.session.set_prompt(text)?;
         let dropped = self.session.prompt_info().map_or("", |p| &p.dropped);
         self.dropped = cstring(dropped);
+        self.prompt = text.to_string();
         Ok(())
     }
 
@@ -254,6 +258,11 @@ impl SessionState {
     ) -> Result<(), Fail> {
         self.session.set_prompt_stages(stages)?;
         self.dropped = cstring("");
+        self.prompt = stages
+            .iter()
+            .map(|s| s.text.as_str())
+            .collect::<Vec<_>>()
+            .join("; ");
         Ok(())
     }
 
@@ -318,6 +327,36 @@ impl SessionState {
     /// Frames a read of `which` returns now.
     pub(crate) fn read_frames(&mut self, which: i32) -> Result<usize, Fail> {
         Ok(self.motion(which)?.1)
+    }
+
+    /// The motion of `which` as a glTF file (see `motion::gltf`), with the session's prompt,
+    /// the model's architecture and the seed as metadata.
+    pub(crate) fn gltf(
+        &mut self,
+        which: i32,
+        container: crate::motion::gltf::Container,
+        flags: u32,
+        fps: f32,
+        name: Option<&str>,
+    ) -> Result<Vec<u8>, Fail> {
+        use crate::motion::gltf;
+        let model = Arc::clone(self.session.model());
+        let seed = self.session.seed();
+        let prompt = self.prompt.clone();
+        let (features, frames) = self.motion(which)?;
+        let poses = super::poses::decode(&model, features, frames, flags)?;
+        let opts = gltf::GltfOptions {
+            fps: if fps == 0.0 {
+                model.config().motion.fps
+            } else {
+                fps
+            },
+            prompt: Some(&prompt),
+            model: Some(&model.config().architecture),
+            seed: Some(seed),
+            name,
+        };
+        Ok(gltf::to_bytes(&poses, &opts, container)?)
     }
 
     pub(crate) fn read(

@@ -180,6 +180,34 @@ pub enum FlameWhich {
     Estimate = 1,
 }
 
+/// The container [`flame_session_write_gltf`] writes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlameGltfContainer {
+    /// Binary glTF (`.glb`): what glTFast and other run-time importers load from bytes.
+    Glb = 0,
+    /// JSON glTF (`.gltf`) with the buffer embedded as a base64 data URI.
+    Gltf = 1,
+}
+
+/// How [`flame_session_write_gltf`] exports. Initialise with [`flame_gltf_params_default`].
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct FlameGltfParams {
+    /// `sizeof(FlameGltfParams)`.
+    pub struct_size: u32,
+    /// A [`FlameGltfContainer`] value (default GLB).
+    pub container: i32,
+    /// Read flags applied before posing: [`FLAME_READ_SMOOTH`], [`FLAME_READ_RAW_SIGNS`]
+    /// (default 0).
+    pub flags: u32,
+    /// Animation frames per second; 0 (default) = the model's.
+    pub fps: f32,
+    /// The animation's name (sanitised: letters, digits, `-`, `_`); NULL (default) = the
+    /// session's prompt, sanitised, or `motion`.
+    pub name: *const c_char,
+}
+
 /// What a model's linear-layer weights are held and multiplied in ([`FlameModelParams`]),
 /// whatever the file stores. Embeddings, norms and biases stay f32.
 #[repr(C)]
@@ -1377,10 +1405,98 @@ pub unsafe extern "C" fn flame_session_read(
                 return Err(Fail::BufferTooSmall {
                     needed: values.len(),
                     given: len,
+                    unit: "floats",
                 });
             }
             std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
             out_len.write(values.len());
+            Ok(())
+        })
+    })
+}
+
+/// Fills `*params` with the glTF export defaults: GLB, no read flags, the model's frame rate,
+/// the animation named after the prompt.
+///
+/// # Safety
+/// `params` points to writable memory for a `FlameGltfParams`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_gltf_params_default(params: *mut FlameGltfParams) -> FlameStatus {
+    guard(|| {
+        let p = FlameGltfParams {
+            struct_size: std::mem::size_of::<FlameGltfParams>() as u32,
+            container: FlameGltfContainer::Glb as i32,
+            flags: 0,
+            fps: 0.0,
+            name: std::ptr::null(),
+        };
+        write_out(params, p, "params")
+    })
+}
+
+/// Writes the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) as a glTF 2.0
+/// file: the skeleton as nodes named after its joints, a skinned box figure, one animation
+/// (root translation and joint rotations, LINEAR at the model's fps, glTF's convention: Y up,
+/// right-handed, metres), and the prompt, architecture, seed and libflame version in
+/// `asset.extras` (README "glTF export"). `params` NULL means [`flame_gltf_params_default`].
+///
+/// With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done.
+/// Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to
+/// the size) and `*out_len` receives the bytes written. Each call builds the file afresh (a
+/// few milliseconds); the size is the same for the same motion and parameters. A motion whose
+/// poses are not finite in `f32` is refused (`INVALID_ARGUMENT`) before anything is written.
+///
+/// # Safety
+/// `session` is a live session; `params` is NULL or points to a valid `FlameGltfParams` whose
+/// `name` is NULL or a NUL-terminated UTF-8 string; `out` is NULL or points to `len` writable
+/// bytes; `out_len` points to a writable `size_t`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_write_gltf(
+    session: *const FlameSession,
+    which: i32,
+    params: *const FlameGltfParams,
+    out: *mut u8,
+    len: usize,
+    out_len: *mut usize,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if out_len.is_null() {
+            return Err(invalid_arg!("`out_len` is NULL").into());
+        }
+        let mut defaults = std::mem::zeroed::<FlameGltfParams>();
+        let p = if params.is_null() {
+            flame_gltf_params_default(&mut defaults);
+            &defaults
+        } else {
+            struct_arg(params, |p| p.struct_size, "params")?
+        };
+        let container = match p.container {
+            c if c == FlameGltfContainer::Glb as i32 => crate::motion::gltf::Container::Glb,
+            c if c == FlameGltfContainer::Gltf as i32 => crate::motion::gltf::Container::Gltf,
+            c => return Err(invalid_arg!("unknown glTF container {c} (0 GLB, 1 glTF)").into()),
+        };
+        let name = if p.name.is_null() {
+            None
+        } else {
+            Some(str_arg(p.name, "params.name")?)
+        };
+        s.with(|st| {
+            let bytes = st.gltf(which, container, p.flags, p.fps, name)?;
+            if out.is_null() {
+                out_len.write(bytes.len());
+                return Ok(());
+            }
+            if len < bytes.len() {
+                out_len.write(bytes.len());
+                return Err(Fail::BufferTooSmall {
+                    needed: bytes.len(),
+                    given: len,
+                    unit: "bytes",
+                });
+            }
+            std::ptr::copy_nonoverlapping(bytes.as_ptr(), out, bytes.len());
+            out_len.write(bytes.len());
             Ok(())
         })
     })

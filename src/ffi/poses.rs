@@ -122,6 +122,29 @@ pub(crate) fn convention(convention: i32) -> Result<Convention> {
         .ok_or_else(|| invalid_arg!("unknown convention {convention} (0..=5)"))
 }
 
+/// The features decoded with read `flags` (smoothing, quaternion signs).
+pub(crate) fn decode(
+    model: &Model,
+    features: &[f32],
+    frames: usize,
+    flags: u32,
+) -> Result<motion::Poses> {
+    let opts = model.read_options(smooth_sigma(flags)?, flags & FLAME_READ_RAW_SIGNS == 0);
+    motion::Poses::decode(model.motion_format(), features, frames, &opts)
+}
+
+/// The smoothing σ read `flags` ask for, after checking them.
+fn smooth_sigma(flags: u32) -> Result<f32> {
+    if flags & !(FLAME_READ_SMOOTH | FLAME_READ_RAW_SIGNS) != 0 {
+        return Err(invalid_arg!("unknown read flags {flags:#x}"));
+    }
+    Ok(if flags & FLAME_READ_SMOOTH != 0 {
+        1.0
+    } else {
+        0.0
+    })
+}
+
 /// The features in the requested layout, convention and flags.
 pub(crate) fn read(
     model: &Model,
@@ -131,9 +154,7 @@ pub(crate) fn read(
     convention: i32,
     flags: u32,
 ) -> Result<Vec<f32>> {
-    if flags & !(FLAME_READ_SMOOTH | FLAME_READ_RAW_SIGNS) != 0 {
-        return Err(invalid_arg!("unknown read flags {flags:#x}"));
-    }
+    let smooth = smooth_sigma(flags)?;
     let convention = self::convention(convention)?;
     if layout == FlameLayout::Features as i32 {
         return Ok(features.to_vec());
@@ -145,11 +166,6 @@ pub(crate) fn read(
         .and_then(|l| l.checked_sub(1))
         .and_then(|l| LAYOUTS.get(l).copied())
         .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=9)"))?;
-    let smooth = if flags & FLAME_READ_SMOOTH != 0 {
-        1.0
-    } else {
-        0.0
-    };
     let opts = model.read_options(smooth, flags & FLAME_READ_RAW_SIGNS == 0);
     motion::read_layout(
         model.motion_format(),

@@ -71,6 +71,13 @@ impl Format {
     pub fn has_foot_contacts(self) -> bool {
         matches!(self, Format::HumanMl263)
     }
+
+    /// Whether the decoded joint positions are the forward kinematics of the decoded rotations
+    /// on the rest skeleton (`smpl24_6d`); `humanml263` decodes its positions from their own
+    /// features, which its rotations only approximate.
+    pub fn positions_are_kinematic(self) -> bool {
+        matches!(self, Format::Smpl24Rot6d)
+    }
 }
 
 impl FromStr for Format {

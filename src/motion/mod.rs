@@ -59,12 +59,13 @@
 //!
 //! [`ReadOptions::smooth_sigma`] applies FLAME's temporal Gaussian smoothing (σ = 1, scipy's
 //! `gaussian_filter1d` defaults) to the features before decoding. [`bvh::to_string`] and
-//! [`json::to_string`] write files; [`read_layout`] and [`layout_len`] are the C-shaped entry
+//! [`json::to_string`] and [`gltf::to_glb`] / [`gltf::to_gltf`] write files; [`read_layout`] and [`layout_len`] are the C-shaped entry
 //! points.
 
 pub mod bvh;
 pub mod convention;
 pub mod format;
+pub mod gltf;
 pub(crate) mod humanml263;
 pub mod json;
 pub mod layout;

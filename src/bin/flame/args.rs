@@ -28,11 +28,16 @@ Generate a motion from a sentence.
 The writer follows the extension of --out (upper or lower case): .npy = raw features (float32,
 frames x feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, degrees), .json =
 root translation + local quaternions (--quat order, default wxyz as FLAME's official output)
-with the skeleton. --positions also writes world joint positions (float32, frames x joints x 3);
---preview a PNG contact sheet (stick figures side by side and the root path seen from above).
+with the skeleton, .glb / .gltf = glTF 2.0 (binary / JSON): the skeleton, a skinned box figure
+and the animation, in glTF's convention (Y up, metres), the prompt, model and seed in its
+metadata. --positions also writes world joint positions (float32, frames x joints x 3);
+--preview FILE.png a contact sheet (stick figures side by side and the root path seen from
+above), FILE.gif an animation of the same figure beside its path (--preview-fps, default the
+model's).
 
 Poses are in --convention: by default gltf (Y up) for a BVH, which Blender's importer and other
-BVH readers stand upright, and native (the model's own frame) for JSON and .npy outputs;
+BVH readers stand upright, always gltf for .glb/.gltf, and native (the model's own frame) for
+JSON and .npy outputs;
 --positions follows the same convention. --smooth is the sigma in frames of the temporal
 Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
 otherwise; 0 = off). Unset options take the model file's defaults (see `flame info`). Every
@@ -177,11 +182,11 @@ pub struct SamplingArgs {
 #[derive(Args)]
 pub struct OutputArgs {
     /// Output file: .npy (raw features in the model's normalised space, the valid frames),
-    /// .bvh or .json (poses)
+    /// .bvh or .json (poses), .glb or .gltf (a skinned figure with its animation)
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Coordinate convention of the poses [native|unity|unreal|ros|blender|gltf; default gltf
-    /// for .bvh, native otherwise]
+    /// for .bvh and .glb/.gltf (which take no other), native otherwise]
     #[arg(long, value_name = "C", value_parser = lib::<Convention>)]
     pub convention: Option<Convention>,
     /// Sigma in frames of the temporal smoothing of the features, 0 = off [default: 1 for
@@ -194,9 +199,12 @@ pub struct OutputArgs {
     /// Also write world joint positions (float32 .npy, frames x joints x 3)
     #[arg(long, value_name = "FILE.npy")]
     pub positions: Option<PathBuf>,
-    /// Also write a PNG contact sheet of the motion
-    #[arg(long, value_name = "FILE.png")]
+    /// Also write a preview: FILE.png a contact sheet, FILE.gif an animation
+    #[arg(long, value_name = "FILE.png|FILE.gif")]
     pub preview: Option<PathBuf>,
+    /// Frame rate of a .gif preview, at most 50 [default: the model's]
+    #[arg(long, value_name = "FPS")]
+    pub preview_fps: Option<f32>,
 }
 
 #[derive(Args)]

@@ -16,7 +16,7 @@ use flame::assemble::AssembleOptions;
 use flame::checkpoint::ModelFile;
 use flame::config::TextConfig;
 use flame::models::{LoadOptions, Model};
-use flame::motion::{self, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
+use flame::motion::{self, gltf, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
 use flame::stages::Stage;
 use flame::targets::{PositionTargets, TargetParams};
@@ -62,6 +62,8 @@ fn session_params(s: &SamplingArgs) -> SessionParams {
 struct Loaded {
     model: Arc<Model>,
     actions: Option<Vec<String>>,
+    /// The file's name, for the metadata of glTF exports.
+    name: String,
 }
 
 fn load_model(m: &ModelArgs) -> Result<Loaded, String> {
@@ -83,7 +85,15 @@ fn load_model(m: &ModelArgs) -> Result<Loaded, String> {
         model_path.display(),
         t0.elapsed().as_secs_f64() * 1e3
     );
-    Ok(Loaded { model, actions })
+    let name = model_path.file_name().map_or_else(
+        || model_path.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    Ok(Loaded {
+        model,
+        actions,
+        name,
+    })
 }
 
 /// A model path that is a folder gets its own message (opening one says "No such device").
@@ -233,7 +243,20 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     if model.is_latent() && frames != asked {
         eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
     }
-    outputs.write(x, frames, model, decoder.as_ref())
+    let prompt = match (&stages, &a.prompt) {
+        (Some(stages), _) => stages
+            .iter()
+            .map(|s| s.text.as_str())
+            .collect::<Vec<_>>()
+            .join("; "),
+        (None, p) => p.clone().unwrap_or_default(),
+    };
+    let meta = Meta {
+        prompt: &prompt,
+        model: &loaded.name,
+        seed: a.sampling.seed,
+    };
+    outputs.write(x, frames, model, decoder.as_ref(), &meta)
 }
 
 /// `--stage` (repeated) or `--prompt-file`, if given.
@@ -515,7 +538,12 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     }
     write_latent(&session, &a.sampling)?;
     let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
-    outputs.write(x, frames, model, decoder.as_ref())
+    let meta = Meta {
+        prompt: &a.prompt,
+        model: &loaded.name,
+        seed: a.sampling.seed,
+    };
+    outputs.write(x, frames, model, decoder.as_ref(), &meta)
 }
 
 /// `--targets`: float32 `[frames, joints, 3]` positions in `convention`, NaN = free.
@@ -591,7 +619,8 @@ struct Outputs {
     out: PathBuf,
     kind: OutKind,
     positions: Option<PathBuf>,
-    preview: Option<PathBuf>,
+    preview: Option<(PathBuf, PreviewKind)>,
+    preview_fps: Option<f32>,
     convention: Convention,
     smooth: Option<f32>,
     quat: QuatOrder,
@@ -602,6 +631,21 @@ enum OutKind {
     Features,
     Bvh,
     Json,
+    Gltf(gltf::Container),
+}
+
+/// What a glTF export records about the generation.
+struct Meta<'a> {
+    prompt: &'a str,
+    model: &'a str,
+    seed: u64,
+}
+
+/// The preview `--preview` asks for, from its extension.
+#[derive(Clone, Copy, PartialEq)]
+enum PreviewKind {
+    Sheet,
+    Gif,
 }
 
 /// How to turn this model's features into poses.
@@ -623,9 +667,12 @@ impl Outputs {
             Some("npy") => OutKind::Features,
             Some("bvh") => OutKind::Bvh,
             Some("json") => OutKind::Json,
+            Some(e @ ("glb" | "gltf")) => {
+                OutKind::Gltf(gltf::Container::from_extension(e).unwrap_or(gltf::Container::Glb))
+            }
             _ => {
                 return Err(format!(
-                    "cannot write {}: --out must end in .npy, .bvh or .json",
+                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb or .gltf",
                     o.out.display()
                 ))
             }
@@ -644,29 +691,57 @@ impl Outputs {
             if !cfg!(feature = "preview") {
                 return Err("--preview needs the `preview` feature (built without it)".into());
             }
-            if paths::extension(p).as_deref() != Some("png") {
-                return Err(format!(
-                    "cannot write {}: --preview must end in .png",
-                    p.display()
-                ));
+            match paths::extension(p).as_deref() {
+                Some("png") | Some("gif") => {}
+                _ => {
+                    return Err(format!(
+                        "cannot write {}: --preview must end in .png (a contact sheet) or .gif \
+                         (an animation)",
+                        p.display()
+                    ))
+                }
             }
             files.push(("--preview", p));
+        }
+        if o.preview_fps.is_some()
+            && o.preview
+                .as_ref()
+                .and_then(|p| paths::extension(p))
+                .as_deref()
+                != Some("gif")
+        {
+            return Err("--preview-fps needs --preview FILE.gif".into());
         }
         paths::check_distinct(&files)?;
         for (_, f) in &files {
             paths::check_writable(f)?;
         }
         // BVH readers take Y up (Blender's importer among them): a BVH stands upright by
-        // default. JSON and features stay in the model's own frame unless asked.
-        let convention = o.convention.unwrap_or(match kind {
-            OutKind::Bvh => Convention::Gltf,
-            OutKind::Features | OutKind::Json => Convention::Native,
-        });
+        // default. JSON and features stay in the model's own frame unless asked. glTF has one
+        // convention of its own.
+        let convention = match (kind, o.convention) {
+            (OutKind::Gltf(_), Some(c)) if c != Convention::Gltf => {
+                return Err(format!(
+                    "--convention {c}: a glTF file is always in glTF's own convention (Y up, \
+                     right-handed, metres); leave --convention out or say gltf"
+                ))
+            }
+            (_, Some(c)) => c,
+            (OutKind::Bvh | OutKind::Gltf(_), None) => Convention::Gltf,
+            (OutKind::Features | OutKind::Json, None) => Convention::Native,
+        };
         Ok(Outputs {
             out: o.out.clone(),
             kind,
             positions: o.positions.clone(),
-            preview: o.preview.clone(),
+            preview: o.preview.clone().map(|p| {
+                let kind = match paths::extension(&p).as_deref() {
+                    Some("gif") => PreviewKind::Gif,
+                    _ => PreviewKind::Sheet,
+                };
+                (p, kind)
+            }),
+            preview_fps: o.preview_fps,
             convention,
             smooth: o.smooth,
             quat: o.quat,
@@ -699,6 +774,7 @@ impl Outputs {
         frames: usize,
         model: &Model,
         decoder: Option<&Decoder>,
+        meta: &Meta,
     ) -> Result<(), String> {
         let dim = model.motion_dim();
         let Some(d) = decoder else {
@@ -708,8 +784,20 @@ impl Outputs {
         };
         let opts = model.read_options(d.smooth, true);
         let poses = Poses::decode(d.format, x, frames, &opts).map_err(|e| e.to_string())?;
+        if let OutKind::Gltf(container) = self.kind {
+            let opts = gltf::GltfOptions {
+                fps: d.fps,
+                prompt: Some(meta.prompt),
+                model: Some(meta.model),
+                seed: Some(meta.seed),
+                name: None,
+            };
+            let bytes = gltf::to_bytes(&poses, &opts, container).map_err(|e| e.to_string())?;
+            std::fs::write(&self.out, bytes)
+                .map_err(|e| format!("cannot write {}: {e}", self.out.display()))?;
+        }
         let text = match self.kind {
-            OutKind::Features => None,
+            OutKind::Features | OutKind::Gltf(_) => None,
             OutKind::Bvh => Some(motion::bvh::to_string(&poses, self.convention, d.fps)),
             OutKind::Json => Some(motion::json::to_string(
                 &poses,
@@ -724,9 +812,10 @@ impl Outputs {
                 std::fs::write(&self.out, t)
                     .map_err(|e| format!("cannot write {}: {e}", self.out.display()))?
             }
-            None => {
+            None if self.kind == OutKind::Features => {
                 flame::npy::write_f32(&self.out, &[frames, dim], x).map_err(|e| e.to_string())?
             }
+            None => {}
         }
         println!("{}", self.out.display());
         if let Some(p) = &self.positions {
@@ -738,12 +827,22 @@ impl Outputs {
             println!("{}", p.display());
         }
         #[cfg(feature = "preview")]
-        if let Some(png) = &self.preview {
-            use flame::motion::preview::{contact_sheet, write_png, PreviewOptions};
-            contact_sheet(&poses, &PreviewOptions::default())
-                .and_then(|img| write_png(png, &img))
-                .map_err(|e| e.to_string())?;
-            println!("{}", png.display());
+        if let Some((path, kind)) = &self.preview {
+            use flame::motion::preview;
+            match kind {
+                PreviewKind::Sheet => preview::contact_sheet(&poses, &Default::default())
+                    .and_then(|img| preview::write_png(path, &img)),
+                PreviewKind::Gif => {
+                    let opts = preview::AnimationOptions {
+                        fps: self.preview_fps.unwrap_or(0.0),
+                        ..Default::default()
+                    };
+                    preview::animate(&poses, d.fps, &opts)
+                        .and_then(|anim| preview::write_gif(path, &anim))
+                }
+            }
+            .map_err(|e| e.to_string())?;
+            println!("{}", path.display());
         }
         Ok(())
     }
