@@ -10,7 +10,7 @@
  *
  * FLAME_TEST_QUICK=1 shortens the long generations (for valgrind).
  */
-#define _POSIX_C_SOURCE 200809L
+#define _GNU_SOURCE /* memmem */
 
 #include <math.h>
 #include <pthread.h>
@@ -564,6 +564,119 @@ static void test_last_error(void) {
     pthread_create(&t, NULL, fail_on_other_thread, NULL);
     pthread_join(t, NULL);
     CHECK(strcmp(flame_last_error(), "") == 0);
+}
+
+/* ---- glTF export -------------------------------------------------------------------------- */
+
+static uint32_t le32(const unsigned char *p) {
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+/* The GLB's length protocol, header and chunks; its binary chunk holds the root translation and
+ * joint 0's rotation track exactly as flame_session_read gives them in the gltf convention. */
+static void test_gltf(const FlameModel *m) {
+    const int INV = FLAME_STATUS_INVALID_ARGUMENT;
+    FlameSession *s = ref_session(m);
+    size_t n = 777;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, NULL, NULL, 0, &n),
+                         FLAME_STATUS_WRONG_STATE, "no sample yet");
+    CHECK(n == 777);
+    CHECK_OK(run_to_end(s, REF_PROMPT));
+
+    FlameGltfParams p;
+    CHECK_OK(flame_gltf_params_default(&p));
+    CHECK(p.struct_size == sizeof(FlameGltfParams));
+    CHECK(p.container == FLAME_GLTF_CONTAINER_GLB && p.flags == 0 && p.fps == 0.0f && !p.name);
+    CHECK_OK(flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, NULL, NULL, 0, &n));
+    size_t size = n;
+    CHECK(size > 1000);
+    unsigned char *glb = (unsigned char *)malloc(size);
+    n = 0;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &p, glb, size - 1, &n),
+                         FLAME_STATUS_BUFFER_TOO_SMALL, "bytes needed");
+    CHECK(n == size);
+    n = 0;
+    CHECK_OK(flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &p, glb, size, &n));
+    CHECK(n == size);
+    CHECK(memcmp(glb, "glTF", 4) == 0 && le32(glb + 4) == 2 && le32(glb + 8) == size);
+    uint32_t jlen = le32(glb + 12);
+    CHECK(memcmp(glb + 16, "JSON", 4) == 0 && jlen % 4 == 0 && 20 + jlen + 8 <= size);
+    const unsigned char *bin = glb + 20 + jlen;
+    CHECK(memcmp(bin + 4, "BIN", 4) == 0 && 20 + jlen + 8 + le32(bin) == size);
+    char *json = strndup((const char *)glb + 20, jlen);
+    CHECK(strstr(json, "\"prompt\":\"" REF_PROMPT "\"") != NULL);
+    CHECK(strstr(json, "\"generator\":\"libflame ") != NULL);
+    CHECK(strstr(json, "\"name\":\"L_Wrist\"") != NULL);
+
+    size_t rn = 0, qn = 0;
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION,
+                                FLAME_CONVENTION_GLTF, 0, NULL, 0, &rn));
+    float *root = (float *)malloc(rn * sizeof(float));
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION,
+                                FLAME_CONVENTION_GLTF, 0, root, rn, &rn));
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                FLAME_CONVENTION_GLTF, 0, NULL, 0, &qn));
+    float *quat = (float *)malloc(qn * sizeof(float));
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                FLAME_CONVENTION_GLTF, 0, quat, qn, &qn));
+    size_t joints = qn / 4 / ref_frames;
+    float *track = (float *)malloc((size_t)ref_frames * 4 * sizeof(float));
+    for (uint32_t t = 0; t < ref_frames; t++) {
+        memcpy(track + 4 * t, quat + 4 * joints * t, 4 * sizeof(float));
+    }
+    size_t bin_len = le32(bin);
+    CHECK(memmem(bin + 8, bin_len, root, rn * sizeof(float)) != NULL);
+    CHECK(memmem(bin + 8, bin_len, track, (size_t)ref_frames * 4 * sizeof(float)) != NULL);
+
+    /* Smoothing changes the animation, as it changes what flame_session_read gives. */
+    p.flags = FLAME_READ_SMOOTH;
+    CHECK_OK(flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &p, glb, size, &n));
+    CHECK(memmem(glb, n, root, rn * sizeof(float)) == NULL);
+
+    /* The JSON container, a name and a frame rate. */
+    CHECK_OK(flame_gltf_params_default(&p));
+    p.container = FLAME_GLTF_CONTAINER_GLTF;
+    p.name = "my walk!";
+    p.fps = 30.0f;
+    CHECK_OK(flame_session_write_gltf(s, FLAME_WHICH_ESTIMATE, &p, NULL, 0, &n));
+    char *text = (char *)calloc(n + 1, 1);
+    CHECK_OK(flame_session_write_gltf(s, FLAME_WHICH_ESTIMATE, &p, (uint8_t *)text, n, &n));
+    CHECK(text[0] == '{' && strstr(text, "\"name\":\"my_walk\"") != NULL);
+    CHECK(strstr(text, "\"fps\":30.0") != NULL);
+    CHECK(strstr(text, "data:application/octet-stream;base64,") != NULL);
+
+    /* Bad arguments: errors that name them, nothing written. */
+    CHECK_OK(flame_gltf_params_default(&p));
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(NULL, 0, &p, NULL, 0, &n), INV, "session");
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, NULL), INV, "out_len");
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 2, &p, NULL, 0, &n), INV, "which");
+    p.container = 7;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "container");
+    p.container = INT32_MIN;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "container");
+    CHECK_OK(flame_gltf_params_default(&p));
+    p.flags = 8;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "read flags");
+    p.flags = 0;
+    p.fps = -1.0f;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "frame rate");
+    p.fps = NAN;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "frame rate");
+    p.fps = 0.0f;
+    p.name = "\xff\xfe";
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "name");
+    p.name = NULL;
+    p.struct_size = 4;
+    CHECK_ERROR_MENTIONS(flame_session_write_gltf(s, 0, &p, NULL, 0, &n), INV, "params");
+    CHECK_STATUS(flame_gltf_params_default(NULL), INV);
+
+    free(text);
+    free(track);
+    free(quat);
+    free(root);
+    free(json);
+    free(glb);
+    flame_session_free(s);
 }
 
 /* ---- call order ------------------------------------------------------------------------- */
@@ -2404,6 +2517,7 @@ int main(int argc, char **argv) {
     TIMED(test_reset(m));
     TIMED(test_prompt_info(m));
     TIMED(test_read(m));
+    TIMED(test_gltf(m));
     TIMED(test_layouts(m));
     TIMED(test_lengths(m));
     TIMED(test_edit(m));
