@@ -51,7 +51,7 @@ def main():
     import bpy
     import numpy
 
-    if not hasattr(numpy, "bool") or numpy.bool is not bool:
+    if not hasattr(numpy, "bool"):
         numpy.bool = bool
 
     (frames, joints, _), flat = load_npy_f32(expected_path)

@@ -2,8 +2,8 @@
 # The project's test command (README "Build and test"): formatting, lints and the Rust tests of
 # every crate of the workspace (the runtime and crates/flame-demo), the C ABI tests (shared and
 # static library, C++ wrapper, packaging; valgrind when CI=true or FLAME_VALGRIND=1), the
-# language bindings' tests, the BVH round trip through Blender and a short run of every fuzz
-# target.
+# language bindings' tests, the BVH round trip through Blender, the glTF export through the
+# Khronos validator and Blender's importer, and a short run of every fuzz target.
 #
 # Every stage runs even when an earlier one failed; the last line says which passed and which
 # failed, and the exit status is non-zero when any failed. Python runs only inside a virtual
@@ -19,7 +19,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 
-stages=(fmt clippy rust c bindings bvh fuzz)
+stages=(fmt clippy rust c bindings bvh gltf fuzz)
 [ $# -gt 0 ] && stages=("$@")
 passed=() failed=()
 
@@ -99,8 +99,9 @@ for stage in "${stages[@]}"; do
         c) run_stage c bash tests/c/run.sh ;;
         bindings) run_stage bindings bash tests/bindings/run_all.sh ;;
         bvh) run_stage bvh bash tools/bvh_roundtrip.sh ;;
+        gltf) run_stage gltf bash tools/gltf_check.sh ;;
         fuzz) [ -f tools/fuzz.sh ] && run_stage fuzz fuzz_smoke ;;
-        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust c bindings bvh fuzz)" >&2
+        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust c bindings bvh gltf fuzz)" >&2
            failed+=("$stage") ;;
     esac
 done

@@ -4,13 +4,14 @@
 //
 //   node tools/gltf_validate.mjs FILE.glb|FILE.gltf...
 //
-// NODE_PATH (or a node_modules beside the working directory) must hold gltf-validator;
+// GLTF_VALIDATOR_DIR (default: the working directory) must hold node_modules/gltf-validator;
 // tools/gltf_check.sh installs it into target/node.
 import { readFile } from "node:fs/promises";
 import { createRequire } from "node:module";
 import path from "node:path";
 
-const require = createRequire(path.join(process.cwd(), "noop.js"));
+const base = process.env.GLTF_VALIDATOR_DIR ?? process.cwd();
+const require = createRequire(path.join(path.resolve(base), "noop.js"));
 const validator = require("gltf-validator");
 
 const files = process.argv.slice(2);

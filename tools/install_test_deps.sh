@@ -81,3 +81,11 @@ if ! command -v blender >/dev/null 2>&1; then
     [ -n "${APT_UPDATED:-}" ] || $SUDO apt-get update -qq >/dev/null
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq blender >/dev/null
 fi
+
+# --- glTF export checked by real consumers (tools/gltf_check.sh) -------------------------------
+# The Khronos glTF-Validator runs under Node.js (npm installs it into target/node); Blender's
+# glTF importer needs NumPy, which Debian's Blender takes from python3-numpy.
+apt_install node:nodejs npm:npm
+if ! /usr/bin/python3 -c 'import numpy' >/dev/null 2>&1; then
+    apt_install_packages python3-numpy
+fi
