@@ -199,9 +199,9 @@ pub struct OutputArgs {
     /// Also write world joint positions (float32 .npy, frames x joints x 3)
     #[arg(long, value_name = "FILE.npy")]
     pub positions: Option<PathBuf>,
-    /// Also write a preview: FILE.png a contact sheet, FILE.gif an animation
+    /// Also write a preview: FILE.png a contact sheet, FILE.gif an animation (repeatable)
     #[arg(long, value_name = "FILE.png|FILE.gif")]
-    pub preview: Option<PathBuf>,
+    pub preview: Vec<PathBuf>,
     /// Frame rate of a .gif preview, at most 50 [default: the model's]
     #[arg(long, value_name = "FPS")]
     pub preview_fps: Option<f32>,

@@ -619,7 +619,7 @@ struct Outputs {
     out: PathBuf,
     kind: OutKind,
     positions: Option<PathBuf>,
-    preview: Option<(PathBuf, PreviewKind)>,
+    preview: Vec<(PathBuf, PreviewKind)>,
     preview_fps: Option<f32>,
     convention: Convention,
     smooth: Option<f32>,
@@ -659,8 +659,8 @@ impl Outputs {
     /// The outputs `o` asks for, every path checked (extension, folder, writable).
     fn new(o: &OutputArgs) -> Result<Outputs, String> {
         // A folder is named as such before its "extension" is judged.
-        let given = [Some(&o.out), o.positions.as_ref(), o.preview.as_ref()];
-        if let Some(dir) = given.into_iter().flatten().find(|p| p.is_dir()) {
+        let given = [Some(&o.out), o.positions.as_ref()];
+        if let Some(dir) = given.into_iter().flatten().chain(&o.preview).find(|p| p.is_dir()) {
             return Err(format!("cannot write {}: it is a folder", dir.display()));
         }
         let kind = match paths::extension(&o.out).as_deref() {
@@ -687,7 +687,7 @@ impl Outputs {
             }
             files.push(("--positions", p));
         }
-        if let Some(p) = &o.preview {
+        for p in &o.preview {
             if !cfg!(feature = "preview") {
                 return Err("--preview needs the `preview` feature (built without it)".into());
             }
@@ -704,11 +704,10 @@ impl Outputs {
             files.push(("--preview", p));
         }
         if o.preview_fps.is_some()
-            && o.preview
-                .as_ref()
-                .and_then(|p| paths::extension(p))
-                .as_deref()
-                != Some("gif")
+            && !o
+                .preview
+                .iter()
+                .any(|p| paths::extension(p).as_deref() == Some("gif"))
         {
             return Err("--preview-fps needs --preview FILE.gif".into());
         }
@@ -734,13 +733,17 @@ impl Outputs {
             out: o.out.clone(),
             kind,
             positions: o.positions.clone(),
-            preview: o.preview.clone().map(|p| {
-                let kind = match paths::extension(&p).as_deref() {
-                    Some("gif") => PreviewKind::Gif,
-                    _ => PreviewKind::Sheet,
-                };
-                (p, kind)
-            }),
+            preview: o
+                .preview
+                .iter()
+                .map(|p| {
+                    let kind = match paths::extension(p).as_deref() {
+                        Some("gif") => PreviewKind::Gif,
+                        _ => PreviewKind::Sheet,
+                    };
+                    (p.clone(), kind)
+                })
+                .collect(),
             preview_fps: o.preview_fps,
             convention,
             smooth: o.smooth,
@@ -751,7 +754,7 @@ impl Outputs {
     /// The decoder for `model`, or `None` when only raw features are written. The model has
     /// already checked its motion format and loaded any normalisation statistics.
     fn decoder(&self, model: &Model) -> Option<Decoder> {
-        if self.kind == OutKind::Features && self.positions.is_none() && self.preview.is_none() {
+        if self.kind == OutKind::Features && self.positions.is_none() && self.preview.is_empty() {
             return None;
         }
         let format = model.motion_format();
@@ -827,7 +830,7 @@ impl Outputs {
             println!("{}", p.display());
         }
         #[cfg(feature = "preview")]
-        if let Some((path, kind)) = &self.preview {
+        for (path, kind) in &self.preview {
             use flame::motion::preview;
             match kind {
                 PreviewKind::Sheet => preview::contact_sheet(&poses, &Default::default())
