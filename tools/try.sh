@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The README's first command: a sentence in, a BVH animation and a PNG picture of it out.
+# The README's first command: a sentence in, a BVH animation, a PNG picture of it and an
+# animated GIF of it out.
 #
 #   bash tools/try.sh ["a person jumps twice."] [OUT_DIR]
 #
@@ -8,7 +9,8 @@
 # tokenizer only, into target/minilm), assembles the demo model next to its committed denoiser
 # (models/demo/flame_demo.safetensors, git-ignored, with the demo corpus's action families in its
 # metadata), and writes OUT_DIR/out.bvh (Y up, as
-# Blender's and glTF's importers expect) and OUT_DIR/out.png (a contact sheet of the motion).
+# Blender's and glTF's importers expect), OUT_DIR/out.png (a contact sheet of the motion) and
+# OUT_DIR/out.gif (the motion playing: a side view beside its path seen from above).
 # Steps already done are skipped. OUT_DIR defaults to the current directory.
 set -euo pipefail
 prompt="${1:-a person jumps twice.}"
@@ -49,7 +51,8 @@ fi
 echo "== generating \"$prompt\""
 # A BVH is written Y up by default (convention gltf), as Blender's and glTF's importers expect.
 "$flame" generate --model "$model" --prompt "$prompt" \
-    --out "$out_dir/out.bvh" --preview "$out_dir/out.png"
+    --out "$out_dir/out.bvh" --preview "$out_dir/out.png" --preview "$out_dir/out.gif"
 echo
-echo "motion:  $out_dir/out.bvh"
-echo "picture: $out_dir/out.png"
+echo "motion:    $out_dir/out.bvh"
+echo "picture:   $out_dir/out.png"
+echo "animation: $out_dir/out.gif"
