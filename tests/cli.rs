@@ -1,7 +1,7 @@
 //! The `flame` command line as a user meets it: help and version, usage errors (exit 2) with
 //! suggestions, output paths checked before the model is loaded, upper-case extensions, folders
 //! named as such, the BVH's default convention (Y up), and the trained-action metadata of an
-//! assembled model. Model: tests/fixtures/flame_tiny.safetensors (random weights), and the demo
+//! assembled model, glTF outputs and the two previews. Model: tests/fixtures/flame_tiny.safetensors (random weights), and the demo
 //! model where assembled (see tests/common) for the upright check.
 
 use std::path::{Path, PathBuf};
@@ -624,4 +624,135 @@ fn latent_models_report_their_latent_and_the_frames_they_chose() {
         "{}",
         stderr(&o)
     );
+}
+
+/// `--out x.glb|x.gltf`: the file is glTF 2.0 with the generation's metadata, its animation is
+/// the motion `--positions` describes (root translation = the pelvis's position), and a glTF
+/// always uses glTF's own convention.
+#[test]
+fn gltf_outputs_carry_the_motion_and_the_generation() {
+    let d = scratch("gltf");
+    let (glb, gltf, pos) = (d.join("x.glb"), d.join("x.GLTF"), d.join("p.npy"));
+    let o = generate(&[
+        "--out",
+        glb.to_str().unwrap(),
+        "--positions",
+        pos.to_str().unwrap(),
+    ]);
+    assert_ok(&o);
+    let bytes = std::fs::read(&glb).unwrap();
+    assert_eq!(&bytes[..4], b"glTF");
+    let jlen = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + jlen]).unwrap();
+    let extras = &doc["asset"]["extras"];
+    assert_eq!(extras["prompt"], "a person walks");
+    assert_eq!(extras["model"], "flame_tiny.safetensors");
+    assert_eq!(extras["seed"], 3);
+    assert_eq!(extras["frames"], 16);
+    assert_eq!(doc["animations"][0]["name"], "a_person_walks");
+    assert_eq!(doc["nodes"][1]["name"], "Pelvis");
+    // Root translation (sampler 0's output) = the pelvis's world position in the gltf convention.
+    let bin = &bytes[20 + jlen + 8..];
+    let acc = &doc["accessors"][doc["animations"][0]["samplers"][0]["output"]
+        .as_u64()
+        .unwrap() as usize];
+    let view = &doc["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
+    let off = view["byteOffset"].as_u64().unwrap() as usize;
+    let root: Vec<f32> = bin[off..off + 16 * 12]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    let (shape, p) = flame::npy::read_f32(&pos).unwrap();
+    assert_eq!(shape, [16, 24, 3]);
+    for t in 0..16 {
+        for k in 0..3 {
+            assert!((root[t * 3 + k] - p[t * 72 + k]).abs() < 1e-6, "frame {t}");
+        }
+    }
+    // The JSON container, upper-case extension; the same animation data.
+    assert_ok(&generate(&["--out", gltf.to_str().unwrap()]));
+    let doc2: serde_json::Value = serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+    assert_eq!(doc2["accessors"], doc["accessors"]);
+    assert!(doc2["buffers"][0]["uri"]
+        .as_str()
+        .unwrap()
+        .starts_with("data:application/octet-stream;base64,"));
+    // Another convention is refused before the model loads; gltf is accepted.
+    let o = generate(&["--out", glb.to_str().unwrap(), "--convention", "unity"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr(&o).contains("always in glTF's own convention"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!stderr(&o).contains("loaded"), "{}", stderr(&o));
+    assert_ok(&generate(&[
+        "--out",
+        glb.to_str().unwrap(),
+        "--convention",
+        "gltf",
+    ]));
+}
+
+/// `--preview` twice writes a contact sheet and an animation; `--preview-fps` needs a GIF and a
+/// rate the GIF can hold.
+#[test]
+fn previews_are_a_sheet_and_an_animation() {
+    let d = scratch("previews");
+    let (out, png, gif) = (d.join("x.bvh"), d.join("x.png"), d.join("x.gif"));
+    let o = generate(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--preview",
+        png.to_str().unwrap(),
+        "--preview",
+        gif.to_str().unwrap(),
+        "--preview-fps",
+        "10",
+    ]);
+    assert_ok(&o);
+    assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
+    let mut dec = gif::DecodeOptions::new();
+    dec.set_color_output(gif::ColorOutput::Indexed);
+    let mut r = dec.read_info(std::fs::File::open(&gif).unwrap()).unwrap();
+    let mut frames = 0;
+    while r.read_next_frame().unwrap().is_some() {
+        frames += 1;
+    }
+    // 16 frames at 20 fps resampled to 10 fps: 8 frames.
+    assert_eq!(frames, 8);
+    let o = generate(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--preview",
+        png.to_str().unwrap(),
+        "--preview-fps",
+        "10",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr(&o).contains("--preview-fps needs --preview FILE.gif"),
+        "{}",
+        stderr(&o)
+    );
+    let o = generate(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--preview",
+        d.join("x.apng").to_str().unwrap(),
+    ]);
+    assert!(
+        stderr(&o).contains("--preview must end in .png"),
+        "{}",
+        stderr(&o)
+    );
+    let o = generate(&[
+        "--out",
+        out.to_str().unwrap(),
+        "--preview",
+        gif.to_str().unwrap(),
+        "--preview-fps",
+        "60",
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
 }
