@@ -1,8 +1,9 @@
 //! The `flame` command line as a user meets it: help and version, usage errors (exit 2) with
 //! suggestions, output paths checked before the model is loaded, upper-case extensions, folders
-//! named as such, the BVH's default convention (Y up), and the trained-action metadata of an
-//! assembled model, glTF outputs and the two previews. Model: tests/fixtures/flame_tiny.safetensors (random weights), and the demo
-//! model where assembled (see tests/common) for the upright check.
+//! named as such, the BVH's default convention (Y up), the trained-action metadata of an
+//! assembled model, glTF outputs and the two previews. Model:
+//! tests/fixtures/flame_tiny.safetensors (random weights), and the demo model where assembled
+//! (see tests/common) for the upright check.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
