@@ -14,6 +14,7 @@
 //   // frames = session.read_frames(): the session's, or the length a latent model decodes
 //   std::vector<float> quats = session.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
 //                                           FLAME_CONVENTION_UNITY);  // frames x joints x 4
+//   std::vector<uint8_t> glb = session.write_gltf();  // a glTF 2.0 file (binary, .glb)
 //
 // Ownership: Model and Session own their C handle and are move-only. A Session keeps its model
 // alive on the C side, so it stays usable after the Model object that made it is destroyed.
@@ -106,6 +107,13 @@ struct EditParams : FlameEditParams {
 // flame_target_params_default (scale 0.6, FLAME_TARGET_SCHEDULE_MPGD).
 struct TargetParams : FlameTargetParams {
     TargetParams() : FlameTargetParams() { detail::check(flame_target_params_default(this)); }
+};
+
+// How Session::write_gltf exports; the defaults come from flame_gltf_params_default (GLB, no
+// read flags, the model's frame rate, the animation named after the prompt). `name` is a plain
+// `const char*` (NULL = the prompt's): it must stay valid for the call.
+struct GltfParams : FlameGltfParams {
+    GltfParams() : FlameGltfParams() { detail::check(flame_gltf_params_default(this)); }
 };
 
 // What Model::info reports, copied: it stays valid after the model is gone.
@@ -591,6 +599,58 @@ public:
         std::size_t len = 0;
         detail::check(
             flame_session_read(handle_, which, layout, convention, flags, nullptr, 0, &len));
+        return len;
+    }
+
+    // The sample (or estimate) as a glTF 2.0 file (flame_session_write_gltf): the skeleton as
+    // nodes named after ModelInfo::joint_names (node 0 the skeleton's root, node 1 + j joint
+    // j), a skinned box figure and one animation in glTF's convention (Y up, right-handed,
+    // metres), whose root translation and joint rotations are what read() gives for
+    // FLAME_LAYOUT_ROOT_TRANSLATION and FLAME_LAYOUT_LOCAL_QUAT_XYZW in FLAME_CONVENTION_GLTF
+    // with the same flags, bit for bit. FLAME_GLTF_CONTAINER_GLB is binary glTF,
+    // FLAME_GLTF_CONTAINER_GLTF JSON with the buffer as a base64 data URI. `fps` 0 = the
+    // model's; an empty `name` names the animation after the prompt. Throws WRONG_STATE before
+    // there is anything to read, INVALID_ARGUMENT for an unknown container or a bad fps.
+    std::vector<uint8_t> write_gltf(FlameWhich which = FLAME_WHICH_SAMPLE,
+                                    FlameGltfContainer container = FLAME_GLTF_CONTAINER_GLB,
+                                    uint32_t flags = 0, float fps = 0.0f,
+                                    const std::string& name = std::string()) const {
+        if (name.find('\0') != std::string::npos) {
+            throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`name` contains a NUL byte");
+        }
+        GltfParams params;
+        params.container = container;
+        params.flags = flags;
+        params.fps = fps;
+        params.name = name.empty() ? nullptr : name.c_str();
+        return write_gltf(which, params);
+    }
+
+    // With every field of FlameGltfParams (start from GltfParams()).
+    std::vector<uint8_t> write_gltf(FlameWhich which, const GltfParams& params) const {
+        std::size_t len = 0;
+        detail::check(flame_session_write_gltf(handle_, which, &params, nullptr, 0, &len));
+        std::vector<uint8_t> out(len);
+        detail::check(
+            flame_session_write_gltf(handle_, which, &params, out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // Into a caller buffer; returns the bytes written (throws BUFFER_TOO_SMALL when `len` is
+    // short; write_gltf_len() tells the size). Each call builds the file afresh.
+    std::size_t write_gltf(uint8_t* out, std::size_t len, FlameWhich which = FLAME_WHICH_SAMPLE,
+                           const GltfParams& params = GltfParams()) const {
+        std::size_t written = 0;
+        detail::check(flame_session_write_gltf(handle_, which, &params, out, len, &written));
+        return written;
+    }
+
+    // The file's size in bytes (the same for the same motion and parameters).
+    std::size_t write_gltf_len(FlameWhich which = FLAME_WHICH_SAMPLE,
+                               const GltfParams& params = GltfParams()) const {
+        std::size_t len = 0;
+        detail::check(flame_session_write_gltf(handle_, which, &params, nullptr, 0, &len));
         return len;
     }
 

@@ -115,6 +115,15 @@ namespace Flame
         Constant = 1,
     }
 
+    /// <summary>The container FlameSession.WriteGltf writes (enum FlameGltfContainer).</summary>
+    public enum FlameGltfContainer
+    {
+        /// <summary>Binary glTF (.glb): what glTFast and other run-time importers load from bytes.</summary>
+        Glb = 0,
+        /// <summary>JSON glTF (.gltf) with the buffer embedded as a base64 data URI.</summary>
+        Gltf = 1,
+    }
+
     /// <summary>Pose layouts of FlameSession.Read (enum FlameLayout; J = joint count). Plain
     /// integers, passed through unchanged, so a layout the library adds works before it is
     /// named here.</summary>
@@ -320,6 +329,33 @@ namespace Flame
         {
             var p = new FlameTargetParams();
             FlameException.Check(FlameNative.flame_target_params_default(out p));
+            return p;
+        }
+    }
+
+    /// <summary>Mirror of the C struct FlameGltfParams: how FlameSession.WriteGltf exports.
+    /// Three 32-bit fields and a float, then a pointer (24 bytes on 64-bit targets, 20 on
+    /// 32-bit). Start from Default(): GLB, no read flags, the model's frame rate, the animation
+    /// named after the prompt.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameGltfParams
+    {
+        public uint struct_size;
+        /// <summary>A FlameGltfContainer value.</summary>
+        public int container;
+        /// <summary>FlameReadFlags bits applied before posing.</summary>
+        public uint flags;
+        /// <summary>Animation frames per second; 0 = the model's.</summary>
+        public float fps;
+        /// <summary>NUL-terminated UTF-8 animation name, or IntPtr.Zero for the prompt's; set it
+        /// through FlameSession.WriteGltf(..., name), which keeps the bytes pinned for the
+        /// call.</summary>
+        public IntPtr name;
+
+        public static FlameGltfParams Default()
+        {
+            var p = new FlameGltfParams();
+            FlameException.Check(FlameNative.flame_gltf_params_default(out p));
             return p;
         }
     }
@@ -563,6 +599,15 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_read(FlameSessionHandle session, int which, int layout, int convention, uint flags,
                                                             [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_gltf_params_default(out FlameGltfParams p);
+
+        /// <param name="output">null to query the file's size in bytes into outLen; too short:
+        /// BufferTooSmall, with the size in outLen.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_write_gltf(FlameSessionHandle session, int which, ref FlameGltfParams p,
+                                                                  [Out] byte[] output, UIntPtr len, out UIntPtr outLen);
 
         /// <summary>rows × dim of the sampled space (what flame_session_set_noise takes).</summary>
         [DllImport(Lib, CallingConvention = Cdecl)]
@@ -1164,6 +1209,65 @@ namespace Flame
             UIntPtr n;
             FlameException.Check(FlameNative.flame_session_read(Handle, (int)which, layout, convention, flags, output, (UIntPtr)output.Length, out n));
             return (int)n;
+        }
+
+        /// <summary>The sample or clean-motion estimate as a glTF 2.0 file
+        /// (flame_session_write_gltf): the skeleton as nodes named after Info.JointNames (node
+        /// 0 the skeleton's root, node 1 + j joint j), a skinned box figure and one animation
+        /// in glTF's convention (Y up, right-handed, metres). Its root translation and joint
+        /// rotations are what Read gives for FlameLayout.RootTranslation and LocalQuatXyzw in
+        /// FlameConvention.Gltf with the same flags, bit for bit. fps 0 = the model's; name
+        /// null = the prompt's (libflame keeps letters, digits, '-' and '_'). Throws with status
+        /// WrongState before there is anything to read, InvalidArgument for an unknown
+        /// container or a bad fps.</summary>
+        public byte[] WriteGltf(FlameWhich which = FlameWhich.Sample, FlameGltfContainer container = FlameGltfContainer.Glb,
+                                uint flags = 0, float fps = 0, string name = null)
+        {
+            var p = FlameGltfParams.Default();
+            p.container = (int)container;
+            p.flags = flags;
+            p.fps = fps;
+            if (name != null && name.IndexOf('\0') >= 0)
+                throw new ArgumentException("name contains a NUL character", "name");
+            var nameBytes = FlameNative.Utf8Z(name);
+            var pin = nameBytes == null ? default(GCHandle) : GCHandle.Alloc(nameBytes, GCHandleType.Pinned);
+            try
+            {
+                if (pin.IsAllocated)
+                    p.name = pin.AddrOfPinnedObject();
+                UIntPtr n;
+                FlameException.Check(FlameNative.flame_session_write_gltf(Handle, (int)which, ref p, null, UIntPtr.Zero, out n));
+                var output = new byte[(int)n];
+                FlameException.Check(FlameNative.flame_session_write_gltf(Handle, (int)which, ref p, output, (UIntPtr)output.Length, out n));
+                if ((int)n != output.Length)
+                    Array.Resize(ref output, (int)n);
+                return output;
+            }
+            finally
+            {
+                if (pin.IsAllocated)
+                    pin.Free();
+            }
+        }
+
+        /// <summary>WriteGltf, the bytes also written to path (created or replaced). The
+        /// container follows path's extension: ".gltf" JSON, ".glb" (or none) binary, any
+        /// case; another extension throws ArgumentException before anything is written.</summary>
+        public byte[] WriteGltf(string path, FlameWhich which = FlameWhich.Sample, uint flags = 0, float fps = 0, string name = null)
+        {
+            if (path == null)
+                throw new ArgumentNullException("path");
+            string ext = System.IO.Path.GetExtension(path).ToLowerInvariant();
+            FlameGltfContainer container;
+            if (ext == ".gltf")
+                container = FlameGltfContainer.Gltf;
+            else if (ext == ".glb" || ext == "")
+                container = FlameGltfContainer.Glb;
+            else
+                throw new ArgumentException("cannot tell the glTF container from \"" + path + "\": name it .glb or .gltf", "path");
+            var bytes = WriteGltf(which, container, flags, fps, name);
+            System.IO.File.WriteAllBytes(path, bytes);
+            return bytes;
         }
 
         /// <summary>Calls callback(stepsDone, stepsTotal) after every step, on the stepping

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The Python bindings' tests, run against the package as a user installs it: a fresh virtual
-# environment (python3 -m venv) gets pytest from PyPI and the libflame wheel built from
+# environment (python3 -m venv) gets pytest and pygltflib (the glTF reader test_gltf.py checks
+# Session.write_gltf with) from PyPI and the libflame wheel built from
 # bindings/python by pip (an isolated build: setuptools from PyPI, the library from cargo; numpy
 # from PyPI as the wheel's dependency). Then, from a folder outside the checkout and with
 # FLAME_LIBRARY unset, `import flame` must find the library inside the installed wheel, and
@@ -62,8 +63,10 @@ case "$(basename "$whl")" in
 esac
 echo "run_python.sh: $(basename "$whl")"
 
-quiet_pip install --quiet "$whl" pytest
+# Test-only requirements, pinned where a test depends on a reader's behaviour.
+quiet_pip install --quiet "$whl" pytest pygltflib==1.16.5
 [ -x "$venv/bin/pytest" ] || fail "pip install of the wheel and pytest failed"
+"$py" -c 'import pygltflib' 2>/dev/null || fail "pip install of pygltflib failed"
 
 # Outside the checkout, with no FLAME_LIBRARY: the installed package and its own library.
 site="$(cd /tmp && env -u FLAME_LIBRARY -u PYTHONPATH "$py" -c \

@@ -50,6 +50,7 @@ __all__ = [
     "BodyPart",
     "EditTask",
     "TargetSchedule",
+    "GltfContainer",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
@@ -179,6 +180,13 @@ class TargetSchedule:
 
     MPGD = 0  # 4·τ·(1 − τ): nothing at either end, full strength half way (MoLA's MPGD)
     CONSTANT = 1  # the same weight at every step
+
+
+class GltfContainer:
+    """FlameGltfContainer values for Session.write_gltf (or their names: "glb", "gltf")."""
+
+    GLB = 0  # binary glTF (.glb)
+    GLTF = 1  # JSON glTF (.gltf), the buffer embedded as a base64 data URI
 
 
 @dataclass
@@ -350,6 +358,16 @@ class _TargetParams(ctypes.Structure):
     ]
 
 
+class _GltfParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("container", ctypes.c_int32),
+        ("flags", ctypes.c_uint32),
+        ("fps", ctypes.c_float),
+        ("name", ctypes.c_char_p),
+    ]
+
+
 _ProgressCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32)
 
 _P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
@@ -416,6 +434,12 @@ def _signatures():
         "flame_session_read": (
             _status,
             [_P, i32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
+        ),
+        "flame_gltf_params_default": (_status, [ctypes.POINTER(_GltfParams)]),
+        "flame_session_write_gltf": (
+            _status,
+            [_P, i32, ctypes.POINTER(_GltfParams), ctypes.POINTER(ctypes.c_uint8), size_t,
+             ctypes.POINTER(size_t)],
         ),
         "flame_session_sample_shape": (_status, [_P, pu32, pu32]),
         "flame_session_read_frames": (_status, [_P, i32, pu32]),
@@ -730,6 +754,7 @@ _EDIT_METHODS = {"auto": EditMethod.AUTO, "noised-reference": EditMethod.NOISED_
 _BODY_PARTS = {"root-path": BodyPart.ROOT_PATH, "lower-body": BodyPart.LOWER_BODY,
                "upper-body": BodyPart.UPPER_BODY, "arms": BodyPart.ARMS, "legs": BodyPart.LEGS}
 _TARGET_SCHEDULES = {"mpgd": TargetSchedule.MPGD, "constant": TargetSchedule.CONSTANT}
+_GLTF_CONTAINERS = {"glb": GltfContainer.GLB, "gltf": GltfContainer.GLTF}
 _TASKS = {"inbetween": EditTask.INBETWEEN, "predict": EditTask.PREDICT,
           "upper-body": EditTask.UPPER_BODY, "path": EditTask.PATH}
 
@@ -742,6 +767,21 @@ def _named(value, names: dict, what: str) -> int:
             raise ValueError(f"unknown {what} {value!r} ({', '.join(names)})")
         return names[key]
     return int(value)
+
+
+def _gltf_container(container, path) -> int:
+    """A GltfContainer value: `container` by name or value, else from the extension of `path`."""
+    if container is not None:
+        return _named(container, _GLTF_CONTAINERS, "glTF container")
+    if path is None:
+        return GltfContainer.GLB
+    ext = os.path.splitext(os.fsdecode(path))[1].lower()
+    if ext in ("", ".glb"):
+        return GltfContainer.GLB
+    if ext == ".gltf":
+        return GltfContainer.GLTF
+    raise ValueError(f"cannot tell the glTF container from {os.fsdecode(path)!r}: name it .glb or "
+                     ".gltf, or pass container=\"glb\" or \"gltf\"")
 
 
 def edit_params_default() -> EditParams:
@@ -1126,6 +1166,57 @@ class Session:
         if frames and values.size % frames == 0:
             return values.reshape(frames, -1)
         return values
+
+    def write_gltf(
+        self,
+        path: Union[None, str, bytes, os.PathLike] = None,
+        *,
+        which: Union[str, int] = "sample",
+        container: Union[None, str, int] = None,
+        smooth: bool = False,
+        raw_signs: bool = False,
+        fps: float = 0.0,
+        name: Optional[str] = None,
+    ) -> bytes:
+        """The current sample ("sample") or clean-motion estimate ("estimate") as a glTF 2.0 file
+        (flame_session_write_gltf): the skeleton as nodes named after model.info.joint_names, a
+        skinned box figure and one animation, in glTF's convention (Convention.GLTF: Y up,
+        metres). Its root translation and joint rotations are what read() gives for
+        Layout.ROOT_TRANSLATION and Layout.LOCAL_QUAT_XYZW in Convention.GLTF with the same
+        flags, bit for bit. Returns the file's bytes, and writes them to `path` when one is
+        given.
+
+        `container` is "glb" (binary), "gltf" (JSON, the buffer embedded as base64) or a
+        GltfContainer value; None takes it from the extension of `path` (.glb or .gltf; GLB
+        without a path or an extension). `smooth` and `raw_signs` are ReadFlags.SMOOTH and
+        ReadFlags.RAW_SIGNS; `fps` is the animation's frame rate (0 = the model's); `name` the
+        animation's (sanitised by libflame; None = the prompt). Raises FlameError (WRONG_STATE)
+        before there is anything to read, and ValueError for a container or an extension it
+        does not know."""
+        raw = _GltfParams()
+        _check(_lib().flame_gltf_params_default(ctypes.byref(raw)))
+        raw.container = _gltf_container(container, path)
+        raw.flags = (ReadFlags.SMOOTH if smooth else 0) | (ReadFlags.RAW_SIGNS if raw_signs else 0)
+        raw.fps = float(fps)
+        if name is not None:
+            if not isinstance(name, str):
+                raise TypeError(f"name is a {type(name).__name__}, not a str")
+            if "\0" in name:
+                raise ValueError("name contains a NUL character")
+            raw.name = name.encode("utf-8")  # kept alive by `raw` until the calls return
+        w = self._which(which)
+        lib = _lib()
+        n = ctypes.c_size_t()
+        with self._lock:
+            h = self._h()
+            _check(lib.flame_session_write_gltf(h, w, ctypes.byref(raw), None, 0, ctypes.byref(n)))
+            buf = (ctypes.c_uint8 * max(n.value, 1))()
+            _check(lib.flame_session_write_gltf(h, w, ctypes.byref(raw), buf, n.value, ctypes.byref(n)))
+        data = ctypes.string_at(buf, n.value)
+        if path is not None:
+            with open(path, "wb") as f:
+                f.write(data)
+        return data
 
     def close(self) -> None:
         """Frees the session (cancelling and waiting for a step running on another thread)."""

@@ -85,6 +85,10 @@ static class FlameTest
             Run("TaskTargets", TestTaskTargets);
             Run("SampleShapeAndReadFrames", TestSampleShapeAndReadFrames);
             Run("LatentModel", TestLatentModel);
+            Run("GltfExport", TestGltfExport);
+            Run("GltfHumanMl263", TestGltfHumanMl263);
+            Run("GltfFiles", TestGltfFiles);
+            Run("GltfErrors", TestGltfErrors);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -252,6 +256,7 @@ static class FlameTest
         CheckValues("FLAME_EDIT_TASK_", EnumValues(typeof(FlameEditTask)));
         CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
         CheckValues("FLAME_TARGET_SCHEDULE_", EnumValues(typeof(FlameTargetSchedule)));
+        CheckValues("FLAME_GLTF_CONTAINER_", EnumValues(typeof(FlameGltfContainer)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
         Check(header.Contains("#define FLAME_MAX_THREADS " + FlameNative.MaxThreads + "\n"), "FLAME_MAX_THREADS");
@@ -292,6 +297,12 @@ static class FlameTest
         Check(Marshal.SizeOf(typeof(FlameStage)) == 8 + 8 * IntPtr.Size, "sizeof FlameStage " + Marshal.SizeOf(typeof(FlameStage)));
         Check((int)Marshal.OffsetOf(typeof(FlameStage), "text") == 8 &&
               (int)Marshal.OffsetOf(typeof(FlameStage), "pelvis") == 8 + 7 * IntPtr.Size, "offsets of FlameStage");
+        // FlameGltfParams: three uint32 and a float, then a pointer (C: sizeof 24, offsetof name 16 on x86-64).
+        var gp = FlameGltfParams.Default();
+        Check(gp.struct_size == Marshal.SizeOf(typeof(FlameGltfParams)) && gp.struct_size == 16 + IntPtr.Size,
+              "sizeof FlameGltfParams " + gp.struct_size);
+        Check((int)Marshal.OffsetOf(typeof(FlameGltfParams), "name") == 16, "offset of FlameGltfParams.name");
+        Check(gp.container == (int)FlameGltfContainer.Glb && gp.flags == 0 && gp.fps == 0 && gp.name == IntPtr.Zero, "glTF defaults");
     }
 
     static void TestLoadErrors()
@@ -1492,6 +1503,240 @@ static class FlameTest
         }
     }
 
+    // --- glTF export --------------------------------------------------------------------------
+
+    static uint U32(byte[] b, int offset)
+    {
+        return (uint)(b[offset] | (b[offset + 1] << 8) | (b[offset + 2] << 16) | (b[offset + 3] << 24));
+    }
+
+    /// <summary>A GLB's JSON chunk (parsed) and binary chunk, after checking its 12-byte header
+    /// ("glTF", version 2, the file's length) and the chunk headers.</summary>
+    static Dictionary<string, object> SplitGlb(byte[] glb, out byte[] bin)
+    {
+        bin = null;
+        Check(glb.Length > 28 && Encoding.ASCII.GetString(glb, 0, 4) == "glTF", "GLB magic");
+        Check(U32(glb, 4) == 2, "GLB version " + U32(glb, 4));
+        Check(U32(glb, 8) == glb.Length, "GLB length field " + U32(glb, 8) + " vs " + glb.Length + " bytes");
+        int jsonLen = (int)U32(glb, 12);
+        Check(Encoding.ASCII.GetString(glb, 16, 4) == "JSON" && jsonLen % 4 == 0, "JSON chunk header");
+        var doc = (Dictionary<string, object>)Json.Parse(Encoding.UTF8.GetString(glb, 20, jsonLen));
+        int b = 20 + jsonLen;
+        int binLen = (int)U32(glb, b);
+        Check(Encoding.ASCII.GetString(glb, b + 4, 4) == "BIN\0" && b + 8 + binLen == glb.Length, "BIN chunk header");
+        bin = new byte[binLen];
+        Buffer.BlockCopy(glb, b + 8, bin, 0, binLen);
+        return doc;
+    }
+
+    static object At(object o, params object[] path)
+    {
+        foreach (var k in path)
+            o = k is string ? ((Dictionary<string, object>)o)[(string)k] : ((List<object>)o)[(int)k];
+        return o;
+    }
+
+    static int Int(object o, params object[] path)
+    {
+        return (int)(double)At(o, path);
+    }
+
+    /// <summary>The floats of accessor i, from the binary buffer.</summary>
+    static float[] Accessor(Dictionary<string, object> doc, byte[] bin, int i)
+    {
+        var a = At(doc, "accessors", i);
+        var view = At(doc, "bufferViews", Int(a, "bufferView"));
+        int offset = Int(view, "byteOffset"), length = Int(view, "byteLength");
+        var values = new float[length / 4];
+        Buffer.BlockCopy(bin, offset, values, 0, length);
+        return values;
+    }
+
+    /// <summary>The sampler output of the channel animating node's path, or null.</summary>
+    static float[] Track(Dictionary<string, object> doc, byte[] bin, int node, string path)
+    {
+        var anim = At(doc, "animations", 0);
+        foreach (var c in (List<object>)At(anim, "channels"))
+            if (Int(c, "target", "node") == node && (string)At(c, "target", "path") == path)
+                return Accessor(doc, bin, Int(At(anim, "samplers", Int(c, "sampler")), "output"));
+        return null;
+    }
+
+    static int Channels(Dictionary<string, object> doc, string path)
+    {
+        return ((List<object>)At(doc, "animations", 0, "channels")).Count(c => (string)At(c, "target", "path") == path);
+    }
+
+    /// <summary>Checks a GLB of session s against its reads (Gltf convention, flags): the joint
+    /// nodes, the root translation and every joint's rotation, bit for bit.</summary>
+    static void CheckGltfMatchesRead(FlameSession s, ModelInfo info, byte[] glb, uint flags, string what)
+    {
+        byte[] bin;
+        var doc = SplitGlb(glb, out bin);
+        int J = info.JointCount;
+        var nodes = (List<object>)At(doc, "nodes");
+        bool named = nodes.Count > J;
+        for (int j = 0; named && j < J; j++)
+            named &= (string)At(nodes, 1 + j, "name") == info.JointNames[j];
+        Check(named, what + ": nodes 1..J are named as the model's joints");
+        int frames;
+        var root = s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Gltf, flags, out frames);
+        var quats = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Gltf, flags);
+        Check(BitEqual(Track(doc, bin, 1, "translation"), root), what + ": root translation = Read, bit for bit");
+        bool rotations = true;
+        for (int j = 0; j < J; j++)
+        {
+            var track = Track(doc, bin, 1 + j, "rotation");
+            rotations &= track != null && track.Length == frames * 4;
+            for (int f = 0; rotations && f < frames; f++)
+                for (int k = 0; k < 4; k++)
+                    rotations &= BitConverter.ToInt32(BitConverter.GetBytes(track[f * 4 + k]), 0) ==
+                                 BitConverter.ToInt32(BitConverter.GetBytes(quats[(f * J + j) * 4 + k]), 0);
+        }
+        Check(rotations, what + ": every joint's rotation = Read, bit for bit");
+        var times = Accessor(doc, bin, Int(At(doc, "animations", 0, "samplers", 0), "input"));
+        bool timed = times.Length == frames;
+        for (int f = 0; timed && f < frames; f++)
+            timed &= Math.Abs(times[f] - f / (double)info.Fps) < 1e-6;
+        Check(timed, what + ": times t / fps");
+    }
+
+    static void TestGltfExport()
+    {
+        var info = model.Info;
+        using (var s = RefSession())
+        {
+            // Two steps: the final motion of the tiny model saturates (see TestPoseLayouts).
+            s.Step();
+            s.Step();
+            var glb = s.WriteGltf();
+            byte[] bin;
+            var doc = SplitGlb(glb, out bin);
+            Check((string)At(doc, "asset", "version") == "2.0", "asset.version");
+            Check((string)At(doc, "nodes", 0, "name") == "smpl24", "node 0 is the skeleton's root");
+            var extras = At(doc, "asset", "extras");
+            Check((string)At(extras, "prompt") == RefPrompt && Int(extras, "seed") == 3, "extras: prompt and seed");
+            Check((string)At(extras, "libflame") == FlameLibrary.Version && (string)At(extras, "format") == "smpl24_6d",
+                  "extras: libflame version and format");
+            Check((string)At(doc, "animations", 0, "name") == "a_person_walks_forward_and_waves", "animation named after the prompt");
+            Check(Channels(doc, "rotation") == info.JointCount && Channels(doc, "translation") == 1,
+                  "smpl24_6d: J rotation channels and the root's translation");
+            CheckGltfMatchesRead(s, info, glb, 0, "plain");
+            CheckGltfMatchesRead(s, info, s.WriteGltf(flags: FlameReadFlags.Smooth), FlameReadFlags.Smooth, "smooth");
+            CheckGltfMatchesRead(s, info, s.WriteGltf(FlameWhich.Sample, FlameGltfContainer.Glb, FlameReadFlags.RawSigns),
+                                 FlameReadFlags.RawSigns, "raw signs");
+            Check(BitEqual(Track(doc, bin, 1, "translation"), s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Gltf, 0)),
+                  "root translation");
+            Check(glb.SequenceEqual(s.WriteGltf()), "the same motion and parameters give the same bytes");
+
+            // The JSON container: the same document, the buffer as a base64 data URI.
+            var gltf = s.WriteGltf(FlameWhich.Sample, FlameGltfContainer.Gltf);
+            Check(gltf.Length > 0 && gltf[0] == (byte)'{', "JSON container starts with {");
+            var jdoc = (Dictionary<string, object>)Json.Parse(Encoding.UTF8.GetString(gltf));
+            string uri = (string)At(jdoc, "buffers", 0, "uri");
+            const string prefix = "data:application/octet-stream;base64,";
+            Check(uri.StartsWith(prefix, StringComparison.Ordinal) &&
+                  Convert.FromBase64String(uri.Substring(prefix.Length)).SequenceEqual(bin), "data URI = the GLB's binary chunk");
+            Check(Int(jdoc, "buffers", 0, "byteLength") == bin.Length, "buffer byteLength");
+            Check((string)At(jdoc, "nodes", 1, "name") == info.JointNames[0], "JSON names the joints");
+
+            // fps, name and the estimate.
+            byte[] bin30;
+            var doc30 = SplitGlb(s.WriteGltf(FlameWhich.Estimate, FlameGltfContainer.Glb, 0, 30f, "my walk, take 2!"), out bin30);
+            var times = Accessor(doc30, bin30, Int(At(doc30, "animations", 0, "samplers", 0), "input"));
+            Check(times.Length == RefFrames && Math.Abs(times[3] - 0.1) < 1e-6 && (double)At(doc30, "asset", "extras", "fps") == 30,
+                  "fps 30");
+            Check((string)At(doc30, "animations", 0, "name") == "my_walk_take_2", "name sanitised");
+            Check(BitEqual(Track(doc30, bin30, 1, "translation"),
+                           s.Read(FlameWhich.Estimate, FlameLayout.RootTranslation, FlameConvention.Gltf, 0)), "estimate's root");
+
+            // The length protocol through the P/Invoke declaration.
+            var p = FlameGltfParams.Default();
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_session_write_gltf(s.Handle, 0, ref p, null, UIntPtr.Zero, out n));
+            Check((int)n == glb.Length, "NULL buffer: the size " + n);
+            var small = new byte[16];
+            var st = FlameNative.flame_session_write_gltf(s.Handle, 0, ref p, small, (UIntPtr)small.Length, out n);
+            Check(st == FlameStatus.BufferTooSmall && (int)n == glb.Length && small.All(x => x == 0),
+                  "BUFFER_TOO_SMALL writes the size, not the file: " + st + " " + n);
+            Check(FlameNative.Utf8(FlameNative.flame_last_error()).Contains("buffer too small"), "buffer too small message");
+            var big = new byte[glb.Length + 4];
+            FlameException.Check(FlameNative.flame_session_write_gltf(s.Handle, 0, ref p, big, (UIntPtr)big.Length, out n));
+            Check((int)n == glb.Length && big.Take(glb.Length).SequenceEqual(glb), "a larger buffer gets the file");
+            p.struct_size = 8;
+            Throws(FlameStatus.InvalidArgument, "struct_size", () => FlameException.Check(
+                FlameNative.flame_session_write_gltf(s.Handle, 0, ref p, null, UIntPtr.Zero, out n)));
+        }
+    }
+
+    static void TestGltfHumanMl263()
+    {
+        // humanml263 (MDM): its joint positions are its own features, so every non-root joint's
+        // translation is animated as well.
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        var p = FlameSessionParams.Default();
+        p.frames = 16;
+        p.steps = 3;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.seed = 1;
+        p.threads = 1;
+        using (var mdm = FlameModel.Load(Path.Combine(dir, "mdm_tiny.safetensors"), 1))
+        using (var s = mdm.NewSession(p))
+        {
+            s.SetPrompt(RefPrompt);
+            RunAll(s);
+            var info = mdm.Info;
+            var glb = s.WriteGltf();
+            byte[] bin;
+            var doc = SplitGlb(glb, out bin);
+            Check((string)At(doc, "nodes", 0, "name") == "humanml22" && info.JointCount == 22, "HumanML3D's 22 joints");
+            Check(Channels(doc, "translation") == info.JointCount && Channels(doc, "rotation") == info.JointCount,
+                  "humanml263: every joint's translation and rotation");
+            Check((string)At(doc, "asset", "extras", "format") == "humanml263", "format");
+            CheckGltfMatchesRead(s, info, glb, 0, "humanml263");
+        }
+    }
+
+    static void TestGltfFiles()
+    {
+        using (var s = RefSession())
+        {
+            s.Step();
+            string glbPath = Path.Combine(tmpDir, "motion.glb"), gltfPath = Path.Combine(tmpDir, "motion.GLTF");
+            var glb = s.WriteGltf(glbPath);
+            Check(File.ReadAllBytes(glbPath).SequenceEqual(glb) && glb.SequenceEqual(s.WriteGltf()), "path.glb: GLB file = bytes");
+            var gltf = s.WriteGltf(gltfPath, FlameWhich.Sample, FlameReadFlags.Smooth);
+            Check(File.ReadAllBytes(gltfPath).SequenceEqual(gltf) &&
+                  gltf.SequenceEqual(s.WriteGltf(FlameWhich.Sample, FlameGltfContainer.Gltf, FlameReadFlags.Smooth)),
+                  "path.GLTF: JSON file = bytes, with the flags");
+            string bvh = Path.Combine(tmpDir, "motion.bvh");
+            ThrowsManaged<ArgumentException>(() => s.WriteGltf(bvh));
+            Check(!File.Exists(bvh), "nothing written for an unknown extension");
+            ThrowsManaged<ArgumentNullException>(() => s.WriteGltf((string)null));
+        }
+    }
+
+    static void TestGltfErrors()
+    {
+        using (var s = model.NewSession(RefParams()))
+        {
+            Throws(FlameStatus.WrongState, "no sample yet", () => s.WriteGltf());
+            s.SetPrompt(RefPrompt);
+            Throws(FlameStatus.WrongState, "no sample yet", () => s.WriteGltf());
+            Throws(FlameStatus.WrongState, "no clean-motion estimate", () => s.WriteGltf(FlameWhich.Estimate));
+            s.Step();
+            Throws(FlameStatus.InvalidArgument, "unknown glTF container 7", () => s.WriteGltf(FlameWhich.Sample, (FlameGltfContainer)7));
+            Throws(FlameStatus.InvalidArgument, "unknown glTF container -1", () => s.WriteGltf(FlameWhich.Sample, (FlameGltfContainer)(-1)));
+            Throws(FlameStatus.InvalidArgument, "frame rate must be positive", () => s.WriteGltf(fps: -1f));
+            Throws(FlameStatus.InvalidArgument, "unknown `which` 4", () => s.WriteGltf((FlameWhich)4));
+            Throws(FlameStatus.InvalidArgument, "unknown read flags", () => s.WriteGltf(flags: 4));
+            ThrowsManaged<ArgumentException>(() => s.WriteGltf(name: "a\0b"));
+            Check(s.WriteGltf(name: "été").Length > 0, "a non-ASCII name");
+            s.Reset();
+            Throws(FlameStatus.WrongState, "no sample yet", () => s.WriteGltf());
+        }
+    }
+
     static void TestTwoThreads()
     {
         string[] prompts = { RefPrompt, "a person jumps twice." };
@@ -1586,5 +1831,117 @@ static class Npy
             Buffer.BlockCopy(data, 0, raw, 0, raw.Length);
             f.Write(raw);
         }
+    }
+}
+
+/// <summary>A small JSON reader for the tests (objects, arrays, strings, numbers as double,
+/// true/false/null): enough to check libflame's glTF documents without a JSON library.</summary>
+static class Json
+{
+    public static object Parse(string text)
+    {
+        int i = 0;
+        var v = Value(text, ref i);
+        Space(text, ref i);
+        if (i != text.Length)
+            throw new FormatException("trailing characters at " + i);
+        return v;
+    }
+
+    static void Space(string s, ref int i)
+    {
+        while (i < s.Length && char.IsWhiteSpace(s[i]))
+            i++;
+    }
+
+    static object Value(string s, ref int i)
+    {
+        Space(s, ref i);
+        if (i >= s.Length)
+            throw new FormatException("unexpected end");
+        char c = s[i];
+        if (c == '{')
+        {
+            var o = new Dictionary<string, object>();
+            i++;
+            Space(s, ref i);
+            if (s[i] == '}') { i++; return o; }
+            while (true)
+            {
+                Space(s, ref i);
+                string key = Str(s, ref i);
+                Space(s, ref i);
+                Expect(s, ref i, ':');
+                o[key] = Value(s, ref i);
+                Space(s, ref i);
+                if (s[i] == ',') { i++; continue; }
+                Expect(s, ref i, '}');
+                return o;
+            }
+        }
+        if (c == '[')
+        {
+            var a = new List<object>();
+            i++;
+            Space(s, ref i);
+            if (s[i] == ']') { i++; return a; }
+            while (true)
+            {
+                a.Add(Value(s, ref i));
+                Space(s, ref i);
+                if (s[i] == ',') { i++; continue; }
+                Expect(s, ref i, ']');
+                return a;
+            }
+        }
+        if (c == '"')
+            return Str(s, ref i);
+        foreach (var word in new[] { "true", "false", "null" })
+            if (string.CompareOrdinal(s, i, word, 0, word.Length) == 0)
+            {
+                i += word.Length;
+                return word == "null" ? null : (object)(word == "true");
+            }
+        int start = i;
+        while (i < s.Length && "+-0123456789.eE".IndexOf(s[i]) >= 0)
+            i++;
+        if (i == start)
+            throw new FormatException("unexpected '" + c + "' at " + i);
+        return double.Parse(s.Substring(start, i - start), System.Globalization.CultureInfo.InvariantCulture);
+    }
+
+    static void Expect(string s, ref int i, char c)
+    {
+        if (i >= s.Length || s[i] != c)
+            throw new FormatException("expected '" + c + "' at " + i);
+        i++;
+    }
+
+    static string Str(string s, ref int i)
+    {
+        Expect(s, ref i, '"');
+        var sb = new StringBuilder();
+        while (s[i] != '"')
+        {
+            char c = s[i++];
+            if (c != '\\')
+            {
+                sb.Append(c);
+                continue;
+            }
+            char e = s[i++];
+            switch (e)
+            {
+                case 'n': sb.Append('\n'); break;
+                case 't': sb.Append('\t'); break;
+                case 'r': sb.Append('\r'); break;
+                case 'b': sb.Append('\b'); break;
+                case 'f': sb.Append('\f'); break;
+                case 'u': sb.Append((char)Convert.ToInt32(s.Substring(i, 4), 16)); i += 4; break;
+                default: sb.Append(e); break;
+            }
+        }
+        i++;
+        return sb.ToString();
     }
 }

@@ -77,6 +77,44 @@ static int NpyRows(const char* path) {
     return at == std::string::npos ? 0 : std::atoi(header.c_str() + at + 10);
 }
 
+/* flame_session_write_gltf on a session of the component's settings (Configure's, with the
+ * given frames and steps), straight through flame.h: what ExportGltf must return. */
+static std::vector<uint8_t> DirectGltf(const char* model, int frames, int steps, int container, uint32_t flags) {
+    std::vector<uint8_t> out;
+    FlameModel* m = nullptr;
+    if (flame_model_load(model, nullptr, &m) != FLAME_STATUS_OK) return out;
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = (uint32_t)frames;
+    p.steps = (uint32_t)steps;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.seed = 3;
+    p.threads = 1;
+    FlameSession* s = nullptr;
+    if (flame_session_new(m, &p, &s) == FLAME_STATUS_OK &&
+        flame_session_set_prompt(s, "a person walks forward and waves.") == FLAME_STATUS_OK) {
+        uint32_t left = 1;
+        while (left > 0 && flame_session_step(s, &left) == FLAME_STATUS_OK) {
+        }
+        FlameGltfParams g;
+        flame_gltf_params_default(&g);
+        g.container = container;
+        g.flags = flags;
+        size_t n = 0;
+        if (left == 0 && flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &g, nullptr, 0, &n) == FLAME_STATUS_OK) {
+            out.resize(n);
+            if (flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &g, out.data(), n, &n) != FLAME_STATUS_OK) out.clear();
+        }
+    }
+    flame_session_free(s);
+    flame_model_free(m);
+    return out;
+}
+
+static bool SameBytes(const TArray<uint8>& a, const std::vector<uint8_t>& b) {
+    return !b.empty() && a.Num() == (int32)b.size() && std::memcmp(a.GetData(), b.data(), b.size()) == 0;
+}
+
 static void Configure(UFlameMotionComponent& c, const char* model, int frames, int steps, bool ddim,
                       int layout = 0 /* FLAME_LAYOUT_FEATURES */, int convention = 0) {
     c.Layout = layout;
@@ -136,6 +174,74 @@ int main(int argc, char** argv) {
         CHECK(succeeded && std::memcmp(c.Pose.GetData(), reference.data(), reference.size() * 4) == 0, "same again");
     }
     CHECK(WaitForThreads(), "workers exited");
+
+    {   // ExportGltf: the last successful generation's final motion as glTF, byte for byte what
+        // flame_session_write_gltf gives for a session of the same settings, read with the
+        // component's ReadFlags; nothing to export before a generation, while one runs, after a
+        // failed one and after EndPlay.
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 10, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        c.ReadFlags = FLAME_READ_SMOOTH;
+        TArray<uint8> bytes;
+        bytes.Add(7);
+        CHECK(!c.ExportGltf(true, bytes) && bytes.Num() == 0, "nothing to export before Generate");
+        CHECK(c.LastError.Utf8() == "ExportGltf: no finished generation to export", "%s", c.LastError.Utf8().c_str());
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        CHECK(c.Generate(), "Generate: %s", c.LastError.Utf8().c_str());
+        CHECK(!c.ExportGltf(true, bytes) && bytes.Num() == 0 &&
+                  c.LastError.Utf8().find("ExportGltf: a generation is running") == 0,
+              "nothing to export while generating: %s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finishedCalls > 0; }), "finished");
+        CHECK(succeeded && c.LastError.IsEmpty(), "succeeded: %s", c.LastError.Utf8().c_str());
+
+        CHECK(c.ExportGltf(true, bytes), "ExportGltf(true): %s", c.LastError.Utf8().c_str());
+        auto u32 = [&](int at) {
+            return (uint32_t)bytes[at] | (uint32_t)bytes[at + 1] << 8 | (uint32_t)bytes[at + 2] << 16 |
+                   (uint32_t)bytes[at + 3] << 24;
+        };
+        const bool header = bytes.Num() > 28 && std::memcmp(bytes.GetData(), "glTF", 4) == 0 && u32(4) == 2 &&
+                            u32(8) == (uint32_t)bytes.Num() && std::memcmp(bytes.GetData() + 16, "JSON", 4) == 0 &&
+                            20 + u32(12) <= (uint32_t)bytes.Num();
+        CHECK(header, "GLB header: magic, version 2, length %d", bytes.Num());
+        if (header) {
+            const std::string json((const char*)bytes.GetData() + 20, u32(12));
+            bool named = c.JointNames.Num() == 24;
+            for (int32 j = 0; j < c.JointNames.Num(); j++)
+                named = named && json.find("\"name\":\"" + c.JointNames[j].Utf8() + "\"") != std::string::npos;
+            CHECK(named, "the JSON chunk names the %d joints", c.JointNames.Num());
+            CHECK(json.find("\"prompt\":\"a person walks forward and waves.\"") != std::string::npos &&
+                      json.find("\"seed\":3") != std::string::npos,
+                  "asset.extras: prompt and seed");
+        }
+        const std::vector<uint8_t> glb = DirectGltf(argv[1], Frames, 10, FLAME_GLTF_CONTAINER_GLB, FLAME_READ_SMOOTH);
+        CHECK(SameBytes(bytes, glb), "ExportGltf(true) = flame_session_write_gltf (%d vs %d bytes)", bytes.Num(), (int)glb.size());
+        CHECK(glb != DirectGltf(argv[1], Frames, 10, FLAME_GLTF_CONTAINER_GLB, 0), "ReadFlags reach the export");
+        TArray<uint8> text;
+        CHECK(c.ExportGltf(false, text) && text.Num() > 0 && text[0] == '{', "ExportGltf(false): JSON glTF");
+        CHECK(SameBytes(text, DirectGltf(argv[1], Frames, 10, FLAME_GLTF_CONTAINER_GLTF, FLAME_READ_SMOOTH)),
+              "ExportGltf(false) = flame_session_write_gltf");
+        CHECK(c.ExportGltf(true, bytes) && SameBytes(bytes, glb), "export again: the same bytes");
+
+        // A failed generation leaves nothing to export (the previous motion is gone with Generate).
+        c.Frames = 471;
+        CHECK(c.Generate(), "Generate (bad frames)");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished (bad frames)");
+        CHECK(!succeeded, "failed");
+        CHECK(!c.ExportGltf(true, bytes) && bytes.Num() == 0 &&
+                  c.LastError.Utf8() == "ExportGltf: no finished generation to export",
+              "nothing after a failed generation: %s", c.LastError.Utf8().c_str());
+        c.Frames = Frames;
+        CHECK(c.Generate(), "Generate again");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 2; }), "finished again");
+        CHECK(succeeded && c.ExportGltf(true, bytes) && SameBytes(bytes, glb), "exportable again");
+        c.EndPlay(EEndPlayReason::Destroyed);
+        CHECK(!c.ExportGltf(true, bytes) && bytes.Num() == 0, "nothing after EndPlay");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+    CHECK(FFlameModule::ActiveWorkers.GetValue() == 0, "no session kept once the component is gone: %d",
+          FFlameModule::ActiveWorkers.GetValue());
 
     {   // Respacing "10" keeps the 10 steps the section rule gives Steps = 10: the CLI's bits.
         // A string no stride can space fails the generation with libflame's message.

@@ -21,6 +21,26 @@ struct FFlameModelRef
 	~FFlameModelRef() { flame_model_free(Handle); }
 };
 
+/** Counts a holder of libflame's threads in FFlameModule::ActiveWorkers, which keeps the
+ *  library loaded: a generation's worker, or a finished session (whose own threads live inside
+ *  libflame until it is freed). */
+struct FFlameWorkerCount
+{
+	FFlameWorkerCount() { FFlameModule::ActiveWorkers.Increment(); }
+	~FFlameWorkerCount() { FFlameModule::ActiveWorkers.Decrement(); }
+};
+
+/** A finished generation's session, kept for UFlameMotionComponent::ExportGltf. */
+struct FFlameFinishedSession
+{
+	FFlameWorkerCount WorkerCount; // first member, so destroyed last: after the session
+	FlameSession* Handle;
+	uint32 Flags; // the read flags of the generation
+
+	FFlameFinishedSession(FlameSession* InHandle, uint32 InFlags) : Handle(InHandle), Flags(InFlags) {}
+	~FFlameFinishedSession() { flame_session_free(Handle); }
+};
+
 /** libflame's status name and message; call right after the failing call, on its thread. */
 static FString FlameFailure(FlameStatus Status)
 {
@@ -54,11 +74,7 @@ struct FFlameJob
 {
 	/** Counts this job in FFlameModule::ActiveWorkers. First member, so destroyed last: after
 	 *  Model, whose destructor may be the job's last libflame call. */
-	struct FWorkerCount
-	{
-		FWorkerCount() { FFlameModule::ActiveWorkers.Increment(); }
-		~FWorkerCount() { FFlameModule::ActiveWorkers.Decrement(); }
-	} WorkerCount;
+	FFlameWorkerCount WorkerCount;
 
 	// Inputs, fixed before the worker starts.
 	FString Path;
@@ -100,6 +116,7 @@ struct FFlameJob
 	uint32 PromptKept = 0;
 	FString PromptDropped;
 	double TargetLoss = -1.0; // after the last step; -1 without targets
+	TSharedPtr<FFlameFinishedSession, ESPMode::ThreadSafe> Finished; // the session, after a success
 
 	void Cancel()
 	{
@@ -184,8 +201,17 @@ private:
 			FScopeLock Guard(&Lock);
 			Session = nullptr;
 			TargetLoss = Loss;
+			if (bOk)
+			{
+				// Kept for ExportGltf: the component takes it over when it sees bFinished.
+				Finished = MakeShared<FFlameFinishedSession, ESPMode::ThreadSafe>(S, Flags);
+				S = nullptr;
+			}
 		}
-		flame_session_free(S);
+		if (S != nullptr)
+		{
+			flame_session_free(S);
+		}
 		return bOk;
 	}
 
@@ -479,6 +505,7 @@ bool UFlameMotionComponent::Generate()
 	}
 
 	LastError.Reset();
+	Finished.Reset(); // the previous motion is no longer exportable
 	TargetLoss = -1.f;
 	bPromptTruncated = false;
 	PromptDropped.Reset();
@@ -556,6 +583,47 @@ FVector UFlameMotionComponent::GetRootLocation(int32 Frame) const
 	return FVector(P[0], P[1], P[2]);
 }
 
+bool UFlameMotionComponent::ExportGltf(bool bBinary, TArray<uint8>& OutBytes)
+{
+	OutBytes.Reset();
+	if (!Finished.IsValid())
+	{
+		LastError = IsGenerating() ? FString(TEXT("ExportGltf: a generation is running; export after OnFinished(true)"))
+		                           : FString(TEXT("ExportGltf: no finished generation to export"));
+		UE_LOG(LogFlame, Warning, TEXT("%s"), *LastError);
+		return false;
+	}
+	FlameGltfParams Params;
+	FlameStatus Status = flame_gltf_params_default(&Params);
+	Params.container = bBinary ? FLAME_GLTF_CONTAINER_GLB : FLAME_GLTF_CONTAINER_GLTF;
+	Params.flags = Finished->Flags;
+	size_t Needed = 0;
+	if (Status == FLAME_STATUS_OK)
+	{
+		Status = flame_session_write_gltf(Finished->Handle, FLAME_WHICH_SAMPLE, &Params, nullptr, 0, &Needed);
+	}
+	if (Status == FLAME_STATUS_OK && Needed > (size_t)std::numeric_limits<int32>::max())
+	{
+		LastError = FString::Printf(TEXT("ExportGltf: a %u MiB file does not fit a TArray"), (unsigned)(Needed >> 20));
+		UE_LOG(LogFlame, Warning, TEXT("%s"), *LastError);
+		return false;
+	}
+	if (Status == FLAME_STATUS_OK)
+	{
+		OutBytes.SetNumUninitialized((int32)Needed);
+		Status = flame_session_write_gltf(Finished->Handle, FLAME_WHICH_SAMPLE, &Params, OutBytes.GetData(), Needed, &Needed);
+	}
+	if (Status != FLAME_STATUS_OK)
+	{
+		LastError = FString(TEXT("ExportGltf: ")) + FlameFailure(Status);
+		OutBytes.Reset();
+		UE_LOG(LogFlame, Warning, TEXT("%s"), *LastError);
+		return false;
+	}
+	OutBytes.SetNumUninitialized((int32)Needed);
+	return true;
+}
+
 void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction)
 {
 	Super::TickComponent(DeltaTime, TickType, ThisTickFunction);
@@ -595,6 +663,8 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			LastError = Job->Error;
 			Model = Job->Model;
 			TargetLoss = (float)Job->TargetLoss;
+			Finished = Job->Finished;
+			Job->Finished.Reset();
 		}
 	}
 	if (bWarnTruncated)
@@ -623,5 +693,6 @@ void UFlameMotionComponent::EndPlay(const EEndPlayReason::Type EndPlayReason)
 	// No wait: the worker notices within one step, frees its session and exits by itself.
 	Cancel();
 	Job.Reset();
+	Finished.Reset();
 	Super::EndPlay(EndPlayReason);
 }

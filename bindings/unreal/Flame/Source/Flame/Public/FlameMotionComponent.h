@@ -12,6 +12,7 @@
 
 struct FFlameJob;
 struct FFlameModelRef;
+struct FFlameFinishedSession;
 
 /** One time stage of a prompt (FlameStage): what the whole body does for Frames frames, and
  *  optionally what single body parts do (the HuMMan-MoGen annotation's fields; empty = the
@@ -274,6 +275,19 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	FString LastError;
 
+	/** The last successful generation's final motion as a glTF 2.0 file
+	 *  (flame_session_write_gltf), in OutBytes: bBinary = binary glTF (.glb), else JSON glTF
+	 *  (.gltf) with the buffer embedded. The skeleton's joints are nodes named as JointNames,
+	 *  with a skinned box figure and one animation (root translation and joint rotations, in
+	 *  glTF's convention: Y up, metres) at the model's frame rate, read with the generation's
+	 *  ReadFlags; the prompt, seed and libflame version are in asset.extras. Unreal's glTF
+	 *  importer (and Blender, Godot, three.js) loads it. Runs on the calling thread, a few
+	 *  milliseconds. False, with OutBytes empty and the reason in LastError, when there is no
+	 *  such motion: before the first generation succeeded, while one runs, after one failed or
+	 *  was cancelled, after EndPlay. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Export")
+	bool ExportGltf(bool bBinary, TArray<uint8>& OutBytes);
+
 	/** After every step, on the game thread. */
 	UPROPERTY(BlueprintAssignable, Category = "Flame")
 	FFlameProgressSignature OnProgress;
@@ -290,5 +304,8 @@ private:
 	TSharedPtr<FFlameJob, ESPMode::ThreadSafe> Job;
 	/** The loaded model, reused while ModelPath stays the same. */
 	TSharedPtr<FFlameModelRef, ESPMode::ThreadSafe> Model;
+	/** The last successful generation's session, kept for ExportGltf until the next Generate
+	 *  or EndPlay (null otherwise). Used on the game thread only, once its worker is done. */
+	TSharedPtr<FFlameFinishedSession, ESPMode::ThreadSafe> Finished;
 	int32 PoseFrames = 0;
 };
