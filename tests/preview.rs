@@ -8,10 +8,16 @@
 //! character's forward (ROS +X), so the side camera looks from −Y and the figure faces right.
 //! In place: the same pose turned 90° left (root Rz(+90°)·Rx(+90°), rows `[0,0,1, 1,0,0]`) and
 //! never moved, so the camera falls back to the hips' facing and the panel looks the same.
+//!
+//! The animated GIF is decoded with the `gif` crate's decoder and composited frame by frame
+//! (disposal "keep") back into the `Animation`'s images.
 
 #![cfg(feature = "preview")]
 
-use flame::motion::preview::{contact_sheet, encode_png, write_png, Image, Ink, PreviewOptions};
+use flame::motion::preview::{
+    animate, contact_sheet, encode_gif, encode_png, write_gif, write_png, Animation,
+    AnimationOptions, Image, Ink, PreviewOptions,
+};
 use flame::motion::{rest_offsets, Convention, Format, Poses, ReadOptions};
 
 const IDENTITY_6D: [f32; 6] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
@@ -384,4 +390,388 @@ fn example_sheet() {
     let path = std::env::temp_dir().join("preview_example.png");
     write_png(&path, &img).unwrap();
     println!("{} ({} bytes)", path.display(), encode_png(&img).len());
+}
+
+/// A decoded GIF: screen size, global palette, repeat, and per frame its delay, rectangle
+/// and palette indices.
+struct Gif {
+    width: u32,
+    height: u32,
+    palette: Vec<[u8; 3]>,
+    repeat: gif::Repeat,
+    frames: Vec<GifFrame>,
+}
+
+struct GifFrame {
+    delay: u16,
+    dispose: gif::DisposalMethod,
+    rect: [u32; 4],
+    transparent: Option<u8>,
+    index: Vec<u8>,
+}
+
+fn decode_gif(bytes: &[u8]) -> Gif {
+    let mut opts = gif::DecodeOptions::new();
+    opts.set_color_output(gif::ColorOutput::Indexed);
+    let mut d = opts.read_info(bytes).unwrap();
+    let palette = d
+        .global_palette()
+        .expect("a global palette")
+        .chunks(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let (width, height) = (u32::from(d.width()), u32::from(d.height()));
+    let mut frames = Vec::new();
+    while let Some(f) = d.read_next_frame().unwrap() {
+        assert!(f.palette.is_none(), "no local palettes");
+        frames.push(GifFrame {
+            delay: f.delay,
+            dispose: f.dispose,
+            rect: [f.left, f.top, f.width, f.height].map(u32::from),
+            transparent: f.transparent,
+            index: f.buffer.to_vec(),
+        });
+    }
+    Gif {
+        width,
+        height,
+        palette,
+        repeat: d.repeat(),
+        frames,
+    }
+}
+
+/// Pastes each decoded frame onto the canvas and checks the canvas against the animation's
+/// image after every frame: the changed rectangles must rebuild each image exactly.
+fn check_composites(gif: &Gif, anim: &Animation) {
+    assert_eq!(gif.frames.len(), anim.frames().len());
+    let (w, h) = (gif.width, gif.height);
+    let mut canvas = vec![0u8; (w * h) as usize];
+    for (k, (f, img)) in gif.frames.iter().zip(anim.frames()).enumerate() {
+        let [left, top, fw, fh] = f.rect;
+        assert!(
+            left + fw <= w && top + fh <= h,
+            "frame {k} inside the screen"
+        );
+        if k == 0 {
+            assert_eq!(f.rect, [0, 0, w, h], "the first frame is whole");
+        }
+        assert_eq!(f.dispose, gif::DisposalMethod::Keep);
+        assert_eq!(f.index.len(), (fw * fh) as usize);
+        for y in 0..fh {
+            for x in 0..fw {
+                let i = f.index[(y * fw + x) as usize];
+                if Some(i) != f.transparent {
+                    canvas[((top + y) * w + left + x) as usize] = i;
+                }
+            }
+        }
+        for y in 0..h {
+            for x in 0..w {
+                let i = canvas[(y * w + x) as usize] as usize;
+                assert_eq!(
+                    gif.palette[i],
+                    img.ink(x, y).unwrap().rgb(),
+                    "frame {k} ({x}, {y})"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn gif_has_a_frame_per_motion_frame_and_rebuilds_every_image() {
+    let anim = animate(&walk_cycle(120), 20.0, &AnimationOptions::default()).unwrap();
+    assert_eq!(anim.frames().len(), 120);
+    assert_eq!(anim.source_frames(), (0..120).collect::<Vec<_>>());
+    assert_eq!((anim.width(), anim.height()), (160 + 240, 240));
+    assert_eq!(anim.fps(), 20.0);
+    let bytes = encode_gif(&anim).unwrap();
+    let gif = decode_gif(&bytes);
+    assert_eq!((gif.width, gif.height), (400, 240));
+    assert_eq!(gif.repeat, gif::Repeat::Infinite);
+    // The inks, padded to a power of two.
+    let inks: Vec<[u8; 3]> = Ink::ALL.iter().map(|i| i.rgb()).collect();
+    assert_eq!(gif.palette.len(), 16);
+    assert_eq!(&gif.palette[..inks.len()], &inks[..]);
+    assert!(gif.frames.iter().all(|f| f.delay == 5));
+    check_composites(&gif, &anim);
+    // Later frames are rectangles of what changed, and the path panel's far corner never does.
+    assert!(gif.frames[1..]
+        .iter()
+        .all(|f| f.rect[2] * f.rect[3] < 400 * 240));
+    assert!(bytes.len() < 1_000_000, "{} bytes", bytes.len());
+    println!("120-frame walk: {} bytes", bytes.len());
+}
+
+#[test]
+fn first_frame_decodes_to_the_first_image_in_rgb() {
+    let anim = animate(&walk_cycle(20), 20.0, &AnimationOptions::default()).unwrap();
+    let bytes = encode_gif(&anim).unwrap();
+    let mut opts = gif::DecodeOptions::new();
+    opts.set_color_output(gif::ColorOutput::RGBA);
+    let mut d = opts.read_info(&bytes[..]).unwrap();
+    let f = d.read_next_frame().unwrap().unwrap();
+    assert_eq!((f.width, f.height), (400, 240));
+    let img = &anim.frames()[0];
+    for y in 0..240u32 {
+        for x in 0..400u32 {
+            let at = ((y * 400 + x) * 4) as usize;
+            let rgb = img.ink(x, y).unwrap().rgb();
+            assert_eq!(
+                &f.buffer[at..at + 4],
+                &[rgb[0], rgb[1], rgb[2], 255],
+                "({x}, {y})"
+            );
+        }
+    }
+}
+
+#[test]
+fn resampled_rates_keep_the_duration() {
+    let poses = walking(120);
+    for (fps, count) in [(10.0f32, 60usize), (30.0, 180), (50.0, 299), (7.0, 42)] {
+        let opts = AnimationOptions {
+            fps,
+            ..AnimationOptions::default()
+        };
+        let anim = animate(&poses, 20.0, &opts).unwrap();
+        assert_eq!(anim.frames().len(), count, "{fps} fps");
+        let want: Vec<usize> = (0..count)
+            .map(|k| (k as f64 * 20.0 / fps as f64).round() as usize)
+            .collect();
+        assert_eq!(anim.source_frames(), want, "{fps} fps");
+        assert!(anim.source_frames().iter().all(|&t| t < 120));
+        let gif = decode_gif(&encode_gif(&anim).unwrap());
+        assert_eq!(gif.frames.len(), count, "{fps} fps");
+        let total: u32 = gif.frames.iter().map(|f| u32::from(f.delay)).sum();
+        let exact = count as f64 * 100.0 / fps as f64;
+        assert!(
+            (f64::from(total) - exact).abs() <= 1.0,
+            "{fps} fps: {total} cs"
+        );
+        assert!(gif.frames.iter().all(|f| f.delay >= 2), "{fps} fps");
+        if fps == 30.0 {
+            // Repeated motion frames: unchanged GIF frames still composite right.
+            check_composites(&gif, &anim);
+        }
+    }
+}
+
+#[test]
+fn animation_frames_show_the_figure_its_ticks_and_where_it_is() {
+    // Every frame holds the same pose, so the scale is the sheet's and the side panel is the
+    // sheet's first panel plus ticks.
+    let anim = animate(&walking(15), 20.0, &AnimationOptions::default()).unwrap();
+    let e = Expected::new();
+    for (k, img) in anim.frames().iter().enumerate() {
+        check_figure(img, 0, &format!("frame {k}"));
+        assert_eq!(img.ink(160, 100), Some(Ink::Border), "separator");
+    }
+    // Ticks hang under the ground line every 0.5 m and scroll 0.1 m a frame to the left.
+    let ticks = |k: usize| -> Vec<u32> {
+        let img = &anim.frames()[k];
+        (0..160)
+            .filter(|&x| img.ink(x, 222) == Some(Ink::Ground))
+            .collect()
+    };
+    let centres = |k: usize| -> Vec<f64> {
+        let mut out: Vec<Vec<u32>> = Vec::new();
+        for x in ticks(k) {
+            match out.last_mut() {
+                Some(run) if *run.last().unwrap() + 1 == x => run.push(x),
+                _ => out.push(vec![x]),
+            }
+        }
+        out.iter()
+            .map(|r| r.iter().map(|&x| f64::from(x)).sum::<f64>() / r.len() as f64)
+            .collect()
+    };
+    let c0 = centres(0);
+    assert!(c0.len() >= 2, "{c0:?}");
+    for pair in c0.windows(2) {
+        assert!((pair[1] - pair[0] - 0.5 * e.scale).abs() <= 1.0, "{c0:?}");
+    }
+    let c1 = centres(1);
+    let shift = 0.1 * e.scale;
+    assert!(
+        c1.iter()
+            .any(|&x| c0.iter().any(|&y| (y - shift - x).abs() <= 1.0)),
+        "{c0:?} → {c1:?}"
+    );
+    assert_eq!(ticks(0), ticks(5), "0.5 m later the ticks line up again");
+    assert_ne!(ticks(0), ticks(1));
+    assert_eq!(anim.frames()[0].ink(40, 215), Some(Ink::Background));
+    // The path panel: the sheet's geometry, centred at (160 + 120, 120); the current pelvis
+    // marked on top of the start and end dots.
+    let s = 200.0 / 1.4;
+    let x = |m: f64| (280.0 + (m - 0.7) * s).floor() as u32;
+    let at = |k: usize, m: f64| anim.frames()[k].ink(x(m), 120).unwrap();
+    assert_eq!(at(0, 0.0), Ink::Sample);
+    assert_eq!(at(0, 0.7), Ink::Path);
+    assert_eq!(at(0, 1.4), Ink::End);
+    assert_eq!(at(7, 0.0), Ink::Start);
+    assert_eq!(at(7, 0.7), Ink::Sample);
+    assert_eq!(at(14, 1.4), Ink::Sample);
+    // Labels on, then off.
+    assert!((4..10).any(|x| anim.frames()[0].ink(x, 6) == Some(Ink::Label)));
+    let quiet = AnimationOptions {
+        labels: false,
+        ..AnimationOptions::default()
+    };
+    let plain = animate(&walking(15), 20.0, &quiet).unwrap();
+    assert!(plain.frames()[0]
+        .ink(0, 0)
+        .into_iter()
+        .chain(
+            (0..20)
+                .flat_map(|y| (0..40).map(move |x| (x, y)))
+                .map(|(x, y)| { plain.frames()[0].ink(x, y).unwrap() })
+        )
+        .all(|i| i != Ink::Label));
+}
+
+#[test]
+fn in_place_and_single_frame_motions_animate() {
+    let anim = animate(&in_place(5), 20.0, &AnimationOptions::default()).unwrap();
+    check_figure(&anim.frames()[4], 0, "in place");
+    check_composites(&decode_gif(&encode_gif(&anim).unwrap()), &anim);
+    let one = animate(&walking(1), 20.0, &AnimationOptions::default()).unwrap();
+    let gif = decode_gif(&encode_gif(&one).unwrap());
+    assert_eq!(gif.frames.len(), 1);
+    assert_eq!(gif.frames[0].delay, 5);
+    let small = AnimationOptions {
+        panel_width: 32,
+        panel_height: 32,
+        ..AnimationOptions::default()
+    };
+    let tiny = animate(&walk_cycle(30), 20.0, &small).unwrap();
+    assert_eq!((tiny.width(), tiny.height()), (64, 32));
+    check_composites(&decode_gif(&encode_gif(&tiny).unwrap()), &tiny);
+    let x = vec![0.0f32; 4 * Format::HumanMl263.feature_dim()];
+    let zero = Poses::decode(Format::HumanMl263, &x, 4, &ReadOptions::default()).unwrap();
+    let anim = animate(&zero, 20.0, &AnimationOptions::default()).unwrap();
+    check_composites(&decode_gif(&encode_gif(&anim).unwrap()), &anim);
+    // Far from the origin (1e20 m, where f64 steps are far over a tick) and travelling
+    // absurdly fast: finite, so it draws, and the ticks terminate.
+    for (start, step) in [(1e20f32, 0.1f32), (0.0, 1e30)] {
+        let mut x = features(3, [1.0, 0.0, 0.0, 0.0, 0.0, -1.0], step);
+        let row = x.len() / 3;
+        for t in 0..3 {
+            x[t * row] = start;
+        }
+        let far = Poses::decode(Format::Smpl24Rot6d, &x, 3, &ReadOptions::default()).unwrap();
+        let anim = animate(&far, 20.0, &AnimationOptions::default()).unwrap();
+        encode_gif(&anim).unwrap();
+    }
+}
+
+#[test]
+fn animation_options_are_checked() {
+    let poses = walking(3);
+    let d = AnimationOptions::default();
+    let err =
+        |fps: f32, opts: AnimationOptions| animate(&poses, fps, &opts).unwrap_err().to_string();
+    for bad in [
+        -1.0,
+        50.5,
+        1000.0,
+        f32::NAN,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+    ] {
+        let e = err(20.0, AnimationOptions { fps: bad, ..d });
+        assert!(e.contains("fps must be in (0, 50]"), "{bad}: {e}");
+    }
+    assert!(animate(&poses, 20.0, &AnimationOptions { fps: 50.0, ..d }).is_ok());
+    // The motion's own rate must itself be usable.
+    assert!(err(60.0, d).contains("the motion's rate 60"));
+    for bad in [0.0, -20.0, f32::NAN, f32::INFINITY] {
+        let e = err(bad, AnimationOptions { fps: 10.0, ..d });
+        assert!(e.contains("motion's frame rate"), "{bad}: {e}");
+    }
+    assert!(err(20.0, AnimationOptions { fps: 1e-4, ..d }).contains("too low"));
+    assert!(err(
+        20.0,
+        AnimationOptions {
+            panel_width: 31,
+            ..d
+        }
+    )
+    .contains("too small"));
+    assert!(err(
+        20.0,
+        AnimationOptions {
+            panel_height: 0,
+            ..d
+        }
+    )
+    .contains("too small"));
+    let e = err(
+        20.0,
+        AnimationOptions {
+            panel_width: 20_000,
+            ..d
+        },
+    );
+    assert!(e.contains("20240x240") && e.contains("limit"), "{e}");
+    let e = err(
+        20.0,
+        AnimationOptions {
+            panel_width: 8000,
+            panel_height: 8000,
+            ..d
+        },
+    );
+    assert!(e.contains("limit"), "{e}");
+    // 3 frames at 0.01 fps shown at 50 fps: 15000 frames, over the total pixel bound.
+    let e = err(0.01, AnimationOptions { fps: 50.0, ..d });
+    assert!(e.contains("over all frames"), "{e}");
+    let big = AnimationOptions {
+        panel_width: 4000,
+        panel_height: 4000,
+        ..d
+    };
+    let e = animate(&walking(10), 20.0, &big).unwrap_err().to_string();
+    assert!(e.contains("over all frames"), "{e}");
+    let empty = Poses::decode(Format::Smpl24Rot6d, &[], 0, &ReadOptions::default()).unwrap();
+    assert!(animate(&empty, 20.0, &d)
+        .unwrap_err()
+        .to_string()
+        .contains("no frames"));
+}
+
+#[test]
+fn gif_is_deterministic_and_written() {
+    let anim = animate(&walking(10), 20.0, &AnimationOptions::default()).unwrap();
+    let a = encode_gif(&anim).unwrap();
+    let again = animate(&walking(10), 20.0, &AnimationOptions::default()).unwrap();
+    assert_eq!(anim, again);
+    assert_eq!(encode_gif(&again).unwrap(), a);
+    assert_eq!(&a[..6], b"GIF89a");
+    assert_eq!(a.last(), Some(&0x3b), "trailer");
+    let path = std::env::temp_dir().join(format!("flame_preview_{}.gif", std::process::id()));
+    write_gif(&path, &anim).unwrap();
+    assert_eq!(std::fs::read(&path).unwrap(), a);
+    std::fs::remove_file(&path).unwrap();
+    let missing = std::path::Path::new("/nonexistent/dir/x.gif");
+    assert!(write_gif(missing, &anim)
+        .unwrap_err()
+        .to_string()
+        .contains("/nonexistent/dir/x.gif"));
+}
+
+/// Writes a walk's animation to `$TMPDIR/preview_example.gif` for a human to look at.
+#[test]
+#[ignore]
+fn example_gif() {
+    let anim = animate(&walk_cycle(120), 20.0, &AnimationOptions::default()).unwrap();
+    let path = std::env::temp_dir().join("preview_example.gif");
+    write_gif(&path, &anim).unwrap();
+    let bytes = encode_gif(&anim).unwrap().len();
+    println!(
+        "{} ({} frames, {bytes} bytes)",
+        path.display(),
+        anim.frames().len()
+    );
 }

@@ -1,6 +1,8 @@
-//! Contact-sheet previews: a motion drawn as stick figures side by side, written as a PNG.
-//! Nothing here reads or writes motion data; the drawing, the PNG chunks and their CRCs are
-//! ours, only zlib compression comes from `miniz_oxide` (the `preview` feature).
+//! Previews of a motion: a contact sheet (stick figures side by side, written as a PNG) and an
+//! animation (the figure moving next to its root path, written as a looping GIF). Nothing here
+//! reads or writes motion data; the drawing, the PNG chunks and their CRCs are ours, only zlib
+//! compression comes from `miniz_oxide` and GIF encoding (LZW, blocks) from `gif` (the
+//! `preview` feature).
 //!
 //! # The picture
 //!
@@ -39,6 +41,40 @@
 //! screen up away from the side camera) on a 1 m grid (coarser when the path is long): the
 //! path grey, the drawn frames purple, the start green, the end red. The panel fits the path's
 //! extent, at least 1 m each way, centred. Frame numbers label the panels.
+//!
+//! # The animation
+//!
+//! ```text
+//! +--------+-----------+
+//! | 37     |  root     |
+//! |   o    |  path,    |
+//! |  /|\   |  --*----  |   * = the pelvis now
+//! |  / \   |           |
+//! | -'-'-- |           |
+//! +--------+-----------+
+//! ```
+//!
+//! [`animate`] draws every shown frame as a `panel_width × panel_height` side view (the sheet's
+//! camera, colours and placement rules, with one scale over *all* the motion's frames) and, to
+//! its right, the `panel_height` wide path panel: the whole path in grey on its grid, start
+//! green, end red, and the current pelvis position purple on top. The side view follows the
+//! pelvis, so ground ticks every 0.5 m of the camera axis `u` (at world positions `u = k·0.5`;
+//! the step doubles while ticks would be under 4 pixels apart) hang under the ground line and
+//! scroll as the figure travels. With [`AnimationOptions::labels`] the motion's frame number is
+//! in the side panel's corner.
+//!
+//! **Timing.** With [`AnimationOptions::fps`] 0 there is one GIF frame per motion frame at the
+//! motion's own rate (`source_fps`); otherwise GIF frame `k` shows motion frame
+//! `round(k · source_fps / fps)` for as long as that is a frame of the motion. GIF delays are
+//! whole centiseconds, rounded on the running total, `delay_k = round((k+1)·100/fps) −
+//! round(k·100/fps)`, so the GIF lasts `count / fps` to within half a centisecond. Rates
+//! outside (0, 50] are refused: browsers stretch delays under 2 cs to 10 cs.
+//!
+//! **Encoding** ([`encode_gif`]). One global palette (the [`Ink`]s, padded to 16 colours),
+//! looping forever (NETSCAPE2.0). The first frame is whole; each later one is only the
+//! bounding box of the pixels that changed since the frame before (disposal "keep"), with
+//! the unchanged pixels inside it set to the transparent index 11, so what stands still costs
+//! next to nothing: 120 frames of a walk at the defaults are about 150 KB.
 
 use std::path::Path;
 
@@ -86,6 +122,12 @@ const MAX_SIDE: u64 = 16384;
 const MAX_PIXELS: u64 = 64 << 20;
 /// Below this travel along the principal axis (metres) a motion counts as in place.
 const IN_PLACE: f64 = 0.4;
+/// Spacing of an animation's ground ticks along the camera axis, metres.
+const TICK: f64 = 0.5;
+/// Largest GIF frame rate accepted: browsers stretch delays under 2 cs to 10 cs.
+const MAX_FPS: f64 = 50.0;
+/// Largest pixel count of an animation, all frames together.
+const MAX_ANIMATION_PIXELS: u64 = 64 << 20;
 
 /// The colours of a sheet; the discriminant is the PNG palette index.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -480,10 +522,10 @@ pub fn contact_sheet(poses: &Poses, opts: &PreviewOptions) -> Result<Image> {
     let view = View::new(poses)?;
     let (w, h) = grid.size();
     let mut img = Image::new(w, h);
-    let figures = Figures::new(poses, &view, &frames, &grid);
+    let figures = Figures::new(poses, &view, &frames, grid.panel_w, grid.panel_h);
     for (i, &t) in frames.iter().enumerate() {
         let panel = grid.panel(i);
-        figures.draw(&mut img, panel, t);
+        figures.draw(&mut img, panel, t, false);
         if opts.labels {
             let scale = (grid.panel_h / 120).max(1);
             img.number(panel, [panel.x0 + 4, panel.y0 + 4], t, scale, Ink::Label);
@@ -529,12 +571,19 @@ struct Figures<'a> {
 }
 
 impl<'a> Figures<'a> {
-    fn new(poses: &'a Poses, view: &'a View, frames: &[usize], grid: &Grid) -> Figures<'a> {
+    /// The scale fits the figures of `frames` in `panel_w × panel_h` panels.
+    fn new(
+        poses: &'a Poses,
+        view: &'a View,
+        frames: &[usize],
+        panel_w: u32,
+        panel_h: u32,
+    ) -> Figures<'a> {
         let skel = poses.format().skeleton();
         let joints = skel.joint_count();
-        let (w, h) = (f64::from(grid.panel_w), f64::from(grid.panel_h));
-        let ground_row = grid.panel_h - grid.panel_h / 10;
-        let top = f64::from(grid.panel_h / 10);
+        let (w, h) = (f64::from(panel_w), f64::from(panel_h));
+        let ground_row = panel_h - panel_h / 10;
+        let top = f64::from(panel_h / 10);
         let (mut up, mut ahead) = (0.0f64, 0.0f64);
         for &t in frames {
             let pts = &view.points[t * joints..(t + 1) * joints];
@@ -560,8 +609,9 @@ impl<'a> Figures<'a> {
         }
     }
 
-    /// Ground line, then bones far to near, each with a disc on its joint and the head's ring.
-    fn draw(&self, img: &mut Image, panel: Rect, t: usize) {
+    /// Ground line (with [`Figures::ticks`] under it when `ticks`), then bones far to near,
+    /// each with a disc on its joint and the head's ring.
+    fn draw(&self, img: &mut Image, panel: Rect, t: usize, ticks: bool) {
         let pts = &self.view.points[t * self.joints..(t + 1) * self.joints];
         let gy = panel.y0 + self.ground_row;
         let inset = panel.x1.saturating_sub(panel.x0) / 20;
@@ -574,6 +624,9 @@ impl<'a> Figures<'a> {
         );
         img.fill_rect(panel, ground, Ink::Ground);
         let centre = f64::from(panel.x0) + panel.width() / 2.0;
+        if ticks {
+            self.ticks(img, panel, ground, centre, pts[0][0]);
+        }
         let screen = |q: &Vec3| {
             [
                 centre + (q[0] - pts[0][0]) * self.scale,
@@ -597,6 +650,45 @@ impl<'a> Figures<'a> {
         }
     }
 
+    /// Tick marks hanging under the ground line `ground` at every [`TICK`] metres of the camera
+    /// axis `u` (the step doubled until ticks are at least 4 pixels apart), placed relative to
+    /// the pelvis at `pelvis_u`, which sits at column `centre`: they scroll as the figure moves.
+    fn ticks(&self, img: &mut Image, panel: Rect, ground: Rect, centre: f64, pelvis_u: f64) {
+        let mut step = TICK;
+        while step * self.scale < 4.0 && step.is_finite() {
+            step *= 2.0;
+        }
+        if !step.is_finite() {
+            return;
+        }
+        let metres = |x: u32| pelvis_u + (f64::from(x) - centre) / self.scale;
+        let (first, last) = (
+            (metres(ground.x0) / step).ceil(),
+            (metres(ground.x1) / step).floor(),
+        );
+        let width = f64::from(ground.y1 - ground.y0);
+        let top = f64::from(ground.y1);
+        let bottom = top + f64::from((panel.y1 - panel.y0) / 24).max(3.0);
+        let clip = Rect {
+            x0: ground.x0,
+            x1: ground.x1,
+            ..panel
+        };
+        // Counted, not stepped in floats: far from the origin `k + 1.0 == k`. Ticks are at
+        // least 4 pixels apart, so there are never more than the ground line is wide.
+        let count = (last - first + 1.0).clamp(0.0, f64::from(ground.x1 - ground.x0)) as u32;
+        for i in 0..count {
+            let x = centre + ((first + f64::from(i)) * step - pelvis_u) * self.scale;
+            let left = (x - width / 2.0).round();
+            img.paint(
+                clip,
+                [left, top, left + width, bottom],
+                Ink::Ground,
+                |_, _| true,
+            );
+        }
+    }
+
     /// The head's skull goes on along the line from the upper spine (the head joint's
     /// grandparent), not along the neck bone, which SMPL tilts forward.
     fn grandparent(&self, j: usize) -> usize {
@@ -614,40 +706,75 @@ fn beyond(from: [f64; 2], to: [f64; 2], dist: f64) -> [f64; 2] {
 
 /// The pelvis path from above, on a grid, with the drawn frames, start and end marked.
 fn draw_root_path(img: &mut Image, panel: Rect, root: &[[f64; 2]], frames: &[usize]) {
-    let (lo, hi) = root
-        .iter()
-        .fold(([f64::MAX; 2], [f64::MIN; 2]), |(lo, hi), r| {
-            (
-                [lo[0].min(r[0]), lo[1].min(r[1])],
-                [hi[0].max(r[0]), hi[1].max(r[1])],
-            )
-        });
-    let margin = (panel.width().min(panel.height()) / 12.0).max(8.0);
-    let extent = |k: usize| (hi[k] - lo[k]).max(1.0);
-    let scale = ((panel.width() - 2.0 * margin) / extent(0))
-        .min((panel.height() - 2.0 * margin) / extent(1));
-    let mid = [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0];
-    // On a pixel centre, so a level path is an odd number of rows thick, not jagged.
-    let centre = [
-        f64::from(panel.x0 + panel.x1 / 2 - panel.x0 / 2) + 0.5,
-        f64::from(panel.y0 + panel.y1 / 2 - panel.y0 / 2) + 0.5,
-    ];
-    let screen = |r: &[f64; 2]| {
-        [
-            centre[0] + (r[0] - mid[0]) * scale,
-            centre[1] - (r[1] - mid[1]) * scale,
-        ]
-    };
-    draw_grid(img, panel, centre, scale);
-    let line = (panel.height().min(panel.width()) / 160.0).max(1.0);
-    for pair in root.windows(2) {
-        img.capsule(panel, screen(&pair[0]), screen(&pair[1]), line, Ink::Path);
-    }
+    let map = PathMap::new(panel, root);
+    map.draw_path(img, root);
     for &t in frames {
-        img.disc(panel, screen(&root[t]), line + 1.5, Ink::Sample);
+        map.mark(img, &root[t], 1.5, Ink::Sample);
     }
-    img.disc(panel, screen(&root[0]), line + 3.0, Ink::Start);
-    img.disc(panel, screen(&root[root.len() - 1]), line + 3.0, Ink::End);
+    map.mark(img, &root[0], 3.0, Ink::Start);
+    map.mark(img, &root[root.len() - 1], 3.0, Ink::End);
+}
+
+/// The path panel's fit of the pelvis path: the path's extent (at least 1 m each way) centred
+/// in the panel inside a margin.
+struct PathMap {
+    panel: Rect,
+    /// Pixels per metre.
+    scale: f64,
+    /// The path's centre, metres, and where it lands, pixels.
+    mid: [f64; 2],
+    centre: [f64; 2],
+    /// The path line's radius, pixels.
+    line: f64,
+}
+
+impl PathMap {
+    fn new(panel: Rect, root: &[[f64; 2]]) -> PathMap {
+        let (lo, hi) = root
+            .iter()
+            .fold(([f64::MAX; 2], [f64::MIN; 2]), |(lo, hi), r| {
+                (
+                    [lo[0].min(r[0]), lo[1].min(r[1])],
+                    [hi[0].max(r[0]), hi[1].max(r[1])],
+                )
+            });
+        let margin = (panel.width().min(panel.height()) / 12.0).max(8.0);
+        let extent = |k: usize| (hi[k] - lo[k]).max(1.0);
+        let scale = ((panel.width() - 2.0 * margin) / extent(0))
+            .min((panel.height() - 2.0 * margin) / extent(1));
+        PathMap {
+            panel,
+            scale,
+            mid: [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0],
+            // On a pixel centre, so a level path is an odd number of rows thick, not jagged.
+            centre: [
+                f64::from(panel.x0 + panel.x1 / 2 - panel.x0 / 2) + 0.5,
+                f64::from(panel.y0 + panel.y1 / 2 - panel.y0 / 2) + 0.5,
+            ],
+            line: (panel.height().min(panel.width()) / 160.0).max(1.0),
+        }
+    }
+
+    fn screen(&self, r: &[f64; 2]) -> [f64; 2] {
+        [
+            self.centre[0] + (r[0] - self.mid[0]) * self.scale,
+            self.centre[1] - (r[1] - self.mid[1]) * self.scale,
+        ]
+    }
+
+    /// The grid, then the whole path in grey.
+    fn draw_path(&self, img: &mut Image, root: &[[f64; 2]]) {
+        draw_grid(img, self.panel, self.centre, self.scale);
+        for pair in root.windows(2) {
+            let (a, b) = (self.screen(&pair[0]), self.screen(&pair[1]));
+            img.capsule(self.panel, a, b, self.line, Ink::Path);
+        }
+    }
+
+    /// A dot of radius `line + grow` pixels at `r`.
+    fn mark(&self, img: &mut Image, r: &[f64; 2], grow: f64, ink: Ink) {
+        img.disc(self.panel, self.screen(r), self.line + grow, ink);
+    }
 }
 
 /// Grid lines every metre (doubled until they are at least 12 pixels apart) through the path
@@ -716,6 +843,295 @@ pub fn write_png(path: &Path, img: &Image) -> Result<()> {
     })
 }
 
+/// How an animated preview is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AnimationOptions {
+    /// Width of the side-view panel, pixels.
+    pub panel_width: u32,
+    /// Height of the frame (and width of the root-path panel), pixels.
+    pub panel_height: u32,
+    /// Frames per second of the GIF, in (0, 50]; 0 = the motion's own rate (one GIF frame per
+    /// motion frame). Other rates resample the motion (nearest frame).
+    pub fps: f32,
+    /// Write the motion's frame number in the side panel's corner.
+    pub labels: bool,
+}
+
+impl Default for AnimationOptions {
+    /// A 160 × 240 side panel and the 240 × 240 path panel (400 × 240 frames) at the motion's
+    /// own rate, labelled.
+    fn default() -> Self {
+        AnimationOptions {
+            panel_width: 160,
+            panel_height: 240,
+            fps: 0.0,
+            labels: true,
+        }
+    }
+}
+
+/// The frames of an animated preview, ready for [`encode_gif`]: every frame is a full image of
+/// the same size; frame `k` shows motion frame `source_frames()[k]` for `delays()[k]`
+/// centiseconds.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Animation {
+    frames: Vec<Image>,
+    delays: Vec<u16>,
+    source: Vec<usize>,
+    fps: f64,
+}
+
+impl Animation {
+    /// The frames, in order (at least one).
+    pub fn frames(&self) -> &[Image] {
+        &self.frames
+    }
+
+    /// Each frame's display time, centiseconds.
+    pub fn delays(&self) -> &[u16] {
+        &self.delays
+    }
+
+    /// The motion frame each frame shows.
+    pub fn source_frames(&self) -> &[usize] {
+        &self.source
+    }
+
+    /// The GIF's frame rate: [`AnimationOptions::fps`], or the motion's when that is 0.
+    pub fn fps(&self) -> f64 {
+        self.fps
+    }
+
+    pub fn width(&self) -> u32 {
+        self.frames[0].width
+    }
+
+    pub fn height(&self) -> u32 {
+        self.frames[0].height
+    }
+}
+
+/// Draws `poses` (recorded at `source_fps` frames per second) as an animation: each frame is
+/// the side view of one motion frame next to the top-down root path with the pelvis's current
+/// position marked; see the module doc. Errors on an empty motion, panels under 32 pixels,
+/// frames over 16384 pixels a side or 64 Mi pixels, more than 64 Mi pixels over all frames, a
+/// frame rate outside (0, 50] (or a `source_fps` that is not a positive finite number) and on
+/// non-finite joint positions.
+pub fn animate(poses: &Poses, source_fps: f32, opts: &AnimationOptions) -> Result<Animation> {
+    let n = poses.frames();
+    if n == 0 {
+        return Err(invalid_arg!("preview: the motion has no frames"));
+    }
+    let (pw, ph) = (opts.panel_width, opts.panel_height);
+    if pw < MIN_PANEL || ph < MIN_PANEL {
+        return Err(invalid_arg!(
+            "preview panel {pw}x{ph} is too small (at least {MIN_PANEL}x{MIN_PANEL} pixels)"
+        ));
+    }
+    let (width, height) = (u64::from(pw) + u64::from(ph), u64::from(ph));
+    if width > MAX_SIDE || height > MAX_SIDE || width * height > MAX_PIXELS {
+        return Err(invalid_arg!(
+            "preview animation frames would be {width}x{height} pixels; the limit is {MAX_SIDE} \
+             a side and {MAX_PIXELS} pixels (use smaller panels)"
+        ));
+    }
+    let source_fps = f64::from(source_fps);
+    if !(source_fps.is_finite() && source_fps > 0.0) {
+        return Err(invalid_arg!(
+            "preview: the motion's frame rate must be a positive number, got {source_fps}"
+        ));
+    }
+    let fps = f64::from(opts.fps);
+    let rate = if fps == 0.0 { source_fps } else { fps };
+    if !(rate.is_finite() && rate > 0.0 && rate <= MAX_FPS) {
+        let what = if fps == 0.0 {
+            format!("the motion's rate {rate} fps (set a GIF rate in (0, {MAX_FPS}])")
+        } else {
+            format!("{fps}")
+        };
+        return Err(invalid_arg!(
+            "preview animation fps must be in (0, {MAX_FPS}] (browsers slow down faster GIFs), \
+             got {what}"
+        ));
+    }
+    if 100.0 / rate > f64::from(u16::MAX) {
+        return Err(invalid_arg!(
+            "preview animation fps {rate} is too low: a GIF frame lasts at most 655.35 s"
+        ));
+    }
+    // An upper bound on the frame count, checked before anything is allocated.
+    let bound = if fps == 0.0 {
+        n as f64
+    } else {
+        (n as f64 * rate / source_fps).ceil() + 1.0
+    };
+    let frame_pixels = width * height;
+    if bound * frame_pixels as f64 > MAX_ANIMATION_PIXELS as f64 {
+        return Err(invalid_arg!(
+            "preview animation would be {bound} frames of {width}x{height} pixels; the limit is \
+             {MAX_ANIMATION_PIXELS} pixels over all frames (lower the fps or the panel size)"
+        ));
+    }
+    let source = if fps == 0.0 {
+        (0..n).collect()
+    } else {
+        resample(n, source_fps, rate)
+    };
+    let delays = delays(source.len(), rate);
+    let view = View::new(poses)?;
+    let all: Vec<usize> = (0..n).collect();
+    let figures = Figures::new(poses, &view, &all, pw, ph);
+    let side = Rect::new(0, 0, pw, ph);
+    let path = Rect::new(pw, 0, ph, ph);
+    // What does not move: the path panel with its start and end, and the separator.
+    let mut base = Image::new(width as u32, height as u32);
+    let map = PathMap::new(path, &view.root);
+    map.draw_path(&mut base, &view.root);
+    map.mark(&mut base, &view.root[0], 3.0, Ink::Start);
+    map.mark(&mut base, &view.root[n - 1], 3.0, Ink::End);
+    let all_pixels = Rect::new(0, 0, base.width, base.height);
+    base.fill_rect(all_pixels, Rect::new(pw, 0, 1, ph), Ink::Border);
+    let mut frames = Vec::with_capacity(source.len());
+    for &t in &source {
+        let mut img = base.clone();
+        figures.draw(&mut img, side, t, true);
+        if opts.labels {
+            img.number(side, [4, 4], t, (ph / 120).max(1), Ink::Label);
+        }
+        map.mark(&mut img, &view.root[t], 1.5, Ink::Sample);
+        frames.push(img);
+    }
+    Ok(Animation {
+        frames,
+        delays,
+        source,
+        fps: rate,
+    })
+}
+
+/// The motion frame shown by each GIF frame `k` at `fps`: `round(k · source_fps / fps)`, for
+/// as long as that is a frame of the motion's `frames`.
+fn resample(frames: usize, source_fps: f64, fps: f64) -> Vec<usize> {
+    let step = source_fps / fps;
+    (0usize..)
+        .map(|k| (k as f64 * step).round() as usize)
+        .take_while(|&t| t < frames)
+        .collect()
+}
+
+/// GIF delays of `count` frames at `fps`, centiseconds, rounded so the running total stays
+/// within half a centisecond of the true time: `round((k + 1)·100/fps) − round(k·100/fps)`.
+fn delays(count: usize, fps: f64) -> Vec<u16> {
+    let at = |k: usize| (k as f64 * 100.0 / fps).round();
+    (0..count).map(|k| (at(k + 1) - at(k)) as u16).collect()
+}
+
+/// The smallest rectangle holding every pixel where `a` and `b` differ; `None` if they are
+/// the same. Both images have the same size.
+fn changed(a: &Image, b: &Image) -> Option<Rect> {
+    let w = a.width as usize;
+    let mut found: Option<Rect> = None;
+    for (y, (ra, rb)) in a
+        .pixels
+        .chunks_exact(w)
+        .zip(b.pixels.chunks_exact(w))
+        .enumerate()
+    {
+        let Some(first) = ra.iter().zip(rb).position(|(p, q)| p != q) else {
+            continue;
+        };
+        let last = w
+            - 1
+            - ra.iter()
+                .zip(rb)
+                .rev()
+                .position(|(p, q)| p != q)
+                .unwrap_or(0);
+        let (x0, x1, y) = (first as u32, last as u32 + 1, y as u32);
+        found = Some(match found {
+            None => Rect {
+                x0,
+                y0: y,
+                x1,
+                y1: y + 1,
+            },
+            Some(r) => Rect {
+                x0: r.x0.min(x0),
+                y0: r.y0,
+                x1: r.x1.max(x1),
+                y1: y + 1,
+            },
+        });
+    }
+    found
+}
+
+/// The palette slot after the inks (GIF pads the palette to 16 colours): in every frame but the
+/// first, a pixel that did not change is this transparent index, so the frame below shows.
+const UNCHANGED: u8 = Ink::ALL.len() as u8;
+
+fn gif_error(e: gif::EncodingError) -> Error {
+    invalid_arg!("preview: GIF encoding failed: {e}")
+}
+
+/// The animation as a looping GIF: one global palette (the [`Ink`]s), the first frame whole,
+/// then each frame as the bounding box of the pixels that changed since the previous one
+/// (disposal "keep"), so what stands still costs nothing.
+pub fn encode_gif(anim: &Animation) -> Result<Vec<u8>> {
+    let palette: Vec<u8> = Ink::ALL.iter().flat_map(|i| i.rgb()).collect();
+    // `animate` keeps frames within 16384 pixels a side.
+    let (w, h) = (anim.width() as u16, anim.height() as u16);
+    let mut enc = gif::Encoder::new(Vec::new(), w, h, &palette).map_err(gif_error)?;
+    enc.set_repeat(gif::Repeat::Infinite).map_err(gif_error)?;
+    let mut prev: Option<&Image> = None;
+    for (img, &delay) in anim.frames.iter().zip(&anim.delays) {
+        let whole = Rect::new(0, 0, img.width, img.height);
+        // An unchanged frame still needs an image: one pixel, redrawn as it was.
+        let r = match prev {
+            None => whole,
+            Some(p) => changed(p, img).unwrap_or(Rect::new(0, 0, 1, 1)),
+        };
+        let mut buffer = Vec::with_capacity((r.x1 - r.x0) as usize * (r.y1 - r.y0) as usize);
+        for y in r.y0..r.y1 {
+            let row = y as usize * img.width as usize;
+            let cols = row + r.x0 as usize..row + r.x1 as usize;
+            let span = &img.pixels[cols.clone()];
+            match prev {
+                None => buffer.extend(span.iter().map(|&i| i as u8)),
+                Some(p) => buffer.extend(span.iter().zip(&p.pixels[cols]).map(|(&i, &q)| {
+                    if i == q {
+                        UNCHANGED
+                    } else {
+                        i as u8
+                    }
+                })),
+            }
+        }
+        let frame = gif::Frame {
+            delay,
+            dispose: gif::DisposalMethod::Keep,
+            left: r.x0 as u16,
+            top: r.y0 as u16,
+            width: (r.x1 - r.x0) as u16,
+            height: (r.y1 - r.y0) as u16,
+            transparent: prev.map(|_| UNCHANGED),
+            buffer: std::borrow::Cow::Owned(buffer),
+            ..gif::Frame::default()
+        };
+        enc.write_frame(&frame).map_err(gif_error)?;
+        prev = Some(img);
+    }
+    enc.into_inner().map_err(|e| gif_error(e.into()))
+}
+
+/// [`encode_gif`] written to `path`.
+pub fn write_gif(path: &Path, anim: &Animation) -> Result<()> {
+    std::fs::write(path, encode_gif(anim)?).map_err(|source| Error::Write {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
 /// CRC-32 (ISO-HDLC, reflected polynomial 0xEDB88320) as PNG chunks use it.
 fn crc32(bytes: &[u8]) -> u32 {
     !bytes.iter().fold(!0u32, |c, &b| {
@@ -768,6 +1184,39 @@ mod tests {
         assert_eq!(side_of("right_wrist"), Ink::Right);
         assert_eq!(side_of("Spine3"), Ink::Spine);
         assert_eq!(side_of("head"), Ink::Spine);
+    }
+
+    #[test]
+    fn resampling_picks_the_nearest_frame() {
+        assert_eq!(resample(6, 20.0, 10.0), [0, 2, 4]);
+        assert_eq!(resample(4, 20.0, 30.0), [0, 1, 1, 2, 3, 3]);
+        assert_eq!(resample(3, 20.0, 20.0), [0, 1, 2]);
+        assert_eq!(resample(1, 20.0, 1.0), [0]);
+    }
+
+    #[test]
+    fn delays_add_up_to_the_duration() {
+        assert_eq!(delays(4, 20.0), [5, 5, 5, 5]);
+        assert_eq!(delays(6, 30.0), [3, 4, 3, 3, 4, 3]);
+        assert_eq!(delays(4, 40.0), [3, 2, 3, 2]);
+        for fps in [7.0, 12.5, 24.0, 29.97, 50.0] {
+            let total: u32 = delays(1000, fps).iter().map(|&d| u32::from(d)).sum();
+            assert!((f64::from(total) - 100_000.0 / fps).abs() <= 0.5, "{fps}");
+        }
+    }
+
+    #[test]
+    fn changed_rectangle_bounds_every_difference() {
+        let a = Image::new(10, 6);
+        assert!(changed(&a, &a).is_none());
+        let mut b = a.clone();
+        b.pixels[2 * 10 + 7] = Ink::Left;
+        b.pixels[4 * 10 + 3] = Ink::Right;
+        let r = changed(&a, &b).unwrap();
+        assert_eq!((r.x0, r.y0, r.x1, r.y1), (3, 2, 8, 5));
+        b.pixels[9] = Ink::End;
+        let r = changed(&a, &b).unwrap();
+        assert_eq!((r.x0, r.y0, r.x1, r.y1), (3, 0, 10, 5));
     }
 
     #[test]
