@@ -23,7 +23,9 @@
 //!   LINEAR samplers at `fps`, times `t / fps` from 0: the root joint's translation (the pelvis's
 //!   world position) and every joint's rotation, parent-relative, as unit quaternions
 //!   `x, y, z, w`, sign-continuous along each track when the poses were decoded so
-//!   ([`super::ReadOptions::continuous`], the default).
+//!   ([`super::ReadOptions::continuous`], the default). A degenerate rotation (a 6D output
+//!   whose two vectors are parallel or zero, which clamped untrained models give) decodes to
+//!   a non-unit quaternion; the file holds it normalised.
 //! - **Joint translations** (`humanml263` only). HumanML3D's joint positions come from its own
 //!   position features, and its rotations (an IK without twist) only approximate them on the
 //!   rest skeleton (`humanml263`'s module doc). So that the file shows the motion the model
@@ -150,6 +152,22 @@ pub fn animation_name(prompt: &str) -> String {
         "motion".to_string()
     } else {
         name.to_string()
+    }
+}
+
+/// glTF rotations must be unit quaternions. Decoded rotations are, except where a model's 6D
+/// output is degenerate (two parallel or zero vectors, as a clamped untrained model can give):
+/// those are normalised, and a zero quaternion becomes the identity.
+fn normalize_quaternions(q: &mut [f32]) {
+    for q in q.chunks_exact_mut(4) {
+        let n = q.iter().map(|&v| v as f64 * v as f64).sum::<f64>().sqrt();
+        if (n - 1.0).abs() > 1e-6 {
+            if n > 1e-12 {
+                q.iter_mut().for_each(|v| *v = (*v as f64 / n) as f32);
+            } else {
+                q.copy_from_slice(&[0.0, 0.0, 0.0, 1.0]);
+            }
+        }
     }
 }
 
@@ -488,7 +506,8 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
         .collect();
     let input = buf.floats(&times, Kind::Scalar, None, true)?;
     let root = poses.layout(Layout::RootTranslation, conv)?;
-    let quats = poses.layout(Layout::LocalQuatXyzw, conv)?;
+    let mut quats = poses.layout(Layout::LocalQuatXyzw, conv)?;
+    normalize_quaternions(&mut quats);
     let translation = buf.floats(&root, Kind::Vec3, None, false)?;
     let mut samplers =
         vec![json!({ "input": input, "output": translation, "interpolation": "LINEAR" })];
@@ -861,6 +880,37 @@ mod tests {
             "a_person_waves_then_sits_down"
         );
         assert_eq!(doc["asset"]["version"], "2.0");
+    }
+
+    #[test]
+    fn degenerate_rotations_are_written_as_unit_quaternions() {
+        // Joint 5's 6D rows parallel (a clamped output), joint 6's zero.
+        let dim = Format::Smpl24Rot6d.feature_dim();
+        let mut x = vec![0.0f32; 2 * dim];
+        for t in 0..2 {
+            let row = &mut x[t * dim..(t + 1) * dim];
+            for j in 0..24 {
+                row[3 + 6 * j..9 + 6 * j].copy_from_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+            }
+            row[3 + 30..9 + 30].copy_from_slice(&[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]);
+            row[3 + 36..9 + 36].fill(0.0);
+        }
+        let poses = Poses::decode(Format::Smpl24Rot6d, &x, 2, &ReadOptions::default()).unwrap();
+        let raw = poses.layout(Layout::LocalQuatXyzw, Convention::Gltf).unwrap();
+        let norm = |q: &[f32]| q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!((norm(&raw[20..24]) - 1.0).abs() > 0.1, "joint 5 is degenerate");
+        let glb = to_glb(&poses, &GltfOptions::default()).unwrap();
+        let (doc, bin) = split(&glb);
+        let anim = &doc["animations"][0];
+        for c in anim["channels"].as_array().unwrap() {
+            if c["target"]["path"] == "rotation" {
+                let s = &anim["samplers"][c["sampler"].as_u64().unwrap() as usize];
+                let q = floats(&doc, bin, s["output"].as_u64().unwrap() as usize);
+                for q in q.chunks_exact(4) {
+                    assert!((norm(q) - 1.0).abs() < 1e-6, "{q:?}");
+                }
+            }
+        }
     }
 
     #[test]

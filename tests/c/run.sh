@@ -6,8 +6,8 @@
 # 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
 # 2. the CLI writes the reference features the tests must match bit for bit;
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
-#    against the shared and the static library, test_cancel (C11, shared) and test_cpp (C++17,
-#    shared), all with -Wall -Wextra -Werror, are built and run;
+#    against the shared and the static library, test_cancel (C11, shared), test_cpp and
+#    test_cpp_gltf (C++17, shared), all with -Wall -Wextra -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
 #    2 steps) and with FLAME_TEST_QUICK=1;
@@ -165,6 +165,7 @@ compile test_stages_shared gcc "${CFLAGS[@]}" tests/c/test_stages.c "${SHARED_LI
 compile test_stages_static gcc "${CFLAGS[@]}" tests/c/test_stages.c "${STATIC_LIBS[@]}"
 compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
+compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
 
 API_ARGS=("$MODEL" "$OUT/ref.npy" "$WORK")
 for kind in shared static; do
@@ -183,6 +184,8 @@ built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_sh
     "$OUT/test_cancel_shared" "$MODEL"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
     "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
+built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared)" "$OUT/test_cpp_gltf_shared.log" \
+    "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"
 
 # ---- 4. valgrind ---------------------------------------------------------------------------
 # No suppressions: memcheck reports no error and no definite or indirect leak from libflame,
@@ -220,6 +223,9 @@ if [ "$use_valgrind" = 1 ]; then
         built test_cpp_shared && run_test "test_cpp (shared, valgrind)" \
             "$OUT/test_cpp_valgrind.log" \
             "${VALGRIND[@]}" "$OUT/test_cpp_shared" "$MODEL" "${QUICK[@]}" 2
+        built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared, valgrind)" \
+            "$OUT/test_cpp_gltf_valgrind.log" \
+            "${VALGRIND[@]}" "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"
         unset FLAME_TEST_QUICK
     fi
 else
