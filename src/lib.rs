@@ -40,6 +40,8 @@ pub mod session;
 /// cbindgen:ignore
 pub mod stages;
 /// cbindgen:ignore
+pub mod stream;
+/// cbindgen:ignore
 pub mod targets;
 /// cbindgen:ignore
 pub mod text;

@@ -896,9 +896,14 @@ mod tests {
             row[3 + 36..9 + 36].fill(0.0);
         }
         let poses = Poses::decode(Format::Smpl24Rot6d, &x, 2, &ReadOptions::default()).unwrap();
-        let raw = poses.layout(Layout::LocalQuatXyzw, Convention::Gltf).unwrap();
+        let raw = poses
+            .layout(Layout::LocalQuatXyzw, Convention::Gltf)
+            .unwrap();
         let norm = |q: &[f32]| q.iter().map(|v| v * v).sum::<f32>().sqrt();
-        assert!((norm(&raw[20..24]) - 1.0).abs() > 0.1, "joint 5 is degenerate");
+        assert!(
+            (norm(&raw[20..24]) - 1.0).abs() > 0.1,
+            "joint 5 is degenerate"
+        );
         let glb = to_glb(&poses, &GltfOptions::default()).unwrap();
         let (doc, bin) = split(&glb);
         let anim = &doc["animations"][0];

@@ -29,13 +29,43 @@ const RIC: usize = 4;
 const ROT: usize = 67;
 const CONTACTS: usize = 259;
 
-/// Decodes de-normalised `[frames, 263]` features in the native (Y-up) frame.
-pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
+/// Where a decode's root path starts: the half-yaw θ and the planar (x, z) position of its
+/// first frame. [`RootStart::ORIGIN`] is the official start; a later one continues a motion
+/// whose earlier frames are not decoded (a stream's window).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct RootStart {
+    pub theta: f64,
+    pub planar: [f64; 2],
+}
+
+impl RootStart {
+    pub const ORIGIN: RootStart = RootStart {
+        theta: 0.0,
+        planar: [0.0; 2],
+    };
+
+    /// The start that frame `t` of `poses` (a humanml263 decode) had: θ from the root's world
+    /// rotation `R(q_root)ᵀ = Ry(−2θ)` (θ is only needed modulo π), the planar position from
+    /// the root.
+    pub fn at(poses: &Poses, t: usize) -> RootStart {
+        let g = &poses.global[t * poses.joint_count()];
+        // R(q_root) = gᵀ = Ry(2θ): R[0][2] = g[2][0] = sin 2θ, R[0][0] = cos 2θ.
+        let theta = 0.5 * g[2][0].atan2(g[0][0]);
+        RootStart {
+            theta,
+            planar: [poses.root[t][0], poses.root[t][2]],
+        }
+    }
+}
+
+/// Decodes de-normalised `[frames, 263]` features in the native (Y-up) frame, the root path
+/// starting at `start`.
+pub(crate) fn decode(x: &[f64], frames: usize, start: RootStart) -> Poses {
     let joints = Skeleton::humanml22().joint_count();
     let dim = Format::HumanMl263.feature_dim();
     let next = next_in_chain(joints);
     let mut poses = Poses::empty(Format::HumanMl263, frames);
-    let (r_root, root) = root_track(x, dim);
+    let (r_root, root) = root_track_from(x, dim, start);
     for (t, row) in x.chunks_exact(dim).enumerate() {
         let span = t * joints..(t + 1) * joints;
         poses.root[t] = root[t];
@@ -62,7 +92,12 @@ pub(crate) fn decode(x: &[f64], frames: usize) -> Poses {
 /// θ is the exclusive cumulative sum of dim 0 (half the yaw change); the planar velocity of frame
 /// t−1 is rotated into the world by `qinv(q_root[t])` and accumulated; the height is dim 3.
 pub(crate) fn root_track(x: &[f64], dim: usize) -> (Vec<Mat3>, Vec<Vec3>) {
-    let (mut theta, mut planar) = (0.0f64, [0.0f64; 2]);
+    root_track_from(x, dim, RootStart::ORIGIN)
+}
+
+/// [`root_track`] from another start.
+fn root_track_from(x: &[f64], dim: usize, start: RootStart) -> (Vec<Mat3>, Vec<Vec3>) {
+    let (mut theta, mut planar) = (start.theta, start.planar);
     let (mut rots, mut positions) = (Vec::new(), Vec::new());
     let mut prev: Option<&[f64]> = None;
     for row in x.chunks_exact(dim) {

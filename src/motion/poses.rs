@@ -71,6 +71,24 @@ impl Poses {
         frames: usize,
         opts: &ReadOptions,
     ) -> Result<Poses> {
+        Self::decode_from(
+            format,
+            features,
+            frames,
+            opts,
+            humanml263::RootStart::ORIGIN,
+        )
+    }
+
+    /// [`Poses::decode`] with humanml263's root path starting at `start` (ignored by formats
+    /// whose root is absolute).
+    pub(crate) fn decode_from(
+        format: Format,
+        features: &[f32],
+        frames: usize,
+        opts: &ReadOptions,
+        start: humanml263::RootStart,
+    ) -> Result<Poses> {
         let dim = format.feature_dim();
         let want = frames
             .checked_mul(dim)
@@ -101,7 +119,7 @@ impl Poses {
         postprocess::gaussian_smooth(&mut x, frames, dim, sigma as f64);
         let mut poses = match format {
             Format::Smpl24Rot6d => smpl24_6d::decode(&x, frames)?,
-            Format::HumanMl263 => humanml263::decode(&x, frames),
+            Format::HumanMl263 => humanml263::decode(&x, frames, start),
         };
         poses.continuous = opts.continuous;
         Ok(poses)
@@ -171,6 +189,26 @@ impl Poses {
             postprocess::make_continuous(&mut q, rotations.len() / joints.max(1), joints);
         }
         q
+    }
+
+    /// Frames `start..start + count` (which must exist).
+    pub(crate) fn frames_range(&self, start: usize, count: usize) -> Poses {
+        let j = self.joint_count();
+        let (a, b) = (start * j, (start + count) * j);
+        Poses {
+            format: self.format,
+            frames: count,
+            continuous: self.continuous,
+            root: self.root[start..start + count].to_vec(),
+            local: self.local[a..b].to_vec(),
+            global: self.global[a..b].to_vec(),
+            positions: self.positions[a..b].to_vec(),
+            contacts: if self.contacts.is_empty() {
+                Vec::new()
+            } else {
+                self.contacts[start..start + count].to_vec()
+            },
+        }
     }
 
     /// One layout, frame-major `f32` (shape in [`Layout`]'s documentation).

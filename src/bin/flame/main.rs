@@ -660,7 +660,12 @@ impl Outputs {
     fn new(o: &OutputArgs) -> Result<Outputs, String> {
         // A folder is named as such before its "extension" is judged.
         let given = [Some(&o.out), o.positions.as_ref()];
-        if let Some(dir) = given.into_iter().flatten().chain(&o.preview).find(|p| p.is_dir()) {
+        if let Some(dir) = given
+            .into_iter()
+            .flatten()
+            .chain(&o.preview)
+            .find(|p| p.is_dir())
+        {
             return Err(format!("cannot write {}: it is a folder", dir.display()));
         }
         let kind = match paths::extension(&o.out).as_deref() {

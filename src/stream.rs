@@ -1,0 +1,503 @@
+//! Continuous motion from a timeline of prompts: a [`Stream`] generates chunk after chunk, each
+//! one an edit that keeps the last `overlap` frames of what came before (the family's own
+//! editing algorithm, with its exact paste and blended seam) and generates the rest from the
+//! prompt of the segment it belongs to. The caller pushes segments at any time, moves the
+//! playhead, spends a bounded number of denoiser steps per [`Stream::pump`], and reads frames.
+//!
+//! # The timeline
+//!
+//! Segments follow each other on one timeline of frames: segment `i` covers `frames_i` frames
+//! from where segment `i − 1` ended. A chunk never spans two segments: it takes at most
+//! `chunk − overlap` new frames of one segment (`chunk` for the first chunk, which has nothing to
+//! keep). [`Stream::interrupt`] ends the current segment where the chunk being generated ends
+//! (or at the frames ready, when none is), so the next segment starts at that chunk boundary
+//! without waiting for the rest of the current one.
+//!
+//! # Root motion
+//!
+//! Every chunk is generated in a canonical frame: the kept frames are moved so that the first
+//! of them stands at the horizontal origin facing the format's native forward, and the chunk is
+//! moved back after. For `smpl24_6d` (absolute root translation and root rotation) this is an
+//! exact linear map of the root channels (a rotation about the world up axis and a horizontal
+//! shift); `humanml263` features are already relative to the root's heading and position, so
+//! its chunks need no change and its root path integrates across seams by itself. Each chunk's
+//! root path therefore starts where the previous one ended, in translation and heading.
+//!
+//! # Determinism
+//!
+//! A chunk's content depends only on the timeline (segments and interrupt positions), the
+//! kept frames and its seed (the stream's seed mixed with the chunk's index), never on how the
+//! work was spread over `pump` calls or on the thread count: the same segments pushed at the
+//! same frame positions give bit-identical frames.
+//!
+//! # Window
+//!
+//! Frames older than `window` frames before the playhead are dropped; reading them is an
+//! error naming the window, as is reading frames not generated yet (a status, never a wait).
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+
+use crate::error::{invalid_arg, Error, Result};
+use crate::models::Model;
+use crate::motion::humanml263::RootStart;
+use crate::motion::{Convention, Format, Layout, Poses};
+use crate::session::{Session, SessionParams, Which};
+
+/// One prompt on the timeline and how many frames it lasts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Segment {
+    pub prompt: String,
+    pub frames: usize,
+}
+
+impl Segment {
+    pub fn new(prompt: impl Into<String>, frames: usize) -> Segment {
+        Segment {
+            prompt: prompt.into(),
+            frames,
+        }
+    }
+}
+
+/// How a stream generates.
+#[derive(Clone, Debug)]
+pub struct StreamParams {
+    /// Frames per chunk (kept + new); 0 = the model's default frame count (at most its maximum).
+    pub chunk: usize,
+    /// Frames of the previous chunk each chunk keeps (default 20, 1 s at 20 fps).
+    pub overlap: usize,
+    /// Frames the stream keeps ready ahead of the playhead: `pump` generates while fewer are.
+    pub lookahead: usize,
+    /// Frames kept behind the playhead; older ones are dropped.
+    pub window: usize,
+    /// Steps, sampler, guidance, threads and seed of every chunk (`frames` is the stream's).
+    pub session: SessionParams,
+}
+
+impl Default for StreamParams {
+    fn default() -> Self {
+        StreamParams {
+            chunk: 0,
+            overlap: 20,
+            lookahead: 60,
+            window: 1200,
+            session: SessionParams::default(),
+        }
+    }
+}
+
+/// What a [`Stream::pump`] did and where the stream stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PumpReport {
+    /// Denoiser steps run by this call.
+    pub steps: usize,
+    /// Frames generated so far on the timeline (frames `0..ready` exist, minus the dropped).
+    pub ready: usize,
+    /// Fewer than `lookahead` frames are ready ahead of the playhead and no segment is left to
+    /// generate them from.
+    pub starving: bool,
+}
+
+/// A chunk being generated.
+struct Chunk {
+    session: Session,
+    /// Timeline frame of the chunk's first frame (kept frames first).
+    start: usize,
+    /// Frames kept from before.
+    kept: usize,
+    /// The canonical frame's change for `smpl24_6d` (identity otherwise).
+    frame: Rebase,
+}
+
+/// A heading change about the world up axis and a horizontal shift, applied to the root
+/// channels of absolute formats.
+#[derive(Clone, Copy, Debug)]
+struct Rebase {
+    cos: f64,
+    sin: f64,
+    shift: [f64; 2],
+}
+
+impl Rebase {
+    const IDENTITY: Rebase = Rebase {
+        cos: 1.0,
+        sin: 0.0,
+        shift: [0.0; 2],
+    };
+
+    /// The change that takes `row`'s root to the horizontal origin, facing the native forward
+    /// (−Y; `smpl24_6d` only: Z up, translation in channels 0..3, root rotation rows in 3..9).
+    fn canonical(row: &[f32]) -> Rebase {
+        // Forward = the root rotation's third column (body +Z); its horizontal direction is
+        // (R[0][2], R[1][2]) = channels 5 and 8.
+        let (fx, fy) = (row[5] as f64, row[8] as f64);
+        let heading = fy.atan2(fx);
+        let target = -std::f64::consts::FRAC_PI_2;
+        let (sin, cos) = if fx.hypot(fy) > 1e-9 {
+            (target - heading).sin_cos()
+        } else {
+            (0.0, 1.0)
+        };
+        let (x, y) = (row[0] as f64, row[1] as f64);
+        // p' = Rz (p − c): shift = −Rz c.
+        Rebase {
+            cos,
+            sin,
+            shift: [-(cos * x - sin * y), -(sin * x + cos * y)],
+        }
+    }
+
+    fn inverse(&self) -> Rebase {
+        // p = Rzᵀ (p' − shift).
+        let (c, s) = (self.cos, -self.sin);
+        let (x, y) = (-self.shift[0], -self.shift[1]);
+        Rebase {
+            cos: c,
+            sin: s,
+            shift: [c * x - s * y, s * x + c * y],
+        }
+    }
+
+    /// Applies the change to the root channels of `smpl24_6d` rows.
+    fn apply(&self, rows: &mut [f32], dim: usize) {
+        let (c, s) = (self.cos, self.sin);
+        for row in rows.chunks_exact_mut(dim) {
+            let (x, y) = (row[0] as f64, row[1] as f64);
+            row[0] = (c * x - s * y + self.shift[0]) as f32;
+            row[1] = (s * x + c * y + self.shift[1]) as f32;
+            // Root rotation R' = Rz·R: rows 0 and 1 mix, row 2 stays (6D holds rows 0 and 1).
+            for k in 0..3 {
+                let (a, b) = (row[3 + k] as f64, row[6 + k] as f64);
+                row[3 + k] = (c * a - s * b) as f32;
+                row[6 + k] = (s * a + c * b) as f32;
+            }
+        }
+    }
+}
+
+/// A motion that goes on as long as segments come (see the module doc).
+pub struct Stream {
+    model: Arc<Model>,
+    params: StreamParams,
+    chunk: usize,
+    /// Pushed segments not yet fully generated, with the frames of each already generated.
+    segments: VecDeque<(Segment, usize)>,
+    /// Model-space features of timeline frames `first..ready`, in the stream's own frame.
+    features: Vec<f32>,
+    first: usize,
+    playhead: usize,
+    /// Chunks finished so far (the next chunk's seed index).
+    chunks: u64,
+    current: Option<Chunk>,
+    /// Where the root path of the held frames starts (relative formats, once frames were
+    /// dropped).
+    anchor: RootStart,
+}
+
+impl Stream {
+    /// A stream over `model`. Fails when the model cannot keep frames of a reference (latent
+    /// models edit through position targets; their streams are not supported yet), or when the
+    /// chunk and overlap do not fit its frame range.
+    pub fn new(model: Arc<Model>, params: &StreamParams) -> Result<Stream> {
+        if model.is_latent() {
+            return Err(invalid_arg!(
+                "a stream keeps frames of the motion before each chunk; this {} model samples \
+                 a latent and cannot keep frames (streams over latent models are not supported)",
+                model.config().architecture
+            ));
+        }
+        let max = model.max_frames();
+        let chunk = match params.chunk {
+            0 => model.config().defaults.frames.min(max),
+            c => c,
+        };
+        if chunk > max {
+            return Err(invalid_arg!(
+                "chunk of {chunk} frames exceeds the model's {max}"
+            ));
+        }
+        if params.overlap == 0 || params.overlap >= chunk {
+            return Err(invalid_arg!(
+                "overlap {} must be in 1..{chunk} (the chunk's frames)",
+                params.overlap
+            ));
+        }
+        if params.session.frames.is_some() {
+            return Err(invalid_arg!(
+                "a stream's chunks set their own frame counts: leave SessionParams::frames unset"
+            ));
+        }
+        // Validate the rest of the session parameters now, not at the first chunk.
+        let probe = SessionParams {
+            frames: Some(chunk),
+            ..params.session.clone()
+        };
+        Session::new(Arc::clone(&model), &probe)?;
+        Ok(Stream {
+            model,
+            params: params.clone(),
+            chunk,
+            segments: VecDeque::new(),
+            features: Vec::new(),
+            first: 0,
+            playhead: 0,
+            chunks: 0,
+            current: None,
+            anchor: RootStart::ORIGIN,
+        })
+    }
+
+    pub fn model(&self) -> &Arc<Model> {
+        &self.model
+    }
+
+    /// Frames per chunk.
+    pub fn chunk_frames(&self) -> usize {
+        self.chunk
+    }
+
+    /// Appends a segment to the timeline.
+    pub fn push(&mut self, segment: Segment) -> Result<()> {
+        if segment.frames == 0 {
+            return Err(invalid_arg!("a segment needs at least one frame"));
+        }
+        self.segments.push_back((segment, 0));
+        Ok(())
+    }
+
+    /// Ends the current segment at the next chunk boundary (the end of the chunk being
+    /// generated, or the frames ready when none is), drops the segments queued after it and
+    /// pushes `segment` in their place.
+    pub fn interrupt(&mut self, segment: Segment) -> Result<()> {
+        if segment.frames == 0 {
+            return Err(invalid_arg!("a segment needs at least one frame"));
+        }
+        let in_flight = self
+            .current
+            .as_ref()
+            .map_or(0, |c| c.session.frames() - c.kept);
+        // The current segment ends with the frames generated or in flight; the queued ones
+        // after it are replaced by `segment`.
+        self.segments.truncate(1);
+        if let Some((seg, done)) = self.segments.front_mut() {
+            let end = *done + in_flight;
+            if end == 0 {
+                self.segments.clear();
+            } else {
+                seg.frames = end.min(seg.frames);
+            }
+        }
+        self.segments.push_back((segment, 0));
+        Ok(())
+    }
+
+    /// Moves the playhead (the frame being played); frames more than `window` before it are
+    /// dropped.
+    pub fn set_playhead(&mut self, frame: usize) -> Result<()> {
+        if frame > self.ready() {
+            return Err(invalid_arg!(
+                "playhead {frame} is past the {} frames generated",
+                self.ready()
+            ));
+        }
+        self.playhead = frame;
+        self.drop_old()?;
+        Ok(())
+    }
+
+    pub fn playhead(&self) -> usize {
+        self.playhead
+    }
+
+    /// Frames generated on the timeline so far.
+    pub fn ready(&self) -> usize {
+        self.first + self.features.len() / self.model.motion_dim()
+    }
+
+    /// The first frame still held (older ones were dropped).
+    pub fn first_frame(&self) -> usize {
+        self.first
+    }
+
+    /// Runs at most `max_steps` denoiser steps towards `lookahead` frames ahead of the
+    /// playhead, starting chunks as segments allow.
+    pub fn pump(&mut self, max_steps: usize) -> Result<PumpReport> {
+        let mut steps = 0;
+        while steps < max_steps {
+            if self.current.is_none() {
+                if self.ready() >= self.playhead + self.params.lookahead {
+                    break;
+                }
+                if !self.start_chunk()? {
+                    break;
+                }
+            }
+            let chunk = self.current.as_mut().expect("started above");
+            let left = chunk.session.step()?;
+            steps += 1;
+            if left == 0 {
+                self.finish_chunk()?;
+            }
+        }
+        Ok(self.report(steps))
+    }
+
+    fn report(&self, steps: usize) -> PumpReport {
+        let short = self.ready() < self.playhead + self.params.lookahead;
+        PumpReport {
+            steps,
+            ready: self.ready(),
+            starving: short && self.current.is_none() && self.segments.is_empty(),
+        }
+    }
+
+    /// Starts the next chunk of the first unfinished segment; `false` when there is none.
+    fn start_chunk(&mut self) -> Result<bool> {
+        while self
+            .segments
+            .front()
+            .is_some_and(|(s, done)| *done >= s.frames)
+        {
+            self.segments.pop_front();
+        }
+        let Some((seg, done)) = self.segments.front() else {
+            return Ok(false);
+        };
+        let dim = self.model.motion_dim();
+        let have = self.features.len() / dim;
+        let kept = self.params.overlap.min(have);
+        let new = (seg.frames - done).min(self.chunk - kept);
+        let frames = kept + new;
+        let params = SessionParams {
+            frames: Some(frames),
+            seed: chunk_seed(self.params.session.seed, self.chunks),
+            ..self.params.session.clone()
+        };
+        let mut session = Session::new(Arc::clone(&self.model), &params)?;
+        session.set_prompt(&seg.prompt)?;
+        let mut frame = Rebase::IDENTITY;
+        if kept > 0 {
+            let mut reference = self.features[(have - kept) * dim..].to_vec();
+            if self.model.motion_format() == Format::Smpl24Rot6d {
+                frame = Rebase::canonical(&reference[..dim]);
+                frame.apply(&mut reference, dim);
+            }
+            session.set_reference(&reference)?;
+            let mut keep = vec![false; frames * dim];
+            keep[..kept * dim].fill(true);
+            session.set_keep(keep)?;
+        }
+        self.current = Some(Chunk {
+            session,
+            start: self.ready() - kept,
+            kept,
+            frame,
+        });
+        Ok(true)
+    }
+
+    /// Appends the finished chunk's new frames, back in the stream's frame.
+    fn finish_chunk(&mut self) -> Result<()> {
+        let mut c = self.current.take().expect("a chunk is running");
+        let dim = self.model.motion_dim();
+        let (x, frames) = c.session.motion(Which::Sample)?;
+        debug_assert_eq!(c.start + c.kept, self.ready());
+        let mut new = x[c.kept * dim..frames * dim].to_vec();
+        if self.model.motion_format() == Format::Smpl24Rot6d {
+            c.frame.inverse().apply(&mut new, dim);
+        }
+        let added = frames - c.kept;
+        self.features.extend_from_slice(&new);
+        if let Some((_, done)) = self.segments.front_mut() {
+            *done += added;
+        }
+        self.chunks += 1;
+        Ok(())
+    }
+
+    /// Drops frames more than `window` before the playhead (keeping the overlap the next chunk
+    /// needs), re-anchoring relative formats.
+    fn drop_old(&mut self) -> Result<()> {
+        let dim = self.model.motion_dim();
+        let keep_from = self
+            .playhead
+            .saturating_sub(self.params.window)
+            .min(self.ready().saturating_sub(self.params.overlap));
+        if keep_from <= self.first {
+            return Ok(());
+        }
+        if self.model.motion_format() == Format::HumanMl263 {
+            self.anchor = RootStart::at(&self.decode()?, keep_from - self.first);
+        }
+        self.features.drain(..(keep_from - self.first) * dim);
+        self.first = keep_from;
+        Ok(())
+    }
+
+    /// The held frames decoded (native frame), anchored where the dropped frames left off.
+    fn decode(&self) -> Result<Poses> {
+        let dim = self.model.motion_dim();
+        let frames = self.features.len() / dim;
+        let opts = self.model.read_options(0.0, true);
+        let format = self.model.motion_format();
+        let poses = Poses::decode_from(format, &self.features, frames, &opts, self.anchor)?;
+        Ok(poses)
+    }
+
+    /// Poses of timeline frames `first..first + count`.
+    pub fn poses(&self, first: usize, count: usize) -> Result<Poses> {
+        self.check_range(first, count)?;
+        Ok(self.decode()?.frames_range(first - self.first, count))
+    }
+
+    /// Timeline frames `first..first + count` in one layout and convention.
+    pub fn read(
+        &self,
+        first: usize,
+        count: usize,
+        layout: Layout,
+        convention: Convention,
+    ) -> Result<Vec<f32>> {
+        self.poses(first, count)?.layout(layout, convention)
+    }
+
+    /// Model-space features of timeline frames `first..first + count` (for `smpl24_6d` in the
+    /// stream's frame: the root path continues across chunks).
+    pub fn features(&self, first: usize, count: usize) -> Result<&[f32]> {
+        self.check_range(first, count)?;
+        let dim = self.model.motion_dim();
+        let a = (first - self.first) * dim;
+        Ok(&self.features[a..a + count * dim])
+    }
+
+    fn check_range(&self, first: usize, count: usize) -> Result<()> {
+        let end = first
+            .checked_add(count)
+            .ok_or_else(|| invalid_arg!("frames {first} + {count} overflow"))?;
+        if first < self.first {
+            return Err(invalid_arg!(
+                "frames before {} were dropped (the stream keeps {} frames behind the playhead {})",
+                self.first,
+                self.params.window,
+                self.playhead
+            ));
+        }
+        if end > self.ready() {
+            return Err(Error::WrongState(format!(
+                "frames {first}..{end} are not generated yet ({} ready): pump more",
+                self.ready()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The seed of chunk `k`: the stream's seed and the index through splitmix64's finaliser, so
+/// neighbouring chunks draw unrelated noise.
+fn chunk_seed(seed: u64, k: u64) -> u64 {
+    let mut z = seed ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}

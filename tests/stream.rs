@@ -1,0 +1,289 @@
+//! `flame::stream`: continuous motion from a timeline of prompts, on the random-weight fixtures
+//! (FLAME's absolute smpl24_6d and MDM's relative humanml263) and, where assembled, the demo
+//! model: determinism under any pump pattern and thread count, the kept overlap and the root
+//! path continuing across seams, the window and its anchoring, interrupts, and bad input.
+
+use std::sync::Arc;
+
+mod common;
+
+use common::{demo_model, repo};
+use flame::models::Model;
+use flame::motion::{Convention, Layout};
+use flame::session::{Sampler, SessionParams};
+use flame::stream::{Segment, Stream, StreamParams};
+
+fn model(name: &str) -> Arc<Model> {
+    Arc::new(Model::load(repo(&format!("tests/fixtures/{name}.safetensors"))).unwrap())
+}
+
+fn params(threads: usize) -> StreamParams {
+    StreamParams {
+        chunk: 40,
+        overlap: 10,
+        lookahead: 1000,
+        window: 10_000,
+        session: SessionParams {
+            steps: Some(3),
+            sampler: Some(Sampler::Ddim),
+            seed: 5,
+            threads,
+            ..Default::default()
+        },
+    }
+}
+
+fn timeline(s: &mut Stream) {
+    s.push(Segment::new("a person walks forward.", 50)).unwrap();
+    s.push(Segment::new("a person waves.", 25)).unwrap();
+    s.push(Segment::new("a person sits down.", 40)).unwrap();
+}
+
+/// Pumps `s` `per_call` steps at a time until it stops making progress.
+fn run(s: &mut Stream, per_call: usize) -> usize {
+    let mut calls = 0;
+    loop {
+        let r = s.pump(per_call).unwrap();
+        calls += 1;
+        if r.steps == 0 {
+            return calls;
+        }
+    }
+}
+
+#[test]
+fn the_same_timeline_gives_the_same_bits_whatever_the_pump_pattern_and_threads() {
+    for name in ["flame_tiny", "mdm_tiny"] {
+        let m = model(name);
+        let mut a = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+        timeline(&mut a);
+        let calls = run(&mut a, 1);
+        let mut b = Stream::new(Arc::clone(&m), &params(2)).unwrap();
+        timeline(&mut b);
+        run(&mut b, usize::MAX);
+        assert_eq!(a.ready(), 115, "{name}");
+        assert_eq!(b.ready(), 115, "{name}");
+        // 50 = 40 + 10 new, 25 = 25, 40 = 30 + 10: five chunks of 3 steps.
+        assert_eq!(calls, 16, "{name}");
+        let (fa, fb) = (a.features(0, 115).unwrap(), b.features(0, 115).unwrap());
+        assert!(
+            fa.iter().zip(fb).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{name}"
+        );
+    }
+}
+
+/// Kept frames are the previous chunk's, exactly: the first `overlap` frames of every chunk
+/// after the first are not regenerated, so what the stream emitted stays as it was when the
+/// next chunk is appended.
+#[test]
+fn emitted_frames_do_not_change_when_the_next_chunk_lands() {
+    for name in ["flame_tiny", "mdm_tiny"] {
+        let m = model(name);
+        let mut s = Stream::new(m, &params(1)).unwrap();
+        s.push(Segment::new("a person walks forward.", 100))
+            .unwrap();
+        s.pump(3).unwrap();
+        assert_eq!(s.ready(), 40);
+        let before = s
+            .read(0, 40, Layout::GlobalPositions, Convention::Gltf)
+            .unwrap();
+        s.pump(3).unwrap();
+        assert_eq!(s.ready(), 70);
+        let after = s
+            .read(0, 40, Layout::GlobalPositions, Convention::Gltf)
+            .unwrap();
+        let worst = before
+            .iter()
+            .zip(&after)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-5, "{name}: {worst}");
+    }
+}
+
+/// Dropping frames behind the playhead re-anchors relative formats: the frames still held read
+/// the same as in a stream that dropped nothing.
+#[test]
+fn the_window_drops_old_frames_and_keeps_the_rest_in_place() {
+    for name in ["flame_tiny", "mdm_tiny"] {
+        let m = model(name);
+        let mut full = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+        timeline(&mut full);
+        run(&mut full, usize::MAX);
+        let mut p = params(1);
+        p.window = 20;
+        let mut short = Stream::new(m, &p).unwrap();
+        timeline(&mut short);
+        run(&mut short, usize::MAX);
+        short.set_playhead(90).unwrap();
+        assert_eq!(short.first_frame(), 70);
+        let e = short
+            .read(60, 10, Layout::RootTranslation, Convention::Native)
+            .unwrap_err();
+        assert!(e.to_string().contains("were dropped"), "{e}");
+        let a = full
+            .read(70, 45, Layout::GlobalPositions, Convention::Unity)
+            .unwrap();
+        let b = short
+            .read(70, 45, Layout::GlobalPositions, Convention::Unity)
+            .unwrap();
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{name}: {worst} m");
+        let q_full = full
+            .read(70, 45, Layout::GlobalQuatXyzw, Convention::Unity)
+            .unwrap();
+        let q_short = short
+            .read(70, 45, Layout::GlobalQuatXyzw, Convention::Unity)
+            .unwrap();
+        // The same rotations; signs may differ (each read makes its tracks sign-continuous from
+        // its own first frame).
+        let worst = q_full
+            .chunks_exact(4)
+            .zip(q_short.chunks_exact(4))
+            .map(|(x, y)| {
+                let diff = |sign: f32| {
+                    x.iter()
+                        .zip(y)
+                        .map(|(a, b)| (a - sign * b).abs())
+                        .fold(0.0f32, f32::max)
+                };
+                diff(1.0).min(diff(-1.0))
+            })
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{name}: quaternions {worst}");
+    }
+}
+
+#[test]
+fn interrupt_ends_the_segment_at_the_chunk_boundary() {
+    let m = model("mdm_tiny");
+    let mut s = Stream::new(m, &params(1)).unwrap();
+    s.push(Segment::new("a person walks forward.", 200))
+        .unwrap();
+    s.push(Segment::new("a person jumps.", 50)).unwrap();
+    s.pump(4).unwrap(); // chunk 1 done (40 frames), chunk 2 (30 new) one step in
+    assert_eq!(s.ready(), 40);
+    s.interrupt(Segment::new("a person sits down.", 20))
+        .unwrap();
+    run(&mut s, usize::MAX);
+    // The walk ends with the chunk in flight (40 + 30), the jump is dropped, the sit follows.
+    assert_eq!(s.ready(), 90);
+}
+
+#[test]
+fn the_lookahead_bounds_the_work_and_an_empty_timeline_starves() {
+    let m = model("flame_tiny");
+    let mut p = params(1);
+    p.lookahead = 45;
+    let mut s = Stream::new(m, &p).unwrap();
+    let r = s.pump(100).unwrap();
+    assert_eq!((r.steps, r.ready, r.starving), (0, 0, true));
+    s.push(Segment::new("a person walks forward.", 500))
+        .unwrap();
+    let r = s.pump(100).unwrap();
+    // Two chunks reach 70 >= 45 frames; then it waits for the playhead.
+    assert_eq!((r.steps, r.ready, r.starving), (6, 70, false));
+    assert_eq!(s.pump(100).unwrap().steps, 0);
+    s.set_playhead(30).unwrap();
+    assert_eq!(s.pump(100).unwrap().ready, 100);
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    let m = model("flame_tiny");
+    let mut s = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+    let e = s.push(Segment::new("a person walks.", 0)).unwrap_err();
+    assert!(e.to_string().contains("at least one frame"), "{e}");
+    s.push(Segment::new("a person walks.", 30)).unwrap();
+    s.pump(1).unwrap();
+    let e = s
+        .read(0, 10, Layout::RootTranslation, Convention::Native)
+        .unwrap_err();
+    assert!(matches!(e, flame::Error::WrongState(_)), "{e}");
+    assert!(e.to_string().contains("not generated yet"), "{e}");
+    assert!(s
+        .read(usize::MAX, 2, Layout::RootTranslation, Convention::Native)
+        .is_err());
+    let e = s.set_playhead(31).unwrap_err();
+    assert!(e.to_string().contains("past the"), "{e}");
+    for (chunk, overlap) in [(40, 0), (40, 40), (471, 10)] {
+        let p = StreamParams {
+            chunk,
+            overlap,
+            ..params(1)
+        };
+        assert!(
+            Stream::new(Arc::clone(&m), &p).is_err(),
+            "{chunk} {overlap}"
+        );
+    }
+    let p = StreamParams {
+        session: SessionParams {
+            frames: Some(10),
+            ..Default::default()
+        },
+        ..params(1)
+    };
+    assert!(Stream::new(Arc::clone(&m), &p).is_err());
+    let Err(e) = Stream::new(model("mld_tiny"), &params(1)) else {
+        panic!("a latent model made a stream");
+    };
+    assert!(e.to_string().contains("latent"), "{e}");
+}
+
+/// On the trained demo model: the root path continues across seams (no jump larger than the
+/// largest step inside the chunks) and the pelvis keeps moving smoothly.
+#[test]
+fn seams_of_the_demo_model_are_continuous() {
+    let Some(path) = demo_model() else {
+        return;
+    };
+    let m = Arc::new(Model::load(&path).unwrap());
+    let p = StreamParams {
+        chunk: 120,
+        overlap: 20,
+        lookahead: 10_000,
+        window: 10_000,
+        session: SessionParams {
+            steps: Some(20),
+            sampler: Some(Sampler::Ddim),
+            seed: 1,
+            threads: 2,
+            ..Default::default()
+        },
+    };
+    let mut s = Stream::new(m, &p).unwrap();
+    s.push(Segment::new("a person walks forward.", 200))
+        .unwrap();
+    s.push(Segment::new("a person jumps.", 100)).unwrap();
+    run(&mut s, usize::MAX);
+    let frames = s.ready();
+    assert_eq!(frames, 300);
+    let root = s
+        .read(0, frames, Layout::RootTranslation, Convention::Gltf)
+        .unwrap();
+    let step = |t: usize| {
+        (0..3)
+            .map(|k| (root[(t + 1) * 3 + k] - root[t * 3 + k]).powi(2))
+            .sum::<f32>()
+            .sqrt()
+    };
+    // Chunk seams (first new frame of each chunk after the first): 120, 220.
+    let seams = [119usize, 219];
+    let inside = (0..frames - 1)
+        .filter(|t| !seams.contains(t))
+        .map(step)
+        .fold(0.0f32, f32::max);
+    for &t in &seams {
+        assert!(
+            step(t) <= inside,
+            "seam at {t}: {} m vs {inside} m inside",
+            step(t)
+        );
+    }
+}
