@@ -208,6 +208,12 @@ typedef struct FlameModel FlameModel;
 // concurrently with another call.
 typedef struct FlameSession FlameSession;
 
+// A stream: a timeline of prompt segments, the frames generated from it and the chunk being
+// generated. Used by one thread at a time: a call while another thread is inside a call on the
+// same stream fails with `FLAME_STATUS_WRONG_STATE` instead of waiting. The stream keeps its
+// model alive.
+typedef struct FlameStream FlameStream;
+
 // Options of [`flame_model_load`]. Initialise with [`flame_model_params_default`].
 //
 // Version 1 of this struct ended after `threads` (8 bytes); a caller built against it passes
@@ -381,6 +387,55 @@ typedef struct FlameGltfParams {
   // session's prompt, sanitised, or `motion`.
   const char *name;
 } FlameGltfParams;
+
+// Settings of a stream. Initialise with [`flame_stream_params_default`]; zero (or a negative
+// `guidance`) means the default.
+typedef struct FlameStreamParams {
+  // `sizeof(FlameStreamParams)`.
+  uint32_t struct_size;
+  // Frames per chunk, the kept ones included; 0 = the model's default frame count (at most
+  // its maximum). More than `FlameModelInfo.max_frames` is `INVALID_ARGUMENT`.
+  uint32_t chunk;
+  // Frames of the motion so far each chunk keeps (and continues from): 1 to `chunk` − 1;
+  // 0 = default (20, one second at 20 fps).
+  uint32_t overlap;
+  // Frames [`flame_stream_pump`] keeps ready ahead of the playhead: it generates while fewer
+  // are; 0 = default (60).
+  uint32_t lookahead;
+  // Frames kept behind the playhead; older ones are dropped (reading them is
+  // `INVALID_ARGUMENT`); 0 = default (1200).
+  uint32_t window;
+  // Sampler steps of every chunk; 0 = model default.
+  uint32_t steps;
+  // A `FlameSampler` value.
+  int32_t sampler;
+  // Classifier-free guidance scale; negative = model default.
+  float guidance;
+  // Seed of the stream; each chunk's noise comes from it and the chunk's index.
+  uint64_t seed;
+  // Worker threads the stream creates and owns: 1 to `FLAME_MAX_THREADS`, or 0 =
+  // one per core (at most `FLAME_MAX_THREADS`); more is `INVALID_ARGUMENT`. The
+  // frames do not depend on it.
+  uint32_t threads;
+} FlameStreamParams;
+
+// Where a stream stands, from [`flame_stream_pump`] or [`flame_stream_status`]. Set
+// `struct_size = sizeof(FlameStreamStatus)` first.
+typedef struct FlameStreamStatus {
+  // Set by the caller to `sizeof(FlameStreamStatus)`.
+  uint32_t struct_size;
+  // Denoiser steps run by this pump (0 from [`flame_stream_status`]).
+  uint32_t steps;
+  // Frames generated on the timeline so far: frames `first_frame..ready` can be read.
+  uint64_t ready;
+  // The first frame still held (older ones were dropped).
+  uint64_t first_frame;
+  // The playhead ([`flame_stream_set_playhead`]).
+  uint64_t playhead;
+  // 1 when fewer than `lookahead` frames are ready ahead of the playhead and no pushed
+  // segment is left to generate them from: push more.
+  uint32_t starving;
+} FlameStreamStatus;
 
 #ifdef __cplusplus
 extern "C" {
@@ -781,6 +836,106 @@ const char *flame_last_error(void);
 
 // A static name for a status code, e.g. `"FLAME_STATUS_BAD_MODEL_FILE"`.
 const char *flame_status_string(int32_t status);
+
+// Fills `*params` with the defaults: the model's default frame count per chunk, 20 frames of
+// overlap, 60 of lookahead, a window of 1200, the model file's steps, sampler and guidance,
+// seed 0, one thread per core.
+//
+// # Safety
+// `params` points to writable memory for a `FlameStreamParams`.
+enum FlameStatus flame_stream_params_default(struct FlameStreamParams *params);
+
+// Starts a stream over `model` with an empty timeline. `params` may be NULL for the defaults.
+// `INVALID_ARGUMENT` when the model is latent (`FlameModelInfo.latent`: it cannot keep frames
+// of the motion before a chunk), when `chunk` exceeds the model's maximum frames, when
+// `overlap` is not below `chunk`, or for settings a session would refuse (sampler, threads).
+// Free it with [`flame_stream_free`].
+//
+// # Safety
+// `model` is a live model; `params` is NULL or a valid `FlameStreamParams`; `stream` points
+// to writable memory for a pointer.
+enum FlameStatus flame_stream_new(const struct FlameModel *model,
+                                  const struct FlameStreamParams *params,
+                                  struct FlameStream **stream);
+
+// Frees a stream and joins its worker threads; NULL is ignored.
+//
+// # Safety
+// `stream` is NULL or a live stream not in use by another thread.
+void flame_stream_free(struct FlameStream *stream);
+
+// Appends a segment to the timeline: `prompt` (UTF-8, NUL-terminated) for `frames` frames
+// (at least 1), starting where the segments before it end.
+//
+// # Safety
+// `stream` is a live stream; `prompt` a NUL-terminated string.
+enum FlameStatus flame_stream_push(struct FlameStream *stream, const char *prompt, uint32_t frames);
+
+// Ends the current segment at the next chunk boundary (the end of the chunk being generated,
+// or the frames ready when none is), drops the segments queued after it and appends `prompt`
+// for `frames` frames (at least 1) in their place: a change of action without waiting for the
+// rest of the current segment.
+//
+// # Safety
+// `stream` is a live stream; `prompt` a NUL-terminated string.
+enum FlameStatus flame_stream_interrupt(struct FlameStream *stream,
+                                        const char *prompt,
+                                        uint32_t frames);
+
+// Moves the playhead (the frame being played) to timeline frame `frame`, at most the frames
+// ready (`INVALID_ARGUMENT` past them). Frames more than `window` before it are dropped, and
+// [`flame_stream_pump`] keeps `lookahead` frames ready after it.
+//
+// # Safety
+// `stream` is a live stream.
+enum FlameStatus flame_stream_set_playhead(struct FlameStream *stream, uint64_t frame);
+
+// Runs at most `max_steps` denoiser steps (`UINT32_MAX`: as many as needed) towards
+// `lookahead` frames ready ahead of the playhead, starting chunks as the pushed segments
+// allow; it returns early when that many are ready or no segment is left. A chunk's frames
+// become readable when its last step has run. `*status` (may be NULL; set its `struct_size`
+// first) receives the steps run and where the stream stands. The frames do not depend on how
+// the steps are spread over calls.
+//
+// # Safety
+// `stream` is a live stream; `status` is NULL or points to a writable `FlameStreamStatus`.
+enum FlameStatus flame_stream_pump(struct FlameStream *stream,
+                                   uint32_t max_steps,
+                                   struct FlameStreamStatus *status);
+
+// Where the stream stands, without running a step (`steps` is 0).
+//
+// # Safety
+// `stream` is a live stream; `status` points to a writable `FlameStreamStatus` whose
+// `struct_size` is set.
+enum FlameStatus flame_stream_status(const struct FlameStream *stream,
+                                     struct FlameStreamStatus *status);
+
+// Reads timeline frames `first_frame..first_frame + count` in a [`FlameLayout`] (0 = the
+// model's features, in the stream's frame: the root path continues across chunks), converted
+// to a `FlameConvention` (ignored for features). `flags` must be 0: the read flags of
+// sessions (`FLAME_READ_SMOOTH`, `FLAME_READ_RAW_SIGNS`) are not supported
+// by streams, whose quaternion tracks are always sign-continuous.
+//
+// Frames not generated yet are `WRONG_STATE` (pump more); frames dropped behind the playhead
+// are `INVALID_ARGUMENT` (the message names the window). The length protocol is
+// `flame_session_read`'s: with `out` NULL, `*out_len` receives the required number
+// of floats and nothing else is done; otherwise `len` must be at least that
+// (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to the required length) and `*out_len`
+// receives the number written.
+//
+// # Safety
+// `stream` is a live stream; `out` is NULL or points to `len` writable floats; `out_len`
+// points to a writable `size_t`.
+enum FlameStatus flame_stream_read(const struct FlameStream *stream,
+                                   uint64_t first_frame,
+                                   uint32_t count,
+                                   int32_t layout,
+                                   int32_t convention,
+                                   uint32_t flags,
+                                   float *out,
+                                   size_t len,
+                                   size_t *out_len);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -9,6 +9,7 @@
 mod errors;
 mod handles;
 mod poses;
+mod stream;
 
 use std::ffi::{c_char, c_void, CStr};
 use std::sync::atomic::Ordering;
@@ -25,6 +26,11 @@ pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
+pub use stream::{
+    flame_stream_free, flame_stream_interrupt, flame_stream_new, flame_stream_params_default,
+    flame_stream_pump, flame_stream_push, flame_stream_read, flame_stream_set_playhead,
+    flame_stream_status, FlameStream, FlameStreamParams, FlameStreamStatus,
+};
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
 pub const FLAME_ABI_VERSION: u32 = 2;
