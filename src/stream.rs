@@ -17,9 +17,9 @@
 //!
 //! Every chunk is generated in a canonical frame: the kept frames are moved so that the first
 //! of them stands at the horizontal origin facing the format's native forward, and the chunk is
-//! moved back after. For `smpl24_6d` (absolute root translation and root rotation) this is an
-//! exact linear map of the root channels (a rotation about the world up axis and a horizontal
-//! shift); `humanml263` features are already relative to the root's heading and position, so
+//! moved back after. For `smpl24_6d` (absolute root translation and root rotation) this is a
+//! linear map of the root channels in the format's units (a rotation about the world up axis
+//! and a horizontal shift; a normalised model's channels are de-normalised around it); `humanml263` features are already relative to the root's heading and position, so
 //! its chunks need no change and its root path integrates across seams by itself. Each chunk's
 //! root path therefore starts where the previous one ended, in translation and heading.
 //!
@@ -380,8 +380,11 @@ impl Stream {
         if kept > 0 {
             let mut reference = self.features[(have - kept) * dim..].to_vec();
             if self.model.motion_format() == Format::Smpl24Rot6d {
-                frame = Rebase::canonical(&reference[..dim]);
-                frame.apply(&mut reference, dim);
+                let mut first = reference[..dim].to_vec();
+                self.root_channels(&mut first, |rows| {
+                    frame = Rebase::canonical(rows);
+                });
+                self.root_channels(&mut reference, |rows| frame.apply(rows, dim));
             }
             session.set_reference(&reference)?;
             let mut keep = vec![false; frames * dim];
@@ -405,7 +408,8 @@ impl Stream {
         debug_assert_eq!(c.start + c.kept, self.ready());
         let mut new = x[c.kept * dim..frames * dim].to_vec();
         if self.model.motion_format() == Format::Smpl24Rot6d {
-            c.frame.inverse().apply(&mut new, dim);
+            let back = c.frame.inverse();
+            self.root_channels(&mut new, |rows| back.apply(rows, dim));
         }
         let added = frames - c.kept;
         self.features.extend_from_slice(&new);
@@ -414,6 +418,29 @@ impl Stream {
         }
         self.chunks += 1;
         Ok(())
+    }
+
+    /// Runs `f` on `rows` with the root channels (0..9: translation and root rotation rows) in
+    /// the format's own units: a normalised model's features are de-normalised around it.
+    fn root_channels(&self, rows: &mut [f32], f: impl FnOnce(&mut [f32])) {
+        const ROOT: usize = 9;
+        let dim = self.model.motion_dim();
+        let opts = self.model.read_options(0.0, true);
+        let Some(norm) = opts.normalization else {
+            return f(rows);
+        };
+        let (mean, std) = (&norm.mean[..ROOT], &norm.std[..ROOT]);
+        for row in rows.chunks_exact_mut(dim) {
+            for c in 0..ROOT {
+                row[c] = (row[c] as f64 * std[c] as f64 + mean[c] as f64) as f32;
+            }
+        }
+        f(rows);
+        for row in rows.chunks_exact_mut(dim) {
+            for c in 0..ROOT {
+                row[c] = ((row[c] as f64 - mean[c] as f64) / std[c] as f64) as f32;
+            }
+        }
     }
 
     /// Drops frames more than `window` before the playhead (keeping the overlap the next chunk

@@ -624,6 +624,25 @@ static void test_gltf(const FlameModel *m) {
     for (uint32_t t = 0; t < ref_frames; t++) {
         memcpy(track + 4 * t, quat + 4 * joints * t, 4 * sizeof(float));
     }
+    /* glTF needs unit quaternions: a degenerate rotation (parallel or zero 6D vectors, which this
+     * clamped random-weight model outputs) is normalised in the file, in double as here. */
+    int degenerate = 0;
+    for (uint32_t t = 0; t < ref_frames; t++) {
+        float *q = track + 4 * t;
+        double n = 0.0;
+        for (int k = 0; k < 4; k++) {
+            n += (double)q[k] * (double)q[k];
+        }
+        n = sqrt(n);
+        if (fabs(n - 1.0) > 1e-6) {
+            degenerate++;
+            for (int k = 0; k < 4; k++) {
+                q[k] = n > 1e-12 ? (float)((double)q[k] / n) : (k == 3 ? 1.0f : 0.0f);
+            }
+        }
+    }
+    printf("  glTF: %d of %u root rotations degenerate (normalised in the file)\n", degenerate,
+           ref_frames);
     size_t bin_len = le32(bin);
     CHECK(memmem(bin + 8, bin_len, root, rn * sizeof(float)) != NULL);
     CHECK(memmem(bin + 8, bin_len, track, (size_t)ref_frames * 4 * sizeof(float)) != NULL);
