@@ -38,6 +38,8 @@ __all__ = [
     "PromptTruncatedWarning",
     "Session",
     "Stage",
+    "Stream",
+    "StreamStatus",
     "Status",
     "Sampler",
     "Which",
@@ -368,6 +370,32 @@ class _GltfParams(ctypes.Structure):
     ]
 
 
+class _StreamParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("chunk", ctypes.c_uint32),
+        ("overlap", ctypes.c_uint32),
+        ("lookahead", ctypes.c_uint32),
+        ("window", ctypes.c_uint32),
+        ("steps", ctypes.c_uint32),
+        ("sampler", ctypes.c_int32),
+        ("guidance", ctypes.c_float),
+        ("seed", ctypes.c_uint64),
+        ("threads", ctypes.c_uint32),
+    ]
+
+
+class _StreamStatus(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("steps", ctypes.c_uint32),
+        ("ready", ctypes.c_uint64),
+        ("first_frame", ctypes.c_uint64),
+        ("playhead", ctypes.c_uint64),
+        ("starving", ctypes.c_uint32),
+    ]
+
+
 _ProgressCallback = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32)
 
 _P = ctypes.c_void_p  # opaque FlameModel* / FlameSession*
@@ -440,6 +468,18 @@ def _signatures():
             _status,
             [_P, i32, ctypes.POINTER(_GltfParams), ctypes.POINTER(ctypes.c_uint8), size_t,
              ctypes.POINTER(size_t)],
+        ),
+        "flame_stream_params_default": (_status, [ctypes.POINTER(_StreamParams)]),
+        "flame_stream_new": (_status, [_P, ctypes.POINTER(_StreamParams), ctypes.POINTER(_P)]),
+        "flame_stream_free": (None, [_P]),
+        "flame_stream_push": (_status, [_P, ctypes.c_char_p, u32]),
+        "flame_stream_interrupt": (_status, [_P, ctypes.c_char_p, u32]),
+        "flame_stream_set_playhead": (_status, [_P, ctypes.c_uint64]),
+        "flame_stream_pump": (_status, [_P, u32, ctypes.POINTER(_StreamStatus)]),
+        "flame_stream_status": (_status, [_P, ctypes.POINTER(_StreamStatus)]),
+        "flame_stream_read": (
+            _status,
+            [_P, ctypes.c_uint64, u32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
         ),
         "flame_session_sample_shape": (_status, [_P, pu32, pu32]),
         "flame_session_read_frames": (_status, [_P, i32, pu32]),
@@ -793,6 +833,133 @@ def edit_params_default() -> EditParams:
     return EditParams(raw.method, edit_till, bool(raw.paste), raw.seam_frames)
 
 ProgressFn = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class StreamStatus:
+    """What Stream.pump did (steps) and where the stream stands: frames first_frame..ready
+    can be read; starving = fewer than lookahead frames ahead of the playhead and nothing left
+    to generate them from (push more)."""
+    steps: int
+    ready: int
+    first_frame: int
+    playhead: int
+    starving: bool
+
+
+class Stream:
+    """Continuous motion from a timeline of prompts (flame_stream_*, README "Streams"): push
+    segments, pump a bounded number of denoiser steps at a time, move the playhead, read
+    frames. Latent models cannot stream. Methods raise FlameError when libflame reports a
+    failure (frames not generated yet: Status.WRONG_STATE; dropped: INVALID_ARGUMENT)."""
+
+    def __init__(self, model: "Model", *, chunk: int = 0, overlap: int = 0, lookahead: int = 0,
+                 window: int = 0, steps: int = 0, sampler: Union[None, str, int] = None,
+                 guidance: Optional[float] = None, seed: int = 0, threads: int = 0):
+        self._handle: Optional[int] = None
+        self._lock = threading.RLock()
+        info = model.info
+        p = _StreamParams()
+        _check(_lib().flame_stream_params_default(ctypes.byref(p)))
+        for name, value in (("chunk", chunk), ("overlap", overlap), ("lookahead", lookahead),
+                            ("window", window), ("steps", steps), ("threads", threads)):
+            if value:
+                setattr(p, name, _uint32(name, value))
+        if isinstance(sampler, str) or sampler is None:
+            key = sampler.lower() if isinstance(sampler, str) else None
+            if key not in _SAMPLERS:
+                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
+            p.sampler = _SAMPLERS[key]
+        else:
+            p.sampler = int(sampler)
+        p.guidance = -1.0 if guidance is None else guidance
+        p.seed = seed
+        out = _P()
+        _check(_lib().flame_stream_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
+        self._handle = out.value
+        self._model = model  # the stream keeps its model alive; this keeps the Python object
+        self.feature_dim = info.feature_dim
+        self.joint_count = info.joint_count
+
+    def _h(self) -> int:
+        if self._handle is None:
+            raise ValueError("the stream is closed")
+        return self._handle
+
+    @staticmethod
+    def _text(prompt: str) -> bytes:
+        if "\0" in prompt:
+            raise ValueError("prompt contains a NUL character")
+        return prompt.encode("utf-8")
+
+    def push(self, prompt: str, frames: int) -> None:
+        """Appends a segment of `frames` frames to the timeline."""
+        with self._lock:
+            _check(_lib().flame_stream_push(self._h(), self._text(prompt), _uint32("frames", frames)))
+
+    def interrupt(self, prompt: str, frames: int) -> None:
+        """Ends the current segment at the next chunk boundary and replaces the queued ones."""
+        with self._lock:
+            _check(_lib().flame_stream_interrupt(self._h(), self._text(prompt),
+                                                 _uint32("frames", frames)))
+
+    def set_playhead(self, frame: int) -> None:
+        with self._lock:
+            _check(_lib().flame_stream_set_playhead(self._h(), frame))
+
+    @staticmethod
+    def _status(raw: _StreamStatus) -> StreamStatus:
+        return StreamStatus(raw.steps, raw.ready, raw.first_frame, raw.playhead, bool(raw.starving))
+
+    def pump(self, max_steps: int = 0xFFFFFFFF) -> StreamStatus:
+        """Runs at most `max_steps` denoiser steps towards the lookahead."""
+        raw = _StreamStatus(struct_size=ctypes.sizeof(_StreamStatus))
+        with self._lock:
+            _check(_lib().flame_stream_pump(self._h(), _uint32("max_steps", max_steps),
+                                            ctypes.byref(raw)))
+        return self._status(raw)
+
+    def status(self) -> StreamStatus:
+        raw = _StreamStatus(struct_size=ctypes.sizeof(_StreamStatus))
+        with self._lock:
+            _check(_lib().flame_stream_status(self._h(), ctypes.byref(raw)))
+        return self._status(raw)
+
+    def read(self, first_frame: int, count: int, layout: int, convention: int = 0) -> np.ndarray:
+        """Timeline frames first_frame..first_frame+count as float32, [count, ...] as the layout
+        says (Layout.FEATURES: model-space features)."""
+        lib = _lib()
+        n = ctypes.c_size_t()
+        count = _uint32("count", count)
+        with self._lock:
+            h = self._h()
+            _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0, None, 0,
+                                         ctypes.byref(n)))
+            out = np.empty(n.value, dtype=np.float32)
+            _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0,
+                                         _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)))
+        trailing = _LAYOUT_SHAPES.get(layout, lambda d, j: (-1,))(self.feature_dim, self.joint_count)
+        if count and -1 not in trailing and out.size == count * int(np.prod(trailing)):
+            return out.reshape((count,) + trailing)
+        return out.reshape(count, -1) if count else out
+
+    def close(self) -> None:
+        with self._lock:
+            handle, self._handle = self._handle, None
+            if handle is not None:
+                _lib().flame_stream_free(handle)
+
+    def __enter__(self) -> "Stream":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
 
 
 class Session:
