@@ -157,7 +157,7 @@ fn bad_arguments_fail_before_sampling() {
     let cases: [(Vec<String>, &str); 6] = [
         (
             vec!["--out".into(), out("m.txt")],
-            "--out must end in .npy, .bvh or .json",
+            "--out must end in .npy, .bvh, .json, .glb or .gltf",
         ),
         (
             vec![
