@@ -261,6 +261,46 @@ namespace Flame
         }
     }
 
+    /// <summary>How a stream generates (flame_stream_params_default): 0 = the default for every
+    /// count, a negative guidance = the model's.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameStreamParams
+    {
+        public uint struct_size;
+        public uint chunk;
+        public uint overlap;
+        public uint lookahead;
+        public uint window;
+        public uint steps;
+        /// <summary>A FlameSampler value.</summary>
+        public int sampler;
+        public float guidance;
+        public ulong seed;
+        public uint threads;
+
+        /// <summary>The library's defaults.</summary>
+        public static FlameStreamParams Default()
+        {
+            FlameStreamParams p;
+            FlameException.Check(FlameNative.flame_stream_params_default(out p));
+            return p;
+        }
+    }
+
+    /// <summary>What a pump did and where a stream stands: frames FirstFrame..Ready can be read.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameStreamStatus
+    {
+        public uint struct_size;
+        public uint steps;
+        public ulong ready;
+        public ulong first_frame;
+        public ulong playhead;
+        /// <summary>1: fewer than lookahead frames ready ahead of the playhead and nothing left
+        /// to generate them from (push more).</summary>
+        public uint starving;
+    }
+
     /// <summary>Mirror of the C struct FlameSessionParams. Start from Default(): zero frames or
     /// steps, sampler Default, a negative eta or guidance and a null respacing mean "the model
     /// file's default".</summary>
@@ -463,6 +503,91 @@ namespace Flame
         }
     }
 
+    /// <summary>Owns a FlameStream*; releasing it calls flame_stream_free.</summary>
+    public sealed class FlameStreamHandle : SafeHandle
+    {
+        public FlameStreamHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_stream_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Continuous motion from a timeline of prompts (README "Streams"): Push segments,
+    /// Pump a bounded number of denoiser steps per call, move the playhead, Read frames. Frames
+    /// not generated yet throw with WrongState, dropped ones with InvalidArgument; latent models
+    /// cannot stream.</summary>
+    public sealed class FlameStream : IDisposable
+    {
+        public FlameStreamHandle Handle { get; private set; }
+
+        FlameStream(FlameStreamHandle h) { Handle = h; }
+
+        public static FlameStream Create(FlameModel model, FlameStreamParams? p = null)
+        {
+            if (model == null)
+                throw new ArgumentNullException("model");
+            var q = p ?? FlameStreamParams.Default();
+            q.struct_size = (uint)Marshal.SizeOf(typeof(FlameStreamParams));
+            FlameStreamHandle h;
+            FlameException.Check(FlameNative.flame_stream_new(model.Handle, ref q, out h));
+            return new FlameStream(h);
+        }
+
+        public void Push(string prompt, int frames)
+        {
+            if (prompt == null)
+                throw new ArgumentNullException("prompt");
+            if (frames < 0)
+                throw new ArgumentOutOfRangeException("frames");
+            FlameException.Check(FlameNative.flame_stream_push(Handle, FlameNative.Utf8Z(prompt), (uint)frames));
+        }
+
+        /// <summary>Ends the current segment at the next chunk boundary, replacing the queued ones.</summary>
+        public void Interrupt(string prompt, int frames)
+        {
+            if (prompt == null)
+                throw new ArgumentNullException("prompt");
+            if (frames < 0)
+                throw new ArgumentOutOfRangeException("frames");
+            FlameException.Check(FlameNative.flame_stream_interrupt(Handle, FlameNative.Utf8Z(prompt), (uint)frames));
+        }
+
+        public void SetPlayhead(ulong frame)
+        {
+            FlameException.Check(FlameNative.flame_stream_set_playhead(Handle, frame));
+        }
+
+        public FlameStreamStatus Pump(uint maxSteps)
+        {
+            var st = new FlameStreamStatus { struct_size = (uint)Marshal.SizeOf(typeof(FlameStreamStatus)) };
+            FlameException.Check(FlameNative.flame_stream_pump(Handle, maxSteps, ref st));
+            return st;
+        }
+
+        public FlameStreamStatus Status()
+        {
+            var st = new FlameStreamStatus { struct_size = (uint)Marshal.SizeOf(typeof(FlameStreamStatus)) };
+            FlameException.Check(FlameNative.flame_stream_status(Handle, ref st));
+            return st;
+        }
+
+        /// <summary>Timeline frames firstFrame..firstFrame+count in a layout and convention,
+        /// frame-major (layout 0: model-space features).</summary>
+        public float[] Read(ulong firstFrame, uint count, int layout, int convention)
+        {
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_stream_read(Handle, firstFrame, count, layout, convention, 0, null, UIntPtr.Zero, out n));
+            var output = new float[(int)n];
+            FlameException.Check(FlameNative.flame_stream_read(Handle, firstFrame, count, layout, convention, 0, output, n, out n));
+            return output;
+        }
+
+        public void Dispose() { Handle.Dispose(); }
+    }
+
     /// <summary>Every function of include/flame.h. Status-returning functions return the raw
     /// status; wrap them in FlameException.Check right away (the message is per thread and valid
     /// only until the next libflame call on it).</summary>
@@ -599,6 +724,35 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_read(FlameSessionHandle session, int which, int layout, int convention, uint flags,
                                                             [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_params_default(out FlameStreamParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_new(FlameModelHandle model, ref FlameStreamParams p, out FlameStreamHandle stream);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_stream_free(IntPtr stream);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_push(FlameStreamHandle stream, byte[] prompt, uint frames);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_interrupt(FlameStreamHandle stream, byte[] prompt, uint frames);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_set_playhead(FlameStreamHandle stream, ulong frame);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_pump(FlameStreamHandle stream, uint maxSteps, ref FlameStreamStatus status);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_status(FlameStreamHandle stream, ref FlameStreamStatus status);
+
+        /// <param name="output">NULL (null) to query the length into outLen.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_read(FlameStreamHandle stream, ulong firstFrame, uint count, int layout, int convention, uint flags,
+                                                           [Out] float[] output, UIntPtr len, out UIntPtr outLen);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_gltf_params_default(out FlameGltfParams p);

@@ -79,6 +79,7 @@ static class FlameTest
             Run("EditOtherFamilies", TestEditOtherFamilies);
             Run("PromptStages", TestPromptStages);
             Run("PromptStageErrors", TestPromptStageErrors);
+            Run("Stream", TestStream);
             Run("FineMoGenStages", TestFineMoGenStages);
             Run("PositionTargets", TestPositionTargets);
             Run("PositionTargetErrors", TestPositionTargetErrors);
@@ -1410,6 +1411,31 @@ static class FlameTest
                 Throws(FlameStatus.WrongState, "prompt", () => s.Step());
             }
         }
+    }
+
+    // A stream over the FLAME fixture: two segments, everything pumped, reads and errors.
+    static void TestStream()
+    {
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        var p = FlameStreamParams.Default();
+        Check(p.overlap == 20 && p.lookahead == 60 && p.window == 1200 && p.chunk == 0, "stream defaults");
+        p.chunk = 40; p.overlap = 10; p.steps = 2; p.lookahead = 100000; p.sampler = (int)FlameSampler.Ddim;
+        using (var s = FlameStream.Create(model, p))
+        {
+            s.Push("a person walks forward.", 30);
+            s.Push("a person waves.", 20);
+            uint steps = 0;
+            FlameStreamStatus st;
+            while ((st = s.Pump(1)).steps > 0)
+                steps += st.steps;
+            Check(steps == 4 && s.Status().ready == 50 && s.Status().starving == 1, "two chunks of 2 steps, 50 frames");
+            Check(s.Read(0, 50, FlameLayout.LocalQuatXyzw, (int)FlameConvention.Unity).Length == 50 * 24 * 4, "quaternions");
+            Check(s.Read(0, 50, FlameLayout.Features, 0).Length == 50 * 147, "features");
+            Throws(FlameStatus.WrongState, "not generated yet", () => s.Read(45, 10, FlameLayout.RootTranslation, 0));
+            Throws(FlameStatus.InvalidArgument, "at least one frame", () => s.Push("a person jumps.", 0));
+        }
+        using (var latent = FlameModel.Load(Path.Combine(dir, "mld_tiny.safetensors"), 1))
+            Throws(FlameStatus.InvalidArgument, "latent", () => FlameStream.Create(latent));
     }
 
     static void TestPromptStageErrors()
