@@ -85,10 +85,10 @@ fn files_in(d: &Path) -> Vec<String> {
 fn help_on_every_subcommand_names_its_options() {
     let top = flame(&["--help"]);
     assert_ok(&top);
-    for sub in ["generate", "edit", "info", "assemble"] {
+    for sub in ["generate", "edit", "stream", "info", "assemble"] {
         assert!(stdout(&top).contains(sub), "{}", stdout(&top));
     }
-    let cases: [(&str, &[&str]); 4] = [
+    let cases: [(&str, &[&str]); 5] = [
         (
             "generate",
             &[
@@ -127,6 +127,26 @@ fn help_on_every_subcommand_names_its_options() {
                 "--reference-convention",
                 "--steps",
                 "--convention",
+            ],
+        ),
+        (
+            "stream",
+            &[
+                "--segment",
+                "--chunk",
+                "--overlap",
+                "--out",
+                "--model",
+                "--steps",
+                "--sampler",
+                "--guidance",
+                "--seed",
+                "--threads",
+                "--convention",
+                "--smooth",
+                "--quat",
+                "--positions",
+                "--preview",
             ],
         ),
         ("info", &["[MODEL]"]),
@@ -756,4 +776,146 @@ fn previews_are_a_sheet_and_an_animation() {
         "60",
     ]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+}
+
+/// `flame stream` on `model`: three segments of 50, 25 and 40 frames in chunks of 40 that keep
+/// 10 (2 steps, seed 3), with `extra` options.
+fn stream_with(model: &str, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "stream",
+        "--model",
+        model,
+        "--segment",
+        "a person walks@50",
+        "--segment",
+        "then waves@25",
+        "--segment",
+        "sits down@40",
+        "--steps",
+        "2",
+        "--chunk",
+        "40",
+        "--overlap",
+        "10",
+        "--seed",
+        "3",
+    ];
+    args.extend_from_slice(extra);
+    flame(&args)
+}
+
+/// `flame stream` writes the whole timeline in every format, the same bytes for every thread
+/// count; bad segments and latent models are refused with their reason.
+#[test]
+fn stream_writes_the_whole_timeline() {
+    let d = scratch("stream");
+    let path = |name: &str| d.join(name).display().to_string();
+    for fixture in ["flame_tiny", "mdm_tiny"] {
+        let model = repo(&format!("tests/fixtures/{fixture}.safetensors"))
+            .display()
+            .to_string();
+        let (npy, npy4) = (
+            path(&format!("{fixture}.npy")),
+            path(&format!("{fixture}_4.npy")),
+        );
+        let o = stream_with(&model, &["--threads", "1", "--out", &npy]);
+        assert_ok(&o);
+        assert_eq!(stdout(&o), format!("{npy}\n"));
+        let err = stderr(&o);
+        // One progress line per chunk: 40, 50 | 75 | 105, 115.
+        for ready in [40, 50, 75, 105, 115] {
+            assert!(
+                err.contains(&format!("{ready}/115 frames ready")),
+                "{fixture}: {err}"
+            );
+        }
+        let (shape, x) = flame::npy::read_f32(Path::new(&npy)).unwrap();
+        assert_eq!(shape[0], 115, "{fixture}: {shape:?}");
+        assert!(x.iter().all(|v| v.is_finite()), "{fixture}");
+        assert_ok(&stream_with(&model, &["--threads", "4", "--out", &npy4]));
+        assert_eq!(
+            std::fs::read(&npy).unwrap(),
+            std::fs::read(&npy4).unwrap(),
+            "{fixture}: --threads 1 and 4 differ"
+        );
+
+        let (bvh, glb, pos) = (
+            path(&format!("{fixture}.bvh")),
+            path(&format!("{fixture}.glb")),
+            path(&format!("{fixture}_pos.npy")),
+        );
+        let o = stream_with(&model, &["--out", &bvh, "--positions", &pos]);
+        assert_ok(&o);
+        let text = std::fs::read_to_string(&bvh).unwrap();
+        assert!(text.contains("Frames: 115\n"), "{fixture}");
+        let (shape, _) = flame::npy::read_f32(Path::new(&pos)).unwrap();
+        assert_eq!(shape[0], 115, "{fixture}: {shape:?}");
+        assert_ok(&stream_with(&model, &["--out", &glb]));
+        let bytes = std::fs::read(&glb).unwrap();
+        assert_eq!(&bytes[..4], b"glTF", "{fixture}");
+        let json = String::from_utf8_lossy(&bytes);
+        assert!(
+            json.contains("a person walks; then waves; sits down"),
+            "{fixture}: the glTF names the segments"
+        );
+    }
+
+    // Bad segments: no frame, no `@FRAMES`, no number; nothing is written.
+    let tiny = tiny();
+    let out = path("bad.npy");
+    for (segment, message) in [
+        ("x@0", "--segment `x@0`: a segment needs at least one frame"),
+        ("x", "--segment `x`: expected TEXT@FRAMES"),
+        ("x@two", "--segment `x@two`: `two` is not a frame count"),
+    ] {
+        let o = flame(&[
+            "stream",
+            "--model",
+            &tiny,
+            "--segment",
+            segment,
+            "--out",
+            &out,
+        ]);
+        assert_eq!(o.status.code(), Some(1), "{segment}: {}", stderr(&o));
+        assert!(stderr(&o).contains(message), "{segment}: {}", stderr(&o));
+        assert!(!Path::new(&out).exists(), "{segment}: nothing written");
+    }
+    // No segment at all is a usage error.
+    let o = flame(&["stream", "--model", &tiny, "--out", &out]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("--segment <TEXT@FRAMES>"),
+        "{}",
+        stderr(&o)
+    );
+    // An overlap that leaves no new frame in a chunk.
+    let o = flame(&[
+        "stream",
+        "--model",
+        &tiny,
+        "--segment",
+        "x@50",
+        "--chunk",
+        "10",
+        "--overlap",
+        "10",
+        "--out",
+        &out,
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("overlap 10 must be in 1..10"),
+        "{}",
+        stderr(&o)
+    );
+    // Latent models cannot keep frames.
+    let mld = repo("tests/fixtures/mld_tiny.safetensors")
+        .display()
+        .to_string();
+    let o = stream_with(&mld, &["--out", &out]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("latent"), "{}", stderr(&o));
+    assert!(!Path::new(&out).exists(), "nothing written");
+    let _ = std::fs::remove_dir_all(&d);
 }

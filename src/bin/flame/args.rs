@@ -57,6 +57,19 @@ defaults to the reference's length. Flow models take 30 steps by default when ed
 --paste off gives the official behaviour (the kept parts are not copied exactly into the
 result). The output options are generate's.";
 
+const STREAM_LONG: &str = "\
+Generate one continuous motion from a timeline of sentences.
+
+Each --segment TEXT@FRAMES lasts FRAMES frames, one after the other (\"a person walks@120\"
+then \"waves@80\" = 200 frames). The motion is generated in chunks of at most --chunk frames
+(default the model's default frame count); each chunk keeps the last --overlap frames of the
+one before and generates the rest from its segment's sentence (the model's editing algorithm,
+the kept frames pasted exactly and the seam blended), in a frame where the root path continues
+where the previous chunk left off. A chunk never spans two segments. The result is the same
+bytes for every --threads. Chunk k draws its noise from --seed mixed with k. Diffusion and
+flow models that sample the motion itself only (FLAME, MDM, Motion Flow Matching); latent
+models are refused. The output options are generate's; the whole timeline is written once.";
+
 #[derive(Parser)]
 #[command(
     name = "flame",
@@ -80,6 +93,9 @@ pub enum Command {
     /// Keep parts of a reference motion and generate the rest from a sentence
     #[command(long_about = EDIT_LONG, after_help = AFTER_HELP)]
     Edit(EditArgs),
+    /// Generate one continuous motion from a timeline of sentences, chunk after chunk
+    #[command(long_about = STREAM_LONG, after_help = AFTER_HELP)]
+    Stream(StreamArgs),
     /// Describe a model file: architecture, text encoder, motion format, defaults
     #[command(after_help = AFTER_HELP)]
     Info(InfoArgs),
@@ -141,11 +157,9 @@ pub struct ModelArgs {
     pub weights: Option<WeightType>,
 }
 
+/// How every denoising step is taken (generate, edit and each chunk of a stream).
 #[derive(Args)]
-pub struct SamplingArgs {
-    /// Frames to generate [default: the model's]
-    #[arg(long, value_name = "N")]
-    pub frames: Option<usize>,
+pub struct DenoiseArgs {
     /// Sampling steps, respaced from the trained ones [default: the model's]
     #[arg(long, value_name = "S")]
     pub steps: Option<usize>,
@@ -166,6 +180,18 @@ pub struct SamplingArgs {
     /// Seed of the noise
     #[arg(long, value_name = "K", default_value_t = 0)]
     pub seed: u64,
+    /// Worker threads (0 = one per core)
+    #[arg(long, value_name = "T", default_value_t = 0)]
+    pub threads: usize,
+}
+
+#[derive(Args)]
+pub struct SamplingArgs {
+    /// Frames to generate [default: the model's]
+    #[arg(long, value_name = "N")]
+    pub frames: Option<usize>,
+    #[command(flatten)]
+    pub denoise: DenoiseArgs,
     /// An explicit initial noise x_T (float32 .npy, frames x feature_dim; for latent models
     /// latent_frames x latent_channels, see `flame info`)
     #[arg(long, value_name = "FILE.npy")]
@@ -174,9 +200,6 @@ pub struct SamplingArgs {
     /// latent_channels)
     #[arg(long, value_name = "OUT.npy")]
     pub latent: Option<PathBuf>,
-    /// Worker threads (0 = one per core)
-    #[arg(long, value_name = "T", default_value_t = 0)]
-    pub threads: usize,
 }
 
 #[derive(Args)]
@@ -283,6 +306,25 @@ pub struct EditArgs {
     pub reference_convention: Option<Convention>,
     #[command(flatten)]
     pub sampling: SamplingArgs,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+#[derive(Args)]
+pub struct StreamArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// One segment of the timeline: its sentence and frame count, repeated in order
+    #[arg(long, value_name = "TEXT@FRAMES", required = true)]
+    pub segment: Vec<String>,
+    /// Frames per chunk, kept ones included [default: the model's default frame count]
+    #[arg(long, value_name = "N")]
+    pub chunk: Option<usize>,
+    /// Frames of the previous chunk each chunk keeps
+    #[arg(long, value_name = "N", default_value_t = 20)]
+    pub overlap: usize,
+    #[command(flatten)]
+    pub denoise: DenoiseArgs,
     #[command(flatten)]
     pub output: OutputArgs,
 }

@@ -19,11 +19,12 @@ use flame::models::{LoadOptions, Model};
 use flame::motion::{self, gltf, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
 use flame::stages::Stage;
+use flame::stream::{Segment, Stream, StreamParams};
 use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
-    AssembleArgs, Cli, Command, EditArgs, EditChoice, GenerateArgs, InfoArgs, ModelArgs, OnOff,
-    OutputArgs, SamplingArgs,
+    AssembleArgs, Cli, Command, DenoiseArgs, EditArgs, EditChoice, GenerateArgs, InfoArgs,
+    ModelArgs, OnOff, OutputArgs, SamplingArgs, StreamArgs,
 };
 
 fn main() -> ExitCode {
@@ -32,6 +33,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Generate(a) => generate(&a),
         Command::Edit(a) => edit(&a),
+        Command::Stream(a) => stream(&a),
         Command::Info(a) => info(&a),
         Command::Assemble(a) => assemble(&a),
     };
@@ -47,14 +49,22 @@ fn main() -> ExitCode {
 fn session_params(s: &SamplingArgs) -> SessionParams {
     SessionParams {
         frames: s.frames,
-        steps: s.steps,
-        sampler: s.sampler,
-        respacing: s.respacing.clone(),
-        eta: s.eta,
-        guidance: s.guidance,
+        ..denoise_params(&s.denoise)
+    }
+}
+
+/// Everything but the frame count.
+fn denoise_params(d: &DenoiseArgs) -> SessionParams {
+    SessionParams {
+        frames: None,
+        steps: d.steps,
+        sampler: d.sampler,
+        respacing: d.respacing.clone(),
+        eta: d.eta,
+        guidance: d.guidance,
         clip_denoised: None,
-        seed: s.seed,
-        threads: s.threads,
+        seed: d.seed,
+        threads: d.threads,
     }
 }
 
@@ -254,7 +264,7 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     let meta = Meta {
         prompt: &prompt,
         model: &loaded.name,
-        seed: a.sampling.seed,
+        seed: a.sampling.denoise.seed,
     };
     outputs.write(x, frames, model, decoder.as_ref(), &meta)
 }
@@ -541,9 +551,99 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     let meta = Meta {
         prompt: &a.prompt,
         model: &loaded.name,
-        seed: a.sampling.seed,
+        seed: a.sampling.denoise.seed,
     };
     outputs.write(x, frames, model, decoder.as_ref(), &meta)
+}
+
+/// `--segment TEXT@FRAMES`, parsed as `generate --stage` is; a segment needs a frame.
+fn parse_segment(spec: &str) -> Result<Segment, String> {
+    let stage = flame::stages::parse_stage(spec).map_err(|e| {
+        // "invalid argument: stage `x`: ..." -> "--segment `x`: ..."
+        let m = e.to_string();
+        let m = m.strip_prefix("invalid argument: ").unwrap_or(&m);
+        match m.strip_prefix("stage ") {
+            Some(rest) => format!("--segment {rest}"),
+            None => format!("--segment: {m}"),
+        }
+    })?;
+    if stage.frames == 0 {
+        return Err(format!(
+            "--segment `{spec}`: a segment needs at least one frame"
+        ));
+    }
+    Ok(Segment::new(stage.text, stage.frames))
+}
+
+/// One motion over a timeline of segments, generated chunk by chunk and written whole.
+fn stream(a: &StreamArgs) -> Result<(), String> {
+    let outputs = Outputs::new(&a.output)?;
+    let segments = a
+        .segment
+        .iter()
+        .map(|s| parse_segment(s))
+        .collect::<Result<Vec<_>, _>>()?;
+    if a.chunk == Some(0) {
+        return Err(
+            "--chunk 0: a chunk needs frames (leave --chunk out for the model's default)".into(),
+        );
+    }
+    let total: usize = segments.iter().map(|s| s.frames).sum();
+    let loaded = load_model(&a.model)?;
+    let model = &loaded.model;
+    for s in &segments {
+        note_unknown_actions(&loaded, &s.prompt);
+    }
+    let decoder = outputs.decoder(model);
+    // Everything is generated (lookahead) and kept (window): the playhead never moves.
+    let params = StreamParams {
+        chunk: a.chunk.unwrap_or(0),
+        overlap: a.overlap,
+        lookahead: total,
+        window: total,
+        session: denoise_params(&a.denoise),
+    };
+    let mut stream = Stream::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
+    for s in &segments {
+        stream.push(s.clone()).map_err(|e| e.to_string())?;
+    }
+    let t0 = Instant::now();
+    let (mut steps, mut chunks, mut ready) = (0, 0, 0);
+    while ready < total {
+        let r = stream.pump(1).map_err(|e| e.to_string())?;
+        if r.steps == 0 {
+            return Err(format!(
+                "the stream stopped at {} of {total} frames",
+                r.ready
+            ));
+        }
+        steps += r.steps;
+        if r.ready > ready {
+            chunks += 1;
+            ready = r.ready;
+            eprintln!("chunk {chunks}: {ready}/{total} frames ready");
+        }
+    }
+    let elapsed = t0.elapsed().as_secs_f64();
+    eprintln!(
+        "{total} frames in {chunks} chunks of at most {} frames ({} overlap), {steps} steps in \
+         {elapsed:.2} s ({:.1} ms/step)",
+        stream.chunk_frames(),
+        a.overlap,
+        elapsed * 1e3 / steps.max(1) as f64
+    );
+    let x = stream.features(0, total).map_err(|e| e.to_string())?;
+    let prompt = segments
+        .iter()
+        .map(|s| s.prompt.as_str())
+        .collect::<Vec<_>>()
+        .join("; ");
+    let meta = Meta {
+        prompt: &prompt,
+        model: &loaded.name,
+        seed: a.denoise.seed,
+    };
+    outputs.write(x, total, model, decoder.as_ref(), &meta)
 }
 
 /// `--targets`: float32 `[frames, joints, 3]` positions in `convention`, NaN = free.
