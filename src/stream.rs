@@ -58,6 +58,13 @@ impl Segment {
             frames,
         }
     }
+
+    fn check(&self) -> Result<()> {
+        if self.frames == 0 {
+            return Err(invalid_arg!("a segment needs at least one frame"));
+        }
+        Ok(())
+    }
 }
 
 /// How a stream generates.
@@ -193,6 +200,9 @@ pub struct Stream {
     /// Where the root path of the held frames starts (relative formats, once frames were
     /// dropped).
     anchor: RootStart,
+    /// The held frames decoded, kept until they change: an engine reads every frame, and a
+    /// relative format's root path has to be integrated from the window's start.
+    decoded: std::cell::RefCell<Option<Arc<Poses>>>,
 }
 
 impl Stream {
@@ -245,6 +255,7 @@ impl Stream {
             chunks: 0,
             current: None,
             anchor: RootStart::ORIGIN,
+            decoded: Default::default(),
         })
     }
 
@@ -259,9 +270,7 @@ impl Stream {
 
     /// Appends a segment to the timeline.
     pub fn push(&mut self, segment: Segment) -> Result<()> {
-        if segment.frames == 0 {
-            return Err(invalid_arg!("a segment needs at least one frame"));
-        }
+        segment.check()?;
         self.segments.push_back((segment, 0));
         Ok(())
     }
@@ -270,9 +279,7 @@ impl Stream {
     /// generated, or the frames ready when none is), drops the segments queued after it and
     /// pushes `segment` in their place.
     pub fn interrupt(&mut self, segment: Segment) -> Result<()> {
-        if segment.frames == 0 {
-            return Err(invalid_arg!("a segment needs at least one frame"));
-        }
+        segment.check()?;
         let in_flight = self
             .current
             .as_ref()
@@ -413,6 +420,7 @@ impl Stream {
         }
         let added = frames - c.kept;
         self.features.extend_from_slice(&new);
+        self.decoded.take();
         if let Some((_, done)) = self.segments.front_mut() {
             *done += added;
         }
@@ -455,20 +463,32 @@ impl Stream {
             return Ok(());
         }
         if self.model.motion_format() == Format::HumanMl263 {
-            self.anchor = RootStart::at(&self.decode()?, keep_from - self.first);
+            self.anchor = RootStart::at(&*self.decode()?, keep_from - self.first);
         }
         self.features.drain(..(keep_from - self.first) * dim);
+        self.decoded.take();
         self.first = keep_from;
         Ok(())
     }
 
-    /// The held frames decoded (native frame), anchored where the dropped frames left off.
-    fn decode(&self) -> Result<Poses> {
+    /// The held frames decoded (native frame), anchored where the dropped frames left off;
+    /// decoded once per change of the held frames.
+    fn decode(&self) -> Result<Arc<Poses>> {
+        if let Some(p) = self.decoded.borrow().as_ref() {
+            return Ok(Arc::clone(p));
+        }
         let dim = self.model.motion_dim();
         let frames = self.features.len() / dim;
         let opts = self.model.read_options(0.0, true);
         let format = self.model.motion_format();
-        let poses = Poses::decode_from(format, &self.features, frames, &opts, self.anchor)?;
+        let poses = Arc::new(Poses::decode_from(
+            format,
+            &self.features,
+            frames,
+            &opts,
+            self.anchor,
+        )?);
+        *self.decoded.borrow_mut() = Some(Arc::clone(&poses));
         Ok(poses)
     }
 

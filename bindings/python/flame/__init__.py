@@ -824,6 +824,16 @@ def _gltf_container(container, path) -> int:
                      ".gltf, or pass container=\"glb\" or \"gltf\"")
 
 
+def _sampler_value(sampler: Union[None, str, int]) -> int:
+    """A FlameSampler value from a name (any case), None (the model's default) or an int."""
+    if isinstance(sampler, str) or sampler is None:
+        key = sampler.lower() if isinstance(sampler, str) else None
+        if key not in _SAMPLERS:
+            raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
+        return _SAMPLERS[key]
+    return int(sampler)
+
+
 def edit_params_default() -> EditParams:
     """The library's editing defaults (flame_edit_params_default)."""
     raw = _EditParams()
@@ -865,13 +875,7 @@ class Stream:
                             ("window", window), ("steps", steps), ("threads", threads)):
             if value:
                 setattr(p, name, _uint32(name, value))
-        if isinstance(sampler, str) or sampler is None:
-            key = sampler.lower() if isinstance(sampler, str) else None
-            if key not in _SAMPLERS:
-                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
-            p.sampler = _SAMPLERS[key]
-        else:
-            p.sampler = int(sampler)
+        p.sampler = _sampler_value(sampler)
         p.guidance = -1.0 if guidance is None else guidance
         p.seed = seed
         out = _P()
@@ -979,13 +983,7 @@ class Session:
         _check(_lib().flame_session_params_default(ctypes.byref(p)))
         p.frames = frames or 0
         p.steps = steps or 0
-        if isinstance(sampler, str) or sampler is None:
-            key = sampler.lower() if isinstance(sampler, str) else None
-            if key not in _SAMPLERS:
-                raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
-            p.sampler = _SAMPLERS[key]
-        else:
-            p.sampler = int(sampler)
+        p.sampler = _sampler_value(sampler)
         p.eta = -1.0 if eta is None else eta
         p.guidance = -1.0 if guidance is None else guidance
         p.seed = seed
