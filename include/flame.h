@@ -210,8 +210,8 @@ typedef struct FlameSession FlameSession;
 
 // A stream: a timeline of prompt segments, the frames generated from it and the chunk being
 // generated. Used by one thread at a time: a call while another thread is inside a call on the
-// same stream fails with `FLAME_STATUS_WRONG_STATE` instead of waiting. The stream keeps its
-// model alive.
+// same stream fails with `FLAME_STATUS_WRONG_STATE` instead of waiting (only
+// [`flame_stream_cancel`] may run on another thread). The stream keeps its model alive.
 typedef struct FlameStream FlameStream;
 
 // Options of [`flame_model_load`]. Initialise with [`flame_model_params_default`].
@@ -846,10 +846,13 @@ const char *flame_status_string(int32_t status);
 enum FlameStatus flame_stream_params_default(struct FlameStreamParams *params);
 
 // Starts a stream over `model` with an empty timeline. `params` may be NULL for the defaults.
-// `INVALID_ARGUMENT` when the model is latent (`FlameModelInfo.latent`: it cannot keep frames
-// of the motion before a chunk), when `chunk` exceeds the model's maximum frames, when
-// `overlap` is not below `chunk`, or for settings a session would refuse (sampler, threads).
-// Free it with [`flame_stream_free`].
+// Each chunk keeps the last `overlap` frames of the motion so far (the family's editing:
+// those frames exactly, the rest generated); a latent model (`FlameModelInfo.latent`: MoLA)
+// cannot keep frames and is steered towards their joint positions instead (position targets),
+// so its seams are not exact. `INVALID_ARGUMENT` when the model can do neither (MLD: no
+// gradient of its decoder), when `chunk` exceeds the model's maximum frames, when `overlap`
+// is not below `chunk`, or for settings a session would refuse (sampler, threads). Free it
+// with [`flame_stream_free`].
 //
 // # Safety
 // `model` is a live model; `params` is NULL or a valid `FlameStreamParams`; `stream` points
@@ -881,6 +884,35 @@ enum FlameStatus flame_stream_push(struct FlameStream *stream, const char *promp
 enum FlameStatus flame_stream_interrupt(struct FlameStream *stream,
                                         const char *prompt,
                                         uint32_t frames);
+
+// [`flame_stream_push`] with part texts: a segment of `stage->frames` frames whose whole-body
+// text is `stage->text` and whose body parts may have their own texts (NULL or empty: the
+// part follows `text`). FineMoGen reads them; other families refuse part texts with
+// `INVALID_ARGUMENT` when the segment's first chunk starts (in [`flame_stream_pump`]), and
+// take a stage without them as a plain prompt. Set `stage->struct_size`.
+//
+// # Safety
+// `stream` is a live stream; `stage` points to a `FlameStage` whose non-NULL strings are
+// NUL-terminated.
+enum FlameStatus flame_stream_push_stage(struct FlameStream *stream,
+                                         const struct FlameStage *stage);
+
+// [`flame_stream_interrupt`] with part texts (see [`flame_stream_push_stage`]).
+//
+// # Safety
+// `stream` is a live stream; `stage` points to a `FlameStage` whose non-NULL strings are
+// NUL-terminated.
+enum FlameStatus flame_stream_interrupt_stage(struct FlameStream *stream,
+                                              const struct FlameStage *stage);
+
+// Asks the [`flame_stream_pump`] running on another thread to stop: it returns
+// `FLAME_STATUS_CANCELLED` within one transformer layer, and the step it was running leaves
+// no trace, so pumping again gives the bits of a stream never cancelled. May be called from
+// any thread at any time; with no pump running, the next pump's first step is cancelled.
+//
+// # Safety
+// `stream` is a live stream.
+enum FlameStatus flame_stream_cancel(const struct FlameStream *stream);
 
 // Moves the playhead (the frame being played) to timeline frame `frame`, at most the frames
 // ready (`INVALID_ARGUMENT` past them). Frames more than `window` before it are dropped, and

@@ -605,6 +605,11 @@ impl Session {
         Arc::clone(&self.cancel)
     }
 
+    /// Makes `flag` the session's cancel flag (a stream's chunks share the stream's).
+    pub(crate) fn share_cancel_flag(&mut self, flag: Arc<AtomicBool>) {
+        self.cancel = flag;
+    }
+
     /// The current sample x_t in the sampled space, `[rows, sample_dim]` (the motion's
     /// features, or a latent model's latent; x_T before the first step once started; the
     /// result at the end). [`Session::motion`] gives the motion for every model.

@@ -36,6 +36,7 @@
 //! error naming the window, as is reading frames not generated yet (a status, never a wait).
 
 use std::collections::VecDeque;
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use crate::error::{invalid_arg, Error, Result};
@@ -43,12 +44,17 @@ use crate::models::Model;
 use crate::motion::humanml263::RootStart;
 use crate::motion::{Convention, Format, Layout, Poses};
 use crate::session::{Session, SessionParams, Which};
+use crate::stages::{Stage, PART_COUNT};
+use crate::targets::PositionTargets;
 
-/// One prompt on the timeline and how many frames it lasts.
-#[derive(Clone, Debug, PartialEq)]
+/// One prompt on the timeline, how many frames it lasts and, for families that read them
+/// (FineMoGen), what single body parts do (`parts[BodyPart as usize]`, `None` = the part
+/// follows `prompt`). Other families refuse part texts when the segment's first chunk starts.
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Segment {
     pub prompt: String,
     pub frames: usize,
+    pub parts: [Option<String>; PART_COUNT],
 }
 
 impl Segment {
@@ -56,12 +62,32 @@ impl Segment {
         Segment {
             prompt: prompt.into(),
             frames,
+            parts: Default::default(),
         }
+    }
+
+    /// The segment a time stage describes (its text, frames and part texts).
+    pub fn from_stage(stage: Stage) -> Segment {
+        Segment {
+            prompt: stage.text,
+            frames: stage.frames,
+            parts: stage.parts,
+        }
+    }
+
+    fn has_parts(&self) -> bool {
+        self.parts.iter().any(Option::is_some)
     }
 
     fn check(&self) -> Result<()> {
         if self.frames == 0 {
             return Err(invalid_arg!("a segment needs at least one frame"));
+        }
+        if self.parts.iter().flatten().any(|t| t.trim().is_empty()) {
+            return Err(invalid_arg!(
+                "a segment's part text is empty: leave the part out (None) to have it follow \
+                 the segment's prompt"
+            ));
         }
         Ok(())
     }
@@ -203,19 +229,25 @@ pub struct Stream {
     /// The held frames decoded, kept until they change: an engine reads every frame, and a
     /// relative format's root path has to be integrated from the window's start.
     decoded: std::cell::RefCell<Option<Arc<Poses>>>,
+    /// Raised by another thread to abandon the step being run (every chunk's session shares it).
+    cancel: Arc<AtomicBool>,
 }
 
 impl Stream {
-    /// A stream over `model`. Fails when the model cannot keep frames of a reference (latent
-    /// models edit through position targets; their streams are not supported yet), or when the
-    /// chunk and overlap do not fit its frame range.
+    /// A stream over `model`. Fails when the model cannot continue a motion (a latent model
+    /// whose decoder has no gradient, such as MLD's: latent models continue through position
+    /// targets), or when the chunk and overlap do not fit its frame range.
     pub fn new(model: Arc<Model>, params: &StreamParams) -> Result<Stream> {
         if model.is_latent() {
-            return Err(invalid_arg!(
-                "a stream keeps frames of the motion before each chunk; this {} model samples \
-                 a latent and cannot keep frames (streams over latent models are not supported)",
-                model.config().architecture
-            ));
+            crate::targets::supported(&model).map_err(|e| {
+                invalid_arg!(
+                    "a stream continues each chunk from the frames before it; this {} model \
+                     samples a latent, so it can only steer towards them with position targets, \
+                     and {}",
+                    model.config().architecture,
+                    e.to_string().trim_start_matches("invalid argument: ")
+                )
+            })?;
         }
         let max = model.max_frames();
         let chunk = match params.chunk {
@@ -256,7 +288,16 @@ impl Stream {
             current: None,
             anchor: RootStart::ORIGIN,
             decoded: Default::default(),
+            cancel: Arc::new(AtomicBool::new(false)),
         })
+    }
+
+    /// A flag another thread may raise to abandon the step a [`Stream::pump`] is running: the
+    /// pump returns [`Error::Cancelled`] within one transformer layer and the stream is as it
+    /// was before that step, so pumping again gives the bits of a stream never cancelled. A
+    /// flag raised between pumps cancels the next step.
+    pub fn cancel_flag(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.cancel)
     }
 
     pub fn model(&self) -> &Arc<Model> {
@@ -382,9 +423,34 @@ impl Stream {
             ..self.params.session.clone()
         };
         let mut session = Session::new(Arc::clone(&self.model), &params)?;
-        session.set_prompt(&seg.prompt)?;
+        session.share_cancel_flag(Arc::clone(&self.cancel));
+        if seg.has_parts() {
+            session.set_prompt_stages(&[Stage {
+                text: seg.prompt.clone(),
+                frames,
+                parts: seg.parts.clone(),
+            }])?;
+        } else {
+            session.set_prompt(&seg.prompt)?;
+        }
         let mut frame = Rebase::IDENTITY;
-        if kept > 0 {
+        if kept > 0 && self.model.is_latent() {
+            // A latent cannot keep frames: the chunk is steered towards the kept frames' joint
+            // positions (the family's position targets, MoLA's MPGD), and only its new frames
+            // are appended. humanml263 decodes from the canonical start, as the chunk does.
+            let reference = &self.features[(have - kept) * dim..];
+            let format = self.model.motion_format();
+            let poses =
+                Poses::decode(format, reference, kept, &self.model.read_options(0.0, true))?;
+            let values: Vec<f32> = poses
+                .positions(Convention::Native)
+                .iter()
+                .flatten()
+                .map(|&v| v as f32)
+                .collect();
+            let targets = PositionTargets::new(format, &values, None, Convention::Native)?;
+            session.set_position_targets(targets)?;
+        } else if kept > 0 {
             let mut reference = self.features[(have - kept) * dim..].to_vec();
             if self.model.motion_format() == Format::Smpl24Rot6d {
                 let mut first = reference[..dim].to_vec();
@@ -411,7 +477,18 @@ impl Stream {
     fn finish_chunk(&mut self) -> Result<()> {
         let mut c = self.current.take().expect("a chunk is running");
         let dim = self.model.motion_dim();
-        let (x, frames) = c.session.motion(Which::Sample)?;
+        // A latent model decides its decoded length itself (MoLA's valid flag, at least 10
+        // frames): the chunk adds what it decoded past the kept frames, up to what was asked.
+        let asked = c.session.frames();
+        let (x, decoded) = c.session.motion(Which::Sample)?;
+        let frames = decoded.min(asked);
+        if frames <= c.kept {
+            return Err(Error::WrongState(format!(
+                "the model ended the chunk after {decoded} frames (its own length), within the \
+                 {} kept ones: the stream cannot advance; use a smaller overlap",
+                c.kept
+            )));
+        }
         debug_assert_eq!(c.start + c.kept, self.ready());
         let mut new = x[c.kept * dim..frames * dim].to_vec();
         if self.model.motion_format() == Format::Smpl24Rot6d {
@@ -547,4 +624,83 @@ fn chunk_seed(seed: u64, k: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::session::Sampler;
+
+    /// Mean distance (m) of the chunk's first `kept` frames' joints to the kept frames'.
+    fn kept_distance(stream: &Stream, session: &mut Session, kept: usize) -> f64 {
+        let model = Arc::clone(stream.model());
+        let (format, dim) = (model.motion_format(), model.motion_dim());
+        let opts = model.read_options(0.0, true);
+        let have = stream.features.len() / dim;
+        let want = Poses::decode(format, &stream.features[(have - kept) * dim..], kept, &opts)
+            .unwrap()
+            .positions(Convention::Native);
+        let (x, _) = session.motion(Which::Sample).unwrap();
+        let got = Poses::decode(format, &x[..kept * dim], kept, &opts)
+            .unwrap()
+            .positions(Convention::Native);
+        let d: f64 = want
+            .iter()
+            .zip(&got)
+            .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt())
+            .sum();
+        d / want.len() as f64
+    }
+
+    /// A MoLA chunk is steered towards the kept frames: its first frames land nearer their joint
+    /// positions than the same chunk generated without the targets (same seed and prompt).
+    #[test]
+    fn latent_chunks_are_steered_towards_the_kept_frames() {
+        let model = Arc::new(
+            Model::load(
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("tests/fixtures/mola_tiny.safetensors"),
+            )
+            .unwrap(),
+        );
+        let params = StreamParams {
+            chunk: 32,
+            overlap: 8,
+            lookahead: 1000,
+            window: 1000,
+            session: SessionParams {
+                steps: Some(10),
+                sampler: Some(Sampler::Ddim),
+                seed: 3,
+                threads: 1,
+                ..Default::default()
+            },
+        };
+        let mut s = Stream::new(model, &params).unwrap();
+        s.push(Segment::new("a person walks forward.", 60)).unwrap();
+        s.pump(10).unwrap();
+        assert!(s.ready() > 8 && s.current.is_none());
+        assert!(s.start_chunk().unwrap());
+        let mut steered = s.current.take().unwrap().session;
+        let mut free =
+            Session::new(Arc::clone(s.model()), &steered_params(&steered, &params)).unwrap();
+        free.set_prompt("a person walks forward.").unwrap();
+        assert!(steered.position_targets().is_some());
+        steered.run().unwrap();
+        free.run().unwrap();
+        let (a, b) = (
+            kept_distance(&s, &mut steered, 8),
+            kept_distance(&s, &mut free, 8),
+        );
+        eprintln!("steered {a} m, free {b} m");
+        assert!(a < 0.8 * b, "steered {a} m, free {b} m");
+    }
+
+    fn steered_params(steered: &Session, params: &StreamParams) -> SessionParams {
+        SessionParams {
+            frames: Some(steered.frames()),
+            seed: steered.seed(),
+            ..params.session.clone()
+        }
+    }
 }

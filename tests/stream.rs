@@ -3,6 +3,7 @@
 //! model: determinism under any pump pattern and thread count, the kept overlap and the root
 //! path continuing across seams, the window and its anchoring, interrupts, and bad input.
 
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 mod common;
@@ -11,6 +12,7 @@ use common::{demo_model, repo};
 use flame::models::Model;
 use flame::motion::{Convention, Layout};
 use flame::session::{Sampler, SessionParams};
+use flame::stages::BodyPart;
 use flame::stream::{Segment, Stream, StreamParams};
 
 fn model(name: &str) -> Arc<Model> {
@@ -230,10 +232,139 @@ fn bad_input_is_a_clear_error() {
         ..params(1)
     };
     assert!(Stream::new(Arc::clone(&m), &p).is_err());
+    // MLD's decoder has no gradient: it can neither keep frames nor steer towards them.
     let Err(e) = Stream::new(model("mld_tiny"), &params(1)) else {
-        panic!("a latent model made a stream");
+        panic!("an MLD model made a stream");
     };
-    assert!(e.to_string().contains("latent"), "{e}");
+    assert!(
+        e.to_string().contains("latent") && e.to_string().contains("gradient"),
+        "{e}"
+    );
+    // Part texts are read by FineMoGen only: another family refuses them when the segment's
+    // chunk starts, and empty part texts are refused at push.
+    let mut s = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+    let mut seg = Segment::new("a person walks.", 30);
+    seg.parts[BodyPart::LeftArm as usize] = Some("  ".into());
+    let e = s.push(seg.clone()).unwrap_err();
+    assert!(e.to_string().contains("part text is empty"), "{e}");
+    seg.parts[BodyPart::LeftArm as usize] = Some("the left arm waves.".into());
+    s.push(seg).unwrap();
+    let e = s.pump(1).unwrap_err();
+    assert!(e.to_string().contains("part"), "{e}");
+}
+
+/// A cancelled pump leaves no trace: raised between pumps or by another thread during one, the
+/// pump returns `Cancelled` and pumping on gives the bits of a stream never cancelled.
+#[test]
+fn a_cancelled_pump_resumes_bit_identically() {
+    for name in ["flame_tiny", "mdm_tiny"] {
+        let m = model(name);
+        let mut want = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+        timeline(&mut want);
+        run(&mut want, usize::MAX);
+
+        let mut s = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+        timeline(&mut s);
+        let flag = s.cancel_flag();
+        s.pump(4).unwrap();
+        flag.store(true, Ordering::SeqCst);
+        let e = s.pump(usize::MAX).unwrap_err();
+        assert!(matches!(e, flame::Error::Cancelled), "{name}: {e}");
+        assert_eq!(s.ready(), 40, "{name}: the cancelled step kept nothing");
+        // Another thread raises the flag while pumps run; every pump either finishes or is
+        // cancelled, and the stream goes on from where it stood.
+        let raiser = {
+            let flag = Arc::clone(&flag);
+            std::thread::spawn(move || {
+                for _ in 0..20 {
+                    std::thread::sleep(std::time::Duration::from_micros(300));
+                    flag.store(true, Ordering::SeqCst);
+                }
+            })
+        };
+        let mut cancelled = 0;
+        loop {
+            match s.pump(1) {
+                Ok(r) if r.steps == 0 => break,
+                Ok(_) => {}
+                Err(flame::Error::Cancelled) => cancelled += 1,
+                Err(e) => panic!("{name}: {e}"),
+            }
+        }
+        raiser.join().unwrap();
+        flag.store(false, Ordering::SeqCst);
+        assert_eq!(s.ready(), 115, "{name}");
+        let (a, b) = (s.features(0, 115).unwrap(), want.features(0, 115).unwrap());
+        assert!(
+            a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{name}: {cancelled} cancels changed the frames"
+        );
+    }
+}
+
+/// FineMoGen reads a segment's part texts: with every part given the segment's own text the
+/// frames are those of the plain segment, bit for bit (the part heads then read the same text),
+/// and another part text changes them. Chunks after the first keep frames as for any family.
+#[test]
+fn finemogen_segments_take_part_texts() {
+    let m = model("finemogen_tiny");
+    let p = StreamParams {
+        chunk: 30,
+        overlap: 8,
+        ..params(1)
+    };
+    let frames = |segments: Vec<Segment>| {
+        let mut s = Stream::new(Arc::clone(&m), &p).unwrap();
+        for seg in segments {
+            s.push(seg).unwrap();
+        }
+        run(&mut s, usize::MAX);
+        assert_eq!(s.ready(), 50);
+        s.features(0, 50).unwrap().to_vec()
+    };
+    let (walk, wave) = ("a person walks forward.", "a person waves.");
+    let plain = frames(vec![Segment::new(walk, 20), Segment::new(wave, 30)]);
+    let mut same = Segment::new(wave, 30);
+    same.parts = std::array::from_fn(|_| Some(wave.to_string()));
+    let with_same = frames(vec![Segment::new(walk, 20), same]);
+    assert!(plain
+        .iter()
+        .zip(&with_same)
+        .all(|(x, y)| x.to_bits() == y.to_bits()));
+    let mut arm = Segment::new(wave, 30);
+    arm.parts[BodyPart::RightArm as usize] = Some("the right arm swings up and down.".into());
+    let with_arm = frames(vec![Segment::new(walk, 20), arm]);
+    let dim = m.motion_dim();
+    // The first segment is the same; the second differs.
+    assert_eq!(&plain[..20 * dim], &with_arm[..20 * dim]);
+    assert!(plain[20 * dim..] != with_arm[20 * dim..]);
+}
+
+/// Latent models (MoLA) cannot keep frames: each chunk is steered towards the kept frames'
+/// joint positions with position targets (MPGD), and only its new frames are appended. The
+/// timeline, determinism and frame counts are as for any family.
+#[test]
+fn mola_streams_continue_through_position_targets() {
+    let m = model("mola_tiny");
+    let p = StreamParams {
+        chunk: 32,
+        overlap: 8,
+        ..params(1)
+    };
+    let mut a = Stream::new(Arc::clone(&m), &p).unwrap();
+    timeline(&mut a);
+    run(&mut a, 1);
+    let mut b = Stream::new(Arc::clone(&m), &StreamParams { ..p.clone() }).unwrap();
+    timeline(&mut b);
+    run(&mut b, usize::MAX);
+    assert_eq!((a.ready(), b.ready()), (115, 115));
+    let (fa, fb) = (a.features(0, 115).unwrap(), b.features(0, 115).unwrap());
+    assert!(fa.iter().zip(fb).all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert!(fa.iter().all(|v| v.is_finite()));
+    let pos = a
+        .read(0, 115, Layout::GlobalPositions, Convention::Native)
+        .unwrap();
+    assert!(pos.iter().all(|v| v.is_finite()));
 }
 
 /// On the trained demo model: the root path continues across seams (no jump larger than the

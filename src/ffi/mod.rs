@@ -1016,29 +1016,38 @@ pub unsafe extern "C" fn flame_session_set_prompt_stages(
                 )
                 .into());
             }
-            let text = str_arg(st.text, &format!("stages[{i}].text"))?;
-            let part = |p: *const c_char, name: &str| -> Result<Option<String>, Fail> {
-                if p.is_null() {
-                    return Ok(None);
-                }
-                let t = str_arg(p, &format!("stages[{i}].{name}"))?;
-                Ok((!t.trim().is_empty()).then(|| t.to_string()))
-            };
-            out.push(crate::stages::Stage {
-                text: text.to_string(),
-                frames: st.frames as usize,
-                parts: [
-                    part(st.head, "head")?,
-                    part(st.stem, "stem")?,
-                    part(st.left_arm, "left_arm")?,
-                    part(st.right_arm, "right_arm")?,
-                    part(st.left_leg, "left_leg")?,
-                    part(st.right_leg, "right_leg")?,
-                    part(st.pelvis, "pelvis")?,
-                ],
-            });
+            out.push(stage_arg(st, &format!("stages[{i}]"))?);
         }
         s.with(|st| st.set_prompt_stages(&out))
+    })
+}
+
+/// The stage a `FlameStage` describes (`what` names it in errors); empty part texts follow the
+/// whole-body text.
+///
+/// # Safety
+/// The struct's non-NULL strings are NUL-terminated.
+pub(crate) unsafe fn stage_arg(st: &FlameStage, what: &str) -> Result<crate::stages::Stage, Fail> {
+    let text = str_arg(st.text, &format!("{what}.text"))?;
+    let part = |p: *const c_char, name: &str| -> Result<Option<String>, Fail> {
+        if p.is_null() {
+            return Ok(None);
+        }
+        let t = str_arg(p, &format!("{what}.{name}"))?;
+        Ok((!t.trim().is_empty()).then(|| t.to_string()))
+    };
+    Ok(crate::stages::Stage {
+        text: text.to_string(),
+        frames: st.frames as usize,
+        parts: [
+            part(st.head, "head")?,
+            part(st.stem, "stem")?,
+            part(st.left_arm, "left_arm")?,
+            part(st.right_arm, "right_arm")?,
+            part(st.left_leg, "left_leg")?,
+            part(st.right_leg, "right_leg")?,
+            part(st.pelvis, "pelvis")?,
+        ],
     })
 }
 

@@ -4,14 +4,15 @@
 //! [`flame_stream_pump`] (for example once per game frame) and reads frames by their position
 //! on the timeline.
 
-use std::sync::{Mutex, TryLockError};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, TryLockError};
 
 use super::errors::{catch_quietly, guard, Fail};
 use super::handles::{model_ref, FlameModel};
 use super::poses::FlameLayout;
 use super::{
-    check_size, default_session_params, session_params, str_arg, struct_arg, write_out,
-    FlameSessionParams, FlameStatus,
+    check_size, default_session_params, session_params, stage_arg, str_arg, struct_arg, write_out,
+    FlameSessionParams, FlameStage, FlameStatus,
 };
 use crate::error::{invalid_arg, Error};
 use crate::motion::Layout;
@@ -19,10 +20,11 @@ use crate::stream::{PumpReport, Segment, Stream, StreamParams};
 
 /// A stream: a timeline of prompt segments, the frames generated from it and the chunk being
 /// generated. Used by one thread at a time: a call while another thread is inside a call on the
-/// same stream fails with `FLAME_STATUS_WRONG_STATE` instead of waiting. The stream keeps its
-/// model alive.
+/// same stream fails with `FLAME_STATUS_WRONG_STATE` instead of waiting (only
+/// [`flame_stream_cancel`] may run on another thread). The stream keeps its model alive.
 pub struct FlameStream {
     stream: Mutex<Stream>,
+    cancel: Arc<AtomicBool>,
 }
 
 /// Settings of a stream. Initialise with [`flame_stream_params_default`]; zero (or a negative
@@ -187,10 +189,13 @@ pub unsafe extern "C" fn flame_stream_params_default(
 }
 
 /// Starts a stream over `model` with an empty timeline. `params` may be NULL for the defaults.
-/// `INVALID_ARGUMENT` when the model is latent (`FlameModelInfo.latent`: it cannot keep frames
-/// of the motion before a chunk), when `chunk` exceeds the model's maximum frames, when
-/// `overlap` is not below `chunk`, or for settings a session would refuse (sampler, threads).
-/// Free it with [`flame_stream_free`].
+/// Each chunk keeps the last `overlap` frames of the motion so far (the family's editing:
+/// those frames exactly, the rest generated); a latent model (`FlameModelInfo.latent`: MoLA)
+/// cannot keep frames and is steered towards their joint positions instead (position targets),
+/// so its seams are not exact. `INVALID_ARGUMENT` when the model can do neither (MLD: no
+/// gradient of its decoder), when `chunk` exceeds the model's maximum frames, when `overlap`
+/// is not below `chunk`, or for settings a session would refuse (sampler, threads). Free it
+/// with [`flame_stream_free`].
 ///
 /// # Safety
 /// `model` is a live model; `params` is NULL or a valid `FlameStreamParams`; `stream` points
@@ -211,8 +216,9 @@ pub unsafe extern "C" fn flame_stream_new(
         } else {
             stream_params(struct_arg(params, |p| p.struct_size, "params")?)?
         };
-        let s = Stream::new(std::sync::Arc::clone(m.model()), &p)?;
+        let s = Stream::new(Arc::clone(m.model()), &p)?;
         let handle = Box::new(FlameStream {
+            cancel: s.cancel_flag(),
             stream: Mutex::new(s),
         });
         write_out(stream, Box::into_raw(handle), "stream")
@@ -267,6 +273,65 @@ pub unsafe extern "C" fn flame_stream_interrupt(
         let s = stream_ref(stream)?;
         let prompt = str_arg(prompt, "prompt")?;
         s.with(|st| Ok(st.interrupt(Segment::new(prompt, frames as usize))?))
+    })
+}
+
+/// [`flame_stream_push`] with part texts: a segment of `stage->frames` frames whose whole-body
+/// text is `stage->text` and whose body parts may have their own texts (NULL or empty: the
+/// part follows `text`). FineMoGen reads them; other families refuse part texts with
+/// `INVALID_ARGUMENT` when the segment's first chunk starts (in [`flame_stream_pump`]), and
+/// take a stage without them as a plain prompt. Set `stage->struct_size`.
+///
+/// # Safety
+/// `stream` is a live stream; `stage` points to a `FlameStage` whose non-NULL strings are
+/// NUL-terminated.
+#[no_mangle]
+pub unsafe extern "C" fn flame_stream_push_stage(
+    stream: *mut FlameStream,
+    stage: *const FlameStage,
+) -> FlameStatus {
+    guard(|| {
+        let s = stream_ref(stream)?;
+        let seg = Segment::from_stage(stage_arg(
+            struct_arg(stage, |st| st.struct_size, "stage")?,
+            "stage",
+        )?);
+        s.with(|st| Ok(st.push(seg)?))
+    })
+}
+
+/// [`flame_stream_interrupt`] with part texts (see [`flame_stream_push_stage`]).
+///
+/// # Safety
+/// `stream` is a live stream; `stage` points to a `FlameStage` whose non-NULL strings are
+/// NUL-terminated.
+#[no_mangle]
+pub unsafe extern "C" fn flame_stream_interrupt_stage(
+    stream: *mut FlameStream,
+    stage: *const FlameStage,
+) -> FlameStatus {
+    guard(|| {
+        let s = stream_ref(stream)?;
+        let seg = Segment::from_stage(stage_arg(
+            struct_arg(stage, |st| st.struct_size, "stage")?,
+            "stage",
+        )?);
+        s.with(|st| Ok(st.interrupt(seg)?))
+    })
+}
+
+/// Asks the [`flame_stream_pump`] running on another thread to stop: it returns
+/// `FLAME_STATUS_CANCELLED` within one transformer layer, and the step it was running leaves
+/// no trace, so pumping again gives the bits of a stream never cancelled. May be called from
+/// any thread at any time; with no pump running, the next pump's first step is cancelled.
+///
+/// # Safety
+/// `stream` is a live stream.
+#[no_mangle]
+pub unsafe extern "C" fn flame_stream_cancel(stream: *const FlameStream) -> FlameStatus {
+    guard(|| {
+        stream_ref(stream)?.cancel.store(true, Ordering::SeqCst);
+        Ok(())
     })
 }
 
