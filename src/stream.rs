@@ -231,6 +231,28 @@ pub struct Stream {
     decoded: std::cell::RefCell<Option<Arc<Poses>>>,
     /// Raised by another thread to abandon the step being run (every chunk's session shares it).
     cancel: Arc<AtomicBool>,
+    /// Quaternion tracks of the held frames (see [`QuatTracks`]).
+    quats: std::cell::RefCell<QuatTracks>,
+}
+
+/// Sign-continuous quaternion tracks of the held frames, one per (local or world rotations,
+/// convention), made on first read and dropped when the held frames change. Each track's
+/// quaternions at the first held frame are kept (the anchor), so its signs never depend on how
+/// the frames were read: a track made again after frames were appended or dropped continues
+/// from the same signs (an engine reading one frame per tick gets the track a whole read gives).
+#[derive(Default)]
+struct QuatTracks {
+    tracks: [Option<Arc<Vec<[f64; 4]>>>; 12],
+    anchors: [Option<Vec<[f64; 4]>>; 12],
+}
+
+/// The slot of a quaternion track.
+fn track_slot(world: bool, convention: Convention) -> usize {
+    let c = Convention::ALL
+        .iter()
+        .position(|&k| k == convention)
+        .expect("every convention is in ALL");
+    usize::from(world) * Convention::ALL.len() + c
 }
 
 impl Stream {
@@ -289,6 +311,7 @@ impl Stream {
             anchor: RootStart::ORIGIN,
             decoded: Default::default(),
             cancel: Arc::new(AtomicBool::new(false)),
+            quats: Default::default(),
         })
     }
 
@@ -497,7 +520,7 @@ impl Stream {
         }
         let added = frames - c.kept;
         self.features.extend_from_slice(&new);
-        self.decoded.take();
+        self.held_changed();
         if let Some((_, done)) = self.segments.front_mut() {
             *done += added;
         }
@@ -542,10 +565,58 @@ impl Stream {
         if self.model.motion_format() == Format::HumanMl263 {
             self.anchor = RootStart::at(&*self.decode()?, keep_from - self.first);
         }
+        // Quaternion tracks already read keep their signs: their anchor moves to the new first
+        // frame.
+        let joints = self.model.motion_format().skeleton().joint_count();
+        let at = (keep_from - self.first) * joints;
+        for slot in 0..12 {
+            if self.quats.borrow().anchors[slot].is_some() {
+                let track = self.quat_track(slot)?;
+                self.quats.borrow_mut().anchors[slot] = Some(track[at..at + joints].to_vec());
+            }
+        }
         self.features.drain(..(keep_from - self.first) * dim);
-        self.decoded.take();
+        self.held_changed();
         self.first = keep_from;
         Ok(())
+    }
+
+    /// Forgets what was computed from the held frames (decoded poses, quaternion tracks).
+    fn held_changed(&mut self) {
+        self.decoded.take();
+        self.quats.get_mut().tracks = Default::default();
+    }
+
+    /// The quaternion track of `slot` (w first, `[held frames × joints]`), continuous from its
+    /// anchor.
+    fn quat_track(&self, slot: usize) -> Result<Arc<Vec<[f64; 4]>>> {
+        if let Some(t) = &self.quats.borrow().tracks[slot] {
+            return Ok(Arc::clone(t));
+        }
+        let poses = self.decode()?;
+        let convention = Convention::ALL[slot % Convention::ALL.len()];
+        let rotations = if slot >= Convention::ALL.len() {
+            poses.global_rotations(convention)
+        } else {
+            poses.local_rotations(convention)
+        };
+        let joints = poses.joint_count();
+        let mut q = self.quats.borrow().anchors[slot]
+            .clone()
+            .unwrap_or_default();
+        let anchored = !q.is_empty();
+        q.extend(rotations.iter().map(crate::motion::rotation::to_quat));
+        let frames = q.len() / joints;
+        crate::motion::postprocess::make_continuous(&mut q, frames, joints);
+        let mut quats = self.quats.borrow_mut();
+        if anchored {
+            q.drain(..joints);
+        } else {
+            quats.anchors[slot] = Some(q[..joints].to_vec());
+        }
+        let track = Arc::new(q);
+        quats.tracks[slot] = Some(Arc::clone(&track));
+        Ok(track)
     }
 
     /// The held frames decoded (native frame), anchored where the dropped frames left off;
@@ -575,7 +646,8 @@ impl Stream {
         Ok(self.decode()?.frames_range(first - self.first, count))
     }
 
-    /// Timeline frames `first..first + count` in one layout and convention.
+    /// Timeline frames `first..first + count` in one layout and convention. Quaternion tracks
+    /// are sign-continuous over the whole timeline, whatever ranges they are read in.
     pub fn read(
         &self,
         first: usize,
@@ -583,7 +655,19 @@ impl Stream {
         layout: Layout,
         convention: Convention,
     ) -> Result<Vec<f32>> {
-        self.poses(first, count)?.layout(layout, convention)
+        let Some(order) = layout.quat_order() else {
+            return self.poses(first, count)?.layout(layout, convention);
+        };
+        self.check_range(first, count)?;
+        let world = matches!(layout, Layout::GlobalQuatXyzw | Layout::GlobalQuatWxyz);
+        let track = self.quat_track(track_slot(world, convention))?;
+        let joints = self.model.motion_format().skeleton().joint_count();
+        let a = (first - self.first) * joints;
+        Ok(track[a..a + count * joints]
+            .iter()
+            .flat_map(|q| order.arrange(q))
+            .map(|v| v as f32)
+            .collect())
     }
 
     /// Model-space features of timeline frames `first..first + count` (for `smpl24_6d` in the

@@ -409,9 +409,10 @@ pub unsafe extern "C" fn flame_stream_status(
 
 /// Reads timeline frames `first_frame..first_frame + count` in a [`FlameLayout`] (0 = the
 /// model's features, in the stream's frame: the root path continues across chunks), converted
-/// to a `FlameConvention` (ignored for features). `flags` must be 0: the read flags of
-/// sessions (`FLAME_READ_SMOOTH`, `FLAME_READ_RAW_SIGNS`) are not supported
-/// by streams, whose quaternion tracks are always sign-continuous.
+/// to a `FlameConvention` (ignored for features). Quaternion layouts are sign-continuous over
+/// the whole timeline, whatever ranges are read (one frame per call reads the values of one
+/// whole read) and whatever frames were dropped. `flags` must be 0: the read flags of sessions
+/// (`FLAME_READ_SMOOTH`, `FLAME_READ_RAW_SIGNS`) are not supported by streams.
 ///
 /// Frames not generated yet are `WRONG_STATE` (pump more); frames dropped behind the playhead
 /// are `INVALID_ARGUMENT` (the message names the window). The length protocol is

@@ -1,7 +1,8 @@
 /*
  * Streams through the C ABI (flame_stream_*): continuous motion from a timeline of prompts.
  *
- * usage: test_stream FIXTURES_DIR   (tests/fixtures: flame_tiny, mdm_tiny, mld_tiny)
+ * usage: test_stream FIXTURES_DIR   (tests/fixtures: flame_tiny, mdm_tiny, mld_tiny, mola_tiny,
+ *                                    finemogen_tiny)
  *
  * - every entry point with NULL handles, NULL out-pointers and NULL strings: INVALID_ARGUMENT
  *   (flame_stream_free(NULL) is a no-op), a short struct_size: INVALID_ARGUMENT;
@@ -17,7 +18,13 @@
  * - a latent model (MLD), chunk above the model's maximum, overlap >= chunk, threads above
  *   FLAME_MAX_THREADS, an unknown sampler, a NaN guidance: INVALID_ARGUMENT at creation;
  * - read flags, unknown layouts and conventions, foot contacts of a format without them;
- * - a call while another thread pumps: WRONG_STATE "in use by another thread".
+ * - a call while another thread pumps: WRONG_STATE "in use by another thread";
+ * - flame_stream_cancel: raised between pumps (the next pump is CANCELLED, nothing kept) and by
+ *   another thread during pumps; pumping on gives the bytes of a stream never cancelled;
+ * - flame_stream_push_stage / interrupt_stage: NULL and short structs, empty part texts follow
+ *   the whole-body text, part texts refused by FLAME when the chunk starts, and on FineMoGen
+ *   (finemogen_tiny) every part given the segment's text equals the plain push bit for bit;
+ * - a MoLA stream (mola_tiny; continues through position targets): deterministic, finite.
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -509,7 +516,7 @@ static void test_bad_params(const FlameModel *m, const FlameModel *latent) {
     FlameStream *s = NULL;
 
     small_params(&p, 1);
-    CHECK_ERROR_MENTIONS(flame_stream_new(latent, &p, &s), INV, "latent");
+    CHECK_ERROR_MENTIONS(flame_stream_new(latent, &p, &s), INV, "gradient");
     CHECK(s == NULL);
 
     small_params(&p, 1);
@@ -613,6 +620,179 @@ static void test_busy(const FlameModel *m) {
     flame_stream_free(w.stream);
 }
 
+/* ---- cancel ------------------------------------------------------------------------------ */
+
+struct canceller {
+    const FlameStream *stream;
+    atomic_int stop;
+};
+
+static void *cancel_worker(void *arg) {
+    struct canceller *c = (struct canceller *)arg;
+    for (int i = 0; i < 30 && !atomic_load(&c->stop); i++) {
+        struct timespec ts = {0, 200000};
+        nanosleep(&ts, NULL);
+        flame_stream_cancel(c->stream);
+    }
+    return NULL;
+}
+
+static void test_cancel(const FlameModel *m, const char *name) {
+    FlameStreamParams p;
+    small_params(&p, 1);
+    FlameStream *want = new_stream(m, &p);
+    timeline(want);
+    run(want, UINT32_MAX);
+
+    FlameStream *s = new_stream(m, &p);
+    timeline(s);
+    CHECK_STATUS(flame_stream_cancel(NULL), FLAME_STATUS_INVALID_ARGUMENT);
+    FlameStreamStatus st;
+    st.struct_size = sizeof st;
+    CHECK_OK(flame_stream_pump(s, 4, &st));
+    CHECK(st.ready == 40);
+    CHECK_OK(flame_stream_cancel(s));
+    CHECK_STATUS(flame_stream_pump(s, UINT32_MAX, &st), FLAME_STATUS_CANCELLED);
+    CHECK(status_of(s).ready == 40);
+
+    struct canceller c;
+    c.stream = s;
+    atomic_init(&c.stop, 0);
+    pthread_t t;
+    pthread_create(&t, NULL, cancel_worker, &c);
+    int cancelled = 0, calls = 0, other = 0;
+    for (;;) {
+        st.struct_size = sizeof st;
+        FlameStatus r = flame_stream_pump(s, 1, &st);
+        calls++;
+        if (r == FLAME_STATUS_CANCELLED) {
+            cancelled++;
+        } else if (r != FLAME_STATUS_OK) {
+            other++;
+            break;
+        } else if (st.steps == 0 || calls > 10000) {
+            break;
+        }
+    }
+    atomic_store(&c.stop, 1);
+    pthread_join(t, NULL);
+    CHECK(other == 0);
+    /* A cancel raised after the last pump would cancel the next one: drain it. */
+    while (flame_stream_pump(s, 1, &st) == FLAME_STATUS_CANCELLED) {
+    }
+    size_t na = 0, nb = 0;
+    float *a = read_range(s, 0, TIMELINE_FRAMES, FLAME_LAYOUT_FEATURES, 0, &na);
+    float *b = read_range(want, 0, TIMELINE_FRAMES, FLAME_LAYOUT_FEATURES, 0, &nb);
+    int same = a && b && same_bits(a, na, b, nb);
+    if (!same) {
+        fprintf(stderr, "  %s: %d cancels changed the frames\n", name, cancelled);
+    }
+    CHECK(same);
+    free(a);
+    free(b);
+    flame_stream_free(s);
+    flame_stream_free(want);
+}
+
+/* ---- segments with part texts ------------------------------------------------------------ */
+
+static FlameStage stage_of(const char *text, uint32_t frames) {
+    FlameStage st;
+    memset(&st, 0, sizeof st);
+    st.struct_size = sizeof st;
+    st.text = text;
+    st.frames = frames;
+    return st;
+}
+
+static void test_stages(const FlameModel *flame, const FlameModel *fmg) {
+    const int32_t INV = FLAME_STATUS_INVALID_ARGUMENT;
+    FlameStreamParams p;
+    small_params(&p, 1);
+    FlameStream *s = new_stream(flame, &p);
+    FlameStage st = stage_of("a person walks.", 30);
+    CHECK_STATUS(flame_stream_push_stage(NULL, &st), INV);
+    CHECK_STATUS(flame_stream_push_stage(s, NULL), INV);
+    CHECK_STATUS(flame_stream_interrupt_stage(NULL, &st), INV);
+    CHECK_STATUS(flame_stream_interrupt_stage(s, NULL), INV);
+    st.struct_size = 4;
+    CHECK_ERROR_MENTIONS(flame_stream_push_stage(s, &st), INV, "struct_size");
+    st = stage_of(NULL, 30);
+    CHECK_ERROR_MENTIONS(flame_stream_push_stage(s, &st), INV, "stage.text");
+    st = stage_of("a person walks.", 0);
+    CHECK_ERROR_MENTIONS(flame_stream_push_stage(s, &st), INV, "frame");
+    /* An empty part text follows the whole-body text: a plain segment for FLAME. */
+    st = stage_of("a person walks.", 30);
+    st.head = "";
+    CHECK_OK(flame_stream_push_stage(s, &st));
+    FlameStreamStatus ss;
+    ss.struct_size = sizeof ss;
+    CHECK_OK(flame_stream_pump(s, UINT32_MAX, &ss));
+    CHECK(ss.ready == 30);
+    st.left_arm = "the left arm waves.";
+    CHECK_OK(flame_stream_interrupt_stage(s, &st));
+    CHECK_ERROR_MENTIONS(flame_stream_pump(s, UINT32_MAX, &ss), INV, "part");
+    flame_stream_free(s);
+
+    /* FineMoGen: every part given the segment's own text = the plain segment, bit for bit;
+     * another right-arm text changes the second segment only. */
+    p.chunk = 30;
+    p.overlap = 8;
+    const char *walk = "a person walks forward.", *wave = "a person waves.";
+    float *got[3] = {NULL, NULL, NULL};
+    size_t n[3] = {0, 0, 0};
+    for (int k = 0; k < 3; k++) {
+        s = new_stream(fmg, &p);
+        CHECK_OK(flame_stream_push(s, walk, 20));
+        FlameStage w = stage_of(wave, 30);
+        if (k == 1) {
+            w.head = w.stem = w.left_arm = w.right_arm = w.left_leg = w.right_leg = w.pelvis =
+                wave;
+        } else if (k == 2) {
+            w.right_arm = "the right arm swings up and down.";
+        }
+        CHECK_OK(flame_stream_push_stage(s, &w));
+        run(s, UINT32_MAX);
+        got[k] = read_range(s, 0, 50, FLAME_LAYOUT_FEATURES, 0, &n[k]);
+        flame_stream_free(s);
+    }
+    CHECK(got[0] && got[1] && same_bits(got[0], n[0], got[1], n[1]));
+    CHECK(got[0] && got[2] && n[0] == n[2] && n[0] % 50 == 0);
+    if (got[0] && got[2] && n[0] == n[2]) {
+        size_t first = n[0] / 50 * 20;
+        CHECK(memcmp(got[0], got[2], first * sizeof(float)) == 0);
+        CHECK(memcmp(got[0] + first, got[2] + first, (n[0] - first) * sizeof(float)) != 0);
+    }
+    for (int k = 0; k < 3; k++) {
+        free(got[k]);
+    }
+}
+
+/* ---- a latent model ---------------------------------------------------------------------- */
+
+static void test_mola(const FlameModel *mola) {
+    FlameStreamParams p;
+    small_params(&p, 1);
+    p.chunk = 32;
+    p.overlap = 8;
+    float *got[2] = {NULL, NULL};
+    size_t n[2] = {0, 0};
+    for (int k = 0; k < 2; k++) {
+        p.threads = (uint32_t)k + 1;
+        FlameStream *s = new_stream(mola, &p);
+        timeline(s);
+        run(s, k == 0 ? 1 : UINT32_MAX);
+        CHECK(status_of(s).ready == TIMELINE_FRAMES);
+        got[k] = read_range(s, 0, TIMELINE_FRAMES, FLAME_LAYOUT_GLOBAL_POSITIONS,
+                            FLAME_CONVENTION_NATIVE, &n[k]);
+        flame_stream_free(s);
+    }
+    CHECK(got[0] && got[1] && same_bits(got[0], n[0], got[1], n[1]));
+    CHECK(got[0] && all_finite(got[0], n[0]));
+    free(got[0]);
+    free(got[1]);
+}
+
 int main(int argc, char **argv) {
     if (argc < 2) {
         fprintf(stderr, "usage: %s FIXTURES_DIR\n", argv[0]);
@@ -622,7 +802,9 @@ int main(int argc, char **argv) {
     FlameModel *flame = load("flame_tiny");
     FlameModel *mdm = load("mdm_tiny");
     FlameModel *mld = load("mld_tiny");
-    if (!flame || !mdm || !mld) {
+    FlameModel *mola = load("mola_tiny");
+    FlameModel *fmg = load("finemogen_tiny");
+    if (!flame || !mdm || !mld || !mola || !fmg) {
         check_summary();
         return 1;
     }
@@ -638,6 +820,12 @@ int main(int argc, char **argv) {
     test_bad_params(flame, mld);
     test_bad_params(mdm, mld);
     test_busy(flame);
+    test_cancel(flame, "flame_tiny");
+    test_cancel(mdm, "mdm_tiny");
+    test_stages(flame, fmg);
+    test_mola(mola);
+    flame_model_free(mola);
+    flame_model_free(fmg);
     flame_model_free(flame);
     flame_model_free(mdm);
     flame_model_free(mld);
