@@ -909,13 +909,78 @@ fn stream_writes_the_whole_timeline() {
         "{}",
         stderr(&o)
     );
-    // Latent models cannot keep frames.
+    // MLD can neither keep frames nor steer towards them.
     let mld = repo("tests/fixtures/mld_tiny.safetensors")
         .display()
         .to_string();
     let o = stream_with(&mld, &["--out", &out]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-    assert!(stderr(&o).contains("latent"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("gradient"), "{}", stderr(&o));
     assert!(!Path::new(&out).exists(), "nothing written");
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+/// `flame stream --prompt-file`: a HuMMan-MoGen file's stages are the timeline's segments, with
+/// their part texts (FineMoGen reads them; FLAME refuses them with the reason).
+#[test]
+fn stream_takes_segments_with_part_texts_from_a_prompt_file() {
+    let d = scratch("stream-prompt-file");
+    let path = |n: &str| d.join(n).display().to_string();
+    // 30 fps in the file: 0..30 → 20 frames, 30..75 → 30 frames at the model's 20 fps.
+    let file = path("stages.json");
+    std::fs::write(
+        &file,
+        r#"{"fps": 30, "stages": [
+            {"start_frame": 0, "end_frame": 30, "all": "a person walks forward."},
+            {"start_frame": 30, "end_frame": 75, "all": "a person waves.",
+             "right_arm": "the right arm swings up and down."}]}"#,
+    )
+    .unwrap();
+    let fmg = repo("tests/fixtures/finemogen_tiny.safetensors")
+        .display()
+        .to_string();
+    let out = path("fmg.npy");
+    let args = [
+        "stream",
+        "--model",
+        &fmg,
+        "--prompt-file",
+        &file,
+        "--steps",
+        "2",
+        "--chunk",
+        "30",
+        "--overlap",
+        "8",
+        "--out",
+        &out,
+    ];
+    assert_ok(&flame(&args));
+    let (shape, x) = flame::npy::read_f32(Path::new(&out)).unwrap();
+    assert_eq!(shape, vec![50, 263]);
+    assert!(x.iter().all(|v| v.is_finite()));
+    // FLAME takes no part texts: the second segment's chunk says so.
+    let tiny = tiny();
+    let bad = path("flame.npy");
+    let mut args = args.to_vec();
+    args[2] = &tiny;
+    args[12] = &bad;
+    let o = flame(&args);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("part"), "{}", stderr(&o));
+    assert!(!Path::new(&bad).exists(), "nothing written");
+    // --segment and --prompt-file exclude each other.
+    let o = flame(&[
+        "stream",
+        "--model",
+        &tiny,
+        "--segment",
+        "x@10",
+        "--prompt-file",
+        &file,
+        "--out",
+        &bad,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&d);
 }

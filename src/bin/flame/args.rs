@@ -315,8 +315,17 @@ pub struct StreamArgs {
     #[command(flatten)]
     pub model: ModelArgs,
     /// One segment of the timeline: its sentence and frame count, repeated in order
-    #[arg(long, value_name = "TEXT@FRAMES", required = true)]
+    #[arg(
+        long,
+        value_name = "TEXT@FRAMES",
+        required_unless_present = "prompt_file",
+        conflicts_with = "prompt_file"
+    )]
     pub segment: Vec<String>,
+    /// Segments with texts per body part (FineMoGen), in the HuMMan-MoGen layout of `generate
+    /// --prompt-file`: each stage is a segment
+    #[arg(long, value_name = "FILE.json")]
+    pub prompt_file: Option<PathBuf>,
     /// Frames per chunk, kept ones included [default: the model's default frame count]
     #[arg(long, value_name = "N")]
     pub chunk: Option<usize>,

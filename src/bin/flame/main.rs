@@ -578,7 +578,7 @@ fn parse_segment(spec: &str) -> Result<Segment, String> {
 /// One motion over a timeline of segments, generated chunk by chunk and written whole.
 fn stream(a: &StreamArgs) -> Result<(), String> {
     let outputs = Outputs::new(&a.output)?;
-    let segments = a
+    let mut segments = a
         .segment
         .iter()
         .map(|s| parse_segment(s))
@@ -588,9 +588,18 @@ fn stream(a: &StreamArgs) -> Result<(), String> {
             "--chunk 0: a chunk needs frames (leave --chunk out for the model's default)".into(),
         );
     }
-    let total: usize = segments.iter().map(|s| s.frames).sum();
     let loaded = load_model(&a.model)?;
     let model = &loaded.model;
+    if let Some(path) = &a.prompt_file {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        segments = flame::stages::from_prompt_file(&text, model.config().motion.fps)
+            .map_err(|e| format!("{}: {e}", path.display()))?
+            .into_iter()
+            .map(Segment::from_stage)
+            .collect();
+    }
+    let total: usize = segments.iter().map(|s| s.frames).sum();
     for s in &segments {
         note_unknown_actions(&loaded, &s.prompt);
     }
