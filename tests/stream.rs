@@ -55,8 +55,22 @@ fn run(s: &mut Stream, per_call: usize) -> usize {
 
 #[test]
 fn the_same_timeline_gives_the_same_bits_whatever_the_pump_pattern_and_threads() {
-    for name in ["flame_tiny", "mdm_tiny"] {
+    // Every family that keeps frames: diffusion (DDIM) and flow matching (Euler).
+    for name in [
+        "flame_tiny",
+        "mdm_tiny",
+        "motionfm_tiny",
+        "omg_tiny",
+        "finemogen_tiny",
+    ] {
         let m = model(name);
+        let params = |threads| {
+            let mut p = params(threads);
+            if name == "motionfm_tiny" {
+                p.session.sampler = Some(Sampler::Euler);
+            }
+            p
+        };
         let mut a = Stream::new(Arc::clone(&m), &params(1)).unwrap();
         timeline(&mut a);
         let calls = run(&mut a, 1);
