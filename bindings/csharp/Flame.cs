@@ -14,10 +14,10 @@
 // Written for C# 7.3 (Unity 2018.3+, mcs) and without UTF-8 marshalling attributes, which not
 // every runtime supports: strings cross as NUL-terminated UTF-8 byte arrays.
 //
-// Threads: a FlameModel may be shared by any number of threads; a FlameSession is used by one
-// thread at a time (libflame answers WRONG_STATE to a second thread), except Cancel(). Disposing
-// a session while another thread is inside Step() is safe: the SafeHandle defers the free until
-// that call returns (cancel first so it returns soon).
+// Threads: a FlameModel may be shared by any number of threads; a FlameSession or a FlameStream
+// is used by one thread at a time (libflame answers WRONG_STATE to a second thread), except
+// Cancel(). Disposing a session while another thread is inside Step() (a stream: Pump()) is
+// safe: the SafeHandle defers the free until that call returns (cancel first so it returns soon).
 
 using System;
 using System.Collections.Generic;
@@ -441,8 +441,9 @@ namespace Flame
         public IntPtr pelvis;
     }
 
-    /// <summary>One time stage of a prompt for FlameSession.SetPromptStages: what the whole body
-    /// does (Text) for Frames frames, and optionally what single body parts do (the HuMMan-MoGen
+    /// <summary>One time stage of a prompt for FlameSession.SetPromptStages, or one segment of a
+    /// stream's timeline for FlameStream.PushStage and InterruptStage: what the whole body does
+    /// (Text) for Frames frames, and optionally what single body parts do (the HuMMan-MoGen
     /// annotation's fields; null or "" = the part follows Text). FineMoGen models compose stages
     /// and read the part texts; other models take one stage without part texts.</summary>
     public sealed class Stage
@@ -517,8 +518,9 @@ namespace Flame
 
     /// <summary>Continuous motion from a timeline of prompts (README "Streams"): Push segments,
     /// Pump a bounded number of denoiser steps per call, move the playhead, Read frames. Frames
-    /// not generated yet throw with WrongState, dropped ones with InvalidArgument; latent models
-    /// cannot stream.</summary>
+    /// not generated yet throw with WrongState, dropped ones with InvalidArgument, a cancelled
+    /// pump with Cancelled. A latent model whose decoder has a gradient (MoLA) streams through
+    /// position targets; Create refuses MLD. Used by one thread at a time, except Cancel().</summary>
     public sealed class FlameStream : IDisposable
     {
         public FlameStreamHandle Handle { get; private set; }
@@ -555,11 +557,57 @@ namespace Flame
             FlameException.Check(FlameNative.flame_stream_interrupt(Handle, FlameNative.Utf8Z(prompt), (uint)frames));
         }
 
+        /// <summary>Appends a segment with part texts: a Stage (as SetPromptStages takes them) of
+        /// stage.Frames frames. FineMoGen reads the part texts (each chunk of the segment is one
+        /// stage with them); other models take a stage without part texts as Push(stage.Text,
+        /// stage.Frames) and refuse part texts with InvalidArgument from the Pump that starts the
+        /// segment.</summary>
+        public void PushStage(Stage stage)
+        {
+            WithStage(stage, raw => FlameNative.flame_stream_push_stage(Handle, ref raw));
+        }
+
+        /// <summary>Interrupt with part texts (see PushStage).</summary>
+        public void InterruptStage(Stage stage)
+        {
+            WithStage(stage, raw => FlameNative.flame_stream_interrupt_stage(Handle, ref raw));
+        }
+
+        delegate FlameStatus StageCall(FlameStage raw);
+
+        static void WithStage(Stage stage, StageCall call)
+        {
+            if (stage == null)
+                throw new ArgumentNullException("stage");
+            var pins = new List<GCHandle>();
+            try
+            {
+                FlameException.Check(call(FlameSession.NativeStage(stage, "stage", pins)));
+            }
+            finally
+            {
+                foreach (var pin in pins)
+                    pin.Free();
+            }
+        }
+
+        /// <summary>Asks the Pump running on another thread to stop: it throws with status
+        /// Cancelled within one transformer layer, and the step it was running leaves no trace,
+        /// so pumping again gives the frames of a stream never cancelled. With no pump running,
+        /// the next Pump's first step is cancelled. Any thread.</summary>
+        public void Cancel()
+        {
+            FlameException.Check(FlameNative.flame_stream_cancel(Handle));
+        }
+
         public void SetPlayhead(ulong frame)
         {
             FlameException.Check(FlameNative.flame_stream_set_playhead(Handle, frame));
         }
 
+        /// <summary>Runs at most maxSteps denoiser steps (uint.MaxValue: as many as needed)
+        /// towards the lookahead. Throws with status Cancelled when Cancel stopped it; pump again
+        /// to go on.</summary>
         public FlameStreamStatus Pump(uint maxSteps)
         {
             var st = new FlameStreamStatus { struct_size = (uint)Marshal.SizeOf(typeof(FlameStreamStatus)) };
@@ -585,6 +633,8 @@ namespace Flame
             return output;
         }
 
+        /// <summary>Frees the stream (deferred until a Pump running on another thread returns:
+        /// Cancel first so it returns soon).</summary>
         public void Dispose() { Handle.Dispose(); }
     }
 
@@ -739,6 +789,18 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_interrupt(FlameStreamHandle stream, byte[] prompt, uint frames);
+
+        /// <param name="stage">its strings valid for the call.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_push_stage(FlameStreamHandle stream, ref FlameStage stage);
+
+        /// <param name="stage">its strings valid for the call.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_interrupt_stage(FlameStreamHandle stream, ref FlameStage stage);
+
+        /// <summary>Any thread, even while another is inside flame_stream_pump.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_cancel(FlameStreamHandle stream);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_set_playhead(FlameStreamHandle stream, ulong frame);
@@ -1037,25 +1099,7 @@ namespace Flame
             try
             {
                 for (int i = 0; i < stages.Length; i++)
-                {
-                    var st = stages[i];
-                    if (st == null)
-                        throw new ArgumentNullException("stages[" + i + "]");
-                    if (st.Text == null)
-                        throw new ArgumentNullException("stages[" + i + "].Text");
-                    if (st.Frames < 0)
-                        throw new ArgumentOutOfRangeException("stages[" + i + "].Frames", st.Frames, "a stage's frames cannot be negative");
-                    raw[i].struct_size = (uint)Marshal.SizeOf(typeof(FlameStage));
-                    raw[i].frames = (uint)st.Frames;
-                    raw[i].text = Pin(st.Text, "stages[" + i + "].Text", pins);
-                    raw[i].head = Pin(st.Head, "stages[" + i + "].Head", pins);
-                    raw[i].stem = Pin(st.Stem, "stages[" + i + "].Stem", pins);
-                    raw[i].left_arm = Pin(st.LeftArm, "stages[" + i + "].LeftArm", pins);
-                    raw[i].right_arm = Pin(st.RightArm, "stages[" + i + "].RightArm", pins);
-                    raw[i].left_leg = Pin(st.LeftLeg, "stages[" + i + "].LeftLeg", pins);
-                    raw[i].right_leg = Pin(st.RightLeg, "stages[" + i + "].RightLeg", pins);
-                    raw[i].pelvis = Pin(st.Pelvis, "stages[" + i + "].Pelvis", pins);
-                }
+                    raw[i] = NativeStage(stages[i], "stages[" + i + "]", pins);
                 FlameException.Check(FlameNative.flame_session_set_prompt_stages(Handle, raw, (UIntPtr)raw.Length));
             }
             finally
@@ -1063,6 +1107,30 @@ namespace Flame
                 foreach (var pin in pins)
                     pin.Free();
             }
+        }
+
+        /// <summary>st as a FlameStage whose strings are pinned UTF-8 (name names it in
+        /// exceptions), their handles added to pins for the caller to free.</summary>
+        internal static FlameStage NativeStage(Stage st, string name, List<GCHandle> pins)
+        {
+            if (st == null)
+                throw new ArgumentNullException(name);
+            if (st.Text == null)
+                throw new ArgumentNullException(name + ".Text");
+            if (st.Frames < 0)
+                throw new ArgumentOutOfRangeException(name + ".Frames", st.Frames, "a stage's frames cannot be negative");
+            var raw = new FlameStage();
+            raw.struct_size = (uint)Marshal.SizeOf(typeof(FlameStage));
+            raw.frames = (uint)st.Frames;
+            raw.text = Pin(st.Text, name + ".Text", pins);
+            raw.head = Pin(st.Head, name + ".Head", pins);
+            raw.stem = Pin(st.Stem, name + ".Stem", pins);
+            raw.left_arm = Pin(st.LeftArm, name + ".LeftArm", pins);
+            raw.right_arm = Pin(st.RightArm, name + ".RightArm", pins);
+            raw.left_leg = Pin(st.LeftLeg, name + ".LeftLeg", pins);
+            raw.right_leg = Pin(st.RightLeg, name + ".RightLeg", pins);
+            raw.pelvis = Pin(st.Pelvis, name + ".Pelvis", pins);
+            return raw;
         }
 
         /// <summary>s as pinned NUL-terminated UTF-8 (IntPtr.Zero for null), its handle added to

@@ -193,7 +193,8 @@ class GltfContainer:
 
 @dataclass
 class Stage:
-    """One time stage of a prompt (FlameStage) for Session.set_prompt_stages: what the whole body
+    """One time stage of a prompt (FlameStage) for Session.set_prompt_stages, or one segment of
+    a stream's timeline for Stream.push_stage and Stream.interrupt_stage: what the whole body
     does (`text`) for `frames` frames, and optionally what single body parts do (the HuMMan-MoGen
     annotation's fields; None or "" = the part follows `text`). FineMoGen models compose
     stages and read the part texts; other models take one stage without part texts."""
@@ -211,6 +212,26 @@ class Stage:
 
 # The body-part fields of Stage, in FlameStage's order.
 _STAGE_PARTS = ("head", "stem", "left_arm", "right_arm", "left_leg", "right_leg", "pelvis")
+
+
+def _fill_stage(r, st, what: str) -> None:
+    """Fills the _Stage `r` from the Stage `st` (`what` names it in errors). The encoded texts
+    stay referenced by `r` (ctypes keeps them) as long as it lives."""
+    if not isinstance(st, Stage):
+        raise TypeError(f"{what} is a {type(st).__name__}, not a flame.Stage")
+    if not isinstance(st.frames, int) or not 0 <= st.frames <= 0xFFFFFFFF:
+        raise ValueError(f"{what}.frames {st.frames!r} is not a uint32")
+    r.struct_size = ctypes.sizeof(_Stage)
+    r.frames = st.frames
+    for name in ("text",) + _STAGE_PARTS:
+        value = getattr(st, name)
+        if value is None:
+            continue
+        if not isinstance(value, str):
+            raise TypeError(f"{what}.{name} is a {type(value).__name__}, not a str")
+        if "\0" in value:
+            raise ValueError(f"{what}.{name} contains a NUL character")
+        setattr(r, name, value.encode("utf-8"))
 
 
 @dataclass
@@ -474,6 +495,9 @@ def _signatures():
         "flame_stream_free": (None, [_P]),
         "flame_stream_push": (_status, [_P, ctypes.c_char_p, u32]),
         "flame_stream_interrupt": (_status, [_P, ctypes.c_char_p, u32]),
+        "flame_stream_push_stage": (_status, [_P, ctypes.POINTER(_Stage)]),
+        "flame_stream_interrupt_stage": (_status, [_P, ctypes.POINTER(_Stage)]),
+        "flame_stream_cancel": (_status, [_P]),
         "flame_stream_set_playhead": (_status, [_P, ctypes.c_uint64]),
         "flame_stream_pump": (_status, [_P, u32, ctypes.POINTER(_StreamStatus)]),
         "flame_stream_status": (_status, [_P, ctypes.POINTER(_StreamStatus)]),
@@ -860,14 +884,22 @@ class StreamStatus:
 class Stream:
     """Continuous motion from a timeline of prompts (flame_stream_*, README "Streams"): push
     segments, pump a bounded number of denoiser steps at a time, move the playhead, read
-    frames. Latent models cannot stream. Methods raise FlameError when libflame reports a
-    failure (frames not generated yet: Status.WRONG_STATE; dropped: INVALID_ARGUMENT)."""
+    frames. A latent model whose decoder has a gradient (MoLA) streams through position
+    targets; MLD is refused at creation. Methods raise FlameError when libflame reports a
+    failure (frames not generated yet: Status.WRONG_STATE; dropped: INVALID_ARGUMENT; a
+    cancelled pump: CANCELLED).
+
+    Threads: used by one thread at a time, except cancel(), which any thread may call while
+    another is inside pump(). The C calls release the GIL."""
 
     def __init__(self, model: "Model", *, chunk: int = 0, overlap: int = 0, lookahead: int = 0,
                  window: int = 0, steps: int = 0, sampler: Union[None, str, int] = None,
                  guidance: Optional[float] = None, seed: int = 0, threads: int = 0):
         self._handle: Optional[int] = None
+        # Held by every call but cancel(), so close() from another thread waits for a running
+        # pump instead of freeing the stream under it; cancel() holds only _cancel_lock.
         self._lock = threading.RLock()
+        self._cancel_lock = threading.Lock()
         info = model.info
         p = _StreamParams()
         _check(_lib().flame_stream_params_default(ctypes.byref(p)))
@@ -907,6 +939,34 @@ class Stream:
             _check(_lib().flame_stream_interrupt(self._h(), self._text(prompt),
                                                  _uint32("frames", frames)))
 
+    def push_stage(self, stage: Stage) -> None:
+        """Appends a segment with part texts: a Stage (as Session.set_prompt_stages takes them)
+        of `stage.frames` frames. FineMoGen reads the part texts (each chunk of the segment is
+        one stage with them); other models take a stage without part texts as push(stage.text,
+        stage.frames) and refuse part texts with FlameError (INVALID_ARGUMENT) from the pump()
+        that starts the segment."""
+        raw = _Stage()
+        _fill_stage(raw, stage, "stage")
+        with self._lock:
+            _check(_lib().flame_stream_push_stage(self._h(), ctypes.byref(raw)))
+
+    def interrupt_stage(self, stage: Stage) -> None:
+        """interrupt() with part texts (see push_stage)."""
+        raw = _Stage()
+        _fill_stage(raw, stage, "stage")
+        with self._lock:
+            _check(_lib().flame_stream_interrupt_stage(self._h(), ctypes.byref(raw)))
+
+    def cancel(self) -> None:
+        """Abandons the step a pump() on another thread is running: that pump raises FlameError
+        with status CANCELLED within one transformer layer, and the step leaves no trace, so
+        pumping again gives the frames of a stream never cancelled. With no pump running, the
+        next pump's first step is cancelled. Thread-safe; a no-op on a closed stream."""
+        with self._cancel_lock:  # close() frees the handle only under it
+            handle = self._handle
+            if handle is not None:
+                _check(_lib().flame_stream_cancel(handle))
+
     def set_playhead(self, frame: int) -> None:
         with self._lock:
             _check(_lib().flame_stream_set_playhead(self._h(), frame))
@@ -916,7 +976,8 @@ class Stream:
         return StreamStatus(raw.steps, raw.ready, raw.first_frame, raw.playhead, bool(raw.starving))
 
     def pump(self, max_steps: int = 0xFFFFFFFF) -> StreamStatus:
-        """Runs at most `max_steps` denoiser steps towards the lookahead."""
+        """Runs at most `max_steps` denoiser steps towards the lookahead. Raises FlameError with
+        status CANCELLED when cancel() stopped it; pump again to go on."""
         raw = _StreamStatus(struct_size=ctypes.sizeof(_StreamStatus))
         with self._lock:
             _check(_lib().flame_stream_pump(self._h(), _uint32("max_steps", max_steps),
@@ -948,7 +1009,11 @@ class Stream:
         return out.reshape(count, -1) if count else out
 
     def close(self) -> None:
-        with self._lock:
+        """Frees the stream (cancelling and waiting for a pump running on another thread)."""
+        if self._handle is None:
+            return
+        self.cancel()
+        with self._lock, self._cancel_lock:
             handle, self._handle = self._handle, None
             if handle is not None:
                 _lib().flame_stream_free(handle)
@@ -1034,23 +1099,7 @@ class Session:
         stages = list(stages)
         raw = (_Stage * max(len(stages), 1))()
         for i, st in enumerate(stages):
-            if not isinstance(st, Stage):
-                raise TypeError(f"stages[{i}] is a {type(st).__name__}, not a flame.Stage")
-            if not isinstance(st.frames, int) or not 0 <= st.frames <= 0xFFFFFFFF:
-                raise ValueError(f"stages[{i}].frames {st.frames!r} is not a uint32")
-            r = raw[i]
-            r.struct_size = ctypes.sizeof(_Stage)
-            r.frames = st.frames
-            # The bytes objects stay referenced by `raw` until the call returns.
-            for name in ("text",) + _STAGE_PARTS:
-                value = getattr(st, name)
-                if value is None:
-                    continue
-                if not isinstance(value, str):
-                    raise TypeError(f"stages[{i}].{name} is a {type(value).__name__}, not a str")
-                if "\0" in value:
-                    raise ValueError(f"stages[{i}].{name} contains a NUL character")
-                setattr(r, name, value.encode("utf-8"))
+            _fill_stage(raw[i], st, f"stages[{i}]")
         self._call(_lib().flame_session_set_prompt_stages, raw if stages else None, len(stages))
 
     def prompt_info(self) -> PromptInfo:

@@ -80,6 +80,13 @@ static class FlameTest
             Run("PromptStages", TestPromptStages);
             Run("PromptStageErrors", TestPromptStageErrors);
             Run("Stream", TestStream);
+            Run("StreamCancelBetweenPumps", TestStreamCancelBetweenPumps);
+            Run("StreamCancelFromAnotherThread", TestStreamCancelFromAnotherThread);
+            Run("StreamCancelLongPump", TestStreamCancelLongPump);
+            Run("StreamStagesFineMoGen", TestStreamStagesFineMoGen);
+            Run("StreamStagesRefused", TestStreamStagesRefused);
+            Run("StreamStageErrors", TestStreamStageErrors);
+            Run("StreamMola", TestStreamMola);
             Run("FineMoGenStages", TestFineMoGenStages);
             Run("PositionTargets", TestPositionTargets);
             Run("PositionTargetErrors", TestPositionTargetErrors);
@@ -1435,7 +1442,330 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "at least one frame", () => s.Push("a person jumps.", 0));
         }
         using (var latent = FlameModel.Load(Path.Combine(dir, "mld_tiny.safetensors"), 1))
-            Throws(FlameStatus.InvalidArgument, "latent", () => FlameStream.Create(latent));
+            Throws(FlameStatus.InvalidArgument, "gradient", () => FlameStream.Create(latent));
+    }
+
+    // --- streams: cancel, segments with part texts, MoLA ---------------------------------------
+
+    // The settings of tests/c/test_stream.c: chunks of 40 frames keeping 10, 3 DDIM steps, seed
+    // 5; the timeline's 50 + 25 + 40 = 115 frames are five chunks of 3 steps.
+    const int TimelineFrames = 115;
+
+    static FlameStreamParams SmallStreamParams(uint threads = 1)
+    {
+        var p = FlameStreamParams.Default();
+        p.chunk = 40;
+        p.overlap = 10;
+        p.lookahead = 1000;
+        p.window = 10000;
+        p.steps = 3;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.seed = 5;
+        p.threads = threads;
+        return p;
+    }
+
+    static FlameStream Timeline(FlameModel m, FlameStreamParams p)
+    {
+        var s = FlameStream.Create(m, p);
+        s.Push("a person walks forward.", 50);
+        s.Push("a person waves.", 25);
+        s.Push("a person sits down.", 40);
+        return s;
+    }
+
+    /// <summary>Pumps maxSteps at a time until a call runs none; returns the pumps that threw
+    /// Cancelled (any other failure propagates).</summary>
+    static int PumpOn(FlameStream s, uint maxSteps)
+    {
+        int cancelled = 0;
+        for (int calls = 0; calls < 100000; calls++)
+        {
+            try
+            {
+                if (s.Pump(maxSteps).steps == 0)
+                    return cancelled;
+            }
+            catch (FlameException e)
+            {
+                if (e.Status != FlameStatus.Cancelled)
+                    throw;
+                cancelled++;
+            }
+        }
+        throw new InvalidOperationException("the stream never finished");
+    }
+
+    static float[] TimelineFeatures(FlameModel m)
+    {
+        using (var s = Timeline(m, SmallStreamParams()))
+        {
+            Check(PumpOn(s, uint.MaxValue) == 0, "an uncancelled stream");
+            return s.Read(0, TimelineFrames, FlameLayout.Features, 0);
+        }
+    }
+
+    // A cancel with no pump running cancels the next pump's first step; that pump keeps
+    // nothing, and the one after it goes on to the frames of a stream never cancelled.
+    static void TestStreamCancelBetweenPumps()
+    {
+        foreach (var name in new[] { "flame_tiny.safetensors", "mdm_tiny.safetensors" })
+        {
+            using (var m = LoadFixture(name))
+            {
+                var want = TimelineFeatures(m);
+                using (var s = Timeline(m, SmallStreamParams()))
+                {
+                    Check(s.Pump(4).ready == 40, name + ": the first chunk");
+                    s.Cancel();
+                    Throws(FlameStatus.Cancelled, "cancel", () => s.Pump(uint.MaxValue));
+                    Check(s.Status().ready == 40, name + ": nothing kept from the cancelled pump");
+                    var st = s.Pump(uint.MaxValue);
+                    Check(st.ready == TimelineFrames && st.steps == 11, name + ": pumped on, " + st.steps + " steps to " + st.ready);
+                    Check(BitEqual(s.Read(0, TimelineFrames, FlameLayout.Features, 0), want), name + ": the bits of a stream never cancelled");
+                }
+            }
+        }
+    }
+
+    // Cancels from another thread while this one pumps one step per call (as
+    // tests/c/test_stream.c does): each lands inside a pump or cancels the next one; pumping on
+    // gives the bits of a stream never cancelled.
+    static void TestStreamCancelFromAnotherThread()
+    {
+        foreach (var name in new[] { "flame_tiny.safetensors", "mdm_tiny.safetensors" })
+        {
+            using (var m = LoadFixture(name))
+            {
+                var want = TimelineFeatures(m);
+                using (var s = Timeline(m, SmallStreamParams()))
+                {
+                    bool stop = false;
+                    var canceller = new Thread(() =>
+                    {
+                        for (int i = 0; i < 30 && !Volatile.Read(ref stop); i++)
+                        {
+                            Thread.SpinWait(20000);
+                            s.Cancel();
+                        }
+                    });
+                    canceller.Start();
+                    int cancelled;
+                    try
+                    {
+                        cancelled = PumpOn(s, 1);
+                    }
+                    finally
+                    {
+                        Volatile.Write(ref stop, true);
+                        canceller.Join();
+                    }
+                    // A cancel raised after the last pump would cancel the next one: drain it.
+                    cancelled += PumpOn(s, 1);
+                    Check(cancelled >= 1, name + ": " + cancelled + " pumps cancelled");
+                    Check(s.Status().ready == TimelineFrames, name + ": every frame");
+                    Check(BitEqual(s.Read(0, TimelineFrames, FlameLayout.Features, 0), want), name + ": the bits of a stream never cancelled");
+                }
+            }
+        }
+    }
+
+    // One pump of a long timeline (about a hundred steps) on a worker thread, cancelled once
+    // from this one: it throws Cancelled part way, and pumping on gives the same frames.
+    static void TestStreamCancelLongPump()
+    {
+        var p = SmallStreamParams();
+        p.lookahead = 100000;
+        float[] want;
+        using (var w = FlameStream.Create(model, p))
+        {
+            w.Push("a person walks forward.", 600);
+            w.Push("a person waves.", 400);
+            Check(PumpOn(w, uint.MaxValue) == 0, "an uncancelled stream");
+            want = w.Read(0, 1000, FlameLayout.Features, 0);
+        }
+        using (var s = FlameStream.Create(model, p))
+        {
+            s.Push("a person walks forward.", 600);
+            s.Push("a person waves.", 400);
+            var started = new ManualResetEvent(false);
+            Exception error = null;
+            bool finished = false;
+            var worker = new Thread(() =>
+            {
+                started.Set();
+                try
+                {
+                    s.Pump(uint.MaxValue);
+                    finished = true;
+                }
+                catch (Exception e)
+                {
+                    error = e;
+                }
+            });
+            worker.Start();
+            Check(started.WaitOne(30000), "worker started");
+            Thread.Sleep(5);
+            var watch = Stopwatch.StartNew();
+            s.Cancel();
+            Check(worker.Join(30000), "worker stopped");
+            Check(!finished && error is FlameException && ((FlameException)error).Status == FlameStatus.Cancelled,
+                  "CANCELLED on the worker, got " + error);
+            Check(watch.ElapsedMilliseconds < 5000, "cancel took " + watch.ElapsedMilliseconds + " ms");
+            Check(s.Status().ready < 1000, "stopped part way at " + s.Status().ready);
+            Check(PumpOn(s, uint.MaxValue) == 0, "the cancel was spent");
+            Check(BitEqual(s.Read(0, 1000, FlameLayout.Features, 0), want), "the bits of a stream never cancelled");
+        }
+    }
+
+    static Stage EveryPart(string text, int frames)
+    {
+        return new Stage(text, frames)
+        {
+            Head = text, Stem = text, LeftArm = text, RightArm = text, LeftLeg = text, RightLeg = text, Pelvis = text,
+        };
+    }
+
+    /// <summary>A FineMoGen stream (chunks of 30 keeping 8): 20 frames of walking, then what
+    /// second adds; its 50 frames' features.</summary>
+    static float[] FineMoGenStream(FlameModel m, Action<FlameStream> second)
+    {
+        var p = SmallStreamParams();
+        p.chunk = 30;
+        p.overlap = 8;
+        using (var s = FlameStream.Create(m, p))
+        {
+            s.Push("a person walks forward.", 20);
+            second(s);
+            Check(PumpOn(s, uint.MaxValue) == 0 && s.Status().ready == 50, "50 frames");
+            return s.Read(0, 50, FlameLayout.Features, 0);
+        }
+    }
+
+    /// <summary>A FineMoGen stream: 30 frames of a 100-frame walk, then what interrupt does.</summary>
+    static float[] FineMoGenInterrupted(FlameModel m, Action<FlameStream> interrupt)
+    {
+        var p = SmallStreamParams();
+        p.chunk = 30;
+        p.overlap = 8;
+        using (var s = FlameStream.Create(m, p))
+        {
+            s.Push("a person walks forward.", 100);
+            Check(s.Pump(3).ready == 30, "the first chunk");
+            interrupt(s);
+            Check(PumpOn(s, uint.MaxValue) == 0 && s.Status().ready == 60, "60 frames");
+            return s.Read(0, 60, FlameLayout.Features, 0);
+        }
+    }
+
+    static bool BitEqualRange(float[] a, float[] b, int start, int end)
+    {
+        if (a == null || b == null || a.Length < end || b.Length < end)
+            return false;
+        for (int i = start; i < end; i++)
+            if (BitConverter.ToInt32(BitConverter.GetBytes(a[i]), 0) != BitConverter.ToInt32(BitConverter.GetBytes(b[i]), 0))
+                return false;
+        return true;
+    }
+
+    // FineMoGen reads part texts: every part given the segment's own text is the plain push bit
+    // for bit; another right-arm text changes the second segment's frames only. InterruptStage
+    // likewise against Interrupt.
+    static void TestStreamStagesFineMoGen()
+    {
+        const string wave = "a person waves.";
+        using (var m = LoadFixture("finemogen_tiny.safetensors"))
+        {
+            int dim = m.Info.FeatureDim;
+            var plain = FineMoGenStream(m, s => s.Push(wave, 30));
+            Check(plain.Length == 50 * dim, "features of 50 frames");
+            Check(BitEqual(FineMoGenStream(m, s => s.PushStage(EveryPart(wave, 30))), plain), "every part = the segment's text: the plain push");
+            Check(BitEqual(FineMoGenStream(m, s => s.PushStage(new Stage(wave, 30))), plain), "no part texts: the plain push");
+            var arm = FineMoGenStream(m, s => s.PushStage(new Stage(wave, 30) { RightArm = "the right arm swings up and down." }));
+            Check(BitEqualRange(arm, plain, 0, 20 * dim), "another right arm: the first segment unchanged");
+            Check(!BitEqualRange(arm, plain, 20 * dim, 50 * dim), "another right arm: the second segment changed");
+
+            var interrupted = FineMoGenInterrupted(m, s => s.Interrupt(wave, 30));
+            Check(BitEqual(FineMoGenInterrupted(m, s => s.InterruptStage(EveryPart(wave, 30))), interrupted), "InterruptStage = Interrupt");
+            var left = FineMoGenInterrupted(m, s => s.InterruptStage(new Stage(wave, 30) { LeftArm = "the left arm rises." }));
+            Check(BitEqualRange(left, interrupted, 0, 30 * dim) && !BitEqualRange(left, interrupted, 30 * dim, 60 * dim),
+                  "another left arm changes the frames after the interrupt only");
+        }
+    }
+
+    // Other families take a stage without part texts as a plain segment and refuse part texts
+    // in the pump that starts the segment.
+    static void TestStreamStagesRefused()
+    {
+        var p = SmallStreamParams();
+        float[] plain;
+        using (var s = FlameStream.Create(model, p))
+        {
+            s.Push("a person walks.", 30);
+            PumpOn(s, uint.MaxValue);
+            plain = s.Read(0, 30, FlameLayout.Features, 0);
+        }
+        using (var s = FlameStream.Create(model, p))
+        {
+            s.PushStage(new Stage("a person walks.", 30) { Head = "", LeftArm = "" });
+            Check(PumpOn(s, uint.MaxValue) == 0, "empty part texts");
+            Check(BitEqual(s.Read(0, 30, FlameLayout.Features, 0), plain), "empty part texts follow the whole-body text");
+            s.PushStage(new Stage("a person waves.", 30) { LeftArm = "the left arm waves." });
+            Throws(FlameStatus.InvalidArgument, "part", () => s.Pump(uint.MaxValue));
+        }
+        using (var s = FlameStream.Create(model, p))
+        {
+            s.InterruptStage(new Stage("a person waves.", 30) { Pelvis = "the pelvis turns." });
+            Throws(FlameStatus.InvalidArgument, "part", () => s.Pump(uint.MaxValue));
+        }
+    }
+
+    static void TestStreamStageErrors()
+    {
+        var s = FlameStream.Create(model, SmallStreamParams());
+        foreach (var push in new Action<Stage>[] { s.PushStage, s.InterruptStage })
+        {
+            ThrowsManaged<ArgumentNullException>(() => push(null));
+            ThrowsManaged<ArgumentNullException>(() => push(new Stage(null, 30)));
+            ThrowsManaged<ArgumentOutOfRangeException>(() => push(new Stage("a person walks.", -1)));
+            ThrowsManaged<ArgumentException>(() => push(new Stage("a person walks.", 30) { RightLeg = "a\0b" }));
+            Throws(FlameStatus.InvalidArgument, "frame", () => push(new Stage("a person walks.", 0)));
+        }
+        // Nothing was queued by the refused calls.
+        var st = s.Pump(uint.MaxValue);
+        Check(st.steps == 0 && st.ready == 0 && st.starving == 1, "nothing queued");
+        s.Dispose();
+        ThrowsManaged<ObjectDisposedException>(() => s.PushStage(new Stage("a person walks.", 30)));
+        ThrowsManaged<ObjectDisposedException>(() => s.Cancel());
+    }
+
+    // MoLA (a latent model) continues each chunk through position targets: one step per call
+    // on one thread and everything at once on two give the same frames.
+    static void TestStreamMola()
+    {
+        using (var m = LoadFixture("mola_tiny.safetensors"))
+        {
+            Check(m.Info.Latent, "MoLA is latent");
+            var got = new List<float[]>();
+            foreach (uint threads in new uint[] { 1, 2 })
+            {
+                var p = SmallStreamParams(threads);
+                p.chunk = 32;
+                p.overlap = 8;
+                using (var s = Timeline(m, p))
+                {
+                    Check(PumpOn(s, threads == 1 ? 1u : uint.MaxValue) == 0, "pumped");
+                    Check(s.Status().ready == TimelineFrames, "every frame");
+                    var pos = s.Read(0, TimelineFrames, FlameLayout.GlobalPositions, 0);
+                    Check(pos.Length == TimelineFrames * m.Info.JointCount * 3, "positions");
+                    Check(pos.All(v => !float.IsNaN(v) && !float.IsInfinity(v)), "finite");
+                    got.Add(pos);
+                    got.Add(s.Read(0, TimelineFrames, FlameLayout.Features, 0));
+                }
+            }
+            Check(BitEqual(got[0], got[2]) && BitEqual(got[1], got[3]), "deterministic");
+        }
     }
 
     static void TestPromptStageErrors()
