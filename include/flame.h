@@ -183,6 +183,14 @@ typedef enum FlameWeights {
   FLAME_WEIGHTS_F16 = 1,
   // bfloat16: half the memory; coarser than f16 (~5e-2 on the demo model).
   FLAME_WEIGHTS_BF16 = 2,
+  // bf16 weights and bf16 products accumulated in f32 (activations rounded to bf16 per
+  // layer): half the memory and about twice the f32 speed; needs AVX512_BF16
+  // (`INVALID_ARGUMENT` at load otherwise).
+  FLAME_WEIGHTS_BF16_COMPUTE = 3,
+  // 8-bit weights (per-output scales) and 8-bit activations (per-row scales), integer
+  // products: a quarter of the memory; needs AVX512_VNNI (`INVALID_ARGUMENT` at load
+  // otherwise).
+  FLAME_WEIGHTS_INT8 = 4,
 } FlameWeights;
 
 // How the weight of position targets changes with the noise level τ (0 = clean, 1 = noise).

@@ -23,6 +23,8 @@ use rayon::prelude::*;
 use super::activation::{gelu_erf, relu};
 use super::gemm::SharedMut;
 
+mod lowp;
+
 /// Rows of a micro-tile of the AVX2 and portable kernels.
 const MR: usize = 6;
 /// Rows of a micro-tile of the AVX-512 kernel: 12 accumulators of 16 lanes.
@@ -47,22 +49,56 @@ pub enum WeightType {
     F16,
     /// bfloat16 (rounded to nearest even when narrowed from f32).
     Bf16,
+    /// bf16 weights and bf16 products: activations rounded to bf16 per call, pairs multiplied
+    /// and accumulated in f32 (`vdpbf16ps`; see `packed::lowp`). Needs AVX512_BF16.
+    Bf16Compute,
+    /// 8-bit weights (per-column scales) and 8-bit activations (per-row scales per call),
+    /// multiplied and accumulated in 32-bit integers (`vpdpbusd` with AVX512_VNNI; an exact
+    /// portable reproduction elsewhere).
+    Int8,
 }
 
 impl WeightType {
+    pub const ALL: [WeightType; 5] = [
+        WeightType::F32,
+        WeightType::F16,
+        WeightType::Bf16,
+        WeightType::Bf16Compute,
+        WeightType::Int8,
+    ];
+
     pub fn name(self) -> &'static str {
         match self {
             WeightType::F32 => "f32",
             WeightType::F16 => "f16",
             WeightType::Bf16 => "bf16",
+            WeightType::Bf16Compute => "bf16-compute",
+            WeightType::Int8 => "int8",
         }
     }
 
-    /// Bytes per stored weight.
+    /// Bytes per stored weight (scales aside).
     pub fn size(self) -> usize {
         match self {
             WeightType::F32 => 4,
-            WeightType::F16 | WeightType::Bf16 => 2,
+            WeightType::F16 | WeightType::Bf16 | WeightType::Bf16Compute => 2,
+            WeightType::Int8 => 1,
+        }
+    }
+
+    /// Whether the products themselves run in reduced precision (not only the storage).
+    pub fn reduced_compute(self) -> bool {
+        matches!(self, WeightType::Bf16Compute | WeightType::Int8)
+    }
+
+    /// Whether this CPU runs the type's own instructions: always for the storage types; for
+    /// `bf16-compute` AVX512_BF16; for `int8` AVX512_VNNI (without it an exact but slow
+    /// portable kernel runs).
+    pub fn native_on_this_cpu(self) -> bool {
+        match self {
+            WeightType::Bf16Compute => lowp::has_bf16_dot() && detected_isa() == Isa::Avx512,
+            WeightType::Int8 => lowp::has_int8_dot() && detected_isa() == Isa::Avx512,
+            _ => true,
         }
     }
 }
@@ -74,7 +110,11 @@ impl std::str::FromStr for WeightType {
             "f32" | "float32" => Ok(WeightType::F32),
             "f16" | "float16" | "half" => Ok(WeightType::F16),
             "bf16" | "bfloat16" => Ok(WeightType::Bf16),
-            _ => Err(format!("weight type `{s}`: expected f32, f16 or bf16")),
+            "bf16-compute" | "bf16_compute" => Ok(WeightType::Bf16Compute),
+            "int8" => Ok(WeightType::Int8),
+            _ => Err(format!(
+                "weight type `{s}`: expected f32, f16, bf16, bf16-compute or int8"
+            )),
         }
     }
 }
@@ -254,12 +294,25 @@ pub struct PackedWeights {
     n: usize,
     ty: WeightType,
     lines: Vec<Line>,
+    /// Int8: each column's weight scale and the sum of its quantised weights.
+    scales: Vec<f32>,
+    colsum: Vec<i32>,
 }
 
 impl PackedWeights {
     /// Packs `w` (`[n, k]`, row-major, PyTorch `Linear.weight`), narrowing to `ty`.
     pub fn pack(w: &[f32], n: usize, k: usize, ty: WeightType) -> PackedWeights {
         assert_eq!(w.len(), n * k, "pack: weight is not {n}x{k}");
+        if ty.reduced_compute() {
+            let mut packed = PackedWeights {
+                k,
+                n,
+                ty,
+                ..PackedWeights::empty()
+            };
+            lowp::pack(&mut packed, w);
+            return packed;
+        }
         let panels = n.div_ceil(NR);
         let bytes = panels * k * NR * ty.size();
         let mut packed = PackedWeights {
@@ -267,6 +320,8 @@ impl PackedWeights {
             n,
             ty,
             lines: vec![Line([0; 64]); bytes.div_ceil(64)],
+            scales: Vec::new(),
+            colsum: Vec::new(),
         };
         let value = |j: usize, p: usize, c: usize| {
             let col = j * NR + c;
@@ -288,6 +343,7 @@ impl PackedWeights {
                     }
                 }
             }
+            WeightType::Bf16Compute | WeightType::Int8 => unreachable!("packed above"),
             WeightType::F16 | WeightType::Bf16 => {
                 let dst = packed.u16_mut();
                 for j in 0..panels {
@@ -314,6 +370,8 @@ impl PackedWeights {
             n: 0,
             ty: WeightType::F32,
             lines: Vec::new(),
+            scales: Vec::new(),
+            colsum: Vec::new(),
         }
     }
 
@@ -354,15 +412,27 @@ impl PackedWeights {
         self.ty
     }
 
-    /// Heap bytes held (padding included).
+    /// Heap bytes held (padding and int8 scales included).
     pub fn bytes(&self) -> usize {
-        self.lines.len() * 64
+        self.lines.len() * 64 + self.scales.len() * 4 + self.colsum.len() * 4
+    }
+
+    /// The packed words of a reduced-precision type (one per column and pair or quad).
+    fn words(&self) -> &[u32] {
+        let len = self.n.div_ceil(NR) * lowp::steps(self.ty, self.k) * NR;
+        assert!(len * 4 <= self.lines.len() * 64);
+        // SAFETY: `lines` owns at least `len * 4` bytes, 64-byte aligned; every bit pattern is
+        // a valid u32.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr() as *const u32, len) }
     }
 
     /// The weight back as `[n, k]` row-major f32: the values as stored (narrowed for f16 and
     /// bf16, widened exactly), the panel padding dropped. Used to build derived layers (the
     /// transpose a backward pass multiplies by) only when they are needed.
     pub fn unpack(&self) -> Vec<f32> {
+        if self.ty.reduced_compute() {
+            return lowp::unpack(self);
+        }
         let (n, k) = (self.n, self.k);
         let mut w = vec![0.0f32; n * k];
         let at = |col: usize, p: usize| ((col / NR) * k + p) * NR + col % NR;
@@ -487,6 +557,12 @@ pub(crate) fn linear_packed_on(
         other => other,
     };
     if m == 0 || n == 0 {
+        return;
+    }
+    if w.ty.reduced_compute() {
+        super::profile::timed(super::profile::Kind::Linear, 2 * m * k * n, || {
+            lowp::linear(isa, x, w, bias, act, y, m)
+        });
         return;
     }
     let job = Job {
@@ -760,6 +836,9 @@ impl Job<'_> {
                         WeightType::Bf16 => {
                             avx512::tile_bf16(kc, a, b as *const u16, c, ldc, start)
                         }
+                        WeightType::Bf16Compute | WeightType::Int8 => {
+                            unreachable!("reduced-precision weights run in packed::lowp")
+                        }
                     }
                 }
                 return;
@@ -778,6 +857,9 @@ impl Job<'_> {
                         WeightType::F32 => avx2::tile_f32(kc, a, b as *const f32, c, ldc, start),
                         WeightType::F16 => avx2::tile_f16(kc, a, b as *const u16, c, ldc, start),
                         WeightType::Bf16 => avx2::tile_bf16(kc, a, b as *const u16, c, ldc, start),
+                        WeightType::Bf16Compute | WeightType::Int8 => {
+                            unreachable!("reduced-precision weights run in packed::lowp")
+                        }
                     }
                 }
             }
@@ -792,6 +874,9 @@ impl Job<'_> {
                             }
                             WeightType::Bf16 => {
                                 bf16::from_bits(*(b as *const u16).add(p * NR + cc)).to_f32()
+                            }
+                            WeightType::Bf16Compute | WeightType::Int8 => {
+                                unreachable!("reduced-precision weights run in packed::lowp")
                             }
                         }
                     })
@@ -1089,6 +1174,7 @@ mod tests {
                 WeightType::F32 => v,
                 WeightType::F16 => f16::from_f32(v).to_f32(),
                 WeightType::Bf16 => bf16::from_f32(v).to_f32(),
+                WeightType::Bf16Compute | WeightType::Int8 => unreachable!("tested in lowp"),
             })
             .collect()
     }

@@ -505,20 +505,47 @@ impl Model {
     /// [`Model::from_file`] with `opts`.
     pub fn from_file_with(file: ModelFile, opts: &LoadOptions) -> Result<Model> {
         let ty = opts.weights;
+        if !ty.native_on_this_cpu() {
+            return Err(invalid_arg!(
+                "weights {} need the CPU's {} instructions and the avx512 kernel (this CPU or \
+                 FLAME_KERNEL={} lacks them); use f32, f16 or bf16",
+                ty.name(),
+                if ty == WeightType::Int8 {
+                    "AVX512_VNNI"
+                } else {
+                    "AVX512_BF16"
+                },
+                crate::kernels::kernel_name()
+            ));
+        }
         let config = Config::from_file(&file)?;
         let tokenizer = file
             .metadata(TOKENIZER_KEY)
             .ok_or_else(|| bad_file!("no `{TOKENIZER_KEY}` metadata (the tokenizer.json text)"))?;
+        // The text encoder runs once per prompt: reduced-precision compute would buy nothing
+        // there and perturb the condition of every step, so it keeps those types' storage
+        // precision (bf16 weights for bf16-compute; f32 for int8) with exact products.
+        let text_ty = match ty {
+            WeightType::Bf16Compute => WeightType::Bf16,
+            WeightType::Int8 => WeightType::F32,
+            other => other,
+        };
         let text = match &config.text_encoder {
             TextConfig::Bert(t) => TextModel::Bert(TextEncoder::load_with(
                 &file,
                 TEXT_PREFIX,
                 t,
                 tokenizer,
-                ty,
+                text_ty,
             )?),
             TextConfig::Clip(c) => TextModel::Clip {
-                encoder: ClipTextEncoder::load_with(&file, TEXT_PREFIX, &c.clip, tokenizer, ty)?,
+                encoder: ClipTextEncoder::load_with(
+                    &file,
+                    TEXT_PREFIX,
+                    &c.clip,
+                    tokenizer,
+                    text_ty,
+                )?,
                 context: c.max_length,
             },
         };

@@ -46,6 +46,12 @@ STATIC_LIBS=("$LIB/libflame.a" -lpthread -ldl -lm)
 # shellcheck disable=SC2054  # the comma belongs to the option
 VALGRIND=(valgrind --error-exitcode=1 --leak-check=full --errors-for-leak-kinds=definite,indirect)
 
+# Which reduced-precision weight types this CPU runs (test_api expects a load or a clear
+# refusal): AVX512_BF16 / AVX512_VNNI on the AVX-512 kernel.
+cpu_has() { grep -qw "$1" /proc/cpuinfo 2>/dev/null && grep -qw avx512f /proc/cpuinfo && [ "${FLAME_KERNEL:-avx512}" = avx512 ]; }
+if cpu_has avx512_bf16; then export FLAME_TEST_CPU_BF16=1; else export FLAME_TEST_CPU_BF16=0; fi
+if cpu_has avx512_vnni; then export FLAME_TEST_CPU_VNNI=1; else export FLAME_TEST_CPU_VNNI=0; fi
+
 PASSED=0
 FAILED=0
 START="$(date +%s.%N)"

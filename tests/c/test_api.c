@@ -207,6 +207,32 @@ static void test_load_errors(const unsigned char *file, size_t file_len) {
         flame_model_free(half);
     }
 
+    /* Reduced-precision compute loads where the CPU has its instructions (FLAME_TEST_CPU_*
+     * say which: tests/c/run.sh reads /proc/cpuinfo), and is INVALID_ARGUMENT naming them
+     * elsewhere. */
+    const struct {
+        int weights;
+        const char *cpu_env, *instruction;
+    } reduced[] = {{FLAME_WEIGHTS_BF16_COMPUTE, "FLAME_TEST_CPU_BF16", "AVX512_BF16"},
+                   {FLAME_WEIGHTS_INT8, "FLAME_TEST_CPU_VNNI", "AVX512_VNNI"}};
+    for (size_t i = 0; i < sizeof reduced / sizeof reduced[0]; i++) {
+        FlameModelParams rp = mp;
+        rp.weights = reduced[i].weights;
+        FlameModel *r = NULL;
+        const char *has = getenv(reduced[i].cpu_env);
+        if (has && strcmp(has, "1") == 0) {
+            CHECK_STATUS(flame_model_load(g_model_path, &rp, &r), FLAME_STATUS_OK);
+            CHECK(r != NULL);
+            flame_model_free(r);
+        } else if (has && strcmp(has, "0") == 0) {
+            CHECK_ERROR_MENTIONS(flame_model_load(g_model_path, &rp, &r),
+                                 FLAME_STATUS_INVALID_ARGUMENT, reduced[i].instruction);
+            CHECK(r == NULL);
+        } else {
+            printf("  %s not set: weights %d not checked\n", reduced[i].cpu_env, rp.weights);
+        }
+    }
+
     /* Files that cannot be read. */
     char path[4096];
     tmp_path(path, sizeof path, "does-not-exist.safetensors");

@@ -1,0 +1,830 @@
+//! Linear layers computed in reduced precision (opt-in load options): products of bf16 pairs
+//! accumulated in f32 (`vdpbf16ps`, AVX512_BF16) and products of 8-bit integers accumulated in
+//! 32-bit integers (`vpdpbusd`, AVX512_VNNI).
+//!
+//! - **bf16 compute** ([`WeightType::Bf16Compute`]): weights rounded to bf16 at load; each call
+//!   rounds its activations to bf16 (nearest even). Panel `j`, pair row `q` holds for each of
+//!   the [`NR`] columns one 32-bit word: `W[c, 2q]` in the low half, `W[c, 2q + 1]` in the high
+//!   half (0 past `k`). An output starts at the bias and takes one `vdpbf16ps` step per pair in
+//!   order: `acc += a₂q₊₁·w₂q₊₁`, then `acc += a₂q·w₂q`, each product exact in f32 and each sum
+//!   rounded once, with bf16 subnormal inputs and f32 subnormal results read as zero — the
+//!   instruction's documented behaviour, which the portable kernel reproduces, so both give the
+//!   same bits (tested where the CPU runs both).
+//! - **int8 compute** ([`WeightType::Int8`]): per output column a symmetric weight scale
+//!   `s_w = max|W[c, :]| / 127` and weights `round(W / s_w)` in −127..=127 (a quarter of f32's
+//!   memory); per call and row a symmetric activation scale `s_a = max|x[r, :]| / 127` and
+//!   values `round(x / s_a)`, stored offset by 128 as unsigned bytes (`vpdpbusd` multiplies
+//!   unsigned by signed). Quad row `q` of a panel holds `W[c, 4q..4q + 4]` per column. The
+//!   integer sum is exact (32-bit sums over blocks of 32,768 inputs, added in 64 bits), so every
+//!   kernel gives the same integers; the output is `(Σ − 128·Σ_k w) · (s_a·s_w) + bias` in one fused
+//!   multiply-add.
+//!
+//! Both are bit-identical for any thread count (each output is one fixed chain). Rows are cut
+//! into tiles of [`MR512`], activations converted once per call into a per-thread buffer laid
+//! out tile by tile (each step's 12 words adjacent), then split over the pool by weight panels
+//! or by row tiles as the f32 kernel does.
+
+use half::bf16;
+use rayon::prelude::*;
+
+use super::super::gemm::SharedMut;
+use super::{Activation, Isa, Line, PackedWeights, WeightType, MR512, NR, PAR_MIN_MACS};
+
+/// Rows per M block: the activations of 8 tiles stay in L2 while a panel streams past them.
+const TILES_PER_BLOCK: usize = 8;
+
+/// Quads summed in 32 bits before the sum moves to 64 (`4 · 8192 · 255 · 127 < 2³¹`), so the
+/// integer sums are exact for any `k`.
+const INT8_BLOCK: usize = 8192;
+
+/// Whether this CPU has the instruction of a reduced-precision kernel (on top of AVX-512F).
+pub(crate) fn has_bf16_dot() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        Isa::Avx512.supported() && is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+pub(crate) fn has_int8_dot() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        Isa::Avx512.supported() && is_x86_feature_detected!("avx512vnni")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// Words per panel column over `k` inputs: pairs (bf16) or quads (int8).
+pub(super) fn steps(ty: WeightType, k: usize) -> usize {
+    match ty {
+        WeightType::Bf16Compute => k.div_ceil(2),
+        WeightType::Int8 => k.div_ceil(4),
+        _ => unreachable!("{ty:?} is not a reduced-precision compute type"),
+    }
+}
+
+/// A bf16 pair as one word, `lo` in the low half.
+fn bf16_pair(lo: f32, hi: f32) -> u32 {
+    bf16::from_f32(lo).to_bits() as u32 | (bf16::from_f32(hi).to_bits() as u32) << 16
+}
+
+/// `round(v / s)` in −127..=127 (`inv` = 1/s, 0 for an all-zero row).
+fn quantize(v: f32, inv: f32) -> i8 {
+    (v * inv).round().clamp(-127.0, 127.0) as i8
+}
+
+/// The symmetric scale of `v` (`max|v| / 127`), NaN when a value is not finite so that the
+/// outputs are not finite either (the session's check reports it).
+fn scale_of(v: &[f32]) -> f32 {
+    if v.iter().any(|x| !x.is_finite()) {
+        return f32::NAN;
+    }
+    v.iter().fold(0.0f32, |m, x| m.max(x.abs())) / 127.0
+}
+
+fn inverse(scale: f32) -> f32 {
+    if scale > 0.0 {
+        1.0 / scale
+    } else {
+        0.0
+    }
+}
+
+/// Packs `w` (`[n, k]`) for a reduced-precision type into `p` (whose `k`, `n`, `ty` are set).
+pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
+    let (n, k, ty) = (p.n, p.k, p.ty);
+    let panels = n.div_ceil(NR);
+    let s = steps(ty, k);
+    p.lines = vec![Line([0; 64]); panels * s];
+    // SAFETY: one 64-byte line per (panel, step) holds its NR 32-bit words; every bit pattern
+    // is a valid u32.
+    let words: &mut [u32] = unsafe {
+        std::slice::from_raw_parts_mut(p.lines.as_mut_ptr() as *mut u32, panels * s * NR)
+    };
+    let at = |col: usize, i: usize| {
+        if col < n && i < k {
+            w[col * k + i]
+        } else {
+            0.0
+        }
+    };
+    match ty {
+        WeightType::Bf16Compute => {
+            for j in 0..panels {
+                for q in 0..s {
+                    for c in 0..NR {
+                        let col = j * NR + c;
+                        words[(j * s + q) * NR + c] = bf16_pair(at(col, 2 * q), at(col, 2 * q + 1));
+                    }
+                }
+            }
+        }
+        _ => {
+            p.scales = (0..n).map(|c| scale_of(&w[c * k..(c + 1) * k])).collect();
+            p.colsum = vec![0; n];
+            for j in 0..panels {
+                for q in 0..s {
+                    for c in 0..NR {
+                        let col = j * NR + c;
+                        let inv = if col < n { inverse(p.scales[col]) } else { 0.0 };
+                        let mut bytes = [0u8; 4];
+                        for (b, byte) in bytes.iter_mut().enumerate() {
+                            let v = quantize(at(col, 4 * q + b), inv);
+                            if col < n {
+                                p.colsum[col] += v as i32;
+                            }
+                            *byte = v as u8;
+                        }
+                        words[(j * s + q) * NR + c] = u32::from_le_bytes(bytes);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The weights back as `[n, k]` f32: bf16 values widened, int8 values times their scale.
+pub(super) fn unpack(p: &PackedWeights) -> Vec<f32> {
+    let (n, k) = (p.n, p.k);
+    let s = steps(p.ty, k);
+    let words = p.words();
+    let mut w = vec![0.0f32; n * k];
+    for col in 0..n {
+        let (j, c) = (col / NR, col % NR);
+        for i in 0..k {
+            let word = words[(j * s + i / per_word(p.ty)) * NR + c];
+            w[col * k + i] = match p.ty {
+                WeightType::Bf16Compute => {
+                    bf16::from_bits((word >> (16 * (i % 2))) as u16).to_f32()
+                }
+                _ => (word.to_le_bytes()[i % 4] as i8) as f32 * p.scales[col],
+            };
+        }
+    }
+    w
+}
+
+fn per_word(ty: WeightType) -> usize {
+    match ty {
+        WeightType::Bf16Compute => 2,
+        _ => 4,
+    }
+}
+
+thread_local! {
+    /// Each calling thread's converted activations (words) and row scales, reused across calls.
+    static ACTS: std::cell::RefCell<(Vec<u32>, Vec<f32>)> = Default::default();
+}
+
+/// `y = act(x · Wᵀ + bias)` for a reduced-precision `w` on kernel `isa` (the portable
+/// reproduction when the CPU lacks the instruction).
+pub(super) fn linear(
+    isa: Isa,
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+) {
+    ACTS.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut bufs) => {
+            let (words, scales) = &mut *bufs;
+            linear_with(isa, x, w, bias, act, y, m, words, scales)
+        }
+        Err(_) => linear_with(isa, x, w, bias, act, y, m, &mut Vec::new(), &mut Vec::new()),
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn linear_with(
+    isa: Isa,
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+    words: &mut Vec<u32>,
+    scales: &mut Vec<f32>,
+) {
+    let (k, n, ty) = (w.k, w.n, w.ty);
+    let s = steps(ty, k);
+    let tiles = m.div_ceil(MR512);
+    convert(ty, x, m, k, s, words, scales);
+    let native = match ty {
+        WeightType::Bf16Compute => isa == Isa::Avx512 && has_bf16_dot(),
+        _ => isa == Isa::Avx512 && has_int8_dot(),
+    };
+    let job = Job {
+        native,
+        w,
+        s,
+        acts: words,
+        row_scales: scales,
+        bias,
+        act,
+        y: SharedMut(y.as_mut_ptr()),
+        m,
+    };
+    let panels = n.div_ceil(NR);
+    let threads = rayon::current_num_threads();
+    if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
+        job.run(0, tiles, 0, panels);
+        return;
+    }
+    let by_panels = panels >= 2 * threads || panels >= tiles;
+    let units = if by_panels { panels } else { tiles };
+    let tasks = threads.min(units);
+    let edge = |t: usize| units * t / tasks;
+    (0..tasks).into_par_iter().for_each(|t| {
+        let (lo, hi) = (edge(t), edge(t + 1));
+        if by_panels {
+            job.run(0, tiles, lo, hi);
+        } else {
+            job.run(lo, hi, 0, panels);
+        }
+    });
+}
+
+/// Converts `x [m, k]` into words laid out tile by tile: word `(t·s + q)·12 + i` is step `q`
+/// of row `12t + i` (a bf16 pair, or four offset bytes); rows past `m` are zero. Int8 also
+/// fills the row scales.
+fn convert(
+    ty: WeightType,
+    x: &[f32],
+    m: usize,
+    k: usize,
+    s: usize,
+    words: &mut Vec<u32>,
+    scales: &mut Vec<f32>,
+) {
+    let tiles = m.div_ceil(MR512);
+    words.clear();
+    words.resize(tiles * s * MR512, 0);
+    let at = |row: &[f32], i: usize| row.get(i).copied().unwrap_or(0.0);
+    match ty {
+        WeightType::Bf16Compute => {
+            for r in 0..m {
+                let row = &x[r * k..(r + 1) * k];
+                let (t, i) = (r / MR512, r % MR512);
+                for q in 0..s {
+                    words[(t * s + q) * MR512 + i] = bf16_pair(at(row, 2 * q), at(row, 2 * q + 1));
+                }
+            }
+        }
+        _ => {
+            scales.clear();
+            scales.extend((0..m).map(|r| scale_of(&x[r * k..(r + 1) * k])));
+            for r in 0..m {
+                let row = &x[r * k..(r + 1) * k];
+                let inv = inverse(scales[r]);
+                let (t, i) = (r / MR512, r % MR512);
+                for q in 0..s {
+                    let mut bytes = [128u8; 4];
+                    for (b, byte) in bytes.iter_mut().enumerate() {
+                        if 4 * q + b < k {
+                            *byte = (quantize(row[4 * q + b], inv) as i32 + 128) as u8;
+                        } else {
+                            // Past k the weight is 0: any byte adds nothing; 128 keeps the
+                            // colsum correction exact.
+                            *byte = 128;
+                        }
+                    }
+                    words[(t * s + q) * MR512 + i] = u32::from_le_bytes(bytes);
+                }
+            }
+        }
+    }
+}
+
+/// One call's operands, shared by its tasks.
+struct Job<'a> {
+    /// The CPU runs the type's instruction (otherwise the portable reproduction runs).
+    native: bool,
+    w: &'a PackedWeights,
+    /// Steps (pairs or quads) per column.
+    s: usize,
+    acts: &'a [u32],
+    row_scales: &'a [f32],
+    bias: Option<&'a [f32]>,
+    act: Activation,
+    y: SharedMut,
+    m: usize,
+}
+
+impl Job<'_> {
+    /// Row tiles `t0..t1` × panels `j0..j1`.
+    fn run(&self, t0: usize, t1: usize, j0: usize, j1: usize) {
+        let (n, s) = (self.w.n, self.s);
+        let words = self.w.words();
+        for tb in (t0..t1).step_by(TILES_PER_BLOCK) {
+            for j in j0..j1 {
+                let c0 = j * NR;
+                let cols = NR.min(n - c0);
+                let mut bias = [0.0f32; NR];
+                if let Some(b) = self.bias {
+                    bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
+                }
+                let panel = &words[j * s * NR..(j + 1) * s * NR];
+                for t in tb..(tb + TILES_PER_BLOCK).min(t1) {
+                    let a = &self.acts[t * s * MR512..(t + 1) * s * MR512];
+                    let mut tile = [0.0f32; MR512 * NR];
+                    match self.w.ty {
+                        WeightType::Bf16Compute => self.bf16_tile(a, panel, &bias, &mut tile),
+                        _ => self.int8_tile(t, c0, cols, a, panel, &bias, &mut tile),
+                    }
+                    let rows = MR512.min(self.m - t * MR512);
+                    for i in 0..rows {
+                        let r = t * MR512 + i;
+                        // SAFETY: row r < m, columns c0..c0 + cols ≤ n lie inside the checked
+                        // m×n output; this task alone writes this (tile, panel) block.
+                        let out = unsafe {
+                            std::slice::from_raw_parts_mut(self.y.get().add(r * n + c0), cols)
+                        };
+                        out.copy_from_slice(&tile[i * NR..i * NR + cols]);
+                        match self.act {
+                            Activation::None => {}
+                            Activation::Relu => super::relu(out),
+                            Activation::Gelu => super::gelu_erf(out),
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn bf16_tile(&self, a: &[u32], b: &[u32], bias: &[f32; NR], tile: &mut [f32; MR512 * NR]) {
+        #[cfg(target_arch = "x86_64")]
+        if self.native {
+            // SAFETY: `native` is set only when the CPU has avx512f and avx512bf16; the slices
+            // hold s·12 and s·NR words and the tile 12·NR values.
+            unsafe { avx512::tile_bf16(self.s, a.as_ptr(), b.as_ptr(), bias, tile) };
+            return;
+        }
+        portable_bf16_tile(self.s, a, b, bias, tile);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn int8_tile(
+        &self,
+        t: usize,
+        c0: usize,
+        cols: usize,
+        a: &[u32],
+        b: &[u32],
+        bias: &[f32; NR],
+        tile: &mut [f32; MR512 * NR],
+    ) {
+        let mut total = [0i64; MR512 * NR];
+        for q0 in (0..self.s).step_by(INT8_BLOCK) {
+            let q1 = (q0 + INT8_BLOCK).min(self.s);
+            let (a, b) = (&a[q0 * MR512..q1 * MR512], &b[q0 * NR..q1 * NR]);
+            let mut sums = [0i32; MR512 * NR];
+            #[cfg(target_arch = "x86_64")]
+            let done = if self.native {
+                // SAFETY: `native` is set only when the CPU has avx512f and avx512vnni; the
+                // slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
+                unsafe { avx512::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                true
+            } else {
+                false
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let done = false;
+            if !done {
+                portable_int8_tile(q1 - q0, a, b, &mut sums);
+            }
+            for (t, s) in total.iter_mut().zip(&sums) {
+                *t += *s as i64;
+            }
+        }
+        let rows = MR512.min(self.m - t * MR512);
+        for i in 0..rows {
+            let sa = self.row_scales[t * MR512 + i];
+            for c in 0..cols {
+                let col = c0 + c;
+                let exact = total[i * NR + c] - 128 * self.w.colsum[col] as i64;
+                tile[i * NR + c] = (exact as f32).mul_add(sa * self.w.scales[col], bias[c]);
+            }
+        }
+    }
+}
+
+/// A bf16 word's two values widened, subnormals read as zero (as `vdpbf16ps` does).
+fn pair_values(word: u32) -> (f32, f32) {
+    let widen = |bits: u32| {
+        let v = f32::from_bits(bits << 16);
+        if v.is_subnormal() {
+            0.0f32.copysign(v)
+        } else {
+            v
+        }
+    };
+    (widen(word & 0xffff), widen(word >> 16))
+}
+
+/// An f32 subnormal result flushed to zero (as `vdpbf16ps` does).
+fn flush(v: f32) -> f32 {
+    if v.is_subnormal() {
+        0.0f32.copysign(v)
+    } else {
+        v
+    }
+}
+
+/// The portable reproduction of the AVX512_BF16 tile (see the module doc for the chain).
+pub(super) fn portable_bf16_tile(
+    s: usize,
+    a: &[u32],
+    b: &[u32],
+    bias: &[f32; NR],
+    tile: &mut [f32; MR512 * NR],
+) {
+    for i in 0..MR512 {
+        tile[i * NR..(i + 1) * NR].copy_from_slice(bias);
+    }
+    for q in 0..s {
+        let bq = &b[q * NR..(q + 1) * NR];
+        for i in 0..MR512 {
+            let (a0, a1) = pair_values(a[q * MR512 + i]);
+            for (c, &word) in bq.iter().enumerate() {
+                let (b0, b1) = pair_values(word);
+                let v = &mut tile[i * NR + c];
+                *v = flush(*v + a1 * b1);
+                *v = flush(*v + a0 * b0);
+            }
+        }
+    }
+}
+
+/// The portable int8 tile: exact 32-bit sums of unsigned × signed bytes.
+pub(super) fn portable_int8_tile(s: usize, a: &[u32], b: &[u32], sums: &mut [i32; MR512 * NR]) {
+    for q in 0..s {
+        for i in 0..MR512 {
+            let ab = a[q * MR512 + i].to_le_bytes();
+            for c in 0..NR {
+                let wb = b[q * NR + c].to_le_bytes();
+                let dot: i32 = (0..4).map(|k| ab[k] as i32 * (wb[k] as i8) as i32).sum();
+                sums[i * NR + c] = sums[i * NR + c].wrapping_add(dot);
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    //! The 12×16 reduced-precision tiles: 12 accumulators of 16 lanes, one panel line per
+    //! step, each row's word broadcast.
+
+    use super::{MR512, NR};
+    use std::arch::x86_64::*;
+
+    /// # Safety
+    /// The CPU supports avx512f and avx512bf16; `a` readable for `s·12` words, `b` for `s·NR`.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn tile_bf16(
+        s: usize,
+        a: *const u32,
+        b: *const u32,
+        bias: &[f32; NR],
+        tile: &mut [f32; MR512 * NR],
+    ) {
+        // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores inside tile.
+        unsafe {
+            let mut acc = [_mm512_loadu_ps(bias.as_ptr()); MR512];
+            for q in 0..s {
+                let bq: __m512bh =
+                    std::mem::transmute(_mm512_loadu_si512(b.add(q * NR) as *const _));
+                let aq = a.add(q * MR512);
+                for (i, v) in acc.iter_mut().enumerate() {
+                    let ai: __m512bh = std::mem::transmute(_mm512_set1_epi32(*aq.add(i) as i32));
+                    *v = _mm512_dpbf16_ps(*v, ai, bq);
+                }
+            }
+            for (i, v) in acc.iter().enumerate() {
+                _mm512_storeu_ps(tile.as_mut_ptr().add(i * NR), *v);
+            }
+        }
+    }
+
+    /// # Safety
+    /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`.
+    #[target_feature(enable = "avx512f,avx512vnni")]
+    pub(super) unsafe fn tile_int8(
+        s: usize,
+        a: *const u32,
+        b: *const u32,
+        sums: &mut [i32; MR512 * NR],
+    ) {
+        // SAFETY (whole body): as in `tile_bf16`.
+        unsafe {
+            let mut acc = [_mm512_setzero_si512(); MR512];
+            for q in 0..s {
+                let bq = _mm512_loadu_si512(b.add(q * NR) as *const _);
+                let aq = a.add(q * MR512);
+                for (i, v) in acc.iter_mut().enumerate() {
+                    *v = _mm512_dpbusd_epi32(*v, _mm512_set1_epi32(*aq.add(i) as i32), bq);
+                }
+            }
+            for (i, v) in acc.iter().enumerate() {
+                _mm512_storeu_si512(sums.as_mut_ptr().add(i * NR) as *mut _, *v);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::linear_packed_on;
+    use super::*;
+    use crate::kernels::testutil::{in_pool, same_bits, Rng};
+
+    /// Shapes with odd `k` (a half-filled pair or quad), edge tiles in both directions, one
+    /// tile and several M blocks, and a `k` long enough for a few blocks of f32 rounding.
+    const SHAPES: &[(usize, usize, usize)] = &[
+        (1, 1, 1),
+        (1, 3, 5),
+        (3, 1, 17),
+        (5, 7, 1),
+        (2, 0, 3),
+        (12, 16, 16),
+        (13, 257, 16),
+        (7, 301, 33),
+        (100, 520, 47),
+        (197, 66, 70),
+        (40, 2050, 20),
+    ];
+
+    fn data(m: usize, k: usize, n: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let mut rng = Rng::new(seed);
+        // Activations with a spread of magnitudes (as after a layer norm and a GELU).
+        let x = (0..m * k)
+            .map(|i| rng.uniform() * if i % 7 == 0 { 4.0 } else { 1.0 })
+            .collect();
+        (x, rng.vec(n * k), rng.vec(n))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        isa: Isa,
+        ty: WeightType,
+        x: &[f32],
+        w: &[f32],
+        b: &[f32],
+        m: usize,
+        k: usize,
+        n: usize,
+        act: Activation,
+    ) -> Vec<f32> {
+        let packed = PackedWeights::pack(w, n, k, ty);
+        let mut y = vec![f32::NAN; m * n + 3];
+        linear_packed_on(isa, x, &packed, Some(b), act, &mut y, m);
+        assert!(
+            y[m * n..].iter().all(|v| v.is_nan()),
+            "wrote past the output"
+        );
+        y.truncate(m * n);
+        y
+    }
+
+    /// The AVX512_BF16 tile and the portable reproduction give the same bits (and so every
+    /// machine gives the same results); any thread count too.
+    #[test]
+    fn bf16_compute_is_the_same_bits_on_every_kernel_and_thread_count() {
+        if !has_bf16_dot() {
+            eprintln!("AVX512_BF16 not supported by this CPU: only the portable bf16 kernel ran");
+        }
+        for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
+            let (x, w, b) = data(m, k, n, s as u64);
+            let want = run(
+                Isa::Portable,
+                WeightType::Bf16Compute,
+                &x,
+                &w,
+                &b,
+                m,
+                k,
+                n,
+                Activation::None,
+            );
+            for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+                for threads in [1, 2, 3] {
+                    let got = in_pool(threads, || {
+                        run(
+                            isa,
+                            WeightType::Bf16Compute,
+                            &x,
+                            &w,
+                            &b,
+                            m,
+                            k,
+                            n,
+                            Activation::None,
+                        )
+                    });
+                    assert!(
+                        same_bits(&got, &want),
+                        "{m}x{k}x{n} {isa:?} {threads} threads"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Against an f64 sum of the bf16-rounded products: the only difference is the f32
+    /// accumulation (a relative error of a few ulps of `Σ|x||w|` per step).
+    #[test]
+    fn bf16_compute_sums_the_rounded_products() {
+        let r = |v: f32| bf16::from_f32(v).to_f32() as f64;
+        for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
+            let (x, w, b) = data(m, k, n, 100 + s as u64);
+            let got = run(
+                Isa::ALL[0],
+                WeightType::Bf16Compute,
+                &x,
+                &w,
+                &b,
+                m,
+                k,
+                n,
+                Activation::None,
+            );
+            let got_portable = run(
+                Isa::Portable,
+                WeightType::Bf16Compute,
+                &x,
+                &w,
+                &b,
+                m,
+                k,
+                n,
+                Activation::None,
+            );
+            for i in 0..m {
+                for j in 0..n {
+                    let (mut sum, mut mag) = (b[j] as f64, (b[j] as f64).abs());
+                    for p in 0..k {
+                        let t = r(x[i * k + p]) * r(w[j * k + p]);
+                        sum += t;
+                        mag += t.abs();
+                    }
+                    let tol = (k as f64 + 1.0) * f32::EPSILON as f64 * mag + 1e-30;
+                    for g in [&got, &got_portable] {
+                        let e = (g[i * n + j] as f64 - sum).abs();
+                        assert!(
+                            e <= tol,
+                            "{m}x{k}x{n} [{i},{j}]: {} vs {sum} (tol {tol})",
+                            g[i * n + j]
+                        );
+                    }
+                }
+            }
+            // And it is not the f32 result: bf16 rounding is there (the test can fail).
+            if k >= 16 {
+                let f32y = run(
+                    Isa::Portable,
+                    WeightType::F32,
+                    &x,
+                    &w,
+                    &b,
+                    m,
+                    k,
+                    n,
+                    Activation::None,
+                );
+                assert!(!same_bits(&f32y, &got));
+            }
+        }
+    }
+
+    /// Int8: the VNNI tile and the portable one give the same integers, so the same bits, for
+    /// any thread count; the result is the exact integer dot product of the quantised values,
+    /// scaled, and within the quantisation error of the f32 result.
+    #[test]
+    fn int8_is_exact_on_the_quantised_values_on_every_kernel() {
+        if !has_int8_dot() {
+            eprintln!("AVX512_VNNI not supported by this CPU: only the portable int8 kernel ran");
+        }
+        for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
+            let (x, w, b) = data(m, k, n, 200 + s as u64);
+            let want = run(
+                Isa::Portable,
+                WeightType::Int8,
+                &x,
+                &w,
+                &b,
+                m,
+                k,
+                n,
+                Activation::None,
+            );
+            for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+                for threads in [1, 2, 3] {
+                    let got = in_pool(threads, || {
+                        run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None)
+                    });
+                    assert!(
+                        same_bits(&got, &want),
+                        "{m}x{k}x{n} {isa:?} {threads} threads"
+                    );
+                }
+            }
+            // Independent: quantise by hand (symmetric, max/127, round half away from zero).
+            let q = |v: &[f32]| {
+                let s = v.iter().fold(0.0f32, |a, x| a.max(x.abs())) / 127.0;
+                let inv = if s > 0.0 { 1.0 / s } else { 0.0 };
+                (
+                    s,
+                    v.iter()
+                        .map(|&x| (x * inv).round().clamp(-127.0, 127.0) as i64)
+                        .collect::<Vec<_>>(),
+                )
+            };
+            let f32y = run(
+                Isa::Portable,
+                WeightType::F32,
+                &x,
+                &w,
+                &b,
+                m,
+                k,
+                n,
+                Activation::None,
+            );
+            for i in 0..m {
+                let (sa, qa) = q(&x[i * k..(i + 1) * k]);
+                for j in 0..n {
+                    let (sw, qw) = q(&w[j * k..(j + 1) * k]);
+                    let dot: i64 = qa.iter().zip(&qw).map(|(a, b)| a * b).sum();
+                    let expect = (dot as f32).mul_add(sa * sw, b[j]);
+                    assert_eq!(
+                        want[i * n + j].to_bits(),
+                        expect.to_bits(),
+                        "{m}x{k}x{n} [{i},{j}]"
+                    );
+                    // Each value is off by at most half a step of its scale.
+                    let bound: f64 = (0..k)
+                        .map(|p| {
+                            (x[i * k + p].abs() as f64 * sw as f64
+                                + w[j * k + p].abs() as f64 * sa as f64)
+                                / 2.0
+                                + sa as f64 * sw as f64 / 4.0
+                        })
+                        .sum::<f64>()
+                        + 1e-5;
+                    let e = (want[i * n + j] as f64 - f32y[i * n + j] as f64).abs();
+                    assert!(e <= bound, "{m}x{k}x{n} [{i},{j}]: {e} > {bound}");
+                }
+            }
+        }
+    }
+
+    /// Non-finite activations give non-finite outputs (the session's check then reports them)
+    /// rather than quantised garbage.
+    #[test]
+    fn int8_keeps_non_finite_inputs_visible() {
+        let (m, k, n) = (3, 20, 5);
+        let (mut x, w, b) = data(m, k, n, 9);
+        x[k + 4] = f32::NAN;
+        x[2 * k] = f32::INFINITY;
+        let y = run(
+            Isa::ALL[0],
+            WeightType::Int8,
+            &x,
+            &w,
+            &b,
+            m,
+            k,
+            n,
+            Activation::None,
+        );
+        assert!(y[..n].iter().all(|v| v.is_finite()));
+        assert!(y[n..].iter().all(|v| v.is_nan()));
+    }
+
+    /// Activations are applied after the epilogue; unpack gives the values the kernels use.
+    #[test]
+    fn activations_and_unpack() {
+        let (m, k, n) = (13, 37, 21);
+        let (x, w, b) = data(m, k, n, 11);
+        for ty in [WeightType::Bf16Compute, WeightType::Int8] {
+            let plain = run(Isa::Portable, ty, &x, &w, &b, m, k, n, Activation::None);
+            let relu = run(Isa::Portable, ty, &x, &w, &b, m, k, n, Activation::Relu);
+            let want: Vec<f32> = plain.iter().map(|&v| v.max(0.0)).collect();
+            assert!(same_bits(&relu, &want), "{ty:?}");
+            let p = PackedWeights::pack(&w, n, k, ty);
+            let u = p.unpack();
+            for (i, (&a, &b)) in u.iter().zip(&w).enumerate() {
+                let tol = match ty {
+                    WeightType::Bf16Compute => b.abs() / 128.0,
+                    _ => p.scales[i / k] / 2.0 + 1e-7,
+                };
+                assert!((a - b).abs() <= tol, "{ty:?} {i}: {a} vs {b}");
+            }
+            assert!(p.bytes() < n.div_ceil(NR) * NR * k * ty.size() + 64 * n + 8 * n + 64 * 16);
+        }
+    }
+}
