@@ -16,16 +16,26 @@
 //                                           FLAME_CONVENTION_UNITY);  // frames x joints x 4
 //   std::vector<uint8_t> glb = session.write_gltf();  // a glTF 2.0 file (binary, .glb)
 //
-// Ownership: Model and Session own their C handle and are move-only. A Session keeps its model
-// alive on the C side, so it stays usable after the Model object that made it is destroyed.
-// A moved-from object is empty: its calls throw flame::Error(FLAME_STATUS_INVALID_ARGUMENT).
+//   // Continuous motion from a timeline of prompts (README "Streams"):
+//   flame::Stream stream(model);              // or model.stream(flame::StreamParams())
+//   stream.push("a person walks forward.", 120);
+//   stream.push("a person waves.", 80);
+//   flame::StreamStatus st = stream.pump(4);  // e.g. once per engine frame: at most 4 steps
+//   stream.set_playhead(playhead);            // frames first_frame..ready can be read
+//   std::vector<float> pose = stream.read(playhead, 1, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+//                                         FLAME_CONVENTION_UNITY);
+//
+// Ownership: Model, Session and Stream own their C handle and are move-only. A Session or a
+// Stream keeps its model alive on the C side, so it stays usable after the Model object that
+// made it is destroyed. A moved-from object is empty: its calls throw
+// flame::Error(FLAME_STATUS_INVALID_ARGUMENT).
 //
 // Errors: every failing call throws flame::Error, carrying the FlameStatus and the library's
 // message (flame_last_error() at the time of the failure).
 //
-// Threads: a Model may be shared by any number of threads and sessions; a Session is used by
-// one thread at a time, except Session::cancel(), which any thread may call while another is
-// inside step().
+// Threads: a Model may be shared by any number of threads, sessions and streams; a Session or
+// a Stream is used by one thread at a time, except Session::cancel() and Stream::cancel(), which
+// any thread may call while another is inside Session::step() or Stream::pump().
 
 #ifndef FLAME_HPP
 #define FLAME_HPP
@@ -71,6 +81,14 @@ inline void check(FlameStatus status) {
         std::string message = flame_last_error();
         throw Error(status, message);
     }
+}
+
+// A text argument as a C string; throws for an embedded NUL (`name` names it).
+inline const char* c_text(const std::string& s, const std::string& name) {
+    if (s.find('\0') != std::string::npos) {
+        throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`" + name + "` contains a NUL byte");
+    }
+    return s.c_str();
 }
 
 }  // namespace detail
@@ -189,6 +207,48 @@ struct Stage {
     std::string pelvis;  // the root's trajectory
 };
 
+namespace detail {
+
+// `s` as a FlameStage pointing into its strings (valid while `s` is, unchanged): NULL for an
+// empty part text. `where` names the stage in errors ("stages[2]", "stage").
+inline FlameStage c_stage(const Stage& s, const std::string& where) {
+    auto part = [&where](const std::string& t, const char* name) -> const char* {
+        const char* c = c_text(t, where + "." + name);
+        return t.empty() ? nullptr : c;
+    };
+    FlameStage st{};
+    st.struct_size = sizeof st;
+    st.frames = s.frames;
+    st.text = c_text(s.text, where + ".text");
+    st.head = part(s.head, "head");
+    st.stem = part(s.stem, "stem");
+    st.left_arm = part(s.left_arm, "left_arm");
+    st.right_arm = part(s.right_arm, "right_arm");
+    st.left_leg = part(s.left_leg, "left_leg");
+    st.right_leg = part(s.right_leg, "right_leg");
+    st.pelvis = part(s.pelvis, "pelvis");
+    return st;
+}
+
+}  // namespace detail
+
+// Settings of a stream (Stream, Model::stream); the defaults come from
+// flame_stream_params_default: chunks of the model's default frame count (`chunk` 0), 20 frames
+// of overlap, 60 of lookahead, a window of 1200 frames, the model file's steps, sampler and
+// guidance, seed 0, one thread per core.
+struct StreamParams : FlameStreamParams {
+    StreamParams() : FlameStreamParams() { detail::check(flame_stream_params_default(this)); }
+};
+
+// Where a stream stands (Stream::pump, Stream::status), copied.
+struct StreamStatus {
+    uint32_t steps = 0;        // denoiser steps run by this pump (0 from status())
+    uint64_t ready = 0;        // frames generated on the timeline: first_frame..ready can be read
+    uint64_t first_frame = 0;  // the first frame still held (older ones were dropped)
+    uint64_t playhead = 0;     // Stream::set_playhead's
+    bool starving = false;     // fewer than `lookahead` frames ahead and no segment left: push more
+};
+
 // Steps done and the total of a generation.
 struct Progress {
     uint32_t done = 0;
@@ -196,6 +256,7 @@ struct Progress {
 };
 
 class Session;
+class Stream;
 
 // A loaded model: immutable, shareable by threads; move-only owner of a FlameModel.
 class Model {
@@ -269,6 +330,9 @@ public:
     // A new generation on this model (see Session).
     Session session(const SessionParams& params = SessionParams()) const;
 
+    // A new stream on this model (see Stream).
+    Stream stream(const StreamParams& params = StreamParams()) const;
+
     const FlameModel* get() const noexcept { return handle_; }
     // Gives up ownership: the caller frees the handle with flame_model_free.
     FlameModel* release() noexcept { return std::exchange(handle_, nullptr); }
@@ -322,20 +386,10 @@ public:
     // part texts, as set_prompt(stage.text), and refuses more (INVALID_ARGUMENT). Stage frame
     // counts can change only before the first step (WRONG_STATE after; reset() first).
     void set_prompt_stages(const std::vector<Stage>& stages) {
-        std::vector<FlameStage> c(stages.size());
+        std::vector<FlameStage> c;
+        c.reserve(stages.size());
         for (std::size_t i = 0; i < stages.size(); ++i) {
-            const Stage& s = stages[i];
-            FlameStage& st = c[i];
-            st.struct_size = sizeof st;
-            st.frames = s.frames;
-            st.text = text_arg(s.text, i, "text", false);
-            st.head = text_arg(s.head, i, "head", true);
-            st.stem = text_arg(s.stem, i, "stem", true);
-            st.left_arm = text_arg(s.left_arm, i, "left_arm", true);
-            st.right_arm = text_arg(s.right_arm, i, "right_arm", true);
-            st.left_leg = text_arg(s.left_leg, i, "left_leg", true);
-            st.right_leg = text_arg(s.right_leg, i, "right_leg", true);
-            st.pelvis = text_arg(s.pelvis, i, "pelvis", true);
+            c.push_back(detail::c_stage(stages[i], "stages[" + std::to_string(i) + "]"));
         }
         detail::check(flame_session_set_prompt_stages(handle_, c.data(), c.size()));
     }
@@ -675,16 +729,6 @@ private:
         }
     }
 
-    // A stage's text for the C call (valid while `s` is): NULL for an empty part text.
-    static const char* text_arg(const std::string& s, std::size_t stage, const char* name,
-                                bool part) {
-        if (s.find('\0') != std::string::npos) {
-            throw Error(FLAME_STATUS_INVALID_ARGUMENT, "`stages[" + std::to_string(stage) + "]." +
-                                                           name + "` contains a NUL byte");
-        }
-        return part && s.empty() ? nullptr : s.c_str();
-    }
-
     static void check_size(std::size_t size, uint32_t frames, uint32_t dim, const char* name) {
         if (size != static_cast<std::size_t>(frames) * dim) {
             throw Error(FLAME_STATUS_INVALID_ARGUMENT,
@@ -698,8 +742,159 @@ private:
     std::unique_ptr<Hook> hook_;
 };
 
+// Continuous motion from a timeline of prompts (README "Streams"); move-only owner of a
+// FlameStream (and of its worker threads). Push segments (a prompt for a number of frames),
+// pump a bounded number of denoiser steps at a time (e.g. once per engine frame), move the
+// playhead and read frames by their position on the timeline. Chunks of `chunk` frames are
+// generated ahead of the playhead, each keeping the last `overlap` frames of the motion so far;
+// the frames depend only on the timeline (segments and where interrupts fell) and the seed,
+// never on how the steps are spread over pumps nor on the thread count.
+//
+// Used by one thread at a time (a call while another thread is inside one throws WRONG_STATE
+// "in use by another thread"), except cancel(), which any thread may call.
+class Stream {
+public:
+    // pump()'s budget for "as many steps as needed" (up to `lookahead` frames ahead).
+    static constexpr uint32_t all_steps = UINT32_MAX;
+
+    // An empty stream (as after a move).
+    Stream() noexcept = default;
+
+    // Throws INVALID_ARGUMENT for a latent model that cannot continue a motion (MLD), a
+    // `chunk` above the model's maximum frames, `overlap` not below `chunk`, or settings a
+    // session refuses (sampler, threads, guidance).
+    explicit Stream(const Model& model, const StreamParams& params = StreamParams()) {
+        detail::check(flame_stream_new(model.get(), &params, &handle_));
+    }
+
+    Stream(const Stream&) = delete;
+    Stream& operator=(const Stream&) = delete;
+    Stream(Stream&& other) noexcept : handle_(std::exchange(other.handle_, nullptr)) {}
+    Stream& operator=(Stream&& other) noexcept {
+        if (this != &other) {
+            flame_stream_free(handle_);
+            handle_ = std::exchange(other.handle_, nullptr);
+        }
+        return *this;
+    }
+    // Frees the stream, joining its worker threads (no other thread may be inside a call).
+    ~Stream() { flame_stream_free(handle_); }
+
+    // Appends a segment: `prompt` for `frames` frames (at least 1), after the segments before.
+    void push(const std::string& prompt, uint32_t frames) {
+        detail::check(flame_stream_push(handle_, detail::c_text(prompt, "prompt"), frames));
+    }
+
+    // Ends the current segment at the next chunk boundary (the end of the chunk being
+    // generated, or the frames ready when none is), drops the queued segments and appends
+    // `prompt` for `frames` frames in their place: a change of action without waiting.
+    void interrupt(const std::string& prompt, uint32_t frames) {
+        detail::check(flame_stream_interrupt(handle_, detail::c_text(prompt, "prompt"), frames));
+    }
+
+    // push() of a segment with part texts: `stage.text` for `stage.frames` frames, and what
+    // single body parts do ("" = the part follows `text`). Only FineMoGen models read part
+    // texts; the other families take a stage without them (the same as push(text, frames)) and
+    // refuse part texts with INVALID_ARGUMENT.
+    void push_stage(const Stage& stage) {
+        const FlameStage c = detail::c_stage(stage, "stage");
+        detail::check(flame_stream_push_stage(handle_, &c));
+    }
+
+    // interrupt() with a segment with part texts (see push_stage).
+    void interrupt_stage(const Stage& stage) {
+        const FlameStage c = detail::c_stage(stage, "stage");
+        detail::check(flame_stream_interrupt_stage(handle_, &c));
+    }
+
+    // Moves the playhead (the frame being played) to timeline frame `frame`, at most the
+    // frames ready (INVALID_ARGUMENT past them). Frames more than `window` before it are
+    // dropped; pump() keeps `lookahead` frames ready after it.
+    void set_playhead(uint64_t frame) { detail::check(flame_stream_set_playhead(handle_, frame)); }
+
+    // Runs at most `max_steps` denoiser steps (all_steps: as many as needed) towards
+    // `lookahead` frames ready ahead of the playhead, starting chunks as the pushed segments
+    // allow; returns early when that many are ready or no segment is left. A chunk's frames
+    // become readable when its last step has run. Throws CANCELLED when cancel() stopped it:
+    // the stream is then as it was before the step that was cancelled, and pumping again gives
+    // the frames of a stream never cancelled.
+    StreamStatus pump(uint32_t max_steps) {
+        FlameStreamStatus c{};
+        c.struct_size = sizeof c;
+        detail::check(flame_stream_pump(handle_, max_steps, &c));
+        return convert(c);
+    }
+
+    // Where the stream stands, without running a step (`steps` is 0).
+    StreamStatus status() const {
+        FlameStreamStatus c{};
+        c.struct_size = sizeof c;
+        detail::check(flame_stream_status(handle_, &c));
+        return convert(c);
+    }
+
+    // Asks the pump running on another thread to stop: it throws Error(FLAME_STATUS_CANCELLED)
+    // within about one transformer layer. Raised between pumps, it cancels the next step.
+    void cancel() const { detail::check(flame_stream_cancel(handle_)); }
+
+    // Timeline frames first_frame..first_frame + count in a layout (FLAME_LAYOUT_FEATURES: the
+    // model's features, the root path continuous across chunks), converted to a convention:
+    // count x the layout's values per frame, frame-major. Frames not generated yet throw
+    // WRONG_STATE (pump more); frames dropped behind the playhead INVALID_ARGUMENT.
+    std::vector<float> read(uint64_t first_frame, uint32_t count,
+                            FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                            FlameConvention convention = FLAME_CONVENTION_NATIVE) const {
+        std::size_t len = read_len(first_frame, count, layout, convention);
+        std::vector<float> out(len);
+        detail::check(flame_stream_read(handle_, first_frame, count, layout, convention, 0,
+                                        out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // Into a caller buffer; returns the count written (throws BUFFER_TOO_SMALL when `len` is
+    // short; read_len() tells the length needed).
+    std::size_t read(float* out, std::size_t len, uint64_t first_frame, uint32_t count,
+                     FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                     FlameConvention convention = FLAME_CONVENTION_NATIVE) const {
+        std::size_t written = 0;
+        detail::check(flame_stream_read(handle_, first_frame, count, layout, convention, 0, out,
+                                        len, &written));
+        return written;
+    }
+
+    std::size_t read_len(uint64_t first_frame, uint32_t count,
+                         FlameLayout layout = FLAME_LAYOUT_FEATURES,
+                         FlameConvention convention = FLAME_CONVENTION_NATIVE) const {
+        std::size_t len = 0;
+        detail::check(flame_stream_read(handle_, first_frame, count, layout, convention, 0,
+                                        nullptr, 0, &len));
+        return len;
+    }
+
+    FlameStream* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    static StreamStatus convert(const FlameStreamStatus& c) noexcept {
+        StreamStatus st;
+        st.steps = c.steps;
+        st.ready = c.ready;
+        st.first_frame = c.first_frame;
+        st.playhead = c.playhead;
+        st.starving = c.starving != 0;
+        return st;
+    }
+
+    FlameStream* handle_ = nullptr;
+};
+
 inline Session Model::session(const SessionParams& params) const {
     return Session(*this, params);
+}
+
+inline Stream Model::stream(const StreamParams& params) const {
+    return Stream(*this, params);
 }
 
 }  // namespace flame

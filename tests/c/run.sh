@@ -7,8 +7,8 @@
 # 2. the CLI writes the reference features the tests must match bit for bit;
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
 #    against the shared and the static library, test_cancel and test_stream (C11, shared),
-#    test_cpp and test_cpp_gltf (C++17, shared), all with -Wall -Wextra -Werror, are built and
-#    run;
+#    test_cpp, test_cpp_gltf and test_cpp_stream (C++17, shared), all with -Wall -Wextra
+#    -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
 #    2 steps) and with FLAME_TEST_QUICK=1;
@@ -174,6 +174,7 @@ compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LI
 compile test_stream_shared gcc "${CFLAGS[@]}" tests/c/test_stream.c "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
+compile test_cpp_stream_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_stream.cpp "${SHARED_LIBS[@]}"
 
 API_ARGS=("$MODEL" "$OUT/ref.npy" "$WORK")
 for kind in shared static; do
@@ -196,6 +197,8 @@ built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log"
     "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
 built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared)" "$OUT/test_cpp_gltf_shared.log" \
     "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"
+built test_cpp_stream_shared && run_test "test_cpp_stream (shared)" \
+    "$OUT/test_cpp_stream_shared.log" "$OUT/test_cpp_stream_shared" "$ROOT/tests/fixtures"
 
 # ---- 4. valgrind ---------------------------------------------------------------------------
 # No suppressions: memcheck reports no error and no definite or indirect leak from libflame,
@@ -239,6 +242,9 @@ if [ "$use_valgrind" = 1 ]; then
         built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared, valgrind)" \
             "$OUT/test_cpp_gltf_valgrind.log" \
             "${VALGRIND[@]}" "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"
+        built test_cpp_stream_shared && run_test "test_cpp_stream (shared, valgrind)" \
+            "$OUT/test_cpp_stream_valgrind.log" \
+            "${VALGRIND[@]}" "$OUT/test_cpp_stream_shared" "$ROOT/tests/fixtures"
         unset FLAME_TEST_QUICK
     fi
 else
