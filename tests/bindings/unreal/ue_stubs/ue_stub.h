@@ -99,6 +99,7 @@ template <typename T> struct TArray {
     void Add(const T& x) { v.push_back(x); }
     void Append(const T* p, int32 n) { v.insert(v.end(), p, p + n); }
     void SetNumUninitialized(int32 n) { v.resize((size_t)n); }
+    void RemoveAt(int32 i, int32 n = 1) { v.erase(v.begin() + i, v.begin() + i + n); }
     void Reset() { v.clear(); }
     T& operator[](int32 i) { return v[(size_t)i]; }
     const T& operator[](int32 i) const { return v[(size_t)i]; }
@@ -282,11 +283,15 @@ namespace EEndPlayReason { enum Type { Destroyed, LevelTransition, EndPlayInEdit
 class UActorComponent {
 public:
     virtual ~UActorComponent() = default;
+    virtual void BeginPlay() {}
     virtual void TickComponent(float, ELevelTick, FActorComponentTickFunction*) {}
     virtual void EndPlay(const EEndPlayReason::Type) {}
     FActorComponentTickFunction PrimaryComponentTick;
 };
 
+#define DECLARE_DYNAMIC_MULTICAST_DELEGATE(Name) \
+    struct Name { std::vector<std::function<void()>> fns; void AddLambda(std::function<void()> f) { fns.push_back(f); } \
+                  void Broadcast() { for (auto& f : fns) f(); } };
 #define DECLARE_DYNAMIC_MULTICAST_DELEGATE_OneParam(Name, T1, N1) \
     struct Name { std::vector<std::function<void(T1)>> fns; void AddLambda(std::function<void(T1)> f) { fns.push_back(f); } \
                   void Broadcast(T1 a) { for (auto& f : fns) f(a); } };

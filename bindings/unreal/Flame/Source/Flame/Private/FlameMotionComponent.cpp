@@ -8,27 +8,8 @@
 
 #include <limits>
 
-// Last: the C header defines a few unprefixed names.
-#include "flame.h"
-
-/** A loaded model; freed when the last holder (component or worker) lets go. */
-struct FFlameModelRef
-{
-	FlameModel* Handle;
-	FString Path;
-
-	FFlameModelRef(FlameModel* InHandle, const FString& InPath) : Handle(InHandle), Path(InPath) {}
-	~FFlameModelRef() { flame_model_free(Handle); }
-};
-
-/** Counts a holder of libflame's threads in FFlameModule::ActiveWorkers, which keeps the
- *  library loaded: a generation's worker, or a finished session (whose own threads live inside
- *  libflame until it is freed). */
-struct FFlameWorkerCount
-{
-	FFlameWorkerCount() { FFlameModule::ActiveWorkers.Increment(); }
-	~FFlameWorkerCount() { FFlameModule::ActiveWorkers.Decrement(); }
-};
+// Last: FlameCommon.h includes the C header, which defines a few unprefixed names.
+#include "FlameCommon.h"
 
 /** A finished generation's session, kept for UFlameMotionComponent::ExportGltf. */
 struct FFlameFinishedSession
@@ -41,12 +22,6 @@ struct FFlameFinishedSession
 	~FFlameFinishedSession() { flame_session_free(Handle); }
 };
 
-/** libflame's status name and message; call right after the failing call, on its thread. */
-static FString FlameFailure(FlameStatus Status)
-{
-	return FString::Printf(TEXT("%s: %s"), UTF8_TO_TCHAR(flame_status_string((int32_t)Status)), UTF8_TO_TCHAR(flame_last_error()));
-}
-
 /**
  * One generation, shared by the component (game thread) and its worker. The worker owns the
  * session: it creates, steps and frees it. The game thread only cancels it, under Lock, which
@@ -58,16 +33,6 @@ static const FlameSessionParams* WithRespacing(FlameSessionParams& Params, const
 {
 	Params.respacing = Spec;
 	return &Params;
-}
-
-/** S as NUL-terminated UTF-8 that outlives the expression (unlike TCHAR_TO_UTF8's). */
-static TArray<ANSICHAR> Utf8Z(const FString& S)
-{
-	FTCHARToUTF8 Utf8(*S);
-	TArray<ANSICHAR> Out;
-	Out.Append((const ANSICHAR*)Utf8.Get(), Utf8.Length());
-	Out.Add('\0');
-	return Out;
 }
 
 struct FFlameJob
