@@ -21,6 +21,26 @@
 //! step. `--random-base` builds FLAME-base's denoiser (8 × 768, 8 heads, feed-forward 2048) with
 //! random weights in memory, with the tiny test fixture's text encoder (the step's cost is the
 //! denoiser's).
+//!
+//! `flame-bench stream --model M [--chunk N (default: the model's default frames)] [--overlap 20]
+//!  [--steps S (default: the model's)] [--threads 2] [--runs 5] [--seconds 30]
+//!  [--segment-seconds T (default: one chunk's new frames)]`: a [`flame::stream::Stream`]'s
+//! latency and steady-state cost.
+//! Latency: per run a fresh stream (seed = run index), the time from just before `push` of
+//! the first segment to 20 frames ready, pumping one step at a time. The first chunk has nothing
+//! to keep, so no frame is ready before the whole first chunk (`--chunk` frames) is done: the
+//! latency is a whole chunk's generation (prompt encoding and every step). `StreamParams` has no
+//! separate first-chunk size; the same is also measured with the first segment split into 20
+//! frames and the rest (same prompt), which makes the first chunk 20 frames long (a timeline
+//! workaround; a model may make poorer motion at that length). Steady state: `--seconds` of
+//! motion (the model's fps) pushed as segments cycling through four prompts, lookahead = all
+//! of it, pumped to the end; the time after the first chunk over the frames generated after it
+//! gives the cost per generated second of motion and the real-time factor (seconds of motion
+//! per wall second). A chunk never spans two segments, so a segment's last chunk may be short:
+//! by default every segment is one chunk's new frames (`chunk − overlap`), so every chunk after
+//! the first is full; `--segment-seconds` sets another length (e.g. 6 s on a 120-frame chunk
+//! with overlap 20: chunks of 100 and 20 new frames in turn). Medians over the runs; one
+//! `RESULT` line.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -30,6 +50,7 @@ use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType}
 use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily, OmgFamily};
 use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
+use flame::stream::{Segment, Stream, StreamParams};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -292,12 +313,18 @@ fn main() {
         cancel_bench(&args);
         return;
     }
+    if args.first().map(String::as_str) == Some("stream") {
+        stream_bench(&args);
+        return;
+    }
     let path: String = arg(&args, "--model", String::new());
     if path.is_empty() {
         eprintln!(
             "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
              [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
-             flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]"
+             flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]\n       \
+             flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
+             [--seconds 30] [--segment-seconds T]"
         );
         std::process::exit(2);
     }
@@ -558,6 +585,244 @@ fn cancel_bench(args: &[String]) {
     );
     println!(
         "RESULT impl=flame bench=cancel frames={frames} threads={threads} step_ms={step_ms:.2} cancel_median_ms={lat:.2} cancel_max_ms={max:.2} cancelled={cancelled} finished_first={finished_first}"
+    );
+}
+
+/// Frames that must be ready for the stream's latency (1 s at 20 fps).
+const FIRST_READY: usize = 20;
+
+/// Prompts the steady-state timeline cycles through.
+const STREAM_PROMPTS: [&str; 4] = [
+    "a person walks forward.",
+    "a person waves with the right hand.",
+    "a person jogs in a circle.",
+    "a person jumps twice.",
+];
+
+/// One steady-state run: the whole timeline pumped one step at a time.
+struct SteadyRun {
+    /// Frames of the first chunk (excluded from the steady state) and seconds until it was done.
+    first_frames: usize,
+    first_s: f64,
+    /// Seconds and new frames after the first chunk.
+    rest_s: f64,
+    rest_frames: usize,
+    /// Per later chunk: seconds and new frames.
+    chunks: Vec<(f64, usize)>,
+    /// Denoiser steps of the first chunk.
+    steps: usize,
+}
+
+/// Pumps `stream` one step at a time until `target` frames are ready; returns the time of
+/// every change of `ready` (seconds since `t0`), the frames ready then, and the steps before it.
+fn pump_until(stream: &mut Stream, target: usize, t0: Instant) -> Vec<(f64, usize, usize)> {
+    let (mut marks, mut ready, mut steps) = (Vec::new(), stream.ready(), 0);
+    while ready < target {
+        let r = stream.pump(1).unwrap_or_else(|e| {
+            eprintln!("flame-bench stream: pump at {ready} of {target} frames: {e}");
+            std::process::exit(1)
+        });
+        steps += r.steps;
+        if r.ready != ready {
+            ready = r.ready;
+            marks.push((t0.elapsed().as_secs_f64(), ready, steps));
+        }
+        if r.steps == 0 {
+            eprintln!(
+                "flame-bench stream: the stream stopped at {ready} of {target} frames (starving: {})",
+                r.starving
+            );
+            std::process::exit(1)
+        }
+    }
+    marks
+}
+
+/// Latency to the first frames and steady-state cost of a [`Stream`] (see the module doc).
+fn stream_bench(args: &[String]) {
+    let path: String = arg(args, "--model", String::new());
+    if path.is_empty() {
+        eprintln!(
+            "usage: flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
+             [--seconds 30] [--segment-seconds T]"
+        );
+        std::process::exit(2);
+    }
+    let chunk: usize = arg(args, "--chunk", 0);
+    let overlap: usize = arg(args, "--overlap", 20);
+    let steps: Option<usize> = args
+        .iter()
+        .any(|a| a == "--steps")
+        .then(|| arg(args, "--steps", 0));
+    let threads: usize = arg(args, "--threads", 2);
+    let runs: usize = arg(args, "--runs", 5);
+    let seconds: f64 = arg(args, "--seconds", 30.0);
+    let segment_seconds: f64 = arg(args, "--segment-seconds", 0.0);
+    let model = Arc::new(Model::load(&path).unwrap_or_else(|e| panic!("cannot load {path}: {e}")));
+    let fps = model.config().motion.fps as f64;
+    let total = (seconds * fps).round() as usize;
+    if total == 0 {
+        eprintln!("flame-bench stream: --seconds {seconds} is no frame at {fps} fps");
+        std::process::exit(2);
+    }
+    let params = |seed: u64, lookahead: usize| StreamParams {
+        chunk,
+        overlap,
+        lookahead,
+        window: lookahead.max(StreamParams::default().window),
+        session: SessionParams {
+            steps,
+            seed,
+            threads,
+            ..Default::default()
+        },
+    };
+    let new_stream = |seed: u64, lookahead: usize| {
+        Stream::new(Arc::clone(&model), &params(seed, lookahead)).unwrap_or_else(|e| {
+            eprintln!("flame-bench stream: {path}: {e}");
+            std::process::exit(1)
+        })
+    };
+    let chunk = new_stream(0, total).chunk_frames();
+    let segment = match (segment_seconds * fps).round() as usize {
+        0 => chunk - overlap,
+        s => s,
+    };
+
+    // Latency: push, then one step per pump until FIRST_READY frames are ready; with the first
+    // segment whole, and split into FIRST_READY frames and the rest.
+    let first_len = total.max(chunk);
+    let latency = |split: bool| {
+        let mut ms = Vec::new();
+        let mut first = 0;
+        for run in 0..runs {
+            let mut stream = new_stream(run as u64, StreamParams::default().lookahead);
+            let t = Instant::now();
+            if split {
+                stream
+                    .push(Segment::new(STREAM_PROMPTS[0], FIRST_READY))
+                    .expect("push");
+                stream
+                    .push(Segment::new(STREAM_PROMPTS[0], first_len - FIRST_READY))
+                    .expect("push");
+            } else {
+                stream
+                    .push(Segment::new(STREAM_PROMPTS[0], first_len))
+                    .expect("push");
+            }
+            let marks = pump_until(&mut stream, FIRST_READY, t);
+            ms.push(t.elapsed().as_secs_f64() * 1e3);
+            first = marks[0].1;
+        }
+        let (min, max) = (
+            ms.iter().copied().fold(f64::INFINITY, f64::min),
+            ms.iter().copied().fold(0.0, f64::max),
+        );
+        (median(ms), min, max, first)
+    };
+    let (lat, lat_min, lat_max, lat_first) = latency(false);
+    let short = (chunk > FIRST_READY && first_len > FIRST_READY).then(|| latency(true));
+
+    // Steady state: the whole timeline, everything ahead.
+    let mut steady = Vec::new();
+    for run in 0..runs {
+        let mut stream = new_stream(run as u64, total);
+        let t = Instant::now();
+        let mut pushed = 0;
+        for i in 0.. {
+            if pushed == total {
+                break;
+            }
+            let frames = segment.min(total - pushed);
+            let prompt = STREAM_PROMPTS[i % STREAM_PROMPTS.len()];
+            stream.push(Segment::new(prompt, frames)).expect("push");
+            pushed += frames;
+        }
+        let marks = pump_until(&mut stream, total, t);
+        let (first_s, first_frames, first_steps) = marks[0];
+        let (end_s, _, _) = *marks.last().expect("at least one chunk");
+        let chunks = marks
+            .windows(2)
+            .map(|w| (w[1].0 - w[0].0, w[1].1 - w[0].1))
+            .collect();
+        steady.push(SteadyRun {
+            first_frames,
+            first_s,
+            rest_s: end_s - first_s,
+            rest_frames: total - first_frames,
+            chunks,
+            steps: first_steps,
+        });
+    }
+    let s0 = &steady[0];
+    let (first_frames, chunk_steps, later) = (s0.first_frames, s0.steps, s0.chunks.len());
+    let lo = s0.chunks.iter().map(|c| c.1).min().unwrap_or(0);
+    let hi = s0.chunks.iter().map(|c| c.1).max().unwrap_or(0);
+    let (ms_per_s, rtf, chunk_ms, first_ms) = if later > 0 {
+        (
+            median(
+                steady
+                    .iter()
+                    .map(|r| r.rest_s * 1e3 / r.rest_frames as f64 * fps)
+                    .collect(),
+            ),
+            median(
+                steady
+                    .iter()
+                    .map(|r| r.rest_frames as f64 / fps / r.rest_s)
+                    .collect(),
+            ),
+            median(
+                steady
+                    .iter()
+                    .flat_map(|r| r.chunks.iter().map(|c| c.0 * 1e3))
+                    .collect(),
+            ),
+            median(steady.iter().map(|r| r.first_s * 1e3).collect()),
+        )
+    } else {
+        (f64::NAN, f64::NAN, f64::NAN, f64::NAN)
+    };
+
+    println!(
+        "model {path}: stream, {fps} fps, {} kernel, {threads} threads, chunk {chunk} frames, \
+         overlap {overlap}, {chunk_steps} steps per chunk{}, {runs} runs (medians)",
+        kernels::kernel_name(),
+        if steps.is_none() {
+            " (model default)"
+        } else {
+            ""
+        }
+    );
+    println!(
+        "  latency            {lat:9.1} ms  (push to {FIRST_READY} frames ready; min {lat_min:.1}, max \
+         {lat_max:.1}); the first chunk keeps nothing, so its {lat_first} frames come at once, \
+         when the whole chunk is done"
+    );
+    match short {
+        Some((ms, min, max, first)) => println!(
+            "  short first chunk  {ms:9.1} ms  (first segment split into {FIRST_READY} frames and \
+             the rest, same prompt: a {first}-frame first chunk; min {min:.1}, max {max:.1})"
+        ),
+        None => println!("  short first chunk        n/a     (the chunk is at most {FIRST_READY} frames already)"),
+    }
+    println!(
+        "  steady state       {ms_per_s:9.1} ms per second of motion, real-time factor \
+         {rtf:.2} (seconds of motion per wall second)"
+    );
+    println!(
+        "                     {seconds} s = {total} frames in segments of {segment} frames over \
+         {} prompts; first chunk {first_frames} frames ({first_ms:.0} ms, excluded), then \
+         {later} chunks of {lo}..={hi} new frames, {chunk_ms:.0} ms each",
+        STREAM_PROMPTS.len(),
+    );
+    let short_field = short.map_or(String::new(), |s| {
+        format!(" latency_short_first_ms={:.1}", s.0)
+    });
+    println!(
+        "RESULT impl=flame bench=stream latency_ms={lat:.1} ms_per_motion_second={ms_per_s:.1} \
+         realtime_factor={rtf:.3} chunk={chunk} overlap={overlap} steps={chunk_steps} \
+         threads={threads} first_chunk={lat_first} segment={segment} fps={fps} seconds={seconds}{short_field}"
     );
 }
 
