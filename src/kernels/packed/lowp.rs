@@ -251,7 +251,7 @@ fn linear_with(
 
 /// Converts `x [m, k]` into words laid out tile by tile: word `(t·s + q)·12 + i` is step `q`
 /// of row `12t + i` (a bf16 pair, or four offset bytes); rows past `m` are zero. Int8 also
-/// fills the row scales.
+/// fills the row scales. Tiles are converted in parallel (each is independent).
 fn convert(
     ty: WeightType,
     x: &[f32],
@@ -264,39 +264,59 @@ fn convert(
     let tiles = m.div_ceil(MR512);
     words.clear();
     words.resize(tiles * s * MR512, 0);
-    let at = |row: &[f32], i: usize| row.get(i).copied().unwrap_or(0.0);
-    match ty {
-        WeightType::Bf16Compute => {
-            for r in 0..m {
-                let row = &x[r * k..(r + 1) * k];
-                let (t, i) = (r / MR512, r % MR512);
-                for q in 0..s {
-                    words[(t * s + q) * MR512 + i] = bf16_pair(at(row, 2 * q), at(row, 2 * q + 1));
-                }
-            }
-        }
-        _ => {
-            scales.clear();
-            scales.extend((0..m).map(|r| scale_of(&x[r * k..(r + 1) * k])));
-            for r in 0..m {
-                let row = &x[r * k..(r + 1) * k];
-                let inv = inverse(scales[r]);
-                let (t, i) = (r / MR512, r % MR512);
-                for q in 0..s {
-                    let mut bytes = [128u8; 4];
-                    for (b, byte) in bytes.iter_mut().enumerate() {
-                        if 4 * q + b < k {
-                            *byte = (quantize(row[4 * q + b], inv) as i32 + 128) as u8;
-                        } else {
-                            // Past k the weight is 0: any byte adds nothing; 128 keeps the
-                            // colsum correction exact.
-                            *byte = 128;
-                        }
+    scales.clear();
+    scales.resize(tiles * MR512, 0.0);
+    let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
+        for i in 0..MR512.min(m - t * MR512) {
+            let r = t * MR512 + i;
+            let row = &x[r * k..(r + 1) * k];
+            let at = |j: usize| row.get(j).copied().unwrap_or(0.0);
+            match ty {
+                WeightType::Bf16Compute => {
+                    for q in 0..s {
+                        out[q * MR512 + i] = bf16_pair(at(2 * q), at(2 * q + 1));
                     }
-                    words[(t * s + q) * MR512 + i] = u32::from_le_bytes(bytes);
+                }
+                _ => {
+                    let scale = scale_of(row);
+                    tile_scales[i] = scale;
+                    let inv = inverse(scale);
+                    for q in 0..s {
+                        // Past k the weight is 0: the byte adds nothing; 128 (a zero value)
+                        // keeps the column-sum correction exact.
+                        let byte = |j: usize| {
+                            if j < k {
+                                (quantize(row[j], inv) as i32 + 128) as u8
+                            } else {
+                                128
+                            }
+                        };
+                        out[q * MR512 + i] = u32::from_le_bytes([
+                            byte(4 * q),
+                            byte(4 * q + 1),
+                            byte(4 * q + 2),
+                            byte(4 * q + 3),
+                        ]);
+                    }
                 }
             }
         }
+    };
+    if s == 0 {
+        return;
+    }
+    if rayon::current_num_threads() > 1 && m * k >= PAR_MIN_MACS / 64 {
+        words
+            .par_chunks_mut(s * MR512)
+            .zip(scales.par_chunks_mut(MR512))
+            .enumerate()
+            .for_each(|(t, (out, sc))| tile(t, out, sc));
+    } else {
+        words
+            .chunks_mut(s * MR512)
+            .zip(scales.chunks_mut(MR512))
+            .enumerate()
+            .for_each(|(t, (out, sc))| tile(t, out, sc));
     }
 }
 
