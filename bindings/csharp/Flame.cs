@@ -187,6 +187,11 @@ namespace Flame
         F16 = 1,
         /// <summary>bfloat16: half the memory, coarser than f16.</summary>
         Bf16 = 2,
+        /// <summary>bf16 weights and bf16 products (AVX512_BF16; refused at load without it).</summary>
+        Bf16Compute = 3,
+        /// <summary>8-bit integer weights and products, a quarter of the memory (AVX512_VNNI;
+        /// refused at load without it).</summary>
+        Int8 = 4,
     }
 
     /// <summary>Mirror of the C struct FlameModelParams.</summary>

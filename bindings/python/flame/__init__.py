@@ -159,12 +159,14 @@ class BodyPart:
 
 
 class Weights:
-    """FlameWeights values for Model.load(weights=...) (or their names: "f32", "f16", "bf16"):
-    what the linear layers are held and multiplied in."""
+    """FlameWeights values for Model.load(weights=...) (or their names: "f32", "f16", "bf16",
+    "bf16-compute", "int8"): what the linear layers are held and multiplied in."""
 
     F32 = 0  # exact; the fastest on CPUs without half-precision arithmetic
     F16 = 1  # half the memory
     BF16 = 2  # half the memory, coarser than f16
+    BF16_COMPUTE = 3  # bf16 products (AVX512_BF16; refused at load without it)
+    INT8 = 4  # 8-bit integer products, a quarter of the memory (AVX512_VNNI; refused without)
 
 
 class EditTask:
@@ -656,9 +658,10 @@ def _uint32(name: str, value: int) -> int:
 def _model_params(threads: int, weights: Union[str, int]) -> _ModelParams:
     names = {n.lower(): v for n, v in vars(Weights).items() if n.isupper()}
     if isinstance(weights, str):
-        if weights.lower() not in names:
+        key = weights.lower().replace("-", "_")
+        if key not in names:
             raise ValueError(f"weights must be one of {sorted(names)}, not {weights!r}")
-        weights = names[weights.lower()]
+        weights = names[key]
     p = _ModelParams()
     _check(_lib().flame_model_params_default(ctypes.byref(p)))
     p.threads = _uint32("threads", threads)
@@ -683,8 +686,8 @@ class Model:
     ) -> "Model":
         """Loads a model file. `threads` is for work done at load (0 = one per core, at most
         MAX_THREADS); `weights`
-        ("f32", "f16", "bf16" or a `Weights` value) is what the linear layers are held and
-        multiplied in."""
+        ("f32", "f16", "bf16", "bf16-compute", "int8" or a `Weights` value) is what the linear
+        layers are held and multiplied in."""
         out = _P()
         params = _model_params(threads, weights)
         _check(_lib().flame_model_load(os.fsencode(path), ctypes.byref(params), ctypes.byref(out)))

@@ -206,6 +206,27 @@ def test_half_precision_weights(reference):
     expect_error(Status.INVALID_ARGUMENT, "params.weights is 7", flame.Model.load, MODEL, weights=7)
 
 
+def _cpu_has(flag):
+    with open("/proc/cpuinfo") as f:
+        words = f.read().split()
+    return "avx512f" in words and flag in words and os.environ.get("FLAME_KERNEL", "avx512") == "avx512"
+
+
+@pytest.mark.parametrize(
+    "weights,flag,instruction",
+    [("bf16-compute", "avx512_bf16", "AVX512_BF16"), (flame.Weights.INT8, "avx512_vnni", "AVX512_VNNI")],
+)
+def test_reduced_precision_compute(reference, weights, flag, instruction):
+    # Loads and runs where the CPU has the instruction (finite, not the f32 bits); refused at load
+    # with the instruction's name elsewhere.
+    if not _cpu_has(flag):
+        expect_error(Status.INVALID_ARGUMENT, instruction, flame.Model.load, MODEL, weights=weights)
+        return
+    with flame.Model.load(MODEL, weights=weights) as m, ref_session(m) as s:
+        out = s.run()
+    assert np.isfinite(out).all() and out.tobytes() != reference.tobytes()
+
+
 def test_steps_left_estimate_and_reset(model, reference):
     with ref_session(model) as s:
         assert s.progress == (0, 10)
