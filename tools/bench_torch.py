@@ -73,6 +73,27 @@ def ddim_update(x, out, abar, abar_prev):
     return abar_prev ** 0.5 * x0 + (1 - abar_prev) ** 0.5 * out
 
 
+def pair(t):
+    """The timestep of both rows of a guidance batch: a number or a 0-d/1-element tensor -> [2]
+    (a tensor input when tools/bench_onnx.py exports the step)."""
+    return torch.as_tensor(t).reshape(1).expand(2)
+
+
+class Runner:
+    """One family's guided step, split so tools/bench_onnx.py can export the same computation:
+    `guided(x, t, *feats)` is the two network evaluations (one batch of 2, or D_u and D_c) and
+    the guidance mix; `update(x, out)` is the sampler arithmetic after it (None for the latent
+    models, whose diffusers scheduler updates outside); `step(x, t, feats)` is both. `net` holds
+    every module the step uses; `feats` are the text features, computed once (`encode`)."""
+
+    def __init__(self, net, encode, feats, x, guided, update):
+        self.net, self.encode, self.feats, self.x = net, encode, feats, x
+        self.guided, self.update = guided, update
+
+    def step(self, x, t, feats):
+        return self.update(x, self.guided(x, t, *feats))
+
+
 def flame_runner(path, frames, guidance):
     net, cfg = ref_flame.load_libflame(path)
     d = cfg["denoiser"]["motion_dim"]
@@ -84,15 +105,12 @@ def flame_runner(path, frames, guidance):
         pooled, hidden = net.encode_text([PROMPT, ""])
         return pooled, hidden
 
-    feats = encode()
-
-    def step(x, t, feats):
-        out = net(torch.cat([x, x]), torch.tensor([t, t]), length, text_features=feats)
+    def guided(x, t, pooled, hidden):
+        out = net(torch.cat([x, x]), pair(t), length, text_features=(pooled, hidden))
         eps_c, eps_u = out[:1, :d], out[1:, :d]
-        eps = eps_u + guidance * (eps_c - eps_u)
-        return ddim_update(x, eps, 0.5, 0.6)
+        return eps_u + guidance * (eps_c - eps_u)
 
-    return encode, feats, x, step
+    return Runner(net, encode, encode(), x, guided, lambda x, eps: ddim_update(x, eps, 0.5, 0.6))
 
 
 def mdm_runner(path, frames, guidance):
@@ -103,17 +121,17 @@ def mdm_runner(path, frames, guidance):
     cond = torch.randn(1, d["clip_dim"])
     feats = torch.cat([cond, torch.zeros_like(cond)])
 
-    def step(x, t, feats):
-        out = net(torch.cat([x, x]), torch.tensor([t, t]), feats)
+    def guided(x, t, feats):
+        out = net(torch.cat([x, x]), pair(t), feats)
         o_c, o_u = out[:1], out[1:]
-        out = o_u + guidance * (o_c - o_u)
-        return ddim_update(x, out, 0.5, 0.6)
+        return o_u + guidance * (o_c - o_u)
 
-    return None, feats, x, step
+    return Runner(net, None, (feats,), x, guided, lambda x, out: ddim_update(x, out, 0.5, 0.6))
 
 
 def mola_runner(path, frames, guidance):
-    """-> (denoise(x, t) -> eps, decode(z), x_T, scheduler) for one guided MoLA generation."""
+    """-> (Runner (guided(x, t, conds) -> eps), decode(z), scheduler) for one guided MoLA
+    generation."""
     den, dec, cfg = ref_mola.load_libflame(path)
     d = cfg["denoiser"]
     torch.manual_seed(0)
@@ -122,14 +140,15 @@ def mola_runner(path, frames, guidance):
     conds = torch.cat([cond, torch.zeros_like(cond)])
     cfg_on = not (guidance == 0 or guidance == 1.0)
 
-    def denoise(x, t):
+    def guided(x, t, conds):
         tt = t.reshape(1)
         if not cfg_on:
-            return den(x, tt, cond)
+            return den(x, tt, conds[:1])
         e = den(torch.cat([x, x]), torch.cat([tt, tt]), conds)
         return e[1:] + guidance * (e[:1] - e[1:])
 
-    return denoise, lambda z: ref_mola.decode(dec, z), x, ref_mola.make_scheduler()
+    run = Runner(torch.nn.ModuleList([den, dec]), None, (conds,), x, guided, None)
+    return run, lambda z: ref_mola.decode(dec, z), ref_mola.make_scheduler()
 
 
 def mld_runner(path, frames, guidance):
@@ -140,21 +159,27 @@ def mld_runner(path, frames, guidance):
     cond, uncond = torch.randn(1, d["text_dim"]), torch.randn(1, d["text_dim"])
     conds = torch.cat([uncond, cond])
 
-    def denoise(z, t):
+    def guided(z, t, conds):
         tt = t.reshape(1)
         if guidance <= 1.0:
-            return den(z, tt, cond)
+            return den(z, tt, conds[1:])
         e = den(torch.cat([z, z]), torch.cat([tt, tt]), conds)
         return e[:1] + guidance * (e[1:] - e[:1])
 
-    return denoise, lambda z: dec(z, frames), z, ref_mld.make_scheduler()
+    run = Runner(torch.nn.ModuleList([den, dec]), None, (conds,), z, guided, None)
+    return run, lambda z: dec(z, frames), ref_mld.make_scheduler()
 
 
 def latent_bench(arch, a):
     """The whole generation of a latent model: `steps` scheduler steps, then the VAE decode."""
     runner = mola_runner if arch == "mola" else mld_runner
     with torch.inference_mode():
-        denoise, decode, x_t, sch = runner(a.model, a.frames, a.guidance)
+        run, decode, sch = runner(a.model, a.frames, a.guidance)
+        x_t = run.x
+
+        def denoise(x, t):
+            return run.guided(x, t, *run.feats)
+
         # Warm-up: one step and one decode.
         sch.set_timesteps(a.steps)
         decode(sch.step(denoise(x_t, sch.timesteps[0]), sch.timesteps[0], x_t, eta=0.0)
@@ -349,26 +374,44 @@ def finemogen_bench(a):
           f"text_moe_ms={txt:.2f}")
 
 
+def omg_runner(path, frames, guidance):
+    """OMG-style: `guided` is D_u and D_c on x_t and x0 = D_u + s (D_c - D_u); `update` an eta-0
+    DDIM update on x0; the text features are CLIP's token states of the prompt (tokens, eos)."""
+    from reference import omg as ref_omg
+    net, clip, tok, cfg, _, _ = ref_omg.load_libflame(path)
+    net.eval()
+    d = cfg["denoiser"]
+    padding = (d.get("control") or {}).get("text_padding", False)
+    torch.manual_seed(0)
+    x0 = torch.randn(1, frames, d["input_feats"])
+
+    def encode():
+        text = ref_omg.batch_texts([ref_omg.encode_text(clip, tok, PROMPT, padding)])
+        assert "mask" not in text  # one prompt: every token kept
+        return text["tokens"], text["eos"]
+
+    def guided(x, t, tokens, eos):
+        return ref_omg.guided_x0(net, x, t, {"tokens": tokens, "eos": eos}, guidance)
+
+    def update(x, x0_hat):
+        return 0.8 ** 0.5 * x0_hat + 0.2 ** 0.5 * (x - 0.5 ** 0.5 * x0_hat) / 0.5 ** 0.5
+
+    return Runner(net, encode, encode(), x0, guided, update)
+
+
 def omg_bench(a):
     """OMG-style: CLIP's token states of the prompt (`text`), one guided step (D_u and D_c on
     x_t, x0 = D_u + s (D_c - D_u), an eta-0 DDIM update on x0) and `steps` such steps."""
-    from reference import omg as ref_omg
     import resource
     with torch.inference_mode():
-        net, clip, tok, cfg, _, _ = ref_omg.load_libflame(a.model)
-        net.eval()
-        d = cfg["denoiser"]
-        padding = (d.get("control") or {}).get("text_padding", False)
-        torch.manual_seed(0)
-        x0 = torch.randn(1, a.frames, d["input_feats"])
+        run = omg_runner(a.model, a.frames, a.guidance)
+        x0 = run.x
         texts = []
-        text = [ms(lambda: texts.append(ref_omg.batch_texts(
-            [ref_omg.encode_text(clip, tok, PROMPT, padding)]))) for _ in range(a.runs)]
+        text = [ms(lambda: texts.append(run.encode())) for _ in range(a.runs)]
         feats = texts[-1]
 
         def step(x, t):
-            x0_hat = ref_omg.guided_x0(net, x, float(t), feats, a.guidance)
-            return 0.8 ** 0.5 * x0_hat + 0.2 ** 0.5 * (x - 0.5 ** 0.5 * x0_hat) / 0.5 ** 0.5
+            return run.step(x, float(t), feats)
 
         step(x0, 500)  # warm-up
         steps, gens = [], []
@@ -454,7 +497,8 @@ def main():
         return
     runner = flame_runner if arch == "flame" else mdm_runner
     with torch.inference_mode():
-        encode, feats, x0, step = runner(a.model, a.frames, a.guidance)
+        run = runner(a.model, a.frames, a.guidance)
+        encode, feats, x0, step = run.encode, run.feats, run.x, run.step
         text = [ms(encode) for _ in range(a.runs)] if encode else [float("nan")]
         step(x0, 500, feats)  # warm-up
         steps, gens = [], []

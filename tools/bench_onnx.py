@@ -1,0 +1,317 @@
+#!/usr/bin/env python3
+"""ONNX Runtime timings of a libflame model file's guided step, for comparison with `flame-bench`
+and tools/bench_torch.py.
+
+The step is the one tools/bench_torch.py times, built by its runners from the same file (the
+reference modules of tools/reference/ with the converted weights): the two network evaluations
+of one denoising step (the guidance batch of 2, or OMG's D_u and D_c), the guidance mix and,
+where bench_torch.py's step has it, the sampler's update. That computation is exported with
+`torch.onnx.export` (opset 18 by default) at the given frame count, the text features being an
+input computed once by PyTorch (libflame and bench_torch.py time text encoding apart from the
+step). The ONNX output is checked against PyTorch's on the same inputs (the largest absolute
+difference is printed; more than 1e-3 of the output's largest magnitude is an error), then
+timed with `onnxruntime.InferenceSession` (CPUExecutionProvider, ORT_ENABLE_ALL,
+intra_op_num_threads = --threads, inter_op_num_threads = 1, sequential execution):
+
+    python3 tools/bench_onnx.py --model models/flame_base_random.safetensors \\
+        --frames 196 --steps 10 --threads 2 --runs 3
+
+What is timed:
+  step      one `session.run` of the exported step (medians over every step of every run).
+  gen       `steps` such steps, the output of one fed to the next (FLAME, MDM / Motion Flow
+            Matching, OMG: t = 999, 999 - 1000/steps, ...; MoLA, MLD: diffusers' DDIMScheduler
+            as bench_torch.py configures it, `scheduler.step` in PyTorch between the ONNX
+            denoiser runs, then the exported VAE decoder; `decode` is also timed on its own).
+  text      not timed (nan): PyTorch computes the text features once.
+
+FineMoGen is not exported: its mixture-of-experts routing (tutel's top-2 with capacity drops)
+gathers a data-dependent number of tokens per expert. `torch.export` stops at the reference's
+`if rows.numel() == 0` in `TutelMoE.forward` ("Could not guard on data-dependent expression"),
+and bench_torch.py's sorted dispatch has the same per-expert counts (`.tolist()`). A trace that
+baked in one input's routing would give wrong results at the next step, so the script says so
+and exits with status 3 instead of timing anything. (A tutel-style dispatch into fixed
+capacity-sized expert buffers would have static shapes; it is not written.)
+
+The exported files are written under --cache (default: a temporary folder, deleted), named by
+the model file, its size and modification time, the frame count and the guidance, and reused
+when present (the check against PyTorch runs every time).
+
+Prints medians in the format bench_torch.py uses and one machine-readable `RESULT impl=ort`
+line for tools/bench.sh.
+"""
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__))))
+import bench_torch as bt  # noqa: E402
+
+UNSUPPORTED = 3  # exit status when the family cannot be exported
+TOLERANCE = 1e-3  # relative to the largest magnitude of PyTorch's output
+
+
+class Step(torch.nn.Module):
+    """bench_torch.py's step as a module: `run.net` registered so its weights are the exported
+    graph's initialisers. Outputs (x_next, guided network output), or the guided output alone
+    where the sampler update happens outside (latent models)."""
+
+    def __init__(self, run):
+        super().__init__()
+        self.net = run.net
+        self.run = run
+
+    def forward(self, x, t, *feats):
+        out = self.run.guided(x, t, *feats)
+        if self.run.update is None:
+            return out
+        return self.run.update(x, out), out
+
+
+class Fn(torch.nn.Module):
+    def __init__(self, net, fn):
+        super().__init__()
+        self.net, self.fn = net, fn
+
+    def forward(self, *args):
+        return self.fn(*args)
+
+
+def cache_name(a, arch, part):
+    st = os.stat(a.model)
+    key = f"{os.path.abspath(a.model)}|{st.st_size}|{st.st_mtime_ns}|{a.frames}|{a.guidance}|" \
+          f"{a.opset}|{torch.__version__}"
+    tag = hashlib.sha256(key.encode()).hexdigest()[:12]
+    base = os.path.splitext(os.path.basename(a.model))[0]
+    return f"{base}.{arch}.{part}.f{a.frames}.{tag}.onnx"
+
+
+def export(module, args, names, out_names, path, opset):
+    """torch.onnx.export into `path` (weights in `path`.data beside it); returns seconds taken
+    (0 when `path` was already there)."""
+    if os.path.exists(path):
+        return 0.0
+    tmp = path + ".partial"
+    os.makedirs(tmp, exist_ok=True)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        torch.onnx.export(module, args, os.path.join(tmp, os.path.basename(path)),
+                          input_names=names, output_names=out_names, opset_version=opset,
+                          dynamo=True, external_data=True)
+    took = time.perf_counter() - t0
+    for f in os.listdir(tmp):
+        os.replace(os.path.join(tmp, f), os.path.join(os.path.dirname(path), f))
+    os.rmdir(tmp)
+    return took
+
+
+def session(path, threads, spin):
+    import onnxruntime as ort
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    if spin is not None:
+        so.add_session_config_entry("session.intra_op.allow_spinning", str(spin))
+    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+
+
+def check(name, got, want):
+    """Largest absolute difference and that over PyTorch's largest magnitude; raises past the
+    tolerance."""
+    want = want.detach().float().numpy()
+    diff = float(np.abs(got - want).max())
+    rel = diff / max(float(np.abs(want).max()), 1e-30)
+    print(f"  check {name:<10} max abs diff {diff:.3e} (relative {rel:.3e}) vs PyTorch")
+    if not rel <= TOLERANCE:
+        raise SystemExit(f"ONNX Runtime's {name} differs from PyTorch's: max abs diff {diff:.3e},"
+                         f" relative {rel:.3e} > {TOLERANCE:g}")
+    return diff, rel
+
+
+def np_inputs(names, tensors):
+    return {n: np.ascontiguousarray(v.detach().numpy()) for n, v in zip(names, tensors)}
+
+
+def timesteps(steps):
+    return [999 - i * (1000 // steps) for i in range(steps)]
+
+
+def direct_bench(arch, a, cache):
+    """FLAME, MDM / Motion Flow Matching and OMG: the whole step (guided network evaluations,
+    guidance mix, DDIM update) in one graph, its output fed to the next step."""
+    runner = {"flame": bt.flame_runner, "omg": bt.omg_runner}.get(arch, bt.mdm_runner)
+    with torch.inference_mode():
+        run = runner(a.model, a.frames, a.guidance)
+    # OMG's time is a float64 (its timestep embedding), the others' an integer step.
+    tdt, tnp = (torch.float64, np.float64) if arch == "omg" else (torch.int64, np.int64)
+    feats = tuple(run.feats)
+    fnames = {"flame": ["pooled", "hidden"], "omg": ["tokens", "eos"]}.get(arch, ["text"])
+    names = ["x", "t"] + fnames
+    t0 = torch.tensor([500], dtype=tdt)
+    path = os.path.join(cache, cache_name(a, arch, "step"))
+    export_s = export(Step(run), (run.x, t0) + feats, names, ["x_next", "guided"], path, a.opset)
+    sess = session(path, a.threads, a.spin)
+    with torch.inference_mode():
+        want_next, want_out = Step(run)(run.x, t0, *feats)
+    got_next, got_out = sess.run(None, np_inputs(names, (run.x, t0) + feats))
+    diff, rel = check("guided", got_out, want_out)
+    check("x_next", got_next, want_next)
+
+    fixed = np_inputs(fnames, feats)
+    x0 = np.ascontiguousarray(run.x.numpy())
+
+    def step(x, t):
+        return sess.run(["x_next"], {"x": x, "t": np.array([t], dtype=tnp), **fixed})[0]
+
+    step(x0, 500)  # warm-up
+    steps, gens = [], []
+    for _ in range(a.runs):
+        x = x0
+        g0 = time.perf_counter()
+        for t in timesteps(a.steps):
+            s0 = time.perf_counter()
+            x = step(x, t)
+            steps.append((time.perf_counter() - s0) * 1e3)
+        gens.append((time.perf_counter() - g0) * 1e3)
+    return dict(steps=steps, gens=gens, diff=diff, rel=rel, export_s=export_s)
+
+
+def latent_bench(arch, a, cache):
+    """MoLA, MLD: the guided denoiser in one graph, diffusers' scheduler step in PyTorch between
+    runs (as bench_torch.py samples), then the exported VAE decoder."""
+    runner = bt.mola_runner if arch == "mola" else bt.mld_runner
+    from reference import mola as ref_mola
+    with torch.inference_mode():
+        run, decode, sch = runner(a.model, a.frames, a.guidance)
+    den, dec = run.net
+    conds = run.feats[0]
+    t0 = torch.tensor([500], dtype=torch.int64)
+    path = os.path.join(cache, cache_name(a, arch, "step"))
+    export_s = export(Step(run), (run.x, t0, conds), ["x", "t", "conds"], ["eps"], path,
+                      a.opset)
+    if arch == "mola":
+        dec_fn = Fn(dec, lambda z: dec(z))
+    else:
+        dec_fn = Fn(dec, lambda z: dec(z, a.frames))
+    dpath = os.path.join(cache, cache_name(a, arch, "decode"))
+    export_s += export(dec_fn, (run.x,), ["z"], ["motion"], dpath, a.opset)
+    sess, dsess = session(path, a.threads, a.spin), session(dpath, a.threads, a.spin)
+    with torch.inference_mode():
+        want = run.guided(run.x, t0, conds)
+        want_dec = dec_fn(run.x)
+    diff, rel = check("guided", sess.run(None, np_inputs(["x", "t", "conds"],
+                                                         (run.x, t0, conds)))[0], want)
+    check("decode", dsess.run(None, {"z": run.x.numpy()})[0], want_dec)
+
+    c = np.ascontiguousarray(conds.numpy())
+
+    def denoise(x, t):
+        eps = sess.run(None, {"x": x.numpy(), "t": t.reshape(1).numpy(), "conds": c})[0]
+        return torch.from_numpy(eps)
+
+    def decode_ort(z):
+        out = torch.from_numpy(dsess.run(None, {"z": z.numpy()})[0])
+        if arch == "mola":  # the valid-length cut, as ref_mola.decode
+            o = out[0]
+            n = ref_mola.valid_length(o[-1])
+            return o[:-1, :n].transpose(0, 1).contiguous()
+        return out
+
+    with torch.inference_mode():
+        sch.set_timesteps(a.steps)
+        ts = sch.timesteps[0]
+        decode_ort(sch.step(denoise(run.x, ts), ts, run.x, eta=0.0).prev_sample)  # warm-up
+        steps, gens, decodes = [], [], []
+        for _ in range(a.runs):
+            g0 = time.perf_counter()
+            sch.set_timesteps(a.steps)
+            x = run.x
+            for t in sch.timesteps:
+                s0 = time.perf_counter()
+                x = sch.step(denoise(x, t), t, x, eta=0.0).prev_sample
+                steps.append((time.perf_counter() - s0) * 1e3)
+            d0 = time.perf_counter()
+            decode_ort(x)
+            decodes.append((time.perf_counter() - d0) * 1e3)
+            gens.append((time.perf_counter() - g0) * 1e3)
+    return dict(steps=steps, gens=gens, decodes=decodes, diff=diff, rel=rel, export_s=export_s)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--frames", type=int, default=196)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--guidance", type=float, default=2.5)
+    ap.add_argument("--opset", type=int, default=18, help="ONNX opset (17 or later)")
+    ap.add_argument("--cache", help="folder for the exported files, reused when present "
+                    "(default: a temporary folder, deleted at the end)")
+    ap.add_argument("--spin", type=int, choices=(0, 1),
+                    help="session.intra_op.allow_spinning (default: ONNX Runtime's, 1)")
+    a = ap.parse_args()
+    if a.opset < 17:
+        ap.error("--opset must be 17 or later")
+    torch.set_num_threads(a.threads)
+    torch.set_num_interop_threads(1)
+    import onnx
+    import onnxruntime as ort
+
+    from safetensors import safe_open
+    with safe_open(a.model, "pt") as f:
+        arch = json.loads(f.metadata()["flame.config"])["architecture"]
+    if arch == "finemogen":
+        print("onnxruntime: FineMoGen is not exported: its mixture-of-experts routing (top-2 "
+              "with capacity drops) gathers a data-dependent number of tokens per expert "
+              "(torch.export stops at `if rows.numel() == 0` in the reference's TutelMoE: "
+              "'Could not guard on data-dependent expression'); a trace of one input's routing "
+              "would be wrong at the next step. No ONNX Runtime timing for this family.")
+        sys.exit(UNSUPPORTED)
+
+    tmp = None
+    if a.cache:
+        os.makedirs(a.cache, exist_ok=True)
+        cache = a.cache
+    else:
+        cache = tmp = tempfile.mkdtemp(prefix="bench_onnx.")
+    try:
+        if arch in ("mola", "mld"):
+            r = latent_bench(arch, a, cache)
+        else:
+            r = direct_bench(arch, a, cache)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    med = statistics.median
+    spin = "default" if a.spin is None else a.spin
+    evals = "D_u and D_c" if arch == "omg" else "batch 2"
+    print(f"onnxruntime {ort.__version__} (onnx {onnx.__version__}, exported by torch "
+          f"{torch.__version__}, opset {a.opset}), CPUExecutionProvider, {arch}, frames "
+          f"{a.frames}, {a.steps} steps, guidance {a.guidance} ({evals}), {a.threads} intra-op "
+          f"threads, 1 inter-op, spinning {spin}, {a.runs} runs (medians):")
+    if r["export_s"]:
+        print(f"  export             {r['export_s']:9.1f} s")
+    print(f"  one guided step    {med(r['steps']):9.2f} ms")
+    if "decodes" in r:
+        print(f"  VAE decode         {med(r['decodes']):9.2f} ms")
+    print(f"  whole generation   {med(r['gens']):9.2f} ms")
+    dec = f" decode_ms={med(r['decodes']):.2f}" if "decodes" in r else ""
+    print(f"RESULT impl=ort frames={a.frames} text_ms=nan step_ms={med(r['steps']):.2f} "
+          f"gen_ms={med(r['gens']):.2f}{dec} max_abs_diff={r['diff']:.3e} "
+          f"rel_diff={r['rel']:.3e}")
+
+
+if __name__ == "__main__":
+    main()
