@@ -225,6 +225,23 @@ pub unsafe extern "C" fn flame_stream_new(
     })
 }
 
+/// Hands the segment a `FlameStage` describes to `add` (push or interrupt).
+///
+/// # Safety
+/// As [`flame_stream_push_stage`].
+unsafe fn stage_segment(
+    stream: *mut FlameStream,
+    stage: *const FlameStage,
+    add: fn(&mut Stream, Segment) -> crate::error::Result<()>,
+) -> Result<(), Fail> {
+    let s = stream_ref(stream)?;
+    let seg = Segment::from_stage(stage_arg(
+        struct_arg(stage, |st| st.struct_size, "stage")?,
+        "stage",
+    )?);
+    s.with(|st| Ok(add(st, seg)?))
+}
+
 /// Frees a stream and joins its worker threads; NULL is ignored.
 ///
 /// # Safety
@@ -290,14 +307,7 @@ pub unsafe extern "C" fn flame_stream_push_stage(
     stream: *mut FlameStream,
     stage: *const FlameStage,
 ) -> FlameStatus {
-    guard(|| {
-        let s = stream_ref(stream)?;
-        let seg = Segment::from_stage(stage_arg(
-            struct_arg(stage, |st| st.struct_size, "stage")?,
-            "stage",
-        )?);
-        s.with(|st| Ok(st.push(seg)?))
-    })
+    guard(|| stage_segment(stream, stage, Stream::push))
 }
 
 /// [`flame_stream_interrupt`] with part texts (see [`flame_stream_push_stage`]).
@@ -310,14 +320,7 @@ pub unsafe extern "C" fn flame_stream_interrupt_stage(
     stream: *mut FlameStream,
     stage: *const FlameStage,
 ) -> FlameStatus {
-    guard(|| {
-        let s = stream_ref(stream)?;
-        let seg = Segment::from_stage(stage_arg(
-            struct_arg(stage, |st| st.struct_size, "stage")?,
-            "stage",
-        )?);
-        s.with(|st| Ok(st.interrupt(seg)?))
-    })
+    guard(|| stage_segment(stream, stage, Stream::interrupt))
 }
 
 /// Asks the [`flame_stream_pump`] running on another thread to stop: it returns

@@ -580,30 +580,44 @@ pub(crate) fn linear_packed_on(
 impl Job<'_> {
     /// Runs the whole call, split over the current pool's threads.
     fn split(&self) {
-        let (job, k, n, m) = (self, self.w.k, self.w.n, self.m);
-        let panels = n.div_ceil(NR);
+        let (k, n, m) = (self.w.k, self.w.n, self.m);
         let mr = self.isa.mr();
-        let tiles = m.div_ceil(mr);
-        let threads = rayon::current_num_threads();
-        if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
-            job.run(0, m, 0, panels);
-            return;
-        }
-        // Split the weight panels when there are enough to balance: each task then reads a
-        // disjoint part of the weights. Otherwise (few outputs, many rows) split the rows by tiles.
-        let by_panels = panels >= 2 * threads || panels >= tiles;
-        let units = if by_panels { panels } else { tiles };
-        let tasks = threads.min(units);
-        let edge = |t: usize| units * t / tasks;
-        (0..tasks).into_par_iter().for_each(|t| {
-            let (lo, hi) = (edge(t), edge(t + 1));
-            if by_panels {
-                job.run(0, m, lo, hi);
-            } else {
-                job.run(lo * mr, (hi * mr).min(m), 0, panels);
-            }
-        });
+        split_work(
+            m.div_ceil(mr),
+            n.div_ceil(NR),
+            m * k * n,
+            |t0, t1, j0, j1| self.run(t0 * mr, (t1 * mr).min(m), j0, j1),
+        );
     }
+}
+
+/// Runs `run(t0, t1, j0, j1)` over row tiles `0..tiles` × weight panels `0..panels`, split
+/// over the current pool's threads when the call (`macs` multiply-adds) is worth it. The
+/// weight panels are split when there are enough to balance (each task then reads a disjoint
+/// part of the weights); otherwise (few outputs, many rows) the row tiles are.
+fn split_work(
+    tiles: usize,
+    panels: usize,
+    macs: usize,
+    run: impl Fn(usize, usize, usize, usize) + Sync,
+) {
+    let threads = rayon::current_num_threads();
+    if threads <= 1 || macs < PAR_MIN_MACS || panels.max(tiles) < 2 {
+        run(0, tiles, 0, panels);
+        return;
+    }
+    let by_panels = panels >= 2 * threads || panels >= tiles;
+    let units = if by_panels { panels } else { tiles };
+    let tasks = threads.min(units);
+    let edge = |t: usize| units * t / tasks;
+    (0..tasks).into_par_iter().for_each(|t| {
+        let (lo, hi) = (edge(t), edge(t + 1));
+        if by_panels {
+            run(0, tiles, lo, hi);
+        } else {
+            run(lo, hi, 0, panels);
+        }
+    });
 }
 
 /// One call's operands, shared by its tasks.

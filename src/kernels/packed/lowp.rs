@@ -28,7 +28,9 @@ use half::bf16;
 use rayon::prelude::*;
 
 use super::super::gemm::SharedMut;
-use super::{Activation, Isa, Line, PackedWeights, WeightType, MR512, NR, PAR_MIN_MACS};
+use super::{
+    split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512, NR, PAR_MIN_MACS,
+};
 
 /// Rows per M block: the activations of 8 tiles stay in L2 while a panel streams past them.
 const TILES_PER_BLOCK: usize = 8;
@@ -229,23 +231,8 @@ fn linear_with(
         y: SharedMut(y.as_mut_ptr()),
         m,
     };
-    let panels = n.div_ceil(NR);
-    let threads = rayon::current_num_threads();
-    if threads <= 1 || m * k * n < PAR_MIN_MACS || panels.max(tiles) < 2 {
-        job.run(0, tiles, 0, panels);
-        return;
-    }
-    let by_panels = panels >= 2 * threads || panels >= tiles;
-    let units = if by_panels { panels } else { tiles };
-    let tasks = threads.min(units);
-    let edge = |t: usize| units * t / tasks;
-    (0..tasks).into_par_iter().for_each(|t| {
-        let (lo, hi) = (edge(t), edge(t + 1));
-        if by_panels {
-            job.run(0, tiles, lo, hi);
-        } else {
-            job.run(lo, hi, 0, panels);
-        }
+    split_work(tiles, n.div_ceil(NR), m * k * n, |t0, t1, j0, j1| {
+        job.run(t0, t1, j0, j1)
     });
 }
 
