@@ -32,6 +32,10 @@ baked in one input's routing would give wrong results at the next step, so the s
 and exits with status 3 instead of timing anything. (A tutel-style dispatch into fixed
 capacity-sized expert buffers would have static shapes; it is not written.)
 
+`--profile PREFIX` runs the step again under ONNX Runtime's profiler and prints the node time
+per operator type (FLAME, MDM / Motion Flow Matching, OMG); `--spin 0` stops the intra-op
+threads from spinning (the counterpart of PyTorch's OMP_WAIT_POLICY=PASSIVE).
+
 The exported files are written under --cache (default: a temporary folder, deleted), named by
 the model file, its size and modification time, the frame count and the guidance, and reused
 when present (the check against PyTorch runs every time).
@@ -113,9 +117,12 @@ def export(module, args, names, out_names, path, opset):
     return took
 
 
-def session(path, threads, spin):
+def session(path, threads, spin, profile=None):
     import onnxruntime as ort
     so = ort.SessionOptions()
+    if profile:
+        so.enable_profiling = True
+        so.profile_file_prefix = profile
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
@@ -159,7 +166,8 @@ def direct_bench(arch, a, cache):
     names = ["x", "t"] + fnames
     t0 = torch.tensor([500], dtype=tdt)
     path = os.path.join(cache, cache_name(a, arch, "step"))
-    export_s = export(Step(run), (run.x, t0) + feats, names, ["x_next", "guided"], path, a.opset)
+    export_s = export(Step(run).eval(), (run.x, t0) + feats, names, ["x_next", "guided"], path,
+                      a.opset)
     sess = session(path, a.threads, a.spin)
     with torch.inference_mode():
         want_next, want_out = Step(run)(run.x, t0, *feats)
@@ -183,7 +191,32 @@ def direct_bench(arch, a, cache):
             x = step(x, t)
             steps.append((time.perf_counter() - s0) * 1e3)
         gens.append((time.perf_counter() - g0) * 1e3)
+    if a.profile:
+        profile_ops(session(path, a.threads, a.spin, a.profile), a.runs,
+                    lambda sess: sess.run(["x_next"], {"x": x0, "t": np.array([500], dtype=tnp),
+                                                      **fixed}))
     return dict(steps=steps, gens=gens, diff=diff, rel=rel, export_s=export_s)
+
+
+def profile_ops(sess, runs, run):
+    """`runs` profiled runs of the step after a warm-up; prints ONNX Runtime's node time per
+    operator type (ms per step, share of the nodes' total)."""
+    run(sess)
+    for _ in range(runs):
+        run(sess)
+    path = sess.end_profiling()
+    with open(path) as f:
+        events = json.load(f)
+    per_op, total = {}, 0.0
+    for e in events:
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
+            op = e.get("args", {}).get("op_name", "?")
+            per_op[op] = per_op.get(op, 0.0) + e["dur"] / 1e3
+            total += e["dur"] / 1e3
+    n = runs + 1
+    print(f"  ONNX Runtime profile ({path}): node time {total / n:.1f} ms per step")
+    for op, t in sorted(per_op.items(), key=lambda kv: -kv[1])[:12]:
+        print(f"    {op:<28} {t / n:9.2f} ms  {100 * t / total:5.1f}%")
 
 
 def latent_bench(arch, a, cache):
@@ -197,12 +230,12 @@ def latent_bench(arch, a, cache):
     conds = run.feats[0]
     t0 = torch.tensor([500], dtype=torch.int64)
     path = os.path.join(cache, cache_name(a, arch, "step"))
-    export_s = export(Step(run), (run.x, t0, conds), ["x", "t", "conds"], ["eps"], path,
+    export_s = export(Step(run).eval(), (run.x, t0, conds), ["x", "t", "conds"], ["eps"], path,
                       a.opset)
     if arch == "mola":
-        dec_fn = Fn(dec, lambda z: dec(z))
+        dec_fn = Fn(dec, lambda z: dec(z)).eval()
     else:
-        dec_fn = Fn(dec, lambda z: dec(z, a.frames))
+        dec_fn = Fn(dec, lambda z: dec(z, a.frames)).eval()
     dpath = os.path.join(cache, cache_name(a, arch, "decode"))
     export_s += export(dec_fn, (run.x,), ["z"], ["motion"], dpath, a.opset)
     sess, dsess = session(path, a.threads, a.spin), session(dpath, a.threads, a.spin)
@@ -258,6 +291,9 @@ def main():
     ap.add_argument("--opset", type=int, default=18, help="ONNX opset (17 or later)")
     ap.add_argument("--cache", help="folder for the exported files, reused when present "
                     "(default: a temporary folder, deleted at the end)")
+    ap.add_argument("--profile", metavar="PREFIX",
+                    help="also run the step with ONNX Runtime's profiler (JSON at PREFIX_*.json)"
+                         " and print its time per operator type (not for MoLA/MLD)")
     ap.add_argument("--spin", type=int, choices=(0, 1),
                     help="session.intra_op.allow_spinning (default: ONNX Runtime's, 1)")
     a = ap.parse_args()
