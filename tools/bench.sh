@@ -39,8 +39,8 @@ read -ra TORCH_EXTRA <<< "${TORCH_ARGS:-}"
 read -ra ORT_EXTRA <<< "${ORT_ARGS:-}"
 ORT=${ORT:-auto}
 if [ "$ORT" = auto ]; then
-    if "$PY" -c 'import onnxruntime, onnx' 2> /dev/null; then ORT=1; else
-        echo "ONNX Runtime: not run ($PY has no onnxruntime/onnx; pip install -r tools/requirements.txt)"
+    if "$PY" -c 'import onnxruntime, onnx, onnxscript' 2> /dev/null; then ORT=1; else
+        echo "ONNX Runtime: not run ($PY lacks onnxruntime, onnx or onnxscript; pip install -r tools/requirements.txt)"
         ORT=0
     fi
 fi
