@@ -385,6 +385,28 @@ impl Job<'_> {
         bias: &[f32; NR],
         tile: &mut [f32; MR512 * NR],
     ) {
+        let rows = MR512.min(self.m - t * MR512);
+        #[cfg(target_arch = "x86_64")]
+        if self.native && self.s <= INT8_BLOCK {
+            // One block: the sums stay in 32 bits and the epilogue runs on the vectors.
+            let (mut colsum, mut wscale, mut rscale) = ([0i32; NR], [0.0f32; NR], [0.0f32; MR512]);
+            colsum[..cols].copy_from_slice(&self.w.colsum[c0..c0 + cols]);
+            wscale[..cols].copy_from_slice(&self.w.scales[c0..c0 + cols]);
+            rscale[..rows].copy_from_slice(&self.row_scales[t * MR512..t * MR512 + rows]);
+            // SAFETY: `native` is set only when the CPU has avx512f and avx512vnni; the slices
+            // hold s·12 and s·NR words.
+            unsafe {
+                avx512::tile_int8_scaled(
+                    self.s,
+                    a.as_ptr(),
+                    b.as_ptr(),
+                    (&colsum, &wscale, bias),
+                    &rscale,
+                    tile,
+                )
+            };
+            return;
+        }
         let mut total = [0i64; MR512 * NR];
         for q0 in (0..self.s).step_by(INT8_BLOCK) {
             let q1 = (q0 + INT8_BLOCK).min(self.s);
@@ -408,7 +430,6 @@ impl Job<'_> {
                 *t += *s as i64;
             }
         }
-        let rows = MR512.min(self.m - t * MR512);
         for i in 0..rows {
             let sa = self.row_scales[t * MR512 + i];
             for c in 0..cols {
@@ -513,6 +534,44 @@ mod avx512 {
             }
             for (i, v) in acc.iter().enumerate() {
                 _mm512_storeu_ps(tile.as_mut_ptr().add(i * NR), *v);
+            }
+        }
+    }
+
+    /// [`tile_int8`] and the epilogue in one: output `(Σ − 128·colsum)·(s_a·s_w) + bias` per
+    /// row and column, the same operations (one rounding each, the last a fused multiply-add)
+    /// as the scalar epilogue, so the same bits.
+    ///
+    /// # Safety
+    /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`;
+    /// `s` at most `INT8_BLOCK` (the sums fit 32 bits).
+    #[target_feature(enable = "avx512f,avx512vnni")]
+    pub(super) unsafe fn tile_int8_scaled(
+        s: usize,
+        a: *const u32,
+        b: *const u32,
+        (colsum, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
+        rscale: &[f32; MR512],
+        tile: &mut [f32; MR512 * NR],
+    ) {
+        let mut sums = [0i32; MR512 * NR];
+        // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
+        unsafe {
+            tile_int8(s, a, b, &mut sums);
+            let offset = _mm512_mullo_epi32(
+                _mm512_loadu_si512(colsum.as_ptr() as *const _),
+                _mm512_set1_epi32(128),
+            );
+            let ws = _mm512_loadu_ps(wscale.as_ptr());
+            let bv = _mm512_loadu_ps(bias.as_ptr());
+            for (i, &sa) in rscale.iter().enumerate() {
+                let acc = _mm512_loadu_si512(sums.as_ptr().add(i * NR) as *const _);
+                let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, offset));
+                let scale = _mm512_mul_ps(_mm512_set1_ps(sa), ws);
+                _mm512_storeu_ps(
+                    tile.as_mut_ptr().add(i * NR),
+                    _mm512_fmadd_ps(exact, scale, bv),
+                );
             }
         }
     }
