@@ -129,6 +129,17 @@ pub enum Activation {
     Gelu,
 }
 
+impl Activation {
+    /// Applies the activation to finished outputs in place.
+    fn apply(self, v: &mut [f32]) {
+        match self {
+            Activation::None => {}
+            Activation::Relu => relu(v),
+            Activation::Gelu => gelu_erf(v),
+        }
+    }
+}
+
 /// Which micro-kernel runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Isa {
@@ -813,11 +824,7 @@ impl Job<'_> {
     }
 
     fn activate(&self, v: &mut [f32]) {
-        match self.act {
-            Activation::None => {}
-            Activation::Relu => relu(v),
-            Activation::Gelu => gelu_erf(v),
-        }
+        self.act.apply(v)
     }
 
     /// Runs the micro-kernel for this call's ISA on panel rows of type `ty`.

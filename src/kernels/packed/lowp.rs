@@ -352,11 +352,7 @@ impl Job<'_> {
                             std::slice::from_raw_parts_mut(self.y.get().add(r * n + c0), cols)
                         };
                         out.copy_from_slice(&tile[i * NR..i * NR + cols]);
-                        match self.act {
-                            Activation::None => {}
-                            Activation::Relu => super::relu(out),
-                            Activation::Gelu => super::gelu_erf(out),
-                        }
+                        self.act.apply(out);
                     }
                 }
             }
