@@ -10,49 +10,11 @@ use std::ptr;
 use std::sync::{Mutex, OnceLock};
 
 use flame::ffi::*;
-use flame_fuzz::FIXTURES;
+use flame_fuzz::{bounded_threads, ok, Input, FIXTURES};
 use libfuzzer_sys::fuzz_target;
 
-/// Thread counts that start threads stay small (0 = one per core, 1 or 2): a count the library
-/// accepts (up to `FLAME_MAX_THREADS`, 256) would start that many threads per execution. Counts
-/// above the bound, which must be refused before any thread starts, are passed as fuzzed.
-fn bounded_threads(raw: u32) -> u32 {
-    if raw as usize > flame::pool::MAX_THREADS {
-        raw
-    } else {
-        raw % 3
-    }
-}
 /// Sessions longer than this are created and read but not stepped (a step costs ~frames²).
 const MAX_STEPPED_FRAMES: u32 = 24;
-
-/// Little-endian fields read off the input; zeros once it runs out.
-struct Input<'a>(&'a [u8]);
-
-impl Input<'_> {
-    fn bytes<const N: usize>(&mut self) -> [u8; N] {
-        let mut b = [0u8; N];
-        let n = N.min(self.0.len());
-        b[..n].copy_from_slice(&self.0[..n]);
-        self.0 = &self.0[n..];
-        b
-    }
-    fn u8(&mut self) -> u8 {
-        self.bytes::<1>()[0]
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes(self.bytes())
-    }
-    fn i32(&mut self) -> i32 {
-        i32::from_le_bytes(self.bytes())
-    }
-    fn f32(&mut self) -> f32 {
-        f32::from_le_bytes(self.bytes())
-    }
-    fn u64(&mut self) -> u64 {
-        u64::from_le_bytes(self.bytes())
-    }
-}
 
 struct Models([*mut FlameModel; 3]);
 // SAFETY: models are immutable after loading and documented as shareable across threads.
@@ -72,15 +34,6 @@ fn models() -> &'static Models {
         };
         Models(FIXTURES.map(load))
     })
-}
-
-fn ok(status: FlameStatus) -> bool {
-    assert_ne!(
-        status,
-        FlameStatus::Internal,
-        "a panic reached the C boundary"
-    );
-    status == FlameStatus::Ok
 }
 
 fuzz_target!(|data: &[u8]| {

@@ -72,3 +72,55 @@ pub fn header_over_fixture(data: &[u8]) -> Option<flame::Result<flame::checkpoin
         flame::checkpoint::ModelFile::from_bytes(join_into(buf, header, tensors))
     }))
 }
+
+/// Little-endian fields read off a fuzz input; zeros once it runs out.
+pub struct Input<'a>(pub &'a [u8]);
+
+impl Input<'_> {
+    pub fn bytes<const N: usize>(&mut self) -> [u8; N] {
+        let mut b = [0u8; N];
+        let n = N.min(self.0.len());
+        b[..n].copy_from_slice(&self.0[..n]);
+        self.0 = &self.0[n..];
+        b
+    }
+    pub fn u8(&mut self) -> u8 {
+        self.bytes::<1>()[0]
+    }
+    pub fn u16(&mut self) -> u16 {
+        u16::from_le_bytes(self.bytes())
+    }
+    pub fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.bytes())
+    }
+    pub fn i32(&mut self) -> i32 {
+        i32::from_le_bytes(self.bytes())
+    }
+    pub fn f32(&mut self) -> f32 {
+        f32::from_le_bytes(self.bytes())
+    }
+    pub fn u64(&mut self) -> u64 {
+        u64::from_le_bytes(self.bytes())
+    }
+}
+
+/// Thread counts that start threads stay small (0 = one per core, 1 or 2): a count the library
+/// accepts (up to `FLAME_MAX_THREADS`, 256) would start that many threads per execution. Counts
+/// above the bound, which must be refused before any thread starts, are passed as fuzzed.
+pub fn bounded_threads(raw: u32) -> u32 {
+    if raw as usize > flame::pool::MAX_THREADS {
+        raw
+    } else {
+        raw % 3
+    }
+}
+
+/// True for `Ok`; a caught panic (`Internal`) is a finding.
+pub fn ok(status: flame::ffi::FlameStatus) -> bool {
+    assert_ne!(
+        status,
+        flame::ffi::FlameStatus::Internal,
+        "a panic reached the C boundary"
+    );
+    status == flame::ffi::FlameStatus::Ok
+}
