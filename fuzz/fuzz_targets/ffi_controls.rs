@@ -226,10 +226,11 @@ fn targets(input: &mut Input, session: *mut FlameSession, m: &Model, frames: u32
 fn stages(input: &mut Input, session: *mut FlameSession, texts: &Texts, frames: u32) {
     let count = input.u8() as usize % 5;
     let declared = struct_size::<FlameStage>(input);
-    // Every stage of an array declares the same size and the library steps by it; a size it
-    // refuses is read in the first stage only.
+    // Every stage of an array declares the same size and the library steps by any size from
+    // its own to 64 KiB (so the caller's array holds `count` strides); a size it refuses is
+    // read in the first stage only.
     let stride = declared as usize;
-    let valid = stride >= size_of::<FlameStage>() && stride <= size_of::<FlameStage>() + 64;
+    let valid = stride >= size_of::<FlameStage>() && stride <= 1 << 16;
     let mut buf = Declared::new::<FlameStage>(declared);
     if valid {
         buf.0.resize(stride * count.max(1), 0);
