@@ -188,8 +188,8 @@ typedef enum FlameWeights {
   // (`INVALID_ARGUMENT` at load otherwise).
   FLAME_WEIGHTS_BF16_COMPUTE = 3,
   // 8-bit weights (per-output scales) and 8-bit activations (per-row scales), integer
-  // products: a quarter of the memory; needs AVX512_VNNI (`INVALID_ARGUMENT` at load
-  // otherwise).
+  // products: a quarter of the memory; runs on AVX512_VNNI, or on AVX2 with activations in
+  // 63 levels (`INVALID_ARGUMENT` at load without either).
   FLAME_WEIGHTS_INT8 = 4,
 } FlameWeights;
 

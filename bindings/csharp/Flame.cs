@@ -189,8 +189,8 @@ namespace Flame
         Bf16 = 2,
         /// <summary>bf16 weights and bf16 products (AVX512_BF16; refused at load without it).</summary>
         Bf16Compute = 3,
-        /// <summary>8-bit integer weights and products, a quarter of the memory (AVX512_VNNI;
-        /// refused at load without it).</summary>
+        /// <summary>8-bit integer weights and products, a quarter of the memory (AVX512_VNNI or
+        /// AVX2; refused at load without either).</summary>
         Int8 = 4,
     }
 

@@ -231,8 +231,8 @@ pub enum FlameWeights {
     /// (`INVALID_ARGUMENT` at load otherwise).
     Bf16Compute = 3,
     /// 8-bit weights (per-output scales) and 8-bit activations (per-row scales), integer
-    /// products: a quarter of the memory; needs AVX512_VNNI (`INVALID_ARGUMENT` at load
-    /// otherwise).
+    /// products: a quarter of the memory; runs on AVX512_VNNI, or on AVX2 with activations in
+    /// 63 levels (`INVALID_ARGUMENT` at load without either).
     Int8 = 4,
 }
 

@@ -53,8 +53,8 @@ pub enum WeightType {
     /// and accumulated in f32 (`vdpbf16ps`; see `packed::lowp`). Needs AVX512_BF16.
     Bf16Compute,
     /// 8-bit weights (per-column scales) and 8-bit activations (per-row scales per call),
-    /// multiplied and accumulated in 32-bit integers (`vpdpbusd` with AVX512_VNNI; an exact
-    /// portable reproduction elsewhere).
+    /// multiplied and accumulated in 32-bit integers (`vpdpbusd` with AVX512_VNNI, or
+    /// `vpmaddubsw` on AVX2 with activations in 63 levels; see `packed::lowp`). Needs AVX2.
     Int8,
 }
 
@@ -92,13 +92,29 @@ impl WeightType {
     }
 
     /// Whether this CPU runs the type's own instructions: always for the storage types; for
-    /// `bf16-compute` AVX512_BF16; for `int8` AVX512_VNNI (without it an exact but slow
-    /// portable kernel runs).
+    /// `bf16-compute` AVX512_BF16; for `int8` AVX512_VNNI or AVX2 (models refuse these types
+    /// elsewhere rather than run the slow portable reproduction).
     pub fn native_on_this_cpu(self) -> bool {
         match self {
             WeightType::Bf16Compute => lowp::has_bf16_dot() && detected_isa() == Isa::Avx512,
-            WeightType::Int8 => lowp::has_int8_dot() && detected_isa() == Isa::Avx512,
+            WeightType::Int8 => {
+                lowp::Int8Path::for_kernel(detected_isa()) != lowp::Int8Path::Portable
+            }
             _ => true,
+        }
+    }
+
+    /// The instructions the type's products run on with the kernel in use (`flame info`), or
+    /// what it would need.
+    pub fn compute_path(self) -> &'static str {
+        match self {
+            WeightType::Bf16Compute if self.native_on_this_cpu() => "vdpbf16ps, AVX512_BF16",
+            WeightType::Bf16Compute => "needs AVX512_BF16 and the avx512 kernel",
+            WeightType::Int8 if self.native_on_this_cpu() => {
+                lowp::Int8Path::for_kernel(detected_isa()).name()
+            }
+            WeightType::Int8 => "needs AVX2 or AVX512_VNNI and their kernels",
+            _ => "f32 FMA",
         }
     }
 }

@@ -507,13 +507,13 @@ impl Model {
         let ty = opts.weights;
         if !ty.native_on_this_cpu() {
             return Err(invalid_arg!(
-                "weights {} need the CPU's {} instructions and the avx512 kernel (this CPU or \
-                 FLAME_KERNEL={} lacks them); use f32, f16 or bf16",
+                "weights {} need {} (this CPU or the kernel chosen, {}, lacks it); use f32, \
+                 f16 or bf16",
                 ty.name(),
                 if ty == WeightType::Int8 {
-                    "AVX512_VNNI"
+                    "AVX2 or AVX512_VNNI on the avx2 or avx512 kernel"
                 } else {
-                    "AVX512_BF16"
+                    "AVX512_BF16 on the avx512 kernel"
                 },
                 crate::kernels::kernel_name()
             ));

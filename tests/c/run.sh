@@ -47,10 +47,19 @@ STATIC_LIBS=("$LIB/libflame.a" -lpthread -ldl -lm)
 VALGRIND=(valgrind --error-exitcode=1 --leak-check=full --errors-for-leak-kinds=definite,indirect)
 
 # Which reduced-precision weight types this CPU runs (test_api expects a load or a clear
-# refusal): AVX512_BF16 / AVX512_VNNI on the AVX-512 kernel.
-cpu_has() { grep -qw "$1" /proc/cpuinfo 2>/dev/null && grep -qw avx512f /proc/cpuinfo && [ "${FLAME_KERNEL:-avx512}" = avx512 ]; }
-if cpu_has avx512_bf16; then export FLAME_TEST_CPU_BF16=1; else export FLAME_TEST_CPU_BF16=0; fi
-if cpu_has avx512_vnni; then export FLAME_TEST_CPU_VNNI=1; else export FLAME_TEST_CPU_VNNI=0; fi
+# refusal): bf16-compute needs AVX512_BF16 on the AVX-512 kernel; int8 runs on AVX512_VNNI or
+# AVX2 (with FMA and F16C, the AVX2 kernel's needs), on any kernel but the portable one.
+cpu_has() { grep -qw "$1" /proc/cpuinfo 2>/dev/null; }
+if cpu_has avx512_bf16 && cpu_has avx512f && [ "${FLAME_KERNEL:-avx512}" = avx512 ]; then
+    export FLAME_TEST_CPU_BF16=1
+else
+    export FLAME_TEST_CPU_BF16=0
+fi
+if cpu_has avx2 && cpu_has fma && cpu_has f16c && [ "${FLAME_KERNEL:-avx512}" != portable ]; then
+    export FLAME_TEST_CPU_INT8=1
+else
+    export FLAME_TEST_CPU_INT8=0
+fi
 
 PASSED=0
 FAILED=0
@@ -217,10 +226,10 @@ if [ "$use_valgrind" = 1 ]; then
     else
         QUICK=("$OUT/ref_quick.npy")
         export FLAME_TEST_QUICK=1
-        # valgrind's virtual CPU has no AVX-512: the library refuses bf16-compute and int8
-        # there, naming the instruction.
-        cpu_bf16=$FLAME_TEST_CPU_BF16 cpu_vnni=$FLAME_TEST_CPU_VNNI
-        export FLAME_TEST_CPU_BF16=0 FLAME_TEST_CPU_VNNI=0
+        # valgrind's virtual CPU has no AVX-512 (but AVX2): the library refuses bf16-compute
+        # there, naming the instruction, and runs int8 on AVX2.
+        cpu_bf16=$FLAME_TEST_CPU_BF16
+        export FLAME_TEST_CPU_BF16=0
         built test_api_shared && run_test "test_api (shared, valgrind)" \
             "$OUT/test_api_valgrind.log" \
             "${VALGRIND[@]}" "$OUT/test_api_shared" "$MODEL" "${QUICK[@]}" "$WORK" 2
@@ -250,7 +259,7 @@ if [ "$use_valgrind" = 1 ]; then
             "$OUT/test_cpp_stream_valgrind.log" \
             "${VALGRIND[@]}" "$OUT/test_cpp_stream_shared" "$ROOT/tests/fixtures"
         unset FLAME_TEST_QUICK
-        export FLAME_TEST_CPU_BF16=$cpu_bf16 FLAME_TEST_CPU_VNNI=$cpu_vnni
+        export FLAME_TEST_CPU_BF16=$cpu_bf16
     fi
 else
     echo "skip valgrind (set FLAME_VALGRIND=1 to run it)"

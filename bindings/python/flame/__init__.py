@@ -166,7 +166,7 @@ class Weights:
     F16 = 1  # half the memory
     BF16 = 2  # half the memory, coarser than f16
     BF16_COMPUTE = 3  # bf16 products (AVX512_BF16; refused at load without it)
-    INT8 = 4  # 8-bit integer products, a quarter of the memory (AVX512_VNNI; refused without)
+    INT8 = 4  # 8-bit integer products, a quarter of the memory (AVX512_VNNI or AVX2; refused without)
 
 
 class EditTask:

@@ -2,8 +2,9 @@
 //! DDIM steps (120 frames, guidance 2, three prompts × two seeds) against the f32 run, max and
 //! mean absolute difference, printed as a table (`cargo test -p flame-demo --test demo_weights
 //! -- --nocapture`; docs/performance.md quotes it). Types the CPU cannot run (bf16-compute
-//! without AVX512_BF16, int8 without AVX512_VNNI) are refused at load with the instruction's
-//! name, and the test says it skipped them.
+//! without AVX512_BF16, int8 without AVX2) are refused at load with the instruction's name,
+//! and the test says it skipped them. Int8 runs on the kernel in use (`FLAME_KERNEL=avx2`
+//! measures the AVX2 path, whose activations have 63 levels).
 //!
 //! The bounds are this model's measured errors with room (a regression guard, not a goal):
 //! f16 and the bf16 types only round weights (and, for bf16-compute, each layer's input) to

@@ -153,7 +153,7 @@ pub struct ModelArgs {
     pub model: Option<PathBuf>,
     /// What the linear layers are held and multiplied in (f16/bf16 halve their memory;
     /// bf16-compute multiplies in bf16, needs AVX512_BF16; int8 multiplies 8-bit integers,
-    /// needs AVX512_VNNI) [f32|f16|bf16|bf16-compute|int8; default f32]
+    /// needs AVX512_VNNI or AVX2) [f32|f16|bf16|bf16-compute|int8; default f32]
     #[arg(long, value_name = "W", value_parser = lib::<WeightType>)]
     pub weights: Option<WeightType>,
 }

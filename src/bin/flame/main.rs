@@ -1031,9 +1031,12 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         "kernel:         {} (linear layers; FLAME_KERNEL=avx512|avx2|portable picks another the CPU runs)",
         flame::kernels::kernel_name()
     );
-    let runs = |ty: flame::kernels::WeightType| if ty.native_on_this_cpu() { "yes" } else { "no" };
+    let runs = |ty: flame::kernels::WeightType| {
+        let yes = if ty.native_on_this_cpu() { "yes" } else { "no" };
+        format!("{yes} ({})", ty.compute_path())
+    };
     println!(
-        "--weights:      f32, f16, bf16 yes; bf16-compute {} (AVX512_BF16); int8 {} (AVX512_VNNI)",
+        "--weights:      f32, f16, bf16 yes; bf16-compute {}; int8 {}",
         runs(flame::kernels::WeightType::Bf16Compute),
         runs(flame::kernels::WeightType::Int8)
     );

@@ -1,6 +1,6 @@
 //! Linear layers computed in reduced precision (opt-in load options): products of bf16 pairs
 //! accumulated in f32 (`vdpbf16ps`, AVX512_BF16) and products of 8-bit integers accumulated in
-//! 32-bit integers (`vpdpbusd`, AVX512_VNNI).
+//! 32-bit integers (`vpdpbusd` with AVX512_VNNI, `vpmaddubsw` + `vpmaddwd` on plain AVX2).
 //!
 //! - **bf16 compute** ([`WeightType::Bf16Compute`]): weights rounded to bf16 at load; each call
 //!   rounds its activations to bf16 (nearest even). Panel `j`, pair row `q` holds for each of
@@ -17,7 +17,11 @@
 //!   unsigned by signed). Quad row `q` of a panel holds `W[c, 4q..4q + 4]` per column. The
 //!   integer sum is exact (32-bit sums over blocks of 32,768 inputs, added in 64 bits), so every
 //!   kernel gives the same integers; the output is `(Σ − 128·Σ_k w) · (s_a·s_w) + bias` in one fused
-//!   multiply-add.
+//!   multiply-add. Without VNNI, AVX2's `vpmaddubsw` adds two unsigned × signed products into a
+//!   saturating 16-bit lane: activations there use 63 levels (`s_a = max|x| / 63`, offset 64,
+//!   bytes ≤ 127), so a pair is at most 2·127·127 < 2¹⁵ and never saturates ([`Int8Path`]); the
+//!   sums are again exact, the same as the portable kernel's on those bytes, but the activations
+//!   carry one bit less than on VNNI.
 //!
 //! Both are bit-identical for any thread count (each output is one fixed chain). Rows are cut
 //! into tiles of [`MR512`], activations converted once per call into a per-thread buffer laid
@@ -58,6 +62,44 @@ pub(crate) fn has_int8_dot() -> bool {
     false
 }
 
+/// Which int8 tile a call runs and so how it quantises its activations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Int8Path {
+    /// `vpdpbusd` (AVX-512 kernel with AVX512_VNNI): 127 levels.
+    Vnni,
+    /// `vpmaddubsw` + `vpmaddwd` (AVX2, or AVX-512 without VNNI): 63 levels, saturation-free.
+    Avx2,
+    /// The exact portable tile: 127 levels, as VNNI (the same bits).
+    Portable,
+}
+
+impl Int8Path {
+    pub(crate) fn for_kernel(isa: Isa) -> Int8Path {
+        match isa {
+            Isa::Avx512 if has_int8_dot() => Int8Path::Vnni,
+            Isa::Avx512 | Isa::Avx2 if Isa::Avx2.supported() => Int8Path::Avx2,
+            _ => Int8Path::Portable,
+        }
+    }
+
+    /// The largest activation magnitude after quantisation; bytes are offset by `levels + 1`.
+    fn levels(self) -> i32 {
+        match self {
+            Int8Path::Avx2 => 63,
+            _ => 127,
+        }
+    }
+
+    /// The instructions, for `flame info`.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Int8Path::Vnni => "vpdpbusd, AVX512_VNNI",
+            Int8Path::Avx2 => "vpmaddubsw, AVX2; activations in 63 levels",
+            Int8Path::Portable => "portable",
+        }
+    }
+}
+
 /// Words per panel column over `k` inputs: pairs (bf16) or quads (int8).
 pub(super) fn steps(ty: WeightType, k: usize) -> usize {
     match ty {
@@ -72,18 +114,18 @@ fn bf16_pair(lo: f32, hi: f32) -> u32 {
     bf16::from_f32(lo).to_bits() as u32 | (bf16::from_f32(hi).to_bits() as u32) << 16
 }
 
-/// `round(v / s)` in −127..=127 (`inv` = 1/s, 0 for an all-zero row).
-fn quantize(v: f32, inv: f32) -> i8 {
-    (v * inv).round().clamp(-127.0, 127.0) as i8
+/// `round(v / s)` in −levels..=levels (`inv` = 1/s, 0 for an all-zero row).
+fn quantize(v: f32, inv: f32, levels: i32) -> i8 {
+    (v * inv).round().clamp(-levels as f32, levels as f32) as i8
 }
 
-/// The symmetric scale of `v` (`max|v| / 127`), NaN when a value is not finite so that the
+/// The symmetric scale of `v` (`max|v| / levels`), NaN when a value is not finite so that the
 /// outputs are not finite either (the session's check reports it).
-fn scale_of(v: &[f32]) -> f32 {
+fn scale_of(v: &[f32], levels: i32) -> f32 {
     if v.iter().any(|x| !x.is_finite()) {
         return f32::NAN;
     }
-    v.iter().fold(0.0f32, |m, x| m.max(x.abs())) / 127.0
+    v.iter().fold(0.0f32, |m, x| m.max(x.abs())) / levels as f32
 }
 
 fn inverse(scale: f32) -> f32 {
@@ -124,7 +166,9 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
             }
         }
         _ => {
-            p.scales = (0..n).map(|c| scale_of(&w[c * k..(c + 1) * k])).collect();
+            p.scales = (0..n)
+                .map(|c| scale_of(&w[c * k..(c + 1) * k], 127))
+                .collect();
             p.colsum = vec![0; n];
             for j in 0..panels {
                 for q in 0..s {
@@ -133,7 +177,7 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
                         let inv = if col < n { inverse(p.scales[col]) } else { 0.0 };
                         let mut bytes = [0u8; 4];
                         for (b, byte) in bytes.iter_mut().enumerate() {
-                            let v = quantize(at(col, 4 * q + b), inv);
+                            let v = quantize(at(col, 4 * q + b), inv, 127);
                             if col < n {
                                 p.colsum[col] += v as i32;
                             }
@@ -215,13 +259,11 @@ fn linear_with(
     let (k, n, ty) = (w.k, w.n, w.ty);
     let s = steps(ty, k);
     let tiles = m.div_ceil(MR512);
-    convert(ty, x, m, k, s, words, scales);
-    let native = match ty {
-        WeightType::Bf16Compute => isa == Isa::Avx512 && has_bf16_dot(),
-        _ => isa == Isa::Avx512 && has_int8_dot(),
-    };
+    let int8 = Int8Path::for_kernel(isa);
+    convert(ty, int8.levels(), x, m, k, s, words, scales);
     let job = Job {
-        native,
+        native: isa == Isa::Avx512 && has_bf16_dot(),
+        int8,
         w,
         s,
         acts: words,
@@ -237,10 +279,13 @@ fn linear_with(
 }
 
 /// Converts `x [m, k]` into words laid out tile by tile: word `(t·s + q)·12 + i` is step `q`
-/// of row `12t + i` (a bf16 pair, or four offset bytes); rows past `m` are zero. Int8 also
-/// fills the row scales. Tiles are converted in parallel (each is independent).
+/// of row `12t + i` (a bf16 pair, or four bytes quantised to `levels` and offset by
+/// `levels + 1`); rows past `m` are zero. Int8 also fills the row scales. Tiles are converted
+/// in parallel (each is independent).
+#[allow(clippy::too_many_arguments)]
 fn convert(
     ty: WeightType,
+    levels: i32,
     x: &[f32],
     m: usize,
     k: usize,
@@ -265,17 +310,18 @@ fn convert(
                     }
                 }
                 _ => {
-                    let scale = scale_of(row);
+                    let scale = scale_of(row, levels);
                     tile_scales[i] = scale;
                     let inv = inverse(scale);
+                    let zero = levels + 1;
                     for q in 0..s {
-                        // Past k the weight is 0: the byte adds nothing; 128 (a zero value)
-                        // keeps the column-sum correction exact.
+                        // Past k the weight is 0: the byte adds nothing; the zero point (a
+                        // zero value) keeps the column-sum correction exact.
                         let byte = |j: usize| {
                             if j < k {
-                                (quantize(row[j], inv) as i32 + 128) as u8
+                                (quantize(row[j], inv, levels) as i32 + zero) as u8
                             } else {
-                                128
+                                zero as u8
                             }
                         };
                         out[q * MR512 + i] = u32::from_le_bytes([
@@ -309,8 +355,10 @@ fn convert(
 
 /// One call's operands, shared by its tasks.
 struct Job<'a> {
-    /// The CPU runs the type's instruction (otherwise the portable reproduction runs).
+    /// The CPU runs `vdpbf16ps` (otherwise the portable reproduction runs).
     native: bool,
+    /// The int8 tile (and the activations' quantisation).
+    int8: Int8Path,
     w: &'a PackedWeights,
     /// Steps (pairs or quads) per column.
     s: usize,
@@ -383,13 +431,13 @@ impl Job<'_> {
     ) {
         let rows = MR512.min(self.m - t * MR512);
         #[cfg(target_arch = "x86_64")]
-        if self.native && self.s <= INT8_BLOCK {
+        if self.int8 == Int8Path::Vnni && self.s <= INT8_BLOCK {
             // One block: the sums stay in 32 bits and the epilogue runs on the vectors.
             let (mut colsum, mut wscale, mut rscale) = ([0i32; NR], [0.0f32; NR], [0.0f32; MR512]);
             colsum[..cols].copy_from_slice(&self.w.colsum[c0..c0 + cols]);
             wscale[..cols].copy_from_slice(&self.w.scales[c0..c0 + cols]);
             rscale[..rows].copy_from_slice(&self.row_scales[t * MR512..t * MR512 + rows]);
-            // SAFETY: `native` is set only when the CPU has avx512f and avx512vnni; the slices
+            // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni; the slices
             // hold s·12 and s·NR words.
             unsafe {
                 avx512::tile_int8_scaled(
@@ -409,13 +457,18 @@ impl Job<'_> {
             let (a, b) = (&a[q0 * MR512..q1 * MR512], &b[q0 * NR..q1 * NR]);
             let mut sums = [0i32; MR512 * NR];
             #[cfg(target_arch = "x86_64")]
-            let done = if self.native {
-                // SAFETY: `native` is set only when the CPU has avx512f and avx512vnni; the
-                // slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
-                unsafe { avx512::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
-                true
-            } else {
-                false
+            let done = match self.int8 {
+                // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `Avx2`
+                // only when it has avx2; the slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
+                Int8Path::Vnni => {
+                    unsafe { avx512::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    true
+                }
+                Int8Path::Avx2 => {
+                    unsafe { avx2::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    true
+                }
+                Int8Path::Portable => false,
             };
             #[cfg(not(target_arch = "x86_64"))]
             let done = false;
@@ -426,11 +479,12 @@ impl Job<'_> {
                 *t += *s as i64;
             }
         }
+        let zero = self.int8.levels() as i64 + 1;
         for i in 0..rows {
             let sa = self.row_scales[t * MR512 + i];
             for c in 0..cols {
                 let col = c0 + c;
-                let exact = total[i * NR + c] - 128 * self.w.colsum[col] as i64;
+                let exact = total[i * NR + c] - zero * self.w.colsum[col] as i64;
                 tile[i * NR + c] = (exact as f32).mul_add(sa * self.w.scales[col], bias[c]);
             }
         }
@@ -593,6 +647,56 @@ mod avx512 {
             }
             for (i, v) in acc.iter().enumerate() {
                 _mm512_storeu_si512(sums.as_mut_ptr().add(i * NR) as *mut _, *v);
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    //! The int8 tile on AVX2: `vpmaddubsw` adds each column's two unsigned × signed byte
+    //! products into a 16-bit lane (activations in 63 levels: at most 2·127·127, no
+    //! saturation), `vpmaddwd` with ones adds the two halves of the quad into 32 bits.
+    //! Four rows at a time: 8 accumulators, two panel vectors, the ones and the temporaries fit
+    //! the 16 registers.
+
+    use super::{MR512, NR};
+    use std::arch::x86_64::*;
+
+    const ROWS: usize = 4;
+
+    /// # Safety
+    /// The CPU supports avx2; `a` readable for `s·12` words whose bytes are at most 127, `b`
+    /// for `s·NR`.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn tile_int8(
+        s: usize,
+        a: *const u32,
+        b: *const u32,
+        sums: &mut [i32; MR512 * NR],
+    ) {
+        // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores inside sums.
+        unsafe {
+            let ones = _mm256_set1_epi16(1);
+            for r0 in (0..MR512).step_by(ROWS) {
+                let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
+                for q in 0..s {
+                    let bq = b.add(q * NR) as *const __m256i;
+                    let (b0, b1) = (_mm256_loadu_si256(bq), _mm256_loadu_si256(bq.add(1)));
+                    let aq = a.add(q * MR512 + r0);
+                    for (i, v) in acc.iter_mut().enumerate() {
+                        let ai = _mm256_set1_epi32(*aq.add(i) as i32);
+                        let p0 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b0), ones);
+                        let p1 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b1), ones);
+                        v[0] = _mm256_add_epi32(v[0], p0);
+                        v[1] = _mm256_add_epi32(v[1], p1);
+                    }
+                }
+                for (i, v) in acc.iter().enumerate() {
+                    let out = sums.as_mut_ptr().add((r0 + i) * NR) as *mut __m256i;
+                    _mm256_storeu_si256(out, v[0]);
+                    _mm256_storeu_si256(out.add(1), v[1]);
+                }
             }
         }
     }
@@ -762,17 +866,19 @@ mod tests {
         }
     }
 
-    /// Int8: the VNNI tile and the portable one give the same integers, so the same bits, for
-    /// any thread count; the result is the exact integer dot product of the quantised values,
-    /// scaled, and within the quantisation error of the f32 result.
+    /// Int8 on every kernel the CPU runs (VNNI, AVX2, portable) and any thread count: the
+    /// result is the exact integer dot product of the values quantised by hand (weights in 127
+    /// levels, activations in the kernel's: 127, or 63 on AVX2), scaled, bit for bit; VNNI and
+    /// portable are the same bits; every result is within the quantisation error of f32.
     #[test]
     fn int8_is_exact_on_the_quantised_values_on_every_kernel() {
         if !has_int8_dot() {
-            eprintln!("AVX512_VNNI not supported by this CPU: only the portable int8 kernel ran");
+            eprintln!("AVX512_VNNI not supported by this CPU: the VNNI int8 tile did not run");
         }
+        let mut ran = std::collections::BTreeSet::new();
         for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
             let (x, w, b) = data(m, k, n, 200 + s as u64);
-            let want = run(
+            let portable = run(
                 Isa::Portable,
                 WeightType::Int8,
                 &x,
@@ -783,28 +889,6 @@ mod tests {
                 n,
                 Activation::None,
             );
-            for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
-                for threads in [1, 2, 3] {
-                    let got = in_pool(threads, || {
-                        run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None)
-                    });
-                    assert!(
-                        same_bits(&got, &want),
-                        "{m}x{k}x{n} {isa:?} {threads} threads"
-                    );
-                }
-            }
-            // Independent: quantise by hand (symmetric, max/127, round half away from zero).
-            let q = |v: &[f32]| {
-                let s = v.iter().fold(0.0f32, |a, x| a.max(x.abs())) / 127.0;
-                let inv = if s > 0.0 { 1.0 / s } else { 0.0 };
-                (
-                    s,
-                    v.iter()
-                        .map(|&x| (x * inv).round().clamp(-127.0, 127.0) as i64)
-                        .collect::<Vec<_>>(),
-                )
-            };
             let f32y = run(
                 Isa::Portable,
                 WeightType::F32,
@@ -816,32 +900,62 @@ mod tests {
                 n,
                 Activation::None,
             );
-            for i in 0..m {
-                let (sa, qa) = q(&x[i * k..(i + 1) * k]);
-                for j in 0..n {
-                    let (sw, qw) = q(&w[j * k..(j + 1) * k]);
-                    let dot: i64 = qa.iter().zip(&qw).map(|(a, b)| a * b).sum();
-                    let expect = (dot as f32).mul_add(sa * sw, b[j]);
-                    assert_eq!(
-                        want[i * n + j].to_bits(),
-                        expect.to_bits(),
-                        "{m}x{k}x{n} [{i},{j}]"
+            // Independent: quantise by hand (symmetric, max/levels, round half away from zero).
+            let q = |v: &[f32], levels: f32| {
+                let s = v.iter().fold(0.0f32, |a, x| a.max(x.abs())) / levels;
+                let inv = if s > 0.0 { 1.0 / s } else { 0.0 };
+                (
+                    s,
+                    v.iter()
+                        .map(|&x| (x * inv).round().clamp(-levels, levels) as i64)
+                        .collect::<Vec<_>>(),
+                )
+            };
+            for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+                let path = Int8Path::for_kernel(isa);
+                ran.insert(format!("{path:?}"));
+                let levels = path.levels() as f32;
+                let got = run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None);
+                for threads in [2, 3] {
+                    let again = in_pool(threads, || {
+                        run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None)
+                    });
+                    assert!(
+                        same_bits(&again, &got),
+                        "{m}x{k}x{n} {isa:?} {threads} threads"
                     );
-                    // Each value is off by at most half a step of its scale.
-                    let bound: f64 = (0..k)
-                        .map(|p| {
-                            (x[i * k + p].abs() as f64 * sw as f64
-                                + w[j * k + p].abs() as f64 * sa as f64)
-                                / 2.0
-                                + sa as f64 * sw as f64 / 4.0
-                        })
-                        .sum::<f64>()
-                        + 1e-5;
-                    let e = (want[i * n + j] as f64 - f32y[i * n + j] as f64).abs();
-                    assert!(e <= bound, "{m}x{k}x{n} [{i},{j}]: {e} > {bound}");
+                }
+                if path != Int8Path::Avx2 {
+                    assert!(same_bits(&got, &portable), "{m}x{k}x{n} {isa:?}");
+                }
+                for i in 0..m {
+                    let (sa, qa) = q(&x[i * k..(i + 1) * k], levels);
+                    for j in 0..n {
+                        let (sw, qw) = q(&w[j * k..(j + 1) * k], 127.0);
+                        let dot: i64 = qa.iter().zip(&qw).map(|(a, b)| a * b).sum();
+                        let expect = (dot as f32).mul_add(sa * sw, b[j]);
+                        assert_eq!(
+                            got[i * n + j].to_bits(),
+                            expect.to_bits(),
+                            "{m}x{k}x{n} {path:?} [{i},{j}]"
+                        );
+                        // Each value is off by at most half a step of its scale.
+                        let bound: f64 = (0..k)
+                            .map(|p| {
+                                (x[i * k + p].abs() as f64 * sw as f64
+                                    + w[j * k + p].abs() as f64 * sa as f64)
+                                    / 2.0
+                                    + sa as f64 * sw as f64 / 4.0
+                            })
+                            .sum::<f64>()
+                            + 1e-5;
+                        let e = (got[i * n + j] as f64 - f32y[i * n + j] as f64).abs();
+                        assert!(e <= bound, "{m}x{k}x{n} {path:?} [{i},{j}]: {e} > {bound}");
+                    }
                 }
             }
         }
+        eprintln!("int8 tiles run: {ran:?}");
     }
 
     /// Non-finite activations give non-finite outputs (the session's check then reports them)
