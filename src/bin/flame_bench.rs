@@ -2,7 +2,7 @@
 //! model file, and prints medians over several runs.
 //!
 //! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] [--threads 2]
-//!  [--runs 5] [--weights f32|f16|bf16]` also prints GFLOP/s of a step (linear layers and
+//!  [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]` also prints GFLOP/s of a step (linear layers and
 //! attention counted from the configuration) and the peak resident memory (VmHWM), and one
 //! `RESULT` line per frame count for tools/bench.sh. For a latent model (MoLA, MLD) the whole
 //! generation also decodes the final latent through the family's VAE decoder, and that decode is
@@ -321,7 +321,7 @@ fn main() {
     if path.is_empty() {
         eprintln!(
             "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
-             [--threads 2] [--runs 5] [--weights f32|f16|bf16]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
+             [--threads 2] [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
              flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]\n       \
              flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
              [--seconds 30] [--segment-seconds T]"
