@@ -114,9 +114,42 @@ fn bf16_pair(lo: f32, hi: f32) -> u32 {
     bf16::from_f32(lo).to_bits() as u32 | (bf16::from_f32(hi).to_bits() as u32) << 16
 }
 
-/// `round(v / s)` in −levels..=levels (`inv` = 1/s, 0 for an all-zero row).
+/// `v / s` rounded to the nearest integer (ties to even) in −levels..=levels (`inv` = 1/s, 0
+/// for an all-zero row).
 fn quantize(v: f32, inv: f32, levels: i32) -> i8 {
-    (v * inv).round().clamp(-levels as f32, levels as f32) as i8
+    (v * inv)
+        .round_ties_even()
+        .clamp(-levels as f32, levels as f32) as i8
+}
+
+/// Quantises one activation row into `bytes` (`4·s` of them: value + `levels + 1`, the zero
+/// point past the row's end) and returns its scale (NaN, and every byte the zero point, when a
+/// value is not finite). The AVX2 version computes the same bits.
+fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if Isa::Avx2.supported() {
+        // SAFETY: the CPU has avx2 and fma (checked just above).
+        return unsafe { avx2::quantize_row(row, levels, bytes) };
+    }
+    let scale = scale_of(row, levels);
+    finish_row(row, 0, scale, levels, bytes);
+    scale
+}
+
+/// Bytes `from..` of [`quantize_row`] for a row whose scale is known.
+fn finish_row(row: &[f32], from: usize, scale: f32, levels: i32, bytes: &mut [u8]) {
+    let zero = levels + 1;
+    if scale.is_nan() {
+        bytes.fill(zero as u8);
+        return;
+    }
+    let inv = inverse(scale);
+    for (j, b) in bytes.iter_mut().enumerate().skip(from) {
+        *b = match row.get(j) {
+            Some(&v) => (quantize(v, inv, levels) as i32 + zero) as u8,
+            None => zero as u8,
+        };
+    }
 }
 
 /// The symmetric scale of `v` (`max|v| / levels`), NaN when a value is not finite so that the
@@ -299,6 +332,7 @@ fn convert(
     scales.clear();
     scales.resize(tiles * MR512, 0.0);
     let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
+        let mut bytes = vec![0u8; if ty == WeightType::Int8 { 4 * s } else { 0 }];
         for i in 0..MR512.min(m - t * MR512) {
             let r = t * MR512 + i;
             let row = &x[r * k..(r + 1) * k];
@@ -310,26 +344,11 @@ fn convert(
                     }
                 }
                 _ => {
-                    let scale = scale_of(row, levels);
-                    tile_scales[i] = scale;
-                    let inv = inverse(scale);
-                    let zero = levels + 1;
-                    for q in 0..s {
-                        // Past k the weight is 0: the byte adds nothing; the zero point (a
-                        // zero value) keeps the column-sum correction exact.
-                        let byte = |j: usize| {
-                            if j < k {
-                                (quantize(row[j], inv, levels) as i32 + zero) as u8
-                            } else {
-                                zero as u8
-                            }
-                        };
-                        out[q * MR512 + i] = u32::from_le_bytes([
-                            byte(4 * q),
-                            byte(4 * q + 1),
-                            byte(4 * q + 2),
-                            byte(4 * q + 3),
-                        ]);
+                    // Past k the weight is 0: the byte adds nothing; the zero point (a zero
+                    // value) keeps the column-sum correction exact.
+                    tile_scales[i] = quantize_row(row, levels, &mut bytes);
+                    for (q, quad) in bytes.chunks_exact(4).enumerate() {
+                        out[q * MR512 + i] = u32::from_le_bytes(quad.try_into().unwrap());
                     }
                 }
             }
@@ -431,23 +450,25 @@ impl Job<'_> {
     ) {
         let rows = MR512.min(self.m - t * MR512);
         #[cfg(target_arch = "x86_64")]
-        if self.int8 == Int8Path::Vnni && self.s <= INT8_BLOCK {
+        if self.int8 != Int8Path::Portable && self.s <= INT8_BLOCK {
             // One block: the sums stay in 32 bits and the epilogue runs on the vectors.
             let (mut colsum, mut wscale, mut rscale) = ([0i32; NR], [0.0f32; NR], [0.0f32; MR512]);
-            colsum[..cols].copy_from_slice(&self.w.colsum[c0..c0 + cols]);
+            // The zero point's share of each sum, `(levels + 1)·Σ_k w` (exact in 32 bits).
+            let zero = self.int8.levels() + 1;
+            for (o, &c) in colsum[..cols].iter_mut().zip(&self.w.colsum[c0..c0 + cols]) {
+                *o = zero * c;
+            }
             wscale[..cols].copy_from_slice(&self.w.scales[c0..c0 + cols]);
             rscale[..rows].copy_from_slice(&self.row_scales[t * MR512..t * MR512 + rows]);
-            // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni; the slices
-            // hold s·12 and s·NR words.
+            let scales = (&colsum, &wscale, bias);
+            let (a, b) = (a.as_ptr(), b.as_ptr());
+            // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `Avx2`
+            // only when it has avx2 and fma; the slices hold s·12 and s·NR words.
             unsafe {
-                avx512::tile_int8_scaled(
-                    self.s,
-                    a.as_ptr(),
-                    b.as_ptr(),
-                    (&colsum, &wscale, bias),
-                    &rscale,
-                    tile,
-                )
+                match self.int8 {
+                    Int8Path::Vnni => avx512::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
+                    _ => avx2::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
+                }
             };
             return;
         }
@@ -588,9 +609,10 @@ mod avx512 {
         }
     }
 
-    /// [`tile_int8`] and the epilogue in one: output `(Σ − 128·colsum)·(s_a·s_w) + bias` per
-    /// row and column, the same operations (one rounding each, the last a fused multiply-add)
-    /// as the scalar epilogue, so the same bits.
+    /// [`tile_int8`] and the epilogue in one: output `(Σ − offset)·(s_a·s_w) + bias` per
+    /// row and column (`offset` = the zero point times the column's weight sum), the same
+    /// operations (one rounding each, the last a fused multiply-add) as the scalar epilogue,
+    /// so the same bits.
     ///
     /// # Safety
     /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`;
@@ -600,7 +622,7 @@ mod avx512 {
         s: usize,
         a: *const u32,
         b: *const u32,
-        (colsum, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
+        (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
         rscale: &[f32; MR512],
         tile: &mut [f32; MR512 * NR],
     ) {
@@ -608,10 +630,7 @@ mod avx512 {
         // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
         unsafe {
             tile_int8(s, a, b, &mut sums);
-            let offset = _mm512_mullo_epi32(
-                _mm512_loadu_si512(colsum.as_ptr() as *const _),
-                _mm512_set1_epi32(128),
-            );
+            let offset = _mm512_loadu_si512(offset.as_ptr() as *const _);
             let ws = _mm512_loadu_ps(wscale.as_ptr());
             let bv = _mm512_loadu_ps(bias.as_ptr());
             for (i, &sa) in rscale.iter().enumerate() {
@@ -664,6 +683,99 @@ mod avx2 {
     use std::arch::x86_64::*;
 
     const ROWS: usize = 4;
+
+    /// `super::quantize_row` on 8 values at a time: the same multiply, rounding (ties to even)
+    /// and clamp, so the same bytes.
+    ///
+    /// # Safety
+    /// The CPU supports avx2 and fma; `bytes` holds at least `row.len()` bytes.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
+        let k = row.len();
+        let main = k - k % 8;
+        assert!(bytes.len() >= k);
+        // SAFETY (whole body): loads stay inside row[..main], stores inside bytes[..main].
+        unsafe {
+            let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+            let inf = _mm256_set1_ps(f32::INFINITY);
+            let (mut top, mut bad) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+            for j in (0..main).step_by(8) {
+                let v = _mm256_and_ps(_mm256_loadu_ps(row.as_ptr().add(j)), abs);
+                top = _mm256_max_ps(top, v);
+                // Not below infinity: infinite or NaN.
+                bad = _mm256_or_ps(bad, _mm256_cmp_ps::<_CMP_NLT_UQ>(v, inf));
+            }
+            let mut lanes = [0.0f32; 8];
+            _mm256_storeu_ps(lanes.as_mut_ptr(), top);
+            let mut m = lanes.iter().fold(0.0f32, |a, &b| a.max(b));
+            let mut finite = _mm256_movemask_ps(bad) == 0;
+            for &v in &row[main..] {
+                finite &= v.is_finite();
+                m = m.max(v.abs());
+            }
+            let scale = if finite { m / levels as f32 } else { f32::NAN };
+            if finite {
+                let inv = _mm256_set1_ps(super::inverse(scale));
+                let (lo, hi) = (
+                    _mm256_set1_ps(-levels as f32),
+                    _mm256_set1_ps(levels as f32),
+                );
+                let zero = _mm256_set1_epi32(levels + 1);
+                let first_dwords = _mm256_setr_epi32(0, 4, 0, 0, 0, 0, 0, 0);
+                for j in (0..main).step_by(8) {
+                    let v = _mm256_mul_ps(_mm256_loadu_ps(row.as_ptr().add(j)), inv);
+                    let r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(v);
+                    let q = _mm256_add_epi32(
+                        _mm256_cvtps_epi32(_mm256_min_ps(_mm256_max_ps(r, lo), hi)),
+                        zero,
+                    );
+                    // i32 → u8 (values 1..=255, so no saturation), then the two 4-byte groups
+                    // of the 128-bit halves side by side.
+                    let w = _mm256_packus_epi16(_mm256_packs_epi32(q, q), _mm256_setzero_si256());
+                    let w = _mm256_permutevar8x32_epi32(w, first_dwords);
+                    _mm_storel_epi64(
+                        bytes.as_mut_ptr().add(j) as *mut __m128i,
+                        _mm256_castsi256_si128(w),
+                    );
+                }
+            }
+            super::finish_row(row, if finite { main } else { 0 }, scale, levels, bytes);
+            scale
+        }
+    }
+
+    /// [`tile_int8`] and the epilogue in one, as `avx512::tile_int8_scaled` (the same
+    /// operations, so the same bits as the scalar epilogue).
+    ///
+    /// # Safety
+    /// The CPU supports avx2 and fma; as [`tile_int8`]; `s` at most `INT8_BLOCK`.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn tile_int8_scaled(
+        s: usize,
+        a: *const u32,
+        b: *const u32,
+        (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
+        rscale: &[f32; MR512],
+        tile: &mut [f32; MR512 * NR],
+    ) {
+        let mut sums = [0i32; MR512 * NR];
+        // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
+        unsafe {
+            tile_int8(s, a, b, &mut sums);
+            for h in 0..2 {
+                let offset = _mm256_loadu_si256(offset.as_ptr().add(8 * h) as *const _);
+                let ws = _mm256_loadu_ps(wscale.as_ptr().add(8 * h));
+                let bv = _mm256_loadu_ps(bias.as_ptr().add(8 * h));
+                for (i, &sa) in rscale.iter().enumerate() {
+                    let at = i * NR + 8 * h;
+                    let acc = _mm256_loadu_si256(sums.as_ptr().add(at) as *const _);
+                    let exact = _mm256_cvtepi32_ps(_mm256_sub_epi32(acc, offset));
+                    let scale = _mm256_mul_ps(_mm256_set1_ps(sa), ws);
+                    _mm256_storeu_ps(tile.as_mut_ptr().add(at), _mm256_fmadd_ps(exact, scale, bv));
+                }
+            }
+        }
+    }
 
     /// # Safety
     /// The CPU supports avx2; `a` readable for `s·12` words whose bytes are at most 127, `b`
@@ -900,14 +1012,14 @@ mod tests {
                 n,
                 Activation::None,
             );
-            // Independent: quantise by hand (symmetric, max/levels, round half away from zero).
+            // Independent: quantise by hand (symmetric, max/levels, round half to even).
             let q = |v: &[f32], levels: f32| {
                 let s = v.iter().fold(0.0f32, |a, x| a.max(x.abs())) / levels;
                 let inv = if s > 0.0 { 1.0 / s } else { 0.0 };
                 (
                     s,
                     v.iter()
-                        .map(|&x| (x * inv).round().clamp(-levels, levels) as i64)
+                        .map(|&x| (x * inv).round_ties_even().clamp(-levels, levels) as i64)
                         .collect::<Vec<_>>(),
                 )
             };
@@ -956,6 +1068,51 @@ mod tests {
             }
         }
         eprintln!("int8 tiles run: {ran:?}");
+    }
+
+    /// The AVX2 activation quantiser gives the portable one's bytes and scale: every length
+    /// from 0 to 40 (vector body and tail), ties (values exactly half way after scaling), both
+    /// level counts, zero rows, and rows with a NaN or an infinity in the body or the tail.
+    #[test]
+    fn quantize_row_is_the_same_on_avx2_and_portable() {
+        if !Isa::Avx2.supported() {
+            eprintln!("AVX2 not supported by this CPU: only the portable quantiser ran");
+            return;
+        }
+        let mut rng = Rng::new(5);
+        for k in 0..=40usize {
+            for levels in [127, 63] {
+                for case in 0..5 {
+                    let mut row: Vec<f32> = (0..k).map(|_| rng.uniform() * 3.0).collect();
+                    match case {
+                        // max 2·levels: the values 2j + 1 halve to exact ties j + 0.5.
+                        1 if k > 0 => {
+                            for (j, v) in row.iter_mut().enumerate() {
+                                *v = ((2 * j + 1) % (2 * levels as usize)) as f32;
+                            }
+                            row[0] = 2.0 * levels as f32;
+                        }
+                        2 => row.iter_mut().for_each(|v| *v = 0.0),
+                        3 if k > 0 => row[k / 2] = f32::NAN,
+                        4 if k > 0 => row[k - 1] = f32::NEG_INFINITY,
+                        _ => {}
+                    }
+                    let n = 4 * k.div_ceil(4);
+                    let (mut want, mut got) = (vec![0u8; n], vec![0u8; n]);
+                    let scale = scale_of(&row, levels);
+                    finish_row(&row, 0, scale, levels, &mut want);
+                    // SAFETY: AVX2 and FMA checked above; `got` holds n >= k bytes.
+                    let got_scale = unsafe { avx2::quantize_row(&row, levels, &mut got) };
+                    assert_eq!(got_scale.to_bits(), scale.to_bits(), "k {k} case {case}");
+                    assert_eq!(got, want, "k {k} levels {levels} case {case}");
+                    if case == 1 && k > 2 {
+                        // 1.5 → 2 and 2.5 → 2: ties went to even.
+                        assert_eq!(want[1] as i32 - levels - 1, 2, "k {k}");
+                        assert_eq!(want[2] as i32 - levels - 1, 2, "k {k}");
+                    }
+                }
+            }
+        }
     }
 
     /// Non-finite activations give non-finite outputs (the session's check then reports them)
