@@ -14,6 +14,9 @@
 //! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
 //! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
 //!
+//! `flame-bench peak [--threads 2]`: each compute path's ceiling on this CPU (f32 FMA on 8 and
+//! 16 lanes, `vdpbf16ps`, `vpdpbusd`, AVX2's int8 step), from register-only loops.
+//!
 //! `flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]
 //!  [--guidance 2.5] [--sampler S]`: cancel latency. A worker thread runs one step while the
 //! main thread raises the session's cancel flag at a spread of fractions of the full step time;
@@ -51,6 +54,9 @@ use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFami
 use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 use flame::stream::{Segment, Stream, StreamParams};
+
+#[path = "flame_bench/peak.rs"]
+mod peak;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -313,6 +319,10 @@ fn main() {
         cancel_bench(&args);
         return;
     }
+    if args.first().map(String::as_str) == Some("peak") {
+        peak::peak_bench(arg(&args, "--threads", 2));
+        return;
+    }
     if args.first().map(String::as_str) == Some("stream") {
         stream_bench(&args);
         return;
@@ -322,6 +332,7 @@ fn main() {
         eprintln!(
             "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
              [--threads 2] [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
+             flame-bench peak [--threads 2]\n       \
              flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]\n       \
              flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
              [--seconds 30] [--segment-seconds T]"
