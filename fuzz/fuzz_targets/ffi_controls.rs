@@ -391,38 +391,19 @@ fn stream(input: &mut Input, m: &Model, texts: &Texts) {
                 };
                 let (layout, convention, flags) =
                     (input.i32() % 8, input.i32() % 5, input.u8() as u32 % 4);
-                let mut needed = 0usize;
-                if ok(unsafe {
+                let read = |out: *mut f32, len: usize, out_len: &mut usize| unsafe {
                     flame_stream_read(
-                        s,
-                        first,
-                        count,
-                        layout,
-                        convention,
-                        flags,
-                        ptr::null_mut(),
-                        0,
-                        &mut needed,
+                        s, first, count, layout, convention, flags, out, len, out_len,
                     )
-                }) {
+                };
+                let mut needed = 0usize;
+                if ok(read(ptr::null_mut(), 0, &mut needed)) {
                     let len = (needed + input.u8() as usize % 3)
                         .saturating_sub(1)
                         .min(1 << 20);
                     let mut out = vec![0f32; len];
                     let mut written = usize::MAX;
-                    if ok(unsafe {
-                        flame_stream_read(
-                            s,
-                            first,
-                            count,
-                            layout,
-                            convention,
-                            flags,
-                            out.as_mut_ptr(),
-                            len,
-                            &mut written,
-                        )
-                    }) {
+                    if ok(read(out.as_mut_ptr(), len, &mut written)) {
                         assert_eq!(written, needed);
                     }
                 }
