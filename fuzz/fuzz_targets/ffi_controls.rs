@@ -285,6 +285,19 @@ fn gltf(input: &mut Input, session: *mut FlameSession, texts: &Texts) {
     }
 }
 
+/// A status struct for the library to fill, with a fuzzed `struct_size` and a nonzero `steps`
+/// (which `flame_stream_status` must set to 0).
+fn status_out(input: &mut Input) -> FlameStreamStatus {
+    FlameStreamStatus {
+        struct_size: struct_size::<FlameStreamStatus>(input),
+        steps: 1,
+        ready: 0,
+        first_frame: 0,
+        playhead: 0,
+        starving: 0,
+    }
+}
+
 fn stream(input: &mut Input, m: &Model, texts: &Texts) {
     let declared = struct_size::<FlameStreamParams>(input);
     let mut p = Declared::new::<FlameStreamParams>(declared);
@@ -349,14 +362,7 @@ fn stream(input: &mut Input, m: &Model, texts: &Texts) {
                 ok(unsafe { flame_stream_set_playhead(s, frame) });
             }
             5 if pumpable => {
-                let mut status = FlameStreamStatus {
-                    struct_size: struct_size::<FlameStreamStatus>(input),
-                    steps: 0,
-                    ready: 0,
-                    first_frame: 0,
-                    playhead: 0,
-                    starving: 0,
-                };
+                let mut status = status_out(input);
                 let sp = if op & 16 != 0 {
                     ptr::null_mut()
                 } else {
@@ -368,14 +374,7 @@ fn stream(input: &mut Input, m: &Model, texts: &Texts) {
                 }
             }
             6 => {
-                let mut status = FlameStreamStatus {
-                    struct_size: struct_size::<FlameStreamStatus>(input),
-                    steps: 1,
-                    ready: 0,
-                    first_frame: 0,
-                    playhead: 0,
-                    starving: 0,
-                };
+                let mut status = status_out(input);
                 if ok(unsafe { flame_stream_status(s, &mut status) }) {
                     assert_eq!(status.steps, 0);
                 }
