@@ -114,6 +114,25 @@ fn bf16_pair(lo: f32, hi: f32) -> u32 {
     bf16::from_f32(lo).to_bits() as u32 | (bf16::from_f32(hi).to_bits() as u32) << 16
 }
 
+/// Rounds one activation row to bf16 bits in `bits` (`2·s` of them, zero past the row's end),
+/// as `half`'s `bf16::from_f32` does (nearest even; NaN kept quiet); the AVX2 version computes
+/// the same bits.
+fn bf16_row(row: &[f32], bits: &mut [u16]) {
+    #[cfg(target_arch = "x86_64")]
+    if Isa::Avx2.supported() {
+        // SAFETY: the CPU has avx2 (checked just above).
+        return unsafe { avx2::bf16_row(row, bits) };
+    }
+    finish_bf16_row(row, 0, bits);
+}
+
+/// Bits `from..` of [`bf16_row`].
+fn finish_bf16_row(row: &[f32], from: usize, bits: &mut [u16]) {
+    for (j, b) in bits.iter_mut().enumerate().skip(from) {
+        *b = row.get(j).map_or(0, |&v| bf16::from_f32(v).to_bits());
+    }
+}
+
 /// `v / s` rounded to the nearest integer (ties to even) in −levels..=levels (`inv` = 1/s, 0
 /// for an all-zero row).
 fn quantize(v: f32, inv: f32, levels: i32) -> i8 {
@@ -333,14 +352,22 @@ fn convert(
     scales.resize(tiles * MR512, 0.0);
     let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
         let mut bytes = vec![0u8; if ty == WeightType::Int8 { 4 * s } else { 0 }];
+        let mut bits = vec![
+            0u16;
+            if ty == WeightType::Bf16Compute {
+                2 * s
+            } else {
+                0
+            }
+        ];
         for i in 0..MR512.min(m - t * MR512) {
             let r = t * MR512 + i;
             let row = &x[r * k..(r + 1) * k];
-            let at = |j: usize| row.get(j).copied().unwrap_or(0.0);
             match ty {
                 WeightType::Bf16Compute => {
-                    for q in 0..s {
-                        out[q * MR512 + i] = bf16_pair(at(2 * q), at(2 * q + 1));
+                    bf16_row(row, &mut bits);
+                    for (q, pair) in bits.chunks_exact(2).enumerate() {
+                        out[q * MR512 + i] = pair[0] as u32 | (pair[1] as u32) << 16;
                     }
                 }
                 _ => {
@@ -724,6 +751,46 @@ mod avx2 {
     use std::arch::x86_64::*;
 
     const ROWS: usize = 4;
+
+    /// `super::bf16_row` on 8 values at a time, in integer arithmetic: `(x + 0x7fff + bit16)
+    /// >> 16` is round to nearest even on the bits (a carry moves into the exponent as it
+    /// should), NaN keeps its top bits with the quiet bit set.
+    ///
+    /// # Safety
+    /// The CPU supports avx2; `bits` holds at least `row.len()` values.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn bf16_row(row: &[f32], bits: &mut [u16]) {
+        let k = row.len();
+        let main = k - k % 8;
+        assert!(bits.len() >= k);
+        // SAFETY (whole body): loads stay inside row[..main], stores inside bits[..main].
+        unsafe {
+            let abs = _mm256_set1_epi32(0x7fff_ffff);
+            let inf = _mm256_set1_epi32(0x7f80_0000);
+            let (half, one, quiet) = (
+                _mm256_set1_epi32(0x7fff),
+                _mm256_set1_epi32(1),
+                _mm256_set1_epi32(0x40),
+            );
+            for j in (0..main).step_by(8) {
+                let x = _mm256_loadu_si256(row.as_ptr().add(j) as *const __m256i);
+                let nan = _mm256_cmpgt_epi32(_mm256_and_si256(x, abs), inf);
+                let top = _mm256_srli_epi32::<16>(x);
+                let odd = _mm256_and_si256(top, one);
+                let rounded =
+                    _mm256_srli_epi32::<16>(_mm256_add_epi32(_mm256_add_epi32(x, half), odd));
+                let v = _mm256_blendv_epi8(rounded, _mm256_or_si256(top, quiet), nan);
+                // Eight values ≤ 0xffff to 16 bits: each 128-bit half packs its four, then
+                // the two quads side by side.
+                let p = _mm256_permute4x64_epi64::<0b1000>(_mm256_packus_epi32(v, v));
+                _mm_storeu_si128(
+                    bits.as_mut_ptr().add(j) as *mut __m128i,
+                    _mm256_castsi256_si128(p),
+                );
+            }
+        }
+        super::finish_bf16_row(row, main, bits);
+    }
 
     /// `super::quantize_row` on 8 values at a time: the same multiply, rounding (ties to even)
     /// and clamp, so the same bytes.
@@ -1154,6 +1221,60 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The AVX2 bf16 rounding gives `half`'s bits: every length 0 to 40, ties (both
+    /// directions), carries into the exponent and to infinity, subnormals, infinities, and
+    /// NaNs of both signs with and without the quiet bit, plus random bit patterns.
+    #[test]
+    fn bf16_row_is_the_same_on_avx2_and_half() {
+        if !Isa::Avx2.supported() {
+            eprintln!("AVX2 not supported by this CPU: only the portable bf16 rounding ran");
+            return;
+        }
+        let special: [u32; 14] = [
+            0x3f80_8000, // tie, even below: stays
+            0x3f81_8000, // tie, odd below: rounds up
+            0x3f80_8001,
+            0x3f80_7fff,
+            0x7f7f_ffff, // rounds up to infinity
+            0xff7f_8000,
+            0x0000_0001, // subnormal
+            0x807f_ffff,
+            0x7f80_0000,
+            0xff80_0000,
+            0x7f80_0001, // signalling NaN: quieted
+            0xffc0_0000,
+            0x7fff_ffff,
+            0x0000_0000,
+        ];
+        let mut rng = Rng::new(17);
+        for k in 0..=40usize {
+            for round in 0..20 {
+                let row: Vec<f32> = (0..k)
+                    .map(|j| {
+                        let r = (rng.uniform() * 4.0e9) as u32 ^ (j as u32).wrapping_mul(0x9e37);
+                        f32::from_bits(if round % 2 == 0 {
+                            special[(j + round) % 14]
+                        } else {
+                            r
+                        })
+                    })
+                    .collect();
+                let n = 2 * k.div_ceil(2);
+                let (mut want, mut got) = (vec![0u16; n], vec![7u16; n]);
+                finish_bf16_row(&row, 0, &mut want);
+                // SAFETY: AVX2 checked above; `got` holds n >= k values.
+                unsafe { avx2::bf16_row(&row, &mut got) };
+                assert_eq!(got, want, "k {k} round {round}");
+            }
+        }
+        // The two ties went to even, the carry reached infinity.
+        let b = |x: u32| bf16::from_f32(f32::from_bits(x)).to_bits();
+        assert_eq!(
+            (b(0x3f80_8000), b(0x3f81_8000), b(0x7f7f_ffff)),
+            (0x3f80, 0x3f82, 0x7f80)
+        );
     }
 
     /// Non-finite activations give non-finite outputs (the session's check then reports them)
