@@ -752,9 +752,9 @@ mod avx2 {
 
     const ROWS: usize = 4;
 
-    /// `super::bf16_row` on 8 values at a time, in integer arithmetic: `(x + 0x7fff + bit16)
-    /// >> 16` is round to nearest even on the bits (a carry moves into the exponent as it
-    /// should), NaN keeps its top bits with the quiet bit set.
+    /// `super::bf16_row` on 8 values at a time, in integer arithmetic: shifting
+    /// `x + 0x7fff + bit16` right by 16 is round to nearest even on the bits (a carry moves
+    /// into the exponent as it should), NaN keeps its top bits with the quiet bit set.
     ///
     /// # Safety
     /// The CPU supports avx2; `bits` holds at least `row.len()` values.
