@@ -274,6 +274,8 @@ fn per_word(ty: WeightType) -> usize {
 thread_local! {
     /// Each calling thread's converted activations (words) and row scales, reused across calls.
     static ACTS: std::cell::RefCell<(Vec<u32>, Vec<f32>)> = Default::default();
+    /// Each converting thread's one row of converted activations, reused across calls.
+    static ROW: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// `y = act(x · Wᵀ + bias)` for a reduced-precision `w` on kernel `isa` (the portable
@@ -351,35 +353,33 @@ fn convert(
     scales.clear();
     scales.resize(tiles * MR512, 0.0);
     let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
-        let mut bytes = vec![0u8; if ty == WeightType::Int8 { 4 * s } else { 0 }];
-        let mut bits = vec![
-            0u16;
-            if ty == WeightType::Bf16Compute {
-                2 * s
-            } else {
-                0
-            }
-        ];
-        for i in 0..MR512.min(m - t * MR512) {
-            let r = t * MR512 + i;
-            let row = &x[r * k..(r + 1) * k];
-            match ty {
-                WeightType::Bf16Compute => {
-                    bf16_row(row, &mut bits);
-                    for (q, pair) in bits.chunks_exact(2).enumerate() {
-                        out[q * MR512 + i] = pair[0] as u32 | (pair[1] as u32) << 16;
-                    }
-                }
-                _ => {
+        ROW.with_borrow_mut(|row_words| {
+            // One row converted in place: 4·s bytes (int8) or 2·s bf16 values, read back as
+            // the row's s little-endian words.
+            row_words.clear();
+            row_words.resize(s, 0);
+            for i in 0..MR512.min(m - t * MR512) {
+                let r = t * MR512 + i;
+                let row = &x[r * k..(r + 1) * k];
+                let p = row_words.as_mut_ptr();
+                // SAFETY: the s words are 4·s initialised bytes, aligned for u8 and u16; each
+                // view lives only for its call.
+                match ty {
+                    WeightType::Bf16Compute => bf16_row(row, unsafe {
+                        std::slice::from_raw_parts_mut(p as *mut u16, 2 * s)
+                    }),
                     // Past k the weight is 0: the byte adds nothing; the zero point (a zero
                     // value) keeps the column-sum correction exact.
-                    tile_scales[i] = quantize_row(row, levels, &mut bytes);
-                    for (q, quad) in bytes.chunks_exact(4).enumerate() {
-                        out[q * MR512 + i] = u32::from_le_bytes(quad.try_into().unwrap());
+                    _ => {
+                        let bytes = unsafe { std::slice::from_raw_parts_mut(p as *mut u8, 4 * s) };
+                        tile_scales[i] = quantize_row(row, levels, bytes)
                     }
                 }
+                for (q, &w) in row_words.iter().enumerate() {
+                    out[q * MR512 + i] = u32::from_le(w);
+                }
             }
-        }
+        })
     };
     if s == 0 {
         return;
