@@ -1072,7 +1072,26 @@ impl FinemogenDenoiser {
                 stages.len()
             ));
         }
-        let mut xf = Vec::new();
+        let mut xf: Vec<Vec<f32>> = Vec::new();
+        // A text repeated across stages is encoded once and copied: the encoder is
+        // deterministic, so the sequences (and the MoE batch below) are the same as encoding it
+        // again.
+        let mut encoded: Vec<(&str, usize)> = Vec::new();
+        fn push<'a>(
+            t: &'a str,
+            encoded: &mut Vec<(&'a str, usize)>,
+            xf: &mut Vec<Vec<f32>>,
+            encode: impl FnOnce(&str) -> Result<Vec<f32>>,
+        ) -> Result<()> {
+            let seq = match encoded.iter().find(|(e, _)| *e == t) {
+                Some(&(_, j)) => xf[j].clone(),
+                None => encode(t)?,
+            };
+            encoded.push((t, xf.len()));
+            xf.push(seq);
+            Ok(())
+        }
+        let encode = |t: &str| self.encode_text(text, t);
         let mut out = Vec::with_capacity(stages.len());
         for (i, s) in stages.iter().enumerate() {
             if s.frames == 0 || s.frames > c.max_seq_len {
@@ -1087,7 +1106,7 @@ impl FinemogenDenoiser {
             }
             let mut texts: Vec<&str> = vec![&s.text];
             let first = xf.len();
-            xf.push(self.encode_text(text, &s.text)?);
+            push(&s.text, &mut encoded, &mut xf, encode)?;
             let mut heads = [first; GROUPS];
             for (h, part) in s.parts.iter().enumerate() {
                 let Some(p) = part.as_deref().filter(|p| !p.trim().is_empty()) else {
@@ -1097,7 +1116,7 @@ impl FinemogenDenoiser {
                     Some(j) => first + j,
                     None => {
                         texts.push(p);
-                        xf.push(self.encode_text(text, p)?);
+                        push(p, &mut encoded, &mut xf, encode)?;
                         xf.len() - 1
                     }
                 };
