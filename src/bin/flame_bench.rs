@@ -14,6 +14,9 @@
 //! `flame-bench gemm [--threads 2] [--weights f32]`: GFLOP/s of the packed linear kernel and the
 //! matrixmultiply path on FLAME-base's shapes and a square problem (the machine's practical peak).
 //!
+//! `flame-bench attention [--threads 2] [--runs 7]`: GFLOP/s of multi-head attention on
+//! FLAME-base's and MDM's shapes.
+//!
 //! `flame-bench peak [--threads 2]`: each compute path's ceiling on this CPU (f32 FMA on 8 and
 //! 16 lanes, `vdpbf16ps`, `vpdpbusd`, AVX2's int8 step), from register-only loops.
 //!
@@ -55,6 +58,8 @@ use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 use flame::stream::{Segment, Stream, StreamParams};
 
+#[path = "flame_bench/attention.rs"]
+mod attention;
 #[path = "flame_bench/peak.rs"]
 mod peak;
 
@@ -317,6 +322,10 @@ fn main() {
     }
     if args.first().map(String::as_str) == Some("cancel") {
         cancel_bench(&args);
+        return;
+    }
+    if args.first().map(String::as_str) == Some("attention") {
+        attention::attention_bench(arg(&args, "--threads", 2), arg(&args, "--runs", 7));
         return;
     }
     if args.first().map(String::as_str) == Some("peak") {

@@ -5,6 +5,8 @@
 
 use rayon::prelude::*;
 
+use super::packed::Isa;
+
 /// Buffers shorter than this run on the calling thread: a fork/join costs a few µs.
 const PAR_MIN_LEN: usize = 1 << 15;
 /// Elements per parallel task.
@@ -114,8 +116,43 @@ pub fn softmax_rows(x: &mut [f32], n: usize) {
 
 /// Softmax of one row in place, max-subtracted so large scores cannot overflow. Returns false
 /// (and zeros the row) when every entry is `-inf`.
+///
+/// With AVX2 (or AVX-512) the same arithmetic runs 8 (16) lanes wide instead of SSE2's 4: no
+/// FMA is used, the maximum is exact in any order and the sum's lanes are fixed, so every path
+/// gives the same bits.
 pub(crate) fn softmax_row(row: &mut [f32]) -> bool {
-    let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    softmax_row_on(super::packed::detected_isa(), row)
+}
+
+/// [`softmax_row`] on the given kernel path (one the CPU runs).
+pub(crate) fn softmax_row_on(isa: Isa, row: &mut [f32]) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    match isa {
+        // SAFETY: the CPU has AVX-512F (the caller's path is one it runs).
+        Isa::Avx512 => return unsafe { softmax_row_avx512(row) },
+        // SAFETY: the CPU has AVX2 (likewise).
+        Isa::Avx2 => return unsafe { softmax_row_avx2(row) },
+        Isa::Portable => {}
+    }
+    let _ = isa;
+    softmax_row_any(row)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+unsafe fn softmax_row_avx512(row: &mut [f32]) -> bool {
+    softmax_row_any(row)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn softmax_row_avx2(row: &mut [f32]) -> bool {
+    softmax_row_any(row)
+}
+
+#[inline(always)]
+fn softmax_row_any(row: &mut [f32]) -> bool {
+    let max = max_lanes(row);
     if max == f32::NEG_INFINITY {
         row.fill(0.0);
         return false;
@@ -127,8 +164,27 @@ pub(crate) fn softmax_row(row: &mut [f32]) -> bool {
     true
 }
 
+/// The largest non-NaN entry (`-inf` if none), over sixteen lanes: the maximum is exact, so
+/// the lanes only let the compiler vectorise (a left-to-right `f32::max` fold is scalar).
+#[inline(always)]
+fn max_lanes(x: &[f32]) -> f32 {
+    let mut acc = [f32::NEG_INFINITY; 16];
+    let chunks = x.chunks_exact(16);
+    let tail = chunks
+        .remainder()
+        .iter()
+        .fold(f32::NEG_INFINITY, |m, &v| if v > m { v } else { m });
+    for c in chunks {
+        for (a, &v) in acc.iter_mut().zip(c) {
+            *a = if v > *a { v } else { *a };
+        }
+    }
+    acc.iter().fold(tail, |m, &v| if v > m { v } else { m })
+}
+
 /// Sum over eight independent lanes: a fixed order (so still deterministic) that the compiler
 /// can vectorise, unlike a strict left-to-right f32 sum.
+#[inline(always)]
 fn sum_lanes(x: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     let chunks = x.chunks_exact(8);
@@ -221,7 +277,41 @@ pub(crate) fn erf(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{in_pool, same_bits, Rng};
+    use crate::kernels::testutil::{in_pool, isas, same_bits, Rng};
+
+    #[test]
+    fn softmax_gives_the_same_bits_on_every_kernel_path() {
+        let mut rng = Rng::new(21);
+        for n in [1, 2, 7, 15, 16, 17, 33, 80, 199, 256] {
+            let mut row: Vec<f32> = rng.vec(n).iter().map(|x| x * 12.0).collect();
+            // Masked entries, and a NaN-free row whose maximum sits in the tail.
+            if n > 3 {
+                row[1] = f32::NEG_INFINITY;
+                row[n - 1] = 20.0;
+            }
+            let mut want = row.clone();
+            assert!(softmax_row_any(&mut want));
+            for isa in isas() {
+                let mut got = row.clone();
+                assert!(softmax_row_on(isa, &mut got));
+                assert!(same_bits(&got, &want), "{isa:?} n={n}");
+            }
+            // Every entry masked: zeros and `false` on every path.
+            for isa in isas() {
+                let mut dead = vec![f32::NEG_INFINITY; n];
+                assert!(!softmax_row_on(isa, &mut dead));
+                assert!(dead.iter().all(|&x| x == 0.0), "{isa:?}");
+            }
+        }
+        // An independent check of the values: e^x / Σ e^x in f64.
+        let row = [0.5f32, -1.0, 3.0, 2.25, -7.0];
+        let mut got = row;
+        softmax_row(&mut got);
+        let sum: f64 = row.iter().map(|&x| (x as f64).exp()).sum();
+        for (g, &x) in got.iter().zip(&row) {
+            assert!((*g as f64 - (x as f64).exp() / sum).abs() < 1e-7, "{g}");
+        }
+    }
 
     /// Slow reference erf good to ~1e-14: Maclaurin series below 2.5, erfc continued fraction
     /// above.

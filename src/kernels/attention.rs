@@ -297,10 +297,16 @@ fn scores_qk(
     assert!(scores.len() >= rows * kp);
     assert!(rows == 0 || q.len() >= (rows - 1) * qs + hd);
     #[cfg(target_arch = "x86_64")]
-    if isa.has_avx2() {
+    match isa {
+        // SAFETY: the CPU has AVX-512F (detected); bounds asserted above.
+        Isa::Avx512 => {
+            return unsafe { avx512::scores_qk(q, qs, kt, kts, kp, rows, hd, scale, scores) }
+        }
         // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
-        unsafe { avx2::scores_qk(q, qs, kt, kts, kp, rows, hd, scale, scores) };
-        return;
+        Isa::Avx2 => {
+            return unsafe { avx2::scores_qk(q, qs, kt, kts, kp, rows, hd, scale, scores) }
+        }
+        Isa::Portable => {}
     }
     let _ = isa;
     for r in 0..rows {
@@ -337,10 +343,16 @@ fn weighted_values(
     assert!(keys == 0 || v.len() >= (keys - 1) * vs + hd);
     assert!(rows == 0 || out.len() >= (rows - 1) * os + hd);
     #[cfg(target_arch = "x86_64")]
-    if isa.has_avx2() {
+    match isa {
+        // SAFETY: the CPU has AVX-512F (detected); bounds asserted above.
+        Isa::Avx512 => {
+            return unsafe { avx512::weighted_values(p, kp, v, vs, rows, keys, hd, out, os) }
+        }
         // SAFETY: the CPU has AVX2 and FMA (detected); bounds asserted above.
-        unsafe { avx2::weighted_values(p, kp, v, vs, rows, keys, hd, out, os) };
-        return;
+        Isa::Avx2 => {
+            return unsafe { avx2::weighted_values(p, kp, v, vs, rows, keys, hd, out, os) }
+        }
+        Isa::Portable => {}
     }
     let _ = isa;
     for r in 0..rows {
@@ -512,10 +524,246 @@ mod avx2 {
     }
 }
 
+/// The AVX-512 tiles: the same sums in the same order (one FMA per term, from zero) as the
+/// AVX2 ones, so the two paths give the same bits; wider tiles need fewer loads per FMA.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    use super::KT;
+
+    /// Query rows per `q·kᵀ` tile (two 16-key vectors per row: 16 accumulators).
+    const QR: usize = 8;
+    /// Query rows per `p·v` tile (up to four 16-column vectors per row: 24 accumulators).
+    const PR: usize = 6;
+
+    /// See [`super::scores_qk`]; tiles of up to 8 rows × 32 keys (16 on the last odd tile).
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn scores_qk(
+        q: &[f32],
+        qs: usize,
+        kt: &[f32],
+        kts: usize,
+        kp: usize,
+        rows: usize,
+        hd: usize,
+        scale: f32,
+        scores: &mut [f32],
+    ) {
+        let mut r = 0;
+        while r < rows {
+            let n = QR.min(rows - r);
+            let mut j = 0;
+            while j < kp {
+                let two = j + 2 * KT <= kp;
+                macro_rules! tile {
+                    ($($n:literal)*) => {
+                        match (n, two) {
+                            $(($n, true) => qk_tile::<$n, 2>(q, qs, kt, kts, kp, r, j, hd, scale, scores),
+                              ($n, false) => qk_tile::<$n, 1>(q, qs, kt, kts, kp, r, j, hd, scale, scores),)*
+                            _ => unreachable!(),
+                        }
+                    };
+                }
+                tile!(1 2 3 4 5 6 7 8);
+                j += if two { 2 * KT } else { KT };
+            }
+            r += n;
+        }
+    }
+
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    unsafe fn qk_tile<const R: usize, const V: usize>(
+        q: &[f32],
+        qs: usize,
+        kt: &[f32],
+        kts: usize,
+        kp: usize,
+        r0: usize,
+        j: usize,
+        hd: usize,
+        scale: f32,
+        scores: &mut [f32],
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); V]; R];
+        let (qp, kp_ptr) = (q.as_ptr(), kt.as_ptr());
+        for c in 0..hd {
+            let b = kp_ptr.add(c * kts + j);
+            let mut bv = [_mm512_setzero_ps(); V];
+            for (v, x) in bv.iter_mut().enumerate() {
+                *x = _mm512_loadu_ps(b.add(16 * v));
+            }
+            for (i, a) in acc.iter_mut().enumerate() {
+                let x = _mm512_set1_ps(*qp.add((r0 + i) * qs + c));
+                for v in 0..V {
+                    a[v] = _mm512_fmadd_ps(x, bv[v], a[v]);
+                }
+            }
+        }
+        let s = _mm512_set1_ps(scale);
+        for (i, a) in acc.iter().enumerate() {
+            let dst = scores.as_mut_ptr().add((r0 + i) * kp + j);
+            for (v, x) in a.iter().enumerate() {
+                _mm512_storeu_ps(dst.add(16 * v), _mm512_mul_ps(*x, s));
+            }
+        }
+    }
+
+    /// See [`super::weighted_values`]; tiles of up to 6 rows × 64 columns, the last vector of
+    /// a row masked when `hd` is not a multiple of 16.
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn weighted_values(
+        p: &[f32],
+        kp: usize,
+        v: &[f32],
+        vs: usize,
+        rows: usize,
+        keys: usize,
+        hd: usize,
+        out: &mut [f32],
+        os: usize,
+    ) {
+        let mut r = 0;
+        while r < rows {
+            let n = PR.min(rows - r);
+            let mut c = 0;
+            while c < hd {
+                let cols = (hd - c).min(64);
+                let vecs = cols.div_ceil(16);
+                // Lanes of the last vector that are columns (all 16 unless `hd % 16` cuts it).
+                let last: __mmask16 = ((1u32 << (cols - 16 * (vecs - 1))) - 1) as u16;
+                macro_rules! tile {
+                    ($($n:literal)*) => {
+                        match (n, vecs) {
+                            $(($n, 4) => pv_tile::<$n, 4>(p, kp, v, vs, r, keys, c, last, out, os),
+                              ($n, 3) => pv_tile::<$n, 3>(p, kp, v, vs, r, keys, c, last, out, os),
+                              ($n, 2) => pv_tile::<$n, 2>(p, kp, v, vs, r, keys, c, last, out, os),
+                              ($n, _) => pv_tile::<$n, 1>(p, kp, v, vs, r, keys, c, last, out, os),)*
+                            _ => unreachable!(),
+                        }
+                    };
+                }
+                tile!(1 2 3 4 5 6);
+                c += cols;
+            }
+            r += n;
+        }
+    }
+
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    unsafe fn pv_tile<const R: usize, const V: usize>(
+        p: &[f32],
+        kp: usize,
+        v: &[f32],
+        vs: usize,
+        r0: usize,
+        keys: usize,
+        c0: usize,
+        last: __mmask16,
+        out: &mut [f32],
+        os: usize,
+    ) {
+        let (pp, vp, op) = (p.as_ptr(), v.as_ptr(), out.as_mut_ptr());
+        let mut acc = [[_mm512_setzero_ps(); V]; R];
+        for j in 0..keys {
+            let b = vp.add(j * vs + c0);
+            let mut bv = [_mm512_setzero_ps(); V];
+            for (k, x) in bv.iter_mut().enumerate() {
+                // The masked lanes past `hd` read nothing (masked loads do not fault).
+                let m = if k + 1 == V { last } else { 0xffff };
+                *x = _mm512_maskz_loadu_ps(m, b.add(16 * k));
+            }
+            for (i, a) in acc.iter_mut().enumerate() {
+                let x = _mm512_set1_ps(*pp.add((r0 + i) * kp + j));
+                for k in 0..V {
+                    a[k] = _mm512_fmadd_ps(x, bv[k], a[k]);
+                }
+            }
+        }
+        for (i, a) in acc.iter().enumerate() {
+            let dst = op.add((r0 + i) * os + c0);
+            for (k, x) in a.iter().enumerate() {
+                let m = if k + 1 == V { last } else { 0xffff };
+                _mm512_mask_storeu_ps(dst.add(16 * k), m, *x);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{in_pool, same_bits, Rng};
+    use crate::kernels::testutil::{in_pool, isas, same_bits, Rng};
+
+    /// Both products on every kernel path the CPU runs, at tile edges of each path (rows around
+    /// 4, 6 and 8, keys at one and two 16-key vectors, head widths around 8, 16 and 64): the
+    /// AVX2 and AVX-512 tiles give the same bits (one FMA per term, in order, from zero); all
+    /// are within rounding of f64 sums.
+    #[test]
+    fn products_agree_on_every_kernel_path() {
+        let mut rng = Rng::new(16);
+        let paths = isas();
+        for (rows, keys, hd) in [
+            (1usize, 1usize, 1usize),
+            (5, 16, 8),
+            (7, 17, 16),
+            (9, 33, 17),
+            (13, 48, 64),
+            (32, 80, 96),
+            (14, 31, 100),
+            (6, 64, 128),
+            (3, 5, 130),
+        ] {
+            let kp = keys.div_ceil(KT) * KT;
+            let (qs, vs, os) = (hd + 3, hd + 5, hd + 2);
+            let q = rng.vec(rows * qs);
+            let mut kt = rng.vec(hd * kp);
+            for c in 0..hd {
+                kt[c * kp + keys..(c + 1) * kp].fill(0.0);
+            }
+            let v = rng.vec(keys * vs);
+            let p: Vec<f32> = rng.vec(rows * kp).iter().map(|x| x.abs()).collect();
+            let mut results = Vec::new();
+            for &isa in &paths {
+                let mut scores = vec![f32::NAN; rows * kp];
+                scores_qk(isa, &q, qs, &kt, kp, kp, rows, hd, 0.3, &mut scores);
+                let mut out = vec![f32::NAN; rows * os];
+                weighted_values(isa, &p, kp, &v, vs, rows, keys, hd, &mut out, os);
+                for r in 0..rows {
+                    for j in 0..keys {
+                        let want: f64 = (0..hd)
+                            .map(|c| q[r * qs + c] as f64 * kt[c * kp + j] as f64)
+                            .sum::<f64>()
+                            * 0.3;
+                        let got = scores[r * kp + j] as f64;
+                        assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "{isa:?} qk");
+                    }
+                    for c in 0..hd {
+                        let want: f64 = (0..keys)
+                            .map(|j| p[r * kp + j] as f64 * v[j * vs + c] as f64)
+                            .sum();
+                        let got = out[r * os + c] as f64;
+                        assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "{isa:?} pv");
+                    }
+                    // Columns between rows' outputs are not written.
+                    assert!(out[r * os + hd..(r + 1) * os].iter().all(|x| x.is_nan()));
+                }
+                results.push((isa, scores, out));
+            }
+            let simd: Vec<_> = results.iter().filter(|(i, ..)| i.has_avx2()).collect();
+            for w in simd.windows(2) {
+                let what = format!("{:?} vs {:?}, {rows}x{keys}x{hd}", w[0].0, w[1].0);
+                assert!(same_bits(&w[0].1, &w[1].1), "scores {what}");
+                assert!(same_bits(&w[0].2, &w[1].2), "values {what}");
+            }
+        }
+    }
 
     /// Naive f64 attention; returns `[lq, heads*head_dim]`.
     #[allow(clippy::too_many_arguments)]

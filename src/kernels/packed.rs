@@ -1176,7 +1176,7 @@ impl PackedLinear {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernels::testutil::{in_pool, same_bits, Rng};
+    use crate::kernels::testutil::{in_pool, isas, same_bits, Rng};
 
     /// Reference in f64 on the weights as the kernel sees them (narrowed), plus `Σ|x||w|`.
     fn naive(
@@ -1230,15 +1230,6 @@ mod tests {
         (100, 520, 47),
         (20, 384, 70),
     ];
-
-    /// Every kernel this CPU runs (the skipped ones printed).
-    fn isas() -> Vec<Isa> {
-        let (run, skip): (Vec<Isa>, Vec<Isa>) = Isa::ALL.into_iter().partition(|i| i.supported());
-        if !skip.is_empty() {
-            eprintln!("kernels not supported by this CPU, skipped: {skip:?}");
-        }
-        run
-    }
 
     #[test]
     fn a_repacked_right_hand_matrix_gives_the_same_bits_as_its_packed_transpose() {

@@ -38,3 +38,14 @@ pub fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
 pub fn same_bits(a: &[f32], b: &[f32]) -> bool {
     a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
+
+/// Every kernel this CPU runs (the skipped ones printed).
+pub(crate) fn isas() -> Vec<super::packed::Isa> {
+    let (run, skip): (Vec<_>, Vec<_>) = super::packed::Isa::ALL
+        .into_iter()
+        .partition(|i| i.supported());
+    if !skip.is_empty() {
+        eprintln!("kernels not supported by this CPU, skipped: {skip:?}");
+    }
+    run
+}
