@@ -58,7 +58,7 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
     let bounds = [
         (WeightType::F16, 0.02, 1e-3),
         (WeightType::Bf16, 0.15, 4e-3),
-        (WeightType::Bf16Compute, 0.15, 4e-3),
+        (WeightType::Bf16Compute, 0.08, 2e-3),
         (WeightType::Int8, 0.8, 0.05),
     ];
     for (ty, max_bound, mean_bound) in bounds {
