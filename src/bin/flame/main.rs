@@ -1044,8 +1044,8 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     // docs/performance.md; shown so that a user picks a type knowing its cost.
     println!(
         "                accuracy vs f32 on the demo model (features after 10 steps, max/mean): \
-         f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.052/0.0011, int8 0.39/0.013 \
-         (AVX2 path 0.52/0.024)"
+         f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.056/0.0011, int8 0.44/0.013 \
+         (AVX2 path 0.60/0.025)"
     );
     println!(
         "motion:         {} ({} features per frame, {} fps, at most {} frames)",
