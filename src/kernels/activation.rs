@@ -337,20 +337,34 @@ mod tests {
         same_bits_on_every_path("tanh", f32::tanh);
     }
 
-    #[test]
-    fn gelu_tanh_sweep() {
-        let xs: Vec<f32> = (-12_000..=12_000).map(|i| i as f32 * 1e-3).collect();
+    /// `f` on every `x` of `[-limit, limit]` in steps of 1e-3 is within `coef · (1 + |x|)` of
+    /// `reference(x)` in f64.
+    fn assert_sweep(
+        name: &str,
+        f: fn(&mut [f32]),
+        limit: i32,
+        reference: fn(f64) -> f64,
+        coef: f64,
+    ) {
+        let xs: Vec<f32> = (-limit..=limit).map(|i| i as f32 * 1e-3).collect();
         let mut y = xs.clone();
-        gelu_tanh(&mut y);
+        f(&mut y);
         for (&x, &g) in xs.iter().zip(&y) {
-            let x64 = x as f64;
-            let u = 0.797_884_560_802_865_4 * (x64 + 0.044715 * x64 * x64 * x64);
-            let want = 0.5 * x64 * (1.0 + u.tanh());
+            let want = reference(x as f64);
             assert!(
-                (g as f64 - want).abs() <= 1e-7 * (1.0 + x64.abs()),
-                "gelu_tanh({x}) = {g}, want {want}"
+                (g as f64 - want).abs() <= coef * (1.0 + x.abs() as f64),
+                "{name}({x}) = {g}, want {want}"
             );
         }
+    }
+
+    #[test]
+    fn gelu_tanh_sweep() {
+        let reference = |x: f64| {
+            let u = 0.797_884_560_802_865_4 * (x + 0.044715 * x * x * x);
+            0.5 * x * (1.0 + u.tanh())
+        };
+        assert_sweep("gelu_tanh", gelu_tanh, 12_000, reference, 1e-7);
         let mut v = [-200.0f32, 0.0, 200.0];
         gelu_tanh(&mut v);
         assert_eq!(v, [0.0, 0.0, 200.0]);
@@ -499,17 +513,7 @@ mod tests {
 
     #[test]
     fn gelu_erf_sweep() {
-        let xs: Vec<f32> = (-8000..=8000).map(|i| i as f32 * 1e-3).collect();
-        let mut y = xs.clone();
-        gelu_erf(&mut y);
-        for (&x, &g) in xs.iter().zip(&y) {
-            let want = gelu_ref(x as f64);
-            let tol = 2e-7 * (1.0 + x.abs() as f64);
-            assert!(
-                (g as f64 - want).abs() <= tol,
-                "gelu({x}) = {g}, want {want}"
-            );
-        }
+        assert_sweep("gelu", gelu_erf, 8000, gelu_ref, 2e-7);
     }
 
     #[test]
