@@ -142,6 +142,23 @@ fn pooling_takes_the_first_end_token_and_padding_is_inert() {
     assert_eq!(short.pooled_index, end);
     assert_eq!(short.pooled, out.pooled);
     assert_eq!(short.tokens, out.tokens[..short.tokens.len()]);
+    // encode_through_end runs that prefix: same rows and vectors, bit for bit, for short,
+    // empty and over-long (cut, the end token last in the context) texts.
+    let long = "a person walks forward and turns around ".repeat(20);
+    for text in ["a person walks", "", long.as_str()] {
+        for c in [2, MDM_CONTEXT, 77] {
+            let all = enc.encode(text, c).unwrap();
+            let end = all.pooled_index;
+            assert!(end < c, "{text:?} ({c})");
+            let fast = enc.encode_through_end(text, c).unwrap();
+            assert_eq!(fast.ids, all.ids[..=end], "{text:?} ({c})");
+            assert_eq!(fast.pooled_index, end);
+            assert_eq!(fast.tokens, all.tokens[..(end + 1) * enc.width()]);
+            assert_eq!(fast.pooled, all.pooled);
+            assert_eq!(fast.projected, all.projected);
+        }
+    }
+    assert_eq!(enc.encode_through_end(&long, 77).unwrap().ids.len(), 77);
     // A literal end token inside the text is the first one.
     let lit = enc.encode("a <|endoftext|> b", 77).unwrap();
     assert_eq!(lit.pooled_index, 2);

@@ -108,7 +108,7 @@ impl Linear {
 }
 
 /// `[rows, cols]` row-major → `[cols, rows]`.
-fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+pub(crate) fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
     let mut t = vec![0.0f32; m.len()];
     for r in 0..rows {
         for c in 0..cols {

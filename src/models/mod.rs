@@ -385,7 +385,9 @@ impl TextModel {
     /// CLIP's projected end-of-text vector of `prompt`; an error for other encoders.
     pub fn clip_vector(&self, prompt: &str) -> Result<Vec<f32>> {
         match self {
-            TextModel::Clip { encoder, context } => Ok(encoder.encode(prompt, *context)?.projected),
+            TextModel::Clip { encoder, context } => {
+                Ok(encoder.encode_through_end(prompt, *context)?.projected)
+            }
             TextModel::Bert(_) => Err(invalid_arg!("this model's text encoder is not CLIP")),
         }
     }

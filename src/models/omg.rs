@@ -23,9 +23,10 @@
 use std::any::Any;
 use std::sync::Arc;
 
+use rayon::prelude::*;
 use serde::Deserialize;
 
-use crate::checkpoint::{ModelFile, Tensor};
+use crate::checkpoint::ModelFile;
 use crate::config::validate::{
     check_eps, check_layers, expect_flow, expect_shape, expect_text, heads_divide, in_range,
     in_range_f32, one_of, refuse_learned_range,
@@ -34,7 +35,7 @@ use crate::config::{section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MA
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, Activation, AttentionScratch, WeightType};
 
-use super::layers::{rotate_qk, self_attend, sized, Conv1d, Linear};
+use super::layers::{rotate_qk, self_attend, sized, transpose, Conv1d, Linear};
 use super::{Cancel, Condition, Denoiser, Family, FamilyConfig, TextModel, Workspace, MAX_BATCH};
 
 /// The family's entry in [`super::FAMILIES`].
@@ -393,11 +394,10 @@ struct Moc {
     v: Linear,
     gamma: Linear,
     beta: Linear,
-    /// The expert pool: `[K, d_m, hidden]`, `[K, hidden]`, `[K, hidden, d_m]`, `[K, d_m]`.
-    w0: Tensor,
-    b0: Tensor,
-    w1: Tensor,
-    b1: Tensor,
+    /// The expert pool, one row per expert `[K, pool_row]`: W0ᵀ `[hidden, d_m]` (fc1's
+    /// `[out, in]`), W1ᵀ `[d_m, hidden]`, b0 `[hidden]`, b1 `[d_m]`. Blending is linear, so
+    /// the tokens' blended parameters are one product `ω [n, K] · pool`, read once per prompt.
+    pool: Vec<f32>,
     gate: [Linear; 3],
 }
 
@@ -531,10 +531,7 @@ impl OmgDenoiser {
                             v: ml("v", dt, m)?,
                             gamma: ml("adain.gamma", dt, m)?,
                             beta: ml("adain.beta", dt, m)?,
-                            w0: file.tensor(&format!("{p}.experts.w0"), &[x, m, h])?,
-                            b0: file.tensor(&format!("{p}.experts.b0"), &[x, h])?,
-                            w1: file.tensor(&format!("{p}.experts.w1"), &[x, h, m])?,
-                            b1: file.tensor(&format!("{p}.experts.b1"), &[x, m])?,
+                            pool: expert_pool(file, &format!("{p}.experts"), x, m, h)?,
                             gate: [
                                 ml("gate.0", dt, c.gate_hidden)?,
                                 ml("gate.2", c.gate_hidden, c.gate_hidden)?,
@@ -594,14 +591,12 @@ impl OmgDenoiser {
         let (TextModel::Clip { encoder, context }, Some(c)) = (text, &self.cfg.control) else {
             return Err(invalid_arg!("this model has no text path"));
         };
-        let out = encoder.encode(prompt, *context)?;
-        let w = c.text_dim;
-        let n = if c.text_padding {
-            out.ids.len()
+        let out = if c.text_padding {
+            encoder.encode(prompt, *context)?
         } else {
-            out.pooled_index + 1
+            encoder.encode_through_end(prompt, *context)?
         };
-        Ok((out.tokens[..n * w].to_vec(), out.pooled_index))
+        Ok((out.tokens, out.pooled_index))
     }
 
     /// Encodes a prompt: per ControlNet layer the tokens' keys and values, Ada-IN's γ and β,
@@ -638,40 +633,22 @@ impl OmgDenoiser {
             let mut omega = vec![0f32; n * x];
             moc.gate[2].forward(&g2, n, &mut omega);
             kernels::softmax_rows(&mut omega, x);
-            // Blended parameters, transposed into layers' `[out, in]`.
-            let (w0, b0, w1, b1) = (moc.w0.data(), moc.b0.data(), moc.w1.data(), moc.b1.data());
-            let mut experts = Vec::with_capacity(n);
-            let mut fc1 = vec![0f32; h * m];
-            let mut fc2 = vec![0f32; m * h];
-            let mut bias0 = vec![0f32; h];
-            let mut bias1 = vec![0f32; m];
-            for om in omega.chunks_exact(x) {
-                let mut w0b = vec![0f32; m * h];
-                let mut w1b = vec![0f32; h * m];
-                bias0.fill(0.0);
-                bias1.fill(0.0);
-                for (j, &wj) in om.iter().enumerate() {
-                    kernels_axpy(&mut w0b, wj, &w0[j * m * h..(j + 1) * m * h]);
-                    kernels_axpy(&mut w1b, wj, &w1[j * h * m..(j + 1) * h * m]);
-                    kernels_axpy(&mut bias0, wj, &b0[j * h..(j + 1) * h]);
-                    kernels_axpy(&mut bias1, wj, &b1[j * m..(j + 1) * m]);
-                }
-                // W0 is [in = d_m, out = hidden]: fc1's weight is its transpose.
-                for i in 0..m {
-                    for o in 0..h {
-                        fc1[o * m + i] = w0b[i * h + o];
+            // Every token's blended parameters at once, already in the layers' `[out, in]`.
+            let row = moc.pool.len() / x;
+            let mut blended = vec![0f32; n * row];
+            kernels::matmul_nn(&omega, &moc.pool, &mut blended, n, x, row);
+            let experts = blended
+                .par_chunks_exact(row)
+                .map(|p| {
+                    let (fc1, rest) = p.split_at(h * m);
+                    let (fc2, rest) = rest.split_at(m * h);
+                    let (bias0, bias1) = rest.split_at(h);
+                    BlendedExpert {
+                        fc1: Linear::from_weight(fc1, Some(bias0), m, h, self.ty),
+                        fc2: Linear::from_weight(fc2, Some(bias1), h, m, self.ty),
                     }
-                }
-                for i in 0..h {
-                    for o in 0..m {
-                        fc2[o * h + i] = w1b[i * m + o];
-                    }
-                }
-                experts.push(BlendedExpert {
-                    fc1: Linear::from_weight(&fc1, Some(&bias0), m, h, self.ty),
-                    fc2: Linear::from_weight(&fc2, Some(&bias1), h, m, self.ty),
-                });
-            }
+                })
+                .collect();
             out.push(LayerText {
                 k,
                 v,
@@ -955,11 +932,26 @@ impl OmgDenoiser {
     }
 }
 
-/// `y += a · x`.
-fn kernels_axpy(y: &mut [f32], a: f32, x: &[f32]) {
-    for (p, &q) in y.iter_mut().zip(x) {
-        *p += a * q;
+/// The `{p}.w0`, `b0`, `w1`, `b1` expert pool (`[K, d_m, hidden]`, `[K, hidden]`,
+/// `[K, hidden, d_m]`, `[K, d_m]`) as [`Moc::pool`]'s rows.
+fn expert_pool(file: &ModelFile, p: &str, x: usize, m: usize, h: usize) -> Result<Vec<f32>> {
+    let w0 = file.tensor(&format!("{p}.w0"), &[x, m, h])?;
+    let b0 = file.tensor(&format!("{p}.b0"), &[x, h])?;
+    let w1 = file.tensor(&format!("{p}.w1"), &[x, h, m])?;
+    let b1 = file.tensor(&format!("{p}.b1"), &[x, m])?;
+    let (w0, b0, w1, b1) = (w0.data(), b0.data(), w1.data(), b1.data());
+    let row = 2 * m * h + h + m;
+    let mut pool = Vec::with_capacity(x * row);
+    for j in 0..x {
+        pool.extend(transpose(&w0[j * m * h..(j + 1) * m * h], m, h));
+        pool.extend(transpose(&w1[j * h * m..(j + 1) * h * m], h, m));
+        pool.extend_from_slice(&b0[j * h..(j + 1) * h]);
+        pool.extend_from_slice(&b1[j * m..(j + 1) * m]);
     }
+    for name in ["w0", "b0", "w1", "b1"] {
+        file.release(&format!("{p}.{name}"));
+    }
+    Ok(pool)
 }
 
 /// `out = LN(x)·(1 + scale) + shift` (LayerNorm without affine), row-wise over `e`.

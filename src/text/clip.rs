@@ -281,6 +281,16 @@ impl ClipTextEncoder {
         self.encode_ids(&ids)
     }
 
+    /// [`ClipTextEncoder::encode`] through the first end token only: its `ids` and `tokens`
+    /// stop at [`ClipOutput::pooled_index`], where the pooled and projected vectors are taken.
+    /// The attention is causal, so these rows do not depend on the padding after them and are
+    /// the same, bit for bit, as `encode`'s first rows, at a fraction of the cost (a 10-token
+    /// prompt runs 12 positions instead of 77).
+    pub fn encode_through_end(&self, text: &str, context_length: usize) -> Result<ClipOutput> {
+        let ids = self.tokenize(text, context_length)?;
+        self.encode_ids(&ids[..=end_index(&ids)])
+    }
+
     /// Runs the tower on given ids (1 to `context_length` of them, each below `vocab_size`).
     /// Pooling takes the first position of the largest id, as OpenAI's `argmax`.
     pub fn encode_ids(&self, ids: &[u32]) -> Result<ClipOutput> {
@@ -310,11 +320,7 @@ impl ClipTextEncoder {
             block.forward(&mut x, n, w, self.cfg.heads, eps);
         }
         let tokens = self.final_norm.apply(&x, w, eps);
-        // First occurrence of the maximum (Iterator::max_by_key would return the last).
-        let pooled_index = ids
-            .iter()
-            .enumerate()
-            .fold(0, |best, (i, &id)| if id > ids[best] { i } else { best });
+        let pooled_index = end_index(ids);
         let pooled = tokens[pooled_index * w..(pooled_index + 1) * w].to_vec();
         let projected = self.projection.apply(&pooled, 1, Activation::None);
         Ok(ClipOutput {
@@ -325,6 +331,14 @@ impl ClipTextEncoder {
             pooled_index,
         })
     }
+}
+
+/// Position of the first largest id, the first `<|endoftext|>` (OpenAI's `argmax`; `ids` is
+/// not empty). Iterator::max_by_key would return the last.
+fn end_index(ids: &[u32]) -> usize {
+    ids.iter()
+        .enumerate()
+        .fold(0, |best, (i, &id)| if id > ids[best] { i } else { best })
 }
 
 /// The part of the official clean-up (`ftfy.fix_text`, then `html.unescape` twice) that the
