@@ -315,6 +315,31 @@ impl RowBlock {
     }
 }
 
+/// Writes `w` (`[n, k]`) into `dst`'s [`NR`]-column panels (panel `j`, row `p`, column `c` at
+/// `(j·k + p)·NR + c`), converted by `conv`; the columns past `n` keep their zeros. A panel is
+/// a transpose: it is walked in blocks of [`PACK_ROWS`] rows so both the source rows and the
+/// destination lines stay in L1.
+fn pack_panels<T: Copy>(w: &[f32], n: usize, k: usize, dst: &mut [T], conv: impl Fn(f32) -> T) {
+    if k == 0 {
+        return;
+    }
+    for (j, panel) in dst.chunks_exact_mut(k * NR).enumerate() {
+        let cols = NR.min(n - j * NR);
+        let src = &w[j * NR * k..(j * NR + cols) * k];
+        for p0 in (0..k).step_by(PACK_ROWS) {
+            let p1 = (p0 + PACK_ROWS).min(k);
+            for (c, row) in src.chunks_exact(k).enumerate() {
+                for (p, &v) in row[p0..p1].iter().enumerate() {
+                    panel[(p0 + p) * NR + c] = conv(v);
+                }
+            }
+        }
+    }
+}
+
+/// Rows of a panel packed per block by [`pack_panels`] (64 lines of 64 bytes, 4 KiB of f32).
+const PACK_ROWS: usize = 64;
+
 /// A `Linear` weight `[n, k]` packed into [`NR`]-column panels.
 pub struct PackedWeights {
     k: usize,
@@ -350,41 +375,15 @@ impl PackedWeights {
             scales: Vec::new(),
             colsum: Vec::new(),
         };
-        let value = |j: usize, p: usize, c: usize| {
-            let col = j * NR + c;
-            if col < n {
-                w[col * k + p]
-            } else {
-                0.0
-            }
-        };
-        let at = |j: usize, p: usize, c: usize| (j * k + p) * NR + c;
         match ty {
-            WeightType::F32 => {
-                let dst = packed.f32_mut();
-                for j in 0..panels {
-                    for p in 0..k {
-                        for c in 0..NR {
-                            dst[at(j, p, c)] = value(j, p, c);
-                        }
-                    }
-                }
+            WeightType::F32 => pack_panels(w, n, k, packed.f32_mut(), |v| v),
+            WeightType::F16 => {
+                pack_panels(w, n, k, packed.u16_mut(), |v| f16::from_f32(v).to_bits())
+            }
+            WeightType::Bf16 => {
+                pack_panels(w, n, k, packed.u16_mut(), |v| bf16::from_f32(v).to_bits())
             }
             WeightType::Bf16Compute | WeightType::Int8 => unreachable!("packed above"),
-            WeightType::F16 | WeightType::Bf16 => {
-                let dst = packed.u16_mut();
-                for j in 0..panels {
-                    for p in 0..k {
-                        for c in 0..NR {
-                            let v = value(j, p, c);
-                            dst[at(j, p, c)] = match ty {
-                                WeightType::F16 => f16::from_f32(v).to_bits(),
-                                _ => bf16::from_f32(v).to_bits(),
-                            };
-                        }
-                    }
-                }
-            }
         }
         packed
     }
