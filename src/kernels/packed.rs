@@ -346,8 +346,9 @@ pub struct PackedWeights {
     n: usize,
     ty: WeightType,
     lines: Vec<Line>,
-    /// Int8: each column's weight scale.
+    /// Int8: each column's weight scale and the sum of its quantised weights.
     scales: Vec<f32>,
+    colsum: Vec<i32>,
 }
 
 impl PackedWeights {
@@ -372,6 +373,7 @@ impl PackedWeights {
             ty,
             lines: vec![Line([0; 64]); bytes.div_ceil(64)],
             scales: Vec::new(),
+            colsum: Vec::new(),
         };
         match ty {
             WeightType::F32 => pack_panels(w, n, k, packed.f32_mut(), |v| v),
@@ -395,6 +397,7 @@ impl PackedWeights {
             ty: WeightType::F32,
             lines: Vec::new(),
             scales: Vec::new(),
+            colsum: Vec::new(),
         }
     }
 
@@ -437,7 +440,7 @@ impl PackedWeights {
 
     /// Heap bytes held (padding and int8 scales included).
     pub fn bytes(&self) -> usize {
-        self.lines.len() * 64 + self.scales.len() * 4
+        self.lines.len() * 64 + self.scales.len() * 4 + self.colsum.len() * 4
     }
 
     /// The packed words of a reduced-precision type (one per column and pair or quad).

@@ -12,19 +12,16 @@
 //!   same bits (tested where the CPU runs both).
 //! - **int8 compute** ([`WeightType::Int8`]): per output column a symmetric weight scale
 //!   `s_w = max|W[c, :]| / 127` and weights `round(W / s_w)` in −127..=127 (a quarter of f32's
-//!   memory), stored offset by 128 as unsigned bytes; per call and row a symmetric activation
-//!   scale `s_a = max|x[r, :]| / 127` and signed values `a = round(x / s_a)`. `vpdpbusd`
-//!   multiplies unsigned by signed bytes, and only its signed operand can be a broadcast from
-//!   memory (`{1to16}`): the weights are the unsigned side so that each row's activation word
-//!   is broadcast by the product instruction itself, as in the bf16 tile. Quad row `q` of a
-//!   panel holds `W[c, 4q..4q + 4]` per column. The integer sum is exact (32-bit sums over
-//!   blocks of 32,768 inputs, added in 64 bits), so every kernel gives the same integers; the
-//!   output is `(Σ − 128·Σ_k a) · (s_a·s_w) + bias` in one fused multiply-add. Without VNNI,
-//!   AVX2's `vpmaddubsw` adds two unsigned × signed products into a saturating 16-bit lane:
-//!   activations there use 63 levels (`s_a = max|x| / 63`), so a pair is at most
-//!   2·255·63 < 2¹⁵ and never saturates ([`Int8Path`]); the sums are again exact, the same as
-//!   the portable kernel's on those values, but the activations carry one bit less than on
-//!   VNNI.
+//!   memory); per call and row a symmetric activation scale `s_a = max|x[r, :]| / 127` and
+//!   values `round(x / s_a)`, stored offset by 128 as unsigned bytes (`vpdpbusd` multiplies
+//!   unsigned by signed). Quad row `q` of a panel holds `W[c, 4q..4q + 4]` per column. The
+//!   integer sum is exact (32-bit sums over blocks of 32,768 inputs, added in 64 bits), so every
+//!   kernel gives the same integers; the output is `(Σ − 128·Σ_k w) · (s_a·s_w) + bias` in one fused
+//!   multiply-add. Without VNNI, AVX2's `vpmaddubsw` adds two unsigned × signed products into a
+//!   saturating 16-bit lane: activations there use 63 levels (`s_a = max|x| / 63`, offset 64,
+//!   bytes ≤ 127), so a pair is at most 2·127·127 < 2¹⁵ and never saturates ([`Int8Path`]); the
+//!   sums are again exact, the same as the portable kernel's on those bytes, but the activations
+//!   carry one bit less than on VNNI.
 //!
 //! Both are bit-identical for any thread count (each output is one fixed chain). Rows are cut
 //! into tiles of [`MR512`], activations converted once per call into a per-thread buffer laid
@@ -85,7 +82,7 @@ impl Int8Path {
         }
     }
 
-    /// The largest activation magnitude after quantisation.
+    /// The largest activation magnitude after quantisation; bytes are offset by `levels + 1`.
     fn levels(self) -> i32 {
         match self {
             Int8Path::Avx2 => 63,
@@ -144,9 +141,9 @@ fn quantize(v: f32, inv: f32, levels: i32) -> i8 {
         .clamp(-levels as f32, levels as f32) as i8
 }
 
-/// Quantises one activation row into `bytes` (`4·s` of them: each value as a signed byte, 0
-/// past the row's end) and returns its scale (NaN, and every byte 0, when a value is not
-/// finite). The AVX2 version computes the same bits.
+/// Quantises one activation row into `bytes` (`4·s` of them: value + `levels + 1`, the zero
+/// point past the row's end) and returns its scale (NaN, and every byte the zero point, when a
+/// value is not finite). The AVX2 version computes the same bits.
 fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
     #[cfg(target_arch = "x86_64")]
     if Isa::Avx2.supported() {
@@ -160,15 +157,16 @@ fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
 
 /// Bytes `from..` of [`quantize_row`] for a row whose scale is known.
 fn finish_row(row: &[f32], from: usize, scale: f32, levels: i32, bytes: &mut [u8]) {
+    let zero = levels + 1;
     if scale.is_nan() {
-        bytes.fill(0);
+        bytes.fill(zero as u8);
         return;
     }
     let inv = inverse(scale);
     for (j, b) in bytes.iter_mut().enumerate().skip(from) {
         *b = match row.get(j) {
-            Some(&v) => quantize(v, inv, levels) as u8,
-            None => 0,
+            Some(&v) => (quantize(v, inv, levels) as i32 + zero) as u8,
+            None => zero as u8,
         };
     }
 }
@@ -223,6 +221,7 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
             p.scales = (0..n)
                 .map(|c| scale_of(&w[c * k..(c + 1) * k], 127))
                 .collect();
+            p.colsum = vec![0; n];
             for j in 0..panels {
                 for q in 0..s {
                     for c in 0..NR {
@@ -230,8 +229,11 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
                         let inv = if col < n { inverse(p.scales[col]) } else { 0.0 };
                         let mut bytes = [0u8; 4];
                         for (b, byte) in bytes.iter_mut().enumerate() {
-                            // Offset by 128: the unsigned operand (0 past k and n: 128).
-                            *byte = (quantize(at(col, 4 * q + b), inv, 127) as i32 + 128) as u8;
+                            let v = quantize(at(col, 4 * q + b), inv, 127);
+                            if col < n {
+                                p.colsum[col] += v as i32;
+                            }
+                            *byte = v as u8;
                         }
                         words[(j * s + q) * NR + c] = u32::from_le_bytes(bytes);
                     }
@@ -255,7 +257,7 @@ pub(super) fn unpack(p: &PackedWeights) -> Vec<f32> {
                 WeightType::Bf16Compute => {
                     bf16::from_bits((word >> (16 * (i % 2))) as u16).to_f32()
                 }
-                _ => (word.to_le_bytes()[i % 4] as i32 - 128) as f32 * p.scales[col],
+                _ => (word.to_le_bytes()[i % 4] as i8) as f32 * p.scales[col],
             };
         }
     }
@@ -270,20 +272,10 @@ fn per_word(ty: WeightType) -> usize {
 }
 
 thread_local! {
-    /// Each calling thread's converted activations (words), row scales and (int8) row sums of
-    /// the quantised values, reused across calls.
-    static ACTS: std::cell::RefCell<Acts> = Default::default();
+    /// Each calling thread's converted activations (words) and row scales, reused across calls.
+    static ACTS: std::cell::RefCell<(Vec<u32>, Vec<f32>)> = Default::default();
     /// Each converting thread's one row of converted activations, reused across calls.
     static ROW: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
-}
-
-/// One call's converted activations: words laid out tile by tile, and per row the int8 scale
-/// and the sum of the quantised values (the weights' zero point's share of each output).
-#[derive(Default)]
-struct Acts {
-    words: Vec<u32>,
-    scales: Vec<f32>,
-    sums: Vec<i32>,
 }
 
 /// `y = act(x · Wᵀ + bias)` for a reduced-precision `w` on kernel `isa` (the portable
@@ -298,8 +290,11 @@ pub(super) fn linear(
     m: usize,
 ) {
     ACTS.with(|cell| match cell.try_borrow_mut() {
-        Ok(mut acts) => linear_with(isa, x, w, bias, act, y, m, &mut acts),
-        Err(_) => linear_with(isa, x, w, bias, act, y, m, &mut Acts::default()),
+        Ok(mut bufs) => {
+            let (words, scales) = &mut *bufs;
+            linear_with(isa, x, w, bias, act, y, m, words, scales)
+        }
+        Err(_) => linear_with(isa, x, w, bias, act, y, m, &mut Vec::new(), &mut Vec::new()),
     })
 }
 
@@ -312,21 +307,21 @@ fn linear_with(
     act: Activation,
     y: &mut [f32],
     m: usize,
-    acts: &mut Acts,
+    words: &mut Vec<u32>,
+    scales: &mut Vec<f32>,
 ) {
     let (k, n, ty) = (w.k, w.n, w.ty);
     let s = steps(ty, k);
     let tiles = m.div_ceil(MR512);
     let int8 = Int8Path::for_kernel(isa);
-    convert(ty, int8.levels(), x, m, k, s, acts);
+    convert(ty, int8.levels(), x, m, k, s, words, scales);
     let job = Job {
         native: isa == Isa::Avx512 && has_bf16_dot(),
         int8,
         w,
         s,
-        acts: &acts.words,
-        row_scales: &acts.scales,
-        row_sums: &acts.sums,
+        acts: words,
+        row_scales: scales,
         bias,
         act,
         y: SharedMut(y.as_mut_ptr()),
@@ -338,23 +333,26 @@ fn linear_with(
 }
 
 /// Converts `x [m, k]` into words laid out tile by tile: word `(t·s + q)·12 + i` is step `q`
-/// of row `12t + i` (a bf16 pair, or four signed bytes quantised to `levels`); rows past `m`
-/// are zero. Int8 also fills the row scales and sums. Tiles are converted in parallel (each is
-/// independent).
-fn convert(ty: WeightType, levels: i32, x: &[f32], m: usize, k: usize, s: usize, acts: &mut Acts) {
+/// of row `12t + i` (a bf16 pair, or four bytes quantised to `levels` and offset by
+/// `levels + 1`); rows past `m` are zero. Int8 also fills the row scales. Tiles are converted
+/// in parallel (each is independent).
+#[allow(clippy::too_many_arguments)]
+fn convert(
+    ty: WeightType,
+    levels: i32,
+    x: &[f32],
+    m: usize,
+    k: usize,
+    s: usize,
+    words: &mut Vec<u32>,
+    scales: &mut Vec<f32>,
+) {
     let tiles = m.div_ceil(MR512);
-    let Acts {
-        words,
-        scales,
-        sums,
-    } = acts;
     words.clear();
     words.resize(tiles * s * MR512, 0);
     scales.clear();
     scales.resize(tiles * MR512, 0.0);
-    sums.clear();
-    sums.resize(tiles * MR512, 0);
-    let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32], tile_sums: &mut [i32]| {
+    let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
         ROW.with_borrow_mut(|row_words| {
             // One row converted in place: 4·s bytes (int8) or 2·s bf16 values, read back as
             // the row's s little-endian words.
@@ -370,12 +368,11 @@ fn convert(ty: WeightType, levels: i32, x: &[f32], m: usize, k: usize, s: usize,
                     WeightType::Bf16Compute => bf16_row(row, unsafe {
                         std::slice::from_raw_parts_mut(p as *mut u16, 2 * s)
                     }),
-                    // Past k the value is 0: its product with the weights' zero point (128)
-                    // adds nothing, and the row sum holds the real values only.
+                    // Past k the weight is 0: the byte adds nothing; the zero point (a zero
+                    // value) keeps the column-sum correction exact.
                     _ => {
                         let bytes = unsafe { std::slice::from_raw_parts_mut(p as *mut u8, 4 * s) };
-                        tile_scales[i] = quantize_row(row, levels, bytes);
-                        tile_sums[i] = bytes.iter().map(|&b| b as i8 as i32).sum();
+                        tile_scales[i] = quantize_row(row, levels, bytes)
                     }
                 }
                 for (q, &w) in row_words.iter().enumerate() {
@@ -391,16 +388,14 @@ fn convert(ty: WeightType, levels: i32, x: &[f32], m: usize, k: usize, s: usize,
         words
             .par_chunks_mut(s * MR512)
             .zip(scales.par_chunks_mut(MR512))
-            .zip(sums.par_chunks_mut(MR512))
             .enumerate()
-            .for_each(|(t, ((out, sc), su))| tile(t, out, sc, su));
+            .for_each(|(t, (out, sc))| tile(t, out, sc));
     } else {
         words
             .chunks_mut(s * MR512)
             .zip(scales.chunks_mut(MR512))
-            .zip(sums.chunks_mut(MR512))
             .enumerate()
-            .for_each(|(t, ((out, sc), su))| tile(t, out, sc, su));
+            .for_each(|(t, (out, sc))| tile(t, out, sc));
     }
 }
 
@@ -415,8 +410,6 @@ struct Job<'a> {
     s: usize,
     acts: &'a [u32],
     row_scales: &'a [f32],
-    /// Int8: each row's sum of quantised values.
-    row_sums: &'a [i32],
     bias: Option<&'a [f32]>,
     act: Activation,
     y: SharedMut,
@@ -486,24 +479,22 @@ impl Job<'_> {
         #[cfg(target_arch = "x86_64")]
         if self.int8 != Int8Path::Portable && self.s <= INT8_BLOCK {
             // One block: the sums stay in 32 bits and the epilogue runs on the vectors.
-            let (mut wscale, mut rscale, mut offset) =
-                ([0.0f32; NR], [0.0f32; MR512], [0i32; MR512]);
-            wscale[..cols].copy_from_slice(&self.w.scales[c0..c0 + cols]);
-            let r0 = t * MR512;
-            rscale[..rows].copy_from_slice(&self.row_scales[r0..r0 + rows]);
-            // The weights' zero point's share of each sum, `128·Σ_k a` (exact in 32 bits).
-            for (o, &sum) in offset[..rows].iter_mut().zip(&self.row_sums[r0..r0 + rows]) {
-                *o = 128 * sum;
+            let (mut colsum, mut wscale, mut rscale) = ([0i32; NR], [0.0f32; NR], [0.0f32; MR512]);
+            // The zero point's share of each sum, `(levels + 1)·Σ_k w` (exact in 32 bits).
+            let zero = self.int8.levels() + 1;
+            for (o, &c) in colsum[..cols].iter_mut().zip(&self.w.colsum[c0..c0 + cols]) {
+                *o = zero * c;
             }
-            let cols = (&wscale, bias);
-            let rows = (&rscale, &offset);
+            wscale[..cols].copy_from_slice(&self.w.scales[c0..c0 + cols]);
+            rscale[..rows].copy_from_slice(&self.row_scales[t * MR512..t * MR512 + rows]);
+            let scales = (&colsum, &wscale, bias);
             let (a, b) = (a.as_ptr(), b.as_ptr());
             // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `Avx2`
             // only when it has avx2 and fma; the slices hold s·12 and s·NR words.
             unsafe {
                 match self.int8 {
-                    Int8Path::Vnni => avx512::tile_int8_scaled(self.s, a, b, cols, rows, tile),
-                    _ => avx2::tile_int8_scaled(self.s, a, b, cols, rows, tile),
+                    Int8Path::Vnni => avx512::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
+                    _ => avx2::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
                 }
             };
             return;
@@ -536,12 +527,12 @@ impl Job<'_> {
                 *t += *s as i64;
             }
         }
+        let zero = self.int8.levels() as i64 + 1;
         for i in 0..rows {
             let sa = self.row_scales[t * MR512 + i];
-            let offset = 128 * self.row_sums[t * MR512 + i] as i64;
             for c in 0..cols {
                 let col = c0 + c;
-                let exact = total[i * NR + c] - offset;
+                let exact = total[i * NR + c] - zero * self.w.colsum[col] as i64;
                 tile[i * NR + c] = (exact as f32).mul_add(sa * self.w.scales[col], bias[c]);
             }
         }
@@ -595,14 +586,14 @@ pub(super) fn portable_bf16_tile(
     }
 }
 
-/// The portable int8 tile: exact 32-bit sums of unsigned (weight) × signed (activation) bytes.
+/// The portable int8 tile: exact 32-bit sums of unsigned × signed bytes.
 pub(super) fn portable_int8_tile(s: usize, a: &[u32], b: &[u32], sums: &mut [i32; MR512 * NR]) {
     for q in 0..s {
         for i in 0..MR512 {
             let ab = a[q * MR512 + i].to_le_bytes();
             for c in 0..NR {
                 let wb = b[q * NR + c].to_le_bytes();
-                let dot: i32 = (0..4).map(|k| (ab[k] as i8) as i32 * wb[k] as i32).sum();
+                let dot: i32 = (0..4).map(|k| ab[k] as i32 * (wb[k] as i8) as i32).sum();
                 sums[i * NR + c] = sums[i * NR + c].wrapping_add(dot);
             }
         }
@@ -612,18 +603,17 @@ pub(super) fn portable_int8_tile(s: usize, a: &[u32], b: &[u32], sums: &mut [i32
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     //! The 12×16 reduced-precision tiles: 12 accumulators of 16 lanes, one panel line per
-    //! step, each row's word broadcast. The steps are written in assembly so that each row's
-    //! word is broadcast by the product instruction itself (`{1to16}`): compiled from
+    //! step, each row's word broadcast. The bf16 steps are written in assembly so that each
+    //! row's word is broadcast by the product instruction itself (`{1to16}`): compiled from
     //! intrinsics, every broadcast was a separate instruction, and on Zen 4 those compete with
-    //! the products (bf16, an L1-resident loop: 172 against 230 GFLOP/s on one core).
+    //! the products (an L1-resident loop: 172 against 230 GFLOP/s on one core).
 
     use super::{MR512, NR};
     use std::arch::x86_64::*;
 
-    /// `s` steps of `$op` into twelve accumulators `$acc`: per step one panel line from `$b`
-    /// (the instruction's first source: `vpdpbusd`'s unsigned bytes) and each of the 12 words
-    /// at `$a` broadcast (its second: `vpdpbusd`'s signed bytes; `vdpbf16ps`'s pair products
-    /// do not depend on the order).
+    /// `s` steps of `$op` (`vdpbf16ps`, whose pair products do not depend on the operands'
+    /// order) into twelve accumulators `$acc`: per step one panel line from `$b` and each of
+    /// the 12 words at `$a` broadcast.
     macro_rules! steps {
         ($op:literal, $s:expr, $a:expr, $b:expr, $acc:ident) => {
             if $s > 0 {
@@ -686,9 +676,9 @@ mod avx512 {
     }
 
     /// [`tile_int8`] and the epilogue in one: output `(Σ − offset)·(s_a·s_w) + bias` per
-    /// row and column (`offset` = the weights' zero point times the row's activation sum), the
-    /// same operations (one rounding each, the last a fused multiply-add) as the scalar
-    /// epilogue, so the same bits.
+    /// row and column (`offset` = the zero point times the column's weight sum), the same
+    /// operations (one rounding each, the last a fused multiply-add) as the scalar epilogue,
+    /// so the same bits.
     ///
     /// # Safety
     /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`;
@@ -698,19 +688,20 @@ mod avx512 {
         s: usize,
         a: *const u32,
         b: *const u32,
-        (wscale, bias): (&[f32; NR], &[f32; NR]),
-        (rscale, offset): (&[f32; MR512], &[i32; MR512]),
+        (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
+        rscale: &[f32; MR512],
         tile: &mut [f32; MR512 * NR],
     ) {
         let mut sums = [0i32; MR512 * NR];
         // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
         unsafe {
             tile_int8(s, a, b, &mut sums);
+            let offset = _mm512_loadu_si512(offset.as_ptr() as *const _);
             let ws = _mm512_loadu_ps(wscale.as_ptr());
             let bv = _mm512_loadu_ps(bias.as_ptr());
-            for (i, (&sa, &off)) in rscale.iter().zip(offset).enumerate() {
+            for (i, &sa) in rscale.iter().enumerate() {
                 let acc = _mm512_loadu_si512(sums.as_ptr().add(i * NR) as *const _);
-                let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, _mm512_set1_epi32(off)));
+                let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, offset));
                 let scale = _mm512_mul_ps(_mm512_set1_ps(sa), ws);
                 _mm512_storeu_ps(
                     tile.as_mut_ptr().add(i * NR),
@@ -731,8 +722,16 @@ mod avx512 {
     ) {
         // SAFETY (whole body): as in `tile_bf16`.
         unsafe {
+            // Intrinsics here: `vpdpbusd` reads its memory operand as the signed bytes, and the
+            // broadcast words are the unsigned activations.
             let mut acc = [_mm512_setzero_si512(); MR512];
-            steps!("vpdpbusd", s, a, b, acc);
+            for q in 0..s {
+                let bq = _mm512_loadu_si512(b.add(q * NR) as *const _);
+                let aq = a.add(q * MR512);
+                for (i, v) in acc.iter_mut().enumerate() {
+                    *v = _mm512_dpbusd_epi32(*v, _mm512_set1_epi32(*aq.add(i) as i32), bq);
+                }
+            }
             for (i, v) in acc.iter().enumerate() {
                 _mm512_storeu_si512(sums.as_mut_ptr().add(i * NR) as *mut _, *v);
             }
@@ -742,10 +741,9 @@ mod avx512 {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    //! The int8 tile on AVX2: `vpmaddubsw` adds each column's two unsigned (weight) × signed
-    //! (activation) byte products into a 16-bit lane (activations in 63 levels: at most
-    //! 2·255·63, no saturation), `vpmaddwd` with ones adds the two halves of the quad into 32
-    //! bits.
+    //! The int8 tile on AVX2: `vpmaddubsw` adds each column's two unsigned × signed byte
+    //! products into a 16-bit lane (activations in 63 levels: at most 2·127·127, no
+    //! saturation), `vpmaddwd` with ones adds the two halves of the quad into 32 bits.
     //! Four rows at a time: 8 accumulators, two panel vectors, the ones and the temporaries fit
     //! the 16 registers.
 
@@ -830,14 +828,18 @@ mod avx2 {
                     _mm256_set1_ps(-levels as f32),
                     _mm256_set1_ps(levels as f32),
                 );
+                let zero = _mm256_set1_epi32(levels + 1);
                 let first_dwords = _mm256_setr_epi32(0, 4, 0, 0, 0, 0, 0, 0);
                 for j in (0..main).step_by(8) {
                     let v = _mm256_mul_ps(_mm256_loadu_ps(row.as_ptr().add(j)), inv);
                     let r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(v);
-                    let q = _mm256_cvtps_epi32(_mm256_min_ps(_mm256_max_ps(r, lo), hi));
-                    // i32 → i8 (values −127..=127, so no saturation), then the two 4-byte
-                    // groups of the 128-bit halves side by side.
-                    let w = _mm256_packs_epi16(_mm256_packs_epi32(q, q), _mm256_setzero_si256());
+                    let q = _mm256_add_epi32(
+                        _mm256_cvtps_epi32(_mm256_min_ps(_mm256_max_ps(r, lo), hi)),
+                        zero,
+                    );
+                    // i32 → u8 (values 1..=255, so no saturation), then the two 4-byte groups
+                    // of the 128-bit halves side by side.
+                    let w = _mm256_packus_epi16(_mm256_packs_epi32(q, q), _mm256_setzero_si256());
                     let w = _mm256_permutevar8x32_epi32(w, first_dwords);
                     _mm_storel_epi64(
                         bytes.as_mut_ptr().add(j) as *mut __m128i,
@@ -860,8 +862,8 @@ mod avx2 {
         s: usize,
         a: *const u32,
         b: *const u32,
-        (wscale, bias): (&[f32; NR], &[f32; NR]),
-        (rscale, offset): (&[f32; MR512], &[i32; MR512]),
+        (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
+        rscale: &[f32; MR512],
         tile: &mut [f32; MR512 * NR],
     ) {
         let mut sums = [0i32; MR512 * NR];
@@ -869,13 +871,13 @@ mod avx2 {
         unsafe {
             tile_int8(s, a, b, &mut sums);
             for h in 0..2 {
+                let offset = _mm256_loadu_si256(offset.as_ptr().add(8 * h) as *const _);
                 let ws = _mm256_loadu_ps(wscale.as_ptr().add(8 * h));
                 let bv = _mm256_loadu_ps(bias.as_ptr().add(8 * h));
-                for (i, (&sa, &off)) in rscale.iter().zip(offset).enumerate() {
+                for (i, &sa) in rscale.iter().enumerate() {
                     let at = i * NR + 8 * h;
                     let acc = _mm256_loadu_si256(sums.as_ptr().add(at) as *const _);
-                    let off = _mm256_set1_epi32(off);
-                    let exact = _mm256_cvtepi32_ps(_mm256_sub_epi32(acc, off));
+                    let exact = _mm256_cvtepi32_ps(_mm256_sub_epi32(acc, offset));
                     let scale = _mm256_mul_ps(_mm256_set1_ps(sa), ws);
                     _mm256_storeu_ps(tile.as_mut_ptr().add(at), _mm256_fmadd_ps(exact, scale, bv));
                 }
@@ -884,8 +886,8 @@ mod avx2 {
     }
 
     /// # Safety
-    /// The CPU supports avx2; `a` readable for `s·12` words whose bytes are signed values in
-    /// −63..=63 (with weight bytes up to 255 a pair stays below 2¹⁵), `b` for `s·NR`.
+    /// The CPU supports avx2; `a` readable for `s·12` words whose bytes are at most 127, `b`
+    /// for `s·NR`.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn tile_int8(
         s: usize,
@@ -904,9 +906,8 @@ mod avx2 {
                     let aq = a.add(q * MR512 + r0);
                     for (i, v) in acc.iter_mut().enumerate() {
                         let ai = _mm256_set1_epi32(*aq.add(i) as i32);
-                        // Unsigned weights × signed activations.
-                        let p0 = _mm256_madd_epi16(_mm256_maddubs_epi16(b0, ai), ones);
-                        let p1 = _mm256_madd_epi16(_mm256_maddubs_epi16(b1, ai), ones);
+                        let p0 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b0), ones);
+                        let p1 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b1), ones);
                         v[0] = _mm256_add_epi32(v[0], p0);
                         v[1] = _mm256_add_epi32(v[1], p1);
                     }
@@ -1214,8 +1215,8 @@ mod tests {
                     assert_eq!(got, want, "k {k} levels {levels} case {case}");
                     if case == 1 && k > 2 {
                         // 1.5 → 2 and 2.5 → 2: ties went to even.
-                        assert_eq!(want[1] as i8, 2, "k {k}");
-                        assert_eq!(want[2] as i8, 2, "k {k}");
+                        assert_eq!(want[1] as i32 - levels - 1, 2, "k {k}");
+                        assert_eq!(want[2] as i32 - levels - 1, 2, "k {k}");
                     }
                 }
             }
