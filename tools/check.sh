@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The project's test command (README "Build and test"): formatting, lints and the Rust tests of
-# every crate of the workspace (the runtime and crates/flame-demo), the C ABI tests (shared and
+# every crate of the workspace (the runtime and crates/flame-demo), the kernels' tests again with
+# AVX-512 hidden from the CPU (tools/avx2_only.sh, where the CPU allows), the C ABI tests (shared and
 # static library, C++ wrapper, packaging; valgrind when CI=true or FLAME_VALGRIND=1), the
 # language bindings' tests, the BVH round trip through Blender, the glTF export through the
 # Khronos validator and Blender's importer, and a short run of every fuzz target.
@@ -19,7 +20,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 
-stages=(fmt clippy rust c bindings bvh gltf fuzz)
+stages=(fmt clippy rust avx2-only c bindings bvh gltf fuzz)
 [ $# -gt 0 ] && stages=("$@")
 passed=() failed=()
 
@@ -82,6 +83,28 @@ rust_tests() {
     return $rc
 }
 
+# The kernels' tests and `flame info` on this CPU with AVX-512, VNNI and BF16 hidden from cpuid
+# (tools/avx2_only.sh): the dispatch of an AVX2-only CPU, without FLAME_KERNEL.
+avx2_only_view() {
+    if ! grep -qw cpuid_fault /proc/cpuinfo; then
+        echo "avx2-only: this CPU offers no CPUID faulting, so AVX-512 cannot be hidden; skipped"
+        return 0
+    fi
+    local target="${CARGO_TARGET_DIR:-$ROOT/target}"
+    CARGO_TARGET_X86_64_UNKNOWN_LINUX_GNU_RUNNER="$ROOT/tools/avx2_only.sh" \
+        cargo test --lib kernels || return 1
+    cargo build --quiet --bin flame || return 1
+    local info
+    info=$(tools/avx2_only.sh "$target/debug/flame" info tests/fixtures/flame_tiny.safetensors) || return 1
+    echo "$info" | grep -E '^(kernel|--weights):'
+    echo "$info" | grep -q '^kernel: *avx2 ' &&
+        echo "$info" | grep -q 'bf16-compute no (needs AVX512_BF16' &&
+        echo "$info" | grep -q 'int8 yes (vpmaddubsw, AVX2' || {
+        echo "avx2-only: flame info does not show the AVX2 dispatch" >&2
+        return 1
+    }
+}
+
 fuzz_smoke() {
     local seconds="${FLAME_FUZZ_SECONDS:-20}"
     if [ "$seconds" = 0 ]; then
@@ -96,12 +119,13 @@ for stage in "${stages[@]}"; do
         fmt) run_stage fmt cargo fmt --all --check ;;
         clippy) run_stage clippy cargo clippy --workspace --all-targets -- -D warnings ;;
         rust) run_stage rust rust_tests ;;
+        avx2-only) run_stage avx2-only avx2_only_view ;;
         c) run_stage c bash tests/c/run.sh ;;
         bindings) run_stage bindings bash tests/bindings/run_all.sh ;;
         bvh) run_stage bvh bash tools/bvh_roundtrip.sh ;;
         gltf) run_stage gltf bash tools/gltf_check.sh ;;
         fuzz) [ -f tools/fuzz.sh ] && run_stage fuzz fuzz_smoke ;;
-        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust c bindings bvh gltf fuzz)" >&2
+        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust avx2-only c bindings bvh gltf fuzz)" >&2
            failed+=("$stage") ;;
     esac
 done

@@ -1045,7 +1045,7 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     println!(
         "                accuracy vs f32 on the demo model (features after 10 steps, max/mean): \
          f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.056/0.0011, int8 0.44/0.013 \
-         (AVX2 path 0.60/0.025)"
+         (the same on AVX-VNNI; the vpmaddubsw AVX2 path 0.60/0.025)"
     );
     println!(
         "motion:         {} ({} features per frame, {} fps, at most {} frames)",

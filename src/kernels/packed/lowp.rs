@@ -1,6 +1,7 @@
 //! Linear layers computed in reduced precision (opt-in load options): products of bf16 pairs
 //! accumulated in f32 (`vdpbf16ps`, AVX512_BF16) and products of 8-bit integers accumulated in
-//! 32-bit integers (`vpdpbusd` with AVX512_VNNI, `vpmaddubsw` + `vpmaddwd` on plain AVX2).
+//! 32-bit integers (`vpdpbusd` with AVX512_VNNI or AVX-VNNI, `vpmaddubsw` + `vpmaddwd` on plain
+//! AVX2).
 //!
 //! - **bf16 compute** ([`WeightType::Bf16Compute`]): weights rounded to bf16 at load; each call
 //!   rounds its activations to bf16 (nearest even). Panel `j`, pair row `q` holds for each of
@@ -62,11 +63,39 @@ pub(crate) fn has_int8_dot() -> bool {
     false
 }
 
+/// Whether this CPU has the VEX-encoded `vpdpbusd` on 256 bits (AVX-VNNI: Intel since Alder
+/// Lake, AMD since Zen 5), with the AVX2 kernel's needs.
+pub(crate) fn has_avx_vnni() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        Isa::Avx2.supported() && is_x86_feature_detected!("avxvnni")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// Whether this CPU runs the EVEX twin of the AVX-VNNI tile (the same instruction on 256 bits,
+/// encoded for AVX512_VNNI + AVX512VL): how the tile's code is tested on a CPU without
+/// AVX-VNNI. Never chosen by the dispatch.
+fn has_avx_vnni_twin() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        Isa::Avx2.supported()
+            && is_x86_feature_detected!("avx512vnni")
+            && is_x86_feature_detected!("avx512vl")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
 /// Which int8 tile a call runs and so how it quantises its activations.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Int8Path {
     /// `vpdpbusd` (AVX-512 kernel with AVX512_VNNI): 127 levels.
     Vnni,
+    /// `vpdpbusd` on 256 bits, VEX-encoded (AVX-VNNI, with either kernel when the CPU lacks
+    /// AVX512_VNNI): 127 levels, the same integers and bits as `Vnni`.
+    AvxVnni,
     /// `vpmaddubsw` + `vpmaddwd` (AVX2, or AVX-512 without VNNI): 63 levels, saturation-free.
     Avx2,
     /// The exact portable tile: 127 levels, as VNNI (the same bits).
@@ -77,6 +106,7 @@ impl Int8Path {
     pub(crate) fn for_kernel(isa: Isa) -> Int8Path {
         match isa {
             Isa::Avx512 if has_int8_dot() => Int8Path::Vnni,
+            Isa::Avx512 | Isa::Avx2 if has_avx_vnni() => Int8Path::AvxVnni,
             Isa::Avx512 | Isa::Avx2 if Isa::Avx2.supported() => Int8Path::Avx2,
             _ => Int8Path::Portable,
         }
@@ -94,6 +124,7 @@ impl Int8Path {
     pub(crate) fn name(self) -> &'static str {
         match self {
             Int8Path::Vnni => "vpdpbusd, AVX512_VNNI",
+            Int8Path::AvxVnni => "vpdpbusd on 256 bits, AVX-VNNI",
             Int8Path::Avx2 => "vpmaddubsw, AVX2; activations in 63 levels",
             Int8Path::Portable => "portable",
         }
@@ -313,7 +344,7 @@ fn linear_with(
     let (k, n, ty) = (w.k, w.n, w.ty);
     let s = steps(ty, k);
     let tiles = m.div_ceil(MR512);
-    let int8 = Int8Path::for_kernel(isa);
+    let int8 = forced_int8_path().unwrap_or_else(|| Int8Path::for_kernel(isa));
     convert(ty, int8.levels(), x, m, k, s, words, scales);
     let job = Job {
         native: isa == Isa::Avx512 && has_bf16_dot(),
@@ -330,6 +361,51 @@ fn linear_with(
     split_work(tiles, n.div_ceil(NR), m * k * n, |t0, t1, j0, j1| {
         job.run(t0, t1, j0, j1)
     });
+}
+
+#[cfg(test)]
+thread_local! {
+    /// The int8 tile a test asks for on this thread, whatever the kernel would pick.
+    static FORCED_INT8: std::cell::Cell<Option<Int8Path>> = const { std::cell::Cell::new(None) };
+}
+
+#[cfg(test)]
+fn forced_int8_path() -> Option<Int8Path> {
+    FORCED_INT8.with(|f| f.get())
+}
+
+#[cfg(test)]
+impl Int8Path {
+    const ALL: [Int8Path; 4] = [
+        Int8Path::Vnni,
+        Int8Path::AvxVnni,
+        Int8Path::Avx2,
+        Int8Path::Portable,
+    ];
+
+    /// Whether this CPU runs the path's tile (`AvxVnni` through its EVEX twin without AVX-VNNI).
+    fn runs_here(self) -> bool {
+        match self {
+            Int8Path::Vnni => has_int8_dot(),
+            Int8Path::AvxVnni => has_avx_vnni() || has_avx_vnni_twin(),
+            Int8Path::Avx2 => Isa::Avx2.supported(),
+            Int8Path::Portable => true,
+        }
+    }
+
+    /// `f` with every int8 call made on this thread running this path's tile.
+    fn forced<R>(self, f: impl FnOnce() -> R) -> R {
+        assert!(self.runs_here(), "{self:?} does not run here");
+        let before = FORCED_INT8.with(|c| c.replace(Some(self)));
+        let r = f();
+        FORCED_INT8.with(|c| c.set(before));
+        r
+    }
+}
+
+#[cfg(not(test))]
+fn forced_int8_path() -> Option<Int8Path> {
+    None
 }
 
 /// Converts `x [m, k]` into words laid out tile by tile: word `(t·s + q)·12 + i` is step `q`
@@ -489,12 +565,24 @@ impl Job<'_> {
             rscale[..rows].copy_from_slice(&self.row_scales[t * MR512..t * MR512 + rows]);
             let scales = (&colsum, &wscale, bias);
             let (a, b) = (a.as_ptr(), b.as_ptr());
-            // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `Avx2`
-            // only when it has avx2 and fma; the slices hold s·12 and s·NR words.
+            // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `AvxVnni`
+            // only when it has avx2, fma and a 256-bit `vpdpbusd`, `Avx2` only when it has avx2
+            // and fma; the slices hold s·12 and s·NR words.
             unsafe {
                 match self.int8 {
                     Int8Path::Vnni => avx512::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
-                    _ => avx2::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
+                    Int8Path::AvxVnni => avx2::tile_int8_scaled(
+                        avx2::vnni_tile(),
+                        self.s,
+                        a,
+                        b,
+                        scales,
+                        &rscale,
+                        tile,
+                    ),
+                    _ => {
+                        avx2::tile_int8_scaled(avx2::tile_int8, self.s, a, b, scales, &rscale, tile)
+                    }
                 }
             };
             return;
@@ -506,10 +594,15 @@ impl Job<'_> {
             let mut sums = [0i32; MR512 * NR];
             #[cfg(target_arch = "x86_64")]
             let done = match self.int8 {
-                // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni, `Avx2`
-                // only when it has avx2; the slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
+                // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni,
+                // `AvxVnni` only when it has a 256-bit `vpdpbusd`, `Avx2` only when it has avx2;
+                // the slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
                 Int8Path::Vnni => {
                     unsafe { avx512::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    true
+                }
+                Int8Path::AvxVnni => {
+                    unsafe { avx2::vnni_tile()(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
                     true
                 }
                 Int8Path::Avx2 => {
@@ -852,13 +945,19 @@ mod avx2 {
         }
     }
 
-    /// [`tile_int8`] and the epilogue in one, as `avx512::tile_int8_scaled` (the same
-    /// operations, so the same bits as the scalar epilogue).
+    /// An int8 tile: the exact sums of `s` quads for the 12 rows × [`NR`] columns.
+    pub(super) type Int8Tile = unsafe fn(usize, *const u32, *const u32, &mut [i32; MR512 * NR]);
+
+    /// `sums` (one of this module's int8 tiles) and the epilogue in one, as
+    /// `avx512::tile_int8_scaled` (the same operations, so the same bits as the scalar
+    /// epilogue).
     ///
     /// # Safety
-    /// The CPU supports avx2 and fma; as [`tile_int8`]; `s` at most `INT8_BLOCK`.
+    /// The CPU supports avx2, fma and what `sums` needs; as [`tile_int8`]; `s` at most
+    /// `INT8_BLOCK`.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn tile_int8_scaled(
+        sums_of: Int8Tile,
         s: usize,
         a: *const u32,
         b: *const u32,
@@ -869,7 +968,7 @@ mod avx2 {
         let mut sums = [0i32; MR512 * NR];
         // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
         unsafe {
-            tile_int8(s, a, b, &mut sums);
+            sums_of(s, a, b, &mut sums);
             for h in 0..2 {
                 let offset = _mm256_loadu_si256(offset.as_ptr().add(8 * h) as *const _);
                 let ws = _mm256_loadu_ps(wscale.as_ptr().add(8 * h));
@@ -920,6 +1019,74 @@ mod avx2 {
             }
         }
     }
+
+    /// Rows per pass of the 256-bit `vpdpbusd` tile: 12 accumulators, two panel vectors and
+    /// the broadcast word fill 15 of the 16 registers.
+    const VNNI_ROWS: usize = 6;
+
+    /// The 256-bit `vpdpbusd` tile, once per encoding: `vpdpbusd` adds each column's four
+    /// unsigned × signed byte products into its 32-bit lane, so activations keep 127 levels and
+    /// the sums are `avx512::tile_int8`'s.
+    macro_rules! vnni256_tile {
+        ($name:ident, $features:literal, $dot:ident) => {
+            /// # Safety
+            #[doc = concat!("The CPU supports ", $features, "; `a` readable for `s·12` words,")]
+            /// `b` for `s·NR`.
+            #[target_feature(enable = $features)]
+            pub(super) unsafe fn $name(
+                s: usize,
+                a: *const u32,
+                b: *const u32,
+                sums: &mut [i32; MR512 * NR],
+            ) {
+                // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores
+                // inside sums.
+                unsafe {
+                    for r0 in (0..MR512).step_by(VNNI_ROWS) {
+                        let mut acc = [[_mm256_setzero_si256(); 2]; VNNI_ROWS];
+                        for q in 0..s {
+                            let bq = b.add(q * NR) as *const __m256i;
+                            let (b0, b1) = (_mm256_loadu_si256(bq), _mm256_loadu_si256(bq.add(1)));
+                            let aq = a.add(q * MR512 + r0);
+                            for (i, v) in acc.iter_mut().enumerate() {
+                                let ai = _mm256_set1_epi32(*aq.add(i) as i32);
+                                v[0] = $dot(v[0], ai, b0);
+                                v[1] = $dot(v[1], ai, b1);
+                            }
+                        }
+                        for (i, v) in acc.iter().enumerate() {
+                            let out = sums.as_mut_ptr().add((r0 + i) * NR) as *mut __m256i;
+                            _mm256_storeu_si256(out, v[0]);
+                            _mm256_storeu_si256(out.add(1), v[1]);
+                        }
+                    }
+                }
+            }
+        };
+    }
+
+    vnni256_tile!(tile_int8_avx_vnni, "avx2,avxvnni", _mm256_dpbusd_avx_epi32);
+    // The same tile encoded for AVX512_VNNI + AVX512VL, so that its code runs (in tests) on
+    // CPUs without AVX-VNNI.
+    vnni256_tile!(
+        tile_int8_avx_vnni_twin,
+        "avx2,avx512vnni,avx512vl",
+        _mm256_dpbusd_epi32
+    );
+
+    /// The 256-bit `vpdpbusd` tile this CPU runs: the VEX encoding where it has AVX-VNNI, else
+    /// the EVEX twin (reached only by tests that ask for the `AvxVnni` path).
+    pub(super) fn vnni_tile() -> Int8Tile {
+        if super::has_avx_vnni() {
+            tile_int8_avx_vnni
+        } else {
+            assert!(
+                super::has_avx_vnni_twin(),
+                "no 256-bit vpdpbusd on this CPU"
+            );
+            tile_int8_avx_vnni_twin
+        }
+    }
 }
 
 #[cfg(test)]
@@ -927,6 +1094,7 @@ mod tests {
     use super::super::linear_packed_on;
     use super::*;
     use crate::kernels::testutil::{in_pool, same_bits, Rng};
+    use std::collections::BTreeSet;
 
     /// Shapes with odd `k` (a half-filled pair or quad), edge tiles in both directions, one
     /// tile and several M blocks, and a `k` long enough for a few blocks of f32 rounding.
@@ -1086,16 +1254,14 @@ mod tests {
         }
     }
 
-    /// Int8 on every kernel the CPU runs (VNNI, AVX2, portable) and any thread count: the
-    /// result is the exact integer dot product of the values quantised by hand (weights in 127
-    /// levels, activations in the kernel's: 127, or 63 on AVX2), scaled, bit for bit; VNNI and
+    /// Int8 on every tile the CPU runs (VNNI, the 256-bit `vpdpbusd` in either encoding, AVX2,
+    /// portable; the others printed as skipped) and any thread count: the result is the exact
+    /// integer dot product of the values quantised by hand (weights in 127 levels, activations
+    /// in the tile's: 127, or 63 on AVX2), scaled, bit for bit; the 127-level tiles and
     /// portable are the same bits; every result is within the quantisation error of f32.
     #[test]
     fn int8_is_exact_on_the_quantised_values_on_every_kernel() {
-        if !has_int8_dot() {
-            eprintln!("AVX512_VNNI not supported by this CPU: the VNNI int8 tile did not run");
-        }
-        let mut ran = std::collections::BTreeSet::new();
+        let (mut ran, mut skipped) = (BTreeSet::new(), BTreeSet::new());
         for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
             let (x, w, b) = data(m, k, n, 200 + s as u64);
             let portable = run(
@@ -1131,22 +1297,41 @@ mod tests {
                         .collect::<Vec<_>>(),
                 )
             };
-            for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
-                let path = Int8Path::for_kernel(isa);
-                ran.insert(format!("{path:?}"));
+            for path in Int8Path::ALL {
+                if !path.runs_here() {
+                    skipped.insert(format!("{path:?}"));
+                    continue;
+                }
+                ran.insert(match path {
+                    Int8Path::AvxVnni if !has_avx_vnni() => "AvxVnni (EVEX twin)".to_string(),
+                    _ => format!("{path:?}"),
+                });
                 let levels = path.levels() as f32;
-                let got = run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None);
+                let int8 = || {
+                    path.forced(|| {
+                        run(
+                            Isa::Portable,
+                            WeightType::Int8,
+                            &x,
+                            &w,
+                            &b,
+                            m,
+                            k,
+                            n,
+                            Activation::None,
+                        )
+                    })
+                };
+                let got = int8();
                 for threads in [2, 3] {
-                    let again = in_pool(threads, || {
-                        run(isa, WeightType::Int8, &x, &w, &b, m, k, n, Activation::None)
-                    });
+                    let again = in_pool(threads, int8);
                     assert!(
                         same_bits(&again, &got),
-                        "{m}x{k}x{n} {isa:?} {threads} threads"
+                        "{m}x{k}x{n} {path:?} {threads} threads"
                     );
                 }
                 if path != Int8Path::Avx2 {
-                    assert!(same_bits(&got, &portable), "{m}x{k}x{n} {isa:?}");
+                    assert!(same_bits(&got, &portable), "{m}x{k}x{n} {path:?}");
                 }
                 for i in 0..m {
                     let (sa, qa) = q(&x[i * k..(i + 1) * k], levels);
@@ -1175,7 +1360,11 @@ mod tests {
                 }
             }
         }
-        eprintln!("int8 tiles run: {ran:?}");
+        eprintln!("int8 tiles run: {ran:?}; not supported by this CPU, skipped: {skipped:?}");
+        // Every kernel this CPU runs picks a tile that runs here.
+        for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+            assert!(Int8Path::for_kernel(isa).runs_here(), "{isa:?}");
+        }
     }
 
     /// The AVX2 activation quantiser gives the portable one's bytes and scale: every length

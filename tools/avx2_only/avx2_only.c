@@ -1,0 +1,92 @@
+/* Run a process as if its CPU had AVX2 + FMA + F16C and nothing wider: a preloaded library that
+ * hides AVX-512 (every subset), AVX512_BF16/FP16, VNNI (AVX-512 and VEX) and AMX from the
+ * `cpuid` instruction, so every library in the process (libflame's dispatch, ONNX Runtime's
+ * MLAS, PyTorch's oneDNN and MKL) picks its AVX2 code, on the same hardware.
+ *
+ * How: Linux's CPUID faulting (`arch_prctl(ARCH_SET_CPUID, 0)`, needs the `cpuid_fault` CPU
+ * flag) makes `cpuid` raise SIGSEGV; the handler runs the real instruction with faulting off
+ * for that one instruction, clears the bits and steps over it. The setting is per thread and
+ * inherited by threads and forks made later, so it is set once, before the program's own code.
+ *
+ * Only the process's view changes: the CPU still runs at Zen 4 (or whatever) speed per AVX2
+ * instruction, so this stands in for an AVX2-only CPU's instruction set, not for its timing.
+ *
+ *   gcc -O2 -shared -fPIC -o avx2_only.so avx2_only.c
+ *   LD_PRELOAD=$PWD/avx2_only.so COMMAND...      (tools/avx2_only.sh does both)
+ *
+ * AVX2_ONLY_VERBOSE=1 reports on stderr whether it took effect. */
+#define _GNU_SOURCE
+#include <asm/prctl.h>
+#include <signal.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/syscall.h>
+#include <ucontext.h>
+#include <unistd.h>
+
+static long set_cpuid(int on) { return syscall(SYS_arch_prctl, ARCH_SET_CPUID, on); }
+
+static void real_cpuid(uint32_t leaf, uint32_t sub, uint32_t r[4]) {
+    __asm__ volatile("cpuid" : "=a"(r[0]), "=b"(r[1]), "=c"(r[2]), "=d"(r[3]) : "a"(leaf), "c"(sub));
+}
+
+/* Leaf 7 bits that an AVX2-only CPU does not set (Intel SDM vol. 2A, CPUID). */
+#define BIT(n) (1u << (n))
+static const uint32_t L7_EBX = BIT(16) | BIT(17) | BIT(21) | BIT(26) | BIT(27) | BIT(28) |
+                               BIT(30) | BIT(31); /* AVX512 F DQ IFMA PF ER CD BW VL */
+static const uint32_t L7_ECX = BIT(1) | BIT(6) | BIT(11) | BIT(12) |
+                               BIT(14); /* AVX512 VBMI VBMI2 VNNI BITALG VPOPCNTDQ */
+static const uint32_t L7_EDX = BIT(2) | BIT(3) | BIT(8) | BIT(22) | BIT(23) | BIT(24) |
+                               BIT(25); /* 4VNNIW 4FMAPS VP2INTERSECT AMX-BF16 FP16 AMX-TILE AMX-INT8 */
+static const uint32_t L7_1_EAX = BIT(4) | BIT(5) | BIT(21) | BIT(22) |
+                                 BIT(23); /* AVX-VNNI AVX512_BF16 AMX-FP16 HRESET AVX-IFMA */
+
+static void mask(uint32_t leaf, uint32_t sub, uint32_t r[4]) {
+    if (leaf == 7 && sub == 0) {
+        r[1] &= ~L7_EBX;
+        r[2] &= ~L7_ECX;
+        r[3] &= ~L7_EDX;
+    } else if (leaf == 7 && sub == 1) {
+        r[0] &= ~L7_1_EAX;
+    } else if (leaf == 0xd && sub == 0) {
+        r[0] &= ~(BIT(5) | BIT(6) | BIT(7) | BIT(17) | BIT(18)); /* opmask, ZMM, AMX states */
+    }
+}
+
+static void on_segv(int sig, siginfo_t *info, void *ctx) {
+    ucontext_t *uc = ctx;
+    greg_t *g = uc->uc_mcontext.gregs;
+    const unsigned char *ip = (const unsigned char *)g[REG_RIP];
+    if (ip[0] != 0x0f || ip[1] != 0xa2) {
+        /* A real fault: let it kill the process as it would have. */
+        signal(sig, SIG_DFL);
+        (void)info;
+        return;
+    }
+    uint32_t leaf = (uint32_t)g[REG_RAX], sub = (uint32_t)g[REG_RCX], r[4];
+    set_cpuid(1);
+    real_cpuid(leaf, sub, r);
+    set_cpuid(0);
+    mask(leaf, sub, r);
+    g[REG_RAX] = r[0];
+    g[REG_RBX] = r[1];
+    g[REG_RCX] = r[2];
+    g[REG_RDX] = r[3];
+    g[REG_RIP] += 2;
+}
+
+__attribute__((constructor)) static void avx2_only(void) {
+    int verbose = getenv("AVX2_ONLY_VERBOSE") && strcmp(getenv("AVX2_ONLY_VERBOSE"), "1") == 0;
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_sigaction = on_segv;
+    sa.sa_flags = SA_SIGINFO | SA_NODEFER;
+    sigemptyset(&sa.sa_mask);
+    if (sigaction(SIGSEGV, &sa, NULL) != 0 || set_cpuid(0) != 0) {
+        fprintf(stderr, "avx2_only: CPUID faulting unavailable (no cpuid_fault flag?); nothing hidden\n");
+        return;
+    }
+    if (verbose) fprintf(stderr, "avx2_only: AVX-512, VNNI, BF16 and AMX hidden from cpuid\n");
+}
