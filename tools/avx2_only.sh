@@ -18,7 +18,7 @@ lib="${CARGO_TARGET_DIR:-$root/target}/avx2_only.so"
 src="$root/tools/avx2_only/avx2_only.c"
 if [ ! -f "$lib" ] || [ "$src" -nt "$lib" ]; then
     mkdir -p "$(dirname "$lib")"
-    gcc -O2 -Wall -Wextra -Werror -shared -fPIC -o "$lib" "$src"
+    gcc -O2 -Wall -Wextra -Werror -shared -fPIC -o "$lib" "$src" -ldl
 fi
 export LD_PRELOAD="$lib${LD_PRELOAD:+:$LD_PRELOAD}"
 exec "$@"

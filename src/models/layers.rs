@@ -515,11 +515,50 @@ impl DecoderLayer {
             &mut b.scratch,
         );
         self.norm1.add_norm(x, &b.proj[..rows * e], s.eps);
+        self.cross_attention(x, batch, seq, memory, mem_len, s, b, mem_len == 1);
+        self.norm2.add_norm(x, &b.proj[..rows * e], s.eps);
+        feed_forward(&self.linear1, &self.linear2, &self.norm3, x, rows, s, b);
+    }
+
+    /// The cross-attention's projected output into `b.proj` `[rows, e]`. With one memory row
+    /// (`single_key`: MLD's one-token latent) every query's softmax weight is exactly 1, so
+    /// each query's output is that row's value and the projected row is the same for the
+    /// whole block: it is made once per block, and the query projection is skipped (the same
+    /// bits as the general path: the weighted sum is 1·v, and each output row of a linear
+    /// layer is the same chain of operations whatever the other rows).
+    #[allow(clippy::too_many_arguments)]
+    fn cross_attention(
+        &self,
+        x: &[f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+        single_key: bool,
+    ) {
+        let (e, rows) = (s.width, batch * seq);
         let ca = &self.cross_attn;
-        let q = sized(&mut b.q, rows * e);
-        ca.q.forward(x, rows, q);
         let kv = sized(&mut b.kv, batch * mem_len * 2 * e);
         ca.kv.forward(memory, batch * mem_len, kv);
+        if single_key {
+            let v = sized(&mut b.q, batch * e);
+            for (vi, kvi) in v.chunks_exact_mut(e).zip(kv.chunks_exact(2 * e)) {
+                vi.copy_from_slice(&kvi[e..]);
+            }
+            let once = sized(&mut b.attn, batch * e);
+            ca.out_proj.forward(v, batch, once);
+            let proj = sized(&mut b.proj, rows * e);
+            for (block, o) in proj.chunks_exact_mut(seq * e).zip(once.chunks_exact(e)) {
+                for row in block.chunks_exact_mut(e) {
+                    row.copy_from_slice(o);
+                }
+            }
+            return;
+        }
+        let q = sized(&mut b.q, rows * e);
+        ca.q.forward(x, rows, q);
         let attn = sized(&mut b.attn, rows * e);
         for (i, o) in attn.chunks_exact_mut(seq * e).enumerate() {
             let kv_i = &kv[i * mem_len * 2 * e..(i + 1) * mem_len * 2 * e];
@@ -539,10 +578,8 @@ impl DecoderLayer {
                 o,
             );
         }
-        let proj = sized(&mut b.proj, rows * e);
-        ca.out_proj.forward(attn, rows, proj);
-        self.norm2.add_norm(x, proj, s.eps);
-        feed_forward(&self.linear1, &self.linear2, &self.norm3, x, rows, s, b);
+        ca.out_proj
+            .forward(attn, rows, sized(&mut b.proj, rows * e));
     }
 }
 
@@ -688,6 +725,69 @@ mod tests {
                 first
             );
         }
+    }
+
+    /// With one memory row the cross-attention is made once per block and broadcast; the
+    /// general path (queries, scores, softmax over the one key, weighted value) gives the
+    /// same bits, for every row of every block.
+    #[test]
+    fn cross_attention_over_one_memory_row_is_its_projected_value() {
+        let (e, ff, heads, batch, seq) = (8, 12, 2, 2, 5);
+        let mut t = Vec::new();
+        for (i, (name, shape)) in [
+            ("self_attn.in_proj_weight", vec![3 * e, e]),
+            ("self_attn.in_proj_bias", vec![3 * e]),
+            ("self_attn.out_proj.weight", vec![e, e]),
+            ("self_attn.out_proj.bias", vec![e]),
+            ("multihead_attn.in_proj_weight", vec![3 * e, e]),
+            ("multihead_attn.in_proj_bias", vec![3 * e]),
+            ("multihead_attn.out_proj.weight", vec![e, e]),
+            ("multihead_attn.out_proj.bias", vec![e]),
+            ("linear1.weight", vec![ff, e]),
+            ("linear1.bias", vec![ff]),
+            ("linear2.weight", vec![e, ff]),
+            ("linear2.bias", vec![e]),
+            ("norm1.weight", vec![e]),
+            ("norm1.bias", vec![e]),
+            ("norm2.weight", vec![e]),
+            ("norm2.bias", vec![e]),
+            ("norm3.weight", vec![e]),
+            ("norm3.bias", vec![e]),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let n = shape.iter().product();
+            t.push((format!("d.{name}"), shape, values(n, i as f32 * 3.0)));
+        }
+        let named: Vec<(&str, Vec<usize>, Vec<f32>)> = t
+            .iter()
+            .map(|(n, s, v)| (n.as_str(), s.clone(), v.clone()))
+            .collect();
+        let f = file(&named);
+        let layer = DecoderLayer::load(&f, "d", e, ff, WeightType::F32).unwrap();
+        let shape = LayerShape {
+            width: e,
+            heads,
+            ff,
+            act: Activation::Gelu,
+            eps: 1e-5,
+        };
+        let x = values(batch * seq * e, 7.0);
+        let memory = values(batch * e, 9.0);
+        let run = |single_key: bool| {
+            let mut b = LayerBuffers::default();
+            layer.cross_attention(&x, batch, seq, &memory, 1, shape, &mut b, single_key);
+            b.proj[..batch * seq * e].to_vec()
+        };
+        let (general, once) = (run(false), run(true));
+        assert!(general
+            .iter()
+            .zip(&once)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        // The blocks differ (each has its own memory row); the rows of a block do not.
+        assert_ne!(once[..e], once[seq * e..seq * e + e]);
+        assert_eq!(once[..e], once[(seq - 1) * e..seq * e]);
     }
 
     #[test]

@@ -11,12 +11,17 @@
  * Only the process's view changes: the CPU still runs at Zen 4 (or whatever) speed per AVX2
  * instruction, so this stands in for an AVX2-only CPU's instruction set, not for its timing.
  *
- *   gcc -O2 -shared -fPIC -o avx2_only.so avx2_only.c
+ *   gcc -O2 -shared -fPIC -o avx2_only.so avx2_only.c -ldl
  *   LD_PRELOAD=$PWD/avx2_only.so COMMAND...      (tools/avx2_only.sh does both)
+ *
+ * Programs that install their own SIGSEGV handler (rustc does, for stack overflows) keep it:
+ * `sigaction` is wrapped so that their handler is recorded and called for every fault that is
+ * not a `cpuid`, while this one stays installed.
  *
  * AVX2_ONLY_VERBOSE=1 reports on stderr whether it took effect. */
 #define _GNU_SOURCE
 #include <asm/prctl.h>
+#include <dlfcn.h>
 #include <signal.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -55,14 +60,28 @@ static void mask(uint32_t leaf, uint32_t sub, uint32_t r[4]) {
     }
 }
 
+typedef int (*sigaction_fn)(int, const struct sigaction *, struct sigaction *);
+static sigaction_fn real_sigaction;
+/* The program's own SIGSEGV disposition (SIG_DFL until it sets one). */
+static struct sigaction program_segv;
+
 static void on_segv(int sig, siginfo_t *info, void *ctx) {
     ucontext_t *uc = ctx;
     greg_t *g = uc->uc_mcontext.gregs;
     const unsigned char *ip = (const unsigned char *)g[REG_RIP];
-    if (ip[0] != 0x0f || ip[1] != 0xa2) {
-        /* A real fault: let it kill the process as it would have. */
-        signal(sig, SIG_DFL);
-        (void)info;
+    if (info->si_code != SI_KERNEL || ip[0] != 0x0f || ip[1] != 0xa2) {
+        /* A real fault: the program's handler, or the default action (the fault repeats on
+         * return and kills the process as it would have). */
+        if (program_segv.sa_flags & SA_SIGINFO) {
+            program_segv.sa_sigaction(sig, info, ctx);
+        } else if (program_segv.sa_handler != SIG_DFL && program_segv.sa_handler != SIG_IGN) {
+            program_segv.sa_handler(sig);
+        } else {
+            struct sigaction dfl;
+            memset(&dfl, 0, sizeof dfl);
+            dfl.sa_handler = SIG_DFL;
+            real_sigaction(sig, &dfl, NULL);
+        }
         return;
     }
     uint32_t leaf = (uint32_t)g[REG_RAX], sub = (uint32_t)g[REG_RCX], r[4];
@@ -77,14 +96,25 @@ static void on_segv(int sig, siginfo_t *info, void *ctx) {
     g[REG_RIP] += 2;
 }
 
+/* The program sees its own SIGSEGV disposition; every other signal goes through. */
+int sigaction(int sig, const struct sigaction *act, struct sigaction *old) {
+    if (!real_sigaction) real_sigaction = (sigaction_fn)dlsym(RTLD_NEXT, "sigaction");
+    if (sig != SIGSEGV) return real_sigaction(sig, act, old);
+    if (old) *old = program_segv;
+    if (act) program_segv = *act;
+    return 0;
+}
+
 __attribute__((constructor)) static void avx2_only(void) {
     int verbose = getenv("AVX2_ONLY_VERBOSE") && strcmp(getenv("AVX2_ONLY_VERBOSE"), "1") == 0;
+    real_sigaction = (sigaction_fn)dlsym(RTLD_NEXT, "sigaction");
+    program_segv.sa_handler = SIG_DFL;
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
     sa.sa_sigaction = on_segv;
-    sa.sa_flags = SA_SIGINFO | SA_NODEFER;
+    sa.sa_flags = SA_SIGINFO | SA_NODEFER | SA_ONSTACK;
     sigemptyset(&sa.sa_mask);
-    if (sigaction(SIGSEGV, &sa, NULL) != 0 || set_cpuid(0) != 0) {
+    if (!real_sigaction || real_sigaction(SIGSEGV, &sa, NULL) != 0 || set_cpuid(0) != 0) {
         fprintf(stderr, "avx2_only: CPUID faulting unavailable (no cpuid_fault flag?); nothing hidden\n");
         return;
     }
