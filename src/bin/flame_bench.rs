@@ -101,6 +101,10 @@ fn gemm_bench(args: &[String]) {
         ("mdm out", 394, 512, 512),
         ("mdm ffn up", 394, 512, 1024),
         ("mdm ffn down", 394, 1024, 512),
+        // MoLA at 200 frames: 2 × (51 latent rows + 1 token).
+        ("mola qkv", 104, 512, 1536),
+        ("mola ffn in", 104, 512, 4096),
+        ("mola ffn out", 104, 2048, 512),
         ("text 20x768x3072", 20, 768, 3072),
         ("square 1536", 1536, 1536, 1536),
     ];
@@ -112,7 +116,12 @@ fn gemm_bench(args: &[String]) {
         "  {:<18} {:>16} {:>10} {:>10} {:>10}",
         "shape", "MxKxN", "packed", "cold", "sgemm"
     );
+    // `--only NAME` runs one shape (e.g. under `perf stat`).
+    let only: String = arg(args, "--only", String::new());
     for (name, m, k, n) in shapes {
+        if !only.is_empty() && name != only {
+            continue;
+        }
         let x: Vec<f32> = (0..m * k)
             .map(|i| ((i * 7919) % 1000) as f32 * 1e-3 - 0.5)
             .collect();
@@ -340,7 +349,7 @@ fn main() {
     if path.is_empty() {
         eprintln!(
             "usage: flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] \
-             [--threads 2] [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]\n       flame-bench gemm [--threads 2] [--weights f32]\n       \
+             [--threads 2] [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]\n       flame-bench gemm [--threads 2] [--weights f32] [--only SHAPE]\n       \
              flame-bench peak [--threads 2]\n       \
              flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]\n       \
              flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
