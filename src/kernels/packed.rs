@@ -776,10 +776,14 @@ impl Job<'_> {
                 })),
             };
             let y = self.y.get();
-            if rows == mr && cols == NR {
-                // SAFETY: the tile rows i0..i0+mr and columns c0..c0+NR lie inside y (m×n);
+            // The vector kernels run an edge tile's `rows` rows only; the portable one always
+            // runs MR (its extra rows repeat the last real one and go to the scratch tile).
+            let exact = self.isa != Isa::Portable;
+            let run = if exact { rows } else { mr };
+            if cols == NR && (rows == mr || exact) {
+                // SAFETY: the tile rows i0..i0+rows and columns c0..c0+NR lie inside y (m×n);
                 // a and b point at kc readable steps; this task alone writes the tile.
-                unsafe { self.kernel(ty, kc, a, b, y.add(i0 * n + c0), n, start) };
+                unsafe { self.kernel(ty, kc, run, a, b, y.add(i0 * n + c0), n, start) };
             } else {
                 let mut tile = [0.0f32; MR512 * NR];
                 for i in 0..rows {
@@ -791,8 +795,9 @@ impl Job<'_> {
                         ));
                     }
                 }
-                // SAFETY: the kernel writes mr×NR values into `tile` (ldc NR); a and b as above.
-                unsafe { self.kernel(ty, kc, a, b, tile.as_mut_ptr(), NR, start) };
+                // SAFETY: the kernel writes run×NR ≤ mr×NR values into `tile` (ldc NR); a and b
+                // as above.
+                unsafe { self.kernel(ty, kc, run, a, b, tile.as_mut_ptr(), NR, start) };
                 for i in 0..rows {
                     self.out_row(i0 + i, c0, c0 + cols)
                         .copy_from_slice(&tile[i * NR..i * NR + cols]);
@@ -847,13 +852,14 @@ impl Job<'_> {
     /// # Safety
     /// `a` must be readable for `kc` steps of the kernel's rows (row pointers for the AVX2 and
     /// portable kernels, a packed tile for the AVX-512 one), `b` for `kc` panel rows of type
-    /// `ty`, and `c` writable (and readable unless `start` is given) for `isa.mr()` rows of `NR`
-    /// values at stride `ldc`.
+    /// `ty`, and `c` writable (and readable unless `start` is given) for `rows` rows of `NR`
+    /// values at stride `ldc` (`rows` ≤ `isa.mr()`; the portable kernel always writes MR).
     #[allow(clippy::too_many_arguments)]
     unsafe fn kernel(
         &self,
         ty: WeightType,
         kc: usize,
+        rows: usize,
         a: TileRows,
         b: *const u8,
         c: *mut f32,
@@ -863,15 +869,17 @@ impl Job<'_> {
         let a = match (self.isa, a) {
             #[cfg(target_arch = "x86_64")]
             (Isa::Avx512, TileRows::Packed(a)) => {
+                use avx512::{tile_bf16 as bf16_tile, tile_f16 as f16_tile, tile_f32 as f32_tile};
                 // SAFETY: Avx512 is only chosen when the CPU has avx512f, avx2, fma and f16c;
                 // pointer contracts as documented above.
                 unsafe {
                     match ty {
-                        WeightType::F32 => avx512::tile_f32(kc, a, b as *const f32, c, ldc, start),
-                        WeightType::F16 => avx512::tile_f16(kc, a, b as *const u16, c, ldc, start),
-                        WeightType::Bf16 => {
-                            avx512::tile_bf16(kc, a, b as *const u16, c, ldc, start)
-                        }
+                        WeightType::F32 => with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
+                            f32_tile(kc, a, b as *const f32, c, ldc, start)),
+                        WeightType::F16 => with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
+                            f16_tile(kc, a, b as *const u16, c, ldc, start)),
+                        WeightType::Bf16 => with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
+                            bf16_tile(kc, a, b as *const u16, c, ldc, start)),
                         WeightType::Bf16Compute | WeightType::Int8 => {
                             unreachable!("reduced-precision weights run in packed::lowp")
                         }
@@ -886,13 +894,17 @@ impl Job<'_> {
         match (self.isa, ty) {
             #[cfg(target_arch = "x86_64")]
             (Isa::Avx2, ty) => {
+                use avx2::{tile_bf16 as bf16_tile, tile_f16 as f16_tile, tile_f32 as f32_tile};
                 // SAFETY: Avx2 is only chosen after detecting avx2, fma and f16c (tests force
                 // only the portable kernel); pointer contracts as documented above.
                 unsafe {
                     match ty {
-                        WeightType::F32 => avx2::tile_f32(kc, a, b as *const f32, c, ldc, start),
-                        WeightType::F16 => avx2::tile_f16(kc, a, b as *const u16, c, ldc, start),
-                        WeightType::Bf16 => avx2::tile_bf16(kc, a, b as *const u16, c, ldc, start),
+                        WeightType::F32 => with_rows!(rows; 1 2 3 4 5 6;
+                            f32_tile(kc, a, b as *const f32, c, ldc, start)),
+                        WeightType::F16 => with_rows!(rows; 1 2 3 4 5 6;
+                            f16_tile(kc, a, b as *const u16, c, ldc, start)),
+                        WeightType::Bf16 => with_rows!(rows; 1 2 3 4 5 6;
+                            bf16_tile(kc, a, b as *const u16, c, ldc, start)),
                         WeightType::Bf16Compute | WeightType::Int8 => {
                             unreachable!("reduced-precision weights run in packed::lowp")
                         }
@@ -917,12 +929,28 @@ impl Job<'_> {
                         }
                     })
                 };
+                // The portable kernel runs all MR rows (the caller gives it room for them).
+                let _ = rows;
                 // SAFETY: forwarded contract.
                 unsafe { portable_tile(kc, a, tile, c, ldc, start) }
             }
         }
     }
 }
+
+/// Calls the const-generic micro-kernel `$f::<R>` with `R = $rows`, one of the listed counts:
+/// an edge tile of R rows runs R rows of multiply-adds, not the full tile's.
+#[cfg(target_arch = "x86_64")]
+macro_rules! with_rows {
+    ($rows:expr; $($r:literal)+; $f:ident $args:tt) => {
+        match $rows {
+            $($r => $f::<$r> $args,)+
+            r => unreachable!("a tile of {r} rows"),
+        }
+    };
+}
+#[cfg(target_arch = "x86_64")]
+use with_rows;
 
 /// The portable micro-kernel: `c[MR×NR] (+)= a · b` with multiply-then-add chains.
 ///
@@ -972,12 +1000,14 @@ mod avx2 {
 
     macro_rules! tile_kernel {
         ($name:ident, $elem:ty, |$b:ident, $p:ident| $load:expr) => {
-            /// `c[MR×NR] (+)= a · b` over `kc` steps (see `Job::kernel` for the contract).
+            /// `c[R×NR] (+)= a · b` over `kc` steps, rows `a[..R]` (`R ≤ MR`; see
+            /// `Job::kernel` for the contract).
             ///
             /// # Safety
-            /// The CPU supports avx2, fma and f16c; pointer contract of `Job::kernel`.
+            /// The CPU supports avx2, fma and f16c; pointer contract of `Job::kernel` for `R`
+            /// rows.
             #[target_feature(enable = "avx2,fma,f16c")]
-            pub(super) unsafe fn $name(
+            pub(super) unsafe fn $name<const R: usize>(
                 kc: usize,
                 a: &[*const f32; MR],
                 $b: *const $elem,
@@ -988,8 +1018,8 @@ mod avx2 {
                 // SAFETY (whole body): every load/store is unaligned-tolerant and stays inside
                 // the ranges the contract grants: a[i][..kc], b[..kc·NR], c rows of NR values.
                 unsafe {
-                    let mut acc = [_mm256_setzero_ps(); 2 * MR];
-                    for i in 0..MR {
+                    let mut acc = [[_mm256_setzero_ps(); 2]; R];
+                    for (i, v) in acc.iter_mut().enumerate() {
                         let (lo, hi) = match start {
                             Some(s) => (
                                 _mm256_loadu_ps(s.as_ptr()),
@@ -1000,20 +1030,19 @@ mod avx2 {
                                 _mm256_loadu_ps(c.add(i * ldc + 8)),
                             ),
                         };
-                        acc[2 * i] = lo;
-                        acc[2 * i + 1] = hi;
+                        *v = [lo, hi];
                     }
                     for $p in 0..kc {
                         let (b0, b1): (__m256, __m256) = $load;
-                        for i in 0..MR {
+                        for (i, v) in acc.iter_mut().enumerate() {
                             let ai = _mm256_broadcast_ss(&*a[i].add($p));
-                            acc[2 * i] = _mm256_fmadd_ps(ai, b0, acc[2 * i]);
-                            acc[2 * i + 1] = _mm256_fmadd_ps(ai, b1, acc[2 * i + 1]);
+                            v[0] = _mm256_fmadd_ps(ai, b0, v[0]);
+                            v[1] = _mm256_fmadd_ps(ai, b1, v[1]);
                         }
                     }
-                    for i in 0..MR {
-                        _mm256_storeu_ps(c.add(i * ldc), acc[2 * i]);
-                        _mm256_storeu_ps(c.add(i * ldc + 8), acc[2 * i + 1]);
+                    for (i, v) in acc.iter().enumerate() {
+                        _mm256_storeu_ps(c.add(i * ldc), v[0]);
+                        _mm256_storeu_ps(c.add(i * ldc + 8), v[1]);
                     }
                 }
             }
@@ -1079,13 +1108,14 @@ mod avx512 {
 
     macro_rules! tile_kernel {
         ($name:ident, $elem:ty, |$b:ident, $p:ident| $load:expr) => {
-            /// `c[12×NR] (+)= a · b` over `kc` steps, `a` a tile of a `RowBlock`.
+            /// `c[R×NR] (+)= a · b` over `kc` steps, `a` a tile of a `RowBlock` (its first
+            /// `R ≤ 12` rows).
             ///
             /// # Safety
             /// The CPU supports avx512f, avx2, fma and f16c; `a` readable for `kc · 12`
-            /// values, `b` for `kc` panel rows, `c` as in `Job::kernel`.
+            /// values, `b` for `kc` panel rows, `c` as in `Job::kernel` for `R` rows.
             #[target_feature(enable = "avx512f,avx2,fma,f16c")]
-            pub(super) unsafe fn $name(
+            pub(super) unsafe fn $name<const R: usize>(
                 kc: usize,
                 a: *const f32,
                 $b: *const $elem,
@@ -1096,7 +1126,7 @@ mod avx512 {
                 // SAFETY (whole body): every load/store is unaligned-tolerant and stays inside
                 // the ranges the contract grants.
                 unsafe {
-                    let mut acc = [_mm512_setzero_ps(); MR512];
+                    let mut acc = [_mm512_setzero_ps(); R];
                     for (i, v) in acc.iter_mut().enumerate() {
                         *v = match start {
                             Some(s) => _mm512_loadu_ps(s.as_ptr()),
