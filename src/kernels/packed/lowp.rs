@@ -1264,17 +1264,21 @@ mod tests {
         let (mut ran, mut skipped) = (BTreeSet::new(), BTreeSet::new());
         for (s, &(m, k, n)) in SHAPES.iter().enumerate() {
             let (x, w, b) = data(m, k, n, 200 + s as u64);
-            let portable = run(
-                Isa::Portable,
-                WeightType::Int8,
-                &x,
-                &w,
-                &b,
-                m,
-                k,
-                n,
-                Activation::None,
-            );
+            // Int8 on the tile the kernel (or `Int8Path::forced`) picks.
+            let int8 = || {
+                run(
+                    Isa::Portable,
+                    WeightType::Int8,
+                    &x,
+                    &w,
+                    &b,
+                    m,
+                    k,
+                    n,
+                    Activation::None,
+                )
+            };
+            let portable = int8();
             let f32y = run(
                 Isa::Portable,
                 WeightType::F32,
@@ -1307,24 +1311,10 @@ mod tests {
                     _ => format!("{path:?}"),
                 });
                 let levels = path.levels() as f32;
-                let int8 = || {
-                    path.forced(|| {
-                        run(
-                            Isa::Portable,
-                            WeightType::Int8,
-                            &x,
-                            &w,
-                            &b,
-                            m,
-                            k,
-                            n,
-                            Activation::None,
-                        )
-                    })
-                };
-                let got = int8();
+                let on_path = || path.forced(int8);
+                let got = on_path();
                 for threads in [2, 3] {
-                    let again = in_pool(threads, int8);
+                    let again = in_pool(threads, on_path);
                     assert!(
                         same_bits(&again, &got),
                         "{m}x{k}x{n} {path:?} {threads} threads"
