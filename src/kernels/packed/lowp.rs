@@ -140,11 +140,6 @@ pub(super) fn steps(ty: WeightType, k: usize) -> usize {
     }
 }
 
-/// A bf16 pair as one word, `lo` in the low half.
-fn bf16_pair(lo: f32, hi: f32) -> u32 {
-    bf16::from_f32(lo).to_bits() as u32 | (bf16::from_f32(hi).to_bits() as u32) << 16
-}
-
 /// Rounds one activation row to bf16 bits in `bits` (`2·s` of them, zero past the row's end),
 /// as `half`'s `bf16::from_f32` does (nearest even; NaN kept quiet); the AVX2 version computes
 /// the same bits.
@@ -230,46 +225,38 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
     let words: &mut [u32] = unsafe {
         std::slice::from_raw_parts_mut(p.lines.as_mut_ptr() as *mut u32, panels * s * NR)
     };
-    let at = |col: usize, i: usize| {
-        if col < n && i < k {
-            w[col * k + i]
-        } else {
-            0.0
-        }
-    };
-    match ty {
-        WeightType::Bf16Compute => {
-            for j in 0..panels {
-                for q in 0..s {
-                    for c in 0..NR {
-                        let col = j * NR + c;
-                        words[(j * s + q) * NR + c] = bf16_pair(at(col, 2 * q), at(col, 2 * q + 1));
-                    }
+    // Each column (a row of `w`) is converted as an activation row is, 8 values at a time
+    // where the CPU has AVX2, then its words go to their panel; columns past `n` stay zero.
+    if ty == WeightType::Int8 {
+        p.scales = vec![0.0; n];
+        p.colsum = vec![0; n];
+    }
+    let mut row = vec![0u32; s];
+    for col in 0..n {
+        let src = &w[col * k..(col + 1) * k];
+        // SAFETY: the s words are 4·s initialised bytes, aligned for u8 and u16; each view
+        // lives only for its call.
+        let ptr = row.as_mut_ptr();
+        match ty {
+            WeightType::Bf16Compute => bf16_row(src, unsafe {
+                std::slice::from_raw_parts_mut(ptr as *mut u16, 2 * s)
+            }),
+            _ => {
+                let bytes = unsafe { std::slice::from_raw_parts_mut(ptr as *mut u8, 4 * s) };
+                // The activations' quantiser at 127 levels gives `v + 128` for the weights'
+                // `v = round(W / s_w)` (the same scale and rounding; 128, i.e. 0, past `k` and
+                // for a column that is not finite, whose scale is NaN).
+                p.scales[col] = quantize_row(src, 127, bytes);
+                let offset: i32 = bytes.iter().map(|&b| b as i32).sum();
+                p.colsum[col] = offset - 128 * bytes.len() as i32;
+                for b in bytes.iter_mut() {
+                    *b ^= 0x80;
                 }
             }
         }
-        _ => {
-            p.scales = (0..n)
-                .map(|c| scale_of(&w[c * k..(c + 1) * k], 127))
-                .collect();
-            p.colsum = vec![0; n];
-            for j in 0..panels {
-                for q in 0..s {
-                    for c in 0..NR {
-                        let col = j * NR + c;
-                        let inv = if col < n { inverse(p.scales[col]) } else { 0.0 };
-                        let mut bytes = [0u8; 4];
-                        for (b, byte) in bytes.iter_mut().enumerate() {
-                            let v = quantize(at(col, 4 * q + b), inv, 127);
-                            if col < n {
-                                p.colsum[col] += v as i32;
-                            }
-                            *byte = v as u8;
-                        }
-                        words[(j * s + q) * NR + c] = u32::from_le_bytes(bytes);
-                    }
-                }
-            }
+        let (j, c) = (col / NR, col % NR);
+        for (q, &word) in row.iter().enumerate() {
+            words[(j * s + q) * NR + c] = u32::from_le(word);
         }
     }
 }
