@@ -214,6 +214,25 @@ fn inverse(scale: f32) -> f32 {
     }
 }
 
+/// Converts one row in place into its `words.len()` little-endian words: bf16 pairs, or bytes
+/// quantised to `levels` and offset by `levels + 1` (the row's scale is returned; 0 for bf16).
+fn convert_row(ty: WeightType, row: &[f32], levels: i32, words: &mut [u32]) -> f32 {
+    let (p, s) = (words.as_mut_ptr(), words.len());
+    // SAFETY: the s words are 4·s initialised bytes, aligned for u8 and u16; each view lives
+    // only for its call.
+    match ty {
+        WeightType::Bf16Compute => {
+            bf16_row(row, unsafe {
+                std::slice::from_raw_parts_mut(p as *mut u16, 2 * s)
+            });
+            0.0
+        }
+        _ => quantize_row(row, levels, unsafe {
+            std::slice::from_raw_parts_mut(p as *mut u8, 4 * s)
+        }),
+    }
+}
+
 /// Packs `w` (`[n, k]`) for a reduced-precision type into `p` (whose `k`, `n`, `ty` are set).
 pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
     let (n, k, ty) = (p.n, p.k, p.ty);
@@ -233,30 +252,23 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
     }
     let mut row = vec![0u32; s];
     for col in 0..n {
-        let src = &w[col * k..(col + 1) * k];
-        // SAFETY: the s words are 4·s initialised bytes, aligned for u8 and u16; each view
-        // lives only for its call.
-        let ptr = row.as_mut_ptr();
-        match ty {
-            WeightType::Bf16Compute => bf16_row(src, unsafe {
-                std::slice::from_raw_parts_mut(ptr as *mut u16, 2 * s)
-            }),
-            _ => {
-                let bytes = unsafe { std::slice::from_raw_parts_mut(ptr as *mut u8, 4 * s) };
-                // The activations' quantiser at 127 levels gives `v + 128` for the weights'
-                // `v = round(W / s_w)` (the same scale and rounding; 128, i.e. 0, past `k` and
-                // for a column that is not finite, whose scale is NaN).
-                p.scales[col] = quantize_row(src, 127, bytes);
-                let offset: i32 = bytes.iter().map(|&b| b as i32).sum();
-                p.colsum[col] = offset - 128 * bytes.len() as i32;
-                for b in bytes.iter_mut() {
-                    *b ^= 0x80;
-                }
-            }
-        }
+        // The activations' quantiser at 127 levels gives `v + 128` for the weights'
+        // `v = round(W / s_w)` (the same scale and rounding; 128, i.e. 0, past `k` and for a
+        // column that is not finite, whose scale is NaN): XOR 0x80 makes the signed bytes.
+        let scale = convert_row(ty, &w[col * k..(col + 1) * k], 127, &mut row);
         let (j, c) = (col / NR, col % NR);
-        for (q, &word) in row.iter().enumerate() {
-            words[(j * s + q) * NR + c] = u32::from_le(word);
+        let mut offset = 0;
+        for (q, word) in row.iter().enumerate() {
+            let mut word = u32::from_le(*word);
+            if ty == WeightType::Int8 {
+                offset += word.to_le_bytes().iter().map(|&b| b as i32).sum::<i32>();
+                word ^= 0x8080_8080;
+            }
+            words[(j * s + q) * NR + c] = word;
+        }
+        if ty == WeightType::Int8 {
+            p.scales[col] = scale;
+            p.colsum[col] = offset - 128 * 4 * s as i32;
         }
     }
 }
@@ -423,21 +435,9 @@ fn convert(
             row_words.resize(s, 0);
             for i in 0..MR512.min(m - t * MR512) {
                 let r = t * MR512 + i;
-                let row = &x[r * k..(r + 1) * k];
-                let p = row_words.as_mut_ptr();
-                // SAFETY: the s words are 4·s initialised bytes, aligned for u8 and u16; each
-                // view lives only for its call.
-                match ty {
-                    WeightType::Bf16Compute => bf16_row(row, unsafe {
-                        std::slice::from_raw_parts_mut(p as *mut u16, 2 * s)
-                    }),
-                    // Past k the weight is 0: the byte adds nothing; the zero point (a zero
-                    // value) keeps the column-sum correction exact.
-                    _ => {
-                        let bytes = unsafe { std::slice::from_raw_parts_mut(p as *mut u8, 4 * s) };
-                        tile_scales[i] = quantize_row(row, levels, bytes)
-                    }
-                }
+                // Past k the weight is 0: the byte adds nothing; the zero point (a zero value)
+                // keeps the column-sum correction exact.
+                tile_scales[i] = convert_row(ty, &x[r * k..(r + 1) * k], levels, row_words);
                 for (q, &w) in row_words.iter().enumerate() {
                     out[q * MR512 + i] = u32::from_le(w);
                 }
