@@ -821,16 +821,11 @@ mod avx512 {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    //! The int8 tile on AVX2: `vpmaddubsw` adds each column's two unsigned × signed byte
-    //! products into a 16-bit lane (activations in 63 levels: at most 2·127·127, no
-    //! saturation), `vpmaddwd` with ones adds the two halves of the quad into 32 bits.
-    //! Four rows at a time: 8 accumulators, two panel vectors, the ones and the temporaries fit
-    //! the 16 registers.
+    //! 256-bit code: the int8 tiles (`vpmaddubsw` on AVX2, `vpdpbusd` on AVX-VNNI), their
+    //! epilogue, and the activations' bf16 rounding and int8 quantisation.
 
     use super::{MR512, NR};
     use std::arch::x86_64::*;
-
-    const ROWS: usize = 4;
 
     /// `super::bf16_row` on 8 values at a time, in integer arithmetic: shifting
     /// `x + 0x7fff + bit16` right by 16 is round to nearest even on the bits (a carry moves
@@ -971,54 +966,13 @@ mod avx2 {
         }
     }
 
-    /// # Safety
-    /// The CPU supports avx2; `a` readable for `s·12` words whose bytes are at most 127, `b`
-    /// for `s·NR`.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn tile_int8(
-        s: usize,
-        a: *const u32,
-        b: *const u32,
-        sums: &mut [i32; MR512 * NR],
-    ) {
-        // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores inside sums.
-        unsafe {
-            let ones = _mm256_set1_epi16(1);
-            for r0 in (0..MR512).step_by(ROWS) {
-                let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
-                for q in 0..s {
-                    let bq = b.add(q * NR) as *const __m256i;
-                    let (b0, b1) = (_mm256_loadu_si256(bq), _mm256_loadu_si256(bq.add(1)));
-                    let aq = a.add(q * MR512 + r0);
-                    for (i, v) in acc.iter_mut().enumerate() {
-                        let ai = _mm256_set1_epi32(*aq.add(i) as i32);
-                        let p0 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b0), ones);
-                        let p1 = _mm256_madd_epi16(_mm256_maddubs_epi16(ai, b1), ones);
-                        v[0] = _mm256_add_epi32(v[0], p0);
-                        v[1] = _mm256_add_epi32(v[1], p1);
-                    }
-                }
-                for (i, v) in acc.iter().enumerate() {
-                    let out = sums.as_mut_ptr().add((r0 + i) * NR) as *mut __m256i;
-                    _mm256_storeu_si256(out, v[0]);
-                    _mm256_storeu_si256(out.add(1), v[1]);
-                }
-            }
-        }
-    }
-
-    /// Rows per pass of the 256-bit `vpdpbusd` tile: 12 accumulators, two panel vectors and
-    /// the broadcast word fill 15 of the 16 registers.
-    const VNNI_ROWS: usize = 6;
-
-    /// The 256-bit `vpdpbusd` tile, once per encoding: `vpdpbusd` adds each column's four
-    /// unsigned × signed byte products into its 32-bit lane, so activations keep 127 levels and
-    /// the sums are `avx512::tile_int8`'s.
-    macro_rules! vnni256_tile {
-        ($name:ident, $features:literal, $dot:ident) => {
+    /// A 256-bit int8 tile: `$rows` rows at a time, two accumulators (16 columns) per row,
+    /// `$dot(acc, activations, weights)` adding each column's four byte products.
+    macro_rules! int8_tile_256 {
+        ($name:ident, $features:literal, $rows:literal, $dot:ident) => {
             /// # Safety
             #[doc = concat!("The CPU supports ", $features, "; `a` readable for `s·12` words,")]
-            /// `b` for `s·NR`.
+            /// `b` for `s·NR` (for `vpmaddubsw`, activation bytes at most 127).
             #[target_feature(enable = $features)]
             pub(super) unsafe fn $name(
                 s: usize,
@@ -1029,8 +983,8 @@ mod avx2 {
                 // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores
                 // inside sums.
                 unsafe {
-                    for r0 in (0..MR512).step_by(VNNI_ROWS) {
-                        let mut acc = [[_mm256_setzero_si256(); 2]; VNNI_ROWS];
+                    for r0 in (0..MR512).step_by($rows) {
+                        let mut acc = [[_mm256_setzero_si256(); 2]; $rows];
                         for q in 0..s {
                             let bq = b.add(q * NR) as *const __m256i;
                             let (b0, b1) = (_mm256_loadu_si256(bq), _mm256_loadu_si256(bq.add(1)));
@@ -1052,12 +1006,36 @@ mod avx2 {
         };
     }
 
-    vnni256_tile!(tile_int8_avx_vnni, "avx2,avxvnni", _mm256_dpbusd_avx_epi32);
+    /// `vpmaddubsw` adds each column's two unsigned × signed byte products into a 16-bit lane
+    /// (activations in 63 levels: at most 2·127·127, no saturation), `vpmaddwd` with ones adds
+    /// the two halves of the quad into 32 bits.
+    #[inline(always)]
+    unsafe fn maddubs_dot(acc: __m256i, a: __m256i, b: __m256i) -> __m256i {
+        // SAFETY: called only inside `tile_int8`, whose CPU has avx2.
+        unsafe {
+            let pairs = _mm256_maddubs_epi16(a, b);
+            _mm256_add_epi32(acc, _mm256_madd_epi16(pairs, _mm256_set1_epi16(1)))
+        }
+    }
+
+    // Four rows: 8 accumulators, two panel vectors, the ones and the temporaries fit the 16
+    // registers.
+    int8_tile_256!(tile_int8, "avx2", 4, maddubs_dot);
+    // `vpdpbusd` adds each column's four unsigned × signed byte products into its 32-bit lane,
+    // so activations keep 127 levels and the sums are `avx512::tile_int8`'s. Six rows: 12
+    // accumulators, two panel vectors and the broadcast word fill 15 of the 16 registers.
+    int8_tile_256!(
+        tile_int8_avx_vnni,
+        "avx2,avxvnni",
+        6,
+        _mm256_dpbusd_avx_epi32
+    );
     // The same tile encoded for AVX512_VNNI + AVX512VL, so that its code runs (in tests) on
     // CPUs without AVX-VNNI.
-    vnni256_tile!(
+    int8_tile_256!(
         tile_int8_avx_vnni_twin,
         "avx2,avx512vnni,avx512vl",
+        6,
         _mm256_dpbusd_epi32
     );
 
