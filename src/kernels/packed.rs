@@ -33,9 +33,10 @@ const MR512: usize = 12;
 const NR: usize = 16;
 /// Multiply steps per K block: the panel slice (`KC × NR` weights) stays in L1.
 const KC: usize = 256;
-/// Rows per M block (a multiple of [`MR`] and [`MR512`]): the `MC × KC` block of activations stays in L2
-/// while every panel of the task streams past it.
-const MC: usize = 96;
+/// Most rows per M block (a multiple of [`MR`] and [`MR512`]): the `MC × KC` block of
+/// activations stays in L2 while every panel of the task streams past it. A task's rows are
+/// cut into equal blocks (see [`m_block`]).
+const MC: usize = 120;
 /// Below this many multiply-adds a fork/join costs more than a second core saves.
 const PAR_MIN_MACS: usize = 1 << 20;
 
@@ -291,16 +292,20 @@ impl RowBlock {
             .chunks_exact_mut(MR512 * kc)
             .enumerate()
         {
-            for i in 0..MR512 {
-                let r = r0 + t * MR512 + i;
-                if r < r1 {
-                    let row = &x[r * k + kb..r * k + kb + kc];
-                    for (p, &v) in row.iter().enumerate() {
-                        tile[p * MR512 + i] = v;
-                    }
-                } else {
+            // Four rows at a time: a 4 × 4 transpose per four steps where all four are real.
+            for i0 in (0..MR512).step_by(4) {
+                let r = r0 + t * MR512 + i0;
+                if r + 4 <= r1 {
+                    let rows: [&[f32]; 4] =
+                        std::array::from_fn(|i| &x[(r + i) * k + kb..(r + i) * k + kb + kc]);
+                    transpose_rows4(rows, &mut tile[i0..]);
+                    continue;
+                }
+                for i in i0..i0 + 4 {
+                    let r = r0 + t * MR512 + i;
+                    let row = (r < r1).then(|| &x[r * k + kb..r * k + kb + kc]);
                     for p in 0..kc {
-                        tile[p * MR512 + i] = 0.0;
+                        tile[p * MR512 + i] = row.map_or(0.0, |row| row[p]);
                     }
                 }
             }
@@ -312,6 +317,40 @@ impl RowBlock {
         debug_assert!(offset.is_multiple_of(MR512) && offset < MC);
         // SAFETY: inside the MC·KC block (offset < MC, kc ≤ KC).
         unsafe { (self.lines.as_ptr() as *const f32).add(offset * self.kc) }
+    }
+}
+
+/// Writes four equal-length rows interleaved into `tile` at a stride of [`MR512`]:
+/// `tile[p·MR512 + i] = rows[i][p]`, four steps per 4 × 4 transpose (SSE, which every x86-64
+/// CPU has; a scalar loop elsewhere). `tile` starts at the first of the four columns.
+fn transpose_rows4(rows: [&[f32]; 4], tile: &mut [f32]) {
+    let kc = rows[0].len();
+    assert!(rows.iter().all(|r| r.len() == kc));
+    assert!(kc == 0 || tile.len() >= (kc - 1) * MR512 + 4);
+    let mut p = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::*;
+        while p + 4 <= kc {
+            // SAFETY: p + 4 ≤ kc, the rows' length; the four stores end at
+            // (p + 3)·MR512 + 4 ≤ (kc - 1)·MR512 + 4 ≤ tile.len(). Unaligned forms throughout.
+            unsafe {
+                let [a, b, c, d] = rows.map(|r| _mm_loadu_ps(r.as_ptr().add(p)));
+                let (ab_lo, cd_lo) = (_mm_unpacklo_ps(a, b), _mm_unpacklo_ps(c, d));
+                let (ab_hi, cd_hi) = (_mm_unpackhi_ps(a, b), _mm_unpackhi_ps(c, d));
+                let out = tile.as_mut_ptr().add(p * MR512);
+                _mm_storeu_ps(out, _mm_movelh_ps(ab_lo, cd_lo));
+                _mm_storeu_ps(out.add(MR512), _mm_movehl_ps(cd_lo, ab_lo));
+                _mm_storeu_ps(out.add(2 * MR512), _mm_movelh_ps(ab_hi, cd_hi));
+                _mm_storeu_ps(out.add(3 * MR512), _mm_movehl_ps(cd_hi, ab_hi));
+            }
+            p += 4;
+        }
+    }
+    for p in p..kc {
+        for (i, row) in rows.iter().enumerate() {
+            tile[p * MR512 + i] = row[p];
+        }
     }
 }
 
@@ -646,6 +685,28 @@ fn split_work(
     });
 }
 
+/// Rows per M block for a task of `rows` rows: as few blocks as [`MC`] allows, of equal size
+/// rounded up to whole AVX-512 tiles. Every block streams all of the task's weight panels
+/// past it, so a small last block (104 rows as 96 + 8) would read them all again for a few
+/// rows.
+fn m_block(rows: usize) -> usize {
+    let blocks = rows.div_ceil(MC).max(1);
+    rows.div_ceil(blocks).next_multiple_of(MR512).min(MC)
+}
+
+/// Hints lines `l0..l1` (64 bytes each) from `base` into the caches.
+#[inline(always)]
+fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
+    #[cfg(target_arch = "x86_64")]
+    for l in l0..l1 {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
+        // SAFETY: prefetch is a hint that reads nothing architecturally and never faults.
+        unsafe { _mm_prefetch::<_MM_HINT_T1>(base.wrapping_add(l * 64) as *const i8) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (base, l0, l1);
+}
+
 /// One call's operands, shared by its tasks.
 struct Job<'a> {
     isa: Isa,
@@ -707,14 +768,15 @@ impl Job<'_> {
         for kb in (0..k).step_by(KC) {
             let kc = KC.min(k - kb);
             let (first, last) = (kb == 0, kb + kc == k);
-            for mb in (r0..r1).step_by(MC) {
-                let mb_end = (mb + MC).min(r1);
+            for mb in (r0..r1).step_by(m_block(r1 - r0)) {
+                let mb_end = (mb + m_block(r1 - r0)).min(r1);
                 let packed = rows.as_deref_mut().map(|block| {
                     block.fill(self.x, k, mb, mb_end, kb, kc);
                     &*block
                 });
                 for j in j0..j1 {
-                    self.panel(kb, kc, first, last, mb, mb_end, j, widened, packed);
+                    let next = (j + 1 < j1).then_some(j + 1);
+                    self.panel(kb, kc, first, last, mb, mb_end, j, next, widened, packed);
                 }
             }
         }
@@ -731,6 +793,7 @@ impl Job<'_> {
         r0: usize,
         r1: usize,
         j: usize,
+        next: Option<usize>,
         widened: &mut Widened,
         packed: Option<&RowBlock>,
     ) {
@@ -756,8 +819,23 @@ impl Job<'_> {
             b = widened.0.as_ptr() as *const u8;
             ty = WeightType::F32;
         }
+        // The next panel's slice comes from memory (a model's weights are read once a step, so
+        // none are cached): hint its lines a share per tile, so they arrive while this panel's
+        // tiles run instead of stalling the next panel's first tile.
+        let ahead = next.map(|j| {
+            let lines = (kc * NR * self.w.ty.size()).div_ceil(64);
+            (
+                self.w.panel_ptr(j, kb),
+                lines,
+                lines.div_ceil((r1 - r0).div_ceil(mr)),
+            )
+        });
         for i0 in (r0..r1).step_by(mr) {
             let rows = mr.min(r1 - i0);
+            if let Some((base, lines, share)) = ahead {
+                let first = (i0 - r0) / mr * share;
+                prefetch_lines(base, first.min(lines), (first + share).min(lines));
+            }
             // The next tile's output rows are far apart (stride n) and, in wide layers, not in
             // cache: ask for them now so the kernel's loads (K blocks after the first) and
             // stores do not wait on memory. A hint only; it changes no result.
@@ -1258,6 +1336,8 @@ mod tests {
         (64, 65, 33),
         (100, 520, 47),
         (20, 384, 70),
+        // Three equal M blocks of 84 rows (7 AVX-512 tiles each), K blocks of 256 and 2.
+        (252, 258, 40),
     ];
 
     #[test]
