@@ -696,7 +696,7 @@ fn m_block(rows: usize) -> usize {
 
 /// Hints lines `l0..l1` (64 bytes each) from `base` into the caches.
 #[inline(always)]
-fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
+pub(super) fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
     #[cfg(target_arch = "x86_64")]
     for l in l0..l1 {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};

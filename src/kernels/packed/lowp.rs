@@ -34,11 +34,14 @@ use rayon::prelude::*;
 
 use super::super::gemm::SharedMut;
 use super::{
-    split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512, NR, PAR_MIN_MACS,
+    prefetch_lines, split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512, NR,
+    PAR_MIN_MACS,
 };
 
-/// Rows per M block: the activations of 8 tiles stay in L2 while a panel streams past them.
-const TILES_PER_BLOCK: usize = 8;
+/// Most row tiles per M block: the activations of 10 tiles stay in L2 while a panel streams
+/// past them. A task's tiles are cut into equal blocks: 9 tiles as 8 + 1 would stream every
+/// panel again for one tile.
+const TILES_PER_BLOCK: usize = 10;
 
 /// Quads summed in 32 bits before the sum moves to 64 (`4 · 8192 · 255 · 127 < 2³¹`), so the
 /// integer sums are exact for any `k`.
@@ -484,7 +487,9 @@ impl Job<'_> {
     fn run(&self, t0: usize, t1: usize, j0: usize, j1: usize) {
         let (n, s) = (self.w.n, self.s);
         let words = self.w.words();
-        for tb in (t0..t1).step_by(TILES_PER_BLOCK) {
+        let block = (t1 - t0).div_ceil((t1 - t0).div_ceil(TILES_PER_BLOCK).max(1));
+        for tb in (t0..t1).step_by(block.max(1)) {
+            let tiles = block.min(t1 - tb);
             for j in j0..j1 {
                 let c0 = j * NR;
                 let cols = NR.min(n - c0);
@@ -493,7 +498,15 @@ impl Job<'_> {
                     bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
                 }
                 let panel = &words[j * s * NR..(j + 1) * s * NR];
-                for t in tb..(tb + TILES_PER_BLOCK).min(t1) {
+                // The next panel's lines, a share per tile (see `Job::panel` for f32).
+                let lines = (s * NR * 4).div_ceil(64);
+                let share = lines.div_ceil(tiles);
+                for t in tb..tb + tiles {
+                    if j + 1 < j1 {
+                        let l0 = ((t - tb) * share).min(lines);
+                        let next = words[(j + 1) * s * NR..].as_ptr() as *const u8;
+                        prefetch_lines(next, l0, (l0 + share).min(lines));
+                    }
                     let a = &self.acts[t * s * MR512..(t + 1) * s * MR512];
                     let mut tile = [0.0f32; MR512 * NR];
                     match self.w.ty {
