@@ -694,6 +694,33 @@ fn m_block(rows: usize) -> usize {
     rows.div_ceil(blocks).next_multiple_of(MR512).min(MC)
 }
 
+/// The row tiles `(first row, rows)` of rows `r0..r1` for a kernel of `mr` rows: full tiles
+/// and the remainder. With `balance` (a kernel that reads its rows through pointers and runs
+/// any row count) a remainder under half a tile joins the last full tile and the two run as
+/// halves: 104 rows on 6-row tiles as 16 × 6 + 4 + 4 rather than 17 × 6 + 2, so every weight
+/// vector loaded serves at least 4 rows.
+fn row_tiles(
+    r0: usize,
+    r1: usize,
+    mr: usize,
+    balance: bool,
+) -> impl Iterator<Item = (usize, usize)> {
+    let (full, edge) = ((r1 - r0) / mr, (r1 - r0) % mr);
+    let split = balance && full > 0 && edge > 0 && edge < mr / 2;
+    let whole = if split { full - 1 } else { full };
+    let tail = r0 + whole * mr;
+    let (a, b) = if split {
+        ((mr + edge).div_ceil(2), (mr + edge) / 2)
+    } else {
+        (edge, 0)
+    };
+    (0..whole).map(move |t| (r0 + t * mr, mr)).chain(
+        [(tail, a), (tail + a, b)]
+            .into_iter()
+            .filter(|&(_, rows)| rows > 0),
+    )
+}
+
 /// Hints lines `l0..l1` (64 bytes each) from `base` into the caches.
 #[inline(always)]
 pub(super) fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
@@ -819,6 +846,9 @@ impl Job<'_> {
             b = widened.0.as_ptr() as *const u8;
             ty = WeightType::F32;
         }
+        // The vector kernels run an edge tile's `rows` rows only; the portable one always runs
+        // MR (its extra rows repeat the last real one and go to the scratch tile).
+        let exact = self.isa != Isa::Portable;
         // The next panel's slice comes from memory (a model's weights are read once a step, so
         // none are cached): hint its lines a share per tile, so they arrive while this panel's
         // tiles run instead of stalling the next panel's first tile.
@@ -830,17 +860,16 @@ impl Job<'_> {
                 lines.div_ceil((r1 - r0).div_ceil(mr)),
             )
         });
-        for i0 in (r0..r1).step_by(mr) {
-            let rows = mr.min(r1 - i0);
+        for (t, (i0, rows)) in row_tiles(r0, r1, mr, packed.is_none() && exact).enumerate() {
             if let Some((base, lines, share)) = ahead {
-                let first = (i0 - r0) / mr * share;
+                let first = t * share;
                 prefetch_lines(base, first.min(lines), (first + share).min(lines));
             }
             // The next tile's output rows are far apart (stride n) and, in wide layers, not in
             // cache: ask for them now so the kernel's loads (K blocks after the first) and
             // stores do not wait on memory. A hint only; it changes no result.
-            if i0 + mr < r1 {
-                self.prefetch_tile(i0 + mr, mr.min(r1 - i0 - mr), c0);
+            if i0 + rows < r1 {
+                self.prefetch_tile(i0 + rows, mr.min(r1 - i0 - rows), c0);
             } else if c0 + NR < n {
                 self.prefetch_tile(r0, mr.min(r1 - r0), c0 + NR);
             }
@@ -854,9 +883,6 @@ impl Job<'_> {
                 })),
             };
             let y = self.y.get();
-            // The vector kernels run an edge tile's `rows` rows only; the portable one always
-            // runs MR (its extra rows repeat the last real one and go to the scratch tile).
-            let exact = self.isa != Isa::Portable;
             let run = if exact { rows } else { mr };
             if cols == NR && (rows == mr || exact) {
                 // SAFETY: the tile rows i0..i0+rows and columns c0..c0+NR lie inside y (m×n);
