@@ -570,19 +570,27 @@ impl Job<'_> {
             // and fma; the slices hold s·12 and s·NR words.
             unsafe {
                 match self.int8 {
-                    Int8Path::Vnni => avx512::tile_int8_scaled(self.s, a, b, scales, &rscale, tile),
+                    Int8Path::Vnni => {
+                        avx512::tile_int8_scaled(self.s, a, b, scales, &rscale[..rows], tile)
+                    }
                     Int8Path::AvxVnni => avx2::tile_int8_scaled(
                         avx2::vnni_tile(),
                         self.s,
                         a,
                         b,
                         scales,
-                        &rscale,
+                        &rscale[..rows],
                         tile,
                     ),
-                    _ => {
-                        avx2::tile_int8_scaled(avx2::tile_int8, self.s, a, b, scales, &rscale, tile)
-                    }
+                    _ => avx2::tile_int8_scaled(
+                        avx2::tile_int8,
+                        self.s,
+                        a,
+                        b,
+                        scales,
+                        &rscale[..rows],
+                        tile,
+                    ),
                 }
             };
             return;
@@ -598,15 +606,17 @@ impl Job<'_> {
                 // `AvxVnni` only when it has a 256-bit `vpdpbusd`, `Avx2` only when it has avx2;
                 // the slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
                 Int8Path::Vnni => {
-                    unsafe { avx512::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    unsafe {
+                        avx512::tile_int8::<MR512>(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums)
+                    };
                     true
                 }
                 Int8Path::AvxVnni => {
-                    unsafe { avx2::vnni_tile()(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    unsafe { avx2::vnni_tile()(MR512, q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
                     true
                 }
                 Int8Path::Avx2 => {
-                    unsafe { avx2::tile_int8(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
+                    unsafe { avx2::tile_int8(MR512, q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums) };
                     true
                 }
                 Int8Path::Portable => false,
@@ -775,20 +785,23 @@ mod avx512 {
     ///
     /// # Safety
     /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`;
-    /// `s` at most `INT8_BLOCK` (the sums fit 32 bits).
+    /// `s` at most `INT8_BLOCK` (the sums fit 32 bits). `rscale` holds the scales of the
+    /// tile's real rows (1 to 12), and only those rows of `tile` are written.
     #[target_feature(enable = "avx512f,avx512vnni")]
     pub(super) unsafe fn tile_int8_scaled(
         s: usize,
         a: *const u32,
         b: *const u32,
         (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
-        rscale: &[f32; MR512],
+        rscale: &[f32],
         tile: &mut [f32; MR512 * NR],
     ) {
+        let rows = rscale.len();
         let mut sums = [0i32; MR512 * NR];
         // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
         unsafe {
-            tile_int8(s, a, b, &mut sums);
+            super::super::with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
+                tile_int8(s, a, b, &mut sums));
             let offset = _mm512_loadu_si512(offset.as_ptr() as *const _);
             let ws = _mm512_loadu_ps(wscale.as_ptr());
             let bv = _mm512_loadu_ps(bias.as_ptr());
@@ -804,10 +817,14 @@ mod avx512 {
         }
     }
 
+    /// The sums of the tile's first `R` rows (an edge tile runs only its real rows; the
+    /// other rows of `sums` are left as they are).
+    ///
     /// # Safety
-    /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`.
+    /// The CPU supports avx512f and avx512vnni; `a` readable for `s·12` words, `b` for `s·NR`;
+    /// `R` ≤ 12.
     #[target_feature(enable = "avx512f,avx512vnni")]
-    pub(super) unsafe fn tile_int8(
+    pub(super) unsafe fn tile_int8<const R: usize>(
         s: usize,
         a: *const u32,
         b: *const u32,
@@ -817,7 +834,7 @@ mod avx512 {
         unsafe {
             // Intrinsics here: `vpdpbusd` reads its memory operand as the signed bytes, and the
             // broadcast words are the unsigned activations.
-            let mut acc = [_mm512_setzero_si512(); MR512];
+            let mut acc = [_mm512_setzero_si512(); R];
             for q in 0..s {
                 let bq = _mm512_loadu_si512(b.add(q * NR) as *const _);
                 let aq = a.add(q * MR512);
@@ -940,8 +957,10 @@ mod avx2 {
         }
     }
 
-    /// An int8 tile: the exact sums of `s` quads for the 12 rows × [`NR`] columns.
-    pub(super) type Int8Tile = unsafe fn(usize, *const u32, *const u32, &mut [i32; MR512 * NR]);
+    /// An int8 tile: the exact sums of `s` quads for the first `rows` of its 12 rows (a
+    /// sub-block of rows at a time, so up to a sub-block more) × [`NR`] columns.
+    pub(super) type Int8Tile =
+        unsafe fn(usize, usize, *const u32, *const u32, &mut [i32; MR512 * NR]);
 
     /// `sums` (one of this module's int8 tiles) and the epilogue in one, as
     /// `avx512::tile_int8_scaled` (the same operations, so the same bits as the scalar
@@ -949,7 +968,7 @@ mod avx2 {
     ///
     /// # Safety
     /// The CPU supports avx2, fma and what `sums` needs; as [`tile_int8`]; `s` at most
-    /// `INT8_BLOCK`.
+    /// `INT8_BLOCK`; `rscale` as in `avx512::tile_int8_scaled`.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn tile_int8_scaled(
         sums_of: Int8Tile,
@@ -957,13 +976,14 @@ mod avx2 {
         a: *const u32,
         b: *const u32,
         (offset, wscale, bias): (&[i32; NR], &[f32; NR], &[f32; NR]),
-        rscale: &[f32; MR512],
+        rscale: &[f32],
         tile: &mut [f32; MR512 * NR],
     ) {
+        let rows = rscale.len();
         let mut sums = [0i32; MR512 * NR];
         // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
         unsafe {
-            sums_of(s, a, b, &mut sums);
+            sums_of(rows, s, a, b, &mut sums);
             for h in 0..2 {
                 let offset = _mm256_loadu_si256(offset.as_ptr().add(8 * h) as *const _);
                 let ws = _mm256_loadu_ps(wscale.as_ptr().add(8 * h));
@@ -988,6 +1008,7 @@ mod avx2 {
             /// `b` for `s·NR` (for `vpmaddubsw`, activation bytes at most 127).
             #[target_feature(enable = $features)]
             pub(super) unsafe fn $name(
+                rows: usize,
                 s: usize,
                 a: *const u32,
                 b: *const u32,
@@ -996,7 +1017,9 @@ mod avx2 {
                 // SAFETY (whole body): loads stay inside a[..s·12] and b[..s·NR], stores
                 // inside sums.
                 unsafe {
-                    for r0 in (0..MR512).step_by($rows) {
+                    // Sub-blocks holding real rows only (`rows` ≤ 12, so every sub-block
+                    // read lies inside the tile's 12 words per quad).
+                    for r0 in (0..rows.min(MR512)).step_by($rows) {
                         let mut acc = [[_mm256_setzero_si256(); 2]; $rows];
                         for q in 0..s {
                             let bq = b.add(q * NR) as *const __m256i;
