@@ -426,10 +426,17 @@ fn convert(
     scales: &mut Vec<f32>,
 ) {
     let tiles = m.div_ceil(MR512);
-    words.clear();
+    // Every word and scale of a real row is written below; only the last tile's missing rows
+    // need zeros, so the buffers are not cleared (a pass over the whole block per call).
     words.resize(tiles * s * MR512, 0);
-    scales.clear();
     scales.resize(tiles * MR512, 0.0);
+    if m % MR512 != 0 {
+        let last = (tiles - 1) * s * MR512;
+        for step in words[last..tiles * s * MR512].chunks_exact_mut(MR512) {
+            step[m % MR512..].fill(0);
+        }
+        scales[m..tiles * MR512].fill(0.0);
+    }
     let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
         ROW.with_borrow_mut(|row_words| {
             // One row converted in place: 4·s bytes (int8) or 2·s bf16 values, read back as
@@ -521,7 +528,13 @@ impl Job<'_> {
                         let out = unsafe {
                             std::slice::from_raw_parts_mut(self.y.get().add(r * n + c0), cols)
                         };
-                        out.copy_from_slice(&tile[i * NR..i * NR + cols]);
+                        if let Ok(full) = <&mut [f32; NR]>::try_from(&mut *out) {
+                            // A whole row of the tile: one fixed-size copy (a 64-byte move),
+                            // not a call to `memmove` per row.
+                            full.copy_from_slice(&tile[i * NR..i * NR + NR]);
+                        } else {
+                            out.copy_from_slice(&tile[i * NR..i * NR + cols]);
+                        }
                         self.act.apply(out);
                     }
                 }
