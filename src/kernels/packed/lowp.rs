@@ -430,7 +430,7 @@ fn convert(
     // need zeros, so the buffers are not cleared (a pass over the whole block per call).
     words.resize(tiles * s * MR512, 0);
     scales.resize(tiles * MR512, 0.0);
-    if m % MR512 != 0 {
+    if !m.is_multiple_of(MR512) {
         let last = (tiles - 1) * s * MR512;
         for step in words[last..tiles * s * MR512].chunks_exact_mut(MR512) {
             step[m % MR512..].fill(0);
