@@ -685,13 +685,18 @@ fn split_work(
     });
 }
 
-/// Rows per M block for a task of `rows` rows: as few blocks as [`MC`] allows, of equal size
-/// rounded up to whole AVX-512 tiles. Every block streams all of the task's weight panels
-/// past it, so a small last block (104 rows as 96 + 8) would read them all again for a few
-/// rows.
+/// The size of the parts when `units` is cut into as few equal parts of at most `max` as
+/// possible (at least 1). M blocks are cut so: every block streams all of a task's weight
+/// panels past it, so a small last block (104 rows as 96 + 8) would read them all again for a
+/// few rows.
+pub(super) fn equal_part(units: usize, max: usize) -> usize {
+    units.div_ceil(units.div_ceil(max).max(1)).max(1)
+}
+
+/// Rows per M block for a task of `rows` rows: equal parts of at most [`MC`], rounded up to
+/// whole AVX-512 tiles.
 fn m_block(rows: usize) -> usize {
-    let blocks = rows.div_ceil(MC).max(1);
-    rows.div_ceil(blocks).next_multiple_of(MR512).min(MC)
+    equal_part(rows, MC).next_multiple_of(MR512).min(MC)
 }
 
 /// The row tiles `(first row, rows)` of rows `r0..r1` for a kernel of `mr` rows: full tiles
@@ -721,9 +726,14 @@ fn row_tiles(
     )
 }
 
-/// Hints lines `l0..l1` (64 bytes each) from `base` into the caches.
+/// Hints part `part` of `parts` equal parts (whole 64-byte lines) of the `bytes` bytes at
+/// `base` into the caches: a panel's tiles each ask for their share of the next panel.
 #[inline(always)]
-pub(super) fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
+pub(super) fn prefetch_part(base: *const u8, bytes: usize, parts: usize, part: usize) {
+    let lines = bytes.div_ceil(64);
+    let share = lines.div_ceil(parts.max(1));
+    let l0 = (part * share).min(lines);
+    let l1 = (l0 + share).min(lines);
     #[cfg(target_arch = "x86_64")]
     for l in l0..l1 {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
@@ -731,7 +741,7 @@ pub(super) fn prefetch_lines(base: *const u8, l0: usize, l1: usize) {
         unsafe { _mm_prefetch::<_MM_HINT_T1>(base.wrapping_add(l * 64) as *const i8) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (base, l0, l1);
+    let _ = (base, l1);
 }
 
 /// One call's operands, shared by its tasks.
@@ -795,8 +805,9 @@ impl Job<'_> {
         for kb in (0..k).step_by(KC) {
             let kc = KC.min(k - kb);
             let (first, last) = (kb == 0, kb + kc == k);
-            for mb in (r0..r1).step_by(m_block(r1 - r0)) {
-                let mb_end = (mb + m_block(r1 - r0)).min(r1);
+            let block = m_block(r1 - r0);
+            for mb in (r0..r1).step_by(block) {
+                let mb_end = (mb + block).min(r1);
                 let packed = rows.as_deref_mut().map(|block| {
                     block.fill(self.x, k, mb, mb_end, kb, kc);
                     &*block
@@ -852,18 +863,11 @@ impl Job<'_> {
         // The next panel's slice comes from memory (a model's weights are read once a step, so
         // none are cached): hint its lines a share per tile, so they arrive while this panel's
         // tiles run instead of stalling the next panel's first tile.
-        let ahead = next.map(|j| {
-            let lines = (kc * NR * self.w.ty.size()).div_ceil(64);
-            (
-                self.w.panel_ptr(j, kb),
-                lines,
-                lines.div_ceil((r1 - r0).div_ceil(mr)),
-            )
-        });
+        let ahead = next.map(|j| self.w.panel_ptr(j, kb));
+        let (slice_bytes, tiles) = (kc * NR * self.w.ty.size(), (r1 - r0).div_ceil(mr));
         for (t, (i0, rows)) in row_tiles(r0, r1, mr, packed.is_none() && exact).enumerate() {
-            if let Some((base, lines, share)) = ahead {
-                let first = t * share;
-                prefetch_lines(base, first.min(lines), (first + share).min(lines));
+            if let Some(base) = ahead {
+                prefetch_part(base, slice_bytes, tiles, t);
             }
             // The next tile's output rows are far apart (stride n) and, in wide layers, not in
             // cache: ask for them now so the kernel's loads (K blocks after the first) and

@@ -34,8 +34,8 @@ use rayon::prelude::*;
 
 use super::super::gemm::SharedMut;
 use super::{
-    prefetch_lines, split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512, NR,
-    PAR_MIN_MACS,
+    equal_part, prefetch_part, split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512,
+    NR, PAR_MIN_MACS,
 };
 
 /// Most row tiles per M block: the activations of 10 tiles stay in L2 while a panel streams
@@ -494,8 +494,8 @@ impl Job<'_> {
     fn run(&self, t0: usize, t1: usize, j0: usize, j1: usize) {
         let (n, s) = (self.w.n, self.s);
         let words = self.w.words();
-        let block = (t1 - t0).div_ceil((t1 - t0).div_ceil(TILES_PER_BLOCK).max(1));
-        for tb in (t0..t1).step_by(block.max(1)) {
+        let block = equal_part(t1 - t0, TILES_PER_BLOCK);
+        for tb in (t0..t1).step_by(block) {
             let tiles = block.min(t1 - tb);
             for j in j0..j1 {
                 let c0 = j * NR;
@@ -505,14 +505,11 @@ impl Job<'_> {
                     bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
                 }
                 let panel = &words[j * s * NR..(j + 1) * s * NR];
-                // The next panel's lines, a share per tile (see `Job::panel` for f32).
-                let lines = (s * NR * 4).div_ceil(64);
-                let share = lines.div_ceil(tiles);
                 for t in tb..tb + tiles {
+                    // The next panel's lines, a share per tile (see `Job::panel` for f32).
                     if j + 1 < j1 {
-                        let l0 = ((t - tb) * share).min(lines);
                         let next = words[(j + 1) * s * NR..].as_ptr() as *const u8;
-                        prefetch_lines(next, l0, (l0 + share).min(lines));
+                        prefetch_part(next, s * NR * 4, tiles, t - tb);
                     }
                     let a = &self.acts[t * s * MR512..(t + 1) * s * MR512];
                     let mut tile = [0.0f32; MR512 * NR];
