@@ -4,6 +4,8 @@
 # how). Every library in the process sees the same CPU: libflame's dispatch, ONNX Runtime's MLAS,
 # PyTorch's oneDNN and MKL all pick their AVX2 code. The hardware does not change, so this is an
 # AVX2-only CPU's instruction set at this CPU's speed per instruction, not an AVX2-only CPU.
+# AVX2_ONLY_KEEP_AVX_VNNI=1 leaves AVX-VNNI visible where the CPU has it (an AVX2 CPU with
+# AVX-VNNI, like Intel's client cores since Alder Lake).
 # Needs Linux's CPUID faulting (the `cpuid_fault` flag in /proc/cpuinfo); exits 3 without it.
 #
 #   tools/avx2_only.sh target/release/flame info

@@ -18,7 +18,9 @@
  * `sigaction` is wrapped so that their handler is recorded and called for every fault that is
  * not a `cpuid`, while this one stays installed.
  *
- * AVX2_ONLY_VERBOSE=1 reports on stderr whether it took effect. */
+ * AVX2_ONLY_VERBOSE=1 reports on stderr whether it took effect. AVX2_ONLY_KEEP_AVX_VNNI=1 leaves
+ * AVX-VNNI (the VEX `vpdpbusd` on 256 bits) visible on a CPU that has it: the instruction set of
+ * an AVX2 CPU with AVX-VNNI and no AVX-512 (Intel's client cores since Alder Lake). */
 #define _GNU_SOURCE
 #include <asm/prctl.h>
 #include <dlfcn.h>
@@ -48,13 +50,16 @@ static const uint32_t L7_EDX = BIT(2) | BIT(3) | BIT(8) | BIT(22) | BIT(23) | BI
 static const uint32_t L7_1_EAX = BIT(4) | BIT(5) | BIT(21) | BIT(22) |
                                  BIT(23); /* AVX-VNNI AVX512_BF16 AMX-FP16 HRESET AVX-IFMA */
 
+/* Set once by the constructor: AVX2_ONLY_KEEP_AVX_VNNI=1. */
+static int keep_avx_vnni;
+
 static void mask(uint32_t leaf, uint32_t sub, uint32_t r[4]) {
     if (leaf == 7 && sub == 0) {
         r[1] &= ~L7_EBX;
         r[2] &= ~L7_ECX;
         r[3] &= ~L7_EDX;
     } else if (leaf == 7 && sub == 1) {
-        r[0] &= ~L7_1_EAX;
+        r[0] &= ~(keep_avx_vnni ? L7_1_EAX & ~BIT(4) : L7_1_EAX);
     } else if (leaf == 0xd && sub == 0) {
         r[0] &= ~(BIT(5) | BIT(6) | BIT(7) | BIT(17) | BIT(18)); /* opmask, ZMM, AMX states */
     }
@@ -107,6 +112,8 @@ int sigaction(int sig, const struct sigaction *act, struct sigaction *old) {
 
 __attribute__((constructor)) static void avx2_only(void) {
     int verbose = getenv("AVX2_ONLY_VERBOSE") && strcmp(getenv("AVX2_ONLY_VERBOSE"), "1") == 0;
+    keep_avx_vnni = getenv("AVX2_ONLY_KEEP_AVX_VNNI") &&
+                    strcmp(getenv("AVX2_ONLY_KEEP_AVX_VNNI"), "1") == 0;
     real_sigaction = (sigaction_fn)dlsym(RTLD_NEXT, "sigaction");
     program_segv.sa_handler = SIG_DFL;
     struct sigaction sa;
@@ -118,5 +125,7 @@ __attribute__((constructor)) static void avx2_only(void) {
         fprintf(stderr, "avx2_only: CPUID faulting unavailable (no cpuid_fault flag?); nothing hidden\n");
         return;
     }
-    if (verbose) fprintf(stderr, "avx2_only: AVX-512, VNNI, BF16 and AMX hidden from cpuid\n");
+    if (verbose)
+        fprintf(stderr, "avx2_only: AVX-512, %s, BF16 and AMX hidden from cpuid\n",
+                keep_avx_vnni ? "AVX512_VNNI (AVX-VNNI kept)" : "VNNI");
 }

@@ -80,6 +80,19 @@ mod loops {
         keep!(acc, _mm512_add_epi32, _mm512_setzero_si512())
     }
 
+    /// `vpdpbusd` on 256 bits, VEX-encoded (AVX-VNNI).
+    #[target_feature(enable = "avx2,avxvnni")]
+    pub unsafe fn dpbusd256(n: usize) -> f32 {
+        let (a, b) = (_mm256_set1_epi8(3), _mm256_set1_epi8(-5));
+        let mut acc = [_mm256_setzero_si256(); 12];
+        for _ in 0..n {
+            for v in acc.iter_mut() {
+                *v = _mm256_dpbusd_avx_epi32(*v, a, b);
+            }
+        }
+        keep!(acc, _mm256_add_epi32, _mm256_setzero_si256())
+    }
+
     /// `vpmaddubsw` + `vpmaddwd` + `vpaddd`, the AVX2 int8 step; each chain feeds its own
     /// accumulator back as the unsigned operand so nothing is loop-invariant.
     #[target_feature(enable = "avx2")]
@@ -107,6 +120,7 @@ fn paths() -> Vec<Path> {
             "avx512f" => is_x86_feature_detected!("avx512f"),
             "avx512bf16" => is_x86_feature_detected!("avx512bf16"),
             "avx512vnni" => is_x86_feature_detected!("avx512vnni"),
+            "avxvnni" => is_x86_feature_detected!("avxvnni"),
             _ => false,
         };
         // SAFETY (each loop): called only when its features were detected just above.
@@ -139,6 +153,12 @@ fn paths() -> Vec<Path> {
                 128,
                 has("avx512f") && has("avx512vnni"),
                 |n| unsafe { loops::dpbusd(n) },
+            ),
+            path(
+                "vpdpbusd on 256 bits (int8, AVX-VNNI)",
+                64,
+                has("avx2") && has("avxvnni"),
+                |n| unsafe { loops::dpbusd256(n) },
             ),
             path(
                 "vpmaddubsw+vpmaddwd+vpaddd (int8, AVX2)",
