@@ -97,7 +97,7 @@ avx2_only_view() {
     local info
     info=$(tools/avx2_only.sh "$target/debug/flame" info tests/fixtures/flame_tiny.safetensors) || return 1
     echo "$info" | grep -E '^(kernel|--weights):'
-    echo "$info" | grep -q '^kernel: *avx2 ' &&
+    echo "$info" | grep -q '^kernel: *avx2,' &&
         echo "$info" | grep -q 'bf16-compute no (needs AVX512_BF16' &&
         echo "$info" | grep -q 'int8 yes (vpmaddubsw, AVX2' || {
         echo "avx2-only: flame info does not show the AVX2 dispatch" >&2

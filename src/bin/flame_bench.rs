@@ -109,8 +109,9 @@ fn gemm_bench(args: &[String]) {
         ("square 1536", 1536, 1536, 1536),
     ];
     println!(
-        "linear GFLOP/s, {threads} threads, {ty:?} weights, {} kernel, median of {runs}:",
-        kernels::kernel_name()
+        "linear GFLOP/s, {threads} threads, {ty:?} weights, {} kernel (f32 tile {}), median of {runs}:",
+        kernels::kernel_name(),
+        kernels::f32_tile()
     );
     println!(
         "  {:<18} {:>16} {:>10} {:>10} {:>10}",
@@ -456,10 +457,11 @@ fn main() {
         let (lin, attn) = step_macs(&model, frames);
         let gflops = 2.0 * (lin + attn) / (step * 1e-3) / 1e9;
         println!(
-            "frames {frames}, {steps} {} steps, guidance {}, {threads} threads, {} kernel, {runs} runs (medians):",
+            "frames {frames}, {steps} {} steps, guidance {}, {threads} threads, {} kernel (f32 tile {}), {runs} runs (medians):",
             sampler.map_or("default-sampler".to_string(), |s| format!("{s:?}")),
             guidance,
-            kernels::kernel_name()
+            kernels::kernel_name(),
+            kernels::f32_tile()
         );
         println!("  text encoding      {text:9.2} ms");
         println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",

@@ -213,7 +213,8 @@ impl Isa {
 }
 
 /// The kernel in use: the best this CPU runs, or the one `FLAME_KERNEL` names (`avx512`,
-/// `avx2`, `portable`) when the CPU runs it — for comparing paths on one machine. Detected once.
+/// `avx2`, `portable`; `avx512-12x16` and `avx512-12x32` also pick the f32 tile, see
+/// [`wide_tiles`]) when the CPU runs it — for comparing paths on one machine. Detected once.
 pub(crate) fn detected_isa() -> Isa {
     static ISA: OnceLock<Isa> = OnceLock::new();
     *ISA.get_or_init(|| {
@@ -224,7 +225,10 @@ pub(crate) fn detected_isa() -> Isa {
         match std::env::var("FLAME_KERNEL") {
             Ok(name) => Isa::ALL
                 .into_iter()
-                .find(|i| i.name() == name.trim().to_ascii_lowercase() && i.supported())
+                .find(|i| {
+                    let name = name.trim().to_ascii_lowercase();
+                    i.name() == name.split('-').next().unwrap_or_default() && i.supported()
+                })
                 .unwrap_or(best),
             Err(_) => best,
         }
@@ -235,6 +239,66 @@ pub(crate) fn detected_isa() -> Isa {
 /// info` and the benchmarks.
 pub fn kernel_name() -> &'static str {
     detected_isa().name()
+}
+
+/// Whether the AVX-512 kernel runs f32 weights on 12×32 tiles (two panels per tile) rather than
+/// 12×16. On a core with two full-width 512-bit FMA units (Intel's server cores) the 12×16 tile
+/// is limited by loads: 13 per 12 multiply-adds (one weight vector, 12 broadcasts) while two
+/// loads and two multiply-adds issue per cycle. The 12×32 tile loads 14 per 24. On a core that
+/// splits 512-bit operations (AMD Zen 4: one 512-bit multiply-add per cycle) 12×16 already runs
+/// at the multiply-add limit and its panel slice is half the L1 footprint, so it stays. Chosen
+/// by timing both vector widths' multiply-adds once (about 0.5 ms): the 12×32 tile when a
+/// 512-bit one issues as fast as a 256-bit one. `FLAME_KERNEL=avx512-12x16` or `avx512-12x32`
+/// picks one. Both run every output as the same chain, so they give the same bits.
+pub(crate) fn wide_tiles() -> bool {
+    static WIDE: OnceLock<bool> = OnceLock::new();
+    *WIDE.get_or_init(|| {
+        if detected_isa() != Isa::Avx512 {
+            return false;
+        }
+        match std::env::var("FLAME_KERNEL").map(|v| v.trim().to_ascii_lowercase()) {
+            Ok(v) if v == "avx512-12x16" => false,
+            Ok(v) if v == "avx512-12x32" => true,
+            _ => full_width_fma512(),
+        }
+    })
+}
+
+/// Whether 512-bit multiply-adds issue as fast as 256-bit ones (two full-width units): the
+/// best of 5 alternating timings of 12 independent chains each.
+fn full_width_fma512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::time::Instant;
+        const ITERS: usize = 8192;
+        let time = |f: unsafe fn(usize) -> f32| {
+            let t = Instant::now();
+            // SAFETY: called only on the avx512 kernel (avx512f, avx2 and fma detected).
+            std::hint::black_box(unsafe { f(ITERS) });
+            t.elapsed().as_secs_f64()
+        };
+        // Warm up: some cores raise the 512-bit units' power only after their first use.
+        time(avx512::chains512);
+        let (mut t256, mut t512) = (f64::MAX, f64::MAX);
+        for _ in 0..5 {
+            t256 = t256.min(time(avx512::chains256));
+            t512 = t512.min(time(avx512::chains512));
+        }
+        // Equal instruction counts: about 1 with two full-width units, about 2 when 512-bit
+        // operations are split or share one unit.
+        t512 < 1.5 * t256
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// The f32 micro-tile of the kernel in use, for `flame info` and the benchmarks.
+pub fn f32_tile() -> &'static str {
+    match detected_isa() {
+        Isa::Avx512 if wide_tiles() => "12x32",
+        Isa::Avx512 => "12x16",
+        Isa::Avx2 | Isa::Portable => "6x16",
+    }
 }
 
 /// One 64-byte line: the allocation unit of the panels, so every panel row starts aligned.
@@ -609,6 +673,23 @@ pub(crate) fn linear_packed_on(
     y: &mut [f32],
     m: usize,
 ) {
+    let wide = isa == Isa::Avx512 && wide_tiles();
+    linear_packed_tiles(isa, wide, x, w, bias, act, y, m);
+}
+
+/// [`linear_packed_on`] with the AVX-512 kernel's f32 tile chosen (`wide`: 12×32; tests run
+/// both).
+#[allow(clippy::too_many_arguments)]
+fn linear_packed_tiles(
+    isa: Isa,
+    wide: bool,
+    x: &[f32],
+    w: &PackedWeights,
+    bias: Option<&[f32]>,
+    act: Activation,
+    y: &mut [f32],
+    m: usize,
+) {
     let (k, n) = (w.k, w.n);
     // These checks are what make every pointer the kernels form stay inside its slice.
     assert!(x.len() >= m * k, "linear_packed: x too short for {m}x{k}");
@@ -632,6 +713,9 @@ pub(crate) fn linear_packed_on(
     }
     let job = Job {
         isa,
+        // Two panels per tile on the AVX-512 kernel for f32 weights (half-precision ones are
+        // widened a slice at a time into a one-panel buffer).
+        wide: wide && isa == Isa::Avx512 && w.ty == WeightType::F32,
         x,
         w,
         bias,
@@ -747,6 +831,8 @@ pub(super) fn prefetch_part(base: *const u8, bytes: usize, parts: usize, part: u
 /// One call's operands, shared by its tasks.
 struct Job<'a> {
     isa: Isa,
+    /// Whether pairs of full panels run on the 12×32 AVX-512 tile ([`wide_tiles`]).
+    wide: bool,
     x: &'a [f32],
     w: &'a PackedWeights,
     bias: Option<&'a [f32]>,
@@ -812,15 +898,25 @@ impl Job<'_> {
                     block.fill(self.x, k, mb, mb_end, kb, kc);
                     &*block
                 });
-                for j in j0..j1 {
-                    let next = (j + 1 < j1).then_some(j + 1);
-                    self.panel(kb, kc, first, last, mb, mb_end, j, next, widened, packed);
+                let mut j = j0;
+                while j < j1 {
+                    let width = if self.wide && j + 1 < j1 && (j + 2) * NR <= self.w.n {
+                        2
+                    } else {
+                        1
+                    };
+                    let next = j + width..(j + 2 * width).min(j1);
+                    self.panel(
+                        kb, kc, first, last, mb, mb_end, j, width, next, widened, packed,
+                    );
+                    j += width;
                 }
             }
         }
     }
 
-    /// Rows `r0..r1` of panel `j` over multiply steps `kb..kb + kc`.
+    /// Rows `r0..r1` of panels `j..j + width` (`width` 2: two full f32 panels on the 12×32
+    /// AVX-512 tile) over multiply steps `kb..kb + kc`; `next` are the panels that follow.
     #[allow(clippy::too_many_arguments)]
     fn panel(
         &self,
@@ -831,18 +927,23 @@ impl Job<'_> {
         r0: usize,
         r1: usize,
         j: usize,
-        next: Option<usize>,
+        width: usize,
+        next: std::ops::Range<usize>,
         widened: &mut Widened,
         packed: Option<&RowBlock>,
     ) {
         let (k, n) = (self.w.k, self.w.n);
         let c0 = j * NR;
-        let cols = NR.min(n - c0);
-        let mut bias = [0.0f32; NR];
+        let cols = (width * NR).min(n - c0);
+        debug_assert!(width == 1 || (self.wide && cols == 2 * NR));
+        let mut bias = [0.0f32; 2 * NR];
         if let Some(b) = self.bias {
             bias[..cols].copy_from_slice(&b[c0..c0 + cols]);
         }
-        let start = if first { Some(&bias) } else { None };
+        let (bias1, bias2) = bias.split_at(NR);
+        let (bias1, bias2): (&[f32; NR], &[f32; NR]) =
+            (bias1.try_into().unwrap(), bias2.try_into().unwrap());
+        let start = if first { Some(bias1) } else { None };
         let mut b = self.w.panel_ptr(j, kb);
         let mut ty = self.w.ty;
         // The AVX2 kernel widens f16/bf16 weights inside its loop, on the same ports as the
@@ -863,19 +964,20 @@ impl Job<'_> {
         // The next panel's slice comes from memory (a model's weights are read once a step, so
         // none are cached): hint its lines a share per tile, so they arrive while this panel's
         // tiles run instead of stalling the next panel's first tile.
-        let ahead = next.map(|j| self.w.panel_ptr(j, kb));
         let (slice_bytes, tiles) = (kc * NR * self.w.ty.size(), (r1 - r0).div_ceil(mr));
         for (t, (i0, rows)) in row_tiles(r0, r1, mr, packed.is_none() && exact).enumerate() {
-            if let Some(base) = ahead {
-                prefetch_part(base, slice_bytes, tiles, t);
+            for q in next.clone() {
+                prefetch_part(self.w.panel_ptr(q, kb), slice_bytes, tiles, t);
             }
             // The next tile's output rows are far apart (stride n) and, in wide layers, not in
             // cache: ask for them now so the kernel's loads (K blocks after the first) and
             // stores do not wait on memory. A hint only; it changes no result.
-            if i0 + rows < r1 {
-                self.prefetch_tile(i0 + rows, mr.min(r1 - i0 - rows), c0);
-            } else if c0 + NR < n {
-                self.prefetch_tile(r0, mr.min(r1 - r0), c0 + NR);
+            for c in (c0..c0 + cols).step_by(NR) {
+                if i0 + rows < r1 {
+                    self.prefetch_tile(i0 + rows, mr.min(r1 - i0 - rows), c);
+                } else if c + width * NR < n {
+                    self.prefetch_tile(r0, mr.min(r1 - r0), c + width * NR);
+                }
             }
             let a = match packed {
                 Some(block) => TileRows::Packed(block.tile(i0 - r0)),
@@ -888,6 +990,29 @@ impl Job<'_> {
             };
             let y = self.y.get();
             let run = if exact { rows } else { mr };
+            #[cfg(target_arch = "x86_64")]
+            if width == 2 {
+                let (TileRows::Packed(a), Some(_)) = (a, packed) else {
+                    unreachable!("the 12x32 tile reads a packed row block")
+                };
+                let b1 = self.w.panel_ptr(j + 1, kb) as *const f32;
+                let start = start.map(|s| (s, bias2));
+                use avx512::tile_f32_wide;
+                // SAFETY: wide tiles run only on the avx512 kernel (avx512f, avx2, fma
+                // detected) with f32 panels; both panels are full (c0 + 32 ≤ n), so the tile
+                // rows i0..i0+rows, columns c0..c0+32 lie inside y; a holds kc steps of the
+                // block's tile and b, b1 kc rows of their panels; this task alone writes them.
+                unsafe {
+                    with_rows!(run; 1 2 3 4 5 6 7 8 9 10 11 12; tile_f32_wide(
+                        kc, a, b as *const f32, b1, y.add(i0 * n + c0), n, start))
+                };
+                if last {
+                    for i in 0..rows {
+                        self.activate(self.out_row(i0 + i, c0, c0 + cols));
+                    }
+                }
+                continue;
+            }
             if cols == NR && (rows == mr || exact) {
                 // SAFETY: the tile rows i0..i0+rows and columns c0..c0+NR lie inside y (m×n);
                 // a and b point at kc readable steps; this task alone writes the tile.
@@ -1256,6 +1381,96 @@ mod avx512 {
         };
     }
 
+    /// `c[R×2NR] (+)= a · [b0 b1]`: two panels per step (the 12×32 tile), each output the same
+    /// chain of fused multiply-adds as in [`tile_f32`]. `start` holds the two panels' biases.
+    ///
+    /// # Safety
+    /// As [`tile_f32`], with `b0` and `b1` each readable for `kc` panel rows and `c` for `R`
+    /// rows of `2·NR` values.
+    #[target_feature(enable = "avx512f,avx2,fma,f16c")]
+    pub(super) unsafe fn tile_f32_wide<const R: usize>(
+        kc: usize,
+        a: *const f32,
+        b0: *const f32,
+        b1: *const f32,
+        c: *mut f32,
+        ldc: usize,
+        start: Option<(&[f32; NR], &[f32; NR])>,
+    ) {
+        // SAFETY (whole body): every load/store is unaligned-tolerant and stays inside the
+        // ranges the contract grants.
+        unsafe {
+            let mut lo = [_mm512_setzero_ps(); R];
+            let mut hi = [_mm512_setzero_ps(); R];
+            for i in 0..R {
+                (lo[i], hi[i]) = match start {
+                    Some((s0, s1)) => (_mm512_loadu_ps(s0.as_ptr()), _mm512_loadu_ps(s1.as_ptr())),
+                    None => (
+                        _mm512_loadu_ps(c.add(i * ldc)),
+                        _mm512_loadu_ps(c.add(i * ldc + NR)),
+                    ),
+                };
+            }
+            for p in 0..kc {
+                let (w0, w1) = (
+                    _mm512_loadu_ps(b0.add(p * NR)),
+                    _mm512_loadu_ps(b1.add(p * NR)),
+                );
+                let ap = a.add(p * MR512);
+                for i in 0..R {
+                    let x = _mm512_set1_ps(*ap.add(i));
+                    lo[i] = _mm512_fmadd_ps(x, w0, lo[i]);
+                    hi[i] = _mm512_fmadd_ps(x, w1, hi[i]);
+                }
+            }
+            for i in 0..R {
+                _mm512_storeu_ps(c.add(i * ldc), lo[i]);
+                _mm512_storeu_ps(c.add(i * ldc + NR), hi[i]);
+            }
+        }
+    }
+
+    /// 12 independent multiply-add chains of `n` steps on 256-bit vectors, for
+    /// `super::full_width_fma512`.
+    ///
+    /// # Safety
+    /// The CPU supports avx2 and fma.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn chains256(n: usize) -> f32 {
+        let (a, b) = (_mm256_set1_ps(1.000_001), _mm256_set1_ps(0.999_999));
+        let mut acc = [_mm256_setzero_ps(); 12];
+        for _ in 0..n {
+            for v in acc.iter_mut() {
+                *v = _mm256_fmadd_ps(a, b, *v);
+            }
+        }
+        let mut out = [0.0f32; 8];
+        // SAFETY: out holds 8 f32s.
+        unsafe {
+            _mm256_storeu_ps(
+                out.as_mut_ptr(),
+                acc.iter().fold(a, |s, &v| _mm256_add_ps(s, v)),
+            )
+        };
+        out[0]
+    }
+
+    /// As [`chains256`] on 512-bit vectors.
+    ///
+    /// # Safety
+    /// The CPU supports avx512f.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn chains512(n: usize) -> f32 {
+        let (a, b) = (_mm512_set1_ps(1.000_001), _mm512_set1_ps(0.999_999));
+        let mut acc = [_mm512_setzero_ps(); 12];
+        for _ in 0..n {
+            for v in acc.iter_mut() {
+                *v = _mm512_fmadd_ps(a, b, *v);
+            }
+        }
+        _mm512_reduce_add_ps(acc.iter().fold(a, |s, &v| _mm512_add_ps(s, v)))
+    }
+
     tile_kernel!(tile_f32, f32, |b, p| _mm512_loadu_ps(b.add(p * NR)));
     tile_kernel!(tile_f16, u16, |b, p| _mm512_cvtph_ps(_mm256_loadu_si256(
         b.add(p * NR) as *const __m256i
@@ -1314,6 +1529,15 @@ impl PackedLinear {
 mod tests {
     use super::*;
     use crate::kernels::testutil::{in_pool, isas, same_bits, Rng};
+
+    /// Every kernel this CPU runs, the AVX-512 one with each f32 tile (`true`: 12×32).
+    fn kernels() -> Vec<(Isa, bool)> {
+        let mut all: Vec<_> = isas().into_iter().map(|isa| (isa, false)).collect();
+        if Isa::Avx512.supported() {
+            all.insert(1, (Isa::Avx512, true));
+        }
+        all
+    }
 
     /// Reference in f64 on the weights as the kernel sees them (narrowed), plus `Σ|x||w|`.
     fn naive(
@@ -1403,11 +1627,11 @@ mod tests {
             for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
                 let packed = PackedWeights::pack(&w, n, k, ty);
                 let wn = narrowed(&w, ty);
-                for isa in isas() {
+                for (isa, wide) in kernels() {
                     for b in [None, Some(&bias[..])] {
                         let mut y = vec![f32::NAN; m * n + 3];
                         y[m * n..].fill(7.0);
-                        linear_packed_on(isa, &x, &packed, b, Activation::None, &mut y, m);
+                        linear_packed_tiles(isa, wide, &x, &packed, b, Activation::None, &mut y, m);
                         assert_eq!(&y[m * n..], &[7.0; 3], "wrote past the output");
                         let (want, mag) = naive(&x, &wn, b, m, k, n);
                         for (i, (&g, (&wv, &s))) in y.iter().zip(want.iter().zip(&mag)).enumerate()
@@ -1415,7 +1639,7 @@ mod tests {
                             let tol = 2.0 * (k + 2) as f64 * u * s + 1e-30;
                             assert!(
                                 (g as f64 - wv).abs() <= tol,
-                                "{isa:?} {ty:?} {m}x{k}x{n} bias={} [{i}]: {g} vs {wv}",
+                                "{isa:?} wide={wide} {ty:?} {m}x{k}x{n} bias={} [{i}]: {g} vs {wv}",
                                 b.is_some()
                             );
                         }
@@ -1428,30 +1652,36 @@ mod tests {
     #[test]
     fn the_avx512_and_avx2_kernels_give_the_same_bits() {
         // Both run each output as the same chain of fused multiply-adds; only the tiling
-        // differs (12 vs 6 rows), so every shape, edge tiles and K blocks included, agrees bit
-        // for bit.
+        // differs (12×16 or 12×32 vs 6×16), so every shape, edge tiles, odd panel counts and K
+        // blocks included, agrees bit for bit.
         if !(Isa::Avx512.supported() && Isa::Avx2.supported()) {
             eprintln!("the_avx512_and_avx2_kernels_give_the_same_bits: skipped, no AVX-512 here");
             return;
         }
         let mut rng = Rng::new(16);
-        for &(m, k, n) in SHAPES
-            .iter()
-            .chain(&[(25, 600, 40), (97, 257, 33), (12, 16, 16)])
-        {
+        for &(m, k, n) in SHAPES.iter().chain(&[
+            (25, 600, 40),
+            (97, 257, 33),
+            (12, 16, 16),
+            (30, 40, 96),
+            (131, 520, 80),
+        ]) {
             let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
             for ty in [WeightType::F32, WeightType::F16, WeightType::Bf16] {
                 let packed = PackedWeights::pack(&w, n, k, ty);
                 for act in [Activation::None, Activation::Gelu] {
-                    let run = |isa| {
+                    let run = |isa, wide| {
                         let mut y = vec![0.0; m * n];
-                        linear_packed_on(isa, &x, &packed, Some(&bias), act, &mut y, m);
+                        linear_packed_tiles(isa, wide, &x, &packed, Some(&bias), act, &mut y, m);
                         y
                     };
-                    assert!(
-                        same_bits(&run(Isa::Avx512), &run(Isa::Avx2)),
-                        "{ty:?} {act:?} {m}x{k}x{n}"
-                    );
+                    let avx2 = run(Isa::Avx2, false);
+                    for wide in [false, true] {
+                        assert!(
+                            same_bits(&run(Isa::Avx512, wide), &avx2),
+                            "wide={wide} {ty:?} {act:?} {m}x{k}x{n}"
+                        );
+                    }
                 }
             }
         }
@@ -1533,29 +1763,32 @@ mod tests {
             (130, 1030, 48),
         ] {
             let (x, w, bias) = (rng.vec(m * k), rng.vec(n * k), rng.vec(n));
-            let packed = PackedWeights::pack(&w, n, k, WeightType::Bf16);
-            for isa in isas() {
-                let run = |threads: usize| {
-                    in_pool(threads, || {
-                        let mut y = vec![0.0; m * n];
-                        linear_packed_on(
-                            isa,
-                            &x,
-                            &packed,
-                            Some(&bias),
-                            Activation::Relu,
-                            &mut y,
-                            m,
+            for ty in [WeightType::F32, WeightType::Bf16] {
+                let packed = PackedWeights::pack(&w, n, k, ty);
+                for (isa, wide) in kernels() {
+                    let run = |threads: usize| {
+                        in_pool(threads, || {
+                            let mut y = vec![0.0; m * n];
+                            linear_packed_tiles(
+                                isa,
+                                wide,
+                                &x,
+                                &packed,
+                                Some(&bias),
+                                Activation::Relu,
+                                &mut y,
+                                m,
+                            );
+                            y
+                        })
+                    };
+                    let base = run(1);
+                    for threads in [2, 3] {
+                        assert!(
+                            same_bits(&base, &run(threads)),
+                            "{isa:?} wide={wide} {ty:?} {m}x{k}x{n}: {threads} threads differ from 1"
                         );
-                        y
-                    })
-                };
-                let base = run(1);
-                for threads in [2, 3] {
-                    assert!(
-                        same_bits(&base, &run(threads)),
-                        "{isa:?} {m}x{k}x{n}: {threads} threads differ from 1"
-                    );
+                    }
                 }
             }
         }

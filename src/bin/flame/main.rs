@@ -1028,8 +1028,9 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         model.stored_dtype().map_or("-", |x| x.name())
     );
     println!(
-        "kernel:         {} (linear layers; FLAME_KERNEL=avx512|avx2|portable picks another the CPU runs)",
-        flame::kernels::kernel_name()
+        "kernel:         {}, f32 tile {} (linear layers; FLAME_KERNEL=avx512|avx512-12x16|avx512-12x32|avx2|portable picks another the CPU runs)",
+        flame::kernels::kernel_name(),
+        flame::kernels::f32_tile()
     );
     let runs = |ty: flame::kernels::WeightType| {
         let yes = if ty.native_on_this_cpu() { "yes" } else { "no" };
