@@ -28,4 +28,6 @@ pub use elementwise::{add_bias, add_inplace, scale_inplace};
 pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};
 pub use gemm::{linear, matmul_nn, matmul_nt};
 pub use norm::{add_layer_norm, layer_norm};
-pub use packed::{f32_tile, kernel_name, linear_packed, Activation, PackedLinear, PackedWeights, WeightType};
+pub use packed::{
+    f32_tile, kernel_name, linear_packed, Activation, PackedLinear, PackedWeights, WeightType,
+};
