@@ -1404,6 +1404,7 @@ mod avx512 {
     /// # Safety
     /// As [`tile_f32`], with `b0` and `b1` each readable for `kc` panel rows and `c` for `R`
     /// rows of `2·NR` values.
+    #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx2,fma,f16c")]
     pub(super) unsafe fn tile_f32_wide<const R: usize>(
         kc: usize,
