@@ -826,7 +826,7 @@ pub(super) fn prefetch_part(base: *const u8, bytes: usize, parts: usize, part: u
 }
 
 /// The 64-byte lines `l0..l1` of part `part` of `parts` equal parts of `bytes` bytes.
-fn part_lines(bytes: usize, parts: usize, part: usize) -> (usize, usize) {
+pub(super) fn part_lines(bytes: usize, parts: usize, part: usize) -> (usize, usize) {
     let lines = bytes.div_ceil(64);
     let share = lines.div_ceil(parts.max(1));
     let l0 = (part * share).min(lines);

@@ -34,8 +34,8 @@ use rayon::prelude::*;
 
 use super::super::gemm::SharedMut;
 use super::{
-    equal_part, prefetch_part, split_work, Activation, Isa, Line, PackedWeights, WeightType, MR512,
-    NR, PAR_MIN_MACS,
+    equal_part, part_lines, prefetch_part, split_work, Activation, Isa, Line, PackedWeights,
+    WeightType, MR512, NR, PAR_MIN_MACS,
 };
 
 /// Most row tiles per M block: the activations of 10 tiles stay in L2 while a panel streams
@@ -96,6 +96,9 @@ fn has_avx_vnni_twin() -> bool {
 pub(crate) enum Int8Path {
     /// `vpdpbusd` (AVX-512 kernel with AVX512_VNNI): 127 levels.
     Vnni,
+    /// `Vnni` with pairs of full panels on a 12×32 tile (where the f32 kernel runs 12×32, see
+    /// `packed::wide_tiles`: a 12×16 tile is limited by loads there): the same bits.
+    VnniWide,
     /// `vpdpbusd` on 256 bits, VEX-encoded (AVX-VNNI, with either kernel when the CPU lacks
     /// AVX512_VNNI): 127 levels, the same integers and bits as `Vnni`.
     AvxVnni,
@@ -108,6 +111,7 @@ pub(crate) enum Int8Path {
 impl Int8Path {
     pub(crate) fn for_kernel(isa: Isa) -> Int8Path {
         match isa {
+            Isa::Avx512 if has_int8_dot() && super::wide_tiles() => Int8Path::VnniWide,
             Isa::Avx512 if has_int8_dot() => Int8Path::Vnni,
             Isa::Avx512 | Isa::Avx2 if has_avx_vnni() => Int8Path::AvxVnni,
             Isa::Avx512 | Isa::Avx2 if Isa::Avx2.supported() => Int8Path::Avx2,
@@ -127,6 +131,7 @@ impl Int8Path {
     pub(crate) fn name(self) -> &'static str {
         match self {
             Int8Path::Vnni => "vpdpbusd, AVX512_VNNI",
+            Int8Path::VnniWide => "vpdpbusd, AVX512_VNNI, 12x32 tiles",
             Int8Path::AvxVnni => "vpdpbusd on 256 bits, AVX-VNNI",
             Int8Path::Avx2 => "vpmaddubsw, AVX2; activations in 63 levels",
             Int8Path::Portable => "portable",
@@ -378,8 +383,9 @@ fn forced_int8_path() -> Option<Int8Path> {
 
 #[cfg(test)]
 impl Int8Path {
-    const ALL: [Int8Path; 4] = [
+    const ALL: [Int8Path; 5] = [
         Int8Path::Vnni,
+        Int8Path::VnniWide,
         Int8Path::AvxVnni,
         Int8Path::Avx2,
         Int8Path::Portable,
@@ -388,7 +394,7 @@ impl Int8Path {
     /// Whether this CPU runs the path's tile (`AvxVnni` through its EVEX twin without AVX-VNNI).
     fn runs_here(self) -> bool {
         match self {
-            Int8Path::Vnni => has_int8_dot(),
+            Int8Path::Vnni | Int8Path::VnniWide => has_int8_dot(),
             Int8Path::AvxVnni => has_avx_vnni() || has_avx_vnni_twin(),
             Int8Path::Avx2 => Isa::Avx2.supported(),
             Int8Path::Portable => true,
@@ -497,7 +503,18 @@ impl Job<'_> {
         let block = equal_part(t1 - t0, TILES_PER_BLOCK);
         for tb in (t0..t1).step_by(block) {
             let tiles = block.min(t1 - tb);
-            for j in j0..j1 {
+            let mut j = j0;
+            while j < j1 {
+                if self.w.ty == WeightType::Int8
+                    && self.int8 == Int8Path::VnniWide
+                    && self.s <= INT8_BLOCK
+                    && j + 1 < j1
+                    && (j + 2) * NR <= n
+                {
+                    self.run_pair(tb, tiles, j, j1);
+                    j += 2;
+                    continue;
+                }
                 let c0 = j * NR;
                 let cols = NR.min(n - c0);
                 let mut bias = [0.0f32; NR];
@@ -535,6 +552,65 @@ impl Job<'_> {
                         self.act.apply(out);
                     }
                 }
+                j += 1;
+            }
+        }
+    }
+
+    /// Row tiles `tb..tb + tiles` of the full panels `j` and `j + 1` on the 12×32 VNNI tile
+    /// (`VnniWide`, one block of sums); `j1` ends the task's panels.
+    fn run_pair(&self, tb: usize, tiles: usize, j: usize, j1: usize) {
+        let (n, s) = (self.w.n, self.s);
+        let words = self.w.words();
+        let c0 = j * NR;
+        let zero = self.int8.levels() + 1;
+        let (mut offset, mut wscale, mut bias) =
+            ([0i32; 2 * NR], [0.0f32; 2 * NR], [0.0f32; 2 * NR]);
+        for (o, &c) in offset.iter_mut().zip(&self.w.colsum[c0..c0 + 2 * NR]) {
+            *o = zero * c;
+        }
+        wscale.copy_from_slice(&self.w.scales[c0..c0 + 2 * NR]);
+        if let Some(b) = self.bias {
+            bias.copy_from_slice(&b[c0..c0 + 2 * NR]);
+        }
+        let (b0, b1) = words[j * s * NR..(j + 2) * s * NR].split_at(s * NR);
+        for t in tb..tb + tiles {
+            // The next two panels' lines, a share per tile, hinted by the tile one per step
+            // (a burst before the tile stalls on the fill buffers; see `Job::panel` for f32).
+            let mut hints = [(std::ptr::null::<u8>(), 0usize); 2];
+            for (h, q) in hints.iter_mut().zip(j + 2..(j + 4).min(j1)) {
+                let (l0, l1) = part_lines(s * NR * 4, tiles, t - tb);
+                *h = (
+                    (words[q * s * NR..].as_ptr() as *const u8).wrapping_add(l0 * 64),
+                    l1 - l0,
+                );
+            }
+            let a = &self.acts[t * s * MR512..(t + 1) * s * MR512];
+            let rows = MR512.min(self.m - t * MR512);
+            let mut tile = [0.0f32; MR512 * 2 * NR];
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `VnniWide` is chosen only when the CPU has avx512f and avx512vnni; `a`
+            // holds s·12 words, `b0` and `b1` s·NR each; s ≤ INT8_BLOCK (checked by the caller).
+            unsafe {
+                avx512::tile_int8_scaled_wide(
+                    s,
+                    a.as_ptr(),
+                    (b0.as_ptr(), b1.as_ptr()),
+                    (&offset, &wscale, &bias),
+                    &self.row_scales[t * MR512..t * MR512 + rows],
+                    &mut tile,
+                    hints,
+                )
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            unreachable!("VnniWide runs on x86-64 only");
+            for i in 0..rows {
+                let r = t * MR512 + i;
+                // SAFETY: row r < m, columns c0..c0 + 32 ≤ n lie inside the checked m×n
+                // output; this task alone writes this (tile, panels) block.
+                let out = unsafe { &mut *(self.y.get().add(r * n + c0) as *mut [f32; 2 * NR]) };
+                out.copy_from_slice(&tile[i * 2 * NR..(i + 1) * 2 * NR]);
+                self.act.apply(out);
             }
         }
     }
@@ -580,7 +656,7 @@ impl Job<'_> {
             // and fma; the slices hold s·12 and s·NR words.
             unsafe {
                 match self.int8 {
-                    Int8Path::Vnni => {
+                    Int8Path::Vnni | Int8Path::VnniWide => {
                         avx512::tile_int8_scaled(self.s, a, b, scales, &rscale[..rows], tile)
                     }
                     Int8Path::AvxVnni => avx2::tile_int8_scaled(
@@ -615,7 +691,7 @@ impl Job<'_> {
                 // SAFETY: `Vnni` is chosen only when the CPU has avx512f and avx512vnni,
                 // `AvxVnni` only when it has a 256-bit `vpdpbusd`, `Avx2` only when it has avx2;
                 // the slices hold (q1 − q0)·12 and (q1 − q0)·NR words.
-                Int8Path::Vnni => {
+                Int8Path::Vnni | Int8Path::VnniWide => {
                     unsafe {
                         avx512::tile_int8::<MR512>(q1 - q0, a.as_ptr(), b.as_ptr(), &mut sums)
                     };
@@ -823,6 +899,81 @@ mod avx512 {
                     tile.as_mut_ptr().add(i * NR),
                     _mm512_fmadd_ps(exact, scale, bv),
                 );
+            }
+        }
+    }
+
+    /// [`tile_int8_scaled`] on two panels at once (the 12×32 tile): the same sums and
+    /// epilogue per column. `hints` are up to two runs of 64-byte lines (start, count) hinted
+    /// into L2 one line of each per step.
+    ///
+    /// # Safety
+    /// As [`tile_int8_scaled`], with `b.0` and `b.1` each readable for `s·NR` words.
+    #[target_feature(enable = "avx512f,avx512vnni")]
+    pub(super) unsafe fn tile_int8_scaled_wide(
+        s: usize,
+        a: *const u32,
+        b: (*const u32, *const u32),
+        (offset, wscale, bias): (&[i32; 2 * NR], &[f32; 2 * NR], &[f32; 2 * NR]),
+        rscale: &[f32],
+        tile: &mut [f32; MR512 * 2 * NR],
+        hints: [(*const u8, usize); 2],
+    ) {
+        let rows = rscale.len();
+        let mut sums = [0i32; MR512 * 2 * NR];
+        // SAFETY (whole body): loads and stores stay inside the arrays and the granted ranges.
+        unsafe {
+            super::super::with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
+                tile_int8_wide(s, a, b, &mut sums, hints));
+            for half in 0..2 {
+                let offset = _mm512_loadu_si512(offset.as_ptr().add(half * NR) as *const _);
+                let ws = _mm512_loadu_ps(wscale.as_ptr().add(half * NR));
+                let bv = _mm512_loadu_ps(bias.as_ptr().add(half * NR));
+                for (i, &sa) in rscale.iter().enumerate() {
+                    let at = i * 2 * NR + half * NR;
+                    let acc = _mm512_loadu_si512(sums.as_ptr().add(at) as *const _);
+                    let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, offset));
+                    let scale = _mm512_mul_ps(_mm512_set1_ps(sa), ws);
+                    _mm512_storeu_ps(tile.as_mut_ptr().add(at), _mm512_fmadd_ps(exact, scale, bv));
+                }
+            }
+        }
+    }
+
+    /// The 12×32 sums of the tile's first `R` rows (row stride 2·NR in `sums`).
+    ///
+    /// # Safety
+    /// As [`tile_int8`], with `b.0` and `b.1` each readable for `s·NR` words.
+    #[target_feature(enable = "avx512f,avx512vnni")]
+    unsafe fn tile_int8_wide<const R: usize>(
+        s: usize,
+        a: *const u32,
+        (b0, b1): (*const u32, *const u32),
+        sums: &mut [i32; MR512 * 2 * NR],
+        hints: [(*const u8, usize); 2],
+    ) {
+        // SAFETY (whole body): as in `tile_int8`; the hints never fault.
+        unsafe {
+            let mut lo = [_mm512_setzero_si512(); R];
+            let mut hi = [_mm512_setzero_si512(); R];
+            for q in 0..s {
+                for &(base, lines) in &hints {
+                    if q < lines {
+                        _mm_prefetch::<_MM_HINT_T1>(base.wrapping_add(q * 64) as *const i8);
+                    }
+                }
+                let w0 = _mm512_loadu_si512(b0.add(q * NR) as *const _);
+                let w1 = _mm512_loadu_si512(b1.add(q * NR) as *const _);
+                let aq = a.add(q * MR512);
+                for i in 0..R {
+                    let x = _mm512_set1_epi32(*aq.add(i) as i32);
+                    lo[i] = _mm512_dpbusd_epi32(lo[i], x, w0);
+                    hi[i] = _mm512_dpbusd_epi32(hi[i], x, w1);
+                }
+            }
+            for i in 0..R {
+                _mm512_storeu_si512(sums.as_mut_ptr().add(i * 2 * NR) as *mut _, lo[i]);
+                _mm512_storeu_si512(sums.as_mut_ptr().add(i * 2 * NR + NR) as *mut _, hi[i]);
             }
         }
     }
@@ -1121,6 +1272,7 @@ mod tests {
         (100, 520, 47),
         (197, 66, 70),
         (40, 2050, 20),
+        (30, 100, 96),
     ];
 
     fn data(m: usize, k: usize, n: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
