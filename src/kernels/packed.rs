@@ -387,7 +387,9 @@ impl RowBlock {
 /// Writes four equal-length rows interleaved into `tile` at a stride of [`MR512`]:
 /// `tile[p·MR512 + i] = rows[i][p]`, four steps per 4 × 4 transpose (SSE, which every x86-64
 /// CPU has; a scalar loop elsewhere). `tile` starts at the first of the four columns.
-fn transpose_rows4(rows: [&[f32]; 4], tile: &mut [f32]) {
+/// Any 4-byte `T` is moved as raw bits (int8 and bf16 activation words go through it too).
+pub(super) fn transpose_rows4<T: Copy>(rows: [&[T]; 4], tile: &mut [T]) {
+    const { assert!(std::mem::size_of::<T>() == 4) };
     let kc = rows[0].len();
     assert!(rows.iter().all(|r| r.len() == kc));
     assert!(kc == 0 || tile.len() >= (kc - 1) * MR512 + 4);
@@ -399,10 +401,10 @@ fn transpose_rows4(rows: [&[f32]; 4], tile: &mut [f32]) {
             // SAFETY: p + 4 ≤ kc, the rows' length; the four stores end at
             // (p + 3)·MR512 + 4 ≤ (kc - 1)·MR512 + 4 ≤ tile.len(). Unaligned forms throughout.
             unsafe {
-                let [a, b, c, d] = rows.map(|r| _mm_loadu_ps(r.as_ptr().add(p)));
+                let [a, b, c, d] = rows.map(|r| _mm_loadu_ps(r.as_ptr().add(p) as *const f32));
                 let (ab_lo, cd_lo) = (_mm_unpacklo_ps(a, b), _mm_unpacklo_ps(c, d));
                 let (ab_hi, cd_hi) = (_mm_unpackhi_ps(a, b), _mm_unpackhi_ps(c, d));
-                let out = tile.as_mut_ptr().add(p * MR512);
+                let out = tile.as_mut_ptr().add(p * MR512) as *mut f32;
                 _mm_storeu_ps(out, _mm_movelh_ps(ab_lo, cd_lo));
                 _mm_storeu_ps(out.add(MR512), _mm_movehl_ps(cd_lo, ab_lo));
                 _mm_storeu_ps(out.add(2 * MR512), _mm_movelh_ps(ab_hi, cd_hi));

@@ -34,8 +34,8 @@ use rayon::prelude::*;
 
 use super::super::gemm::SharedMut;
 use super::{
-    equal_part, part_lines, prefetch_part, split_work, Activation, Isa, Line, PackedWeights,
-    WeightType, MR512, NR, PAR_MIN_MACS,
+    equal_part, part_lines, prefetch_part, split_work, transpose_rows4, Activation, Isa, Line,
+    PackedWeights, WeightType, MR512, NR, PAR_MIN_MACS,
 };
 
 /// Most row tiles per M block: the activations of 10 tiles stay in L2 while a panel streams
@@ -445,17 +445,31 @@ fn convert(
     }
     let tile = |t: usize, out: &mut [u32], tile_scales: &mut [f32]| {
         ROW.with_borrow_mut(|row_words| {
-            // One row converted in place: 4·s bytes (int8) or 2·s bf16 values, read back as
-            // the row's s little-endian words.
+            // Four rows converted in place: 4·s bytes (int8) or 2·s bf16 values each, read back
+            // as the rows' s little-endian words, then written to the tile by 4 × 4 word
+            // transposes (a scatter of single words was as slow as the quantisation itself).
             row_words.clear();
-            row_words.resize(s, 0);
-            for i in 0..MR512.min(m - t * MR512) {
-                let r = t * MR512 + i;
-                // Past k the weight is 0: the byte adds nothing; the zero point (a zero value)
-                // keeps the column-sum correction exact.
-                tile_scales[i] = convert_row(ty, &x[r * k..(r + 1) * k], levels, row_words);
-                for (q, &w) in row_words.iter().enumerate() {
-                    out[q * MR512 + i] = u32::from_le(w);
+            row_words.resize(4 * s, 0);
+            let rows = MR512.min(m - t * MR512);
+            for i0 in (0..rows).step_by(4) {
+                let group = 4.min(rows - i0);
+                for (i, words) in row_words.chunks_exact_mut(s).take(group).enumerate() {
+                    let r = t * MR512 + i0 + i;
+                    // Past k the weight is 0: the byte adds nothing; the zero point (a zero
+                    // value) keeps the column-sum correction exact.
+                    tile_scales[i0 + i] = convert_row(ty, &x[r * k..(r + 1) * k], levels, words);
+                }
+                if group == 4 && cfg!(target_endian = "little") {
+                    let (a, rest) = row_words.split_at(s);
+                    let (b, rest) = rest.split_at(s);
+                    let (c, d) = rest.split_at(s);
+                    transpose_rows4([a, b, c, d], &mut out[i0..]);
+                    continue;
+                }
+                for (i, words) in row_words.chunks_exact(s).take(group).enumerate() {
+                    for (q, &w) in words.iter().enumerate() {
+                        out[q * MR512 + i0 + i] = u32::from_le(w);
+                    }
                 }
             }
         })
