@@ -180,6 +180,11 @@ fn quantize(v: f32, inv: f32, levels: i32) -> i8 {
 /// value is not finite). The AVX2 version computes the same bits.
 fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
     #[cfg(target_arch = "x86_64")]
+    if Isa::Avx512.supported() {
+        // SAFETY: the CPU has avx512f (checked just above).
+        return unsafe { avx512::quantize_row(row, levels, bytes) };
+    }
+    #[cfg(target_arch = "x86_64")]
     if Isa::Avx2.supported() {
         // SAFETY: the CPU has avx2 and fma (checked just above).
         return unsafe { avx2::quantize_row(row, levels, bytes) };
@@ -917,6 +922,63 @@ mod avx512 {
         }
     }
 
+    /// `super::quantize_row` on 16 values at a time: the same scale (the largest magnitude,
+    /// NaN when a value is not finite) and the same round-half-to-even, clamp and offset, so
+    /// the same bytes; the 32-bit results (1..=255) are narrowed to bytes by `vpmovdb`.
+    ///
+    /// # Safety
+    /// The CPU supports avx512f; `bytes` holds at least `row.len()` bytes.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn quantize_row(row: &[f32], levels: i32, bytes: &mut [u8]) -> f32 {
+        let k = row.len();
+        let main = k - k % 16;
+        assert!(bytes.len() >= k);
+        // SAFETY (whole body): loads stay inside row[..main], stores inside bytes[..main].
+        unsafe {
+            let inf = _mm512_set1_ps(f32::INFINITY);
+            let (mut top, mut bad) = (_mm512_setzero_ps(), 0u16);
+            for j in (0..main).step_by(16) {
+                let v = _mm512_abs_ps(_mm512_loadu_ps(row.as_ptr().add(j)));
+                top = _mm512_max_ps(top, v);
+                // Not below infinity: infinite or NaN.
+                bad |= _mm512_cmp_ps_mask::<_CMP_NLT_UQ>(v, inf);
+            }
+            let mut lanes = [0.0f32; 16];
+            _mm512_storeu_ps(lanes.as_mut_ptr(), top);
+            let mut m = lanes.iter().fold(0.0f32, |a, &b| a.max(b));
+            let mut finite = bad == 0;
+            for &v in &row[main..] {
+                finite &= v.is_finite();
+                m = m.max(v.abs());
+            }
+            let scale = if finite { m / levels as f32 } else { f32::NAN };
+            if finite {
+                let inv = _mm512_set1_ps(super::inverse(scale));
+                let (lo, hi) = (
+                    _mm512_set1_ps(-levels as f32),
+                    _mm512_set1_ps(levels as f32),
+                );
+                let zero = _mm512_set1_epi32(levels + 1);
+                for j in (0..main).step_by(16) {
+                    let v = _mm512_mul_ps(_mm512_loadu_ps(row.as_ptr().add(j)), inv);
+                    let r = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(
+                        v,
+                    );
+                    let q = _mm512_add_epi32(
+                        _mm512_cvtps_epi32(_mm512_min_ps(_mm512_max_ps(r, lo), hi)),
+                        zero,
+                    );
+                    _mm_storeu_si128(
+                        bytes.as_mut_ptr().add(j) as *mut __m128i,
+                        _mm512_cvtepi32_epi8(q),
+                    );
+                }
+            }
+            super::finish_row(row, if finite { main } else { 0 }, scale, levels, bytes);
+            scale
+        }
+    }
+
     /// [`tile_int8_scaled`] on two panels at once (the 12×32 tile): the same sums and
     /// epilogue per column. `hints` are up to two runs of 64-byte lines (start, count) hinted
     /// into L2 one line of each per step.
@@ -1538,7 +1600,7 @@ mod tests {
     /// from 0 to 40 (vector body and tail), ties (values exactly half way after scaling), both
     /// level counts, zero rows, and rows with a NaN or an infinity in the body or the tail.
     #[test]
-    fn quantize_row_is_the_same_on_avx2_and_portable() {
+    fn quantize_row_is_the_same_on_avx2_avx512_and_portable() {
         if !Isa::Avx2.supported() {
             eprintln!("AVX2 not supported by this CPU: only the portable quantiser ran");
             return;
@@ -1569,6 +1631,13 @@ mod tests {
                     let got_scale = unsafe { avx2::quantize_row(&row, levels, &mut got) };
                     assert_eq!(got_scale.to_bits(), scale.to_bits(), "k {k} case {case}");
                     assert_eq!(got, want, "k {k} levels {levels} case {case}");
+                    if Isa::Avx512.supported() {
+                        let mut got = vec![0u8; n];
+                        // SAFETY: AVX-512F checked just above; `got` holds n >= k bytes.
+                        let got_scale = unsafe { avx512::quantize_row(&row, levels, &mut got) };
+                        assert_eq!(got_scale.to_bits(), scale.to_bits(), "avx512 k {k} {case}");
+                        assert_eq!(got, want, "avx512 k {k} levels {levels} case {case}");
+                    }
                     if case == 1 && k > 2 {
                         // 1.5 → 2 and 2.5 → 2: ties went to even.
                         assert_eq!(want[1] as i32 - levels - 1, 2, "k {k}");
