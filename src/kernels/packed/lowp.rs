@@ -317,7 +317,7 @@ fn per_word(ty: WeightType) -> usize {
 thread_local! {
     /// Each calling thread's converted activations (words) and row scales, reused across calls.
     static ACTS: std::cell::RefCell<(Vec<u32>, Vec<f32>)> = Default::default();
-    /// Each converting thread's one row of converted activations, reused across calls.
+    /// Each converting thread's four rows of converted activations, reused across calls.
     static ROW: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
