@@ -268,13 +268,16 @@ int main(int argc, char** argv) {
         UFlameMotionComponent defaults;
         CHECK(defaults.Layout == FLAME_LAYOUT_LOCAL_QUAT_XYZW && defaults.Convention == FLAME_CONVENTION_UNREAL, "defaults");
         UFlameMotionComponent c;
-        Configure(c, argv[1], Frames, 10, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        // 200 steps: OnProgress reports the latest pose at a tick, so a fast machine can finish
+        // a short generation between two ticks (10 steps once did, and no mid-run pose came).
+        Configure(c, argv[1], Frames, 200, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
         // The tiny model's clean motion saturates at ±1, where some 6D rotations are degenerate:
-        // check unit quaternions on the first published pose, the (generic) noisy sample.
+        // check unit quaternions on the first published pose before the last step, a (generic)
+        // noisy sample.
         c.bPreviewEstimate = false;
         bool finished = false, succeeded = false, checkedFirst = false;
-        c.OnProgress.AddLambda([&](int32 done, int32) {
-            if (done != 1 || checkedFirst) return;
+        c.OnProgress.AddLambda([&](int32 done, int32 total) {
+            if (done >= total || checkedFirst) return;
             checkedFirst = true;
             const int joints = c.GetValuesPerFrame() / 4;
             bool unit = joints == 24;

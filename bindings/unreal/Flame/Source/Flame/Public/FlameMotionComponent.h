@@ -288,7 +288,9 @@ public:
 	UFUNCTION(BlueprintCallable, Category = "Flame|Export")
 	bool ExportGltf(bool bBinary, TArray<uint8>& OutBytes);
 
-	/** After every step, on the game thread. */
+	/** On the game thread, at the first tick after one or more steps finished, with the latest
+	 *  pose in Pose: StepsDone may advance by more than one between calls when steps are faster
+	 *  than ticks. */
 	UPROPERTY(BlueprintAssignable, Category = "Flame")
 	FFlameProgressSignature OnProgress;
 
