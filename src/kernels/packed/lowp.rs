@@ -907,17 +907,41 @@ mod avx512 {
         unsafe {
             super::super::with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
                 tile_int8(s, a, b, &mut sums));
-            let offset = _mm512_loadu_si512(offset.as_ptr() as *const _);
-            let ws = _mm512_loadu_ps(wscale.as_ptr());
-            let bv = _mm512_loadu_ps(bias.as_ptr());
+            scale_columns(
+                sums.as_ptr(),
+                (offset.as_ptr(), wscale.as_ptr(), bias.as_ptr()),
+                rscale,
+                tile.as_mut_ptr(),
+                NR,
+            );
+        }
+    }
+
+    /// The epilogue on 16 columns of `rscale.len()` rows at `stride`: `(Σ − offset)·(s_a·s_w)
+    /// + bias` from `sums` into `out`, one rounding per operation and a fused multiply-add last.
+    ///
+    /// # Safety
+    /// The CPU supports avx512f; `offset`, `wscale` and `bias` readable for 16 values, `sums`
+    /// and `out` for `rscale.len()` rows of 16 at `stride`.
+    #[inline]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn scale_columns(
+        sums: *const i32,
+        (offset, wscale, bias): (*const i32, *const f32, *const f32),
+        rscale: &[f32],
+        out: *mut f32,
+        stride: usize,
+    ) {
+        // SAFETY (whole body): as the contract grants.
+        unsafe {
+            let offset = _mm512_loadu_si512(offset as *const _);
+            let ws = _mm512_loadu_ps(wscale);
+            let bv = _mm512_loadu_ps(bias);
             for (i, &sa) in rscale.iter().enumerate() {
-                let acc = _mm512_loadu_si512(sums.as_ptr().add(i * NR) as *const _);
+                let acc = _mm512_loadu_si512(sums.add(i * stride) as *const _);
                 let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, offset));
                 let scale = _mm512_mul_ps(_mm512_set1_ps(sa), ws);
-                _mm512_storeu_ps(
-                    tile.as_mut_ptr().add(i * NR),
-                    _mm512_fmadd_ps(exact, scale, bv),
-                );
+                _mm512_storeu_ps(out.add(i * stride), _mm512_fmadd_ps(exact, scale, bv));
             }
         }
     }
@@ -1002,16 +1026,18 @@ mod avx512 {
             super::super::with_rows!(rows; 1 2 3 4 5 6 7 8 9 10 11 12;
                 tile_int8_wide(s, a, b, &mut sums, hints));
             for half in 0..2 {
-                let offset = _mm512_loadu_si512(offset.as_ptr().add(half * NR) as *const _);
-                let ws = _mm512_loadu_ps(wscale.as_ptr().add(half * NR));
-                let bv = _mm512_loadu_ps(bias.as_ptr().add(half * NR));
-                for (i, &sa) in rscale.iter().enumerate() {
-                    let at = i * 2 * NR + half * NR;
-                    let acc = _mm512_loadu_si512(sums.as_ptr().add(at) as *const _);
-                    let exact = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, offset));
-                    let scale = _mm512_mul_ps(_mm512_set1_ps(sa), ws);
-                    _mm512_storeu_ps(tile.as_mut_ptr().add(at), _mm512_fmadd_ps(exact, scale, bv));
-                }
+                let c = half * NR;
+                scale_columns(
+                    sums.as_ptr().add(c),
+                    (
+                        offset.as_ptr().add(c),
+                        wscale.as_ptr().add(c),
+                        bias.as_ptr().add(c),
+                    ),
+                    rscale,
+                    tile.as_mut_ptr().add(c),
+                    2 * NR,
+                );
             }
         }
     }
