@@ -56,6 +56,7 @@ unsafe impl Sync for Slot {}
 pub struct AttentionScratch {
     slots: Vec<Slot>,
     keys_t: Vec<f32>,
+    values: Vec<f32>,
 }
 
 impl AttentionScratch {
@@ -122,35 +123,48 @@ impl AttentionScratch {
                 buf.resize(slot_len, 0.0);
             }
         }
-        // kᵀ of every head, [heads, head_dim, kp], zero past `lk`: made once per call and read
-        // by every query block of that head.
+        // kᵀ of every head, [heads, head_dim, kp], zero past `lk`, and v of every head,
+        // [heads, lk, head_dim]: made once per call (by head, on the threads that then run
+        // that head's query blocks) and read by every query block of that head, contiguous
+        // rather than at the projection's row stride (a new page per key).
         let kt_len = heads * head_dim * kp;
         if self.keys_t.len() < kt_len {
             self.keys_t.resize(kt_len, 0.0);
         }
-        let transpose = |(h, dst): (usize, &mut [f32])| {
+        let v_len = heads * lk * head_dim;
+        if self.values.len() < v_len {
+            self.values.resize(v_len, 0.0);
+        }
+        let gather = |(h, (kt, vh)): (usize, (&mut [f32], &mut [f32]))| {
             let col = h * head_dim;
-            for c in 0..head_dim {
-                let row = &mut dst[c * kp..(c + 1) * kp];
-                for (j, d) in row[..lk].iter_mut().enumerate() {
-                    *d = k[j * k_stride + col + c];
+            for (j, dst) in vh.chunks_exact_mut(head_dim).enumerate() {
+                dst.copy_from_slice(&v[j * v_stride + col..j * v_stride + col + head_dim]);
+                for (c, &x) in k[j * k_stride + col..j * k_stride + col + head_dim]
+                    .iter()
+                    .enumerate()
+                {
+                    kt[c * kp + j] = x;
                 }
+            }
+            for row in kt.chunks_exact_mut(kp) {
                 row[lk..].fill(0.0);
             }
         };
-        let keys_t = &mut self.keys_t[..kt_len];
+        let (keys_t, values) = (&mut self.keys_t[..kt_len], &mut self.values[..v_len]);
         if parallel {
             keys_t
                 .par_chunks_mut(head_dim * kp)
+                .zip(values.par_chunks_mut(lk * head_dim))
                 .enumerate()
-                .for_each(transpose);
+                .for_each(gather);
         } else {
             keys_t
                 .chunks_mut(head_dim * kp)
+                .zip(values.chunks_mut(lk * head_dim))
                 .enumerate()
-                .for_each(transpose);
+                .for_each(gather);
         }
-        let keys_t = &self.keys_t[..kt_len];
+        let (keys_t, values) = (&self.keys_t[..kt_len], &self.values[..v_len]);
         let slots_ref = &self.slots;
 
         let task = |t: usize| {
@@ -163,7 +177,7 @@ impl AttentionScratch {
             let buf = unsafe { &mut *slots_ref[slot].0.get() };
             let scores = &mut buf[..slot_len];
 
-            let (block, h) = (t / heads, t % heads);
+            let (h, block) = (t / blocks, t % blocks);
             let i0 = block * Q_BLOCK;
             let rows = Q_BLOCK.min(lq - i0);
             // Causal rows of this block see at most keys 0..i0+rows; the rest would be masked.
@@ -209,8 +223,8 @@ impl AttentionScratch {
                 isa,
                 scores,
                 ktp,
-                &v[col..],
-                v_stride,
+                &values[h * lk * head_dim..(h + 1) * lk * head_dim],
+                head_dim,
                 rows,
                 keys,
                 head_dim,
