@@ -219,6 +219,17 @@ fn scale_of(v: &[f32], levels: i32) -> f32 {
     v.iter().fold(0.0f32, |m, x| m.max(x.abs())) / levels as f32
 }
 
+/// The scale of a row whose vector part left per-lane maxima of |x| in `lanes` (and no
+/// non-finite value when `finite`), with the values past it in `tail`: as [`scale_of`].
+#[cfg(target_arch = "x86_64")]
+fn lanes_scale(lanes: &[f32], finite: bool, tail: &[f32], levels: i32) -> f32 {
+    let m = lanes.iter().fold(0.0f32, |a, &b| a.max(b));
+    if !finite || tail.iter().any(|v| !v.is_finite()) {
+        return f32::NAN;
+    }
+    tail.iter().fold(m, |a, v| a.max(v.abs())) / levels as f32
+}
+
 fn inverse(scale: f32) -> f32 {
     if scale > 0.0 {
         1.0 / scale
@@ -969,13 +980,8 @@ mod avx512 {
             }
             let mut lanes = [0.0f32; 16];
             _mm512_storeu_ps(lanes.as_mut_ptr(), top);
-            let mut m = lanes.iter().fold(0.0f32, |a, &b| a.max(b));
-            let mut finite = bad == 0;
-            for &v in &row[main..] {
-                finite &= v.is_finite();
-                m = m.max(v.abs());
-            }
-            let scale = if finite { m / levels as f32 } else { f32::NAN };
+            let scale = super::lanes_scale(&lanes, bad == 0, &row[main..], levels);
+            let finite = !scale.is_nan();
             if finite {
                 let inv = _mm512_set1_ps(super::inverse(scale));
                 let (lo, hi) = (
@@ -1183,13 +1189,9 @@ mod avx2 {
             }
             let mut lanes = [0.0f32; 8];
             _mm256_storeu_ps(lanes.as_mut_ptr(), top);
-            let mut m = lanes.iter().fold(0.0f32, |a, &b| a.max(b));
-            let mut finite = _mm256_movemask_ps(bad) == 0;
-            for &v in &row[main..] {
-                finite &= v.is_finite();
-                m = m.max(v.abs());
-            }
-            let scale = if finite { m / levels as f32 } else { f32::NAN };
+            let scale =
+                super::lanes_scale(&lanes, _mm256_movemask_ps(bad) == 0, &row[main..], levels);
+            let finite = !scale.is_nan();
             if finite {
                 let inv = _mm256_set1_ps(super::inverse(scale));
                 let (lo, hi) = (
