@@ -177,7 +177,7 @@ fn rounded_copy(bytes: &[u8], bits: u32, text_too: bool) -> Vec<u8> {
 }
 
 #[test]
-fn rounding_checks() {
+fn rounding_and_half_decoding_match_hand_derived_values() {
     // Hand-derived: 1 + 2^-8 is a tie between 1 and 1 + 2^-7 at 8 bits (to even: 1); 1 + 3·2^-8
     // rounds up; f16's largest finite value and its smallest subnormal.
     assert_eq!(round_to_bits(1.0 + (-8f32).exp2(), 8), 1.0);
