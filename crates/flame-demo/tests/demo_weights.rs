@@ -114,20 +114,6 @@ fn round_to_bits(v: f32, bits: u32) -> f32 {
     f32::from_bits(((b + (1 << (drop - 1)) - 1 + keep_odd) >> drop) << drop)
 }
 
-/// An IEEE half's value (every bit pattern but inf/NaN, which weights do not hold).
-fn f16_value(h: u16) -> f32 {
-    let (sign, exp, frac) = (h >> 15, (h >> 10) & 0x1f, (h & 0x3ff) as f32);
-    let mag = match exp {
-        0 => frac * (-24f32).exp2(),
-        e => (1.0 + frac / 1024.0) * (e as f32 - 15.0).exp2(),
-    };
-    if sign == 1 {
-        -mag
-    } else {
-        mag
-    }
-}
-
 /// A copy of the model file `bytes` whose linear layers' weight matrices (the tensors the
 /// reduced types pack: 2-D `…weight`s other than embedding tables), in the denoiser only or in
 /// the text encoder too, are rounded to `bits` significant bits and stored as f32.
@@ -157,7 +143,7 @@ fn rounded_copy(bytes: &[u8], bits: u32, text_too: bool) -> Vec<u8> {
             Dtype::F16 => view
                 .data()
                 .chunks_exact(2)
-                .map(|c| f16_value(u16::from_le_bytes(c.try_into().unwrap())))
+                .map(|c| half::f16::from_le_bytes(c.try_into().unwrap()).to_f32())
                 .collect(),
             other => panic!("{name}: {other:?}"),
         };
@@ -177,22 +163,23 @@ fn rounded_copy(bytes: &[u8], bits: u32, text_too: bool) -> Vec<u8> {
 }
 
 #[test]
-fn rounding_and_half_decoding_match_hand_derived_values() {
+fn rounding_to_bits_matches_hand_derived_values_and_the_half_crate() {
     // Hand-derived: 1 + 2^-8 is a tie between 1 and 1 + 2^-7 at 8 bits (to even: 1); 1 + 3·2^-8
-    // rounds up; f16's largest finite value and its smallest subnormal.
+    // rounds up.
     assert_eq!(round_to_bits(1.0 + (-8f32).exp2(), 8), 1.0);
-    assert_eq!(
-        round_to_bits(1.0 + 3.0 * (-8f32).exp2(), 8),
-        1.0 + (-6f32).exp2()
-    );
     assert_eq!(
         round_to_bits(-1.0 - 3.0 * (-8f32).exp2(), 8),
         -1.0 - (-6f32).exp2()
     );
     assert_eq!(round_to_bits(0.1, 24), 0.1);
-    assert_eq!(f16_value(0x7bff), 65504.0);
-    assert_eq!(f16_value(0x0001), (-24f32).exp2());
-    assert_eq!(f16_value(0xc000), -2.0);
+    // At 8 and 11 bits it is bf16's and (for normal numbers) f16's rounding.
+    for i in 0..20_000u32 {
+        let v = f32::from_bits(0x3a80_0000 + i.wrapping_mul(2_654_435_761) % 0x0900_0000);
+        for v in [v, -v] {
+            assert_eq!(round_to_bits(v, 8), half::bf16::from_f32(v).to_f32(), "{v}");
+            assert_eq!(round_to_bits(v, 11), half::f16::from_f32(v).to_f32(), "{v}");
+        }
+    }
 }
 
 /// What limits the reduced types is the weights' precision, not libflame's arithmetic: the
