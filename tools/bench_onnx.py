@@ -24,13 +24,18 @@ What is timed:
             denoiser runs, then the exported VAE decoder; `decode` is also timed on its own).
   text      not timed (nan): PyTorch computes the text features once.
 
-FineMoGen is not exported: its mixture-of-experts routing (tutel's top-2 with capacity drops)
-gathers a data-dependent number of tokens per expert. `torch.export` stops at the reference's
-`if rows.numel() == 0` in `TutelMoE.forward` ("Could not guard on data-dependent expression"),
-and bench_torch.py's sorted dispatch has the same per-expert counts (`.tolist()`). A trace that
-baked in one input's routing would give wrong results at the next step, so the script says so
-and exits with status 3 instead of timing anything. (A tutel-style dispatch into fixed
-capacity-sized expert buffers would have static shapes; it is not written.)
+FineMoGen's step (`finemogen_bench`) is the network with its in-network guidance batch, the
+guidance mix and the eta-0 DDIM update, as bench_torch.py's step with `--text-moe-once` (each
+layer's text-MoE output is an input, computed once by PyTorch with the text, as libflame does).
+Its mixture-of-experts routing gathers a data-dependent number of tokens per expert, which
+`torch.export` cannot trace (the reference's `if rows.numel() == 0`), so the exported MoE
+dispatches as tutel itself does (`static_moe`): the reference's routing, then every kept choice
+written to its slot of fixed capacity-sized expert buffers, both expert layers as batched GEMMs
+over every slot, and the outputs gathered back. Only values depend on the data; the shapes are
+fixed by the frame count. It is checked against the reference's own MoE in PyTorch (1e-5) and
+in ONNX Runtime (the tolerance above) on two steps whose routings differ (the first step, and
+the next one from the reference's output); the whole generation is the respaced schedule (50
+steps: "15,15,8,6,6"; other counts: that many evenly spaced).
 
 `--profile PREFIX` runs the step again under ONNX Runtime's profiler and prints the node time
 per operator type (FLAME, MDM / Motion Flow Matching, OMG); `--spin 0` stops the intra-op
@@ -59,7 +64,6 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__))))
 import bench_torch as bt  # noqa: E402
 
-UNSUPPORTED = 3  # exit status when the family cannot be exported
 TOLERANCE = 1e-3  # relative to the largest magnitude of PyTorch's output
 
 
@@ -280,6 +284,150 @@ def latent_bench(arch, a, cache):
     return dict(steps=steps, gens=gens, decodes=decodes, diff=diff, rel=rel, export_s=export_s)
 
 
+def priority(v):
+    """Indices of `v` by descending value, ties in index order: the reference's stable sort,
+    exported as ONNX TopK over all of `v` (the exporter has no stable sort; TopK breaks ties by
+    the lower index, per the ONNX operator's definition)."""
+    if torch.compiler.is_exporting():
+        return torch.topk(v, v.shape[0]).indices
+    return torch.sort(-v, stable=True).indices
+
+
+def static_moe(moe, x, log=None, tag=None):
+    """`TutelMoE.forward` with tutel's own static shapes, so that it exports: the reference's
+    routing (`route`: top-2, priority order, capacity drops), every kept choice written to its
+    slot of one [experts · capacity, D] buffer (dropped ones to a spare last row), both expert
+    layers as batched GEMMs over every capacity slot (empty ones too, as tutel computes them),
+    and Σ_k gate_k · out_k gathered back, a dropped choice reading the spare row's zero output.
+    Only the values depend on the data, not the shapes: the capacity is a function of the token
+    count, fixed by the frame count."""
+    n, d = x.shape
+    e, cap, topk = moe.num_experts, moe.capacity(x.shape[0]), moe.topk
+    scores = torch.softmax(moe.gates[0](x), dim=1)
+    experts, gates, slots = bt.ref_fmg.route(scores, topk, cap, priority)
+    spare = e * cap
+    where = torch.where(slots < cap, experts * cap + slots, torch.full_like(slots, spare))
+    buf = x.new_zeros(spare + 1, d)
+    buf = buf.index_put((where.reshape(-1),), x.unsqueeze(1).expand(n, topk, d).reshape(-1, d))
+    ex = moe.experts
+    h = torch.nn.functional.gelu(torch.baddbmm(ex.batched_fc1_bias.unsqueeze(1),
+                                               buf[:spare].reshape(e, cap, d),
+                                               ex.batched_fc1_w.transpose(1, 2)))
+    y = torch.baddbmm(ex.batched_fc2_bias.unsqueeze(1), h, ex.batched_fc2_w).reshape(spare, -1)
+    y = torch.cat([y, y.new_zeros(1, y.shape[1])])
+    out = x.new_zeros(n, y.shape[1])
+    for k in range(topk):
+        out = out + gates[:, k:k + 1] * y[where[:, k]]
+    return out
+
+
+class FineMoGenStep(torch.nn.Module):
+    """bench_torch.py's FineMoGen step with `--text-moe-once` (as libflame runs it): the network
+    with its in-network guidance batch, x0 = null + w·(text − null) and the eta-0 DDIM update.
+    Inputs: x, the original step t, w(t), the sampler's three table values at the step, and
+    each layer's text-MoE output (computed once with the text). Outputs (x_next, x0)."""
+
+    def __init__(self, net, xf, index, lengths):
+        super().__init__()
+        self.net, self.xf, self.index, self.lengths = net, xf, index, lengths
+
+    def forward(self, x, t, w, recip, recipm1, abp, *text_moe):
+        for blk, out in zip(self.net.temporal_decoder_blocks, text_moe):
+            blk.ca_block.text_moe.out = out
+        cond, null = self.net(x, t, self.lengths, self.xf, self.index, 1)
+        x0 = null + (cond - null) * w
+        eps = (recip * x - x0) / recipm1
+        return x0 * torch.sqrt(abp) + torch.sqrt(1 - abp) * eps, x0
+
+
+def finemogen_bench(a, cache):
+    """FineMoGen: the whole step in one graph, the MoE dispatched into tutel's fixed
+    capacity-sized expert buffers (`static_moe`), checked against the reference's own MoE on
+    two steps whose routings differ, then the respaced generation with the output of one step
+    fed to the next."""
+    fmg = bt.ref_fmg
+    with torch.inference_mode():
+        net, clip, tok, cfg, _, _ = fmg.load_libflame(a.model)
+        stages = [fmg.Stage(bt.PROMPT, a.frames)]
+
+        def enc(text):
+            ids = torch.tensor([fmg.clip_ids(tok, text)])
+            return net.encode_clip_features(fmg.clip_features(clip, ids))[0]
+
+        xf, index, _ = fmg.condition(stages, enc)
+        text_moe = []
+        for blk in net.temporal_decoder_blocks:
+            s = blk.ca_block
+            text_moe.append(s.text_moe(s.text_norm(xf).unsqueeze(2)))
+            s.text_moe = bt.TextMoeOnce(s.text_moe)
+        torch.manual_seed(0)
+        noise = torch.randn(1, a.frames, cfg["denoiser"]["input_feats"])
+    respacing = "15,15,8,6,6" if a.steps == 50 else str(a.steps)
+    sched = fmg.make_diffusion(respacing)
+    n = sched.num_timesteps
+
+    def inputs(x, i):
+        """The step's inputs at respaced step i, as ddim_sample computes them."""
+        t = int(sched.timestep_map[i])
+        tab = [torch.tensor([float(tb[i])], dtype=torch.float64).float()
+               for tb in (sched.sqrt_recip_alphas_cumprod, sched.sqrt_recipm1_alphas_cumprod,
+                          sched.alphas_cumprod_prev)]
+        return (x, torch.tensor([t]), torch.tensor([fmg.guidance_weight(t, a.guidance)],
+                                                   dtype=torch.float32), *tab, *text_moe)
+
+    step = FineMoGenStep(net, xf, index, torch.tensor([a.frames])).eval()
+    names = ["x", "t", "w", "recip", "recipm1", "abp"] + [f"text_moe{i}" for i in
+                                                          range(len(text_moe))]
+    moes = [m for m in net.modules() if isinstance(m, fmg.TutelMoE)]
+    reference = fmg.TutelMoE.forward
+
+    def use(forward):
+        for m in moes:
+            m.forward = forward.__get__(m)
+
+    # Two steps' inputs: noise at the first step, and the reference's output of it at the next.
+    with torch.inference_mode():
+        first = inputs(noise, n - 1)
+        use(reference)
+        want = [step(*first)]
+        second = inputs(want[0][0], n - 2)
+        want.append(step(*second))
+        use(static_moe)
+        eager = [step(*first), step(*second)]
+    for (w_next, _), (e_next, _) in zip(want, eager):
+        err = float((e_next - w_next).abs().max() / w_next.abs().max())
+        if not err <= 1e-5:
+            raise SystemExit(f"static MoE differs from the reference's: relative {err:.3g}")
+    path = os.path.join(cache, cache_name(a, "finemogen", "step"))
+    export_s = export(step, first, names, ["x_next", "x0"], path, a.opset)
+    sess = session(path, a.threads, a.spin)
+    diffs = []
+    for args, (w_next, w_x0) in zip((first, second), want):
+        got_next, got_x0 = sess.run(None, np_inputs(names, args))
+        diffs.append(check("x0", got_x0, w_x0))
+        check("x_next", got_next, w_next)
+    diff, rel = max(diffs, key=lambda d: d[1])
+
+    fixed = np_inputs(names[6:], text_moe)
+    feeds = [np_inputs(names[1:6], inputs(None, i)[1:6]) for i in range(n)]
+
+    def run_step(x, i):
+        return sess.run(["x_next"], {"x": x, **feeds[i], **fixed})[0]
+
+    x_start = np.ascontiguousarray(noise.numpy())
+    run_step(x_start, n - 1)  # warm-up
+    steps, gens = [], []
+    for _ in range(a.runs):
+        x = x_start
+        g0 = time.perf_counter()
+        for i in reversed(range(n)):
+            s0 = time.perf_counter()
+            x = run_step(x, i)
+            steps.append((time.perf_counter() - s0) * 1e3)
+        gens.append((time.perf_counter() - g0) * 1e3)
+    return dict(steps=steps, gens=gens, diff=diff, rel=rel, export_s=export_s)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", required=True)
@@ -307,13 +455,6 @@ def main():
     from safetensors import safe_open
     with safe_open(a.model, "pt") as f:
         arch = json.loads(f.metadata()["flame.config"])["architecture"]
-    if arch == "finemogen":
-        print("onnxruntime: FineMoGen is not exported: its mixture-of-experts routing (top-2 "
-              "with capacity drops) gathers a data-dependent number of tokens per expert "
-              "(torch.export stops at `if rows.numel() == 0` in the reference's TutelMoE: "
-              "'Could not guard on data-dependent expression'); a trace of one input's routing "
-              "would be wrong at the next step. No ONNX Runtime timing for this family.")
-        sys.exit(UNSUPPORTED)
 
     tmp = None
     if a.cache:
@@ -324,6 +465,8 @@ def main():
     try:
         if arch in ("mola", "mld"):
             r = latent_bench(arch, a, cache)
+        elif arch == "finemogen":
+            r = finemogen_bench(a, cache)
         else:
             r = direct_bench(arch, a, cache)
     finally:

@@ -153,9 +153,11 @@ class FusedExperts(nn.Module):
         return u @ self.batched_fc2_w[e] + self.batched_fc2_bias[e]
 
 
-def route(scores, topk, capacity):
+def route(scores, topk, capacity, priority=None):
     """tutel extract_critical with batch-prioritised routing (STABLE tie order).
-    scores [N, E] -> (experts [N, k], gates [N, k] (renormalised), slots [N, k] int64)."""
+    scores [N, E] -> (experts [N, k], gates [N, k] (renormalised), slots [N, k] int64).
+    `priority(v)`, if given, replaces the stable descending sort of the top-1 scores: it must
+    return the same order (an exporter's TopK, which breaks ties by the lower index)."""
     n, e = scores.shape
     top = torch.topk(scores, topk, dim=1)
     experts, raw = top.indices, top.values
@@ -164,7 +166,8 @@ def route(scores, topk, capacity):
         denom = denom + raw[:, k]
     denom = torch.clamp(denom, min=torch.finfo(scores.dtype).eps)
     gates = raw / denom[:, None]
-    order = torch.sort(-raw[:, 0], stable=True).indices  # priority: descending top-1 score
+    # priority: descending top-1 score, ties in token order
+    order = torch.sort(-raw[:, 0], stable=True).indices if priority is None else priority(raw[:, 0])
     slots = torch.zeros(n, topk, dtype=torch.long)
     base = torch.zeros(e, dtype=torch.long)
     for k in range(topk):
@@ -399,12 +402,14 @@ class FineMoGenNet(nn.Module):
         return self.text_ln(self.textTransEncoder(x)).permute(1, 0, 2)
 
     def forward(self, x, t, lengths, xf, text_index, num_intervals):
-        """x [B, T, 263] (B = stages), t: original step (int), lengths [B] int64, xf [Nseq, 77, TL]
-        (cond sequences then their null copies), text_index [2B, 8].
+        """x [B, T, 263] (B = stages), t: original step (int, or an int64 tensor [1]), lengths [B]
+        int64, xf [Nseq, 77, TL] (cond sequences then their null copies), text_index [2B, 8].
         Returns (text rows, null rows), each [B, T, 263]."""
         b, tn = x.shape[:2]
         dt = x.dtype
-        emb = self.time_embed(timestep_embedding(torch.full((b,), t), self.latent_dim, dt))
+        # t a tensor too, so that an export takes the step as an input (same int64 values).
+        ts = t.reshape(1).expand(b) if torch.is_tensor(t) else torch.full((b,), t)
+        emb = self.time_embed(timestep_embedding(ts, self.latent_dim, dt))
         h = self.joint_embed(x)
         src_mask = (torch.arange(tn)[None, :] < lengths[:, None]).to(dt)
         h, emb, src_mask = h.repeat(2, 1, 1), emb.repeat(2, 1), src_mask.repeat(2, 1)
