@@ -15,7 +15,7 @@ const PAR_CHUNK: usize = 1 << 13;
 /// Applies `f` to every element, in parallel for large buffers, on the CPU's kernel path.
 fn map_inplace(x: &mut [f32], f: impl Fn(f32) -> f32 + Sync + Copy) {
     let isa = super::packed::detected_isa();
-    if x.len() < PAR_MIN_LEN || rayon::current_num_threads() <= 1 {
+    if x.len() < PAR_MIN_LEN || crate::kernels::threads() <= 1 {
         map_on(isa, x, f);
     } else {
         x.par_chunks_mut(PAR_CHUNK).for_each(|c| map_on(isa, c, f));
@@ -123,7 +123,7 @@ pub fn softmax_rows(x: &mut [f32], n: usize) {
         return;
     }
     assert_eq!(x.len() % n, 0, "softmax_rows: length not a multiple of n");
-    if x.len() < PAR_MIN_LEN || rayon::current_num_threads() <= 1 {
+    if x.len() < PAR_MIN_LEN || crate::kernels::threads() <= 1 {
         x.chunks_exact_mut(n).for_each(|r| {
             softmax_row(r);
         });

@@ -106,9 +106,9 @@ impl AttentionScratch {
         let slot_len = Q_BLOCK * kp;
 
         let work = lq.saturating_mul(lk).saturating_mul(e);
-        let parallel = tasks > 1 && work >= PAR_MIN_WORK && rayon::current_num_threads() > 1;
+        let parallel = tasks > 1 && work >= PAR_MIN_WORK && crate::kernels::threads() > 1;
         let slots = if parallel {
-            rayon::current_num_threads()
+            crate::kernels::threads()
         } else {
             1
         };

@@ -124,7 +124,7 @@ pub(crate) fn gemm(
         }
     };
 
-    let threads = rayon::current_num_threads();
+    let threads = crate::kernels::threads();
     let macs = m.saturating_mul(k).saturating_mul(n);
     // Each chunk packs its own slice of the split operand and all of the other one, so split
     // the larger output dimension: rows when m ≥ n, else columns (which is also what gives

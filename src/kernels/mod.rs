@@ -31,3 +31,38 @@ pub use norm::{add_layer_norm, layer_norm};
 pub use packed::{
     f32_tile, kernel_name, linear_packed, Activation, PackedLinear, PackedWeights, WeightType,
 };
+
+use std::cell::Cell;
+
+thread_local! {
+    static SERIAL: Cell<bool> = const { Cell::new(false) };
+}
+
+/// The threads a kernel call may split over: the current rayon pool's, or 1 inside [`serial`].
+pub(crate) fn threads() -> usize {
+    if SERIAL.with(Cell::get) {
+        1
+    } else {
+        rayon::current_num_threads()
+    }
+}
+
+/// Runs `f` with every kernel call it makes on this thread unsplit, and uncharged in
+/// [`profile`] (the caller charges the whole). For callers that already run independent calls
+/// in parallel, such as a mixture's experts: splitting each call again would have both threads
+/// pack the same activations and wake each other for every call. The same bits either way.
+pub(crate) fn serial<R>(f: impl FnOnce() -> R) -> R {
+    struct Restore(bool);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            SERIAL.with(|s| s.set(self.0));
+        }
+    }
+    let _restore = Restore(SERIAL.with(|s| s.replace(true)));
+    f()
+}
+
+/// Whether the calling thread is inside [`serial`].
+pub(crate) fn in_serial() -> bool {
+    SERIAL.with(Cell::get)
+}

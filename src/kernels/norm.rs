@@ -46,7 +46,7 @@ fn check(len: usize, dim: usize, gamma: &[f32], beta: &[f32]) {
 
 /// Calls `f(row, row_index)` for every row, in parallel for large inputs.
 fn for_rows(x: &mut [f32], dim: usize, f: impl Fn(&mut [f32], usize) + Sync) {
-    if x.len() < PAR_MIN_LEN || rayon::current_num_threads() <= 1 {
+    if x.len() < PAR_MIN_LEN || crate::kernels::threads() <= 1 {
         x.chunks_exact_mut(dim)
             .enumerate()
             .for_each(|(r, row)| f(row, r));

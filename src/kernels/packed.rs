@@ -752,7 +752,7 @@ fn split_work(
     macs: usize,
     run: impl Fn(usize, usize, usize, usize) + Sync,
 ) {
-    let threads = rayon::current_num_threads();
+    let threads = crate::kernels::threads();
     if threads <= 1 || macs < PAR_MIN_MACS || panels.max(tiles) < 2 {
         run(0, tiles, 0, panels);
         return;

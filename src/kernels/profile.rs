@@ -52,10 +52,12 @@ pub(crate) enum Kind {
     Moe,
 }
 
-/// Runs `f`, charging its wall time and `flop` to `kind` when accounting is on.
+/// Runs `f`, charging its wall time and `flop` to `kind` when accounting is on (not inside
+/// [`super::serial`], whose caller charges the whole: calls running at once on several threads
+/// would add up their wall times).
 #[inline]
 pub(crate) fn timed<R>(kind: Kind, flop: usize, f: impl FnOnce() -> R) -> R {
-    if !ON.load(Ordering::Relaxed) {
+    if !ON.load(Ordering::Relaxed) || super::in_serial() {
         return f();
     }
     let t = Instant::now();

@@ -40,6 +40,8 @@ use crate::config::validate::{
 };
 use crate::config::{section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MAX_WIDTH};
 use crate::error::{bad_file, invalid_arg, Result};
+use rayon::prelude::*;
+
 use crate::kernels::{self, Activation, WeightType};
 use crate::stages::{Stage, PART_COUNT};
 
@@ -564,28 +566,80 @@ impl Moe {
         }
         let dropped = route(scores, e, k, self.capacity(n), used, ws);
         ws.scores = scores_buf;
-        // Each expert on the tokens routed to it; Σ gates · outputs per token.
-        let (d, h) = (self.dim, self.hidden);
-        let mix = sized(&mut ws.mix, used * d);
-        mix.fill(0.0);
-        for (expert, list) in self.experts.iter().zip(&ws.routed) {
-            let m = list.len();
-            if m == 0 {
-                continue;
+        // Each expert on the tokens routed to it; Σ gates · outputs per token, in expert order.
+        // With several threads, each task runs a contiguous range of experts (equal shares of
+        // the routed rows) into its own sums, its calls unsplit; the ranges' sums are then
+        // added in order. A token's terms are added in the same order either way (the other
+        // ranges contribute exact zeros), so the bits do not depend on the thread count.
+        let d = self.dim;
+        let rows: usize = ws.routed.iter().map(Vec::len).sum();
+        let tasks = kernels::threads()
+            .min(e)
+            .min(rows / EXPERT_ROWS_PER_TASK)
+            .max(1);
+        let MoeScratch {
+            routed,
+            parts,
+            mix,
+            ends,
+            ..
+        } = ws;
+        let routed: &[Vec<(u32, f32)>] = routed;
+        if parts.len() < tasks {
+            parts.resize_with(tasks, ExpertScratch::default);
+        }
+        // Sized once for the most rows an expert can get, so that later steps, whose experts
+        // get other counts, do not allocate.
+        let most = self.capacity(n).min(n);
+        for part in &mut parts[..tasks] {
+            for (buf, len) in [
+                (&mut part.xin, most * d),
+                (&mut part.hidden, most * self.hidden),
+                (&mut part.out, most * d),
+                (&mut part.mix, used * d),
+            ] {
+                buf.reserve(len.saturating_sub(buf.len()));
             }
-            let xin = sized(&mut ws.xin, m * d);
-            for (row, &(t, _)) in xin.chunks_exact_mut(d).zip(list) {
-                row.copy_from_slice(&x[t as usize * d..][..d]);
-            }
-            let hid = sized(&mut ws.hidden, m * h);
-            expert.fc1.forward_act(xin, m, hid, Activation::Gelu);
-            let o = sized(&mut ws.out, m * d);
-            expert.fc2.forward(hid, m, o);
-            for (row, &(t, gate)) in o.chunks_exact(d).zip(list) {
-                let dst = &mut mix[t as usize * d..][..d];
-                for (a, &b) in dst.iter_mut().zip(row) {
-                    *a += gate * b;
+        }
+        let mix = sized(mix, used * d);
+        if tasks == 1 {
+            self.run_experts(0..e, routed, x, used, mix, &mut parts[0]);
+        } else {
+            // Range j ends after the expert where the routed rows first reach j + 1 shares.
+            ends.clear();
+            let mut seen = 0;
+            for (x, list) in routed.iter().enumerate() {
+                seen += list.len();
+                while ends.len() < tasks - 1 && seen * tasks >= (ends.len() + 1) * rows {
+                    ends.push(x + 1);
                 }
+            }
+            ends.resize(tasks, e);
+            let flop = 2 * rows * 2 * d * self.hidden;
+            kernels::profile::timed(kernels::profile::Kind::Linear, flop, || {
+                parts[..tasks]
+                    .par_iter_mut()
+                    .enumerate()
+                    .for_each(|(j, part)| {
+                        let start = if j == 0 { 0 } else { ends[j - 1] };
+                        let mut sums = std::mem::take(&mut part.mix);
+                        let range = start..ends[j];
+                        kernels::serial(|| {
+                            self.run_experts(
+                                range,
+                                routed,
+                                x,
+                                used,
+                                sized(&mut sums, used * d),
+                                part,
+                            )
+                        });
+                        part.mix = sums;
+                    });
+            });
+            mix.copy_from_slice(&parts[0].mix[..used * d]);
+            for part in &parts[1..tasks] {
+                kernels::add_inplace(mix, &part.mix[..used * d]);
             }
         }
         kernels::gelu_erf(mix);
@@ -593,6 +647,48 @@ impl Moe {
         dropped
     }
 }
+
+impl Moe {
+    /// `sums = Σ gate · expert(x[token])` over experts `range` and their routed `(token, gate)`
+    /// lists, in expert order (`sums` is overwritten: `[used, dim]`).
+    fn run_experts(
+        &self,
+        range: std::ops::Range<usize>,
+        routed: &[Vec<(u32, f32)>],
+        x: &[f32],
+        used: usize,
+        sums: &mut [f32],
+        part: &mut ExpertScratch,
+    ) {
+        let (d, h) = (self.dim, self.hidden);
+        let sums = &mut sums[..used * d];
+        sums.fill(0.0);
+        for (expert, list) in self.experts[range.clone()].iter().zip(&routed[range]) {
+            let m = list.len();
+            if m == 0 {
+                continue;
+            }
+            let xin = sized(&mut part.xin, m * d);
+            for (row, &(t, _)) in xin.chunks_exact_mut(d).zip(list) {
+                row.copy_from_slice(&x[t as usize * d..][..d]);
+            }
+            let hid = sized(&mut part.hidden, m * h);
+            expert.fc1.forward_act(xin, m, hid, Activation::Gelu);
+            let o = sized(&mut part.out, m * d);
+            expert.fc2.forward(hid, m, o);
+            for (row, &(t, gate)) in o.chunks_exact(d).zip(list) {
+                let dst = &mut sums[t as usize * d..][..d];
+                for (a, &b) in dst.iter_mut().zip(row) {
+                    *a += gate * b;
+                }
+            }
+        }
+    }
+}
+
+/// Fewest routed rows per task when a mixture's experts are split over threads: below this a
+/// task's work is less than a fork and join costs.
+const EXPERT_ROWS_PER_TASK: usize = 64;
 
 /// Slots per expert for `n` tokens: `k · ⌊f · ⌈n / E⌉⌋` (tutel; `f` a Python float).
 fn capacity(n: usize, experts: usize, k: usize, f: f32) -> usize {
@@ -679,9 +775,19 @@ struct MoeScratch {
     count: Vec<usize>,
     routed: Vec<Vec<(u32, f32)>>,
     mix: Vec<f32>,
+    /// One per task running a range of experts, and where each range ends.
+    parts: Vec<ExpertScratch>,
+    ends: Vec<usize>,
+}
+
+/// Buffers of one task of [`Moe::run_experts`]: the gathered rows, the experts' hidden and
+/// output rows, and the range's sums.
+#[derive(Default)]
+struct ExpertScratch {
     xin: Vec<f32>,
     hidden: Vec<f32>,
     out: Vec<f32>,
+    mix: Vec<f32>,
 }
 
 /// `out(SiLU(LN(h)·(1 + scale) + shift))` with (scale, shift) from the time embedding.

@@ -493,7 +493,7 @@ fn convert(
     if s == 0 {
         return;
     }
-    if rayon::current_num_threads() > 1 && m * k >= PAR_MIN_MACS / 64 {
+    if crate::kernels::threads() > 1 && m * k >= PAR_MIN_MACS / 64 {
         words
             .par_chunks_mut(s * MR512)
             .zip(scales.par_chunks_mut(MR512))
