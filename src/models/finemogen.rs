@@ -940,11 +940,22 @@ pub struct FinemogenWorkspace {
     mlp: Vec<f32>,
     part_in: Vec<f32>,
     part_out: Vec<f32>,
+    /// One per task of [`FinemogenDenoiser::sffn`].
+    part_tasks: Vec<PartScratch>,
     moe: MoeScratch,
     /// The right-hand activations of the template products, packed.
     rhs: kernels::PackedWeights,
     /// Dropped motion-MoE choices in the last forward pass.
     pub motion_dropped: usize,
+}
+
+/// Buffers of one task of [`FinemogenDenoiser::sffn`]: a part's input and hidden rows, and
+/// the outputs of the task's parts, one after another.
+#[derive(Default)]
+struct PartScratch {
+    input: Vec<f32>,
+    hidden: Vec<f32>,
+    out: Vec<f32>,
 }
 
 /// One network row of a batch.
@@ -1571,20 +1582,43 @@ impl FinemogenDenoiser {
             .add(&mut ws.h[..n * l], y, n, &ws.emb, eps, s1, s2);
     }
 
-    /// `h ← h + stylization(per-part FFN(h))`.
+    /// `h ← h + stylization(per-part FFN(h))`. With several threads each task runs a
+    /// contiguous range of the parts with its calls unsplit (each part's output is its own
+    /// columns, so the bits do not depend on the split).
     fn sffn(&self, ffn: &Sffn, n: usize, ws: &mut FinemogenWorkspace) {
         let c = &self.cfg;
         let (p, l) = (c.part_dim, GROUPS * c.part_dim);
-        let y = sized(&mut ws.ys, n * l);
-        for (g, mlp) in ffn.parts.iter().enumerate() {
-            let gi = sized(&mut ws.part_in, n * p);
-            for (dst, src) in gi.chunks_exact_mut(p).zip(ws.h.chunks_exact(l)) {
-                dst.copy_from_slice(&src[g * p..(g + 1) * p]);
+        let parts = ffn.parts.len();
+        let tasks = kernels::threads().min(parts).max(1);
+        if ws.part_tasks.len() < tasks {
+            ws.part_tasks.resize_with(tasks, PartScratch::default);
+        }
+        let range = |j: usize| parts * j / tasks..parts * (j + 1) / tasks;
+        let h = &ws.h[..n * l];
+        let run = |j: usize, buf: &mut PartScratch| {
+            let out = sized(&mut buf.out, range(j).len() * n * p);
+            for (g, go) in range(j).zip(out.chunks_exact_mut(n * p)) {
+                let gi = sized(&mut buf.input, n * p);
+                for (dst, src) in gi.chunks_exact_mut(p).zip(h.chunks_exact(l)) {
+                    dst.copy_from_slice(&src[g * p..(g + 1) * p]);
+                }
+                ffn.parts[g].forward(gi, n, go, &mut buf.hidden);
             }
-            let go = sized(&mut ws.part_out, n * p);
-            mlp.forward(gi, n, go, &mut ws.mlp);
-            for (dst, src) in y.chunks_exact_mut(l).zip(go.chunks_exact(p)) {
-                dst[g * p..(g + 1) * p].copy_from_slice(src);
+        };
+        if tasks == 1 {
+            run(0, &mut ws.part_tasks[0]);
+        } else {
+            ws.part_tasks[..tasks]
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(j, buf)| kernels::serial(|| run(j, buf)));
+        }
+        let y = sized(&mut ws.ys, n * l);
+        for (j, buf) in ws.part_tasks[..tasks].iter().enumerate() {
+            for (g, go) in range(j).zip(buf.out.chunks_exact(n * p)) {
+                for (dst, src) in y.chunks_exact_mut(l).zip(go.chunks_exact(p)) {
+                    dst[g * p..(g + 1) * p].copy_from_slice(src);
+                }
             }
         }
         let (s1, s2) = (&mut ws.styl.0, &mut ws.styl.1);
