@@ -31,6 +31,7 @@
 use std::any::Any;
 use std::sync::Arc;
 
+use rayon::prelude::*;
 use serde::Deserialize;
 
 use crate::checkpoint::{ModelFile, Tensor};
@@ -40,8 +41,6 @@ use crate::config::validate::{
 };
 use crate::config::{section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MAX_WIDTH};
 use crate::error::{bad_file, invalid_arg, Result};
-use rayon::prelude::*;
-
 use crate::kernels::{self, Activation, WeightType};
 use crate::stages::{Stage, PART_COUNT};
 
@@ -608,10 +607,10 @@ impl Moe {
             // Range j ends after the expert where the routed rows first reach j + 1 shares.
             ends.clear();
             let mut seen = 0;
-            for (x, list) in routed.iter().enumerate() {
+            for (expert, list) in routed.iter().enumerate() {
                 seen += list.len();
                 while ends.len() < tasks - 1 && seen * tasks >= (ends.len() + 1) * rows {
-                    ends.push(x + 1);
+                    ends.push(expert + 1);
                 }
             }
             ends.resize(tasks, e);
@@ -646,9 +645,7 @@ impl Moe {
         self.proj.forward(mix, used, &mut y[..used * self.proj_out]);
         dropped
     }
-}
 
-impl Moe {
     /// `sums = Σ gate · expert(x[token])` over experts `range` and their routed `(token, gate)`
     /// lists, in expert order (`sums` is overwritten: `[used, dim]`).
     fn run_experts(
