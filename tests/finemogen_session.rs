@@ -135,7 +135,7 @@ fn staged_generation_is_deterministic_for_any_thread_count() {
     };
     let one = run(1);
     assert!(one.iter().all(|v| v.is_finite()));
-    // 2 and 3 threads split each mixture's experts into as many ranges (FineMoGen's MoE).
+    // 2 and 3 threads split each mixture's experts, and SFFN's part FFNs, into as many ranges.
     for threads in [2, 3] {
         let other = run(threads);
         assert!(

@@ -19,7 +19,8 @@
 # ONNX Runtime (tools/bench_onnx.py: the same step exported by torch.onnx, checked against PyTorch,
 # timed by an InferenceSession with the same threads) runs third in every round when the Python
 # has onnxruntime (ORT=auto, the default; ORT=1 requires it, ORT=0 skips it); its exported files
-# are kept in $CARGO_TARGET_DIR/onnx and reused. ORT_ARGS (default empty) is passed to tools/bench_onnx.py only, e.g. ORT_ARGS="--spin 0".
+# are kept in $CARGO_TARGET_DIR/onnx and reused. ORT_ARGS (default empty) is passed to
+# tools/bench_onnx.py only, e.g. ORT_ARGS="--spin 0".
 # The table's ratios are the other's generation time over libflame's (above 1: libflame faster);
 # a second table lists each round's generation times and ratios.
 set -euo pipefail

@@ -40,7 +40,7 @@ thread_local! {
 
 /// The threads a kernel call may split over: the current rayon pool's, or 1 inside [`serial`].
 pub(crate) fn threads() -> usize {
-    if SERIAL.with(Cell::get) {
+    if in_serial() {
         1
     } else {
         rayon::current_num_threads()

@@ -588,14 +588,15 @@ impl Moe {
             parts.resize_with(tasks, ExpertScratch::default);
         }
         // Sized once for the most rows an expert can get, so that later steps, whose experts
-        // get other counts, do not allocate.
+        // get other counts, do not allocate (a range's sums only when there are several).
         let most = self.capacity(n).min(n);
+        let sums = if tasks > 1 { used * d } else { 0 };
         for part in &mut parts[..tasks] {
             for (buf, len) in [
                 (&mut part.xin, most * d),
                 (&mut part.hidden, most * self.hidden),
                 (&mut part.out, most * d),
-                (&mut part.mix, used * d),
+                (&mut part.mix, sums),
             ] {
                 buf.reserve(len.saturating_sub(buf.len()));
             }

@@ -167,7 +167,10 @@ def route(scores, topk, capacity, priority=None):
     denom = torch.clamp(denom, min=torch.finfo(scores.dtype).eps)
     gates = raw / denom[:, None]
     # priority: descending top-1 score, ties in token order
-    order = torch.sort(-raw[:, 0], stable=True).indices if priority is None else priority(raw[:, 0])
+    if priority is None:
+        order = torch.sort(-raw[:, 0], stable=True).indices
+    else:
+        order = priority(raw[:, 0])
     slots = torch.zeros(n, topk, dtype=torch.long)
     base = torch.zeros(e, dtype=torch.long)
     for k in range(topk):
