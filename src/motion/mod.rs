@@ -63,23 +63,32 @@
 //! points.
 
 pub mod bvh;
+pub mod contacts;
 pub mod convention;
+pub mod feet;
+pub mod finish;
 pub mod format;
 pub mod gltf;
 pub(crate) mod humanml263;
+pub mod ik;
 pub mod json;
 pub mod layout;
+pub mod looping;
 pub mod mask;
 pub mod poses;
 pub mod postprocess;
 #[cfg(feature = "preview")]
 pub mod preview;
 pub mod reference;
+pub mod resample;
+pub mod root_motion;
 pub mod rotation;
 pub mod skeleton;
 mod smpl24_6d;
 
+pub use contacts::ContactParams;
 pub use convention::{Axis, Convention, Frame, Handedness, Unit};
+pub use finish::{Feet, Finish, RootMotion};
 pub use format::{Format, Normalization};
 pub use layout::{Layout, QuatOrder};
 pub use mask::{BodyPart, Mask, Task};

@@ -43,8 +43,14 @@ pub struct Poses {
     pub(crate) local: Vec<Mat3>,
     pub(crate) global: Vec<Mat3>,
     pub(crate) positions: Vec<Vec3>,
-    /// `[frames]` for formats with foot contacts, empty otherwise.
+    /// `[frames]` foot contacts (left ankle, left foot, right ankle, right foot): the features'
+    /// for formats that carry them, the finished ones after [`super::Finish::apply`], empty
+    /// otherwise (a read then detects them with the default [`super::ContactParams`]).
     pub(crate) contacts: Vec<[f64; 4]>,
+    /// `[frames]` the `root` bone's world position (on the ground under the pelvis) when the
+    /// root motion is [`super::RootMotion::Separate`], empty otherwise; exporters write the
+    /// bone when it is there.
+    pub(crate) root_bone: Vec<Vec3>,
 }
 
 impl Poses {
@@ -60,6 +66,7 @@ impl Poses {
             global: vec![rotation::IDENTITY; n],
             positions: vec![[0.0; 3]; n],
             contacts: Vec::new(),
+            root_bone: Vec::new(),
         }
     }
 
@@ -207,6 +214,11 @@ impl Poses {
                 Vec::new()
             } else {
                 self.contacts[start..start + count].to_vec()
+            },
+            root_bone: if self.root_bone.is_empty() {
+                Vec::new()
+            } else {
+                self.root_bone[start..start + count].to_vec()
             },
         }
     }

@@ -1,0 +1,1 @@
+//! PLACEHOLDER (being written): analytic two-bone IK.
