@@ -134,12 +134,28 @@ fn every_layout_and_convention_matches_the_motion_module() {
             }
         }
     }
-    // FLAME's format has no foot contacts; unknown values are errors.
+    // FLAME's features carry no foot contacts: a read detects them (0 or 1), as the motion
+    // module does; raw poses have no root bone; unknown values are errors.
+    let (st, contacts) = read(session, FlameLayout::FootContacts as i32, 0, 0);
+    assert_eq!(st, FlameStatus::Ok);
     assert_eq!(
-        read(session, FlameLayout::FootContacts as i32, 0, 0).0,
+        contacts,
+        motion::read_layout(
+            m.motion_format(),
+            &features,
+            12,
+            Layout::FootContacts,
+            Convention::Native,
+            &m.read_options(0.0, true)
+        )
+        .unwrap()
+    );
+    assert!(contacts.iter().all(|&c| c == 0.0 || c == 1.0));
+    assert_eq!(
+        read(session, FlameLayout::RootBone as i32, 0, 0).0,
         FlameStatus::InvalidArgument
     );
-    assert_eq!(read(session, 10, 0, 0).0, FlameStatus::InvalidArgument);
+    assert_eq!(read(session, 11, 0, 0).0, FlameStatus::InvalidArgument);
     assert_eq!(read(session, 1, 6, 0).0, FlameStatus::InvalidArgument);
     assert_eq!(read(session, 1, 0, 4).0, FlameStatus::InvalidArgument);
 
@@ -252,6 +268,137 @@ fn a_flow_matching_model_through_the_c_abi() {
     assert_eq!(st, FlameStatus::Ok);
     assert!(x[..2 * 263].iter().all(|&v| v == 0.25));
     assert!(x[2 * 263..].iter().any(|&v| v != 0.25));
+    unsafe {
+        flame_session_free(session);
+        flame_model_free(model);
+    }
+}
+
+/// `flame_session_read_cleaned` with a session's `FlameCleanupParams`.
+fn read_cleaned(
+    s: *const FlameSession,
+    layout: FlameLayout,
+    cleanup: *const FlameCleanupParams,
+) -> (FlameStatus, Vec<f32>) {
+    let mut n = 0usize;
+    let layout = layout as i32;
+    let gltf = FlameConvention::Gltf as i32;
+    let st = unsafe {
+        flame_session_read_cleaned(
+            s,
+            0,
+            layout,
+            gltf,
+            0,
+            cleanup,
+            std::ptr::null_mut(),
+            0,
+            &mut n,
+        )
+    };
+    if st != FlameStatus::Ok {
+        return (st, Vec::new());
+    }
+    let mut out = vec![0.0f32; n];
+    let st = unsafe {
+        flame_session_read_cleaned(s, 0, layout, gltf, 0, cleanup, out.as_mut_ptr(), n, &mut n)
+    };
+    (st, out)
+}
+
+#[test]
+fn cleaned_reads_match_the_rust_read_options_and_refuse_bad_values() {
+    let path = CString::new(MODEL).unwrap();
+    let mut model: *mut FlameModel = std::ptr::null_mut();
+    let mut session: *mut FlameSession = std::ptr::null_mut();
+    let mut params = unsafe { std::mem::zeroed::<FlameSessionParams>() };
+    let mut cleanup = unsafe { std::mem::zeroed::<FlameCleanupParams>() };
+    let prompt = CString::new("a person walks").unwrap();
+    unsafe {
+        assert_eq!(
+            flame_model_load(path.as_ptr(), std::ptr::null(), &mut model),
+            FlameStatus::Ok
+        );
+        assert_eq!(flame_session_params_default(&mut params), FlameStatus::Ok);
+        assert_eq!(flame_cleanup_params_default(&mut cleanup), FlameStatus::Ok);
+    }
+    params.frames = 30;
+    params.steps = 3;
+    params.seed = 2;
+    params.threads = 1;
+    unsafe {
+        assert_eq!(
+            flame_session_new(model, &params, &mut session),
+            FlameStatus::Ok
+        );
+        assert_eq!(
+            flame_session_set_prompt(session, prompt.as_ptr()),
+            FlameStatus::Ok
+        );
+        while flame_session_step(session, std::ptr::null_mut()) == FlameStatus::Ok {}
+    }
+    let (_, features) = read(session, FlameLayout::Features as i32, 0, 0);
+    let m = Arc::new(Model::load(MODEL).unwrap());
+
+    // The defaults are the game-ready finish; NULL is the raw read.
+    assert_eq!(cleanup.feet, FlameFeet::Lock as i32);
+    assert_eq!((cleanup.ground, cleanup.fps), (1, 0.0));
+    cleanup.fps = 30.0;
+    cleanup.root_motion = FlameRootMotion::Separate as i32;
+    let finish = motion::Finish {
+        fps: Some(30.0),
+        root_motion: motion::RootMotion::Separate,
+        ..motion::Finish::game_ready()
+    };
+    let opts = motion::ReadOptions {
+        finish,
+        ..m.read_options(0.0, true)
+    };
+    for (fl, l) in [
+        (FlameLayout::GlobalPositions, Layout::GlobalPositions),
+        (FlameLayout::LocalQuatXyzw, Layout::LocalQuatXyzw),
+        (FlameLayout::FootContacts, Layout::FootContacts),
+        (FlameLayout::RootBone, Layout::RootBone),
+    ] {
+        let want =
+            motion::read_layout(m.motion_format(), &features, 30, l, Convention::Gltf, &opts)
+                .unwrap();
+        let (st, got) = read_cleaned(session, fl, &cleanup);
+        assert_eq!(st, FlameStatus::Ok, "{fl:?}");
+        assert_eq!(got, want, "{fl:?}");
+    }
+    // 30 frames at 20 fps end at 1.45 s: 44 frames at 30 fps.
+    let (_, bone) = read_cleaned(session, FlameLayout::RootBone, &cleanup);
+    assert_eq!(bone.len(), 44 * 3);
+    let (_, raw) = read_cleaned(session, FlameLayout::GlobalPositions, std::ptr::null());
+    let (_, plain) = read(
+        session,
+        FlameLayout::GlobalPositions as i32,
+        FlameConvention::Gltf as i32,
+        0,
+    );
+    assert_eq!(raw, plain);
+
+    // Bad values are errors naming the value, never a crash.
+    let bad = |edit: &dyn Fn(&mut FlameCleanupParams), needle: &str| {
+        let mut p = cleanup;
+        edit(&mut p);
+        let (st, _) = read_cleaned(session, FlameLayout::GlobalPositions, &p);
+        assert_eq!(st, FlameStatus::InvalidArgument, "{needle}");
+        let msg = unsafe { std::ffi::CStr::from_ptr(flame_last_error()) }
+            .to_str()
+            .unwrap()
+            .to_string();
+        assert!(msg.contains(needle), "{needle}: {msg}");
+    };
+    bad(&|p| p.fps = f32::NAN, "frame rate");
+    bad(&|p| p.fps = 1e9, "1000000000");
+    bad(&|p| p.fps = -20.0, "-20");
+    bad(&|p| p.contact_height = -0.1, "-0.1");
+    bad(&|p| p.contact_speed = f32::INFINITY, "inf");
+    bad(&|p| p.feet = 7, "feet");
+    bad(&|p| p.root_motion = -1, "root_motion");
+    bad(&|p| p.struct_size = 4, "struct_size");
     unsafe {
         flame_session_free(session);
         flame_model_free(model);

@@ -172,7 +172,7 @@ fn positions_equal_the_motion_decoder() {
     let opts = ReadOptions {
         smooth_sigma: 0.0,
         continuous: false,
-        normalization: None,
+        ..Default::default()
     };
     for (format, frames) in [(Format::HumanMl263, 9), (Format::Smpl24Rot6d, 5)] {
         let features = f32s(&rng.vec(frames * format.feature_dim()));

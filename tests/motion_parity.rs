@@ -117,7 +117,7 @@ fn smoothing_matches_scipy_and_the_smoothed_decode() {
     let opts = ReadOptions {
         smooth_sigma: 1.0,
         continuous: false,
-        normalization: None,
+        ..Default::default()
     };
     let poses = decode(Format::Smpl24Rot6d, &features, &opts);
     let native = Convention::Native;

@@ -338,19 +338,21 @@ impl SessionState {
         flags: u32,
         fps: f32,
         name: Option<&str>,
+        finish: &crate::motion::Finish,
     ) -> Result<Vec<u8>, Fail> {
         use crate::motion::gltf;
         let model = Arc::clone(self.session.model());
         let seed = self.session.seed();
         let prompt = self.prompt.clone();
         let (features, frames) = self.motion(which)?;
-        let poses = super::poses::decode(&model, features, frames, flags)?;
+        let poses = super::poses::decode(&model, features, frames, flags, finish)?;
+        let fps = match finish.fps {
+            Some(f) => f as f32,
+            None if fps == 0.0 => model.config().motion.fps,
+            None => fps,
+        };
         let opts = gltf::GltfOptions {
-            fps: if fps == 0.0 {
-                model.config().motion.fps
-            } else {
-                fps
-            },
+            fps,
             prompt: Some(&prompt),
             model: Some(&model.config().architecture),
             seed: Some(seed),
@@ -365,11 +367,12 @@ impl SessionState {
         layout: i32,
         convention: i32,
         flags: u32,
+        finish: &crate::motion::Finish,
     ) -> Result<Vec<f32>, Fail> {
         let model = Arc::clone(self.session.model());
         let (features, frames) = self.motion(which)?;
         Ok(super::poses::read(
-            &model, features, frames, layout, convention, flags,
+            &model, features, frames, layout, convention, flags, finish,
         )?)
     }
 }

@@ -6,6 +6,7 @@
 //! [`FlameStatus`] and leaves a message for [`flame_last_error`]. Every entry point checks its
 //! pointers and catches panics, so no panic crosses into the host.
 
+mod cleanup;
 mod errors;
 mod handles;
 mod poses;
@@ -21,6 +22,11 @@ use crate::models::{LoadOptions, Model, WeightType};
 use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 use crate::targets::{TargetParams, TargetSchedule};
 
+use cleanup::finish_arg;
+pub use cleanup::{
+    flame_cleanup_params_default, flame_session_read_cleaned, FlameCleanupParams, FlameFeet,
+    FlameRootMotion,
+};
 use errors::{catch_quietly, guard, Fail};
 pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use handles::{model_ref, session_ref};
@@ -213,7 +219,14 @@ pub struct FlameGltfParams {
     /// The animation's name (sanitised: letters, digits, `-`, `_`); NULL (default) = the
     /// session's prompt, sanitised, or `motion`.
     pub name: *const c_char,
+    /// Post-processing before export (since version 2 of this struct); NULL (default) = the
+    /// raw poses. Its `fps`, when set, overrides `fps` above. A `separate` root motion adds the
+    /// `root` bone to the skeleton.
+    pub cleanup: *const FlameCleanupParams,
 }
+
+/// Size of version 1 of [`FlameGltfParams`] (up to `name`).
+const GLTF_PARAMS_V1: usize = std::mem::offset_of!(FlameGltfParams, cleanup);
 
 /// What a model's linear-layer weights are held and multiplied in ([`FlameModelParams`]),
 /// whatever the file stores. Embeddings, norms and biases stay f32.
@@ -382,6 +395,30 @@ unsafe fn struct_arg<'a, T>(
         .ok_or_else(|| Fail::from(invalid_arg!("`{name}` is NULL")))?;
     check_size(struct_size(p), std::mem::size_of::<T>(), name)?;
     Ok(p)
+}
+
+/// Copies `values` to a caller buffer of `len` (`out` NULL: only the length is reported), with
+/// `BUFFER_TOO_SMALL` when it does not fit; `*out_len` gets the length either way.
+unsafe fn copy_out<T: Copy>(
+    values: &[T],
+    out: *mut T,
+    len: usize,
+    out_len: *mut usize,
+    unit: &'static str,
+) -> Result<(), Fail> {
+    out_len.write(values.len());
+    if out.is_null() {
+        return Ok(());
+    }
+    if len < values.len() {
+        return Err(Fail::BufferTooSmall {
+            needed: values.len(),
+            given: len,
+            unit,
+        });
+    }
+    std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
+    Ok(())
 }
 
 /// Writes through an out-pointer after checking it.
@@ -1422,22 +1459,8 @@ pub unsafe extern "C" fn flame_session_read(
             return Err(invalid_arg!("`out_len` is NULL").into());
         }
         s.with(|st| {
-            let values = st.read(which, layout, convention, flags)?;
-            if out.is_null() {
-                out_len.write(values.len());
-                return Ok(());
-            }
-            if len < values.len() {
-                out_len.write(values.len());
-                return Err(Fail::BufferTooSmall {
-                    needed: values.len(),
-                    given: len,
-                    unit: "floats",
-                });
-            }
-            std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
-            out_len.write(values.len());
-            Ok(())
+            let values = st.read(which, layout, convention, flags, &Default::default())?;
+            copy_out(&values, out, len, out_len, "floats")
         })
     })
 }
@@ -1456,9 +1479,33 @@ pub unsafe extern "C" fn flame_gltf_params_default(params: *mut FlameGltfParams)
             flags: 0,
             fps: 0.0,
             name: std::ptr::null(),
+            cleanup: std::ptr::null(),
         };
         write_out(params, p, "params")
     })
+}
+
+/// Reads the caller's glTF params (NULL = the defaults): only the `struct_size` bytes it
+/// declares (at least version 1's), `cleanup` NULL when version 1 has none.
+unsafe fn gltf_params(params: *const FlameGltfParams) -> Result<FlameGltfParams, Fail> {
+    let mut p = std::mem::zeroed::<FlameGltfParams>();
+    flame_gltf_params_default(&mut p);
+    if params.is_null() {
+        return Ok(p);
+    }
+    // SAFETY: the caller's struct is readable for at least its first field.
+    let declared = std::ptr::read_unaligned(params as *const u32);
+    check_size(declared, GLTF_PARAMS_V1, "params")?;
+    // Whole fields only: the end of the newest version the declared size covers.
+    let n = if declared as usize >= std::mem::size_of::<FlameGltfParams>() {
+        std::mem::size_of::<FlameGltfParams>()
+    } else {
+        GLTF_PARAMS_V1
+    };
+    // SAFETY: the caller's struct is readable for the `declared` ≥ n bytes it says it has;
+    // `p` is a plain-data struct of at least n bytes.
+    std::ptr::copy_nonoverlapping(params as *const u8, &mut p as *mut _ as *mut u8, n);
+    Ok(p)
 }
 
 /// Writes the current sample or clean-motion estimate (`which`, a [`FlameWhich`]) as a glTF 2.0
@@ -1491,13 +1538,7 @@ pub unsafe extern "C" fn flame_session_write_gltf(
         if out_len.is_null() {
             return Err(invalid_arg!("`out_len` is NULL").into());
         }
-        let mut defaults = std::mem::zeroed::<FlameGltfParams>();
-        let p = if params.is_null() {
-            flame_gltf_params_default(&mut defaults);
-            &defaults
-        } else {
-            struct_arg(params, |p| p.struct_size, "params")?
-        };
+        let p = &gltf_params(params)?;
         let container = match p.container {
             c if c == FlameGltfContainer::Glb as i32 => crate::motion::gltf::Container::Glb,
             c if c == FlameGltfContainer::Gltf as i32 => crate::motion::gltf::Container::Gltf,
@@ -1508,23 +1549,10 @@ pub unsafe extern "C" fn flame_session_write_gltf(
         } else {
             Some(str_arg(p.name, "params.name")?)
         };
+        let finish = finish_arg(p.cleanup)?;
         s.with(|st| {
-            let bytes = st.gltf(which, container, p.flags, p.fps, name)?;
-            if out.is_null() {
-                out_len.write(bytes.len());
-                return Ok(());
-            }
-            if len < bytes.len() {
-                out_len.write(bytes.len());
-                return Err(Fail::BufferTooSmall {
-                    needed: bytes.len(),
-                    given: len,
-                    unit: "bytes",
-                });
-            }
-            std::ptr::copy_nonoverlapping(bytes.as_ptr(), out, bytes.len());
-            out_len.write(bytes.len());
-            Ok(())
+            let bytes = st.gltf(which, container, p.flags, p.fps, name, &finish)?;
+            copy_out(&bytes, out, len, out_len, "bytes")
         })
     })
 }

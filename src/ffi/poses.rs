@@ -29,9 +29,12 @@ pub enum FlameLayout {
     GlobalQuatXyzw = 7,
     /// `[frames, J, 4]` world rotations as quaternions w, x, y, z.
     GlobalQuatWxyz = 8,
-    /// `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot); only
-    /// formats that carry them (humanml263).
+    /// `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot), 0 or 1
+    /// (humanml263 models' own values, ≈0 or 1, when read raw).
     FootContacts = 9,
+    /// `[frames, 3]` the `root` bone's world position (on the ground under the pelvis); only
+    /// with a cleanup's `FLAME_ROOT_MOTION_SEPARATE`.
+    RootBone = 10,
 }
 
 /// The coordinate frame poses are expressed in (README: "Poses").
@@ -59,7 +62,7 @@ pub const FLAME_READ_SMOOTH: u32 = 1;
 /// track sign-continuous between frames.
 pub const FLAME_READ_RAW_SIGNS: u32 = 2;
 
-const LAYOUTS: [Layout; 9] = [
+const LAYOUTS: [Layout; 10] = [
     Layout::RootTranslation,
     Layout::LocalQuatXyzw,
     Layout::LocalQuatWxyz,
@@ -69,6 +72,7 @@ const LAYOUTS: [Layout; 9] = [
     Layout::GlobalQuatXyzw,
     Layout::GlobalQuatWxyz,
     Layout::FootContacts,
+    Layout::RootBone,
 ];
 
 const CONVENTIONS: [Convention; 6] = [
@@ -128,8 +132,12 @@ pub(crate) fn decode(
     features: &[f32],
     frames: usize,
     flags: u32,
+    finish: &motion::Finish,
 ) -> Result<motion::Poses> {
-    let opts = model.read_options(smooth_sigma(flags)?, flags & FLAME_READ_RAW_SIGNS == 0);
+    let opts = motion::ReadOptions {
+        finish: *finish,
+        ..model.read_options(smooth_sigma(flags)?, flags & FLAME_READ_RAW_SIGNS == 0)
+    };
     motion::Poses::decode(model.motion_format(), features, frames, &opts)
 }
 
@@ -153,6 +161,7 @@ pub(crate) fn read(
     layout: i32,
     convention: i32,
     flags: u32,
+    finish: &motion::Finish,
 ) -> Result<Vec<f32>> {
     let smooth = smooth_sigma(flags)?;
     let convention = self::convention(convention)?;
@@ -165,8 +174,11 @@ pub(crate) fn read(
         .ok()
         .and_then(|l| l.checked_sub(1))
         .and_then(|l| LAYOUTS.get(l).copied())
-        .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=9)"))?;
-    let opts = model.read_options(smooth, flags & FLAME_READ_RAW_SIGNS == 0);
+        .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=10)"))?;
+    let opts = motion::ReadOptions {
+        finish: *finish,
+        ..model.read_options(smooth, flags & FLAME_READ_RAW_SIGNS == 0)
+    };
     motion::read_layout(
         model.motion_format(),
         features,
@@ -193,7 +205,7 @@ mod tests {
         )
         .unwrap();
         for layout in [i32::MIN, i32::MIN + 1, -1, 99, i32::MAX] {
-            let err = read(&model, &[], 0, layout, 0, 0).unwrap_err();
+            let err = read(&model, &[], 0, layout, 0, 0, &Default::default()).unwrap_err();
             assert!(
                 err.to_string().contains("unknown layout"),
                 "{layout}: {err}"

@@ -610,6 +610,8 @@ impl Model {
                 mean: m.data(),
                 std: s.data(),
             }),
+            finish: Default::default(),
+            fps: self.config.motion.fps,
         }
     }
 

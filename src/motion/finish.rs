@@ -107,7 +107,11 @@ impl Finish {
     /// `poses` (decoded at `source_fps`) with every step applied.
     pub fn apply(&self, poses: &Poses, source_fps: f64) -> Result<Poses> {
         self.validate()?;
-        check_fps(source_fps)?;
+        if !(source_fps.is_finite() && source_fps > 0.0) {
+            return Err(invalid_arg!(
+                "source frame rate must be positive, got {source_fps}"
+            ));
+        }
         let mut out = poses.clone();
         if self.is_identity() {
             return Ok(out);
@@ -120,7 +124,7 @@ impl Finish {
             feet::lock(&mut out, &on_floor, source_fps)?;
         }
         if self.wrap {
-            looping::wrap(&mut out)?;
+            looping::wrap(&mut out, source_fps)?;
         }
         root_motion::apply(&mut out, self.root_motion, self.remove_yaw);
         match self.fps {

@@ -30,10 +30,14 @@ pub enum Layout {
     GlobalQuatXyzw = 6,
     /// `[frames, J, 4]` world rotations as quaternions, w x y z.
     GlobalQuatWxyz = 7,
-    /// `[frames, 4]` foot contacts as the model gives them (≈0 or 1; threshold at 0.5), in the
-    /// order left ankle, left foot, right ankle, right foot. Only formats that carry them
-    /// (humanml263).
+    /// `[frames, 4]` foot contacts in the order left ankle, left foot, right ankle, right foot:
+    /// humanml263's as the model gives them (≈0 or 1; threshold at 0.5), smpl24_6d's detected
+    /// from height and speed (0 or 1, [`super::ContactParams`]); after a finish, the contacts it
+    /// used (0 or 1).
     FootContacts = 8,
+    /// `[frames, 3]` the world position of the `root` bone on the ground under the pelvis that
+    /// [`super::RootMotion::Separate`] adds; an error for poses without one.
+    RootBone = 9,
 }
 
 /// The component order of a quaternion written out.
@@ -47,7 +51,7 @@ pub enum QuatOrder {
 
 impl Layout {
     /// Every layout, in integer order.
-    pub const ALL: [Layout; 9] = [
+    pub const ALL: [Layout; 10] = [
         Layout::RootTranslation,
         Layout::LocalQuatXyzw,
         Layout::LocalQuatWxyz,
@@ -57,6 +61,7 @@ impl Layout {
         Layout::GlobalQuatXyzw,
         Layout::GlobalQuatWxyz,
         Layout::FootContacts,
+        Layout::RootBone,
     ];
 
     pub fn name(self) -> &'static str {
@@ -70,6 +75,7 @@ impl Layout {
             Layout::GlobalQuatXyzw => "global_quat_xyzw",
             Layout::GlobalQuatWxyz => "global_quat_wxyz",
             Layout::FootContacts => "foot_contacts",
+            Layout::RootBone => "root_bone",
         }
     }
 
@@ -96,12 +102,8 @@ impl Layout {
             Layout::LocalMatrix => vec![j, 3, 3],
             Layout::Local6d => vec![j, 6],
             Layout::GlobalPositions => vec![j, 3],
-            Layout::FootContacts if format.has_foot_contacts() => vec![4],
-            Layout::FootContacts => {
-                return Err(invalid_arg!(
-                    "format {format} has no foot contacts (layout foot_contacts)"
-                ))
-            }
+            Layout::FootContacts => vec![4],
+            Layout::RootBone => vec![3],
         })
     }
 
@@ -178,7 +180,7 @@ mod tests {
             assert_eq!(Layout::from_u32(i as u32).unwrap(), l);
             assert_eq!(l.name().parse::<Layout>().unwrap(), l);
         }
-        assert!(Layout::from_u32(9).is_err());
+        assert!(Layout::from_u32(10).is_err());
         assert_eq!(
             Layout::LocalQuatXyzw
                 .frame_shape(Format::Smpl24Rot6d)
@@ -195,11 +197,12 @@ mod tests {
                 .unwrap(),
             vec![4]
         );
-        let e = Layout::FootContacts
-            .frame_shape(Format::Smpl24Rot6d)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("smpl24_6d has no foot contacts"), "{e}");
+        assert_eq!(
+            Layout::FootContacts
+                .frame_shape(Format::Smpl24Rot6d)
+                .unwrap(),
+            vec![4]
+        );
         assert_eq!(
             QuatOrder::Xyzw.arrange(&[1.0, 2.0, 3.0, 4.0]),
             [2.0, 3.0, 4.0, 1.0]

@@ -2,7 +2,9 @@
 //! joint rotations, joint positions and foot contacts, kept in `f64` in the format's native frame
 //! — and read out in any [`Layout`] and [`Convention`].
 
+use super::contacts;
 use super::convention::{Change, Convention};
+use super::finish::Finish;
 use super::format::{Format, Normalization};
 use super::layout::Layout;
 use super::postprocess;
@@ -20,6 +22,12 @@ pub struct ReadOptions<'a> {
     pub continuous: bool,
     /// The model's mean/std, for normalised formats (humanml263); `None` = features are raw.
     pub normalization: Option<Normalization<'a>>,
+    /// The hand-over post-processing (contacts, floor, feet, loop, root motion, frame rate)
+    /// [`Poses::decode`] applies after decoding; the default does nothing.
+    pub finish: Finish,
+    /// The frame rate of the features (the model's `motion.fps`), which contact speeds and
+    /// resampling are measured against.
+    pub fps: f32,
 }
 
 impl Default for ReadOptions<'_> {
@@ -29,6 +37,8 @@ impl Default for ReadOptions<'_> {
             smooth_sigma: 0.0,
             continuous: true,
             normalization: None,
+            finish: Finish::default(),
+            fps: 20.0,
         }
     }
 }
@@ -71,20 +81,26 @@ impl Poses {
     }
 
     /// Decodes `frames` rows of `format` features (`features.len() == frames × feature_dim`):
-    /// de-normalise, smooth, decode. Errors name the offending argument, frame or channel.
+    /// de-normalise, smooth, decode, then apply [`ReadOptions::finish`]. Errors name the
+    /// offending argument, frame or channel.
     pub fn decode(
         format: Format,
         features: &[f32],
         frames: usize,
         opts: &ReadOptions,
     ) -> Result<Poses> {
-        Self::decode_from(
+        opts.finish.validate()?;
+        let poses = Self::decode_from(
             format,
             features,
             frames,
             opts,
             humanml263::RootStart::ORIGIN,
-        )
+        )?;
+        if opts.finish.is_identity() {
+            return Ok(poses);
+        }
+        opts.finish.apply(&poses, opts.fps as f64)
     }
 
     /// [`Poses::decode`] with humanml263's root path starting at `start` (ignored by formats
@@ -183,9 +199,7 @@ impl Poses {
     /// `[frames]` foot contacts (left ankle, left foot, right ankle, right foot), or `None` when
     /// the format has none.
     pub fn foot_contacts(&self) -> Option<&[[f64; 4]]> {
-        self.format
-            .has_foot_contacts()
-            .then_some(&self.contacts[..])
+        (!self.contacts.is_empty()).then_some(&self.contacts[..])
     }
 
     /// Quaternions (w first) of `[frames × joints]` rotations, continuous if asked at decode.
@@ -196,6 +210,35 @@ impl Poses {
             postprocess::make_continuous(&mut q, rotations.len() / joints.max(1), joints);
         }
         q
+    }
+
+    /// Recomputes frame `t`'s world rotations from its local ones and, where positions are the
+    /// forward kinematics of the rotations ([`Format::positions_are_kinematic`]), its joint
+    /// positions from the root and the rest offsets. humanml263's own positions are left as
+    /// they are: a caller that changes rotations moves them itself.
+    pub(crate) fn refresh_frame(&mut self, t: usize) {
+        let skel = self.format.skeleton();
+        let joints = skel.joint_count();
+        let span = t * joints..(t + 1) * joints;
+        if self.format.positions_are_kinematic() {
+            // Cannot fail: every slice has the skeleton's joint count.
+            let _ = super::skeleton::forward_kinematics(
+                skel.parents(),
+                skel.rest_offsets(),
+                &self.root[t],
+                &self.local[span.clone()],
+                &mut self.positions[span.clone()],
+                &mut self.global[span],
+            );
+            return;
+        }
+        for j in 0..joints {
+            let g = match skel.parent(j) {
+                Some(p) => rotation::mul(&self.global[t * joints + p], &self.local[t * joints + j]),
+                None => self.local[t * joints],
+            };
+            self.global[t * joints + j] = g;
+        }
     }
 
     /// Frames `start..start + count` (which must exist).
@@ -257,7 +300,22 @@ impl Poses {
                     .flat_map(|q| order.arrange(q))
                     .collect()
             }
+            Layout::FootContacts if self.contacts.is_empty() => {
+                contacts::of(self, self.format.fps() as f64, &Default::default())
+                    .iter()
+                    .flat_map(|c| c.map(|on| on as u8 as f64))
+                    .collect()
+            }
             Layout::FootContacts => self.contacts.concat(),
+            Layout::RootBone if self.root_bone.is_empty() => {
+                return Err(invalid_arg!(
+                    "these poses have no root bone (layout root_bone needs root motion `separate`)"
+                ))
+            }
+            Layout::RootBone => {
+                let ch = Change::new(self.format, convention);
+                self.root_bone.iter().flat_map(|p| ch.position(p)).collect()
+            }
         };
         Ok(out.into_iter().map(|v| v as f32).collect())
     }

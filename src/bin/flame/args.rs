@@ -8,7 +8,7 @@ use std::str::FromStr;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use flame::models::WeightType;
-use flame::motion::{Convention, QuatOrder, Task};
+use flame::motion::{Convention, Feet, QuatOrder, RootMotion, Task};
 use flame::session::{EditMethod, Sampler};
 use flame::targets::TargetSchedule;
 
@@ -139,6 +139,18 @@ where
     })
 }
 
+fn fps(s: &str) -> Result<f64, String> {
+    let range = flame::motion::finish::FPS_RANGE;
+    match s.parse::<f64>() {
+        Ok(v) if range.contains(&v) => Ok(v),
+        _ => Err(format!(
+            "--fps must be a frame rate from {} to {}, got `{s}`",
+            range.start(),
+            range.end()
+        )),
+    }
+}
+
 fn sigma(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
@@ -226,9 +238,30 @@ pub struct OutputArgs {
     /// Also write a preview: FILE.png a contact sheet, FILE.gif an animation (repeatable)
     #[arg(long, value_name = "FILE.png|FILE.gif")]
     pub preview: Vec<PathBuf>,
-    /// Frame rate of a .gif preview, at most 50 [default: the model's]
+    /// Frame rate of a .gif preview, at most 50 [default: the output's]
     #[arg(long, value_name = "FPS")]
     pub preview_fps: Option<f32>,
+    /// Foot contacts: `lock` pins each planted foot where it stands and solves the leg with
+    /// two-bone IK (bone lengths and everything above the knees unchanged); `off` gives the raw
+    /// poses [default lock; pose outputs only, .npy features are never touched]
+    #[arg(long, value_name = "MODE", value_parser = lib::<Feet>)]
+    pub feet: Option<Feet>,
+    /// Put the lowest foot contact of the clip at height 0, so feet neither float nor sink
+    /// [default on, off with --feet off]
+    #[arg(long, value_enum, value_name = "ON|OFF")]
+    pub ground: Option<OnOff>,
+    /// Output frame rate, 1 to 240: rotations slerped, translations interpolated linearly; the
+    /// last frame's time is kept (120 frames at 20 fps give 179 at 30) [default: the model's]
+    #[arg(long, value_name = "F", value_parser = fps, allow_negative_numbers = true)]
+    pub fps: Option<f64>,
+    /// Where the horizontal travel goes: keep it on the pelvis, remove it (in-place), or put it
+    /// on a `root` bone on the ground under the pelvis (separate; BVH and glTF write the bone)
+    /// [keep|in-place|separate]
+    #[arg(long, value_name = "MODE", value_parser = lib::<RootMotion>, default_value = "keep")]
+    pub root_motion: RootMotion,
+    /// With --root-motion in-place or separate: also remove the heading's drift (yaw)
+    #[arg(long)]
+    pub remove_yaw: bool,
 }
 
 #[derive(Args)]

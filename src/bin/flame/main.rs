@@ -733,6 +733,7 @@ struct Outputs {
     convention: Convention,
     smooth: Option<f32>,
     quat: QuatOrder,
+    finish: motion::Finish,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -757,7 +758,31 @@ enum PreviewKind {
     Gif,
 }
 
+/// The post-processing the output options ask for: game-ready feet (contacts, floor, locking)
+/// unless `--feet off`, and the frame rate and root motion asked for.
+fn finish(o: &OutputArgs) -> Result<motion::Finish, String> {
+    let feet = o.feet.unwrap_or(motion::Feet::Lock);
+    let ground = match o.ground {
+        Some(g) => g == OnOff::On,
+        None => feet == motion::Feet::Lock,
+    };
+    let finish = motion::Finish {
+        ground,
+        feet,
+        root_motion: o.root_motion,
+        remove_yaw: o.remove_yaw,
+        fps: o.fps,
+        ..motion::Finish::default()
+    };
+    if o.remove_yaw && o.root_motion == motion::RootMotion::Keep {
+        return Err("--remove-yaw needs --root-motion in-place or separate".into());
+    }
+    finish.validate().map_err(|e| e.to_string())?;
+    Ok(finish)
+}
+
 /// How to turn this model's features into poses.
+#[derive(Clone, Copy)]
 struct Decoder {
     format: Format,
     fps: f32,
@@ -862,6 +887,7 @@ impl Outputs {
             convention,
             smooth: o.smooth,
             quat: o.quat,
+            finish: finish(o)?,
         })
     }
 
@@ -900,7 +926,15 @@ impl Outputs {
             return Ok(());
         };
         let opts = model.read_options(d.smooth, true);
-        let poses = Poses::decode(d.format, x, frames, &opts).map_err(|e| e.to_string())?;
+        let raw = Poses::decode(d.format, x, frames, &opts).map_err(|e| e.to_string())?;
+        let poses = self
+            .finish
+            .apply(&raw, d.fps as f64)
+            .map_err(|e| e.to_string())?;
+        let d = &Decoder {
+            fps: self.finish.output_fps(d.fps as f64) as f32,
+            ..*d
+        };
         if let OutKind::Gltf(container) = self.kind {
             let opts = gltf::GltfOptions {
                 fps: d.fps,
@@ -939,7 +973,7 @@ impl Outputs {
             let pos = poses
                 .layout(Layout::GlobalPositions, self.convention)
                 .map_err(|e| e.to_string())?;
-            flame::npy::write_f32(p, &[frames, poses.joint_count(), 3], &pos)
+            flame::npy::write_f32(p, &[poses.frames(), poses.joint_count(), 3], &pos)
                 .map_err(|e| e.to_string())?;
             println!("{}", p.display());
         }
