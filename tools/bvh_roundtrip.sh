@@ -9,6 +9,13 @@
 # model, stand upright (Head above Pelvis along Blender's Z on every frame). The trained model is
 # $FLAME_BVH_MODEL, else the assembled demo model (models/demo/flame_demo.safetensors, which
 # tools/try.sh makes); without either, the tiny random-weight fixture checks the 1 mm match only.
+# Root bone and frame rate (Blender only; the PyPI fallback skips them): root_separate.bvh, a
+# smpl24_6d clip resampled to 30 fps with its root motion on a `root` bone, written by libflame's
+# test code (the ignored test motion::bvh::tests::write_blender_check_files), and, once the CLI
+# has --root-motion, cli_root.bvh from `flame generate --fps 30 --root-motion separate`: Blender
+# must put the root bone on the ground under the pelvis, every joint where the same clip with
+# its root motion kept has it (1 mm), and import one keyframe per frame at 30 fps
+# (blender_bvh_check.py --root-bone --fps 30).
 #
 #   bash tools/bvh_roundtrip.sh            # Blender if it runs, else the `bvh` PyPI fallback
 #   FLAME_BVH_CHECKER=blender bash tools/bvh_roundtrip.sh   # require Blender (CI)
@@ -31,6 +38,21 @@ elif [[ "$model" != /* ]]; then
 fi
 FLAME_BVH_OUT="$out" FLAME_BVH_MODEL="$model" \
     cargo test --quiet --test motion_bvh -- --ignored write_blender_check_files >/dev/null
+FLAME_BVH_OUT="$out" cargo test --quiet --lib motion::bvh::tests::write_blender_check_files \
+    -- --ignored >/dev/null
+rooted=(root_separate)
+cargo build --quiet --bin flame
+flame=target/debug/flame
+if "$flame" generate --help 2>&1 | grep -q -- --root-motion; then
+    cli_model="${model:-tests/fixtures/flame_tiny.safetensors}"
+    common=(--model "$cli_model" --prompt "a person walks forward." --frames 60 --seed 1 --fps 30)
+    "$flame" generate "${common[@]}" --root-motion separate --out "$out/cli_root.bvh" >/dev/null
+    "$flame" generate "${common[@]}" --root-motion keep --convention blender \
+        --out "$out/cli_root_keep.json" --positions "$out/cli_root_blender.npy" >/dev/null
+    rooted+=(cli_root)
+else
+    echo "bvh_roundtrip: flame generate has no --root-motion yet: cli_root.bvh not checked" >&2
+fi
 
 checker="${FLAME_BVH_CHECKER:-auto}"
 if [[ "$checker" == auto ]]; then
@@ -68,4 +90,13 @@ for motion in smpl_walk hml_walk cli_walk; do
             ;;
     esac
 done
+if [[ "$checker" == blender ]]; then
+    for motion in "${rooted[@]}"; do
+        blender -b --factory-startup --python-exit-code 2 --python tools/blender_bvh_check.py \
+            -- "$out/$motion.bvh" "$out/${motion}_blender.npy" --root-bone --fps 30 2>&1 |
+            grep -E '^(blender [0-9]|import failed|the |Traceback|.*Error)'
+    done
+else
+    echo "bvh_roundtrip: the root-bone files (${rooted[*]}) need Blender: not checked" >&2
+fi
 echo "bvh_roundtrip: ok ($checker, files in $out)"

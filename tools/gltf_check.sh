@@ -7,6 +7,14 @@
 #   - Blender's bundled glTF importer, headless, must import every file and its armature's
 #     joint world positions on every frame must equal `--positions` (libflame's forward
 #     kinematics, gltf convention) within 1 mm (tools/blender_gltf_check.py).
+# Root bone and frame rate: libflame's own test code (the ignored test
+# motion::gltf::tests::write_root_bone_check_files) writes a smpl24_6d and a humanml263 clip
+# resampled to 30 fps with the root motion on a `root` bone, and the world positions the same clip
+# with its root motion kept has; once the CLI has --root-motion, `flame generate --fps 30
+# --root-motion separate` files of flame_tiny and mdm_tiny are checked the same way against a
+# `--root-motion keep` run. Each must pass the validator, and Blender must put the root bone on
+# the ground under the pelvis, the joints where the kept clip has them (1 mm), and import one
+# keyframe per frame at 30 fps (blender_gltf_check.py --root-bone --fps 30).
 # The pygltflib read-back against flame_session_read runs with the Python binding's tests.
 #
 #   bash tools/gltf_check.sh            # files in a temporary folder
@@ -62,6 +70,25 @@ done
 glbs+=("$out/edit.glb")
 all+=("$out/edit.glb")
 
+# Root bone and 30 fps (see the header): Rust test code, then the CLI if it has the flags.
+FLAME_GLTF_OUT="$out" cargo test --quiet --lib motion::gltf::tests::write_root_bone_check_files \
+    -- --ignored >/dev/null
+rooted=("$out/root_separate_smpl.glb" "$out/root_separate_hml.glb")
+if "$flame" generate --help 2>&1 | grep -q -- --root-motion; then
+    for m in flame_tiny mdm_tiny; do
+        common=(--model "tests/fixtures/$m.safetensors" --prompt "$prompt" --frames 40 --steps 4
+            --seed 7 --fps 30)
+        "$flame" generate "${common[@]}" --root-motion separate --out "$out/${m}_root_separate.glb" \
+            >/dev/null 2>>"$out/$m.log"
+        "$flame" generate "${common[@]}" --root-motion keep --out "$out/${m}_root_keep.glb" \
+            --positions "$out/${m}_root_separate.npy" >/dev/null 2>>"$out/$m.log"
+        rooted+=("$out/${m}_root_separate.glb")
+    done
+else
+    echo "gltf_check: flame generate has no --root-motion yet: root-bone files from the CLI not checked" >&2
+fi
+all+=("${rooted[@]}")
+
 GLTF_VALIDATOR_DIR=$node_dir node tools/gltf_validate.mjs "${all[@]}"
 
 for f in "${glbs[@]}" "$out/flame_tiny.gltf" "$out/mdm_tiny.gltf"; do
@@ -70,4 +97,9 @@ for f in "${glbs[@]}" "$out/flame_tiny.gltf" "$out/mdm_tiny.gltf"; do
     blender -b --factory-startup --python-exit-code 2 --python tools/blender_gltf_check.py \
         -- "$f" "$base.npy" 2>&1 | grep -E '^(blender [0-9]|import failed|the |Traceback|.*Error)'
 done
-echo "gltf_check: ok (${#all[@]} files validated, ${#glbs[@]} + 2 imported by Blender; files in $out)"
+for f in "${rooted[@]}"; do
+    blender -b --factory-startup --python-exit-code 2 --python tools/blender_gltf_check.py \
+        -- "$f" "${f%.*}.npy" --root-bone --fps 30 2>&1 |
+        grep -E '^(blender [0-9]|import failed|the |Traceback|.*Error)'
+done
+echo "gltf_check: ok (${#all[@]} files validated, ${#glbs[@]} + 2 + ${#rooted[@]} imported by Blender; files in $out)"

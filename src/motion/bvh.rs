@@ -12,6 +12,13 @@
 //!   listed order from parent side to child side; the root position is the pelvis's world
 //!   position in the convention.
 //! - `Frame Time` = 1 / fps.
+//! - Root bone: when the poses carry one ([`super::RootMotion::Separate`]), the hierarchy starts
+//!   with an extra `ROOT root` (OFFSET zero, the same 6 channels as a root: its position the
+//!   ground point under the pelvis, its rotation zero) whose one child is the pelvis, now a
+//!   `JOINT` with 6 channels too: its position relative to `root` (OFFSET zero as well, so
+//!   readers that replace the OFFSET with the position channels, as Blender's importer does,
+//!   and readers that add them agree). Blender gives the zero-length `root` bone a tail of its
+//!   own (its importer lengthens zero-length bones), and poses the pelvis at root + channels.
 //!
 //! BVH has no handedness field; most readers (Blender among them) take Y up and right-handed,
 //! so `gltf` (or `native` for humanml263) is the convention to write for them; Blender's
@@ -36,12 +43,29 @@ pub fn to_string(poses: &Poses, convention: Convention, fps: f32) -> Result<Stri
     if poses.frames() == 0 {
         return Err(invalid_arg!("a BVH needs at least one frame"));
     }
+    let bone = !poses.root_bone.is_empty();
+    if bone && poses.root_bone.len() != poses.frames() {
+        return Err(invalid_arg!(
+            "the root bone track has {} entries for {} frames",
+            poses.root_bone.len(),
+            poses.frames()
+        ));
+    }
     let skel = poses.format().skeleton();
     let ch = Change::new(poses.format(), convention);
     let offsets: Vec<Vec3> = skel.rest_offsets().iter().map(|o| ch.offset(o)).collect();
     let mut order = Vec::with_capacity(skel.joint_count());
     let mut out = String::from("HIERARCHY\n");
-    write_joint(&mut out, skel, &offsets, 0, 0, &mut order);
+    if bone {
+        let _ = writeln!(
+            out,
+            "ROOT {ROOT_BONE}\n{{\n\tOFFSET 0.000000 0.000000 0.000000\n\t{ROOT_CHANNELS}"
+        );
+    }
+    write_joint(&mut out, skel, &offsets, 0, usize::from(bone), &mut order);
+    if bone {
+        out.push_str("}\n");
+    }
 
     let joints = skel.joint_count();
     let root = poses.root_translation(convention);
@@ -53,6 +77,14 @@ pub fn to_string(poses: &Poses, convention: Convention, fps: f32) -> Result<Stri
         1.0 / fps as f64
     );
     for (t, p) in root.iter().enumerate() {
+        if let Some(b) = poses.root_bone.get(t) {
+            let b = ch.position(b);
+            let _ = write!(
+                out,
+                "{:.6} {:.6} {:.6} 0.000000 0.000000 0.000000 ",
+                b[0], b[1], b[2]
+            );
+        }
         let _ = write!(out, "{:.6} {:.6} {:.6}", p[0], p[1], p[2]);
         for &j in &order {
             let e = rotation::to_euler_zxy_degrees(&local[t * joints + j]);
@@ -63,7 +95,15 @@ pub fn to_string(poses: &Poses, convention: Convention, fps: f32) -> Result<Stri
     Ok(out)
 }
 
-/// Writes joint `j` and its subtree, recording the depth-first order of the channels.
+/// The name of the extra root joint written for a root bone.
+pub const ROOT_BONE: &str = "root";
+
+const ROOT_CHANNELS: &str =
+    "CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation";
+
+/// Writes joint `j` and its subtree (at `depth`; the skeleton's root is the file's `ROOT` at
+/// depth 0, a `JOINT` under the root bone at depth 1), recording the depth-first order of the
+/// channels.
 fn write_joint(
     out: &mut String,
     skel: &Skeleton,
@@ -77,12 +117,10 @@ fn write_joint(
     let o = if j == 0 { [0.0; 3] } else { offsets[j] };
     order.push(j);
     if j == 0 {
-        let _ = writeln!(out, "ROOT {name}\n{{");
-        let _ = writeln!(out, "\tOFFSET {:.6} {:.6} {:.6}", o[0], o[1], o[2]);
-        let _ = writeln!(
-            out,
-            "\tCHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"
-        );
+        let keyword = if depth == 0 { "ROOT" } else { "JOINT" };
+        let _ = writeln!(out, "{pad}{keyword} {name}\n{pad}{{");
+        let _ = writeln!(out, "{pad}\tOFFSET {:.6} {:.6} {:.6}", o[0], o[1], o[2]);
+        let _ = writeln!(out, "{pad}\t{ROOT_CHANNELS}");
     } else {
         let _ = writeln!(out, "{pad}JOINT {name}\n{pad}{{");
         let _ = writeln!(out, "{pad}\tOFFSET {:.6} {:.6} {:.6}", o[0], o[1], o[2]);
@@ -506,7 +544,10 @@ const OFFSET_TOLERANCE_M: f64 = 1e-4;
 /// by which of them stands the character upright in the format's own world. Rotation channels
 /// may come in any order (the listed order is the order of the product, parent side first);
 /// only the root may carry position channels, all three; a non-zero root OFFSET is added to the
-/// root position. `humanml263` references must be given as features.
+/// root position. A file whose `ROOT` is a joint named `root` with the pelvis as its child (what
+/// [`to_string`] writes for a clip with a root bone) is read too: the pelvis's world position is
+/// the root's plus the root's rotation times the pelvis's own (OFFSET plus channels), its world
+/// rotation the product of the two. `humanml263` references must be given as features.
 pub fn to_features(bvh: &BvhMotion, format: Format) -> Result<(Vec<f32>, usize, Convention, f32)> {
     let poses = FilePoses::read(bvh, format)?;
     let candidates = poses.conventions(format)?;
@@ -562,26 +603,24 @@ impl FilePoses {
             return Err(invalid_arg!("the BVH has no frames"));
         }
         let skel = format.skeleton();
-        let order = match_joints(bvh, skel)?;
+        let (order, bone) = match_joints(bvh, skel)?;
         let mut root = Vec::with_capacity(bvh.frames());
         let mut local = Vec::with_capacity(bvh.frames() * order.len());
-        let root_offset = bvh.joints[order[0]].offset();
         for row in bvh.data.chunks_exact(bvh.channel_count.max(1)) {
-            let mut p = root_offset;
+            let mut p = [0.0; 3];
             for (j, &b) in order.iter().enumerate() {
-                let joint = &bvh.joints[b];
-                let mut r = rotation::IDENTITY;
-                for (k, c) in joint.channels.iter().enumerate() {
-                    let v = row[joint.first_channel + k];
-                    if c.is_rotation() {
-                        let mut axis = [0.0; 3];
-                        axis[c.axis()] = 1.0;
-                        r = rotation::mul(&r, &rotation::axis_angle(&axis, v.to_radians()));
-                    } else if j == 0 {
-                        p[c.axis()] += v;
-                    }
+                let (r, q) = joint_transform(&bvh.joints[b], row);
+                if j == 0 {
+                    p = q;
                 }
                 local.push(r);
+            }
+            if let Some(b) = bone {
+                // The pelvis hangs from the root bone: world = root ∘ pelvis.
+                let (rb, pb) = joint_transform(&bvh.joints[b], row);
+                let pelvis = local.len() - order.len();
+                p = rotation::add(&pb, &rotation::apply(&rb, &p));
+                local[pelvis] = rotation::mul(&rb, &local[pelvis]);
             }
             root.push(p);
         }
@@ -652,12 +691,37 @@ impl FilePoses {
     }
 }
 
-/// For each skeleton joint, its index in the BVH: names matched case-insensitively, the
-/// hierarchy and channels checked against what the skeleton and [`FilePoses::read`] need.
-fn match_joints(bvh: &BvhMotion, skel: &Skeleton) -> Result<Vec<usize>> {
+/// A joint's rotation (its rotation channels' product in the listed order) and position (its
+/// OFFSET plus its position channels) in one frame's `row`.
+fn joint_transform(joint: &BvhJoint, row: &[f64]) -> (Mat3, Vec3) {
+    let mut r = rotation::IDENTITY;
+    let mut p = joint.offset();
+    for (k, c) in joint.channels.iter().enumerate() {
+        let v = row[joint.first_channel + k];
+        if c.is_rotation() {
+            let mut axis = [0.0; 3];
+            axis[c.axis()] = 1.0;
+            r = rotation::mul(&r, &rotation::axis_angle(&axis, v.to_radians()));
+        } else {
+            p[c.axis()] += v;
+        }
+    }
+    (r, p)
+}
+
+/// For each skeleton joint, its index in the BVH, and the index of a root bone above the
+/// skeleton's root if there is one: names matched case-insensitively, the hierarchy and
+/// channels checked against what the skeleton and [`FilePoses::read`] need.
+fn match_joints(bvh: &BvhMotion, skel: &Skeleton) -> Result<(Vec<usize>, Option<usize>)> {
     let names = skel.joint_names();
     let mut order: Vec<Option<usize>> = vec![None; names.len()];
+    let mut bone = None;
     for (b, joint) in bvh.joints.iter().enumerate() {
+        if joint.parent.is_none() && joint.name.eq_ignore_ascii_case(ROOT_BONE) {
+            check_channels(joint, true)?;
+            bone = Some(b);
+            continue;
+        }
         let j = names
             .iter()
             .position(|n| n.eq_ignore_ascii_case(&joint.name))
@@ -691,7 +755,7 @@ fn match_joints(bvh: &BvhMotion, skel: &Skeleton) -> Result<Vec<usize>> {
     let order: Vec<usize> = order.into_iter().flatten().collect();
     for (j, &b) in order.iter().enumerate() {
         let joint = &bvh.joints[b];
-        let want = skel.parent(j).map(|p| order[p]);
+        let want = skel.parent(j).map(|p| order[p]).or(bone);
         if joint.parent != want {
             let parent =
                 |p: Option<usize>| p.map_or("none (root)", |p| bvh.joints[p].name.as_str());
@@ -701,13 +765,17 @@ fn match_joints(bvh: &BvhMotion, skel: &Skeleton) -> Result<Vec<usize>> {
                     "joint `{}` hangs from {}; SMPL-24 hangs it from {}",
                     joint.name,
                     parent(joint.parent),
-                    skel.parent(j).map_or("none (root)", |p| names[p])
+                    match (skel.parent(j), bone) {
+                        (Some(p), _) => names[p],
+                        (None, Some(_)) => ROOT_BONE,
+                        (None, None) => "none (root)",
+                    }
                 ),
             ));
         }
         check_channels(joint, j == 0)?;
     }
-    Ok(order)
+    Ok((order, bone))
 }
 
 /// Three rotation channels, one per axis, plus (root only) three position channels.
@@ -732,4 +800,180 @@ fn check_channels(joint: &BvhJoint, is_root: bool) -> Result<()> {
         ));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::motion::{resample, root_motion, Format, ReadOptions, RootMotion};
+
+    /// A drifting, turning synthetic motion (every feature a sinusoid of time).
+    fn motion(format: Format, frames: usize) -> Poses {
+        let dim = format.feature_dim();
+        let x: Vec<f32> = (0..frames * dim)
+            .map(|i| {
+                let (t, c) = ((i / dim) as f32, (i % dim) as f32);
+                (0.3 * c + 0.05 * t * (1.0 + c % 3.0)).sin() * 0.8
+                    + if c % 6.0 == 0.0 { 0.5 } else { 0.0 }
+            })
+            .collect();
+        Poses::decode(format, &x, frames, &ReadOptions::default()).unwrap()
+    }
+
+    /// The same clip with its root motion kept and moved to a root bone.
+    fn keep_and_separate(format: Format, frames: usize) -> (Poses, Poses) {
+        let keep = motion(format, frames);
+        let mut sep = keep.clone();
+        root_motion::apply(&mut sep, RootMotion::Separate, false);
+        (keep, sep)
+    }
+
+    #[test]
+    fn a_root_bone_is_an_extra_root_above_the_pelvis() {
+        let (keep, sep) = keep_and_separate(Format::Smpl24Rot6d, 6);
+        let text = to_string(&sep, Convention::Gltf, 30.0).unwrap();
+        let head: Vec<&str> = text.lines().take(8).collect();
+        assert_eq!(
+            head,
+            [
+                "HIERARCHY",
+                "ROOT root",
+                "{",
+                "\tOFFSET 0.000000 0.000000 0.000000",
+                "\tCHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation",
+                "\tJOINT Pelvis",
+                "\t{",
+                "\t\tOFFSET 0.000000 0.000000 0.000000",
+            ]
+        );
+        let bvh = parse(&text).unwrap();
+        assert_eq!(bvh.joints().len(), 25);
+        assert_eq!(bvh.joints()[1].parent(), Some(0));
+        // root 6 + pelvis 6 + 23 joints × 3.
+        assert_eq!(bvh.channel_count(), 81);
+        assert_eq!(bvh.fps(), 30.0);
+        let ch = Change::new(Format::Smpl24Rot6d, Convention::Gltf);
+        for t in 0..6 {
+            let row = bvh.frame(t).unwrap();
+            // The root bone: the pelvis's ground point, glTF's Y (up) 0, no rotation.
+            let b = ch.position(&sep.root_bone[t]);
+            let k = ch.position(&keep.root[t]);
+            assert_eq!(row[1], 0.0);
+            assert_eq!(&row[3..6], &[0.0; 3]);
+            for i in [0, 2] {
+                assert!((row[i] - b[i]).abs() <= 5e-7 && (row[i] - k[i]).abs() <= 5e-7);
+                assert_eq!(row[6 + i], 0.0, "the pelvis has no horizontal offset left");
+            }
+            assert!((row[7] - k[1]).abs() <= 5e-7, "the pelvis keeps its height");
+        }
+    }
+
+    #[test]
+    fn a_root_bone_file_reads_back_as_the_original_motion() {
+        let (keep, sep) = keep_and_separate(Format::Smpl24Rot6d, 8);
+        for (poses, bone) in [(&sep, true), (&keep, false)] {
+            let text = to_string(poses, Convention::Gltf, 20.0).unwrap();
+            assert_eq!(text.contains("ROOT root"), bone);
+            let bvh = parse(&text).unwrap();
+            let x = to_features_in(&bvh, Format::Smpl24Rot6d, Convention::Gltf).unwrap();
+            let back = Poses::decode(Format::Smpl24Rot6d, &x, 8, &ReadOptions::default()).unwrap();
+            let worst = back
+                .positions
+                .iter()
+                .zip(&keep.positions)
+                .flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs()))
+                .fold(0.0, f64::max);
+            // 6 printed decimals of metres and degrees.
+            assert!(worst < 2e-5, "bone {bone}: {worst} m");
+        }
+        // A root bone with a rotation (libflame writes none) turns the body about it: 90° about
+        // X on every frame, `Zrotation Xrotation Yrotation` = 0 90 0, which lays the pelvis
+        // (straight above the bone) down along +Z.
+        let text = to_string(&sep, Convention::Gltf, 20.0).unwrap();
+        let (head, motion) = text.split_at(text.find("MOTION").unwrap());
+        let mut turned = head.to_string();
+        for (i, line) in motion.lines().enumerate() {
+            let mut w: Vec<&str> = line.split_whitespace().collect();
+            if i >= 3 {
+                w[3..6].copy_from_slice(&["0", "90", "0"]);
+            }
+            turned.push_str(&w.join(" "));
+            turned.push('\n');
+        }
+        let x = to_features_in(
+            &parse(&turned).unwrap(),
+            Format::Smpl24Rot6d,
+            Convention::Gltf,
+        )
+        .unwrap();
+        let back = Poses::decode(Format::Smpl24Rot6d, &x, 8, &ReadOptions::default()).unwrap();
+        let (got, kept) = (
+            back.positions(Convention::Gltf),
+            keep.positions(Convention::Gltf),
+        );
+        let ch = Change::new(Format::Smpl24Rot6d, Convention::Gltf);
+        let rx = rotation::axis_angle(&[1.0, 0.0, 0.0], std::f64::consts::FRAC_PI_2);
+        let mut worst = 0.0f64;
+        for t in 0..8 {
+            let b = ch.position(&sep.root_bone[t]);
+            for j in 0..24 {
+                let p = kept[t * 24 + j];
+                let rel = rotation::apply(&rx, &[p[0] - b[0], p[1] - b[1], p[2] - b[2]]);
+                let want = rotation::add(&b, &rel);
+                for i in 0..3 {
+                    worst = worst.max((got[t * 24 + j][i] - want[i]).abs());
+                }
+            }
+        }
+        assert!(worst < 2e-5, "turned root bone: {worst} m");
+        // A `root` anywhere but at the top is not SMPL's.
+        let text =
+            to_string(&sep, Convention::Gltf, 20.0)
+                .unwrap()
+                .replacen("ROOT root", "ROOT base", 1);
+        let e = to_features_in(
+            &parse(&text).unwrap(),
+            Format::Smpl24Rot6d,
+            Convention::Gltf,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("joint `base` is not an SMPL-24 joint"), "{e}");
+        let mut bad = sep.clone();
+        bad.root_bone.pop();
+        let e = to_string(&bad, Convention::Gltf, 20.0)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("root bone track has 7 entries for 8 frames"),
+            "{e}"
+        );
+    }
+
+    /// For tools/bvh_roundtrip.sh: with FLAME_BVH_OUT=DIR, writes `root_separate.bvh` (a
+    /// smpl24_6d clip, 40 frames at 20 fps resampled to 30 fps = 59 frames, its root motion on a
+    /// root bone, gltf convention) and `root_separate_blender.npy`, the world joint positions
+    /// Blender must give ([frames, 24, 3], blender convention: the clip with its root motion
+    /// kept, resampled alike).
+    #[test]
+    #[ignore]
+    fn write_blender_check_files() {
+        let dir = std::env::var("FLAME_BVH_OUT").expect("set FLAME_BVH_OUT to a directory");
+        let dir = std::path::Path::new(&dir);
+        let (keep, sep) = keep_and_separate(Format::Smpl24Rot6d, 40);
+        let keep = resample::resample(&keep, 20.0, 30.0).unwrap();
+        let sep = resample::resample(&sep, 20.0, 30.0).unwrap();
+        assert_eq!(sep.frames(), 59);
+        let text = to_string(&sep, Convention::Gltf, 30.0).unwrap();
+        std::fs::write(dir.join("root_separate.bvh"), text).unwrap();
+        let p = keep
+            .layout(crate::motion::Layout::GlobalPositions, Convention::Blender)
+            .unwrap();
+        crate::npy::write_f32(
+            &dir.join("root_separate_blender.npy"),
+            &[keep.frames(), keep.joint_count(), 3],
+            &p,
+        )
+        .unwrap();
+    }
 }

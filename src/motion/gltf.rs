@@ -38,8 +38,19 @@
 //!   [`Convention::Gltf`], and the joint world positions the file animates are those of
 //!   [`Layout::GlobalPositions`] (rounding of `f32` aside). Smoothing is the decoder's
 //!   ([`super::ReadOptions::smooth_sigma`]).
+//! - **Root bone.** When the poses carry one ([`super::RootMotion::Separate`]), one more node,
+//!   `root`, is the last node of the file: the child of the skeleton's root node, the parent of
+//!   the pelvis, and the last joint of the skin (so skin joint `j` stays libflame's joint `j`;
+//!   its inverse bind matrix is the identity: it rests at the origin, on the ground). Its
+//!   translation is animated with the ground point under the pelvis, the pelvis's with its
+//!   position relative to it (the clip's in-place pelvis); it has no rotation. The figure is
+//!   bound to the joints only, so it poses exactly as without the bone.
 //! - **Metadata.** `asset.generator` = `libflame <version>`; `asset.extras` holds `libflame`
 //!   (the version), `format`, `fps`, `frames` and, when given, `prompt`, `model` and `seed`.
+//!   When the poses carry foot contacts (humanml263's own, or the finished ones), the
+//!   animation's `extras` hold them as `foot_contacts`, one `[left ankle, left foot, right
+//!   ankle, right foot]` array a frame (0 and 1 written as integers), with the four joints'
+//!   names in `foot_contact_joints`.
 //!
 //! Every value written is checked finite first: a motion that overflows `f32` (a root path
 //! integrated from absurd velocities, say) is an error, not a file with NaN in it.
@@ -68,6 +79,13 @@ pub struct GltfOptions<'a> {
     /// The animation's name; `None` = the sanitised prompt.
     pub name: Option<&'a str>,
 }
+
+/// The root bone's node name (module doc).
+pub const ROOT_BONE: &str = "root";
+
+/// The joints foot contacts are given for, in their order: left ankle, left foot, right ankle,
+/// right foot (both skeletons number them alike).
+const FOOT_JOINTS: [usize; 4] = [7, 10, 8, 11];
 
 /// The two containers glTF 2.0 defines.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -416,6 +434,15 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
     }
     let skel = format.skeleton();
     let joints = skel.joint_count();
+    let bone = !poses.root_bone.is_empty();
+    if bone && poses.root_bone.len() != frames {
+        return Err(invalid_arg!(
+            "glTF: the root bone track has {} entries for {frames} frames",
+            poses.root_bone.len()
+        ));
+    }
+    // Node 0 the skeleton's root, 1 + j joint j, joints + 1 the figure, joints + 2 the root bone.
+    let root_node = joints + 2;
     let conv = Convention::Gltf;
     let ch = Change::new(format, conv);
     let offsets: Vec<Vec3> = skel.rest_offsets().iter().map(|o| ch.offset(o)).collect();
@@ -486,6 +513,7 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
     // minus the joint's rest position (column-major).
     let ibm: Vec<f32> = rest
         .iter()
+        .chain(bone.then_some(&[0.0; 3]))
         .flat_map(|p| {
             let mut m = [0.0f32; 16];
             m[0] = 1.0;
@@ -505,7 +533,16 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
         .map(|t| (t as f64 / fps as f64) as f32)
         .collect();
     let input = buf.floats(&times, Kind::Scalar, None, true)?;
+    // With a root bone the poses' root translation is already the pelvis's position relative
+    // to it (root_motion's `Separate`), which is what the pelvis node's translation must be
+    // under a parent without rotation.
     let root = poses.layout(Layout::RootTranslation, conv)?;
+    let bone_track: Vec<f32> = poses
+        .root_bone
+        .iter()
+        .flat_map(|b| ch.position(b))
+        .map(|x| x as f32)
+        .collect();
     let mut quats = poses.layout(Layout::LocalQuatXyzw, conv)?;
     normalize_quaternions(&mut quats);
     let translation = buf.floats(&root, Kind::Vec3, None, false)?;
@@ -523,6 +560,14 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
         channels.push(json!({
             "sampler": samplers.len() - 1,
             "target": { "node": 1 + j, "path": "rotation" },
+        }));
+    }
+    if bone {
+        let output = buf.floats(&bone_track, Kind::Vec3, None, false)?;
+        samplers.push(json!({ "input": input, "output": output, "interpolation": "LINEAR" }));
+        channels.push(json!({
+            "sampler": samplers.len() - 1,
+            "target": { "node": root_node, "path": "translation" },
         }));
     }
     if !format.positions_are_kinematic() {
@@ -552,7 +597,8 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
     }
 
     // Nodes: 0 the skeleton's root, 1..=J the joints (node 1 + j is joint j), J + 1 the figure.
-    let mut nodes = vec![json!({ "name": skel.name(), "children": [1] })];
+    let top = if bone { root_node } else { 1 };
+    let mut nodes = vec![json!({ "name": skel.name(), "children": [top] })];
     for (j, rest) in trs.iter().enumerate() {
         let t = rest.map(|x| x as f32);
         let mut node = json!({ "name": skel.joint_names()[j], "translation": t });
@@ -563,6 +609,11 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
         nodes.push(node);
     }
     nodes.push(json!({ "name": "figure", "mesh": 0, "skin": 0 }));
+    let mut skin_joints: Vec<usize> = (1..=joints).collect();
+    if bone {
+        nodes.push(json!({ "name": ROOT_BONE, "children": [1] }));
+        skin_joints.push(root_node);
+    }
 
     let materials: Vec<Value> = SIDES
         .iter()
@@ -597,6 +648,26 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
         Some(n) => animation_name(n),
         None => animation_name(opts.prompt.unwrap_or("")),
     };
+    let mut animation = json!({ "name": name, "samplers": samplers, "channels": channels });
+    if poses.contacts.len() == frames {
+        let names = skel.joint_names();
+        let value = |c: f64| {
+            if c == 0.0 || c == 1.0 {
+                json!(c as u8)
+            } else {
+                json!(c as f32)
+            }
+        };
+        let contacts: Vec<Value> = poses
+            .contacts
+            .iter()
+            .map(|f| Value::Array(f.iter().map(|&c| value(c)).collect()))
+            .collect();
+        animation["extras"] = json!({
+            "foot_contacts": contacts,
+            "foot_contact_joints": FOOT_JOINTS.map(|j| names[j]),
+        });
+    }
 
     let doc = json!({
         "asset": {
@@ -613,9 +684,9 @@ fn build(poses: &Poses, opts: &GltfOptions) -> Result<(Value, Vec<u8>)> {
             "name": skel.name(),
             "inverseBindMatrices": ibm,
             "skeleton": 0,
-            "joints": (1..=joints).collect::<Vec<_>>(),
+            "joints": skin_joints,
         }],
-        "animations": [{ "name": name, "samplers": samplers, "channels": channels }],
+        "animations": [animation],
         "bufferViews": buf.views,
         "accessors": buf.accessors,
     });
@@ -915,6 +986,193 @@ mod tests {
                     assert!((norm(q) - 1.0).abs() < 1e-6, "{q:?}");
                 }
             }
+        }
+    }
+
+    /// World positions of every node on every frame, composed from the file's node tree (rest
+    /// translations, animated translations and rotations): `[frames][node]`.
+    fn node_world_positions(doc: &Value, bin: &[u8], frames: usize) -> Vec<Vec<Vec3>> {
+        let nodes = doc["nodes"].as_array().unwrap();
+        let n = nodes.len();
+        let anim = &doc["animations"][0];
+        let mut trans: Vec<Option<Vec<f32>>> = vec![None; n];
+        let mut rot: Vec<Option<Vec<f32>>> = vec![None; n];
+        for c in anim["channels"].as_array().unwrap() {
+            let s = &anim["samplers"][c["sampler"].as_u64().unwrap() as usize];
+            let out = floats(doc, bin, s["output"].as_u64().unwrap() as usize);
+            let node = c["target"]["node"].as_u64().unwrap() as usize;
+            match c["target"]["path"].as_str().unwrap() {
+                "translation" => trans[node] = Some(out),
+                "rotation" => rot[node] = Some(out),
+                p => panic!("unexpected path {p}"),
+            }
+        }
+        let rest = |i: usize| -> Vec3 {
+            match nodes[i].get("translation") {
+                Some(t) => [0, 1, 2].map(|k| t[k].as_f64().unwrap()),
+                None => [0.0; 3],
+            }
+        };
+        (0..frames)
+            .map(|t| {
+                let mut pos = vec![[0.0; 3]; n];
+                let mut world = vec![rotation::IDENTITY; n];
+                // Depth first from node 0 (parents before children).
+                let mut stack = vec![0usize];
+                while let Some(i) = stack.pop() {
+                    let tr = trans[i]
+                        .as_ref()
+                        .map_or(rest(i), |v| [0, 1, 2].map(|k| v[t * 3 + k] as f64));
+                    let r = rot[i]
+                        .as_ref()
+                        .map_or(rotation::IDENTITY, |v| quat_matrix(&v[t * 4..t * 4 + 4]));
+                    // Children were given their parent's world transform when pushed.
+                    let (pp, pw) = (pos[i], world[i]);
+                    pos[i] = rotation::add(&pp, &rotation::apply(&pw, &tr));
+                    world[i] = rotation::mul(&pw, &r);
+                    for c in nodes[i]["children"].as_array().into_iter().flatten() {
+                        let c = c.as_u64().unwrap() as usize;
+                        pos[c] = pos[i];
+                        world[c] = world[i];
+                        stack.push(c);
+                    }
+                }
+                pos
+            })
+            .collect()
+    }
+
+    fn keep_and_separate(format: Format, frames: usize) -> (Poses, Poses) {
+        let keep = motion(format, frames);
+        let mut sep = keep.clone();
+        crate::motion::root_motion::apply(&mut sep, crate::motion::RootMotion::Separate, false);
+        (keep, sep)
+    }
+
+    #[test]
+    fn a_root_bone_parents_the_pelvis_and_the_figure_moves_as_before() {
+        for format in Format::ALL {
+            let frames = 6;
+            let (keep, sep) = keep_and_separate(format, frames);
+            let joints = format.skeleton().joint_count();
+            let glb = to_glb(&sep, &GltfOptions::default()).unwrap();
+            let (doc, bin) = split(&glb);
+            let nodes = doc["nodes"].as_array().unwrap();
+            assert_eq!(nodes.len(), joints + 3);
+            let root = joints + 2;
+            assert_eq!(nodes[root]["name"], "root");
+            assert_eq!(nodes[root]["children"], json!([1]));
+            assert_eq!(nodes[0]["children"], json!([root]));
+            assert_eq!(nodes[joints + 1]["name"], "figure");
+            let skin = &doc["skins"][0];
+            let sj = skin["joints"].as_array().unwrap();
+            assert_eq!(sj.len(), joints + 1);
+            assert_eq!(sj[joints], root);
+            let ibm = floats(
+                &doc,
+                bin,
+                skin["inverseBindMatrices"].as_u64().unwrap() as usize,
+            );
+            let identity = [
+                1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.,
+            ];
+            assert_eq!(ibm[joints * 16..], identity);
+            // Composed through the root bone, every joint lands where the clip with its root
+            // motion kept puts it.
+            let world = node_world_positions(&doc, bin, frames);
+            let want = keep
+                .layout(Layout::GlobalPositions, Convention::Gltf)
+                .unwrap();
+            let mut worst = 0.0f64;
+            for t in 0..frames {
+                // The root bone stands on the ground (glTF's y = 0) under the pelvis.
+                assert_eq!(world[t][root][1], 0.0);
+                for k in [0, 2] {
+                    assert!((world[t][root][k] - world[t][1][k]).abs() < 1e-6);
+                }
+                for j in 0..joints {
+                    for k in 0..3 {
+                        let d = world[t][1 + j][k] - want[(t * joints + j) * 3 + k] as f64;
+                        worst = worst.max(d.abs());
+                    }
+                }
+            }
+            assert!(worst < 1e-5, "{format}: {worst} m");
+            // Without the bone the file is as before: the same composition, no `root` node.
+            let glb = to_glb(&keep, &GltfOptions::default()).unwrap();
+            let (doc, bin) = split(&glb);
+            assert_eq!(doc["nodes"].as_array().unwrap().len(), joints + 2);
+            let plain = node_world_positions(&doc, bin, frames);
+            for t in 0..frames {
+                for j in 0..joints {
+                    for k in 0..3 {
+                        assert!((plain[t][1 + j][k] - world[t][1 + j][k]).abs() < 1e-5);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn foot_contacts_travel_in_the_animation_extras() {
+        let mut poses = motion(Format::Smpl24Rot6d, 3);
+        let glb = to_glb(&poses, &GltfOptions::default()).unwrap();
+        assert!(split(&glb).0["animations"][0].get("extras").is_none());
+        poses.contacts = vec![[1.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 1.0], [0.0; 4]];
+        let glb = to_glb(&poses, &GltfOptions::default()).unwrap();
+        let extras = split(&glb).0["animations"][0]["extras"].clone();
+        assert_eq!(
+            extras["foot_contacts"],
+            json!([[1, 1, 0, 0], [1, 0, 0, 1], [0, 0, 0, 0]])
+        );
+        assert_eq!(
+            extras["foot_contact_joints"],
+            json!(["L_Ankle", "L_Foot", "R_Ankle", "R_Foot"])
+        );
+        // humanml263's own contacts are the features' values (here not 0 or 1).
+        let poses = motion(Format::HumanMl263, 2);
+        let glb = to_glb(&poses, &GltfOptions::default()).unwrap();
+        let extras = split(&glb).0["animations"][0]["extras"].clone();
+        assert_eq!(
+            extras["foot_contacts"][1][2].as_f64().unwrap() as f32,
+            poses.contacts[1][2] as f32
+        );
+        assert_eq!(extras["foot_contact_joints"][3], "right_foot");
+    }
+
+    /// For tools/gltf_check.sh: with FLAME_GLTF_OUT=DIR, writes `root_separate_{smpl,hml}.glb`
+    /// (40 frames at 20 fps resampled to 30 fps = 59 frames, the root motion on a root bone)
+    /// and `root_separate_{smpl,hml}.npy`, the world joint positions Blender must give
+    /// (`[59, joints, 3]`, gltf convention: the clip with its root motion kept, resampled
+    /// alike).
+    #[test]
+    #[ignore]
+    fn write_root_bone_check_files() {
+        let dir = std::env::var("FLAME_GLTF_OUT").expect("set FLAME_GLTF_OUT to a directory");
+        let dir = std::path::Path::new(&dir);
+        for (format, name) in [(Format::Smpl24Rot6d, "smpl"), (Format::HumanMl263, "hml")] {
+            let (keep, sep) = keep_and_separate(format, 40);
+            let keep = crate::motion::resample::resample(&keep, 20.0, 30.0).unwrap();
+            let sep = crate::motion::resample::resample(&sep, 20.0, 30.0).unwrap();
+            assert_eq!(sep.frames(), 59);
+            let opts = GltfOptions {
+                fps: 30.0,
+                ..Default::default()
+            };
+            std::fs::write(
+                dir.join(format!("root_separate_{name}.glb")),
+                to_glb(&sep, &opts).unwrap(),
+            )
+            .unwrap();
+            let p = keep
+                .layout(Layout::GlobalPositions, Convention::Gltf)
+                .unwrap();
+            crate::npy::write_f32(
+                &dir.join(format!("root_separate_{name}.npy")),
+                &[keep.frames(), keep.joint_count(), 3],
+                &p,
+            )
+            .unwrap();
         }
     }
 

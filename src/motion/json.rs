@@ -8,13 +8,19 @@
 //!  "joint_names": [...J], "parents": [-1, 0, ...], "offsets": [[x,y,z], ...J],
 //!  "translation": [[x,y,z], ...L], "rotation_quat_order": "wxyz",
 //!  "rotation_quat": [[[w,x,y,z], ...J], ...L],
-//!  "foot_contacts": [[la,lf,ra,rf], ...L], "foot_contact_joints": [...4]}
+//!  "foot_contacts": [[la,lf,ra,rf], ...L], "foot_contact_joints": [...4],
+//!  "root_bone": "root", "root_bone_translation": [[x,y,z], ...L]}
 //! ```
 //!
 //! `translation` is the root joint's (pelvis's) world position; `rotation_quat` the local
 //! (parent-relative) rotations; `offsets` the rest offsets (joint − parent, row 0 the root's rest
 //! position), so `global(j) = global(parent)·local(j)`, `p(j) = p(parent) + global(parent)·offset(j)`
-//! reproduces the poses. The foot-contact fields appear only for formats that have them.
+//! reproduces the poses. The foot-contact fields appear when the poses carry contacts
+//! (humanml263's own, or the finished ones of either format), `foot_contact_joints` naming the
+//! four joints in the skeleton's names. The root-bone fields appear when the root motion was
+//! moved to a root bone ([`super::RootMotion::Separate`]): `root_bone_translation` is the
+//! bone's position (on the ground under the pelvis), and `translation` is then relative to it
+//! (the bone has no rotation: the pelvis's world position is the sum of the two).
 
 use serde::Serialize;
 
@@ -44,6 +50,10 @@ struct Document<'a> {
     foot_contacts: Option<Vec<[f32; 4]>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     foot_contact_joints: Option<[&'a str; 4]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    root_bone: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    root_bone_translation: Option<Vec<[f32; 3]>>,
 }
 
 fn narrow<const N: usize>(v: &[f64; N]) -> [f32; N] {
@@ -66,6 +76,18 @@ pub fn to_string(
     let ch = Change::new(format, convention);
     let joints = skel.joint_count();
     let quats = poses.quaternions(&poses.local_rotations(convention));
+    let frames = poses.frames();
+    let contacts = (poses.contacts.len() == frames && frames > 0).then_some(&poses.contacts);
+    let bone = (!poses.root_bone.is_empty()).then_some(&poses.root_bone);
+    if let Some(b) = bone {
+        if b.len() != frames {
+            return Err(invalid_arg!(
+                "the root bone track has {} entries for {frames} frames",
+                b.len()
+            ));
+        }
+    }
+    let names = skel.joint_names();
     let doc = Document {
         format: format.name(),
         convention: convention.name(),
@@ -93,13 +115,65 @@ pub fn to_string(
             .chunks(joints)
             .map(|f| f.iter().map(|q| narrow(&order.arrange(q))).collect())
             .collect(),
-        foot_contacts: poses
-            .foot_contacts()
-            .map(|c| c.iter().map(narrow).collect()),
-        foot_contact_joints: poses
-            .foot_contacts()
-            .map(|_| ["left_ankle", "left_foot", "right_ankle", "right_foot"]),
+        foot_contacts: contacts.map(|c| c.iter().map(narrow).collect()),
+        // Left ankle, left foot, right ankle, right foot: joints 7, 10, 8, 11 of both skeletons.
+        foot_contact_joints: contacts.map(|_| [7, 10, 8, 11].map(|j| names[j])),
+        root_bone: bone.map(|_| super::bvh::ROOT_BONE),
+        root_bone_translation: bone.map(|b| b.iter().map(|p| narrow(&ch.position(p))).collect()),
     };
     serde_json::to_string(&doc)
         .map_err(|e| invalid_arg!("cannot serialise the motion as JSON: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::motion::{root_motion, Format, ReadOptions, RootMotion};
+    use serde_json::Value;
+
+    #[test]
+    fn root_bone_and_contacts_are_fields_when_present() {
+        let x: Vec<f32> = (0..2 * 147).map(|i| (i as f32 * 0.37).sin()).collect();
+        let keep = Poses::decode(Format::Smpl24Rot6d, &x, 2, &ReadOptions::default()).unwrap();
+        let doc = |p: &Poses| -> Value {
+            serde_json::from_str(&to_string(p, Convention::Unreal, 30.0, QuatOrder::Wxyz).unwrap())
+                .unwrap()
+        };
+        let plain = doc(&keep);
+        for field in [
+            "foot_contacts",
+            "foot_contact_joints",
+            "root_bone",
+            "root_bone_translation",
+        ] {
+            assert!(plain.get(field).is_none(), "{field}");
+        }
+        let mut sep = keep.clone();
+        root_motion::apply(&mut sep, RootMotion::Separate, false);
+        sep.contacts = vec![[1.0, 0.0, 0.0, 1.0], [0.0; 4]];
+        let d = doc(&sep);
+        assert_eq!(d["root_bone"], "root");
+        assert_eq!(
+            d["foot_contact_joints"],
+            serde_json::json!(["L_Ankle", "L_Foot", "R_Ankle", "R_Foot"])
+        );
+        assert_eq!(
+            d["foot_contacts"][0],
+            serde_json::json!([1.0, 0.0, 0.0, 1.0])
+        );
+        // Unreal: Z up, centimetres. The bone is on the ground and bone + translation is the
+        // pelvis's world position of the clip with its root motion kept.
+        for t in 0..2 {
+            let (b, tr, k) = (
+                &d["root_bone_translation"][t],
+                &d["translation"][t],
+                &plain["translation"][t],
+            );
+            assert_eq!(b[2], 0.0);
+            for i in 0..3 {
+                let sum = b[i].as_f64().unwrap() + tr[i].as_f64().unwrap();
+                assert!((sum - k[i].as_f64().unwrap()).abs() < 1e-4, "{t} {i}");
+            }
+        }
+    }
 }
