@@ -35,7 +35,11 @@
 //!   forward kinematics on the rest offsets, so bone lengths never change. Frames without a
 //!   correction are not touched. Joints other than knees, ankles and toes never move (the hips'
 //!   rotations change, their positions do not).
-//! - **Floor**: every target is kept at or above the floor, so the lock never pushes a foot
+//! - **Swings**: between two planted spans the foot's path is redrawn from pin to pin, rising
+//!   before it travels and travelling before it lands, at least [`SWING_CLEARANCE`] above the
+//!   floor at mid-swing ([`shape_swings`] says why); a leg never planted is left as it is.
+//! - **Floor**: every target is kept at or above the floor, and a toe whose target is nearer
+//!   than the foot's length is turned no lower than the floor, so the lock never pushes a foot
 //!   under it.
 //!
 //! **humanml263**: its positions come from `recover_from_ric` and are not the forward
@@ -57,6 +61,24 @@ use crate::error::{invalid_arg, Result};
 /// swing keeps its own shape; and a correction of a few centimetres spread over 0.2 s adds well
 /// under 0.5 m/s to the foot, far less visible than the one-frame pop it replaces.
 pub const FADE_SECONDS: f64 = 0.2;
+
+/// Metres a swinging toe clears the floor by wherever it moves faster than [`SWING_SPEED`].
+/// A toe joint lower than the contact height (5 cm, the skating metric's) that moves at walking
+/// speed reads as a foot dragged along the floor; in captured motion that never happens
+/// (HumanML3D's real motions score 0.000 on GMD's skating ratio), while the demo model's swinging
+/// toes pass at a median of about 1 cm. 6 cm is that height with a centimetre's margin.
+pub const SWING_CLEARANCE: f64 = 0.06;
+
+/// Metres per second of horizontal toe speed above which a swinging foot must clear the floor:
+/// the skating metric's 0.5 m/s (GMD, OmniControl `calculate_skating_ratio`). Slower feet may
+/// shuffle near the floor.
+pub const SWING_SPEED: f64 = 0.5;
+
+/// Seconds over which a swing lift rises to its height and settles again: a raised cosine this
+/// wide on each side of a frame that needs it, and the same span at both ends of the swing so
+/// that a foot leaving or reaching a pin is not lifted (0.15 s is 3 frames at 20 fps, about a
+/// third of a walking swing).
+pub const SWING_EASE_SECONDS: f64 = 0.15;
 
 /// A leg's joints and its contact slots.
 #[derive(Clone, Copy)]
@@ -158,13 +180,20 @@ pub fn lock(poses: &mut Poses, contacts: &[[bool; 4]], fps: f64) -> Result<()> {
     };
     let fade = ((FADE_SECONDS * fps).round() as usize).max(1);
     for leg in LEGS {
-        lock_leg(poses, contacts, leg, floor, fade);
+        lock_leg(poses, contacts, leg, floor, fade, fps);
     }
     Ok(())
 }
 
 /// One leg: pins, fades and the per-frame solve.
-fn lock_leg(poses: &mut Poses, contacts: &[[bool; 4]], leg: Leg, floor: f64, fade: usize) {
+fn lock_leg(
+    poses: &mut Poses,
+    contacts: &[[bool; 4]],
+    leg: Leg,
+    floor: f64,
+    fade: usize,
+    fps: f64,
+) {
     let n = poses.frames;
     let joints = poses.joint_count();
     let up = poses.format.up_axis();
@@ -239,6 +268,7 @@ fn lock_leg(poses: &mut Poses, contacts: &[[bool; 4]], leg: Leg, floor: f64, fad
             }
         }
     }
+    shape_swings(poses, &planted, leg, floor, fps, &mut corr_a, &mut corr_f);
     for t in 0..n {
         let (raw_a, raw_f) = (
             poses.positions[t * joints + leg.ankle],
@@ -249,7 +279,104 @@ fn lock_leg(poses: &mut Poses, contacts: &[[bool; 4]], leg: Leg, floor: f64, fad
         ta[up] = ta[up].max(floor);
         tf[up] = tf[up].max(floor);
         if ta != raw_a || tf != raw_f {
-            solve_frame(poses, t, leg, &ta, &tf);
+            solve_frame(poses, t, leg, &ta, &tf, floor);
+        }
+    }
+}
+
+/// Shapes a leg's swings (runs of frames where the foot is not planted), as corrections added
+/// to `corr_a` / `corr_f`:
+///
+/// - A swing between two planted frames is redrawn from the toe's last pinned place to its next
+///   one: horizontally along the straight line with a smootherstep in time (`6x⁵ − 15x⁴ + 10x³`:
+///   the foot leaves and lands with zero speed and acceleration, and moves mostly in the middle),
+///   vertically at least [`SWING_CLEARANCE`] above the floor times a rise that reaches full
+///   height a fifth of the way in and comes back as late (`S(min(1, 5x, 5(1−x)))`), or higher
+///   where the model lifts it higher. The ankle moves with the toe, so the foot keeps its shape.
+///   Why redraw rather than offset: the model's swing toes drag at a median of about 1 cm and
+///   catch up with a pin's fade at 1–3 m/s near the floor — on the floor, that is a foot
+///   sliding. A redrawn swing is the usual procedural gait step (the foot rises before it
+///   travels and travels before it lands).
+/// - A swing that runs into the clip's start or end keeps its path and is only lifted to the
+///   clearance wherever its toe moves faster than [`SWING_SPEED`] (raised cosine over
+///   [`SWING_EASE_SECONDS`] around each such frame).
+fn shape_swings(
+    poses: &Poses,
+    planted: &[bool],
+    leg: Leg,
+    floor: f64,
+    fps: f64,
+    corr_a: &mut [Vec3],
+    corr_f: &mut [Vec3],
+) {
+    let n = poses.frames;
+    let joints = poses.joint_count();
+    let up = poses.format.up_axis();
+    let ease = (SWING_EASE_SECONDS * fps).round().max(1.0);
+    let raw_f = |t: usize| poses.positions[t * joints + leg.toe];
+    let toes: Vec<Vec3> = (0..n)
+        .map(|t| rotation::add(&raw_f(t), &corr_f[t]))
+        .collect();
+    let horizontal_speed = |a: &Vec3, b: &Vec3| {
+        let mut d = sub(b, a);
+        d[up] = 0.0;
+        rotation::dot(&d, &d).sqrt() * fps
+    };
+    // A leg never planted tells nothing of where its feet should be: left as it is.
+    if !planted.contains(&true) {
+        return;
+    }
+    for (s, e) in super::contacts::runs(planted, false) {
+        if s > 0 && e + 1 < n {
+            let (from, to) = (toes[s - 1], toes[e + 1]);
+            let span = (e + 2 - s) as f64;
+            for t in s..=e {
+                let x = (t + 1 - s) as f64 / span;
+                let travel = x * x * x * (x * (6.0 * x - 15.0) + 10.0);
+                let mut target = add_scaled(&from, &sub(&to, &from), travel);
+                let rise = smoothstep((5.0 * x).min(5.0 * (1.0 - x)).min(1.0));
+                let chord = from[up] + (to[up] - from[up]) * travel;
+                target[up] = toes[t][up].max(chord).max(floor + SWING_CLEARANCE * rise);
+                let shift = sub(&target, &toes[t]);
+                corr_f[t] = rotation::add(&corr_f[t], &shift);
+                corr_a[t] = rotation::add(&corr_a[t], &shift);
+            }
+            continue;
+        }
+        let need: Vec<f64> = (s..=e)
+            .map(|t| {
+                let p = toes[t];
+                let before = (t > 0).then(|| horizontal_speed(&toes[t - 1], &p));
+                let after = (t + 1 < n).then(|| horizontal_speed(&p, &toes[t + 1]));
+                if before.unwrap_or(0.0).max(after.unwrap_or(0.0)) > SWING_SPEED {
+                    (floor + SWING_CLEARANCE - p[up]).max(0.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        for t in s..=e {
+            let mut lift = 0.0f64;
+            for (k, &h) in need.iter().enumerate() {
+                let d = (t as f64 - (s + k) as f64).abs() / ease;
+                if h > 0.0 && d < 1.0 {
+                    lift = lift.max(h * 0.5 * (1.0 + (std::f64::consts::PI * d).cos()));
+                }
+            }
+            // Eased to zero where the swing meets a planted frame (not at the clip's end).
+            let from_start = if s > 0 {
+                (t - s + 1) as f64
+            } else {
+                f64::INFINITY
+            };
+            let to_end = if e + 1 < n {
+                (e + 1 - t) as f64
+            } else {
+                f64::INFINITY
+            };
+            lift *= smoothstep(from_start.min(to_end) / (ease + 1.0));
+            corr_a[t][up] += lift;
+            corr_f[t][up] += lift;
         }
     }
 }
@@ -257,17 +384,29 @@ fn lock_leg(poses: &mut Poses, contacts: &[[bool; 4]], leg: Leg, floor: f64, fad
 /// Moves frame `t`'s leg so the ankle reaches `ankle_target` (as far as the leg reaches) and the
 /// toe points at `toe_target`: local rotations of hip, knee and ankle changed, globals and leg
 /// positions recomputed (module doc).
-fn solve_frame(poses: &mut Poses, t: usize, leg: Leg, ankle_target: &Vec3, toe_target: &Vec3) {
+fn solve_frame(
+    poses: &mut Poses,
+    t: usize,
+    leg: Leg,
+    ankle_target: &Vec3,
+    toe_target: &Vec3,
+    floor: f64,
+) {
     let joints = poses.joint_count();
     let skel = poses.format.skeleton();
     let kinematic = poses.format.positions_are_kinematic();
+    let up = poses.format.up_axis();
     let base = t * joints;
     let p = |j: usize| poses.positions[base + j];
     let (hip, knee, ankle, toe) = (p(leg.hip), p(leg.knee), p(leg.ankle), p(leg.toe));
     let sol = ik::solve(&hip, &knee, &ankle, ankle_target);
     // The foot after the leg's turn, then turned so the toe points at its target.
     let foot = rotation::apply(&sol.lower, &sub(&toe, &ankle));
-    let aim = ik::rotate_onto(&foot, &sub(toe_target, &sol.end), None);
+    let aim = ik::rotate_onto(
+        &foot,
+        &toe_direction(&sol.end, &foot, toe_target, floor, up),
+        None,
+    );
     let foot_delta = rotation::mul(&aim, &sol.lower);
 
     let g = |j: usize| poses.global[base + j];
@@ -304,6 +443,38 @@ fn solve_frame(poses: &mut Poses, t: usize, leg: Leg, ankle_target: &Vec3, toe_t
         ps[base + leg.toe] =
             rotation::add(&sol.end, &rotation::apply(&foot_delta, &sub(&toe, &ankle)));
     }
+}
+
+/// The direction the foot (ankle at `ankle`, ankle→toe vector `foot`) points so its toe is as
+/// near `target` as the rigid foot allows without going under `floor`: towards the target, its
+/// slope raised when the toe would end below the floor (a target nearer than the foot's length
+/// would otherwise put the toe past it, under the floor).
+fn toe_direction(ankle: &Vec3, foot: &Vec3, target: &Vec3, floor: f64, up: usize) -> Vec3 {
+    let length = rotation::dot(foot, foot).sqrt();
+    let mut d = sub(target, ankle);
+    let dl = rotation::dot(&d, &d).sqrt();
+    if length == 0.0 || dl == 0.0 {
+        return if dl == 0.0 { *foot } else { d };
+    }
+    d = d.map(|v| v / dl);
+    let lowest = (floor - ankle[up]) / length;
+    if d[up] >= lowest || lowest > 1.0 {
+        return d;
+    }
+    // Keep the horizontal heading, lift the slope to reach the floor exactly.
+    let rise = lowest.max(-1.0);
+    let mut h = d;
+    h[up] = 0.0;
+    let hl = rotation::dot(&h, &h).sqrt();
+    if hl == 0.0 {
+        let mut v = [0.0; 3];
+        v[up] = rise.signum();
+        return v;
+    }
+    let scale = (1.0 - rise * rise).max(0.0).sqrt() / hl;
+    let mut out = h.map(|v| v * scale);
+    out[up] = rise;
+    out
 }
 
 /// `3x² − 2x³` on [0, 1]: zero slope at both ends, so a fade starts and ends without a kink.
@@ -691,6 +862,57 @@ mod tests {
             }
             for c in [0, 3, 6, 9, 12, 15, 20, 21] {
                 assert_eq!(locked.global[b + c], g.global[b + c]);
+            }
+        }
+    }
+
+    #[test]
+    fn a_swing_dragged_along_the_floor_is_redrawn_above_it() {
+        // Both legs bent and still, the pelvis gliding 0.6 m forward (world −Y) over frames
+        // 10..=19 (1.2 m/s) and still before and after; both feet planted on 0..=9 and 20..=29:
+        // raw, the swinging toes drag along the floor at 1.2 m/s, which the skating ratio counts.
+        let frames = 30;
+        let mut x = Vec::new();
+        for t in 0..frames {
+            let glide = -0.6 * (t.clamp(9, 19) - 9) as f64 / 10.0;
+            x.extend([0.0, glide, 0.9]);
+            let mut rot = [[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]; 24];
+            rot[0] = rx(90.0);
+            for (hip, knee, ankle) in [(1, 4, 7), (2, 5, 8)] {
+                rot[hip] = rx(-30.0);
+                rot[knee] = rx(50.0);
+                rot[ankle] = rx(-20.0);
+            }
+            x.extend(rot.iter().flatten());
+        }
+        let x: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let mut raw =
+            Poses::decode(Format::Smpl24Rot6d, &x, frames, &ReadOptions::default()).unwrap();
+        let contacts: Vec<[bool; 4]> = (0..frames).map(|t| [!(10..=19).contains(&t); 4]).collect();
+        put_on_ground(&mut raw, &contacts);
+        let ratio = |p: &Poses| {
+            let y_up = p.positions(crate::motion::Convention::Gltf);
+            crate::motion::skating::skating_ratio(&y_up, frames, 24, 20.0).unwrap()
+        };
+        assert!(ratio(&raw) > 0.3, "raw {}", ratio(&raw));
+        let mut locked = raw.clone();
+        lock(&mut locked, &contacts, 20.0).unwrap();
+        assert_eq!(ratio(&locked), 0.0);
+        let up = 2;
+        for leg in LEGS {
+            let toe = |t: usize| locked.positions[t * 24 + leg.toe];
+            // Never under the floor; the clearance at mid-swing; planted frames do not move.
+            assert!((0..frames).all(|t| toe(t)[up] > -1e-9));
+            assert!(toe(14)[up] >= SWING_CLEARANCE - 1e-9, "{}", toe(14)[up]);
+            assert!(drift(&locked, leg.toe, 0, 9) < 1e-9 && drift(&locked, leg.toe, 20, 29) < 1e-9);
+            // The foot leaves slowly: under 1 cm in the first swing frame.
+            let first = sub(&toe(10), &toe(9));
+            assert!(first[0].hypot(first[1]) < 0.01, "{first:?}");
+        }
+        // Hips and everything above never move.
+        for t in 0..frames {
+            for j in [0, 1, 2, 3, 6, 9, 12, 15] {
+                assert_eq!(locked.positions[t * 24 + j], raw.positions[t * 24 + j]);
             }
         }
     }

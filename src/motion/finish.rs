@@ -117,6 +117,10 @@ impl Finish {
             return Ok(out);
         }
         let on_floor = contacts::of(&out, source_fps, &self.contacts);
+        out.contacts = on_floor
+            .iter()
+            .map(|c| c.map(|on| if on { 1.0 } else { 0.0 }))
+            .collect();
         if self.ground {
             feet::put_on_ground(&mut out, &on_floor);
         }

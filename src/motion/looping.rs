@@ -73,9 +73,6 @@ pub fn wrap(poses: &mut Poses, fps: f64) -> Result<()> {
 
 /// Applies the correction of the module doc over `blend` frames on each side of the wrap.
 fn correct(poses: &mut Poses, t: &LoopMotion, blend: usize) {
-    if blend > 0 {
-        return;
-    }
     let n = poses.frames;
     let joints = poses.joint_count();
     let root: Vec<Vec3> = poses.root.clone();
