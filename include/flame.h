@@ -17,7 +17,7 @@
 #include <stdint.h>
 
 // The ABI version: bumped whenever a function's signature or a struct's layout changes.
-#define FLAME_ABI_VERSION 2
+#define FLAME_ABI_VERSION 3
 
 // libflame's version, major part.
 #define FLAME_VERSION_MAJOR 0
@@ -110,9 +110,12 @@ typedef enum FlameLayout {
   FLAME_LAYOUT_GLOBAL_QUAT_XYZW = 7,
   // `[frames, J, 4]` world rotations as quaternions w, x, y, z.
   FLAME_LAYOUT_GLOBAL_QUAT_WXYZ = 8,
-  // `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot); only
-  // formats that carry them (humanml263).
+  // `[frames, 4]` foot contacts (left ankle, left foot, right ankle, right foot), 0 or 1
+  // (humanml263 models' own values, ≈0 or 1, when read raw).
   FLAME_LAYOUT_FOOT_CONTACTS = 9,
+  // `[frames, 3]` the `root` bone's world position (on the ground under the pelvis); only
+  // with a cleanup's `FLAME_ROOT_MOTION_SEPARATE`.
+  FLAME_LAYOUT_ROOT_BONE = 10,
 } FlameLayout;
 
 // The coordinate frame poses are expressed in (README: "Poses").
@@ -380,6 +383,35 @@ typedef struct FlamePromptInfo {
 // NULL (no callback) is allowed wherever one is passed.
 typedef void (*FlameProgressCallback)(void *user_data, uint32_t steps_done, uint32_t steps_total);
 
+// Post-processing applied when poses are read: foot contacts, the floor, foot locking, a loop's
+// wrap, root motion and the frame rate. Initialise with [`flame_cleanup_params_default`]. A read
+// that takes a NULL `FlameCleanupParams *` gives the raw poses.
+typedef struct FlameCleanupParams {
+  // `sizeof(FlameCleanupParams)`.
+  uint32_t struct_size;
+  // A [`FlameFeet`] value (default lock).
+  int32_t feet;
+  // Nonzero: the lowest foot contact of the clip put at height 0 (default 1).
+  uint32_t ground;
+  // A [`FlameRootMotion`] value (default keep).
+  int32_t root_motion;
+  // Nonzero with in-place or separate root motion: also remove the heading's drift (default 0).
+  uint32_t remove_yaw;
+  // Nonzero: cross-fade the clip's last frames into its first so it loops (default 0).
+  uint32_t wrap;
+  // Output frame rate, 1 to 240; 0 = the model's (default 0). Changes the frame count a read
+  // returns: ask with `out` NULL first.
+  float fps;
+  // Contact detection (smpl24_6d models): height above the standing level, metres (default 0.05).
+  float contact_height;
+  // Contact detection: speed below which a foot joint may be planted, m/s (default 0.894).
+  float contact_speed;
+  // Contact detection: hysteresis ratio ≥ 1 for leaving a contact (default 1.5).
+  float contact_release;
+  // Contact detection: shortest contact span and gap kept, seconds (default 0.1).
+  float contact_min_span;
+} FlameCleanupParams;
+
 // How [`flame_session_write_gltf`] exports. Initialise with [`flame_gltf_params_default`].
 typedef struct FlameGltfParams {
   // `sizeof(FlameGltfParams)`.
@@ -394,6 +426,10 @@ typedef struct FlameGltfParams {
   // The animation's name (sanitised: letters, digits, `-`, `_`); NULL (default) = the
   // session's prompt, sanitised, or `motion`.
   const char *name;
+  // Post-processing before export (since version 2 of this struct); NULL (default) = the
+  // raw poses. Its `fps`, when set, overrides `fps` above. A `separate` root motion adds the
+  // `root` bone to the skeleton.
+  const struct FlameCleanupParams *cleanup;
 } FlameGltfParams;
 
 // Settings of a stream. Initialise with [`flame_stream_params_default`]; zero (or a negative
@@ -837,6 +873,30 @@ enum FlameStatus flame_session_sample_shape(const struct FlameSession *session,
 enum FlameStatus flame_session_read_frames(const struct FlameSession *session,
                                            int32_t which,
                                            uint32_t *out_frames);
+
+// Fills `*params` with the game-ready defaults: feet locked, the floor at 0, root motion kept,
+// no wrap, the model's frame rate, the default contact detection.
+//
+// # Safety
+// `params` points to writable memory for a `FlameCleanupParams`.
+enum FlameStatus flame_cleanup_params_default(struct FlameCleanupParams *params);
+
+// [`super::flame_session_read`] with post-processing: the poses of `which` in `layout` and
+// `convention` after `cleanup` (NULL = the raw poses, exactly `flame_session_read`). With a
+// frame rate other than the model's, the frame count changes: call with `out` NULL for the
+// length. The raw features (layout 0) are never post-processed.
+//
+// # Safety
+// As `flame_session_read`; `cleanup` is NULL or points to a valid `FlameCleanupParams`.
+enum FlameStatus flame_session_read_cleaned(const struct FlameSession *session,
+                                            int32_t which,
+                                            int32_t layout,
+                                            int32_t convention,
+                                            uint32_t flags,
+                                            const struct FlameCleanupParams *cleanup,
+                                            float *out,
+                                            size_t len,
+                                            size_t *out_len);
 
 // The message of the last failed call on this thread ("" after a successful call). The
 // pointer stays valid until the next libflame call on the same thread.

@@ -40,7 +40,7 @@ pub use stream::{
 };
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
-pub const FLAME_ABI_VERSION: u32 = 2;
+pub const FLAME_ABI_VERSION: u32 = 3;
 /// libflame's version, major part.
 pub const FLAME_VERSION_MAJOR: u32 = 0;
 /// libflame's version, minor part.
