@@ -15,6 +15,8 @@ pub mod checkpoint;
 /// cbindgen:ignore
 pub mod config;
 /// cbindgen:ignore
+pub mod cycle;
+/// cbindgen:ignore
 pub mod diffusion;
 /// cbindgen:ignore
 pub mod edit;

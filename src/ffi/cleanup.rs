@@ -45,7 +45,9 @@ pub struct FlameCleanupParams {
     pub root_motion: i32,
     /// Nonzero with in-place or separate root motion: also remove the heading's drift (default 0).
     pub remove_yaw: u32,
-    /// Nonzero: cross-fade the clip's last frames into its first so it loops (default 0).
+    /// 1: correct the frames on both sides of the wrap so the clip loops, the next cycle's
+    /// start estimated from the clip's average travel; 2: the same, the clip's last frame being
+    /// the next cycle's first (it is then dropped: one frame fewer); 0: no wrap (default).
     pub wrap: u32,
     /// Output frame rate, 1 to 240; 0 = the model's (default 0). Changes the frame count a read
     /// returns: ask with `out` NULL first.
@@ -79,7 +81,7 @@ fn to_c(f: &Finish) -> FlameCleanupParams {
         ground: f.ground as u32,
         root_motion: f.root_motion as i32,
         remove_yaw: f.remove_yaw as u32,
-        wrap: f.wrap as u32,
+        wrap: if f.wrap_to_last { 2 } else { f.wrap as u32 },
         fps: f.fps.unwrap_or(0.0) as f32,
         contact_height: f.contacts.height as f32,
         contact_speed: f.contacts.speed as f32,
@@ -106,7 +108,16 @@ pub(crate) unsafe fn finish_arg(params: *const FlameCleanupParams) -> Result<Fin
         },
         ground: p.ground != 0,
         feet: Feet::from_u32(enum_value(p.feet, "feet")?)?,
-        wrap: p.wrap != 0,
+        wrap: match p.wrap {
+            0..=2 => p.wrap != 0,
+            w => {
+                return Err(invalid_arg!(
+                    "cleanup.wrap is {w} (0 off, 1 wrap, 2 wrap to the last frame)"
+                )
+                .into())
+            }
+        },
+        wrap_to_last: p.wrap == 2,
         root_motion: RootMotion::from_u32(enum_value(p.root_motion, "root_motion")?)?,
         remove_yaw: p.remove_yaw != 0,
         fps: (p.fps != 0.0).then_some(p.fps as f64),

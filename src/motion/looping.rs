@@ -43,20 +43,42 @@ const BLEND_SECONDS: f64 = 0.5;
 /// on each side), the shortest whose wrap changes every joint's velocity by no more than the
 /// clip's own largest frame-to-frame change ([`velocity_jumps`]).
 pub fn wrap(poses: &mut Poses, fps: f64) -> Result<()> {
-    let n = poses.frames;
+    check_length(poses.frames)?;
+    let t = LoopMotion::of(poses);
+    wrap_with(poses, fps, &t);
+    Ok(())
+}
+
+/// [`wrap`] of a clip whose last frame is the first frame of the next cycle (a loop generated
+/// by `crate::cycle`): `T` is the move from frame 0 to that frame, exactly, and the frame is
+/// dropped after the correction.
+pub fn wrap_to_last(poses: &mut Poses, fps: f64) -> Result<()> {
+    check_length(poses.frames.saturating_sub(1))?;
+    let last = poses.frames - 1;
+    let t = LoopMotion::between(poses, 0, last);
+    *poses = poses.frames_range(0, last);
+    wrap_with(poses, fps, &t);
+    Ok(())
+}
+
+fn check_length(n: usize) -> Result<()> {
     if n < MIN_FRAMES {
         return Err(invalid_arg!(
             "a loop needs at least {MIN_FRAMES} frames, the clip has {n}"
         ));
     }
+    Ok(())
+}
+
+fn wrap_with(poses: &mut Poses, fps: f64, t: &LoopMotion) {
+    let n = poses.frames;
     let longest = n / 2;
     let shortest = ((BLEND_SECONDS * fps).round() as usize).clamp(3, longest);
-    let t = LoopMotion::of(poses);
     let mut best = None;
     for blend in shortest..=longest {
         let mut tried = poses.clone();
-        correct(&mut tried, &t, blend);
-        let (inside, at_wrap) = velocity_jumps(&tried, &t);
+        correct(&mut tried, t, blend);
+        let (inside, at_wrap) = velocity_jumps(&tried, t);
         let done = at_wrap <= inside;
         if done || blend == longest {
             best = Some(tried);
@@ -68,7 +90,6 @@ pub fn wrap(poses: &mut Poses, fps: f64) -> Result<()> {
     if let Some(p) = best {
         *poses = p;
     }
-    Ok(())
 }
 
 /// Applies the correction of the module doc over `blend` frames on each side of the wrap.
@@ -169,6 +190,29 @@ impl LoopMotion {
         LoopMotion {
             turn,
             pivot: p0,
+            target,
+        }
+    }
+
+    /// The move taking frame `a`'s pelvis (position and heading about the up axis) onto frame
+    /// `b`'s, height kept.
+    pub fn between(poses: &Poses, a: usize, b: usize) -> LoopMotion {
+        let joints = poses.joint_count();
+        let up_axis = poses.format.up_axis();
+        let mut up = [0.0; 3];
+        up[up_axis] = 1.0;
+        let heading = |k: usize| {
+            let mut h = rotation::apply(&poses.global[k * joints], &[0.0, 0.0, 1.0]);
+            h[up_axis] = 0.0;
+            h
+        };
+        let (h0, h1) = (heading(a), heading(b));
+        let angle = rotation::dot(&up, &rotation::cross(&h0, &h1)).atan2(rotation::dot(&h0, &h1));
+        let mut target = poses.root[b];
+        target[up_axis] = poses.root[a][up_axis];
+        LoopMotion {
+            turn: rotation::axis_angle(&up, angle),
+            pivot: poses.root[a],
             target,
         }
     }

@@ -40,8 +40,15 @@ BVH readers stand upright, always gltf for .glb/.gltf, and native (the model's o
 JSON and .npy outputs;
 --positions follows the same convention. --smooth is the sigma in frames of the temporal
 Gaussian smoothing of the features (default 1 for smpl24_6d as FLAME's official output, 0
-otherwise; 0 = off). Unset options take the model file's defaults (see `flame info`). Every
-output folder is checked before the model is loaded.";
+otherwise; 0 = off).
+
+Pose outputs are game-ready by default: the feet are locked during their contacts (two-bone
+IK; bone lengths and everything above the knees unchanged) and the lowest contact is put at
+height 0; --feet off gives the raw poses. --fps resamples, --root-motion moves the travel,
+--loop makes the end flow into the start (README "Game-ready clips").
+
+Unset options take the model file's defaults (see `flame info`). Every output folder is checked
+before the model is loaded.";
 
 const EDIT_LONG: &str = "\
 Keep parts of a reference motion and generate the rest from a sentence.
@@ -262,6 +269,14 @@ pub struct OutputArgs {
     /// With --root-motion in-place or separate: also remove the heading's drift (yaw)
     #[arg(long)]
     pub remove_yaw: bool,
+    /// Contact detection of smpl24_6d models: metres above its standing level under which a
+    /// foot joint may be planted [default 0.05]
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
+    pub contact_height: Option<f64>,
+    /// Contact detection: speed in m/s under which a foot joint may be planted [default 0.894,
+    /// HumanML3D's own contact labels]
+    #[arg(long, value_name = "M/S", allow_negative_numbers = true)]
+    pub contact_speed: Option<f64>,
 }
 
 #[derive(Args)]
@@ -280,6 +295,12 @@ pub struct GenerateArgs {
     /// "left_leg", "right_leg", "pelvis"}]} (frames converted to the model's fps)
     #[arg(long, value_name = "FILE.json")]
     pub prompt_file: Option<PathBuf>,
+    /// Make a loop: the end flows into the start (position and velocity of every joint), the
+    /// horizontal travel kept as root motion. Generated in two passes (the second an edit that
+    /// makes the end run into the next cycle's start), then the wrap corrected; models that
+    /// cannot edit (latent ones) and time stages get the correction alone
+    #[arg(long = "loop")]
+    pub looped: bool,
     #[command(flatten)]
     pub sampling: SamplingArgs,
     #[command(flatten)]

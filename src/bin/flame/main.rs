@@ -15,6 +15,7 @@ use clap::Parser;
 use flame::assemble::AssembleOptions;
 use flame::checkpoint::ModelFile;
 use flame::config::TextConfig;
+use flame::cycle::Cycle;
 use flame::models::{LoadOptions, Model};
 use flame::motion::{self, gltf, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
@@ -202,7 +203,13 @@ fn demo_options() -> AssembleOptions {
 }
 
 fn generate(a: &GenerateArgs) -> Result<(), String> {
-    let outputs = Outputs::new(&a.output)?;
+    let mut outputs = Outputs::new(&a.output)?;
+    if a.looped {
+        if outputs.kind == OutKind::Features {
+            return Err("--loop shapes poses; a .npy of raw features is not looped (write .bvh, .json, .glb or .gltf)".into());
+        }
+        outputs.finish.wrap = true;
+    }
     if let Some(noise) = &a.sampling.noise {
         paths::check_readable(noise)?;
     }
@@ -230,6 +237,22 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(model);
     check_latent_arg(model, &a.sampling)?;
+    let cycle = if a.looped && stages.is_none() && !model.is_latent() {
+        let frames = params
+            .frames
+            .unwrap_or(model.config().defaults.frames.min(model.max_frames()));
+        let c = Cycle::new(model, frames).map_err(|e| format!("--loop: {e}"))?;
+        params = c.params(&params);
+        Some(c)
+    } else {
+        if a.looped {
+            eprintln!(
+                "--loop: this model or prompt cannot keep frames while generating; the wrap is \
+                 made by post-processing alone"
+            );
+        }
+        None
+    };
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     match (&stages, &a.prompt) {
         (Some(stages), _) => session
@@ -249,7 +272,16 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     sample(&mut session)?;
     write_latent(&session, &a.sampling)?;
     let asked = session.frames();
-    let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
+    let mut cycled = None;
+    if let Some(cycle) = &cycle {
+        let prompt = a.prompt.as_deref().unwrap_or_default();
+        cycled = Some(make_loop(cycle, &mut session, &params, prompt)?);
+        outputs.finish.wrap_to_last = true;
+    }
+    let (x, frames) = match &cycled {
+        Some((x, frames)) => (&x[..], *frames),
+        None => session.motion(Which::Sample).map_err(|e| e.to_string())?,
+    };
     if model.is_latent() && frames != asked {
         eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
     }
@@ -267,6 +299,33 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
         seed: a.sampling.denoise.seed,
     };
     outputs.write(x, frames, model, decoder.as_ref(), &meta)
+}
+
+/// The second pass of `generate --loop`: `first` ran with [`Cycle::params`]; an edit makes its
+/// end run into the next cycle's start. Returns the loop's features and frame count (the cycle
+/// and the next cycle's first frame).
+fn make_loop(
+    cycle: &Cycle,
+    first: &mut Session,
+    params: &SessionParams,
+    prompt: &str,
+) -> Result<(Vec<f32>, usize), String> {
+    let e = |e: flame::Error| e.to_string();
+    let model = Arc::clone(first.model());
+    let (x, _) = first.motion(Which::Sample).map_err(e)?;
+    let x = x.to_vec();
+    let mut second = Session::new(Arc::clone(&model), params).map_err(e)?;
+    cycle.edit(&mut second, &x).map_err(e)?;
+    second.set_prompt(prompt).map_err(e)?;
+    eprintln!(
+        "loop: editing the end ({} frames kept on each side of the wrap)",
+        cycle.lead()
+    );
+    sample(&mut second)?;
+    let (edited, _) = second.motion(Which::Sample).map_err(e)?;
+    let dim = model.motion_dim();
+    let looped = cycle.result(edited, dim).map_err(e)?.to_vec();
+    Ok((looped, cycle.frames() + 1))
 }
 
 /// `--stage` (repeated) or `--prompt-file`, if given.
@@ -766,7 +825,13 @@ fn finish(o: &OutputArgs) -> Result<motion::Finish, String> {
         Some(g) => g == OnOff::On,
         None => feet == motion::Feet::Lock,
     };
+    let defaults = motion::ContactParams::default();
     let finish = motion::Finish {
+        contacts: motion::ContactParams {
+            height: o.contact_height.unwrap_or(defaults.height),
+            speed: o.contact_speed.unwrap_or(defaults.speed),
+            ..defaults
+        },
         ground,
         feet,
         root_motion: o.root_motion,
