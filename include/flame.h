@@ -397,7 +397,9 @@ typedef struct FlameCleanupParams {
   int32_t root_motion;
   // Nonzero with in-place or separate root motion: also remove the heading's drift (default 0).
   uint32_t remove_yaw;
-  // Nonzero: cross-fade the clip's last frames into its first so it loops (default 0).
+  // 1: correct the frames on both sides of the wrap so the clip loops, the next cycle's
+  // start estimated from the clip's average travel; 2: the same, the clip's last frame being
+  // the next cycle's first (it is then dropped: one frame fewer); 0: no wrap (default).
   uint32_t wrap;
   // Output frame rate, 1 to 240; 0 = the model's (default 0). Changes the frame count a read
   // returns: ask with `out` NULL first.

@@ -67,9 +67,11 @@ fn outputs_carry_the_library_numbers() {
     ]));
     let (shape, x) = flame::npy::read_f32(&raw).unwrap();
     assert_eq!(shape, vec![16, 147]);
-    // Defaults for smpl24_6d: FLAME's smoothing (sigma 1), continuous quaternions.
+    // Defaults for smpl24_6d: FLAME's smoothing (sigma 1), continuous quaternions, and the
+    // game-ready finish (feet locked, floor at 0) at the model's 20 fps.
     let smooth = ReadOptions {
         smooth_sigma: 1.0,
+        finish: motion::Finish::game_ready(),
         ..Default::default()
     };
     let want = motion::read_layout(
@@ -95,6 +97,8 @@ fn outputs_carry_the_library_numbers() {
         "0",
         "--quat",
         "xyzw",
+        "--feet",
+        "off",
     ]));
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
