@@ -15,6 +15,12 @@
 //   std::vector<float> quats = session.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
 //                                           FLAME_CONVENTION_UNITY);  // frames x joints x 4
 //   std::vector<uint8_t> glb = session.write_gltf();  // a glTF 2.0 file (binary, .glb)
+//   // Game-ready poses: feet locked, on the floor, 30 fps, the travel on a root bone.
+//   flame::CleanupParams clean;
+//   clean.set_fps(30).set_root_motion(flame::RootMotion::Separate);
+//   std::vector<float> game = session.read_cleaned(clean, FLAME_WHICH_SAMPLE,
+//                                                  FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+//                                                  FLAME_CONVENTION_UNITY);
 //
 //   // Continuous motion from a timeline of prompts (README "Streams"):
 //   flame::Stream stream(model);              // or model.stream(flame::StreamParams())
@@ -128,10 +134,53 @@ struct TargetParams : FlameTargetParams {
 };
 
 // How Session::write_gltf exports; the defaults come from flame_gltf_params_default (GLB, no
-// read flags, the model's frame rate, the animation named after the prompt). `name` is a plain
-// `const char*` (NULL = the prompt's): it must stay valid for the call.
+// read flags, the model's frame rate, the animation named after the prompt, no cleanup).
+// `name` is a plain `const char*` (NULL = the prompt's) and `cleanup` a plain
+// `const FlameCleanupParams*` (NULL = the raw poses; point it at a CleanupParams): both must
+// stay valid for the call.
 struct GltfParams : FlameGltfParams {
     GltfParams() : FlameGltfParams() { detail::check(flame_gltf_params_default(this)); }
+};
+
+// FlameCleanupParams::feet (the C header names no enum for it: no function takes one by type).
+enum class Feet : int32_t {
+    Off = 0,   // the raw poses: feet may slide
+    Lock = 1,  // each planted foot pinned where it stands, the leg solved by two-bone IK
+};
+
+// FlameCleanupParams::root_motion: where the clip's horizontal travel goes.
+enum class RootMotion : int32_t {
+    Keep = 0,     // on the pelvis, as the model made it
+    InPlace = 1,  // removed: the pelvis stays over the origin
+    Separate = 2, // on a root bone under the pelvis (FLAME_LAYOUT_ROOT_BONE; glTF node "root")
+};
+
+// Post-processing of Session::read_cleaned and of a glTF export (GltfParams::cleanup). The
+// defaults come from flame_cleanup_params_default, game-ready: feet locked, the floor at 0,
+// root motion kept, no wrap, the model's frame rate. CleanupParams::none() has every step off
+// (set fps or root motion on it to change only that). A `fps` other than the model's changes
+// the frame count (the first and last frames' times kept: 40 frames at 20 fps are 59 at 30).
+struct CleanupParams : FlameCleanupParams {
+    CleanupParams() : FlameCleanupParams() { detail::check(flame_cleanup_params_default(this)); }
+
+    static CleanupParams none() {
+        CleanupParams p;
+        p.feet = static_cast<int32_t>(Feet::Off);
+        p.ground = 0;
+        return p;
+    }
+    CleanupParams& set_feet(Feet f) noexcept {
+        feet = static_cast<int32_t>(f);
+        return *this;
+    }
+    CleanupParams& set_root_motion(RootMotion r) noexcept {
+        root_motion = static_cast<int32_t>(r);
+        return *this;
+    }
+    CleanupParams& set_fps(float f) noexcept {
+        fps = f;
+        return *this;
+    }
 };
 
 // What Model::info reports, copied: it stays valid after the model is gone.
@@ -166,6 +215,26 @@ struct SampleShape {
     uint32_t dim = 0;
     std::size_t size() const noexcept { return static_cast<std::size_t>(rows) * dim; }
 };
+
+// Floats per frame of `layout` for a model (0 for a layout not named here): the frame count of
+// a Session::read_cleaned whose fps changed it is values.size() / values_per_frame(...).
+inline std::size_t values_per_frame(FlameLayout layout, const ModelInfo& info) noexcept {
+    const std::size_t j = info.joint_count;
+    switch (layout) {
+    case FLAME_LAYOUT_FEATURES: return info.feature_dim;
+    case FLAME_LAYOUT_ROOT_TRANSLATION:
+    case FLAME_LAYOUT_ROOT_BONE: return 3;
+    case FLAME_LAYOUT_LOCAL_QUAT_XYZW:
+    case FLAME_LAYOUT_LOCAL_QUAT_WXYZ:
+    case FLAME_LAYOUT_GLOBAL_QUAT_XYZW:
+    case FLAME_LAYOUT_GLOBAL_QUAT_WXYZ: return j * 4;
+    case FLAME_LAYOUT_LOCAL_MATRIX: return j * 9;
+    case FLAME_LAYOUT_LOCAL6D: return j * 6;
+    case FLAME_LAYOUT_GLOBAL_POSITIONS: return j * 3;
+    case FLAME_LAYOUT_FOOT_CONTACTS: return 4;
+    default: return 0;
+    }
+}
 
 // What Session::read_motion returns: `frames` frames of values, frame-major.
 struct Motion {
@@ -656,6 +725,48 @@ public:
         return len;
     }
 
+    // read() after a cleanup (flame_session_read_cleaned): feet, floor, loop, root motion and
+    // frame rate applied to the poses. The frame count follows cleanup.fps (values_per_frame()
+    // gives the width); FLAME_LAYOUT_ROOT_BONE needs RootMotion::Separate; the raw features
+    // (FLAME_LAYOUT_FEATURES) are never post-processed. Throws INVALID_ARGUMENT naming a bad
+    // value (an fps outside 1..240, a negative contact height, ...).
+    std::vector<float> read_cleaned(const FlameCleanupParams& cleanup,
+                                    FlameWhich which = FLAME_WHICH_SAMPLE,
+                                    FlameLayout layout = FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                    FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                                    uint32_t flags = 0) const {
+        std::size_t len = read_cleaned_len(cleanup, which, layout, convention, flags);
+        std::vector<float> out(len);
+        detail::check(flame_session_read_cleaned(handle_, which, layout, convention, flags,
+                                                 &cleanup, out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // Into a caller buffer; returns the count written (throws BUFFER_TOO_SMALL when `len` is
+    // short; read_cleaned_len() tells the length needed).
+    std::size_t read_cleaned(float* out, std::size_t len, const FlameCleanupParams& cleanup,
+                             FlameWhich which = FLAME_WHICH_SAMPLE,
+                             FlameLayout layout = FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                             FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                             uint32_t flags = 0) const {
+        std::size_t written = 0;
+        detail::check(flame_session_read_cleaned(handle_, which, layout, convention, flags,
+                                                 &cleanup, out, len, &written));
+        return written;
+    }
+
+    std::size_t read_cleaned_len(const FlameCleanupParams& cleanup,
+                                 FlameWhich which = FLAME_WHICH_SAMPLE,
+                                 FlameLayout layout = FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                 FlameConvention convention = FLAME_CONVENTION_NATIVE,
+                                 uint32_t flags = 0) const {
+        std::size_t len = 0;
+        detail::check(flame_session_read_cleaned(handle_, which, layout, convention, flags,
+                                                 &cleanup, nullptr, 0, &len));
+        return len;
+    }
+
     // The sample (or estimate) as a glTF 2.0 file (flame_session_write_gltf): the skeleton as
     // nodes named after ModelInfo::joint_names (node 0 the skeleton's root, node 1 + j joint
     // j), a skinned box figure and one animation in glTF's convention (Y up, right-handed,
@@ -664,7 +775,9 @@ public:
     // with the same flags, bit for bit. FLAME_GLTF_CONTAINER_GLB is binary glTF,
     // FLAME_GLTF_CONTAINER_GLTF JSON with the buffer as a base64 data URI. `fps` 0 = the
     // model's; an empty `name` names the animation after the prompt. Throws WRONG_STATE before
-    // there is anything to read, INVALID_ARGUMENT for an unknown container or a bad fps.
+    // there is anything to read, INVALID_ARGUMENT for an unknown container or a bad fps. With
+    // a cleanup, set GltfParams::cleanup and call write_gltf(which, params): its fps overrides
+    // `fps`, and RootMotion::Separate adds a node "root", the pelvis's parent.
     std::vector<uint8_t> write_gltf(FlameWhich which = FLAME_WHICH_SAMPLE,
                                     FlameGltfContainer container = FLAME_GLTF_CONTAINER_GLB,
                                     uint32_t flags = 0, float fps = 0.0f,

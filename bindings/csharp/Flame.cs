@@ -147,8 +147,30 @@ namespace Flame
         public const int GlobalQuatXyzw = 7;
         /// <summary>[frames, J, 4] world rotations, quaternions w, x, y, z.</summary>
         public const int GlobalQuatWxyz = 8;
-        /// <summary>[frames, 4] foot contacts (formats that carry them).</summary>
+        /// <summary>[frames, 4] foot contacts (left ankle, left foot, right ankle, right foot),
+        /// 0 or 1; for smpl24 models only in a read with a cleanup (they are detected).</summary>
         public const int FootContacts = 9;
+        /// <summary>[frames, 3] the root bone's position (on the ground under the pelvis); only
+        /// in a read whose cleanup has FlameRootMotion.Separate.</summary>
+        public const int RootBone = 10;
+
+        /// <summary>Floats per frame of a layout for a model (featureDim and jointCount from
+        /// ModelInfo), or 0 for a layout not named here: lets a caller count the frames of a
+        /// read whose cleanup changed the frame rate.</summary>
+        public static int ValuesPerFrame(int layout, int featureDim, int jointCount)
+        {
+            switch (layout)
+            {
+                case Features: return featureDim;
+                case RootTranslation: case RootBone: return 3;
+                case LocalQuatXyzw: case LocalQuatWxyz: case GlobalQuatXyzw: case GlobalQuatWxyz: return jointCount * 4;
+                case LocalMatrix: return jointCount * 9;
+                case Local6d: return jointCount * 6;
+                case GlobalPositions: return jointCount * 3;
+                case FootContacts: return 4;
+                default: return 0;
+            }
+        }
     }
 
     /// <summary>Coordinate conventions of FlameSession.Read (enum FlameConvention; plain
@@ -192,6 +214,87 @@ namespace Flame
         /// <summary>8-bit integer weights and products, a quarter of the memory (AVX512_VNNI or
         /// AVX2; refused at load without either).</summary>
         Int8 = 4,
+    }
+
+    /// <summary>FlameFeet (FlameCleanupParams.feet): what happens to the feet while they are
+    /// planted.</summary>
+    public enum FlameFeet
+    {
+        /// <summary>The raw poses: feet may slide.</summary>
+        Off = 0,
+        /// <summary>Each planted foot pinned where it stands, the leg solved by two-bone IK; bone
+        /// lengths and everything above the knees unchanged.</summary>
+        Lock = 1,
+    }
+
+    /// <summary>FlameRootMotion (FlameCleanupParams.root_motion): where the clip's horizontal
+    /// travel goes.</summary>
+    public enum FlameRootMotion
+    {
+        /// <summary>On the pelvis, as the model made it.</summary>
+        Keep = 0,
+        /// <summary>Removed: the pelvis stays over the origin (an in-place clip).</summary>
+        InPlace = 1,
+        /// <summary>On a root bone on the ground under the pelvis (read it as
+        /// FlameLayout.RootBone; glTF exports write a node "root"): the pelvis reads in place.
+        /// What Unity's Animator applies as root motion.</summary>
+        Separate = 2,
+    }
+
+    /// <summary>Mirror of the C struct FlameCleanupParams: the post-processing of
+    /// FlameSession.Read(..., cleanup) and WriteGltf(..., cleanup). Eleven 32-bit fields (44
+    /// bytes), flags as uint 0/1, not bool (one layout under Mono, IL2CPP and .NET). Start from
+    /// Default() (game-ready: feet locked, the floor at 0, root motion kept, no wrap, the
+    /// model's frame rate) or Raw() (every step off). libflame checks every value
+    /// (InvalidArgument naming it).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameCleanupParams
+    {
+        public uint struct_size;
+        /// <summary>A FlameFeet value.</summary>
+        public int feet;
+        /// <summary>1: the clip's lowest foot contact put at height 0.</summary>
+        public uint ground;
+        /// <summary>A FlameRootMotion value.</summary>
+        public int root_motion;
+        /// <summary>1 (with InPlace or Separate): also remove the heading's drift.</summary>
+        public uint remove_yaw;
+        /// <summary>1: cross-fade the clip's end into its start so it loops.</summary>
+        public uint wrap;
+        /// <summary>Output frames per second, 1 to 240; 0 = the model's. Changes the frame
+        /// count (the first and last frames' times kept: 40 frames at 20 fps are 59 at 30).</summary>
+        public float fps;
+        /// <summary>Contact detection (smpl24 models): height above the standing level, metres.</summary>
+        public float contact_height;
+        /// <summary>Contact detection: speed below which a foot may be planted, m/s.</summary>
+        public float contact_speed;
+        /// <summary>Contact detection: hysteresis ratio (at least 1) for leaving a contact.</summary>
+        public float contact_release;
+        /// <summary>Contact detection: shortest contact span and gap kept, seconds.</summary>
+        public float contact_min_span;
+
+        /// <summary>flame_cleanup_params_default: feet locked, ground on, root motion kept.</summary>
+        public static FlameCleanupParams Default()
+        {
+            var p = new FlameCleanupParams();
+            FlameException.Check(FlameNative.flame_cleanup_params_default(out p));
+            return p;
+        }
+
+        /// <summary>Default() with every step off (feet free, no floor): set only the fields
+        /// you want (fps, root_motion), and the poses change in that way alone.</summary>
+        public static FlameCleanupParams Raw()
+        {
+            var p = Default();
+            p.feet = (int)FlameFeet.Off;
+            p.ground = 0;
+            return p;
+        }
+
+        /// <summary>The feet as the enum.</summary>
+        public FlameFeet Feet { get { return (FlameFeet)feet; } set { feet = (int)value; } }
+        /// <summary>The root motion as the enum.</summary>
+        public FlameRootMotion RootMotion { get { return (FlameRootMotion)root_motion; } set { root_motion = (int)value; } }
     }
 
     /// <summary>Mirror of the C struct FlameModelParams.</summary>
@@ -379,9 +482,9 @@ namespace Flame
     }
 
     /// <summary>Mirror of the C struct FlameGltfParams: how FlameSession.WriteGltf exports.
-    /// Three 32-bit fields and a float, then a pointer (24 bytes on 64-bit targets, 20 on
+    /// Three 32-bit fields and a float, then two pointers (32 bytes on 64-bit targets, 24 on
     /// 32-bit). Start from Default(): GLB, no read flags, the model's frame rate, the animation
-    /// named after the prompt.</summary>
+    /// named after the prompt, no cleanup.</summary>
     [StructLayout(LayoutKind.Sequential)]
     public struct FlameGltfParams
     {
@@ -396,6 +499,10 @@ namespace Flame
         /// through FlameSession.WriteGltf(..., name), which keeps the bytes pinned for the
         /// call.</summary>
         public IntPtr name;
+        /// <summary>A FlameCleanupParams* applied before export, or IntPtr.Zero for the raw
+        /// poses; set it through FlameSession.WriteGltf(..., cleanup), which keeps a copy in
+        /// unmanaged memory for the call.</summary>
+        public IntPtr cleanup;
 
         public static FlameGltfParams Default()
         {
@@ -654,7 +761,7 @@ namespace Flame
         public const string Lib = "flame";
 #endif
         /// <summary>FLAME_ABI_VERSION of the header these declarations mirror.</summary>
-        public const uint AbiVersion = 2;
+        public const uint AbiVersion = 3;
         /// <summary>FLAME_MAX_THREADS: the most worker threads a load or a session may ask for.</summary>
         public const uint MaxThreads = 256;
         /// <summary>FLAME_ROOT_TRANSLATION: the root translation in flame_session_keep_joints.</summary>
@@ -820,6 +927,20 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_read(FlameStreamHandle stream, ulong firstFrame, uint count, int layout, int convention, uint flags,
                                                            [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_cleanup_params_default(out FlameCleanupParams p);
+
+        /// <summary>flame_session_read with a cleanup (the frame count follows its fps: query the
+        /// length with output null).</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_read_cleaned(FlameSessionHandle session, int which, int layout, int convention, uint flags,
+                                                                    ref FlameCleanupParams cleanup, [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        /// <summary>The same with a NULL cleanup (IntPtr.Zero): exactly flame_session_read.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_read_cleaned(FlameSessionHandle session, int which, int layout, int convention, uint flags,
+                                                                    IntPtr cleanup, [Out] float[] output, UIntPtr len, out UIntPtr outLen);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_gltf_params_default(out FlameGltfParams p);
@@ -1024,7 +1145,7 @@ namespace Flame
             FlameSessionHandle h;
             FlameException.Check(FlameNative.flame_session_new(Handle, ref p, out h));
             int frames = p.frames != 0 ? (int)p.frames : Info.DefaultFrames;
-            return new FlameSession(h, frames, Info.FeatureDim);
+            return new FlameSession(h, frames, Info.FeatureDim, Info.JointCount, Info.Fps);
         }
 
         /// <summary>Starts a generation whose training steps a guided-diffusion respacing string
@@ -1069,15 +1190,22 @@ namespace Flame
         public int Frames { get; private set; }
         /// <summary>Feature channels per frame.</summary>
         public int FeatureDim { get; private set; }
+        /// <summary>Joints of the model's skeleton (ModelInfo.JointCount).</summary>
+        public int JointCount { get; private set; }
+        /// <summary>The model's frame rate (ModelInfo.Fps): what a read without a cleanup's fps
+        /// plays at.</summary>
+        public float Fps { get; private set; }
 
         Action<int, int> progress;
         Exception callbackError;
 
-        internal FlameSession(FlameSessionHandle handle, int frames, int featureDim)
+        internal FlameSession(FlameSessionHandle handle, int frames, int featureDim, int jointCount, float fps)
         {
             Handle = handle;
             Frames = frames;
             FeatureDim = featureDim;
+            JointCount = jointCount;
+            Fps = fps;
         }
 
         public void SetPrompt(string prompt)
@@ -1438,6 +1566,68 @@ namespace Flame
             return (int)n;
         }
 
+        // --- reads with a cleanup (flame_session_read_cleaned) ---------------------------------
+        // cleanup null = the raw poses (exactly the reads above). A cleanup's fps changes the
+        // frame count: size buffers with ReadLength(..., cleanup), count frames with
+        // Read(..., cleanup, out frames). FlameLayout.RootBone needs FlameRootMotion.Separate;
+        // FlameLayout.Features is never post-processed.
+
+        static FlameStatus ReadCleaned(FlameSessionHandle h, FlameWhich which, int layout, int convention, uint flags,
+                                       FlameCleanupParams? cleanup, float[] output, out UIntPtr n)
+        {
+            UIntPtr len = output == null ? UIntPtr.Zero : (UIntPtr)output.Length;
+            if (cleanup.HasValue)
+            {
+                var c = cleanup.Value;
+                return FlameNative.flame_session_read_cleaned(h, (int)which, layout, convention, flags, ref c, output, len, out n);
+            }
+            return FlameNative.flame_session_read_cleaned(h, (int)which, layout, convention, flags, IntPtr.Zero, output, len, out n);
+        }
+
+        /// <summary>Floats Read(..., cleanup) would return.</summary>
+        public int ReadLength(FlameWhich which, int layout, int convention, uint flags, FlameCleanupParams? cleanup)
+        {
+            UIntPtr n;
+            FlameException.Check(ReadCleaned(Handle, which, layout, convention, flags, cleanup, null, out n));
+            return (int)n;
+        }
+
+        /// <summary>The sample or clean-motion estimate after a cleanup (null: raw), frame-major.</summary>
+        public float[] Read(FlameWhich which, int layout, int convention, uint flags, FlameCleanupParams? cleanup)
+        {
+            var output = new float[ReadLength(which, layout, convention, flags, cleanup)];
+            int n = ReadInto(output, which, layout, convention, flags, cleanup);
+            if (n != output.Length)
+                Array.Resize(ref output, n);
+            return output;
+        }
+
+        /// <summary>Read(..., cleanup) and the frames it spans: the array's length / the
+        /// layout's values per frame (FlameLayout.ValuesPerFrame; for a layout not named
+        /// there, ReadFrames when the cleanup keeps the model's frame rate, else 0).</summary>
+        public float[] Read(FlameWhich which, int layout, int convention, uint flags, FlameCleanupParams? cleanup, out int frames)
+        {
+            var output = Read(which, layout, convention, flags, cleanup);
+            int width = FlameLayout.ValuesPerFrame(layout, FeatureDim, JointCount);
+            if (width > 0)
+                frames = output.Length / width;
+            else if (!cleanup.HasValue || cleanup.Value.fps == 0 || cleanup.Value.fps == Fps)
+                frames = ReadFrames(which);
+            else
+                frames = 0;
+            return output;
+        }
+
+        /// <summary>ReadInto after a cleanup (null: raw); returns the floats written.</summary>
+        public int ReadInto(float[] output, FlameWhich which, int layout, int convention, uint flags, FlameCleanupParams? cleanup)
+        {
+            if (output == null)
+                throw new ArgumentNullException("output");
+            UIntPtr n;
+            FlameException.Check(ReadCleaned(Handle, which, layout, convention, flags, cleanup, output, out n));
+            return (int)n;
+        }
+
         /// <summary>The sample or clean-motion estimate as a glTF 2.0 file
         /// (flame_session_write_gltf): the skeleton as nodes named after Info.JointNames (node
         /// 0 the skeleton's root, node 1 + j joint j), a skinned box figure and one animation
@@ -1446,9 +1636,11 @@ namespace Flame
         /// FlameConvention.Gltf with the same flags, bit for bit. fps 0 = the model's; name
         /// null = the prompt's (libflame keeps letters, digits, '-' and '_'). Throws with status
         /// WrongState before there is anything to read, InvalidArgument for an unknown
-        /// container or a bad fps.</summary>
+        /// container or a bad fps. cleanup (null: the raw poses) post-processes the poses
+        /// first, as Read(..., cleanup) does; its fps, when set, overrides fps, and
+        /// FlameRootMotion.Separate adds a node "root" (the pelvis's parent) with the travel.</summary>
         public byte[] WriteGltf(FlameWhich which = FlameWhich.Sample, FlameGltfContainer container = FlameGltfContainer.Glb,
-                                uint flags = 0, float fps = 0, string name = null)
+                                uint flags = 0, float fps = 0, string name = null, FlameCleanupParams? cleanup = null)
         {
             var p = FlameGltfParams.Default();
             p.container = (int)container;
@@ -1458,10 +1650,19 @@ namespace Flame
                 throw new ArgumentException("name contains a NUL character", "name");
             var nameBytes = FlameNative.Utf8Z(name);
             var pin = nameBytes == null ? default(GCHandle) : GCHandle.Alloc(nameBytes, GCHandleType.Pinned);
+            // The cleanup goes by pointer inside the struct: a copy in unmanaged memory, which
+            // no garbage collection moves, freed after the calls.
+            IntPtr cleanupCopy = IntPtr.Zero;
             try
             {
                 if (pin.IsAllocated)
                     p.name = pin.AddrOfPinnedObject();
+                if (cleanup.HasValue)
+                {
+                    cleanupCopy = Marshal.AllocHGlobal(Marshal.SizeOf(typeof(FlameCleanupParams)));
+                    Marshal.StructureToPtr(cleanup.Value, cleanupCopy, false);
+                    p.cleanup = cleanupCopy;
+                }
                 UIntPtr n;
                 FlameException.Check(FlameNative.flame_session_write_gltf(Handle, (int)which, ref p, null, UIntPtr.Zero, out n));
                 var output = new byte[(int)n];
@@ -1474,13 +1675,16 @@ namespace Flame
             {
                 if (pin.IsAllocated)
                     pin.Free();
+                if (cleanupCopy != IntPtr.Zero)
+                    Marshal.FreeHGlobal(cleanupCopy);
             }
         }
 
         /// <summary>WriteGltf, the bytes also written to path (created or replaced). The
         /// container follows path's extension: ".gltf" JSON, ".glb" (or none) binary, any
         /// case; another extension throws ArgumentException before anything is written.</summary>
-        public byte[] WriteGltf(string path, FlameWhich which = FlameWhich.Sample, uint flags = 0, float fps = 0, string name = null)
+        public byte[] WriteGltf(string path, FlameWhich which = FlameWhich.Sample, uint flags = 0, float fps = 0, string name = null,
+                                FlameCleanupParams? cleanup = null)
         {
             if (path == null)
                 throw new ArgumentNullException("path");
@@ -1492,7 +1696,7 @@ namespace Flame
                 container = FlameGltfContainer.Glb;
             else
                 throw new ArgumentException("cannot tell the glTF container from \"" + path + "\": name it .glb or .gltf", "path");
-            var bytes = WriteGltf(which, container, flags, fps, name);
+            var bytes = WriteGltf(which, container, flags, fps, name, cleanup);
             System.IO.File.WriteAllBytes(path, bytes);
             return bytes;
         }

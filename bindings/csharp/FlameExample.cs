@@ -9,6 +9,9 @@
 // - The main thread never waits for libflame: loading and every step run on the worker.
 // - A FlameSession is used by one thread at a time, so the worker also reads the poses (between
 //   its steps) and publishes them under a lock; Update only copies them.
+// - The poses are read game-ready (flame_session_read_cleaned): feet pinned while planted, the
+//   floor at 0, resampled to the game's animation rate, the root motion where the character
+//   controller wants it. The raw features (layout Features) are never post-processed.
 // - Native statics survive domain reloads (entering play mode again keeps the library loaded):
 //   libflame keeps no global state to reset, and everything this component creates is freed in
 //   OnDestroy. Rebuilding the native library needs an Editor restart to be picked up.
@@ -45,6 +48,21 @@ namespace Flame
         [Tooltip("One Transform per model joint, in the model's joint order (JointNames); optional.")]
         public Transform[] bones;
 
+        [Tooltip("Post-process the poses for a game (the settings below); off: the raw poses at the model's rate.")]
+        public bool cleanup = true;
+        [Tooltip("Pin each planted foot where it stands (two-bone IK on the legs): no foot sliding.")]
+        public bool lockFeet = true;
+        [Tooltip("Put the lowest foot contact of the clip at height 0.")]
+        public bool ground = true;
+        [Tooltip("Frames per second of the poses, 1 to 240 (30 or 60 for a game); 0 = the model's (20 for FLAME).")]
+        public float fps = 30f;
+        [Tooltip("Keep: the pelvis travels. InPlace: the clip stays over the origin. Separate: the travel goes to Root Bone (RootMotion), the pelvis in place.")]
+        public FlameRootMotion rootMotion = FlameRootMotion.Keep;
+        [Tooltip("With InPlace or Separate: also remove the heading's drift.")]
+        public bool removeYaw = false;
+        [Tooltip("Moved by the root bone track with Separate root motion (the character's root); optional.")]
+        public Transform rootBone;
+
         /// <summary>Steps done and total, for a progress bar (written by the worker).</summary>
         public int StepsDone { get { return Volatile.Read(ref stepsDone); } }
         public int StepsTotal { get { return Volatile.Read(ref stepsTotal); } }
@@ -54,8 +72,12 @@ namespace Flame
         public float[] Pose { get; private set; }
         /// <summary>The latest root positions, frames × 3, in `convention`.</summary>
         public float[] RootPositions { get; private set; }
+        /// <summary>With Separate root motion, the root bone's positions, frames × 3, in
+        /// `convention` (height 0); null otherwise.</summary>
+        public float[] RootMotion { get; private set; }
         /// <summary>The model's skeleton, set with the first poses.</summary>
         public string[] JointNames { get; private set; }
+        /// <summary>Frames per second of Pose: the cleanup's fps, or the model's.</summary>
         public float Fps { get; private set; }
         public int FrameCount { get; private set; }
 
@@ -70,8 +92,9 @@ namespace Flame
 
         // What the worker publishes, guarded by latestLock.
         readonly object latestLock = new object();
-        float[] latestPose, latestRoot;
+        float[] latestPose, latestRoot, latestRootMotion;
         bool latestIsNew;
+        float latestFps;
         string workerError;
         ModelInfo info;
 
@@ -131,11 +154,29 @@ namespace Flame
             }
         }
 
+        /// <summary>The FlameCleanupParams of the inspector's settings, or null for raw poses.</summary>
+        public FlameCleanupParams? CleanupParams()
+        {
+            if (!cleanup)
+                return null;
+            var c = FlameCleanupParams.Default();   // contact detection stays libflame's
+            c.Feet = lockFeet ? FlameFeet.Lock : FlameFeet.Off;
+            c.ground = ground ? 1u : 0u;            // uint, not bool: the C struct's layout
+            c.fps = fps;
+            c.RootMotion = rootMotion;
+            c.remove_yaw = removeYaw ? 1u : 0u;
+            return c;
+        }
+
         /// <summary>Steps to the end, publishing the poses after every step.</summary>
         void Publish(FlameSession s, ModelInfo modelInfo)
         {
             uint flags = readFlags >= 0 ? (uint)readFlags : DefaultReadFlags(modelInfo);
-            float[] pose = null, root = null;
+            // Raw features are never post-processed: with them, the root positions stay raw too,
+            // so both span the same frames.
+            var clean = layout == FlameLayout.Features ? null : CleanupParams();
+            bool separate = clean.HasValue && clean.Value.RootMotion == FlameRootMotion.Separate;
+            float[] pose = null, root = null, rootMotionTrack = null;
             int left = s.StepsLeft;
             while (left > 0)
             {
@@ -145,15 +186,20 @@ namespace Flame
                         return;
                 left = s.Step();
                 var which = previewEstimate && left > 0 ? FlameWhich.Estimate : FlameWhich.Sample;
-                pose = Fill(s, pose, which, layout, flags);
-                root = Fill(s, root, which, FlameLayout.RootTranslation, flags);
+                // The preview is cleaned too, so it plays at the same rate as the final motion.
+                pose = Fill(s, pose, which, layout, flags, clean);
+                root = Fill(s, root, which, FlameLayout.RootTranslation, flags, clean);
+                if (separate)
+                    rootMotionTrack = Fill(s, rootMotionTrack, which, FlameLayout.RootBone, flags, clean);
                 lock (latestLock)
                 {
                     // Swap instead of copying: the worker gets the previous buffers back to fill.
                     Swap(ref pose, ref latestPose);
                     Swap(ref root, ref latestRoot);
+                    Swap(ref rootMotionTrack, ref latestRootMotion);
                     latestIsNew = true;
                     info = modelInfo;
+                    latestFps = clean.HasValue && clean.Value.fps > 0 ? clean.Value.fps : modelInfo.Fps;
                 }
             }
         }
@@ -165,12 +211,13 @@ namespace Flame
             return modelInfo.MotionFormat == "smpl24_6d" ? FlameReadFlags.Smooth : 0u;
         }
 
-        float[] Fill(FlameSession s, float[] buffer, FlameWhich which, int readLayout, uint flags)
+        float[] Fill(FlameSession s, float[] buffer, FlameWhich which, int readLayout, uint flags, FlameCleanupParams? clean)
         {
-            int n = s.ReadLength(which, readLayout, convention, flags);
+            // The length first: a cleanup's fps changes the frame count.
+            int n = s.ReadLength(which, readLayout, convention, flags, clean);
             if (buffer == null || buffer.Length != n)
                 buffer = new float[n];
-            s.ReadInto(buffer, which, readLayout, convention, flags);
+            s.ReadInto(buffer, which, readLayout, convention, flags, clean);
             return buffer;
         }
 
@@ -195,8 +242,9 @@ namespace Flame
                 {
                     Pose = Copy(latestPose, Pose);
                     RootPositions = Copy(latestRoot, RootPositions);
+                    RootMotion = latestRootMotion == null ? null : Copy(latestRootMotion, RootMotion);
                     JointNames = info.JointNames;
-                    Fps = info.Fps;
+                    Fps = latestFps;
                     FrameCount = RootPositions.Length / 3;
                     latestIsNew = false;
                 }
@@ -217,6 +265,9 @@ namespace Flame
         /// libflame's Unity convention gives them) and the root joint's position.</summary>
         public void ApplyFrame(int frame)
         {
+            // Separate root motion: the pelvis reads in place, the travel moves the root.
+            if (rootBone != null && RootMotion != null && RootMotion.Length >= (frame + 1) * 3)
+                rootBone.localPosition = new Vector3(RootMotion[frame * 3], RootMotion[frame * 3 + 1], RootMotion[frame * 3 + 2]);
             if (bones == null || layout != FlameLayout.LocalQuatXyzw || JointNames == null || bones.Length != JointNames.Length)
                 return;
             int joints = bones.Length;

@@ -6,7 +6,8 @@
 # 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
 # 2. the CLI writes the reference features the tests must match bit for bit;
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
-#    against the shared and the static library, test_cancel and test_stream (C11, shared),
+#    against the shared and the static library, test_cancel, test_stream and test_cleanup (C11,
+#    shared),
 #    test_cpp, test_cpp_gltf and test_cpp_stream (C++17, shared), all with -Wall -Wextra
 #    -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
@@ -181,6 +182,7 @@ compile test_stages_shared gcc "${CFLAGS[@]}" tests/c/test_stages.c "${SHARED_LI
 compile test_stages_static gcc "${CFLAGS[@]}" tests/c/test_stages.c "${STATIC_LIBS[@]}"
 compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LIBS[@]}"
 compile test_stream_shared gcc "${CFLAGS[@]}" tests/c/test_stream.c "${SHARED_LIBS[@]}"
+compile test_cleanup_shared gcc "${CFLAGS[@]}" tests/c/test_cleanup.c "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_stream_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_stream.cpp "${SHARED_LIBS[@]}"
@@ -202,6 +204,8 @@ built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_sh
     "$OUT/test_cancel_shared" "$MODEL"
 built test_stream_shared && run_test "test_stream (shared)" "$OUT/test_stream_shared.log" \
     "$OUT/test_stream_shared" "$ROOT/tests/fixtures"
+built test_cleanup_shared && run_test "test_cleanup (shared)" "$OUT/test_cleanup_shared.log" \
+    "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
     "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
 built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared)" "$OUT/test_cpp_gltf_shared.log" \
@@ -248,6 +252,9 @@ if [ "$use_valgrind" = 1 ]; then
             "$OUT/test_cancel_valgrind.log" "${VALGRIND[@]}" "$OUT/test_cancel_shared" "$MODEL"
         built test_stream_shared && run_test "test_stream (shared, valgrind)" \
             "$OUT/test_stream_valgrind.log" "${VALGRIND[@]}" "$OUT/test_stream_shared" \
+            "$ROOT/tests/fixtures"
+        built test_cleanup_shared && run_test "test_cleanup (shared, valgrind)" \
+            "$OUT/test_cleanup_valgrind.log" "${VALGRIND[@]}" "$OUT/test_cleanup_shared" \
             "$ROOT/tests/fixtures"
         built test_cpp_shared && run_test "test_cpp (shared, valgrind)" \
             "$OUT/test_cpp_valgrind.log" \

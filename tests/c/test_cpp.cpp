@@ -201,8 +201,8 @@ static void test_errors() {
     CHECK_THROWS(s.read(small, 4), FLAME_STATUS_BUFFER_TOO_SMALL, values);
     CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, static_cast<FlameLayout>(99)),
                  FLAME_STATUS_INVALID_ARGUMENT, "layout 99");
-    CHECK_THROWS(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS),
-                 FLAME_STATUS_INVALID_ARGUMENT, "foot contacts");
+    // Foot contacts are detected for smpl24 models (ABI 3): four per frame.
+    CHECK(s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS).size() == ref_frames * 4);
 
     // flame::Error is a std::runtime_error whose what() starts with the status name.
     try {
@@ -774,6 +774,97 @@ static void test_prompt_stages() {
     CHECK_NOTHROW(s.set_prompt_stages({{"a person walks", 24}, waving}));
 }
 
+// CleanupParams and Session::read_cleaned: the defaults, the frame rate (40 frames at 20 fps are
+// 59 at 30, frames at common times copied), separate root motion on a grounded root bone,
+// errors as exceptions naming the value, and a glTF export with a cleanup.
+static void test_cleanup() {
+    flame::Model model = flame::Model::load(g_model_path);
+    const flame::ModelInfo info = model.info();
+    flame::SessionParams p = reference_params();
+    p.frames = 40;
+    flame::Session s = model.session(p);
+    s.set_prompt(REF_PROMPT);
+    s.step();  // two steps: generic poses (the final motion of the tiny model saturates)
+    s.step();
+
+    flame::CleanupParams game;
+    CHECK(game.struct_size == sizeof(FlameCleanupParams));
+    CHECK(game.feet == static_cast<int32_t>(flame::Feet::Lock) && game.ground == 1);
+    CHECK(game.root_motion == static_cast<int32_t>(flame::RootMotion::Keep) && game.fps == 0.0f);
+    flame::CleanupParams none = flame::CleanupParams::none();
+    CHECK(none.feet == static_cast<int32_t>(flame::Feet::Off) && none.ground == 0);
+
+    // Every step off: the raw read.
+    CHECK(same(s.read_cleaned(none, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                              FLAME_CONVENTION_UNITY),
+               s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNITY)));
+
+    // Rotation matrices: a quaternion layout's signs may differ between tracks of another
+    // frame count (q and -q are the same rotation).
+    flame::CleanupParams thirty = flame::CleanupParams::none();
+    thirty.set_fps(30.0f);
+    const std::vector<float> raw =
+        s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_MATRIX, FLAME_CONVENTION_GLTF);
+    const std::vector<float> out =
+        s.read_cleaned(thirty, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_MATRIX,
+                       FLAME_CONVENTION_GLTF);
+    const std::size_t width = flame::values_per_frame(FLAME_LAYOUT_LOCAL_MATRIX, info);
+    CHECK(width == 24 * 9 && raw.size() == 40 * width);
+    CHECK(out.size() == 59 * width);
+    CHECK(s.read_cleaned_len(thirty, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL_MATRIX,
+                             FLAME_CONVENTION_GLTF) == out.size());
+    bool common = out.size() == 59 * width && raw.size() == 40 * width;
+    for (std::size_t k = 0; common && 3 * k < 59; k++) {
+        common = std::memcmp(out.data() + 3 * k * width, raw.data() + 2 * k * width,
+                             width * sizeof(float)) == 0;
+    }
+    CHECK(common);
+    std::vector<float> small(40 * 3);
+    CHECK_THROWS(s.read_cleaned(small.data(), small.size(), thirty, FLAME_WHICH_SAMPLE,
+                                FLAME_LAYOUT_ROOT_TRANSLATION),
+                 FLAME_STATUS_BUFFER_TOO_SMALL, "");
+
+    // Separate root motion: the root bone on the ground (Unity: y), the pelvis + the bone =
+    // the kept pelvis.
+    flame::CleanupParams separate = flame::CleanupParams::none();
+    separate.set_root_motion(flame::RootMotion::Separate);
+    const std::vector<float> bone = s.read_cleaned(separate, FLAME_WHICH_SAMPLE,
+                                                   FLAME_LAYOUT_ROOT_BONE, FLAME_CONVENTION_UNITY);
+    const std::vector<float> pelvis = s.read_cleaned(
+        separate, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_UNITY);
+    const std::vector<float> keep =
+        s.read(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_UNITY);
+    CHECK(bone.size() == 40 * 3 && pelvis.size() == 40 * 3 && keep.size() == 40 * 3);
+    bool grounded = bone.size() == 40 * 3 && pelvis.size() == 40 * 3 && keep.size() == 40 * 3;
+    bool sums = grounded;
+    for (std::size_t f = 0; grounded && f < 40; f++) {
+        grounded = bone[f * 3 + 1] == 0.0f;
+        sums = sums && std::fabs(bone[f * 3] + pelvis[f * 3] - keep[f * 3]) < 1e-5f &&
+               std::fabs(bone[f * 3 + 2] + pelvis[f * 3 + 2] - keep[f * 3 + 2]) < 1e-5f;
+    }
+    CHECK(grounded);
+    CHECK(sums);
+
+    // Errors name the value.
+    flame::CleanupParams bad;
+    bad.set_fps(std::nanf(""));
+    CHECK_THROWS(s.read_cleaned(bad), FLAME_STATUS_INVALID_ARGUMENT, "got NaN");
+    bad = flame::CleanupParams();
+    bad.contact_height = -0.5f;
+    CHECK_THROWS(s.read_cleaned(bad), FLAME_STATUS_INVALID_ARGUMENT, "got -0.5");
+    CHECK_THROWS(s.read_cleaned(game, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_BONE),
+                 FLAME_STATUS_INVALID_ARGUMENT, "root");
+
+    // glTF with the cleanup: a node named "root".
+    flame::GltfParams g;
+    g.cleanup = &separate;
+    const std::vector<uint8_t> glb = s.write_gltf(FLAME_WHICH_SAMPLE, g);
+    const std::string bytes(glb.begin(), glb.end());
+    CHECK(bytes.find("\"name\":\"root\"") != std::string::npos);
+    const std::vector<uint8_t> plain = s.write_gltf();
+    CHECK(std::string(plain.begin(), plain.end()).find("\"name\":\"root\"") == std::string::npos);
+}
+
 int main(int argc, char **argv) {
     if (argc != 3 && argc != 4) {
         std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS]\n", argv[0]);
@@ -827,6 +918,7 @@ int main(int argc, char **argv) {
         test_sample_shape_and_read_frames();
         test_latent_model();
         test_prompt_stages();
+        test_cleanup();
     } catch (const std::exception &e) {
         check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
     }

@@ -53,6 +53,10 @@ __all__ = [
     "EditTask",
     "TargetSchedule",
     "GltfContainer",
+    "Feet",
+    "RootMotion",
+    "Cleanup",
+    "cleanup_params_default",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
@@ -61,7 +65,7 @@ __all__ = [
 ]
 
 # The ABI version these bindings were written against (FLAME_ABI_VERSION in flame.h).
-ABI_VERSION = 2
+ABI_VERSION = 3
 
 # The most worker threads a load or a session may ask for (FLAME_MAX_THREADS); more is refused
 # with Status.INVALID_ARGUMENT. 0 means one per core, capped at this bound.
@@ -118,7 +122,8 @@ class Layout:
     GLOBAL_POSITIONS = 6  # [frames, J, 3]
     GLOBAL_QUAT_XYZW = 7  # [frames, J, 4] world
     GLOBAL_QUAT_WXYZ = 8  # [frames, J, 4]
-    FOOT_CONTACTS = 9  # [frames, 4] (humanml263 only)
+    FOOT_CONTACTS = 9  # [frames, 4] left ankle, left foot, right ankle, right foot: 0 or 1
+    ROOT_BONE = 10  # [frames, 3] the root bone's position (only with RootMotion.SEPARATE)
 
 
 class Convention:
@@ -191,6 +196,56 @@ class GltfContainer:
 
     GLB = 0  # binary glTF (.glb)
     GLTF = 1  # JSON glTF (.gltf), the buffer embedded as a base64 data URI
+
+
+class Feet:
+    """FlameFeet values for Cleanup.feet (or their names: "off", "lock")."""
+
+    OFF = 0  # the raw poses: feet may slide
+    LOCK = 1  # each planted foot pinned where it stands, the leg solved by two-bone IK
+
+
+class RootMotion:
+    """FlameRootMotion values for Cleanup.root_motion (or their names: "keep", "in-place",
+    "separate"): where the clip's horizontal travel goes."""
+
+    KEEP = 0  # on the pelvis, as the model made it
+    IN_PLACE = 1  # removed: the pelvis stays over the origin
+    SEPARATE = 2  # on a root bone under the pelvis: Layout.ROOT_BONE, and a "root" node in glTF
+
+
+@dataclass
+class Cleanup:
+    """FlameCleanupParams: the post-processing Session.read(cleanup=...) and
+    Session.write_gltf(cleanup=...) apply to the poses. The defaults are
+    flame_cleanup_params_default's, game-ready: feet locked, the floor at height 0, root motion
+    kept, no wrap, the model's frame rate. Cleanup.raw() starts from every step off.
+
+    `feet` is a Feet value or name; `ground` puts the clip's lowest foot contact at height 0;
+    `root_motion` a RootMotion value or name; `remove_yaw` (with in-place or separate root
+    motion) also removes the heading's drift; `wrap` cross-fades the clip's end into its start
+    so it loops; `fps` the output frame rate, 1 to 240 (0 = the model's: the frame count changes
+    with it). The contact_* fields tune foot-contact detection (smpl24 models): height above the
+    standing level in metres, the speed in m/s below which a foot may be planted, the
+    hysteresis ratio (>= 1) for leaving a contact, and the shortest span and gap kept in
+    seconds. libflame checks every value (FlameError INVALID_ARGUMENT naming it)."""
+
+    feet: Union[int, str] = Feet.LOCK
+    ground: bool = True
+    root_motion: Union[int, str] = RootMotion.KEEP
+    remove_yaw: bool = False
+    wrap: bool = False
+    fps: float = 0.0
+    contact_height: float = 0.05
+    contact_speed: float = 0.8944272  # sqrt(0.8), HumanML3D's velocity threshold
+    contact_release: float = 1.5
+    contact_min_span: float = 0.1
+
+    @classmethod
+    def raw(cls, **fields) -> "Cleanup":
+        """Every step off (feet free, no floor), then `fields`: with only `fps` or
+        `root_motion` set, the poses change in that one way."""
+        return cls(**{"feet": Feet.OFF, "ground": False, **fields})
 
 
 @dataclass
@@ -383,6 +438,22 @@ class _TargetParams(ctypes.Structure):
     ]
 
 
+class _CleanupParams(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("feet", ctypes.c_int32),
+        ("ground", ctypes.c_uint32),
+        ("root_motion", ctypes.c_int32),
+        ("remove_yaw", ctypes.c_uint32),
+        ("wrap", ctypes.c_uint32),
+        ("fps", ctypes.c_float),
+        ("contact_height", ctypes.c_float),
+        ("contact_speed", ctypes.c_float),
+        ("contact_release", ctypes.c_float),
+        ("contact_min_span", ctypes.c_float),
+    ]
+
+
 class _GltfParams(ctypes.Structure):
     _fields_ = [
         ("struct_size", ctypes.c_uint32),
@@ -390,6 +461,7 @@ class _GltfParams(ctypes.Structure):
         ("flags", ctypes.c_uint32),
         ("fps", ctypes.c_float),
         ("name", ctypes.c_char_p),
+        ("cleanup", ctypes.POINTER(_CleanupParams)),  # since version 2 of the struct (ABI 3)
     ]
 
 
@@ -506,6 +578,12 @@ def _signatures():
         "flame_stream_read": (
             _status,
             [_P, ctypes.c_uint64, u32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
+        ),
+        "flame_cleanup_params_default": (_status, [ctypes.POINTER(_CleanupParams)]),
+        "flame_session_read_cleaned": (
+            _status,
+            [_P, i32, i32, i32, u32, ctypes.POINTER(_CleanupParams), pf32, size_t,
+             ctypes.POINTER(size_t)],
         ),
         "flame_session_sample_shape": (_status, [_P, pu32, pu32]),
         "flame_session_read_frames": (_status, [_P, i32, pu32]),
@@ -811,6 +889,7 @@ _LAYOUT_SHAPES = {
     Layout.GLOBAL_QUAT_XYZW: lambda d, j: (j, 4),
     Layout.GLOBAL_QUAT_WXYZ: lambda d, j: (j, 4),
     Layout.FOOT_CONTACTS: lambda d, j: (4,),
+    Layout.ROOT_BONE: lambda d, j: (3,),
 }
 
 _SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM,
@@ -822,6 +901,9 @@ _BODY_PARTS = {"root-path": BodyPart.ROOT_PATH, "lower-body": BodyPart.LOWER_BOD
                "upper-body": BodyPart.UPPER_BODY, "arms": BodyPart.ARMS, "legs": BodyPart.LEGS}
 _TARGET_SCHEDULES = {"mpgd": TargetSchedule.MPGD, "constant": TargetSchedule.CONSTANT}
 _GLTF_CONTAINERS = {"glb": GltfContainer.GLB, "gltf": GltfContainer.GLTF}
+_FEET = {"off": Feet.OFF, "lock": Feet.LOCK}
+_ROOT_MOTIONS = {"keep": RootMotion.KEEP, "in-place": RootMotion.IN_PLACE,
+                 "separate": RootMotion.SEPARATE}
 _TASKS = {"inbetween": EditTask.INBETWEEN, "predict": EditTask.PREDICT,
           "upper-body": EditTask.UPPER_BODY, "path": EditTask.PATH}
 
@@ -859,6 +941,42 @@ def _sampler_value(sampler: Union[None, str, int]) -> int:
             raise ValueError(f"unknown sampler {sampler!r} (ddpm, ddim, euler, heun, midpoint)")
         return _SAMPLERS[key]
     return int(sampler)
+
+
+def _shortest(x: float) -> float:
+    """The shortest decimal that is the same float32 (0.05, not 0.0500000007...)."""
+    return float(str(np.float32(x)))
+
+
+def cleanup_params_default() -> Cleanup:
+    """The library's cleanup defaults (flame_cleanup_params_default): what Cleanup() holds."""
+    raw = _CleanupParams()
+    _check(_lib().flame_cleanup_params_default(ctypes.byref(raw)))
+    return Cleanup(feet=raw.feet, ground=bool(raw.ground), root_motion=raw.root_motion,
+                   remove_yaw=bool(raw.remove_yaw), wrap=bool(raw.wrap), fps=_shortest(raw.fps),
+                   contact_height=_shortest(raw.contact_height),
+                   contact_speed=_shortest(raw.contact_speed),
+                   contact_release=_shortest(raw.contact_release),
+                   contact_min_span=_shortest(raw.contact_min_span))
+
+
+def _cleanup_params(cleanup: Optional[Cleanup]) -> Optional[_CleanupParams]:
+    """The C struct of a Cleanup (None stays None: the raw poses). Ranges are libflame's to
+    check, so its messages name the value; only types are checked here."""
+    if cleanup is None:
+        return None
+    if not isinstance(cleanup, Cleanup):
+        raise TypeError(f"cleanup is a {type(cleanup).__name__}, not a flame.Cleanup")
+    raw = _CleanupParams()
+    raw.struct_size = ctypes.sizeof(_CleanupParams)
+    raw.feet = _named(cleanup.feet, _FEET, "feet")
+    raw.ground = 1 if cleanup.ground else 0
+    raw.root_motion = _named(cleanup.root_motion, _ROOT_MOTIONS, "root motion")
+    raw.remove_yaw = 1 if cleanup.remove_yaw else 0
+    raw.wrap = int(cleanup.wrap)  # a bool, or a later ABI's wrap mode number
+    for name in ("fps", "contact_height", "contact_speed", "contact_release", "contact_min_span"):
+        setattr(raw, name, float(getattr(cleanup, name)))
+    return raw
 
 
 def edit_params_default() -> EditParams:
@@ -1353,27 +1471,54 @@ class Session:
         layout: int = Layout.FEATURES,
         convention: int = Convention.NATIVE,
         flags: int = 0,
+        cleanup: Optional[Cleanup] = None,
     ) -> np.ndarray:
         """The current sample ("sample") or clean-motion estimate ("estimate") as float32 in a
         Layout, Convention and ReadFlags, which go to libflame as plain integers. Shaped
         [read_frames(which), ...] as the layout says (Layout.FEATURES: [frames, feature_dim]); a
         layout not named in Layout comes back [frames, -1]. The frames are the session's, except
-        for a latent model (Model.latent), whose decoder decides the valid length."""
+        for a latent model (Model.latent), whose decoder decides the valid length.
+
+        `cleanup` (a Cleanup; None = the raw poses) post-processes the poses
+        (flame_session_read_cleaned): feet, floor, loop, root motion, frame rate. Its `fps`
+        changes the frame count (the first and last frames' times kept: 40 frames at 20 fps
+        are 59 at 30). Layout.ROOT_BONE needs root_motion=RootMotion.SEPARATE. The raw
+        features (Layout.FEATURES) are never post-processed."""
         w = self._which(which)
+        raw_cleanup = _cleanup_params(cleanup)
+        cp = ctypes.byref(raw_cleanup) if raw_cleanup is not None else None
         lib = _lib()
         n = ctypes.c_size_t()
         frames = ctypes.c_uint32()
         with self._lock:
             h = self._h()
-            _check(lib.flame_session_read(h, w, layout, convention, flags, None, 0, ctypes.byref(n)))
+            _check(lib.flame_session_read_cleaned(h, w, layout, convention, flags, cp, None, 0,
+                                                  ctypes.byref(n)))
             _check(lib.flame_session_read_frames(h, w, ctypes.byref(frames)))
             out = np.empty(n.value, dtype=np.float32)
             _check(
-                lib.flame_session_read(
-                    h, w, layout, convention, flags, _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)
+                lib.flame_session_read_cleaned(
+                    h, w, layout, convention, flags, cp, _ptr(out, ctypes.c_float), out.size,
+                    ctypes.byref(n)
                 )
             )
-        return self._shaped(out[: n.value], frames.value, layout)
+            per_frame = None
+            if raw_cleanup is not None and layout not in _LAYOUT_SHAPES:
+                # A layout these bindings do not name: its width from the raw read, whose frames
+                # are read_frames (a cleanup's frame rate changes only the frame count).
+                m = ctypes.c_size_t()
+                if frames.value and lib.flame_session_read(h, w, layout, convention, flags, None, 0,
+                                                           ctypes.byref(m)) == Status.OK:
+                    per_frame = m.value // frames.value
+        values = out[: n.value]
+        if raw_cleanup is not None and layout != Layout.FEATURES:
+            # A cleanup's frame rate changes the frame count: it follows from the values.
+            trailing = _LAYOUT_SHAPES.get(layout, lambda d, j: (-1,))(self.feature_dim, self.joint_count)
+            width = int(np.prod(trailing)) if -1 not in trailing else per_frame
+            if not width or values.size % width:
+                return values
+            return self._shaped(values, values.size // width, layout)
+        return self._shaped(values, frames.value, layout)
 
     def _shaped(self, values: np.ndarray, frames: int, layout: int) -> np.ndarray:
         """[frames, ...] with the layout's trailing shape when the count agrees with it."""
@@ -1394,6 +1539,7 @@ class Session:
         raw_signs: bool = False,
         fps: float = 0.0,
         name: Optional[str] = None,
+        cleanup: Optional[Cleanup] = None,
     ) -> bytes:
         """The current sample ("sample") or clean-motion estimate ("estimate") as a glTF 2.0 file
         (flame_session_write_gltf): the skeleton as nodes named after model.info.joint_names, a
@@ -1407,9 +1553,11 @@ class Session:
         GltfContainer value; None takes it from the extension of `path` (.glb or .gltf; GLB
         without a path or an extension). `smooth` and `raw_signs` are ReadFlags.SMOOTH and
         ReadFlags.RAW_SIGNS; `fps` is the animation's frame rate (0 = the model's); `name` the
-        animation's (sanitised by libflame; None = the prompt). Raises FlameError (WRONG_STATE)
-        before there is anything to read, and ValueError for a container or an extension it
-        does not know."""
+        animation's (sanitised by libflame; None = the prompt). `cleanup` (a Cleanup; None = the
+        raw poses) post-processes the poses first, as read(cleanup=...) does; its `fps`, when
+        set, overrides `fps`, and RootMotion.SEPARATE adds a node named "root" (the pelvis's
+        parent) carrying the horizontal travel. Raises FlameError (WRONG_STATE) before there is
+        anything to read, and ValueError for a container or an extension it does not know."""
         raw = _GltfParams()
         _check(_lib().flame_gltf_params_default(ctypes.byref(raw)))
         raw.container = _gltf_container(container, path)
@@ -1421,6 +1569,9 @@ class Session:
             if "\0" in name:
                 raise ValueError("name contains a NUL character")
             raw.name = name.encode("utf-8")  # kept alive by `raw` until the calls return
+        raw_cleanup = _cleanup_params(cleanup)
+        if raw_cleanup is not None:
+            raw.cleanup = ctypes.pointer(raw_cleanup)  # `raw` keeps it alive
         w = self._which(which)
         lib = _lib()
         n = ctypes.c_size_t()

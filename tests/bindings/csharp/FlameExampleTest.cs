@@ -61,7 +61,8 @@ static class FlameExampleTest
         Call(c, "OnDestroy");
         ConsoleOk("finished generation");
 
-        // The defaults: local quaternions in Unity's convention, played on a rig.
+        // The defaults: local quaternions in Unity's convention, cleaned (feet locked, ground,
+        // 30 fps: 24 frames at 20 fps span 1.15 s, 35 frames at 30), played on a rig.
         var bones = new UnityEngine.Transform[24];
         for (int j = 0; j < bones.Length; j++)
             bones[j] = new UnityEngine.Transform();
@@ -74,16 +75,17 @@ static class FlameExampleTest
             Thread.Sleep(1);
         }
         Thread.Sleep(50);
-        UnityEngine.Time.time = 0.5f;   // 20 fps: frame 10
+        UnityEngine.Time.time = 0.5f;   // 30 fps: frame 15
         Call(c, "Update");
-        Check(c.Error == null && c.Pose != null && c.Pose.Length == 24 * 24 * 4, "quaternion poses");
-        Check(c.JointNames != null && c.JointNames.Length == 24 && c.Fps == 20f, "skeleton and fps");
+        Check(c.Error == null && c.Pose != null && c.Pose.Length == 35 * 24 * 4, "quaternion poses, 35 frames at 30 fps");
+        Check(c.JointNames != null && c.JointNames.Length == 24 && c.Fps == 30f && c.FrameCount == 35, "skeleton, fps and frames");
+        Check(c.RootMotion == null, "no root bone track without Separate");
         if (c.Pose != null)
         {
-            int q = (10 * 24 + 5) * 4;
+            int q = (15 * 24 + 5) * 4;
             var r = bones[5].localRotation;
-            Check(r.x == c.Pose[q] && r.y == c.Pose[q + 1] && r.z == c.Pose[q + 2] && r.w == c.Pose[q + 3], "bone 5 posed with frame 10");
-            Check(bones[0].localPosition.z == c.RootPositions[10 * 3 + 2], "root posed with frame 10");
+            Check(r.x == c.Pose[q] && r.y == c.Pose[q + 1] && r.z == c.Pose[q + 2] && r.w == c.Pose[q + 3], "bone 5 posed with frame 15");
+            Check(bones[0].localPosition.z == c.RootPositions[15 * 3 + 2], "root posed with frame 15");
             // The default read flags are the CLI's for this smpl24_6d model: FLAME's smoothing.
             using (var m = FlameModel.Load(model))
             {
@@ -93,10 +95,14 @@ static class FlameExampleTest
                 {
                     s.SetPrompt(c.prompt);
                     while (s.Step() > 0) { }
-                    var smooth = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, FlameReadFlags.Smooth);
-                    var raw = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0);
-                    Check(Same(c.Pose, smooth), "default read flags: smoothed as the CLI's default");
+                    var game = FlameCleanupParams.Default();
+                    game.fps = 30;
+                    var smooth = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, FlameReadFlags.Smooth, game);
+                    var raw = s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0, game);
+                    Check(Same(c.Pose, smooth), "default read flags: smoothed as the CLI's default, then cleaned");
                     Check(!Same(c.Pose, raw), "default read flags: not the unsmoothed poses");
+                    Check(c.CleanupParams().HasValue && c.CleanupParams().Value.Feet == FlameFeet.Lock && c.CleanupParams().Value.ground == 1,
+                          "default cleanup: feet locked, on the ground");
                     Check(FlameExample.DefaultReadFlags(m.Info) == FlameReadFlags.Smooth, "DefaultReadFlags(smpl24_6d)");
                 }
             }
@@ -123,12 +129,50 @@ static class FlameExampleTest
             {
                 s.SetPrompt(c.prompt);
                 while (s.Step() > 0) { }
-                Check(c.Pose != null && Same(c.Pose, s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0)),
-                      "readFlags = 0: unsmoothed poses");
+                Check(c.Pose != null && Same(c.Pose, s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, FlameConvention.Unity, 0,
+                                                             c.CleanupParams())), "readFlags = 0: unsmoothed poses");
             }
         }
         Call(c, "OnDestroy");
         ConsoleOk("read flags 0");
+
+        // Cleanup off: the raw poses at the model's 20 fps. Separate root motion at 60 fps: the
+        // root bone's track (on the ground: Unity's y = 0) moves rootBone, the pelvis stays over it.
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, seed = 3, threads = 1, readFlags = 0, cleanup = false };
+        Wait(c);
+        Check(c.Pose != null && c.Pose.Length == 24 * 24 * 4 && c.Fps == 20f && c.FrameCount == 24 && c.CleanupParams() == null, "cleanup off: raw, 20 fps");
+        float[] keptRoot = c.RootPositions;
+        Call(c, "OnDestroy");
+        var rootBone = new UnityEngine.Transform();
+        bones = new UnityEngine.Transform[24];
+        for (int j = 0; j < bones.Length; j++)
+            bones[j] = new UnityEngine.Transform();
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, seed = 3, threads = 1, readFlags = 0, fps = 60f,
+                               lockFeet = false, ground = false, rootMotion = FlameRootMotion.Separate, rootBone = rootBone, bones = bones };
+        Wait(c);
+        UnityEngine.Time.time = 0.5f;   // 60 fps: frame 30 = frame 10 at 20 fps
+        Call(c, "Update");
+        // 23 intervals of 1/20 s at 60 fps: 70 frames.
+        Check(c.Error == null && c.FrameCount == 70 && c.RootMotion != null && c.RootMotion.Length == 70 * 3, "separate at 60 fps: 70 frames");
+        if (c.RootMotion != null && keptRoot != null)
+        {
+            bool grounded = true;
+            for (int f = 0; f < 70; f++)
+                grounded &= c.RootMotion[f * 3 + 1] == 0;
+            Check(grounded, "root bone at height 0");
+            Check(rootBone.localPosition.x == c.RootMotion[30 * 3] && rootBone.localPosition.z == c.RootMotion[30 * 3 + 2], "rootBone posed with frame 30");
+            // Root bone + in-place pelvis = the raw pelvis at the common time (frame 30 at 60 fps
+            // = frame 10 at 20 fps), horizontally.
+            float x = c.RootMotion[30 * 3] + c.RootPositions[30 * 3], z = c.RootMotion[30 * 3 + 2] + c.RootPositions[30 * 3 + 2];
+            Check(Math.Abs(x - keptRoot[10 * 3]) < 1e-5 && Math.Abs(z - keptRoot[10 * 3 + 2]) < 1e-5,
+                  "root bone + pelvis = the raw pelvis: " + x + "," + z + " vs " + keptRoot[10 * 3] + "," + keptRoot[10 * 3 + 2]);
+            double moved = 0;
+            for (int f = 0; f < 70; f++)
+                moved = Math.Max(moved, Math.Max(Math.Abs(c.RootMotion[f * 3] - c.RootMotion[0]), Math.Abs(c.RootMotion[f * 3 + 2] - c.RootMotion[2])));
+            Check(moved > 1e-3, "the root bone moves: " + moved);
+        }
+        Call(c, "OnDestroy");
+        ConsoleOk("cleanup off, separate root motion at 60 fps");
 
         // Destroyed mid-generation: OnDestroy returns promptly and frees everything.
         c = new FlameExample { modelFile = model, frames = 470, steps = 1000, threads = 1 };
@@ -168,6 +212,22 @@ static class FlameExampleTest
 
         Console.WriteLine(passed + " passed, " + failed + " failed");
         return failed == 0 ? 0 : 1;
+    }
+
+    /// <summary>Starts c and updates it, as Unity would, until its generation is done.</summary>
+    static void Wait(FlameExample c)
+    {
+        Call(c, "Start");
+        var watch = Stopwatch.StartNew();
+        while ((c.StepsDone < 10 || c.Pose == null) && c.Error == null && watch.ElapsedMilliseconds < 30000)
+        {
+            Call(c, "Update");
+            Thread.Sleep(1);
+        }
+        // The worker publishes the final (cleaned) poses after the last step: wait for it.
+        var worker = (Thread)typeof(FlameExample).GetField("worker", BindingFlags.Instance | BindingFlags.NonPublic).GetValue(c);
+        worker.Join(30000);
+        Call(c, "Update");
     }
 
     static bool Same(float[] a, float[] b)

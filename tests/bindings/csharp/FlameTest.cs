@@ -28,7 +28,7 @@ static class FlameTest
     const int Dim = 147;
     const int RefFrames = 24;
 
-    static string modelPath, cliPath, tmpDir, header;
+    static string modelPath, cliPath, tmpDir, header, headerPath;
     static float[] reference;
     static FlameModel model;
     static int passed, failed;
@@ -40,7 +40,8 @@ static class FlameTest
             Console.Error.WriteLine("usage: FlameTest.exe MODEL REFERENCE_NPY FLAME_CLI TMPDIR HEADER");
             return 2;
         }
-        header = File.ReadAllText(args[4]);
+        headerPath = args[4];
+        header = File.ReadAllText(headerPath);
         modelPath = args[0];
         cliPath = args[2];
         tmpDir = args[3];
@@ -97,6 +98,12 @@ static class FlameTest
             Run("GltfHumanMl263", TestGltfHumanMl263);
             Run("GltfFiles", TestGltfFiles);
             Run("GltfErrors", TestGltfErrors);
+            Run("CleanupOffIsRaw", TestCleanupOffIsRaw);
+            Run("CleanupFps", TestCleanupFps);
+            Run("CleanupRootMotion", TestCleanupRootMotion);
+            Run("CleanupFeetAndGround", TestCleanupFeetAndGround);
+            Run("CleanupErrors", TestCleanupErrors);
+            Run("CleanupGltf", TestCleanupGltf);
             Run("TwoThreads", TestTwoThreads);
             Run("DisposedHandles", TestDisposedHandles);
         }
@@ -265,9 +272,26 @@ static class FlameTest
         CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
         CheckValues("FLAME_TARGET_SCHEDULE_", EnumValues(typeof(FlameTargetSchedule)));
         CheckValues("FLAME_GLTF_CONTAINER_", EnumValues(typeof(FlameGltfContainer)));
+        // The cleanup enums are not in the header (no function takes them by type): their
+        // values come from the Rust declarations in src/ffi/cleanup.rs.
+        string rust = File.ReadAllText(Path.Combine(Path.GetDirectoryName(Path.GetDirectoryName(Path.GetFullPath(headerPath))),
+                                                    "src", "ffi", "cleanup.rs"));
+        CheckRustEnum(rust, "FlameFeet", EnumValues(typeof(FlameFeet)));
+        CheckRustEnum(rust, "FlameRootMotion", EnumValues(typeof(FlameRootMotion)));
         Check(header.Contains("#define FLAME_ABI_VERSION " + FlameNative.AbiVersion + "\n"), "ABI version");
         Check(header.Contains("#define FLAME_ROOT_TRANSLATION " + FlameNative.RootTranslation + "\n"), "FLAME_ROOT_TRANSLATION");
         Check(header.Contains("#define FLAME_MAX_THREADS " + FlameNative.MaxThreads + "\n"), "FLAME_MAX_THREADS");
+    }
+
+    static void CheckRustEnum(string rust, string name, Dictionary<string, long> ours)
+    {
+        var body = Regex.Match(rust, "pub enum " + name + @" \{(.*?)\n\}", RegexOptions.Singleline).Groups[1].Value;
+        var theirs = new Dictionary<string, long>();
+        foreach (Match m in Regex.Matches(body, @"^\s*(\w+) = (\d+),", RegexOptions.Multiline))
+            theirs[Key(m.Groups[1].Value)] = long.Parse(m.Groups[2].Value);
+        Check(theirs.Count > 0 && theirs.Count == ours.Count && theirs.All(kv => ours.ContainsKey(kv.Key) && ours[kv.Key] == kv.Value),
+              name + " values: Rust {" + string.Join(", ", theirs.Select(kv => kv.Key + "=" + kv.Value)) + "} vs bindings {" +
+              string.Join(", ", ours.Select(kv => kv.Key + "=" + kv.Value)) + "}");
     }
 
     static void TestVersion()
@@ -305,12 +329,26 @@ static class FlameTest
         Check(Marshal.SizeOf(typeof(FlameStage)) == 8 + 8 * IntPtr.Size, "sizeof FlameStage " + Marshal.SizeOf(typeof(FlameStage)));
         Check((int)Marshal.OffsetOf(typeof(FlameStage), "text") == 8 &&
               (int)Marshal.OffsetOf(typeof(FlameStage), "pelvis") == 8 + 7 * IntPtr.Size, "offsets of FlameStage");
-        // FlameGltfParams: three uint32 and a float, then a pointer (C: sizeof 24, offsetof name 16 on x86-64).
+        // FlameGltfParams: three uint32 and a float, then two pointers (C: sizeof 32, offsetof
+        // name 16, cleanup 24 on x86-64).
         var gp = FlameGltfParams.Default();
-        Check(gp.struct_size == Marshal.SizeOf(typeof(FlameGltfParams)) && gp.struct_size == 16 + IntPtr.Size,
+        Check(gp.struct_size == Marshal.SizeOf(typeof(FlameGltfParams)) && gp.struct_size == 16 + 2 * IntPtr.Size,
               "sizeof FlameGltfParams " + gp.struct_size);
         Check((int)Marshal.OffsetOf(typeof(FlameGltfParams), "name") == 16, "offset of FlameGltfParams.name");
-        Check(gp.container == (int)FlameGltfContainer.Glb && gp.flags == 0 && gp.fps == 0 && gp.name == IntPtr.Zero, "glTF defaults");
+        Check((int)Marshal.OffsetOf(typeof(FlameGltfParams), "cleanup") == 16 + IntPtr.Size, "offset of FlameGltfParams.cleanup");
+        Check(gp.container == (int)FlameGltfContainer.Glb && gp.flags == 0 && gp.fps == 0 && gp.name == IntPtr.Zero &&
+              gp.cleanup == IntPtr.Zero, "glTF defaults");
+        // FlameCleanupParams: eleven 32-bit fields (C: sizeof 44), game-ready defaults.
+        var cp = FlameCleanupParams.Default();
+        Check(cp.struct_size == 44 && Marshal.SizeOf(typeof(FlameCleanupParams)) == 44, "sizeof FlameCleanupParams " + cp.struct_size);
+        Check((int)Marshal.OffsetOf(typeof(FlameCleanupParams), "fps") == 24 &&
+              (int)Marshal.OffsetOf(typeof(FlameCleanupParams), "contact_min_span") == 40, "offsets of FlameCleanupParams");
+        Check(cp.Feet == FlameFeet.Lock && cp.ground == 1 && cp.RootMotion == FlameRootMotion.Keep && cp.remove_yaw == 0 &&
+              cp.wrap == 0 && cp.fps == 0, "cleanup defaults: feet locked, ground on, root kept, the model's fps");
+        Check(cp.contact_height == 0.05f && cp.contact_speed == 0.8944272f && cp.contact_release == 1.5f && cp.contact_min_span == 0.1f,
+              "cleanup defaults: contact detection");
+        var raw = FlameCleanupParams.Raw();
+        Check(raw.Feet == FlameFeet.Off && raw.ground == 0 && raw.struct_size == 44 && raw.contact_height == 0.05f, "Raw(): every step off");
     }
 
     static void TestLoadErrors()
@@ -631,7 +669,9 @@ static class FlameTest
             for (int q = 0; q < raw.Length; q += 4)
                 positiveW &= raw[q + 3] >= 0;
             Check(positiveW, "RawSigns keeps w >= 0");
-            Throws(FlameStatus.InvalidArgument, "no foot contacts", () => s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0));
+            // Foot contacts: detected for smpl24 models (ABI 3), 0 or 1.
+            var contacts = s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0);
+            Check(contacts.Length == RefFrames * 4 && contacts.All(c => c == 0 || c == 1), "foot contacts: " + contacts.Length + " values, 0 or 1");
             Throws(FlameStatus.InvalidArgument, "unknown convention 9", () => s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, 9, 0));
             Throws(FlameStatus.InvalidArgument, "unknown read flags", () => s.Read(FlameWhich.Sample, FlameLayout.LocalQuatXyzw, 0, 4));
         }
@@ -2090,6 +2130,238 @@ static class FlameTest
             Check(s.WriteGltf(name: "été").Length > 0, "a non-ASCII name");
             s.Reset();
             Throws(FlameStatus.WrongState, "no sample yet", () => s.WriteGltf());
+        }
+    }
+
+    // --- cleanup (flame_session_read_cleaned) ------------------------------------------------
+    // A 40-frame motion of the smpl24 fixture (20 fps), read after two of ten steps (the final
+    // motion of the tiny model saturates, see TestPoseLayouts). What a cleanup promises:
+    // resampling copies the frames at common times, in-place leaves no horizontal travel, the
+    // root bone carries exactly the travel the pelvis lost.
+
+    const int CleanFrames = 40;
+
+    static FlameSession CleanupSession()
+    {
+        var p = RefParams();
+        p.frames = CleanFrames;
+        p.seed = 5;
+        var s = model.NewSession(p);
+        s.SetPrompt(RefPrompt);
+        s.Step();
+        s.Step();
+        return s;
+    }
+
+    // World quaternions are left out: they are made sign-continuous along each track after
+    // posing, and the frames in between may change a track's sign (q and -q: the same rotation).
+    static readonly int[] PoseLayouts = { FlameLayout.RootTranslation, FlameLayout.LocalQuatXyzw, FlameLayout.LocalMatrix, FlameLayout.GlobalPositions };
+
+    static float[] Rows(float[] a, int from, int count, int width)
+    {
+        var r = new float[count * width];
+        Array.Copy(a, from * width, r, 0, count * width);
+        return r;
+    }
+
+    static void TestCleanupOffIsRaw()
+    {
+        using (var s = CleanupSession())
+        {
+            foreach (int layout in PoseLayouts)
+            {
+                var raw = s.Read(FlameWhich.Sample, layout, FlameConvention.Unity, 0);
+                Check(BitEqual(s.Read(FlameWhich.Sample, layout, FlameConvention.Unity, 0, null), raw), "null cleanup = Read, layout " + layout);
+                Check(BitEqual(s.Read(FlameWhich.Sample, layout, FlameConvention.Unity, 0, FlameCleanupParams.Raw()), raw),
+                      "Raw() = Read, layout " + layout);
+                var twenty = FlameCleanupParams.Raw();
+                twenty.fps = 20;
+                Check(BitEqual(s.Read(FlameWhich.Sample, layout, FlameConvention.Unity, 0, twenty), raw), "fps 20 (the model's) = Read, layout " + layout);
+            }
+            var odd = FlameCleanupParams.Default();
+            odd.fps = 30;
+            odd.RootMotion = FlameRootMotion.Separate;
+            Check(BitEqual(s.Read(FlameWhich.Sample, FlameLayout.Features, 0, 0, odd), s.Read(FlameWhich.Sample, FlameLayout.Features, 0, 0)),
+                  "features are never post-processed");
+        }
+    }
+
+    static void TestCleanupFps()
+    {
+        Check(model.Info.Fps == 20f, "the fixture runs at 20 fps");
+        using (var s = CleanupSession())
+        {
+            var thirty = FlameCleanupParams.Raw();
+            thirty.fps = 30;
+            foreach (int layout in PoseLayouts)
+            {
+                int width = FlameLayout.ValuesPerFrame(layout, s.FeatureDim, s.JointCount);
+                var raw = s.Read(FlameWhich.Sample, layout, FlameConvention.Gltf, 0);
+                int frames;
+                var output = s.Read(FlameWhich.Sample, layout, FlameConvention.Gltf, 0, thirty, out frames);
+                // 39 intervals of 1/20 s = 1.95 s: frames 0..58 at 30 fps, the last one's time kept.
+                Check(frames == 59 && output.Length == 59 * width && s.ReadLength(FlameWhich.Sample, layout, FlameConvention.Gltf, 0, thirty) == 59 * width,
+                      "layout " + layout + ": " + frames + " frames at 30 fps");
+                // Output frame 3k is at input frame 2k's time: copied bit for bit.
+                bool common = true;
+                for (int k = 0; k < 20; k++)
+                    common &= BitEqual(Rows(output, 3 * k, 1, width), Rows(raw, 2 * k, 1, width));
+                Check(common, "layout " + layout + ": frames 3k = input frames 2k, bit for bit");
+                Check(!BitEqual(Rows(output, 1, 1, width), Rows(raw, 0, 1, width)) && !BitEqual(Rows(output, 1, 1, width), Rows(raw, 1, 1, width)),
+                      "layout " + layout + ": frame 1 is new");
+            }
+            // ReadInto with a caller buffer: the same values; a buffer sized for the raw read is too small.
+            var buffer = new float[59 * 3];
+            Check(s.ReadInto(buffer, FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Gltf, 0, thirty) == 59 * 3 &&
+                  BitEqual(buffer, s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Gltf, 0, thirty)), "ReadInto with a cleanup");
+            Throws(FlameStatus.BufferTooSmall, "", () => s.ReadInto(new float[CleanFrames * 3], FlameWhich.Sample, FlameLayout.RootTranslation,
+                                                                    FlameConvention.Gltf, 0, thirty));
+        }
+    }
+
+    static void TestCleanupRootMotion()
+    {
+        using (var s = CleanupSession())
+        {
+            // Unity: Y up, so x and z are horizontal.
+            var keep = s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Unity, 0);
+            double travel = 0;
+            for (int f = 0; f < CleanFrames; f++)
+                travel = Math.Max(travel, Math.Max(Math.Abs(keep[f * 3] - keep[0]), Math.Abs(keep[f * 3 + 2] - keep[2])));
+            Check(travel > 1e-3, "the raw pelvis travels (" + travel + " m)");
+
+            var inPlace = FlameCleanupParams.Raw();
+            inPlace.RootMotion = FlameRootMotion.InPlace;
+            var pelvis = s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Unity, 0, inPlace);
+            bool still = pelvis.Length == CleanFrames * 3, height = still;
+            for (int f = 0; still && f < CleanFrames; f++)
+            {
+                still &= Math.Abs(pelvis[f * 3]) < 1e-6 && Math.Abs(pelvis[f * 3 + 2]) < 1e-6;
+                height &= pelvis[f * 3 + 1] == keep[f * 3 + 1];
+            }
+            Check(still, "in place: no horizontal pelvis translation");
+            Check(height, "in place: the height is kept");
+
+            var separate = FlameCleanupParams.Raw();
+            separate.RootMotion = FlameRootMotion.Separate;
+            int frames;
+            var bone = s.Read(FlameWhich.Sample, FlameLayout.RootBone, FlameConvention.Unity, 0, separate, out frames);
+            var rest = s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, FlameConvention.Unity, 0, separate);
+            bool grounded = frames == CleanFrames && bone.Length == CleanFrames * 3, sums = grounded, moves = false;
+            for (int f = 0; grounded && f < CleanFrames; f++)
+            {
+                grounded &= bone[f * 3 + 1] == 0;
+                moves |= Math.Abs(bone[f * 3]) > 1e-3 || Math.Abs(bone[f * 3 + 2]) > 1e-3;
+                sums &= Math.Abs(bone[f * 3] + rest[f * 3] - keep[f * 3]) < 1e-5 && Math.Abs(bone[f * 3 + 2] + rest[f * 3 + 2] - keep[f * 3 + 2]) < 1e-5;
+            }
+            Check(grounded, "separate: the root bone at height 0");
+            Check(moves, "separate: the root bone carries the travel");
+            Check(sums, "separate: pelvis + root bone = the kept pelvis (horizontal)");
+            Throws(FlameStatus.InvalidArgument, "root", () => s.Read(FlameWhich.Sample, FlameLayout.RootBone, FlameConvention.Unity, 0, FlameCleanupParams.Default()));
+            Throws(FlameStatus.InvalidArgument, "root", () => s.Read(FlameWhich.Sample, FlameLayout.RootBone, FlameConvention.Unity, 0));
+        }
+    }
+
+    static void TestCleanupFeetAndGround()
+    {
+        using (var s = CleanupSession())
+        {
+            // The motion two steps in is close to noise: its feet move too fast for the default
+            // contact detection, so the test widens it (which checks that the contact fields
+            // reach libflame: the default finds fewer contacts).
+            var wide = FlameCleanupParams.Default();
+            wide.contact_height = 1f;
+            wide.contact_speed = 20f;
+            wide.contact_min_span = 0f;
+            var defaults = s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0, FlameCleanupParams.Default());
+            var contacts = s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0, wide);
+            Check(contacts.Length == CleanFrames * 4 && contacts.All(c => c == 0 || c == 1) && contacts.Count(c => c == 1) > defaults.Count(c => c == 1),
+                  "contacts: 0 or 1, more with the wider detection");
+            Check(BitEqual(s.Read(FlameWhich.Sample, FlameLayout.FootContacts, 0, 0), defaults), "a raw read detects with the defaults");
+            // ground: the lowest joint of a planted foot (ankle or toe, in a frame where that
+            // leg's ankle or toe is in contact; contact columns left ankle, left foot, right
+            // ankle, right foot = smpl24 joints 7, 10, 8, 11) at height 0 (Unity: y).
+            var ground = FlameCleanupParams.Raw();
+            ground.ground = 1;
+            ground.contact_height = wide.contact_height;
+            ground.contact_speed = wide.contact_speed;
+            ground.contact_min_span = wide.contact_min_span;
+            var grounded = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unity, 0, ground);
+            var raw = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unity, 0);
+            int J = s.JointCount;
+            int[][] legs = { new[] { 0, 1, 7, 10 }, new[] { 2, 3, 8, 11 } };
+            Func<float[], double> floor = positions =>
+            {
+                double lowest = double.MaxValue;
+                for (int f = 0; f < CleanFrames; f++)
+                    foreach (var leg in legs)
+                        if (contacts[f * 4 + leg[0]] == 1 || contacts[f * 4 + leg[1]] == 1)
+                            lowest = Math.Min(lowest, Math.Min(positions[(f * J + leg[2]) * 3 + 1], positions[(f * J + leg[3]) * 3 + 1]));
+                return lowest;
+            };
+            Check(Math.Abs(floor(grounded)) < 1e-5, "ground: the lowest contact at 0, got " + floor(grounded));
+            Check(Math.Abs(floor(raw)) > 1e-2, "the raw floor was elsewhere: " + floor(raw));
+            // Feet lock moves the feet, not the pelvis.
+            var locked = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unity, 0, wide);
+            double pelvis = 0, foot = 0;
+            for (int f = 0; f < CleanFrames; f++)
+                for (int k = 0; k < 3; k++)
+                {
+                    pelvis = Math.Max(pelvis, Math.Abs(locked[(f * J) * 3 + k] - grounded[(f * J) * 3 + k]));
+                    foot = Math.Max(foot, Math.Abs(locked[(f * J + 10) * 3 + k] - grounded[(f * J + 10) * 3 + k]));
+                    foot = Math.Max(foot, Math.Abs(locked[(f * J + 11) * 3 + k] - grounded[(f * J + 11) * 3 + k]));
+                }
+            Check(pelvis == 0 && foot > 1e-3, "feet lock: pelvis moved " + pelvis + ", feet " + foot);
+        }
+    }
+
+    static void TestCleanupErrors()
+    {
+        using (var s = CleanupSession())
+        {
+            var nan = FlameCleanupParams.Default();
+            nan.fps = float.NaN;
+            Throws(FlameStatus.InvalidArgument, "got NaN", () => s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, 1, 0, nan));
+            var huge = FlameCleanupParams.Default();
+            huge.fps = 1e9f;
+            Throws(FlameStatus.InvalidArgument, "got 1000000000", () => s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, 1, 0, huge));
+            var below = FlameCleanupParams.Default();
+            below.contact_height = -0.5f;
+            Throws(FlameStatus.InvalidArgument, "contact height (m) must be between 0 and 1, got -0.5",
+                   () => s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, 1, 0, below));
+            var feet = FlameCleanupParams.Default();
+            feet.feet = 7;
+            Throws(FlameStatus.InvalidArgument, "feet mode 7", () => s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, 1, 0, feet));
+            // A struct_size below the struct's is refused (an older caller's would name fewer fields).
+            var small = FlameCleanupParams.Default();
+            small.struct_size = 8;
+            Throws(FlameStatus.InvalidArgument, "cleanup.struct_size is 8, expected at least 44", () => s.Read(FlameWhich.Sample, FlameLayout.RootTranslation, 1, 0, small));
+            Throws(FlameStatus.InvalidArgument, "got NaN", () => s.WriteGltf(cleanup: nan));
+        }
+    }
+
+    static void TestCleanupGltf()
+    {
+        using (var s = CleanupSession())
+        {
+            byte[] bin;
+            var doc = SplitGlb(s.WriteGltf(), out bin);
+            var names = ((List<object>)At(doc, "nodes")).Select(n => ((Dictionary<string, object>)n).ContainsKey("name") ? (string)At(n, "name") : null).ToList();
+            Check(!names.Contains("root"), "raw export: no root node");
+            Check(Accessor(doc, bin, Int(At(doc, "animations", 0, "samplers", 0), "input")).Length == CleanFrames, "raw export: 40 keys");
+            var c = FlameCleanupParams.Raw();
+            c.RootMotion = FlameRootMotion.Separate;
+            c.fps = 30;
+            doc = SplitGlb(s.WriteGltf(cleanup: c), out bin);
+            names = ((List<object>)At(doc, "nodes")).Select(n => ((Dictionary<string, object>)n).ContainsKey("name") ? (string)At(n, "name") : null).ToList();
+            int root = names.IndexOf("root"), pelvis = names.IndexOf("Pelvis");
+            Check(root >= 0 && pelvis >= 0, "separate: a node named root");
+            Check(root >= 0 && ((Dictionary<string, object>)At(doc, "nodes", root)).ContainsKey("children") &&
+                  ((List<object>)At(doc, "nodes", root, "children")).Any(x => (int)(double)x == pelvis), "the root node is the pelvis's parent");
+            Check(Accessor(doc, bin, Int(At(doc, "animations", 0, "samplers", 0), "input")).Length == 59, "fps 30: 59 keys");
+            // The root bone's track is the RootBone read in glTF's convention.
+            var track = Track(doc, bin, root, "translation");
+            Check(BitEqual(track, s.Read(FlameWhich.Sample, FlameLayout.RootBone, FlameConvention.Gltf, 0, c)), "root node track = RootBone read, bit for bit");
         }
     }
 

@@ -14,6 +14,7 @@ Environment (all optional; tests/bindings/run_python.sh sets them):
   FLAME_TEST_WHEEL  1: the package under test is an installed wheel (checked by a test)
 """
 
+import ctypes
 import dataclasses
 import os
 import subprocess
@@ -468,7 +469,9 @@ def test_pose_layouts(model, reference):
         q = s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY)
         assert not np.array_equal(q, s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY, ReadFlags.SMOOTH))
         assert (s.read("sample", Layout.LOCAL_QUAT_XYZW, Convention.UNITY, ReadFlags.RAW_SIGNS)[..., 3] >= 0).all()
-        expect_error(Status.INVALID_ARGUMENT, "no foot contacts", s.read, "sample", Layout.FOOT_CONTACTS)
+        # Foot contacts: detected for smpl24 models (ABI 3), 0 or 1 per foot joint and frame.
+        contacts = s.read("sample", Layout.FOOT_CONTACTS)
+        assert contacts.shape == (24, 4) and set(np.unique(contacts)) <= {0.0, 1.0}
         expect_error(Status.INVALID_ARGUMENT, "unknown convention 9", s.read, "sample", Layout.LOCAL_QUAT_XYZW, 9)
         expect_error(Status.INVALID_ARGUMENT, "unknown read flags", s.read, "sample", Layout.LOCAL_QUAT_XYZW, 0, 4)
         # The estimate reads in any layout too.
@@ -1318,3 +1321,215 @@ def test_finemogen_stages(tmp_path):
         s.reset()
         s.set_prompt_stages([flame.Stage("a person walks", 25), flame.Stage("a person jumps", 30)])
         assert s.sample_shape == (2 * 30, 263)
+
+
+# --- cleanup (flame_session_read_cleaned) ----------------------------------------------------
+# A 40-frame motion of the smpl24 fixture at its 20 fps, read after two of ten steps (generic
+# poses: the tiny model's final motion saturates, see test_pose_layouts). No Rust result is at
+# hand here, so the tests check what a cleanup promises: exact frames kept by a resample, zero
+# horizontal travel in place, a root bone that carries exactly the travel the pelvis lost.
+
+CLEAN_FRAMES = 40
+# Convention.GLTF: Y up, so x and z are the horizontal axes.
+HORIZONTAL = [0, 2]
+
+
+@pytest.fixture(scope="module")
+def stepped40(model):
+    with model.session(frames=CLEAN_FRAMES, steps=10, sampler="ddim", seed=5, threads=1) as s:
+        s.set_prompt(REF_PROMPT)
+        s.step()
+        s.step()
+        yield s
+
+
+def _rust_enum(name):
+    """{variant: value} of a `#[repr(C)] pub enum` in src/ffi/cleanup.rs (the header does not
+    list the cleanup enums: no C function takes them by type)."""
+    import re
+
+    src = (ROOT / "src/ffi/cleanup.rs").read_text()
+    body = re.search(r"pub enum %s \{(.*?)\n\}" % name, src, re.S).group(1)
+    return {_key(n): int(v) for n, v in re.findall(r"^\s*(\w+) = (\d+),", body, re.M)}
+
+
+def test_cleanup_values_match_the_library():
+    assert _rust_enum("FlameFeet") == {_key(n): v for n, v in vars(flame.Feet).items() if n.isupper()}
+    assert _rust_enum("FlameRootMotion") == {
+        _key(n): v for n, v in vars(flame.RootMotion).items() if n.isupper()}
+    assert "FLAME_LAYOUT_ROOT_BONE = 10," in HEADER and Layout.ROOT_BONE == 10
+    # The dataclass's defaults are flame_cleanup_params_default's (game-ready).
+    assert flame.Cleanup() == flame.cleanup_params_default()
+    assert flame.cleanup_params_default() == flame.Cleanup(
+        feet=flame.Feet.LOCK, ground=True, root_motion=flame.RootMotion.KEEP, remove_yaw=False,
+        wrap=False, fps=0.0, contact_height=0.05, contact_speed=0.8944272, contact_release=1.5,
+        contact_min_span=0.1)
+    # The struct's layout: eleven 4-byte fields; FlameGltfParams ends with the cleanup pointer.
+    assert ctypes.sizeof(flame._CleanupParams) == 44
+    assert flame._GltfParams.cleanup.offset == 24 and ctypes.sizeof(flame._GltfParams) == 32
+
+
+POSE_LAYOUTS = (Layout.ROOT_TRANSLATION, Layout.LOCAL_QUAT_XYZW, Layout.LOCAL_MATRIX,
+                Layout.GLOBAL_POSITIONS)
+
+
+def test_cleanup_off_is_the_raw_read(stepped40):
+    raw_off = flame.Cleanup.raw()
+    for layout in POSE_LAYOUTS + (Layout.FEATURES,):
+        raw = stepped40.read("sample", layout, Convention.GLTF)
+        assert stepped40.read("sample", layout, Convention.GLTF, cleanup=raw_off).tobytes() == raw.tobytes()
+        # The model's own frame rate asked for explicitly: no resample either.
+        assert stepped40.read("sample", layout, Convention.GLTF,
+                              cleanup=flame.Cleanup.raw(fps=20)).tobytes() == raw.tobytes()
+    # Features are never post-processed, whatever the cleanup.
+    assert stepped40.read(cleanup=flame.Cleanup(fps=30, root_motion="separate")).tobytes() == \
+        stepped40.read().tobytes()
+
+
+def test_cleanup_fps_resamples_keeping_common_frames(model, stepped40):
+    assert model.info.fps == 20
+    thirty = flame.Cleanup.raw(fps=30)
+    for layout in POSE_LAYOUTS:
+        raw = stepped40.read("sample", layout, Convention.GLTF)
+        out = stepped40.read("sample", layout, Convention.GLTF, cleanup=thirty)
+        # 39 intervals of 1/20 s = 1.95 s; at 30 fps frames 0..58 (the last frame's time kept).
+        assert out.shape == (59,) + raw.shape[1:], (layout, out.shape)
+        assert np.isfinite(out).all()
+        # Output frame 3k is at the time of input frame 2k: copied, bit for bit.
+        np.testing.assert_array_equal(out[0::3], raw[0::2][:20], err_msg=str(layout))
+        # The frames between are new: frame 1 (t = 1/30 s) is neither input frame 0 nor 1.
+        assert not np.array_equal(out[1], raw[0]) and not np.array_equal(out[1], raw[1])
+    # World quaternions are made sign-continuous along each track after posing, and the frames
+    # in between can change which sign a track ends up with (q and -q are the same rotation):
+    # with RAW_SIGNS (w >= 0 as computed) the common frames are bit for bit the same too.
+    raw = stepped40.read("sample", Layout.GLOBAL_QUAT_WXYZ, Convention.GLTF, ReadFlags.RAW_SIGNS)
+    out = stepped40.read("sample", Layout.GLOBAL_QUAT_WXYZ, Convention.GLTF, ReadFlags.RAW_SIGNS,
+                         cleanup=thirty)
+    assert out.shape == (59, 24, 4)
+    np.testing.assert_array_equal(out[0::3], raw[0::2][:20])
+    # Translations between are linear: frame 3k+1 = raw[2k] + (raw[2k+1] - raw[2k]) * 2/3.
+    raw = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF)
+    out = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF, cleanup=thirty)
+    np.testing.assert_allclose(out[1::3][:19], raw[0:38:2] + (raw[1:39:2] - raw[0:38:2]) * 2 / 3,
+                               atol=1e-6)
+    # Foot contacts are resampled with the poses.
+    assert stepped40.read("sample", Layout.FOOT_CONTACTS, cleanup=flame.Cleanup(fps=30)).shape == (59, 4)
+
+
+def test_cleanup_in_place_removes_horizontal_travel(stepped40):
+    keep = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF)
+    travel = np.abs(keep[:, HORIZONTAL] - keep[0, HORIZONTAL]).max()
+    assert travel > 1e-3, travel  # there is something to remove
+    in_place = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF,
+                              cleanup=flame.Cleanup.raw(root_motion=flame.RootMotion.IN_PLACE))
+    assert np.abs(in_place[:, HORIZONTAL]).max() < 1e-6
+    np.testing.assert_array_equal(in_place[:, 1], keep[:, 1])  # the height is kept
+    # The joints move with the pelvis: the pelvis is joint 0 of GLOBAL_POSITIONS.
+    positions = stepped40.read("sample", Layout.GLOBAL_POSITIONS, Convention.GLTF,
+                               cleanup=flame.Cleanup.raw(root_motion="in-place"))
+    assert np.abs(positions[:, 0, HORIZONTAL]).max() < 1e-6
+
+
+def test_cleanup_separate_root_bone(stepped40):
+    keep = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF)
+    separate = flame.Cleanup.raw(root_motion=flame.RootMotion.SEPARATE)
+    root = stepped40.read("sample", Layout.ROOT_BONE, Convention.GLTF, cleanup=separate)
+    pelvis = stepped40.read("sample", Layout.ROOT_TRANSLATION, Convention.GLTF, cleanup=separate)
+    assert root.shape == pelvis.shape == (CLEAN_FRAMES, 3)
+    assert (root[:, 1] == 0).all()  # on the ground
+    assert np.abs(root[:, HORIZONTAL]).max() > 1e-3  # and carrying the travel ...
+    # ... exactly the travel the pelvis lost.
+    np.testing.assert_allclose(pelvis[:, HORIZONTAL] + root[:, HORIZONTAL], keep[:, HORIZONTAL],
+                               atol=1e-5)
+    np.testing.assert_array_equal(pelvis[:, 1], keep[:, 1])
+    # In Unreal's convention (Z up, centimetres) the bone is at height 0 as well.
+    unreal = stepped40.read("sample", Layout.ROOT_BONE, Convention.UNREAL, cleanup=separate)
+    assert (unreal[:, 2] == 0).all() and np.abs(unreal).max() > 0.1
+    # The bone exists only with SEPARATE.
+    expect_error(Status.INVALID_ARGUMENT, "root", stepped40.read, "sample", Layout.ROOT_BONE)
+    expect_error(Status.INVALID_ARGUMENT, "root", stepped40.read, "sample", Layout.ROOT_BONE,
+                 cleanup=flame.Cleanup())
+
+
+# The motion two steps in is close to noise: its feet move too fast for the default contact
+# detection (no contacts at all), so the feet tests widen it. That the widened values change the
+# contacts is itself the check that the contact_* fields reach libflame.
+WIDE_CONTACTS = dict(contact_height=1.0, contact_speed=20.0, contact_min_span=0.0)
+# The contact columns (left ankle, left foot, right ankle, right foot) and their smpl24 joints.
+LEGS = ((0, 1, 7, 10), (2, 3, 8, 11))
+
+
+def test_cleanup_feet_and_ground(stepped40):
+    default = stepped40.read("sample", Layout.FOOT_CONTACTS, cleanup=flame.Cleanup())
+    contacts = stepped40.read("sample", Layout.FOOT_CONTACTS, cleanup=flame.Cleanup(**WIDE_CONTACTS))
+    assert default.shape == contacts.shape == (CLEAN_FRAMES, 4)
+    assert set(np.unique(contacts)) == {0.0, 1.0} and set(np.unique(default)) <= {0.0, 1.0}
+    assert contacts.sum() > default.sum()
+    # A raw read detects them with the default contact parameters, as the default cleanup does.
+    np.testing.assert_array_equal(stepped40.read("sample", Layout.FOOT_CONTACTS), default)
+    # ground: the lowest joint of a planted foot (ankle or toe, in a frame where that leg's
+    # ankle or toe is in contact) stands at height 0 (y in glTF).
+    grounded = stepped40.read("sample", Layout.GLOBAL_POSITIONS, Convention.GLTF,
+                              cleanup=flame.Cleanup.raw(ground=True, **WIDE_CONTACTS))
+    raw = stepped40.read("sample", Layout.GLOBAL_POSITIONS, Convention.GLTF)
+
+    def floor(positions):
+        heights = [positions[(contacts[:, a] + contacts[:, t]) > 0][:, [ja, jt], 1]
+                   for a, t, ja, jt in LEGS]
+        return min(h.min() for h in heights if h.size)
+
+    assert abs(floor(grounded)) < 1e-5, floor(grounded)
+    assert abs(floor(raw)) > 1e-2, floor(raw)  # the raw floor was elsewhere
+    np.testing.assert_allclose(grounded[..., 1], raw[..., 1] - floor(raw), atol=1e-5)
+    # feet lock moves the feet and nothing above the knees: the pelvis and the head are the
+    # grounded read's, the feet are not.
+    locked = stepped40.read("sample", Layout.GLOBAL_POSITIONS, Convention.GLTF,
+                            cleanup=flame.Cleanup(**WIDE_CONTACTS))
+    np.testing.assert_array_equal(locked[:, [0, 15]], grounded[:, [0, 15]])
+    assert np.abs(locked[:, [10, 11]] - grounded[:, [10, 11]]).max() > 1e-3
+
+
+def test_cleanup_bad_values(stepped40):
+    read = stepped40.read
+    pose = ("sample", Layout.ROOT_TRANSLATION, Convention.GLTF, 0)
+    expect_error(Status.INVALID_ARGUMENT, "got NaN", read, *pose, flame.Cleanup(fps=float("nan")))
+    expect_error(Status.INVALID_ARGUMENT, "got 1000000000", read, *pose, flame.Cleanup(fps=1e9))
+    e = expect_error(Status.INVALID_ARGUMENT, "contact height", read, *pose,
+                     flame.Cleanup(contact_height=-0.5))
+    assert "got -0.5" in e.message, e.message
+    expect_error(Status.INVALID_ARGUMENT, "feet mode 7", read, *pose, flame.Cleanup(feet=7))
+    expect_error(Status.INVALID_ARGUMENT, "root motion 3", read, *pose, flame.Cleanup(root_motion=3))
+    with pytest.raises(ValueError, match="unknown feet 'hover'"):
+        read(*pose, flame.Cleanup(feet="hover"))
+    with pytest.raises(TypeError, match="not a flame.Cleanup"):
+        read(*pose, cleanup={"fps": 30})
+    # The glTF export checks the same values.
+    expect_error(Status.INVALID_ARGUMENT, "got NaN", stepped40.write_gltf,
+                 cleanup=flame.Cleanup(fps=float("nan")))
+
+
+def _glb_json(data: bytes) -> dict:
+    import json
+    import struct
+
+    assert data[:4] == b"glTF"
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    assert kind == b"JSON"
+    return json.loads(data[20:20 + length])
+
+
+def test_cleanup_gltf_export(stepped40):
+    def names_and_keys(cleanup):
+        doc = _glb_json(stepped40.write_gltf(cleanup=cleanup))
+        times = doc["animations"][0]["samplers"][0]["input"]
+        return [n.get("name") for n in doc["nodes"]], doc["accessors"][times]["count"]
+
+    names, keys = names_and_keys(None)
+    assert "root" not in names and keys == CLEAN_FRAMES
+    names, keys = names_and_keys(flame.Cleanup(root_motion="separate", fps=30))
+    assert "root" in names and "Pelvis" in names and keys == 59
+    # The root bone is the pelvis's parent.
+    doc = _glb_json(stepped40.write_gltf(cleanup=flame.Cleanup(root_motion="separate")))
+    names = [n.get("name") for n in doc["nodes"]]
+    root = doc["nodes"][names.index("root")]
+    assert names.index("Pelvis") in root.get("children", [])

@@ -132,9 +132,12 @@ def test_gltf_params_default_through_ctypes():
     raw = flame._GltfParams()
     assert flame._lib().flame_gltf_params_default(ctypes.byref(raw)) == Status.OK
     assert raw.struct_size == ctypes.sizeof(flame._GltfParams)
-    # Three u32, a float, then a pointer: 16 + 8 bytes on 64-bit targets, 16 + 4 on 32-bit.
-    assert ctypes.sizeof(raw) == 16 + ctypes.sizeof(ctypes.c_void_p)
+    # Three u32, a float, then two pointers (the name, and since ABI 3 the cleanup): 16 + 16
+    # bytes on 64-bit targets, 16 + 8 on 32-bit.
+    assert ctypes.sizeof(raw) == 16 + 2 * ctypes.sizeof(ctypes.c_void_p)
+    assert flame._GltfParams.cleanup.offset == 16 + ctypes.sizeof(ctypes.c_void_p)
     assert (raw.container, raw.flags, raw.fps, raw.name) == (GltfContainer.GLB, 0, 0.0, None)
+    assert not raw.cleanup  # NULL: the raw poses
     assert flame._lib().flame_gltf_params_default(None) == Status.INVALID_ARGUMENT
 
 
@@ -336,6 +339,11 @@ def test_raw_buffer_too_small():
         raw.container = GltfContainer.GLTF
         assert lib.flame_session_write_gltf(h, 0, ctypes.byref(raw), None, 0, ctypes.byref(n)) == Status.OK
         assert n.value == len(s.write_gltf(container="gltf")) != needed
+        # Version 1 of the struct ended before `cleanup`: its size is still accepted (no
+        # cleanup), one byte less is not.
+        raw.struct_size = flame._GltfParams.cleanup.offset
+        assert lib.flame_session_write_gltf(h, 0, ctypes.byref(raw), None, 0, ctypes.byref(n)) == Status.OK
+        assert n.value == len(s.write_gltf(container="gltf"))
         raw.struct_size -= 1
         assert lib.flame_session_write_gltf(h, 0, ctypes.byref(raw), None, 0, ctypes.byref(n)) == Status.INVALID_ARGUMENT
         assert b"struct_size" in lib.flame_last_error()

@@ -129,6 +129,59 @@ static void Configure(UFlameMotionComponent& c, const char* model, int frames, i
     c.bUseDdim = ddim;
     c.Seed = 3;
     c.Threads = 1;
+    // Cleanup off (its defaults lock the feet and ground the clip): the raw poses, which the
+    // tests compare with the CLI and with plain flame_session_read. The cleanup's own test
+    // turns it on.
+    c.bLockFeet = false;
+    c.bGround = false;
+}
+
+/* A final sample of Configure's settings (frames, steps; DDIM, seed 3, one thread), read
+ * through flame.h with flame_session_read_cleaned (cleanup NULL: raw), or exported to GLB with
+ * that cleanup when layout is -1: what the component must publish. */
+static std::vector<float> DirectCleaned(const char* model, int frames, int steps, const FlameCleanupParams* cleanup,
+                                        int layout, int convention, std::vector<uint8_t>* glb = nullptr) {
+    std::vector<float> out;
+    FlameModel* m = nullptr;
+    if (flame_model_load(model, nullptr, &m) != FLAME_STATUS_OK) return out;
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = (uint32_t)frames;
+    p.steps = (uint32_t)steps;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.seed = 3;
+    p.threads = 1;
+    FlameSession* s = nullptr;
+    if (flame_session_new(m, &p, &s) == FLAME_STATUS_OK &&
+        flame_session_set_prompt(s, "a person walks forward and waves.") == FLAME_STATUS_OK) {
+        uint32_t left = 1;
+        while (left > 0 && flame_session_step(s, &left) == FLAME_STATUS_OK) {
+        }
+        size_t n = 0;
+        if (left == 0 && glb != nullptr) {
+            FlameGltfParams g;
+            flame_gltf_params_default(&g);
+            g.cleanup = cleanup;
+            if (flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &g, nullptr, 0, &n) == FLAME_STATUS_OK) {
+                glb->resize(n);
+                if (flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &g, glb->data(), n, &n) != FLAME_STATUS_OK) glb->clear();
+            }
+        } else if (left == 0 &&
+                   flame_session_read_cleaned(s, FLAME_WHICH_SAMPLE, layout, convention, 0, cleanup, nullptr, 0, &n) ==
+                       FLAME_STATUS_OK) {
+            out.resize(n);
+            if (flame_session_read_cleaned(s, FLAME_WHICH_SAMPLE, layout, convention, 0, cleanup, out.data(), n, &n) !=
+                FLAME_STATUS_OK)
+                out.clear();
+        }
+    }
+    flame_session_free(s);
+    flame_model_free(m);
+    return out;
+}
+
+static bool SameFloats(const TArray<float>& a, const std::vector<float>& b) {
+    return !b.empty() && a.Num() == (int32)b.size() && std::memcmp(a.GetData(), b.data(), b.size() * 4) == 0;
 }
 
 int main(int argc, char** argv) {
@@ -267,6 +320,14 @@ int main(int argc, char** argv) {
     {   // The defaults: local quaternions x, y, z, w and root locations in Unreal's convention.
         UFlameMotionComponent defaults;
         CHECK(defaults.Layout == FLAME_LAYOUT_LOCAL_QUAT_XYZW && defaults.Convention == FLAME_CONVENTION_UNREAL, "defaults");
+        // The cleanup's: libflame's game-ready defaults (feet locked, on the ground, root motion
+        // kept, the model's frame rate).
+        FlameCleanupParams game;
+        flame_cleanup_params_default(&game);
+        CHECK(defaults.bLockFeet == (game.feet == 1) && defaults.bGround == (game.ground == 1) &&
+                  defaults.FrameRate == game.fps && (int)defaults.RootMotion == game.root_motion &&
+                  defaults.bRemoveYaw == (game.remove_yaw == 1) && defaults.RootMotion == EFlameRootMotion::Keep,
+              "cleanup defaults = flame_cleanup_params_default");
         UFlameMotionComponent c;
         // 200 steps: OnProgress reports the latest pose at a tick, so a fast machine can finish
         // a short generation between two ticks (10 steps once did, and no mid-run pose came).
@@ -301,6 +362,94 @@ int main(int argc, char** argv) {
         FQuat outside = c.GetJointRotation(Frames, 0);
         CHECK(outside.W == 1 && outside.X == 0, "identity out of range");
         CHECK(c.GetRootLocation(-1).X == 0, "zero out of range");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // Cleanup: what the component publishes is flame_session_read_cleaned with its settings,
+        // bit for bit. 30 fps from 40 frames at 20: 59 frames; separate root motion: the root
+        // bone on the ground (Unreal: Z up), pelvis + root bone = the raw pelvis at the common
+        // times (frame 3k at 30 fps = frame 2k at 20); the export has the "root" node.
+        const int CF = 40, CF30 = 59, J = 24;
+        UFlameMotionComponent c;
+        Configure(c, argv[1], CF, 10, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        c.FrameRate = 30.f;
+        c.RootMotion = EFlameRootMotion::Separate;
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        CHECK(c.Generate(), "Generate (cleanup): %s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finishedCalls > 0; }), "finished (cleanup)");
+        CHECK(succeeded, "succeeded: %s", c.LastError.Utf8().c_str());
+        CHECK(c.GetFrameCount() == CF30 && c.Pose.Num() == CF30 * J * 4 && c.RootLocations.Num() == CF30 * 3 &&
+                  c.RootBoneLocations.Num() == CF30 * 3 && c.PoseFrameRate == 30.f,
+              "59 frames at 30 fps: %d frames, %d values, %d root bone values, %g fps", c.GetFrameCount(), c.Pose.Num(),
+              c.RootBoneLocations.Num(), c.PoseFrameRate);
+        FlameCleanupParams clean;
+        flame_cleanup_params_default(&clean);
+        clean.feet = 0;
+        clean.ground = 0;
+        clean.fps = 30.f;
+        clean.root_motion = 2;
+        CHECK(SameFloats(c.Pose, DirectCleaned(argv[1], CF, 10, &clean, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL)),
+              "Pose = flame_session_read_cleaned");
+        CHECK(SameFloats(c.RootBoneLocations, DirectCleaned(argv[1], CF, 10, &clean, FLAME_LAYOUT_ROOT_BONE, FLAME_CONVENTION_UNREAL)),
+              "RootBoneLocations = flame_session_read_cleaned(ROOT_BONE)");
+        const std::vector<float> raw = DirectCleaned(argv[1], CF, 10, nullptr, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_UNREAL);
+        bool grounded = c.RootBoneLocations.Num() == CF30 * 3 && raw.size() == (size_t)CF * 3, sums = grounded;
+        double moved = 0;
+        for (int f = 0; grounded && f < CF30; f++) {
+            FVector b = c.GetRootBoneLocation(f);
+            grounded = b.Z == 0;
+            moved = std::max(moved, std::abs((double)b.X) + std::abs((double)b.Y));
+            if (f % 3 == 0) {
+                FVector pelvis = c.GetRootLocation(f);
+                const float* r = raw.data() + (f / 3) * 2 * 3;
+                // Centimetres: 1e-3 cm = 10 µm of float rounding.
+                sums = sums && std::abs(b.X + pelvis.X - r[0]) < 1e-3 && std::abs(b.Y + pelvis.Y - r[1]) < 1e-3;
+            }
+        }
+        CHECK(grounded, "the root bone at height 0");
+        CHECK(moved > 0.1, "the root bone travels (%g cm)", moved);
+        CHECK(sums, "pelvis + root bone = the raw pelvis at the common frames");
+        CHECK(c.GetRootBoneLocation(CF30).X == 0 && c.GetRootBoneLocation(-1).X == 0, "zero out of range");
+        TArray<uint8> bytes;
+        std::vector<uint8_t> glb;
+        DirectCleaned(argv[1], CF, 10, &clean, -1, 0, &glb);
+        CHECK(c.ExportGltf(true, bytes) && SameBytes(bytes, glb), "ExportGltf = flame_session_write_gltf with the cleanup");
+        const std::string text(bytes.GetData(), bytes.GetData() + bytes.Num());
+        CHECK(text.find("\"name\":\"root\"") != std::string::npos, "the export has the root node");
+
+        // Keep root motion: no root bone track. The defaults (feet locked, ground) give what
+        // flame_session_read_cleaned gives with flame_cleanup_params_default.
+        c.RootMotion = EFlameRootMotion::Keep;
+        c.FrameRate = 0.f;
+        c.bLockFeet = true;
+        c.bGround = true;
+        CHECK(c.Generate(), "Generate (game defaults)");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished (game defaults)");
+        flame_cleanup_params_default(&clean);
+        CHECK(succeeded && c.GetFrameCount() == CF && c.RootBoneLocations.Num() == 0 && c.PoseFrameRate == 20.f,
+              "keep: %d frames, %d root bone values", c.GetFrameCount(), c.RootBoneLocations.Num());
+        CHECK(SameFloats(c.Pose, DirectCleaned(argv[1], CF, 10, &clean, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL)),
+              "feet locked, on the ground: Pose = flame_session_read_cleaned");
+        CHECK(!SameFloats(c.RootLocations, DirectCleaned(argv[1], CF, 10, nullptr, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_UNREAL)),
+              "the cleanup changed the root locations (the ground moved them)");
+
+        // A bad frame rate fails the generation with libflame's message naming it.
+        c.FrameRate = 1000.f;
+        CHECK(c.Generate(), "Generate (bad frame rate)");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 2; }), "finished (bad frame rate)");
+        CHECK(!succeeded && c.LastError.Utf8().find("FLAME_STATUS_INVALID_ARGUMENT") == 0 &&
+                  c.LastError.Utf8().find("got 1000") != std::string::npos,
+              "%s", c.LastError.Utf8().c_str());
+
+        // Layout 0: the raw features, never post-processed, and the root locations stay raw.
+        c.Layout = FLAME_LAYOUT_FEATURES;
+        c.FrameRate = 30.f;
+        CHECK(c.Generate(), "Generate (features)");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 3; }), "finished (features)");
+        CHECK(succeeded && c.GetFrameCount() == CF && c.Pose.Num() == CF * Dim && c.RootLocations.Num() == CF * 3,
+              "features: %d frames", c.GetFrameCount());
     }
     CHECK(WaitForThreads(), "workers exited");
 

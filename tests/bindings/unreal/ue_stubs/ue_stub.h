@@ -34,6 +34,8 @@ typedef uint64_t uint64;
 #define PLATFORM_WINDOWS 0
 #define UCLASS(...)
 #define USTRUCT(...)
+#define UENUM(...)
+#define UMETA(...)
 #define UPROPERTY(...)
 #define UFUNCTION(...)
 /* The access after it stays the default, as in the engine: private in a UCLASS (the engine's

@@ -17,8 +17,11 @@ struct FFlameFinishedSession
 	FFlameWorkerCount WorkerCount; // first member, so destroyed last: after the session
 	FlameSession* Handle;
 	uint32 Flags; // the read flags of the generation
+	FlameCleanupParams Cleanup; // its cleanup, when bCleanup
+	bool bCleanup;
 
-	FFlameFinishedSession(FlameSession* InHandle, uint32 InFlags) : Handle(InHandle), Flags(InFlags) {}
+	FFlameFinishedSession(FlameSession* InHandle, uint32 InFlags, const FlameCleanupParams& InCleanup, bool bInCleanup)
+		: Handle(InHandle), Flags(InFlags), Cleanup(InCleanup), bCleanup(bInCleanup) {}
 	~FFlameFinishedSession() { flame_session_free(Handle); }
 };
 
@@ -50,6 +53,9 @@ struct FFlameJob
 	int32 Layout = 0;
 	int32 Convention = 0;
 	uint32 Flags = 0;
+	FlameCleanupParams Cleanup; // applied to pose reads and the export when bCleanup
+	bool bCleanup = false;      // false for the raw features (Layout 0), never post-processed
+	bool bRootBone = false;     // Separate root motion: the root bone's track is read too
 	bool bPreviewEstimate = true;
 	int32 EditTask = -1; // -1: no edit
 	TArray<float> EditReference;
@@ -66,6 +72,8 @@ struct FFlameJob
 	bool bStop = false;
 	TArray<float> Latest;
 	TArray<float> LatestRoot;
+	TArray<float> LatestRootBone;
+	float LatestFrameRate = 0.f;
 	bool bLatestIsNew = false;
 	int32 LatestFrames = 0; // frames of Latest and LatestRoot, as flame_session_read_frames says
 	int32 StepsDone = 0;
@@ -156,6 +164,7 @@ private:
 			}
 			Session = S;
 		}
+		FrameRate = bCleanup && Cleanup.fps > 0.f ? Cleanup.fps : Info.fps;
 		const bool bOk = Edit(S, Info.feature_dim, Failure) && Targets(S, Info.joint_count, Failure) && Step(S, Failure);
 		double Loss = -1.0;
 		if (bOk && TargetFrames.Num() > 0 && flame_session_target_loss(S, &Loss) != FLAME_STATUS_OK)
@@ -169,7 +178,8 @@ private:
 			if (bOk)
 			{
 				// Kept for ExportGltf: the component takes it over when it sees bFinished.
-				Finished = MakeShared<FFlameFinishedSession, ESPMode::ThreadSafe>(S, Flags);
+				// The export takes the cleanup whatever the Layout (a glTF file has poses, not features).
+				Finished = MakeShared<FFlameFinishedSession, ESPMode::ThreadSafe>(S, Flags, Cleanup, true);
 				S = nullptr;
 			}
 		}
@@ -347,6 +357,8 @@ private:
 		return true;
 	}
 
+	float FrameRate = 0.f; // of the poses read: the cleanup's, or the model's
+
 	bool Step(FlameSession* S, FString& Failure)
 	{
 		if (!(Stages.Num() > 0 ? SetStages(S, Failure) : SetPrompt(S, Failure)))
@@ -354,7 +366,7 @@ private:
 			return false;
 		}
 		FlameStatus Status = FLAME_STATUS_OK;
-		TArray<float> Buffer, RootBuffer;
+		TArray<float> Buffer, RootBuffer, RootBoneBuffer;
 		uint32 Left = 1;
 		while (Left > 0)
 		{
@@ -378,6 +390,15 @@ private:
 			{
 				Status = Read(S, Which, FLAME_LAYOUT_ROOT_TRANSLATION, RootBuffer);
 			}
+			if (Status == FLAME_STATUS_OK && bRootBone)
+			{
+				Status = Read(S, Which, FLAME_LAYOUT_ROOT_BONE, RootBoneBuffer);
+			}
+			if (Status == FLAME_STATUS_OK && bCleanup)
+			{
+				// A cleanup's frame rate changes the frame count: three values per frame.
+				ReadFrames = (uint32)(RootBuffer.Num() / 3);
+			}
 			if (Status != FLAME_STATUS_OK)
 			{
 				Failure = FlameFailure(Status);
@@ -389,7 +410,9 @@ private:
 			FScopeLock Guard(&Lock);
 			Swap(Latest, Buffer); // the worker refills the game thread's previous buffers
 			Swap(LatestRoot, RootBuffer);
+			Swap(LatestRootBone, RootBoneBuffer);
 			LatestFrames = (int32)ReadFrames;
+			LatestFrameRate = FrameRate;
 			bLatestIsNew = true;
 			StepsDone = (int32)Done;
 			StepsTotal = (int32)Total;
@@ -402,15 +425,17 @@ private:
 		return true;
 	}
 
-	/** One flame_session_read into Out, sized by a length query first. */
+	/** One flame_session_read_cleaned (the cleanup, or NULL: raw) into Out, sized by a length
+	 *  query first. */
 	FlameStatus Read(FlameSession* S, int32 Which, int32 InLayout, TArray<float>& Out) const
 	{
+		const FlameCleanupParams* C = bCleanup ? &Cleanup : nullptr;
 		size_t Needed = 0;
-		FlameStatus Status = flame_session_read(S, Which, InLayout, Convention, Flags, nullptr, 0, &Needed);
+		FlameStatus Status = flame_session_read_cleaned(S, Which, InLayout, Convention, Flags, C, nullptr, 0, &Needed);
 		if (Status == FLAME_STATUS_OK)
 		{
 			Out.SetNumUninitialized((int32)Needed);
-			Status = flame_session_read(S, Which, InLayout, Convention, Flags, Out.GetData(), Needed, &Needed);
+			Status = flame_session_read_cleaned(S, Which, InLayout, Convention, Flags, C, Out.GetData(), Needed, &Needed);
 		}
 		return Status;
 	}
@@ -451,6 +476,16 @@ bool UFlameMotionComponent::Generate()
 	NewJob->Convention = Convention;
 	NewJob->Flags = (uint32)FMath::Max(ReadFlags, 0);
 	NewJob->bPreviewEstimate = bPreviewEstimate;
+	flame_cleanup_params_default(&NewJob->Cleanup);
+	NewJob->Cleanup.feet = bLockFeet ? 1 : 0; // FlameFeet: 0 off, 1 lock
+	NewJob->Cleanup.ground = bGround ? 1u : 0u;
+	NewJob->Cleanup.fps = FrameRate;
+	NewJob->Cleanup.root_motion = (int32)RootMotion; // EFlameRootMotion has FlameRootMotion's values
+	NewJob->Cleanup.remove_yaw = bRemoveYaw ? 1u : 0u;
+	// The raw features are never post-processed: with them the root locations stay raw too, so
+	// both span the same frames.
+	NewJob->bCleanup = Layout != FLAME_LAYOUT_FEATURES;
+	NewJob->bRootBone = NewJob->bCleanup && RootMotion == EFlameRootMotion::Separate;
 	NewJob->EditTask = EditTask;
 	NewJob->EditReference = EditReference;
 	flame_edit_params_default(&NewJob->EditParams);
@@ -548,6 +583,16 @@ FVector UFlameMotionComponent::GetRootLocation(int32 Frame) const
 	return FVector(P[0], P[1], P[2]);
 }
 
+FVector UFlameMotionComponent::GetRootBoneLocation(int32 Frame) const
+{
+	if (Frame < 0 || (int64)Frame * 3 + 3 > RootBoneLocations.Num())
+	{
+		return FVector::ZeroVector;
+	}
+	const float* P = RootBoneLocations.GetData() + (int64)Frame * 3;
+	return FVector(P[0], P[1], P[2]);
+}
+
 bool UFlameMotionComponent::ExportGltf(bool bBinary, TArray<uint8>& OutBytes)
 {
 	OutBytes.Reset();
@@ -562,6 +607,7 @@ bool UFlameMotionComponent::ExportGltf(bool bBinary, TArray<uint8>& OutBytes)
 	FlameStatus Status = flame_gltf_params_default(&Params);
 	Params.container = bBinary ? FLAME_GLTF_CONTAINER_GLB : FLAME_GLTF_CONTAINER_GLTF;
 	Params.flags = Finished->Flags;
+	Params.cleanup = Finished->bCleanup ? &Finished->Cleanup : nullptr;
 	size_t Needed = 0;
 	if (Status == FLAME_STATUS_OK)
 	{
@@ -613,7 +659,9 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		{
 			Swap(Pose, Job->Latest);
 			Swap(RootLocations, Job->LatestRoot);
+			Swap(RootBoneLocations, Job->LatestRootBone);
 			PoseFrames = Job->LatestFrames;
+			PoseFrameRate = Job->LatestFrameRate;
 			Job->bLatestIsNew = false;
 			bNewPose = true;
 			JointNames = Job->JointNames;

@@ -57,6 +57,19 @@ struct FLAME_API FFlameStage
 	FString Pelvis;
 };
 
+/** Where a clip's horizontal travel goes (FlameCleanupParams.root_motion). */
+UENUM(BlueprintType)
+enum class EFlameRootMotion : uint8
+{
+	/** On the pelvis, as the model made it. */
+	Keep = 0 UMETA(DisplayName = "Keep"),
+	/** Removed: the pelvis stays over the origin (an in-place clip). */
+	InPlace = 1 UMETA(DisplayName = "In Place"),
+	/** On a root bone on the ground under the pelvis (RootBoneLocations; the glTF export's
+	 *  "root" node): the pelvis reads in place. What the Mannequin's root bone carries. */
+	Separate = 2 UMETA(DisplayName = "Separate Root Bone"),
+};
+
 DECLARE_DYNAMIC_MULTICAST_DELEGATE_TwoParams(FFlameProgressSignature, int32, StepsDone, int32, StepsTotal);
 DECLARE_DYNAMIC_MULTICAST_DELEGATE_OneParam(FFlameFinishedSignature, bool, bSucceeded);
 
@@ -142,6 +155,32 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	int32 ReadFlags = 0;
 
+	/** Cleanup (flame_session_read_cleaned): pin each planted foot where it stands, the leg
+	 *  solved by two-bone IK (no foot sliding). The cleanup settings apply to Pose,
+	 *  RootLocations and ExportGltf; with Layout 0 (the raw features, never post-processed)
+	 *  Pose and RootLocations stay raw. The defaults are libflame's game-ready ones
+	 *  (flame_cleanup_params_default): feet locked, on the ground, root motion kept. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bLockFeet = true;
+
+	/** Cleanup: put the clip's lowest foot contact at height 0. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bGround = true;
+
+	/** Cleanup: frames per second of Pose, 1 to 240 (30 or 60 for a game); 0 = the model's (20
+	 *  for FLAME models). Changes the frame count (GetFrameCount): the first and last frames'
+	 *  times are kept, 40 frames at 20 fps are 59 at 30. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup", meta = (ClampMin = "0", ClampMax = "240"))
+	float FrameRate = 0.f;
+
+	/** Cleanup: where the horizontal travel goes. Separate fills RootBoneLocations. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	EFlameRootMotion RootMotion = EFlameRootMotion::Keep;
+
+	/** Cleanup, with InPlace or Separate root motion: also remove the heading's drift. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bRemoveYaw = false;
+
 	/** Editing: a FlameEditTask value of flame.h, or -1 (the default) for plain generation.
 	 *  0 = in-betweening (keep all but the middle half of the frames), 1 = prediction (keep
 	 *  the first quarter), 2 = upper body (keep root path, pelvis and legs), 3 = path (keep
@@ -223,8 +262,8 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	TArray<float> Pose;
 
-	/** Frames of the latest Pose, as libflame reports them (flame_session_read_frames): Frames
-	 *  (or the model's default), except for a latent model, whose decoder decides the length. */
+	/** Frames of the latest Pose: Frames (or the model's default) resampled to FrameRate,
+	 *  except for a latent model, whose decoder decides the length. */
 	UFUNCTION(BlueprintPure, Category = "Flame")
 	int32 GetFrameCount() const { return PoseFrames; }
 
@@ -248,6 +287,20 @@ public:
 	/** The root joint's positions, frame-major: GetFrameCount() × 3 floats. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	TArray<float> RootLocations;
+
+	/** With RootMotion Separate, the root bone's positions (on the ground: height 0),
+	 *  frame-major: GetFrameCount() × 3 floats in Convention; empty otherwise. The pelvis
+	 *  (RootLocations) plus this is the pelvis's path with RootMotion Keep. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Cleanup")
+	TArray<float> RootBoneLocations;
+
+	/** The root bone's position in a frame (zero when out of range or without Separate). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Cleanup")
+	FVector GetRootBoneLocation(int32 Frame) const;
+
+	/** Frames per second of the latest Pose: FrameRate, or the model's. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Cleanup")
+	float PoseFrameRate = 0.f;
 
 	/** The model's skeleton (from flame_model_info), filled once the model is loaded. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
@@ -279,8 +332,8 @@ public:
 	 *  (flame_session_write_gltf), in OutBytes: bBinary = binary glTF (.glb), else JSON glTF
 	 *  (.gltf) with the buffer embedded. The skeleton's joints are nodes named as JointNames,
 	 *  with a skinned box figure and one animation (root translation and joint rotations, in
-	 *  glTF's convention: Y up, metres) at the model's frame rate, read with the generation's
-	 *  ReadFlags; the prompt, seed and libflame version are in asset.extras. Unreal's glTF
+	 *  glTF's convention: Y up, metres) read with the generation's ReadFlags and cleanup (its
+	 *  FrameRate, feet and ground; RootMotion Separate adds a node "root"); the prompt, seed and libflame version are in asset.extras. Unreal's glTF
 	 *  importer (and Blender, Godot, three.js) loads it. Runs on the calling thread, a few
 	 *  milliseconds. False, with OutBytes empty and the reason in LastError, when there is no
 	 *  such motion: before the first generation succeeded, while one runs, after one failed or
