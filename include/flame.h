@@ -67,6 +67,26 @@ typedef enum FlameStatus {
   FLAME_STATUS_NOT_FINITE = 9,
 } FlameStatus;
 
+// What happens to the feet during their contact spans ([`FlameCleanupParams::feet`]).
+typedef enum FlameFeet {
+  // The raw poses: feet may slide.
+  FLAME_FEET_OFF = 0,
+  // Each planted foot pinned where it stands, the leg solved by two-bone IK; bone lengths and
+  // everything above the knees unchanged.
+  FLAME_FEET_LOCK = 1,
+} FlameFeet;
+
+// Where the clip's horizontal travel goes ([`FlameCleanupParams::root_motion`]).
+typedef enum FlameRootMotion {
+  // On the pelvis, as the model made it.
+  FLAME_ROOT_MOTION_KEEP = 0,
+  // Removed: the pelvis stays over the origin.
+  FLAME_ROOT_MOTION_IN_PLACE = 1,
+  // On a `root` bone on the ground under the pelvis: the pelvis reads as in-place, the
+  // bone's track as `FLAME_LAYOUT_ROOT_BONE`, and glTF exports write the bone.
+  FLAME_ROOT_MOTION_SEPARATE = 2,
+} FlameRootMotion;
+
 // Sampler choice in [`FlameSessionParams`].
 typedef enum FlameSampler {
   // The model file's default.

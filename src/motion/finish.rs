@@ -84,9 +84,11 @@ impl Finish {
         }
     }
 
-    /// Whether this leaves the decoded poses untouched.
+    /// Whether this leaves the decoded poses untouched: every step off and the default contact
+    /// detection (other contact parameters change the contacts a read gives).
     pub fn is_identity(&self) -> bool {
-        !self.ground
+        self.contacts == ContactParams::default()
+            && !self.ground
             && self.feet == Feet::Off
             && !self.wrap
             && self.root_motion == RootMotion::Keep

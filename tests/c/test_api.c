@@ -1026,12 +1026,15 @@ static void test_layouts(const FlameModel *m) {
     free(native);
     free(unreal);
 
-    /* Errors: foot contacts (not in smpl24_6d), unknown layouts, conventions and flags; a
-     * too-small buffer for a pose layout. */
+    /* smpl24_6d's foot contacts are detected (4 per frame); a raw read has no root bone;
+     * errors: unknown layouts, conventions and flags; a too-small buffer for a pose layout. */
+    CHECK_OK(
+        flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS, 0, 0, NULL, 0, &n));
+    CHECK(n == F * 4);
     CHECK_ERROR_MENTIONS(
-        flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS, 0, 0, NULL, 0, &n),
-        FLAME_STATUS_INVALID_ARGUMENT, "foot contacts");
-    CHECK_STATUS(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_FOOT_CONTACTS + 1, 0, 0,
+        flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_BONE, 0, 0, NULL, 0, &n),
+        FLAME_STATUS_INVALID_ARGUMENT, "root bone");
+    CHECK_STATUS(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_ROOT_BONE + 1, 0, 0,
                                     NULL, 0, &n),
                  FLAME_STATUS_INVALID_ARGUMENT);
     CHECK_ERROR_MENTIONS(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_LOCAL6D,
