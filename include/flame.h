@@ -1060,6 +1060,43 @@ enum FlameStatus flame_stream_read(const struct FlameStream *stream,
                                    size_t len,
                                    size_t *out_len);
 
+// Declares the stream's timeline complete: pushing or interrupting afterwards is
+// `WRONG_STATE`. Once the pushed segments are generated every frame's cleanup settles (the
+// last contact spans and swings end with the timeline); until then, the frames of an open
+// span or swing wait for it to end (see [`flame_stream_read_cleaned`]).
+//
+// # Safety
+// `stream` is a live stream.
+enum FlameStatus flame_stream_close(const struct FlameStream *stream);
+
+// [`flame_stream_read`] with post-processing: frames `first_frame..first_frame + count` of
+// the timeline after `cleanup` (NULL = the raw poses, exactly `flame_stream_read`), at the
+// cleanup's frame rate: frame `k` is at `k / fps` seconds of the timeline (with `fps` 0, the
+// timeline's own frames). The first call that passes a cleanup sets the stream's, once: a
+// frame handed out never changes, so later calls must pass the same values
+// (`WRONG_STATE` otherwise), and frame 0 must still be held. A loop wrap is
+// `INVALID_ARGUMENT` (a stream has no end to wrap); so is layout 0 (features are never cleaned).
+//
+// A frame is readable once its cleanup is final ("settled"): its foot contacts are decided,
+// and, with feet locked, its contact span has ended (its pin is the span's mean) and, in a
+// swing, the next span has ended (the swing is redrawn pin to pin). Frames not settled yet
+// are `WRONG_STATE` (pump more; the error message says how many are settled). After
+// [`flame_stream_close`], every generated frame settles. The floor (`ground`) is the lowest
+// contact point of the first chunk, fixed for the whole stream. Length protocol as
+// `flame_stream_read`.
+//
+// # Safety
+// As `flame_stream_read`; `cleanup` is NULL or points to a valid `FlameCleanupParams`.
+enum FlameStatus flame_stream_read_cleaned(const struct FlameStream *stream,
+                                           uint64_t first_frame,
+                                           uint32_t count,
+                                           int32_t layout,
+                                           int32_t convention,
+                                           const struct FlameCleanupParams *cleanup,
+                                           float *out,
+                                           size_t len,
+                                           size_t *out_len);
+
 #ifdef __cplusplus
 }  // extern "C"
 #endif  // __cplusplus

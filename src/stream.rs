@@ -34,6 +34,59 @@
 //!
 //! Frames older than `window` frames before the playhead are dropped; reading them is an
 //! error naming the window, as is reading frames not generated yet (a status, never a wait).
+//!
+//! # Cleanup
+//!
+//! [`Stream::read_cleaned`] reads frames after the hand-over post-processing
+//! ([`Finish`]: contacts, floor, foot locking, root motion, frame rate), consistent across chunk
+//! seams: a frame handed out never changes, and reading frame `t` alone gives the bits reading
+//! the whole timeline gives. The cleanup is set once ([`Stream::set_finish`], before frame 0 is
+//! dropped; the C ABI's first cleaned read sets it), so a frame's cleaned pose never depends on
+//! which ranges were read or when. Cleaned frames are made incrementally, each exactly once,
+//! and cached ("settled"): after every [`Stream::pump`] and before every cleaned read, the
+//! frames whose cleanup can no longer change are cleaned and kept; later frames are
+//! [`Error::WrongState`] ("not settled yet: pump more"), like frames not generated yet.
+//!
+//! - **Contacts** (smpl24_6d, detected) are followed from frame 0 exactly as
+//!   [`crate::motion::contacts`] detects them on a whole clip: the hysteresis state carries
+//!   over from frame to frame; a frame's raw contact waits for the next frame (the speed's
+//!   central difference); the minimum span's gap closing and span dropping are decided per
+//!   slot as soon as the gap or span is long enough or has ended. humanml263's own contacts
+//!   are final at once.
+//! - **Floor**: the detection floor (the lowest foot joint) and the contact floor (the lowest
+//!   contact point, which `ground` puts at 0 and locking keeps feet above) cannot come from a
+//!   whole clip: both are the first chunk's, as if it were a clip on its own, fixed for the
+//!   stream. A later frame may go below it (the floor is not re-fitted).
+//! - **Feet** (lock): a frame settles when its contact span has ended (its pins are the span's
+//!   means); a frame in a swing when the next span has ended (the swing is redrawn pin to pin)
+//!   and every span whose [`feet::FADE_SECONDS`] fade reaches it has ended. Each settle runs
+//!   [`feet`]'s lock over a working window from the start of the spans the first unsettled
+//!   frame depends on to the last frame whose contacts are final, and keeps only the frames
+//!   before the horizon: those get the bits the whole clip's lock gives them.
+//! - **Root motion**: per frame; `remove_yaw` turns every frame to frame 0's heading.
+//! - **Frame rate**: cleaned frames are indexed at the cleanup's rate: cleaned frame `k` is at
+//!   `k / fps` seconds of the timeline (timeline frame `t` at `t / model fps`), resampled from
+//!   settled frames only ([`resample`]'s exact arithmetic: frames on a source frame's time are
+//!   its bits). Without `fps`, cleaned frame `k` is timeline frame `k`.
+//! - **Loop wrap** joins a clip's end to its start: a stream has no end, so it is refused.
+//! - **End**: [`Stream::close`] declares the timeline complete; once its frames are generated,
+//!   every frame settles (the last spans and swings end with the timeline, as a clip's do).
+//!   Without it the stream cannot know a span at the newest frame is the last.
+//!
+//! **Latency** (frames generated but not settled yet): with contacts only (no locking), one
+//! frame plus the minimum span (2 frames at 20 fps) at most. With locking, until the newest
+//! contact span and the swing before it have ended: on the demo model (chunks of 120 frames
+//! keeping 20, a walk then a jump, game-ready cleanup) 28, 34 and 21 frames after each chunk
+//! landed, at most 1.7 s at 20 fps (`tests/stream_cleaned.rs`); an engine keeps that much more
+//! lookahead. A leg that stays in the air (never planted) holds its frames back until a span
+//! ends or the stream is closed: the whole-clip cleanup treats a swing before its first span,
+//! and a leg never planted, differently, and only the future tells which it is.
+//!
+//! Memory: settled frames behind the window are dropped with the held ones; the held frames a
+//! settle still reads (back to the start of the spans the first unsettled frame depends on)
+//! are kept past the window until settled. Bit-for-bit equality with a whole read assumes no
+//! humanml263 frame was dropped before its settle (dropping re-anchors the root path, as for
+//! raw reads).
 
 use std::collections::VecDeque;
 use std::sync::atomic::AtomicBool;
@@ -42,7 +95,8 @@ use std::sync::Arc;
 use crate::error::{invalid_arg, Error, Result};
 use crate::models::Model;
 use crate::motion::humanml263::RootStart;
-use crate::motion::{Convention, Format, Layout, Poses};
+use crate::motion::{contacts, feet, resample, root_motion};
+use crate::motion::{Convention, Feet, Finish, Format, Layout, Poses, RootMotion};
 use crate::session::{Session, SessionParams, Which};
 use crate::stages::{Stage, PART_COUNT};
 use crate::targets::PositionTargets;
@@ -233,6 +287,12 @@ pub struct Stream {
     cancel: Arc<AtomicBool>,
     /// Quaternion tracks of the held frames (see [`QuatTracks`]).
     quats: std::cell::RefCell<QuatTracks>,
+    /// The cleanup of [`Stream::read_cleaned`], once set.
+    cleanup: Option<Cleanup>,
+    /// No segment comes after the pushed ones ([`Stream::close`]).
+    closed: bool,
+    /// Where the first chunk ended (the cleanup's floors come from its frames).
+    first_chunk: Option<usize>,
 }
 
 /// Sign-continuous quaternion tracks of the held frames, one per (local or world rotations,
@@ -312,6 +372,9 @@ impl Stream {
             decoded: Default::default(),
             cancel: Arc::new(AtomicBool::new(false)),
             quats: Default::default(),
+            cleanup: None,
+            closed: false,
+            first_chunk: None,
         })
     }
 
@@ -334,6 +397,7 @@ impl Stream {
 
     /// Appends a segment to the timeline.
     pub fn push(&mut self, segment: Segment) -> Result<()> {
+        self.check_open()?;
         segment.check()?;
         self.segments.push_back((segment, 0));
         Ok(())
@@ -343,6 +407,7 @@ impl Stream {
     /// generated, or the frames ready when none is), drops the segments queued after it and
     /// pushes `segment` in their place.
     pub fn interrupt(&mut self, segment: Segment) -> Result<()> {
+        self.check_open()?;
         segment.check()?;
         let in_flight = self
             .current
@@ -360,6 +425,15 @@ impl Stream {
             }
         }
         self.segments.push_back((segment, 0));
+        Ok(())
+    }
+
+    fn check_open(&self) -> Result<()> {
+        if self.closed {
+            return Err(Error::WrongState(
+                "the stream was closed: its timeline takes no more segments".into(),
+            ));
+        }
         Ok(())
     }
 
@@ -411,6 +485,9 @@ impl Stream {
                 self.finish_chunk()?;
             }
         }
+        // Settled as frames come, whether or not cleaned frames are read, so the frames a
+        // settle needs are never held longer than that.
+        self.settle()?;
         Ok(self.report(steps))
     }
 
@@ -520,6 +597,9 @@ impl Stream {
         }
         let added = frames - c.kept;
         self.features.extend_from_slice(&new);
+        if self.first_chunk.is_none() {
+            self.first_chunk = Some(self.ready());
+        }
         self.held_changed();
         if let Some((_, done)) = self.segments.front_mut() {
             *done += added;
@@ -555,10 +635,13 @@ impl Stream {
     /// needs), re-anchoring relative formats.
     fn drop_old(&mut self) -> Result<()> {
         let dim = self.model.motion_dim();
-        let keep_from = self
-            .playhead
-            .saturating_sub(self.params.window)
-            .min(self.ready().saturating_sub(self.params.overlap));
+        let window_from = self.playhead.saturating_sub(self.params.window);
+        self.drop_cleaned(window_from)?;
+        let mut keep_from = window_from.min(self.ready().saturating_sub(self.params.overlap));
+        if let Some(c) = &self.cleanup {
+            // The frames the next settle reads stay (module doc, "Cleanup").
+            keep_from = keep_from.min(c.context);
+        }
         if keep_from <= self.first {
             return Ok(());
         }
@@ -701,6 +784,664 @@ impl Stream {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Cleaned reads (module doc, "Cleanup").
+
+/// The foot contact slots of each leg (ankle, toe), as in [`crate::motion::contacts`].
+const LEG_SLOTS: [(usize, usize); 2] = [(0, 1), (2, 3)];
+
+/// The cleanup of a stream: what is final so far and the cleaned frames (module doc).
+struct Cleanup {
+    finish: Finish,
+    /// The model's frame rate (the timeline's).
+    fps: f64,
+    /// The detection floor (lowest foot joint) and the contact floor (lowest contact point) of
+    /// the first chunk, fixed once.
+    floors: Option<(f64, f64)>,
+    /// Hysteresis contacts of frames `raw_first..`, and each slot's state after the last.
+    raw: VecDeque<[bool; 4]>,
+    raw_first: usize,
+    on: [bool; 4],
+    /// Final contacts of frames `fin_first..`; slot `s` is final up to `done[s]` (exclusive);
+    /// `cut[s]`: where its next scan starts (0 or the start of a surviving gap).
+    fin: VecDeque<[bool; 4]>,
+    fin_first: usize,
+    done: [usize; 4],
+    cut: [usize; 4],
+    /// Source frames `0..settled` are cleaned (before resampling).
+    settled: usize,
+    /// The heading of frame 0 and of frame `settled − 1` (remove_yaw).
+    psi0: Option<f64>,
+    last_psi: f64,
+    /// Cleaned source frames `src_first..settled` kept for resampling (empty without it).
+    src: Option<Poses>,
+    src_first: usize,
+    /// Cleaned output frames `out_first..out_first + out.frames`.
+    out: Option<Poses>,
+    out_first: usize,
+    /// Sign-continuous quaternion tracks per [`track_slot`]: the first output frame each
+    /// holds, and its quaternions (`[frames × joints]`); made on first read, then extended.
+    quats: [(usize, Vec<[f64; 4]>); 12],
+    /// The first frame the next settle reads (held frames before it may be dropped).
+    context: usize,
+}
+
+impl Cleanup {
+    fn resampling(&self) -> Option<f64> {
+        self.finish.fps.filter(|&f| f != self.fps)
+    }
+
+    fn out_end(&self) -> usize {
+        self.out_first + self.out.as_ref().map_or(0, |p| p.frames)
+    }
+
+    fn planted(&self, t: usize, (a, f): (usize, usize)) -> bool {
+        let c = self.fin[t - self.fin_first];
+        c[a] || c[f]
+    }
+
+    /// The first frame whose cleanup a settle at `u` (the first unsettled frame) reads, given
+    /// final contacts up to `c` (module doc: the span of `u`, the span before its swing and
+    /// every span whose fade reaches `u`).
+    fn context_start(&self, u: usize, c: usize, fade: usize) -> usize {
+        if self.finish.feet != Feet::Lock || u >= c {
+            return u.min(c).max(self.fin_first);
+        }
+        let mut w0 = u;
+        for leg in LEG_SLOTS {
+            let start_of = |mut t: usize, v: bool| {
+                while t > self.fin_first && self.planted(t - 1, leg) == v {
+                    t -= 1;
+                }
+                t
+            };
+            let bound = if self.planted(u, leg) {
+                u
+            } else {
+                let s = start_of(u, false);
+                if s == 0 {
+                    w0 = 0;
+                    continue;
+                }
+                s - 1
+            };
+            let bound = bound.min(u.saturating_sub(fade)).max(self.fin_first);
+            let leg_w0 = if self.planted(bound, leg) {
+                start_of(bound, true)
+            } else {
+                bound
+            };
+            w0 = w0.min(leg_w0);
+        }
+        w0
+    }
+}
+
+/// One slot's final contacts ([`contacts`]' `clean_spans` on the whole timeline, decided as far
+/// as the raw track `raw(t)`, `from..known`, allows): the values of frames `from..` and where
+/// the next scan may start. `from` is 0 or the start of a gap that survives; `end` is the
+/// timeline's length once it has one.
+fn settle_slot(
+    raw: impl Fn(usize) -> bool,
+    from: usize,
+    known: usize,
+    end: Option<usize>,
+    min: usize,
+) -> (Vec<bool>, usize) {
+    #[derive(PartialEq)]
+    enum Gap {
+        Survives,
+        Filled,
+        Undecided,
+    }
+    let mut runs: Vec<(bool, usize, usize)> = Vec::new();
+    for t in from..known {
+        let v = raw(t);
+        match runs.last_mut() {
+            Some(r) if r.0 == v => r.2 = t + 1,
+            _ => runs.push((v, t, t + 1)),
+        }
+    }
+    let gap = |i: usize| {
+        let (_, s, e) = runs[i];
+        let complete = i + 1 < runs.len() || end.is_some();
+        if s == 0 || (complete && Some(e) == end) || e - s >= min {
+            Gap::Survives
+        } else if complete {
+            Gap::Filled
+        } else {
+            Gap::Undecided
+        }
+    };
+    let (mut vals, mut cut) = (Vec::new(), from);
+    let mut i = 0;
+    while i < runs.len() {
+        let (v, s, e) = runs[i];
+        if !v {
+            match gap(i) {
+                Gap::Survives => {
+                    vals.resize(vals.len() + (e - s), false);
+                    cut = s;
+                    i += 1;
+                    continue;
+                }
+                Gap::Undecided => break,
+                Gap::Filled => {}
+            }
+        }
+        // A contact span: runs joined by filled gaps, up to a surviving gap.
+        let (mut j, mut len, mut bounded) = (i, 0, false);
+        while j < runs.len() {
+            let (v, s2, e2) = runs[j];
+            if v || gap(j) == Gap::Filled {
+                len += e2 - s2;
+                j += 1;
+                continue;
+            }
+            bounded = gap(j) == Gap::Survives;
+            break;
+        }
+        let complete = bounded || (j == runs.len() && end.is_some());
+        if complete {
+            let keep = len >= min || (s == 0 && Some(s + len) == end);
+            vals.resize(vals.len() + len, keep);
+            i = j;
+            continue;
+        }
+        if len >= min {
+            vals.resize(vals.len() + len, true);
+        }
+        break;
+    }
+    (vals, cut)
+}
+
+/// Appends `b`'s frames to `a`.
+fn append(a: &mut Poses, b: &Poses) {
+    a.frames += b.frames;
+    a.root.extend_from_slice(&b.root);
+    a.local.extend_from_slice(&b.local);
+    a.global.extend_from_slice(&b.global);
+    a.positions.extend_from_slice(&b.positions);
+    a.contacts.extend_from_slice(&b.contacts);
+    a.root_bone.extend_from_slice(&b.root_bone);
+}
+
+/// Drops `a`'s first `n` frames.
+fn drain_front(a: &mut Poses, n: usize) {
+    let n = n.min(a.frames);
+    let j = a.joint_count();
+    a.frames -= n;
+    a.root.drain(..n);
+    a.local.drain(..n * j);
+    a.global.drain(..n * j);
+    a.positions.drain(..n * j);
+    if !a.contacts.is_empty() {
+        a.contacts.drain(..n);
+    }
+    if !a.root_bone.is_empty() {
+        a.root_bone.drain(..n);
+    }
+}
+
+impl Stream {
+    /// Sets the cleanup of [`Stream::read_cleaned`] (module doc, "Cleanup"), once: again with
+    /// the same value is a no-op, another value is [`Error::WrongState`]. Refuses a loop wrap
+    /// (a stream has no end to wrap) and, once frame 0 was dropped, any cleanup (contacts are
+    /// tracked from frame 0 on).
+    pub fn set_finish(&mut self, finish: Finish) -> Result<()> {
+        finish.validate()?;
+        if finish.wrap || finish.wrap_to_last {
+            return Err(invalid_arg!(
+                "a stream cannot wrap: a loop's wrap joins a clip's end to its start, and a \
+                 stream's timeline goes on (turn wrap off, or finish the whole timeline as a clip)"
+            ));
+        }
+        if let Some(c) = &self.cleanup {
+            if c.finish == finish {
+                return Ok(());
+            }
+            return Err(Error::WrongState(
+                "the stream's cleanup is set once (frames handed out never change): it is \
+                 already set to other values"
+                    .into(),
+            ));
+        }
+        if self.first > 0 {
+            return Err(Error::WrongState(format!(
+                "frames before {} were dropped: the cleanup follows contacts from frame 0, so \
+                 set it before the playhead moves {} frames on",
+                self.first, self.params.window
+            )));
+        }
+        self.cleanup = Some(Cleanup {
+            finish,
+            fps: self.model.read_options(0.0, true).fps as f64,
+            floors: None,
+            raw: VecDeque::new(),
+            raw_first: 0,
+            on: [false; 4],
+            fin: VecDeque::new(),
+            fin_first: 0,
+            done: [0; 4],
+            cut: [0; 4],
+            settled: 0,
+            psi0: None,
+            last_psi: 0.0,
+            src: None,
+            src_first: 0,
+            out: None,
+            out_first: 0,
+            quats: Default::default(),
+            context: 0,
+        });
+        self.settle()
+    }
+
+    /// The cleanup set by [`Stream::set_finish`].
+    pub fn finish(&self) -> Option<&Finish> {
+        self.cleanup.as_ref().map(|c| &c.finish)
+    }
+
+    /// Declares the timeline complete: no segment is pushed after this one. Once the pushed
+    /// segments are generated, every frame settles (module doc).
+    pub fn close(&mut self) {
+        self.closed = true;
+    }
+
+    pub fn is_closed(&self) -> bool {
+        self.closed
+    }
+
+    /// Closed and every pushed frame generated: the timeline's length is [`Stream::ready`].
+    pub fn is_complete(&self) -> bool {
+        self.closed && self.current.is_none() && self.segments.iter().all(|(s, d)| *d >= s.frames)
+    }
+
+    /// Output frames of [`Stream::read_cleaned`] settled so far (frames `..settled` exist,
+    /// minus the dropped), at the cleanup's frame rate.
+    pub fn settled(&self) -> usize {
+        self.cleanup.as_ref().map_or(0, |c| {
+            if c.finish.is_identity() {
+                self.ready()
+            } else {
+                c.out_end()
+            }
+        })
+    }
+
+    /// The first cleaned output frame still held.
+    pub fn first_settled(&self) -> usize {
+        self.cleanup.as_ref().map_or(0, |c| {
+            if c.finish.is_identity() {
+                self.first
+            } else {
+                c.out_first
+            }
+        })
+    }
+
+    /// Cleaned frames `first..first + count` in one layout and convention (module doc,
+    /// "Cleanup"). Frames are at the cleanup's frame rate: frame `k` is at `k / fps` seconds of
+    /// the timeline. Frames not settled yet are [`Error::WrongState`] (pump more); a frame
+    /// read once reads the same bits whatever was pumped or read since.
+    pub fn read_cleaned(
+        &mut self,
+        first: usize,
+        count: usize,
+        layout: Layout,
+        convention: Convention,
+    ) -> Result<Vec<f32>> {
+        let Some(c) = &self.cleanup else {
+            return Err(Error::WrongState(
+                "the stream has no cleanup: set it first (set_finish)".into(),
+            ));
+        };
+        if c.finish.is_identity() {
+            return self.read(first, count, layout, convention);
+        }
+        self.settle()?;
+        let joints = self.model.motion_format().skeleton().joint_count();
+        let c = self.cleanup.as_mut().expect("checked above");
+        let end = first
+            .checked_add(count)
+            .ok_or_else(|| invalid_arg!("frames {first} + {count} overflow"))?;
+        if first < c.out_first {
+            return Err(invalid_arg!(
+                "cleaned frames before {} were dropped (the stream keeps {} frames behind the \
+                 playhead {})",
+                c.out_first,
+                self.params.window,
+                self.playhead
+            ));
+        }
+        if end > c.out_end() {
+            return Err(Error::WrongState(format!(
+                "cleaned frames {first}..{end} are not settled yet ({} settled, {} frames \
+                 generated): pump more",
+                c.out_end(),
+                self.ready()
+            )));
+        }
+        let Some(order) = layout.quat_order() else {
+            let out = c.out.as_ref().expect("frames are settled");
+            return out
+                .frames_range(first - c.out_first, count)
+                .layout(layout, convention);
+        };
+        let world = matches!(layout, Layout::GlobalQuatXyzw | Layout::GlobalQuatWxyz);
+        let slot = track_slot(world, convention);
+        extend_track(c, slot, joints);
+        let (track_first, track) = &c.quats[slot];
+        let a = (first - track_first) * joints;
+        Ok(track[a..a + count * joints]
+            .iter()
+            .flat_map(|q| order.arrange(q))
+            .map(|v| v as f32)
+            .collect())
+    }
+
+    /// Settles what the frames generated allow (module doc): final contacts, then the cleanup
+    /// of the frames whose spans are final, then the resampled frames they cover.
+    fn settle(&mut self) -> Result<()> {
+        let Some(mut c) = self.cleanup.take() else {
+            return Ok(());
+        };
+        let r = self.settle_with(&mut c);
+        self.cleanup = Some(c);
+        r
+    }
+
+    fn settle_with(&self, c: &mut Cleanup) -> Result<()> {
+        if c.finish.is_identity() {
+            return Ok(());
+        }
+        let Some(first_chunk) = self.first_chunk else {
+            return Ok(());
+        };
+        let ready = self.ready();
+        let complete = self.is_complete();
+        let poses = self.decode()?;
+        let held = |t: usize| t - self.first;
+        let format = self.model.motion_format();
+        let joints = format.skeleton().joint_count();
+        let up = format.up_axis();
+        let params = c.finish.contacts;
+        if c.floors.is_none() {
+            if self.first > 0 {
+                return Err(Error::WrongState(format!(
+                    "the cleanup's floor comes from the first chunk, and frames before {} were \
+                     dropped",
+                    self.first
+                )));
+            }
+            let chunk = poses.frames_range(0, first_chunk);
+            let detection = (0..chunk.frames)
+                .flat_map(|t| contacts::SLOT_JOINTS.iter().map(move |&j| (t, j)))
+                .map(|(t, j)| chunk.positions[t * joints + j][up])
+                .fold(f64::INFINITY, f64::min);
+            let on = contacts::of(&chunk, c.fps, &params);
+            let contact = feet::floor_height(&chunk, &on).unwrap_or(0.0);
+            c.floors = Some((detection, contact));
+        }
+        let (detection, contact) = c.floors.expect("set above");
+
+        // 1. Hysteresis contacts (stored ones are final as they are).
+        let stored = poses.contacts.len() == poses.frames && poses.frames > 0;
+        let limit = if complete || stored {
+            ready
+        } else {
+            ready.saturating_sub(1)
+        };
+        let levels = contacts::standing_levels(format);
+        for t in c.raw_first + c.raw.len()..limit {
+            if stored {
+                c.raw.push_back(poses.contacts[held(t)].map(|v| v > 0.5));
+                continue;
+            }
+            let mut row = [false; 4];
+            for (slot, &j) in contacts::SLOT_JOINTS.iter().enumerate() {
+                let at = |i: usize| &poses.positions[held(i) * joints + j];
+                // As `contacts::detect`, with the floor fixed.
+                let height = at(t)[up] - detection - levels[slot];
+                let speed = contacts::speed_at(t, ready, c.fps, at);
+                let k = if c.on[slot] { params.release } else { 1.0 };
+                c.on[slot] = height < params.height * k && speed < params.speed * k;
+                row[slot] = c.on[slot];
+            }
+            c.raw.push_back(row);
+        }
+        // 2. Final contacts.
+        let known = c.raw_first + c.raw.len();
+        let end = complete.then_some(known);
+        let min = params.min_frames(c.fps);
+        for slot in 0..4 {
+            let (vals, cut) = if stored {
+                let from = c.done[slot];
+                let v = (from..known)
+                    .map(|t| c.raw[t - c.raw_first][slot])
+                    .collect();
+                (v, from)
+            } else {
+                settle_slot(
+                    |t| c.raw[t - c.raw_first][slot],
+                    c.cut[slot],
+                    known,
+                    end,
+                    min,
+                )
+            };
+            let from = if stored { c.done[slot] } else { c.cut[slot] };
+            let upto = from + vals.len();
+            for t in c.done[slot].max(from)..upto {
+                while c.fin_first + c.fin.len() <= t {
+                    c.fin.push_back([false; 4]);
+                }
+                c.fin[t - c.fin_first][slot] = vals[t - from];
+            }
+            c.done[slot] = c.done[slot].max(upto);
+            c.cut[slot] = cut;
+        }
+        let fin_end = *c.done.iter().min().expect("four slots");
+        let fade = ((feet::FADE_SECONDS * c.fps).round() as usize).max(1);
+
+        // 3. The settle horizon.
+        let u = c.settled;
+        let mut h = fin_end;
+        if c.finish.feet == Feet::Lock && !complete && fin_end > u {
+            for leg in LEG_SLOTS {
+                let mut t = fin_end - 1;
+                let open_start = if c.planted(t, leg) {
+                    while t > u && c.planted(t - 1, leg) {
+                        t -= 1;
+                    }
+                    t
+                } else {
+                    fin_end
+                };
+                // The swing before the open span (or the open swing) waits for it.
+                let mut region = open_start;
+                while region > u && !c.planted(region - 1, leg) {
+                    region -= 1;
+                }
+                // Swing frames a fade away from the open span wait too.
+                let mut leg_h = region;
+                for t in open_start.saturating_sub(fade).max(u)..region {
+                    if !c.planted(t, leg) {
+                        leg_h = t;
+                        break;
+                    }
+                }
+                h = h.min(leg_h);
+            }
+        }
+
+        // 4. The cleanup of frames u..h over the window w0..fin_end.
+        if h > u {
+            let w0 = c.context_start(u, fin_end, fade);
+            let mut w = poses.frames_range(held(w0), fin_end - w0);
+            let on: Vec<[bool; 4]> = (w0..fin_end).map(|t| c.fin[t - c.fin_first]).collect();
+            w.contacts = on
+                .iter()
+                .map(|r| r.map(|v| f64::from(u8::from(v))))
+                .collect();
+            if c.finish.ground {
+                for p in w.root.iter_mut().chain(w.positions.iter_mut()) {
+                    p[up] -= contact;
+                }
+            }
+            if c.finish.feet == Feet::Lock {
+                let floor = if c.finish.ground { 0.0 } else { contact };
+                feet::lock_on(&mut w, &on, c.fps, Some(floor))?;
+            }
+            let mut new = w.frames_range(u - w0, h - u);
+            if c.finish.root_motion != RootMotion::Keep {
+                let psi = root_motion::headings_after(&new, up, c.last_psi);
+                let psi0 = *c.psi0.get_or_insert(psi[0]);
+                root_motion::apply_after(
+                    &mut new,
+                    c.finish.root_motion,
+                    c.finish.remove_yaw,
+                    Some((psi0, c.last_psi)),
+                );
+                c.last_psi = *psi.last().expect("h > u");
+            }
+            c.settled = h;
+            let store = if c.resampling().is_some() {
+                &mut c.src
+            } else {
+                &mut c.out
+            };
+            match store {
+                Some(p) => append(p, &new),
+                None => *store = Some(new),
+            }
+        }
+
+        // 5. Resampled frames whose source frames are settled.
+        if let Some(to) = c.resampling() {
+            let from = c.out_end();
+            let mut k = from;
+            loop {
+                let (a, exact) = resample::source_of(k, c.fps, to)?;
+                if a + usize::from(!exact) >= c.settled {
+                    break;
+                }
+                k += 1;
+            }
+            if k > from {
+                let src = c.src.as_ref().expect("source frames are settled");
+                let new = resample::resample_range(src, c.fps, to, c.src_first, from..k)?;
+                match &mut c.out {
+                    Some(p) => append(p, &new),
+                    None => c.out = Some(new),
+                }
+            }
+            // Source frames before the next output frame's are no longer needed.
+            let (a, _) = resample::source_of(k, c.fps, to)?;
+            let drop = a.min(c.settled).saturating_sub(c.src_first);
+            if let Some(src) = &mut c.src {
+                drain_front(src, drop);
+                c.src_first += drop;
+            }
+        }
+
+        // 6. What the next settle reads; older bookkeeping goes.
+        let w0 = if c.settled < fin_end {
+            c.context_start(c.settled, fin_end, fade)
+        } else {
+            c.settled.min(fin_end)
+        };
+        let cut = *c.cut.iter().min().expect("four slots");
+        let raw_keep = cut.min(known);
+        let fin_keep = w0.min(cut).min(fin_end);
+        c.raw
+            .drain(..raw_keep.saturating_sub(c.raw_first).min(c.raw.len()));
+        c.raw_first = c.raw_first.max(raw_keep);
+        let n = fin_keep.saturating_sub(c.fin_first).min(c.fin.len());
+        c.fin.drain(..n);
+        c.fin_first += n;
+        c.context = w0.min(known.saturating_sub(1)).min(c.settled);
+        Ok(())
+    }
+
+    /// Drops cleaned frames whose time is before timeline frame `frame`.
+    fn drop_cleaned(&mut self, frame: usize) -> Result<()> {
+        let Some(c) = &mut self.cleanup else {
+            return Ok(());
+        };
+        let joints = self.model.motion_format().skeleton().joint_count();
+        let out_frame = match c.resampling() {
+            None => frame,
+            Some(to) => {
+                // The first output frame at or after the time of `frame`.
+                let mut k = (frame as f64 * to / c.fps).floor() as usize;
+                while k > 0 && resample::source_of(k - 1, c.fps, to)?.0 >= frame {
+                    k -= 1;
+                }
+                while resample::source_of(k, c.fps, to)?.0 < frame {
+                    k += 1;
+                }
+                k
+            }
+        };
+        let n = out_frame
+            .saturating_sub(c.out_first)
+            .min(c.out.as_ref().map_or(0, |p| p.frames));
+        if n == 0 {
+            return Ok(());
+        }
+        // Tracks already read keep their signs: extended first, each keeps at least its last
+        // frame (the next frames' signs continue from it).
+        for slot in 0..c.quats.len() {
+            if c.quats[slot].1.is_empty() {
+                continue;
+            }
+            extend_track(c, slot, joints);
+            let (track_first, track) = &mut c.quats[slot];
+            let drop = (c.out_first + n - *track_first).min(track.len() / joints - 1);
+            track.drain(..drop * joints);
+            *track_first += drop;
+        }
+        if let Some(p) = &mut c.out {
+            drain_front(p, n);
+        }
+        c.out_first += n;
+        Ok(())
+    }
+}
+
+/// Extends `c`'s quaternion track `slot` to every cleaned output frame, its signs continuing
+/// from its last frame (the first frame's as [`crate::motion::rotation::to_quat`] gives them).
+fn extend_track(c: &mut Cleanup, slot: usize, joints: usize) {
+    let out_end = c.out_end();
+    let Some(out) = c.out.as_ref() else {
+        return;
+    };
+    let (track_first, track) = &mut c.quats[slot];
+    if track.is_empty() {
+        *track_first = c.out_first;
+    }
+    let have = *track_first + track.len() / joints;
+    if have >= out_end {
+        return;
+    }
+    let convention = Convention::ALL[slot % Convention::ALL.len()];
+    let new = out.frames_range(have - c.out_first, out_end - have);
+    let rotations = if slot >= Convention::ALL.len() {
+        new.global_rotations(convention)
+    } else {
+        new.local_rotations(convention)
+    };
+    let lead = track.len().saturating_sub(joints);
+    let mut q: Vec<[f64; 4]> = track[lead..].to_vec();
+    let led = q.len();
+    q.extend(rotations.iter().map(crate::motion::rotation::to_quat));
+    let frames = q.len() / joints;
+    crate::motion::postprocess::make_continuous(&mut q, frames, joints);
+    track.extend_from_slice(&q[led..]);
+}
+
 /// The seed of chunk `k`: the stream's seed and the index through splitmix64's finaliser, so
 /// neighbouring chunks draw unrelated noise.
 fn chunk_seed(seed: u64, k: u64) -> u64 {
@@ -786,5 +1527,361 @@ mod tests {
             seed: steered.seed(),
             ..params.session.clone()
         }
+    }
+}
+
+#[cfg(test)]
+mod cleanup_tests {
+    //! Cleaned reads on the tiny fixtures: frames read one at a time as they settle are the bits
+    //! of one read at the end, never change, and equal the whole-clip cleanup on the same floors.
+    use super::*;
+    use crate::session::Sampler;
+
+    fn model(name: &str) -> Arc<Model> {
+        Arc::new(
+            Model::load(
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join(format!("tests/fixtures/{name}.safetensors")),
+            )
+            .unwrap(),
+        )
+    }
+
+    fn stream(name: &str, frames: &[usize]) -> Stream {
+        let params = StreamParams {
+            chunk: 40,
+            overlap: 10,
+            lookahead: 1000,
+            window: 10_000,
+            session: SessionParams {
+                steps: Some(2),
+                sampler: Some(Sampler::Ddim),
+                seed: 7,
+                threads: 1,
+                ..Default::default()
+            },
+        };
+        let mut s = Stream::new(model(name), &params).unwrap();
+        for (i, &n) in frames.iter().enumerate() {
+            let prompt = [
+                "a person walks forward.",
+                "a person runs.",
+                "a person jumps.",
+            ][i % 3];
+            s.push(Segment::new(prompt, n)).unwrap();
+        }
+        s.close();
+        s
+    }
+
+    /// Every option that has a stream meaning: contacts, floor, feet, root bone, no yaw drift.
+    /// The random-weight fixture's feet move at 6 to 31 m/s (10th to 90th percentile) at
+    /// heights spread over 2 m, so the default detection finds no contact: the widest values
+    /// [`ContactParams::validate`] allows, and no minimum span (its rare slow frames are single),
+    /// give it spans on both legs. `settle_slot_decides_what_clean_spans_gives` covers the
+    /// minimum span.
+    fn finish(fps: Option<f64>) -> Finish {
+        Finish {
+            root_motion: RootMotion::Separate,
+            remove_yaw: true,
+            fps,
+            contacts: crate::motion::ContactParams {
+                height: 1.0,
+                speed: 20.0,
+                release: 1.0,
+                min_span: 0.0,
+            },
+            ..Finish::game_ready()
+        }
+    }
+
+    const LAYOUTS: [Layout; 4] = [
+        Layout::GlobalPositions,
+        Layout::LocalQuatWxyz,
+        Layout::FootContacts,
+        Layout::RootBone,
+    ];
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// Pumps one step at a time; after each pump reads every newly settled frame alone (and
+    /// re-reads the first one, which must not have changed). Returns per layout the frames read
+    /// one by one, and the lag (frames generated but not settled) after each pump.
+    fn one_by_one(s: &mut Stream) -> (Vec<Vec<u32>>, Vec<usize>) {
+        let mut got = vec![Vec::new(); LAYOUTS.len()];
+        let (mut next, mut lags) = (0, Vec::new());
+        let mut first_read: Option<Vec<u32>> = None;
+        loop {
+            let r = s.pump(1).unwrap();
+            while next < s.settled() {
+                for (l, g) in LAYOUTS.iter().zip(&mut got) {
+                    g.extend(bits(
+                        &s.read_cleaned(next, 1, *l, Convention::Unity).unwrap(),
+                    ));
+                }
+                next += 1;
+            }
+            // The next frame is not settled yet: a status, not a value.
+            match s.read_cleaned(next, 1, Layout::GlobalPositions, Convention::Unity) {
+                Err(Error::WrongState(m)) => assert!(m.contains("not settled yet"), "{m}"),
+                other => assert!(s.is_complete(), "{other:?}"),
+            }
+            let f0 = bits(
+                &s.read_cleaned(0, 1, Layout::GlobalPositions, Convention::Unity)
+                    .unwrap_or_default(),
+            );
+            match &first_read {
+                Some(f) if !f0.is_empty() => assert_eq!(f, &f0, "frame 0 changed"),
+                None if !f0.is_empty() => first_read = Some(f0),
+                _ => {}
+            }
+            let settled_time = s.settled() as f64 / s.finish().unwrap().output_fps(20.0);
+            lags.push(s.ready() - (settled_time * 20.0).ceil() as usize);
+            if r.steps == 0 {
+                return (got, lags);
+            }
+        }
+    }
+
+    #[test]
+    fn frames_read_as_they_settle_are_the_bits_of_one_read_at_the_end() {
+        for (name, fps) in [
+            ("flame_tiny", None),
+            ("mdm_tiny", Some(30.0)),
+            ("flame_tiny", Some(24.0)),
+        ] {
+            let mut s = stream(name, &[70, 45]);
+            s.set_finish(finish(fps)).unwrap();
+            let (got, lags) = one_by_one(&mut s);
+            assert!(s.is_complete());
+            assert_eq!(s.ready(), 115);
+            let n = s.settled();
+            // Every frame settles once the timeline is complete: 115 at 20 fps, ⌊114·r/20⌋ + 1.
+            let want_n = fps.map_or(115, |r| (114.0 * r / 20.0).floor() as usize + 1);
+            assert_eq!(n, want_n, "{name}");
+            // The same timeline generated and settled in one pump: one settle over the whole.
+            let mut whole = stream(name, &[70, 45]);
+            whole.set_finish(finish(fps)).unwrap();
+            whole.pump(usize::MAX).unwrap();
+            assert_eq!(whole.settled(), n);
+            for (l, g) in LAYOUTS.iter().zip(&got) {
+                let at_end = s.read_cleaned(0, n, *l, Convention::Unity).unwrap();
+                assert_eq!(g, &bits(&at_end), "{name} {l:?}");
+                let at_once = whole.read_cleaned(0, n, *l, Convention::Unity).unwrap();
+                assert_eq!(g, &bits(&at_once), "{name} {l:?}");
+            }
+            let max_lag = lags.iter().max().unwrap();
+            eprintln!("{name} at {fps:?}: lag after each pump {lags:?} (max {max_lag})");
+        }
+    }
+
+    /// The whole clip finished as a clip (`Finish::apply`'s steps) on the stream's floors gives
+    /// the stream's cleaned frames bit for bit, across chunk seams.
+    #[test]
+    fn cleaned_frames_equal_the_whole_clip_cleanup_on_the_same_floors() {
+        for (name, fps) in [("flame_tiny", Some(30.0)), ("mdm_tiny", None)] {
+            let mut s = stream(name, &[70, 45]);
+            let f = finish(fps);
+            s.set_finish(f).unwrap();
+            // One step per pump: many settles, each over its own window.
+            while s.pump(1).unwrap().steps > 0 {}
+            let n = s.settled();
+            let raw = s.poses(0, 115).unwrap();
+            let (detection, contact) = s.cleanup.as_ref().unwrap().floors.unwrap();
+            let mut want = raw.clone();
+            let on = contacts::detect_on(&raw, 20.0, &f.contacts, Some(detection));
+            let on = if raw.contacts.is_empty() {
+                on
+            } else {
+                contacts::of(&raw, 20.0, &f.contacts)
+            };
+            want.contacts = on
+                .iter()
+                .map(|c| c.map(|v| f64::from(u8::from(v))))
+                .collect();
+            for p in want.root.iter_mut().chain(want.positions.iter_mut()) {
+                p[raw.format.up_axis()] -= contact;
+            }
+            feet::lock_on(&mut want, &on, 20.0, Some(0.0)).unwrap();
+            root_motion::apply(&mut want, f.root_motion, f.remove_yaw);
+            if let Some(to) = fps {
+                want = resample::resample(&want, 20.0, to).unwrap();
+            }
+            assert_eq!(want.frames, n);
+            for l in LAYOUTS {
+                let got = s.read_cleaned(0, n, l, Convention::Native).unwrap();
+                assert_eq!(
+                    bits(&got),
+                    bits(&want.layout(l, Convention::Native).unwrap()),
+                    "{name} {l:?}"
+                );
+            }
+            // The locking did something: some contact frames moved.
+            assert_ne!(
+                bits(
+                    &raw.layout(Layout::GlobalPositions, Convention::Native)
+                        .unwrap()
+                ),
+                bits(
+                    &s.read_cleaned(0, 115.min(n), Layout::GlobalPositions, Convention::Native)
+                        .unwrap()
+                ),
+            );
+        }
+    }
+
+    /// One chunk is the whole timeline: its floors are the clip's, so `Finish::apply` itself
+    /// gives the cleaned frames.
+    #[test]
+    fn a_one_chunk_stream_reads_what_finish_apply_gives() {
+        for name in ["flame_tiny", "mdm_tiny"] {
+            let mut s = stream(name, &[40]);
+            let f = finish(Some(30.0));
+            s.set_finish(f).unwrap();
+            while s.pump(usize::MAX).unwrap().steps > 0 {}
+            let want = f.apply(&s.poses(0, 40).unwrap(), 20.0).unwrap();
+            assert_eq!(s.settled(), want.frames);
+            for l in LAYOUTS {
+                let got = s.read_cleaned(0, want.frames, l, Convention::Gltf).unwrap();
+                assert_eq!(
+                    bits(&got),
+                    bits(&want.layout(l, Convention::Gltf).unwrap()),
+                    "{name} {l:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn wrap_unsettled_frames_and_bad_values_are_clear_errors() {
+        let mut s = stream("flame_tiny", &[70]);
+        let e = s
+            .read_cleaned(0, 1, Layout::GlobalPositions, Convention::Native)
+            .unwrap_err();
+        assert!(e.to_string().contains("set_finish"), "{e}");
+        let wrap = Finish {
+            wrap: true,
+            ..Finish::game_ready()
+        };
+        let e = s.set_finish(wrap).unwrap_err();
+        assert!(
+            matches!(e, Error::InvalidArgument(_)) && e.to_string().contains("cannot wrap"),
+            "{e}"
+        );
+        let mut bad = Finish::game_ready();
+        bad.contacts.height = 5.0;
+        assert!(s
+            .set_finish(bad)
+            .unwrap_err()
+            .to_string()
+            .contains("contact height"));
+        bad = Finish {
+            fps: Some(500.0),
+            ..Finish::game_ready()
+        };
+        assert!(s
+            .set_finish(bad)
+            .unwrap_err()
+            .to_string()
+            .contains("frame rate"));
+        s.set_finish(Finish::game_ready()).unwrap();
+        s.set_finish(Finish::game_ready()).unwrap();
+        let e = s.set_finish(finish(None)).unwrap_err();
+        assert!(matches!(e, Error::WrongState(_)), "{e}");
+        let e = s
+            .read_cleaned(0, 1, Layout::GlobalPositions, Convention::Native)
+            .unwrap_err();
+        assert!(
+            matches!(&e, Error::WrongState(m) if m.contains("not settled yet")),
+            "{e}"
+        );
+        s.pump(2).unwrap();
+        assert_eq!(s.ready(), 40);
+        // Before the timeline is complete the last frames wait for their contacts.
+        assert!(s.settled() < 40, "{}", s.settled());
+        let e = s
+            .read_cleaned(0, 41, Layout::GlobalPositions, Convention::Native)
+            .unwrap_err();
+        assert!(matches!(e, Error::WrongState(_)), "{e}");
+        assert!(matches!(
+            s.push(Segment::new("a person waves.", 10)),
+            Err(Error::WrongState(_))
+        ));
+    }
+
+    /// Fed a track frame by frame, the slot settler decides only values the whole track's
+    /// `clean_spans` gives, and everything once the track's end is known.
+    #[test]
+    fn settle_slot_decides_what_clean_spans_gives() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut decided = 0;
+        for case in 0..400 {
+            let n = 1 + case % 37;
+            let min = 1 + case % 4;
+            // Runs of random lengths 1..=4, so short spans and gaps are frequent.
+            let mut track = Vec::new();
+            let mut v = case % 2 == 0;
+            while track.len() < n {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                track.extend(std::iter::repeat_n(v, 1 + (state % 4) as usize));
+                v = !v;
+            }
+            track.truncate(n);
+            let mut want = track.clone();
+            contacts::clean_spans(&mut want, min);
+            let (mut cut, mut done) = (0, 0);
+            for known in 0..=n {
+                let end = (known == n).then_some(n);
+                let (vals, next) = settle_slot(|t| track[t], cut, known, end, min);
+                assert!(cut + vals.len() >= done, "{track:?} {min}: undecided again");
+                assert_eq!(
+                    vals[..],
+                    want[cut..cut + vals.len()],
+                    "{track:?} min {min} known {known}"
+                );
+                done = cut + vals.len();
+                cut = next;
+            }
+            assert_eq!(done, n, "{track:?} {min}");
+            decided += n;
+        }
+        assert!(decided > 5000);
+    }
+
+    /// A playhead that follows the settled frames with a window of 5 frames drops the held and
+    /// the cleaned frames behind it, keeps what the next settle reads, and changes no bit of the
+    /// frames read (flame_tiny: absolute root, so the held frames decode the same after drops).
+    #[test]
+    fn a_short_window_drops_behind_the_playhead_and_changes_nothing() {
+        let mut full = stream("flame_tiny", &[70, 45]);
+        full.set_finish(finish(Some(30.0))).unwrap();
+        full.pump(usize::MAX).unwrap();
+        let mut s = stream("flame_tiny", &[70, 45]);
+        s.params.window = 5;
+        s.set_finish(finish(Some(30.0))).unwrap();
+        let (mut next, mut dropped) = (0, 0);
+        while s.pump(1).unwrap().steps > 0 {
+            while next < s.settled() {
+                for l in [Layout::GlobalPositions, Layout::GlobalQuatXyzw] {
+                    let a = s.read_cleaned(next, 1, l, Convention::Unity).unwrap();
+                    let b = full.read_cleaned(next, 1, l, Convention::Unity).unwrap();
+                    assert_eq!(bits(&a), bits(&b), "frame {next} {l:?}");
+                }
+                next += 1;
+            }
+            // The playhead at the last settled frame's time, in timeline frames.
+            s.set_playhead((next * 2 / 3).min(s.ready())).unwrap();
+            dropped = dropped.max(s.first_settled());
+        }
+        assert_eq!(next, full.settled());
+        assert!(dropped > 100, "{dropped}");
+        let e = s
+            .read_cleaned(0, 1, Layout::GlobalPositions, Convention::Unity)
+            .unwrap_err();
+        assert!(e.to_string().contains("were dropped"), "{e}");
     }
 }

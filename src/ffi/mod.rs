@@ -33,10 +33,11 @@ use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
 pub use stream::{
-    flame_stream_cancel, flame_stream_free, flame_stream_interrupt, flame_stream_interrupt_stage,
-    flame_stream_new, flame_stream_params_default, flame_stream_pump, flame_stream_push,
-    flame_stream_push_stage, flame_stream_read, flame_stream_set_playhead, flame_stream_status,
-    FlameStream, FlameStreamParams, FlameStreamStatus,
+    flame_stream_cancel, flame_stream_close, flame_stream_free, flame_stream_interrupt,
+    flame_stream_interrupt_stage, flame_stream_new, flame_stream_params_default, flame_stream_pump,
+    flame_stream_push, flame_stream_push_stage, flame_stream_read, flame_stream_read_cleaned,
+    flame_stream_set_playhead, flame_stream_status, FlameStream, FlameStreamParams,
+    FlameStreamStatus,
 };
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.

@@ -7,6 +7,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, TryLockError};
 
+use super::cleanup::{finish_arg, FlameCleanupParams};
 use super::errors::{catch_quietly, guard, Fail};
 use super::handles::{model_ref, FlameModel};
 use super::poses::FlameLayout;
@@ -487,6 +488,93 @@ pub unsafe extern "C" fn flame_stream_read(
             std::ptr::copy_nonoverlapping(values.as_ptr(), out, values.len());
             out_len.write(values.len());
             Ok(())
+        })
+    })
+}
+
+/// Declares the stream's timeline complete: pushing or interrupting afterwards is
+/// `WRONG_STATE`. Once the pushed segments are generated every frame's cleanup settles (the
+/// last contact spans and swings end with the timeline); until then, the frames of an open
+/// span or swing wait for it to end (see [`flame_stream_read_cleaned`]).
+///
+/// # Safety
+/// `stream` is a live stream.
+#[no_mangle]
+pub unsafe extern "C" fn flame_stream_close(stream: *const FlameStream) -> FlameStatus {
+    guard(|| {
+        stream_ref(stream)?.with(|st| {
+            st.close();
+            Ok(())
+        })
+    })
+}
+
+/// [`flame_stream_read`] with post-processing: frames `first_frame..first_frame + count` of
+/// the timeline after `cleanup` (NULL = the raw poses, exactly `flame_stream_read`), at the
+/// cleanup's frame rate: frame `k` is at `k / fps` seconds of the timeline (with `fps` 0, the
+/// timeline's own frames). The first call that passes a cleanup sets the stream's, once: a
+/// frame handed out never changes, so later calls must pass the same values
+/// (`WRONG_STATE` otherwise), and frame 0 must still be held. A loop wrap is
+/// `INVALID_ARGUMENT` (a stream has no end to wrap); so is layout 0 (features are never cleaned).
+///
+/// A frame is readable once its cleanup is final ("settled"): its foot contacts are decided,
+/// and, with feet locked, its contact span has ended (its pin is the span's mean) and, in a
+/// swing, the next span has ended (the swing is redrawn pin to pin). Frames not settled yet
+/// are `WRONG_STATE` (pump more; the error message says how many are settled). After
+/// [`flame_stream_close`], every generated frame settles. The floor (`ground`) is the lowest
+/// contact point of the first chunk, fixed for the whole stream. Length protocol as
+/// `flame_stream_read`.
+///
+/// # Safety
+/// As `flame_stream_read`; `cleanup` is NULL or points to a valid `FlameCleanupParams`.
+#[no_mangle]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn flame_stream_read_cleaned(
+    stream: *const FlameStream,
+    first_frame: u64,
+    count: u32,
+    layout: i32,
+    convention: i32,
+    cleanup: *const FlameCleanupParams,
+    out: *mut f32,
+    len: usize,
+    out_len: *mut usize,
+) -> FlameStatus {
+    if cleanup.is_null() {
+        return flame_stream_read(
+            stream,
+            first_frame,
+            count,
+            layout,
+            convention,
+            0,
+            out,
+            len,
+            out_len,
+        );
+    }
+    guard(|| {
+        let s = stream_ref(stream)?;
+        if out_len.is_null() {
+            return Err(invalid_arg!("`out_len` is NULL").into());
+        }
+        let finish = finish_arg(cleanup)?;
+        let convention = super::poses::convention(convention)?;
+        let layout = usize::try_from(layout)
+            .ok()
+            .and_then(|l| l.checked_sub(1))
+            .and_then(|l| Layout::ALL.get(l).copied())
+            .ok_or_else(|| {
+                invalid_arg!(
+                    "layout {layout}: cleaned reads take a pose layout (1..=9); features are \
+                     never cleaned (flame_stream_read)"
+                )
+            })?;
+        let first = frame_arg(first_frame, "first_frame")?;
+        s.with(|st| {
+            st.set_finish(finish)?;
+            let values = st.read_cleaned(first, count as usize, layout, convention)?;
+            super::copy_out(&values, out, len, out_len, "floats")
         })
     })
 }

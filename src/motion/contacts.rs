@@ -22,8 +22,9 @@
 //! - **Speed**: the 3D speed of the joint by central differences (one-sided at the clip's ends),
 //!   in m/s. HumanML3D's labels also use the 3D displacement.
 //! - A joint **enters** contact when height < [`ContactParams::height`] and speed <
-//!   [`ContactParams::speed`], and **stays** in contact until either exceeds that threshold times
-//!   [`ContactParams::release`] (hysteresis: values hovering at a threshold do not chatter).
+//!   [`ContactParams::speed`], and **stays** in contact until its height exceeds the threshold
+//!   times [`ContactParams::release`] (hysteresis: heights hovering at the threshold do not
+//!   chatter) or its speed exceeds [`ContactParams::speed`].
 //! - **Minimum span**: first every gap shorter than [`ContactParams::min_span`] between two
 //!   contact spans is closed (a one-frame lift inside a stance is noise), then every span shorter
 //!   than it is dropped (a one-frame touch-down is noise).
@@ -54,11 +55,13 @@ pub struct ContactParams {
     /// is above the skating metric's 0.5 m/s on purpose: a planted foot that a model lets slide
     /// at 0.5–0.9 m/s must still count as planted so locking can fix it.
     pub speed: f64,
-    /// Ratio ≥ 1: a joint in contact leaves it only when its height exceeds `height · release`
-    /// or its speed `speed · release`. Default 1.5: decoded model output jitters by a few
-    /// centimetres and a few tenths of a m/s from frame to frame, and a band of half a threshold
-    /// (2.5 cm, 0.45 m/s) absorbs that while a real lift-off (the toe rises ~10 cm and speeds
-    /// past 1 m/s within 0.1–0.2 s of walking swing) still crosses it. 1 = no hysteresis.
+    /// Ratio ≥ 1: a joint in contact leaves it when its height exceeds `height · release`, or
+    /// its speed exceeds `speed` (the band is on height only). Default 1.5: decoded model output
+    /// jitters by a few centimetres from frame to frame, and a band of half the height (2.5 cm)
+    /// absorbs that. Speed has no band: a foot moving at walking speed has left the floor
+    /// whatever its height — the demo model's small steps lift the toe only ~6 cm at ~1 m/s, and
+    /// a band of 1.5 on speed as well kept such a step planted, so locking erased it, while a
+    /// planted foot's jitter stays far below 0.894 m/s. 1 = no hysteresis.
     pub release: f64,
     /// Seconds: contact spans shorter than this are dropped, and gaps shorter than this between
     /// two contact spans are closed. Default 0.1 s (2 frames at 20 fps): a one-frame (50 ms)
@@ -102,7 +105,7 @@ impl ContactParams {
     }
 
     /// The minimum span in frames at `fps` (at least 1).
-    fn min_frames(&self, fps: f64) -> usize {
+    pub(crate) fn min_frames(&self, fps: f64) -> usize {
         ((self.min_span * fps).round() as usize).max(1)
     }
 }
@@ -119,6 +122,17 @@ pub fn of(poses: &Poses, fps: f64, params: &ContactParams) -> Vec<[bool; 4]> {
 
 /// Detection from heights and speeds (module doc).
 fn detect(poses: &Poses, fps: f64, params: &ContactParams) -> Vec<[bool; 4]> {
+    detect_on(poses, fps, params, None)
+}
+
+/// [`detect`] with the floor given (a stream fixes it once, `crate::stream`) instead of the
+/// clip's lowest foot joint.
+pub(crate) fn detect_on(
+    poses: &Poses,
+    fps: f64,
+    params: &ContactParams,
+    floor: Option<f64>,
+) -> Vec<[bool; 4]> {
     let frames = poses.frames;
     let joints = poses.joint_count();
     let up = poses.format.up_axis();
@@ -127,9 +141,11 @@ fn detect(poses: &Poses, fps: f64, params: &ContactParams) -> Vec<[bool; 4]> {
         return out;
     }
     let at = |t: usize, j: usize| -> &Vec3 { &poses.positions[t * joints + j] };
-    let floor = (0..frames)
-        .flat_map(|t| SLOT_JOINTS.iter().map(move |&j| at(t, j)[up]))
-        .fold(f64::INFINITY, f64::min);
+    let floor = floor.unwrap_or_else(|| {
+        (0..frames)
+            .flat_map(|t| SLOT_JOINTS.iter().map(move |&j| at(t, j)[up]))
+            .fold(f64::INFINITY, f64::min)
+    });
     let levels = standing_levels(poses.format);
     let fps = if fps.is_finite() && fps > 0.0 {
         fps
@@ -144,7 +160,7 @@ fn detect(poses: &Poses, fps: f64, params: &ContactParams) -> Vec<[bool; 4]> {
             let height = at(t, j)[up] - floor - levels[slot];
             let speed = speed_at(t, frames, fps, |i| at(i, j));
             let k = if on { params.release } else { 1.0 };
-            on = height < params.height * k && speed < params.speed * k;
+            on = height < params.height * k && speed < params.speed;
             *c = on;
         }
         clean_spans(&mut track, min_frames);
@@ -158,7 +174,7 @@ fn detect(poses: &Poses, fps: f64, params: &ContactParams) -> Vec<[bool; 4]> {
 /// Per slot, how high the joint stands above the floor when its foot is flat: 0 for a toe; for
 /// an ankle the body-up (Y) component of its toe's rest offset, negated (SMPL's rest body frame
 /// is Y up; a skeleton whose toes point straight forward, like HumanML3D's, gives 0).
-fn standing_levels(format: Format) -> [f64; 4] {
+pub(crate) fn standing_levels(format: Format) -> [f64; 4] {
     let offsets = format.skeleton().rest_offsets();
     let ankle = |toe: usize| (-offsets[toe][1]).max(0.0);
     [ankle(SLOT_JOINTS[1]), 0.0, ankle(SLOT_JOINTS[3]), 0.0]
@@ -166,7 +182,12 @@ fn standing_levels(format: Format) -> [f64; 4] {
 
 /// The speed (m/s) of a track at frame `t` by central differences, one-sided at the ends, 0 for a
 /// one-frame clip.
-fn speed_at<'a>(t: usize, frames: usize, fps: f64, p: impl Fn(usize) -> &'a Vec3) -> f64 {
+pub(crate) fn speed_at<'a>(
+    t: usize,
+    frames: usize,
+    fps: f64,
+    p: impl Fn(usize) -> &'a Vec3,
+) -> f64 {
     if frames < 2 {
         return 0.0;
     }
@@ -178,7 +199,7 @@ fn speed_at<'a>(t: usize, frames: usize, fps: f64, p: impl Fn(usize) -> &'a Vec3
 
 /// Closes gaps shorter than `min` frames between two spans, then drops spans shorter than `min`
 /// (unless one span is the whole clip).
-fn clean_spans(track: &mut [bool], min: usize) {
+pub(crate) fn clean_spans(track: &mut [bool], min: usize) {
     for (s, e) in runs(track, false) {
         if s > 0 && e + 1 < track.len() && e + 1 - s < min {
             track[s..=e].fill(true);
@@ -321,7 +342,7 @@ mod tests {
         let p = clip(&track);
         let c = left_toe(&of(&p, 20.0, &ContactParams::default()));
         // Frame 8 is still in contact by height, but its central speed (0.24 m over 2 frames at
-        // 20 fps = 2.4 m/s) is past the release speed.
+        // 20 fps = 2.4 m/s) is past the speed threshold.
         let want = [
             false, false, false, false, true, true, true, true, false, false, false,
         ];
@@ -340,19 +361,19 @@ mod tests {
 
     #[test]
     fn a_sliding_foot_on_the_floor_is_not_in_contact_above_the_speed() {
-        // On the floor, moving forward 0.03 m per frame (0.6 m/s: under the entry speed 0.894),
-        // then 0.06 (1.2 m/s: over the entry speed but under the release speed 1.34, so the
-        // contact holds), then 0.1 (frame 10 straddles 0.06 and 0.1: 1.6 m/s, out).
+        // On the floor, moving forward 0.03 m per frame (0.6 m/s: under the speed 0.894), then
+        // 0.05 (1.0 m/s: over it, so the contact ends although the foot is on the floor; frame
+        // 6 straddles 0.03 and 0.05: 0.8 m/s, still in).
         let mut y = 0.0;
         let mut track = Vec::new();
-        for step in [0.03; 6].iter().chain(&[0.06; 4]).chain(&[0.1; 4]) {
+        for step in [0.03; 6].iter().chain(&[0.05; 8]) {
             track.push((0.0, y));
             y += step;
         }
         let p = clip(&track);
         let c = left_toe(&of(&p, 20.0, &ContactParams::default()));
-        assert!(c[..10].iter().all(|&c| c), "{c:?}");
-        assert!(c[10..].iter().all(|&c| !c), "{c:?}");
+        assert!(c[..7].iter().all(|&c| c), "{c:?}");
+        assert!(c[7..].iter().all(|&c| !c), "{c:?}");
         // Entering at 1.2 m/s is refused.
         let fast: Vec<(f64, f64)> = (0..6).map(|t| (0.0, 0.06 * t as f64)).collect();
         let c = left_toe(&of(&clip(&fast), 20.0, &ContactParams::default()));

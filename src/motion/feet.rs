@@ -132,7 +132,7 @@ pub fn put_on_ground(poses: &mut Poses, contacts: &[[bool; 4]]) {
 }
 
 /// The clip's floor: [`put_on_ground`]'s lowest contact point; `None` for an empty clip.
-fn floor_height(poses: &Poses, contacts: &[[bool; 4]]) -> Option<f64> {
+pub(crate) fn floor_height(poses: &Poses, contacts: &[[bool; 4]]) -> Option<f64> {
     let joints = poses.joint_count();
     let up = poses.format.up_axis();
     let h = |t: usize, j: usize| poses.positions[t * joints + j][up];
@@ -159,6 +159,16 @@ fn floor_height(poses: &Poses, contacts: &[[bool; 4]]) -> Option<f64> {
 /// `fps` the clip's frame rate (for the fade length). Also stores `contacts` as the clip's
 /// finished contacts (0/1).
 pub fn lock(poses: &mut Poses, contacts: &[[bool; 4]], fps: f64) -> Result<()> {
+    lock_on(poses, contacts, fps, None)
+}
+
+/// [`lock`] on a given floor (a stream fixes it once, `crate::stream`); `None` = the clip's.
+pub(crate) fn lock_on(
+    poses: &mut Poses,
+    contacts: &[[bool; 4]],
+    fps: f64,
+    floor: Option<f64>,
+) -> Result<()> {
     if !(fps.is_finite() && fps > 0.0) {
         return Err(invalid_arg!(
             "foot locking needs a positive frame rate, got {fps}"
@@ -175,7 +185,7 @@ pub fn lock(poses: &mut Poses, contacts: &[[bool; 4]], fps: f64) -> Result<()> {
         .iter()
         .map(|c| c.map(|on| if on { 1.0 } else { 0.0 }))
         .collect();
-    let Some(floor) = floor_height(poses, contacts) else {
+    let Some(floor) = floor.or_else(|| floor_height(poses, contacts)) else {
         return Ok(());
     };
     let fade = ((FADE_SECONDS * fps).round() as usize).max(1);

@@ -50,6 +50,34 @@ pub const MAX_FRAMES: usize = 1 << 20;
 pub fn resample(poses: &Poses, from_fps: f64, to_fps: f64) -> Result<Poses> {
     let from = exact_rate("source", from_fps)?;
     let to = exact_rate("target", to_fps)?;
+    let out_frames = output_frames(poses.frames, from, to)?;
+    resample_range(poses, from_fps, to_fps, 0, 0..out_frames)
+}
+
+/// Where output frame `k` (at `to_fps`) falls among the input frames (at `from_fps`): the input
+/// frame at or before it, and whether it is exactly that frame (then it is copied bit for bit).
+pub(crate) fn source_of(k: usize, from_fps: f64, to_fps: f64) -> Result<(usize, bool)> {
+    let from = exact_rate("source", from_fps)?;
+    let to = exact_rate("target", to_fps)?;
+    let at = position(k, from, to).ok_or_else(|| {
+        invalid_arg!("resample: the rates {from_fps} and {to_fps} are too far apart")
+    })?;
+    Ok((at.frame, at.rem == 0))
+}
+
+/// Output frames `wanted` of [`resample`] of a longer clip whose input frames
+/// `source_first..source_first + poses.frames` are `poses` (a stream's, `crate::stream`): the
+/// same bits as those frames of the whole clip's [`resample`]. Every output frame's input frames
+/// ([`source_of`]: that one, and the next unless exact) must be in `poses`.
+pub(crate) fn resample_range(
+    poses: &Poses,
+    from_fps: f64,
+    to_fps: f64,
+    source_first: usize,
+    wanted: std::ops::Range<usize>,
+) -> Result<Poses> {
+    let from = exact_rate("source", from_fps)?;
+    let to = exact_rate("target", to_fps)?;
     let frames = poses.frames;
     let joints = poses.joint_count();
     for (name, len) in [
@@ -62,7 +90,7 @@ pub fn resample(poses: &Poses, from_fps: f64, to_fps: f64) -> Result<Poses> {
             ));
         }
     }
-    let out_frames = output_frames(frames, from, to)?;
+    let out_frames = wanted.len();
     let n = out_frames
         .checked_mul(joints)
         .ok_or_else(|| invalid_arg!("resample: {out_frames} frames of {joints} joints overflow"))?;
@@ -78,12 +106,20 @@ pub fn resample(poses: &Poses, from_fps: f64, to_fps: f64) -> Result<Poses> {
 
     let skel = poses.format.skeleton();
     let kinematic = poses.format.positions_are_kinematic();
-    for k in 0..out_frames {
-        let at = position(k, from, to).ok_or_else(|| {
+    for (k, global) in wanted.enumerate() {
+        let at = position(global, from, to).ok_or_else(|| {
             invalid_arg!("resample: the rates {from_fps} and {to_fps} are too far apart")
         })?;
         let dst = k * joints..(k + 1) * joints;
-        let a = at.frame;
+        let a = at
+            .frame
+            .checked_sub(source_first)
+            .filter(|&a| a + usize::from(at.rem != 0) < frames)
+            .ok_or_else(|| {
+                invalid_arg!(
+                    "resample: output frame {global} needs input frames {source_first}+ not given"
+                )
+            })?;
         let src_a = a * joints..(a + 1) * joints;
         if at.rem == 0 {
             out.root[k] = poses.root[a];

@@ -37,6 +37,18 @@ use super::rotation::{self, Vec3};
 
 /// Applies `mode` (and, for in-place and separate, `remove_yaw`) to `poses`: see the module doc.
 pub fn apply(poses: &mut Poses, mode: RootMotion, remove_yaw: bool) {
+    apply_after(poses, mode, remove_yaw, None)
+}
+
+/// [`apply`] on frames that continue earlier ones (a stream's, `crate::stream`): `before` is
+/// the heading every frame is turned to (the first frame's of the whole motion) and the heading
+/// of the frame before `poses`' first ([`headings_after`]); `None` = `poses` is the whole motion.
+pub(crate) fn apply_after(
+    poses: &mut Poses,
+    mode: RootMotion,
+    remove_yaw: bool,
+    before: Option<(f64, f64)>,
+) {
     if mode == RootMotion::Keep {
         return;
     }
@@ -44,7 +56,7 @@ pub fn apply(poses: &mut Poses, mode: RootMotion, remove_yaw: bool) {
     let frames = poses.frames;
     let joints = poses.joint_count();
     if remove_yaw {
-        remove_heading_drift(poses, up);
+        remove_heading_drift(poses, up, before);
     }
     let old_bone = std::mem::take(&mut poses.root_bone);
     let old_bone = (old_bone.len() == frames).then_some(old_bone);
@@ -80,9 +92,13 @@ pub fn apply(poses: &mut Poses, mode: RootMotion, remove_yaw: bool) {
 /// whose twist is undefined (its swing is a half turn: `w` and `v·u` both ≈ 0) keeps the
 /// previous frame's heading.
 fn headings(poses: &Poses, up: usize) -> Vec<f64> {
+    headings_after(poses, up, 0.0)
+}
+
+/// [`headings`] with `last` the heading of the frame before the first.
+pub(crate) fn headings_after(poses: &Poses, up: usize, mut last: f64) -> Vec<f64> {
     let joints = poses.joint_count();
     let mut out = Vec::with_capacity(poses.frames);
-    let mut last = 0.0;
     for t in 0..poses.frames {
         let q = rotation::to_quat(&poses.global[t * joints]);
         let (w, s) = (q[0], q[1 + up]);
@@ -96,13 +112,20 @@ fn headings(poses: &Poses, up: usize) -> Vec<f64> {
 
 /// Turns every frame about the vertical line through its pelvis so that its heading is frame
 /// 0's (module doc).
-fn remove_heading_drift(poses: &mut Poses, up: usize) {
+fn remove_heading_drift(poses: &mut Poses, up: usize, before: Option<(f64, f64)>) {
     let joints = poses.joint_count();
-    let psi = headings(poses, up);
+    let (psi, psi0) = match before {
+        Some((psi0, last)) => (headings_after(poses, up, last), psi0),
+        None => {
+            let psi = headings(poses, up);
+            let psi0 = psi.first().copied().unwrap_or(0.0);
+            (psi, psi0)
+        }
+    };
     let mut axis = [0.0; 3];
     axis[up] = 1.0;
     for (t, psi_t) in psi.iter().enumerate() {
-        let turn = rotation::axis_angle(&axis, -(psi_t - psi[0]));
+        let turn = rotation::axis_angle(&axis, -(psi_t - psi0));
         let pelvis = poses.root[t];
         let span = t * joints..(t + 1) * joints;
         poses.local[t * joints] = rotation::mul(&turn, &poses.local[t * joints]);
