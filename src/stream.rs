@@ -1205,8 +1205,7 @@ impl Stream {
                 // As `contacts::detect`, with the floor fixed.
                 let height = at(t)[up] - detection - levels[slot];
                 let speed = contacts::speed_at(t, ready, c.fps, at);
-                let k = if c.on[slot] { params.release } else { 1.0 };
-                c.on[slot] = height < params.height * k && speed < params.speed * k;
+                c.on[slot] = contacts::next_state(c.on[slot], height, speed, &params);
                 row[slot] = c.on[slot];
             }
             c.raw.push_back(row);

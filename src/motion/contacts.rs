@@ -159,8 +159,7 @@ pub(crate) fn detect_on(
         for (t, c) in track.iter_mut().enumerate() {
             let height = at(t, j)[up] - floor - levels[slot];
             let speed = speed_at(t, frames, fps, |i| at(i, j));
-            let k = if on { params.release } else { 1.0 };
-            on = height < params.height * k && speed < params.speed;
+            on = next_state(on, height, speed, params);
             *c = on;
         }
         clean_spans(&mut track, min_frames);
@@ -169,6 +168,13 @@ pub(crate) fn detect_on(
         }
     }
     out
+}
+
+/// One frame of the hysteresis rule (module doc): whether a joint is in contact, given its
+/// height above its standing level, its speed and whether it was in contact the frame before.
+pub(crate) fn next_state(was_on: bool, height: f64, speed: f64, params: &ContactParams) -> bool {
+    let k = if was_on { params.release } else { 1.0 };
+    height < params.height * k && speed < params.speed
 }
 
 /// Per slot, how high the joint stands above the floor when its foot is flat: 0 for a toe; for
