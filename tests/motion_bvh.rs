@@ -428,7 +428,12 @@ fn write_cli_check_files(dir: &Path) {
     } else {
         0.0
     };
-    let poses = Poses::decode(format, &x, shape[0], &m.read_options(smooth, true)).unwrap();
+    // The CLI's default BVH is game-ready: feet locked, floor at 0, the model's frame rate.
+    let opts = flame::motion::ReadOptions {
+        finish: flame::motion::Finish::game_ready(),
+        ..m.read_options(smooth, true)
+    };
+    let poses = Poses::decode(format, &x, shape[0], &opts).unwrap();
     let p: Vec<f32> = hierarchy_positions(&poses, Convention::Blender)
         .concat()
         .iter()

@@ -809,15 +809,7 @@ mod tests {
 
     /// A drifting, turning synthetic motion (every feature a sinusoid of time).
     fn motion(format: Format, frames: usize) -> Poses {
-        let dim = format.feature_dim();
-        let x: Vec<f32> = (0..frames * dim)
-            .map(|i| {
-                let (t, c) = ((i / dim) as f32, (i % dim) as f32);
-                (0.3 * c + 0.05 * t * (1.0 + c % 3.0)).sin() * 0.8
-                    + if c % 6.0 == 0.0 { 0.5 } else { 0.0 }
-            })
-            .collect();
-        Poses::decode(format, &x, frames, &ReadOptions::default()).unwrap()
+        crate::motion::testutil::sinusoid_motion(format, frames)
     }
 
     /// The same clip with its root motion kept and moved to a root bone.

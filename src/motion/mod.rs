@@ -87,6 +87,8 @@ pub mod rotation;
 pub mod skating;
 pub mod skeleton;
 mod smpl24_6d;
+#[cfg(test)]
+pub(crate) mod testutil;
 
 pub use contacts::ContactParams;
 pub use convention::{Axis, Convention, Frame, Handedness, Unit};

@@ -310,20 +310,12 @@ fn slerp_matrices(a: &Mat3, b: &Mat3, t: f64) -> Mat3 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::motion::{Format, ReadOptions};
+    use crate::motion::Format;
     use std::f64::consts::{FRAC_PI_2, PI};
 
     /// The gltf tests' smooth synthetic motion: every feature a sinusoid of time.
     fn motion(format: Format, frames: usize) -> Poses {
-        let dim = format.feature_dim();
-        let x: Vec<f32> = (0..frames * dim)
-            .map(|i| {
-                let (t, c) = ((i / dim) as f32, (i % dim) as f32);
-                (0.3 * c + 0.05 * t * (1.0 + c % 3.0)).sin() * 0.8
-                    + if c % 6.0 == 0.0 { 0.5 } else { 0.0 }
-            })
-            .collect();
-        Poses::decode(format, &x, frames, &ReadOptions::default()).unwrap()
+        crate::motion::testutil::sinusoid_motion(format, frames)
     }
 
     fn bits(m: &[Mat3]) -> Vec<u64> {

@@ -143,20 +143,12 @@ fn remove_heading_drift(poses: &mut Poses, up: usize, before: Option<(f64, f64)>
 mod tests {
     use super::*;
     use crate::motion::skeleton::forward_kinematics;
-    use crate::motion::{Format, ReadOptions, Skeleton};
+    use crate::motion::{Format, Skeleton};
     use std::f64::consts::FRAC_PI_2;
 
     /// A drifting, turning synthetic motion (every feature a sinusoid of time).
     fn motion(format: Format, frames: usize) -> Poses {
-        let dim = format.feature_dim();
-        let x: Vec<f32> = (0..frames * dim)
-            .map(|i| {
-                let (t, c) = ((i / dim) as f32, (i % dim) as f32);
-                (0.3 * c + 0.05 * t * (1.0 + c % 3.0)).sin() * 0.8
-                    + if c % 6.0 == 0.0 { 0.5 } else { 0.0 }
-            })
-            .collect();
-        Poses::decode(format, &x, frames, &ReadOptions::default()).unwrap()
+        crate::motion::testutil::sinusoid_motion(format, frames)
     }
 
     #[test]
