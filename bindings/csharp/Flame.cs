@@ -745,6 +745,27 @@ namespace Flame
             return output;
         }
 
+        /// <summary>flame_stream_read_cleaned: the post-processed poses of frames firstFrame..,
+        /// a frame readable once its cleanup is final (WRONG_STATE before: pump more, or
+        /// EndTimeline). The first cleaned read sets the stream's cleanup for good; with a frame
+        /// rate, frames count at that rate.</summary>
+        public float[] Read(ulong firstFrame, uint count, int layout, int convention, FlameCleanupParams cleanup)
+        {
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_stream_read_cleaned(Handle, firstFrame, count, layout, convention, ref cleanup, null, UIntPtr.Zero, out n));
+            var output = new float[(int)n];
+            FlameException.Check(FlameNative.flame_stream_read_cleaned(Handle, firstFrame, count, layout, convention, ref cleanup, output, n, out n));
+            return output;
+        }
+
+        /// <summary>flame_stream_close: the timeline is complete (Push and Interrupt fail with
+        /// WRONG_STATE afterwards); once the pushed segments are generated, every frame's cleanup
+        /// settles.</summary>
+        public void EndTimeline()
+        {
+            FlameException.Check(FlameNative.flame_stream_close(Handle));
+        }
+
         /// <summary>Frees the stream (deferred until a Pump running on another thread returns:
         /// Cancel first so it returns soon).</summary>
         public void Dispose() { Handle.Dispose(); }
@@ -927,6 +948,13 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_read(FlameStreamHandle stream, ulong firstFrame, uint count, int layout, int convention, uint flags,
                                                            [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_read_cleaned(FlameStreamHandle stream, ulong firstFrame, uint count, int layout, int convention,
+                                                                   ref FlameCleanupParams cleanup, [Out] float[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_close(FlameStreamHandle stream);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_cleanup_params_default(out FlameCleanupParams p);

@@ -579,6 +579,12 @@ def _signatures():
             _status,
             [_P, ctypes.c_uint64, u32, i32, i32, u32, pf32, size_t, ctypes.POINTER(size_t)],
         ),
+        "flame_stream_read_cleaned": (
+            _status,
+            [_P, ctypes.c_uint64, u32, i32, i32, ctypes.POINTER(_CleanupParams), pf32, size_t,
+             ctypes.POINTER(size_t)],
+        ),
+        "flame_stream_close": (_status, [_P]),
         "flame_cleanup_params_default": (_status, [ctypes.POINTER(_CleanupParams)]),
         "flame_session_read_cleaned": (
             _status,
@@ -1111,23 +1117,44 @@ class Stream:
             _check(_lib().flame_stream_status(self._h(), ctypes.byref(raw)))
         return self._status(raw)
 
-    def read(self, first_frame: int, count: int, layout: int, convention: int = 0) -> np.ndarray:
+    def read(self, first_frame: int, count: int, layout: int, convention: int = 0,
+             cleanup: Optional["Cleanup"] = None) -> np.ndarray:
         """Timeline frames first_frame..first_frame+count as float32, [count, ...] as the layout
-        says (Layout.FEATURES: model-space features)."""
+        says (Layout.FEATURES: model-space features). With a cleanup
+        (flame_stream_read_cleaned): the post-processed poses, a frame readable once its cleanup
+        is final (WRONG_STATE before: pump more, or end_timeline()); the first cleaned read sets
+        the stream's cleanup for good; with a frame rate, frames count at that rate."""
         lib = _lib()
         n = ctypes.c_size_t()
         count = _uint32("count", count)
+        raw_cleanup = _cleanup_params(cleanup)
         with self._lock:
             h = self._h()
-            _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0, None, 0,
-                                         ctypes.byref(n)))
-            out = np.empty(n.value, dtype=np.float32)
-            _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0,
-                                         _ptr(out, ctypes.c_float), out.size, ctypes.byref(n)))
+            if raw_cleanup is None:
+                _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0, None,
+                                             0, ctypes.byref(n)))
+                out = np.empty(n.value, dtype=np.float32)
+                _check(lib.flame_stream_read(h, first_frame, count, layout, convention, 0,
+                                             _ptr(out, ctypes.c_float), out.size,
+                                             ctypes.byref(n)))
+            else:
+                cp = ctypes.byref(raw_cleanup)
+                _check(lib.flame_stream_read_cleaned(h, first_frame, count, layout, convention,
+                                                     cp, None, 0, ctypes.byref(n)))
+                out = np.empty(n.value, dtype=np.float32)
+                _check(lib.flame_stream_read_cleaned(h, first_frame, count, layout, convention,
+                                                     cp, _ptr(out, ctypes.c_float), out.size,
+                                                     ctypes.byref(n)))
         trailing = _LAYOUT_SHAPES.get(layout, lambda d, j: (-1,))(self.feature_dim, self.joint_count)
         if count and -1 not in trailing and out.size == count * int(np.prod(trailing)):
             return out.reshape((count,) + trailing)
         return out.reshape(count, -1) if count else out
+
+    def end_timeline(self) -> None:
+        """flame_stream_close: the timeline is complete (push and interrupt are WRONG_STATE
+        afterwards); once the pushed segments are generated, every frame's cleanup settles."""
+        with self._lock:
+            _check(_lib().flame_stream_close(self._h()))
 
     def close(self) -> None:
         """Frees the stream (cancelling and waiting for a pump running on another thread)."""

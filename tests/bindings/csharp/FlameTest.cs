@@ -81,6 +81,7 @@ static class FlameTest
             Run("PromptStages", TestPromptStages);
             Run("PromptStageErrors", TestPromptStageErrors);
             Run("Stream", TestStream);
+            Run("StreamCleaned", TestStreamCleaned);
             Run("StreamCancelBetweenPumps", TestStreamCancelBetweenPumps);
             Run("StreamCancelFromAnotherThread", TestStreamCancelFromAnotherThread);
             Run("StreamCancelLongPump", TestStreamCancelLongPump);
@@ -1483,6 +1484,44 @@ static class FlameTest
         }
         using (var latent = FlameModel.Load(Path.Combine(dir, "mld_tiny.safetensors"), 1))
             Throws(FlameStatus.InvalidArgument, "gradient", () => FlameStream.Create(latent));
+    }
+
+    // flame_stream_read_cleaned: frames read one at a time as they settle are the bytes one read
+    // at the end gives; at 30 fps a closed 50-frame timeline (20 fps) has 74 cleaned frames.
+    static void TestStreamCleaned()
+    {
+        var p = FlameStreamParams.Default();
+        p.chunk = 40; p.overlap = 10; p.steps = 2; p.lookahead = 100000; p.sampler = (int)FlameSampler.Ddim;
+        var cp = FlameCleanupParams.Default();
+        cp.fps = 30f;
+        using (var a = FlameStream.Create(model, p))
+        using (var b = FlameStream.Create(model, p))
+        {
+            foreach (var s in new[] { a, b })
+            {
+                s.Push("a person walks forward.", 30);
+                s.Push("a person waves.", 20);
+                s.EndTimeline();
+            }
+            Throws(FlameStatus.WrongState, "", () => a.Push("a person jumps.", 10));
+            var got = new List<float>();
+            uint k = 0;
+            while (true)
+            {
+                uint stepped = a.Pump(1).steps;
+                bool read = false;
+                try { got.AddRange(a.Read(k, 1, FlameLayout.GlobalPositions, (int)FlameConvention.Gltf, cp)); k++; read = true; }
+                catch (FlameException e) { Check(e.Status == FlameStatus.WrongState, "unsettled frames are WRONG_STATE"); }
+                if (!read && stepped == 0) break;
+            }
+            while (b.Pump(uint.MaxValue).steps > 0) { }
+            var whole = b.Read(0, 74, FlameLayout.GlobalPositions, (int)FlameConvention.Gltf, cp);
+            Check(k == 74 && got.Count == whole.Length, "74 frames at 30 fps, read one at a time");
+            bool same = got.Count == whole.Length;
+            for (int i = 0; same && i < whole.Length; i++)
+                same = BitConverter.SingleToInt32Bits(got[i]) == BitConverter.SingleToInt32Bits(whole[i]);
+            Check(same, "frame by frame = one read, bit for bit");
+        }
     }
 
     // --- streams: cancel, segments with part texts, MoLA ---------------------------------------

@@ -340,3 +340,42 @@ def test_quaternions_read_one_frame_at_a_time_are_the_whole_read(name):
         ticks = np.concatenate([s.read(f, 1, layout, Convention.UNITY)
                                 for f in range(TIMELINE_FRAMES)])
         assert ticks.tobytes() == whole.tobytes()
+
+
+# --- cleaned reads ---------------------------------------------------------------------------
+
+def test_cleaned_frames_read_one_at_a_time_equal_one_read_at_the_end():
+    # flame_stream_read_cleaned: frames once settled never change, so reading them as they
+    # settle gives the bytes one read at the end gives; at 30 fps the 115 frames at 20 fps are
+    # 172 (the last frame's time kept).
+    m = model("flame_tiny")
+    cleanup = flame.Cleanup(fps=30.0, root_motion=flame.RootMotion.SEPARATE)
+    a, b = timeline(small(m)), timeline(small(m))
+    for s in (a, b):
+        s.end_timeline()
+    with pytest.raises(FlameError) as e:
+        a.push("a person waves.", 10)
+    assert e.value.status == Status.WRONG_STATE
+    got = []
+    while True:
+        stepped = a.pump(1).steps
+        k = len(got)
+        try:
+            got.append(a.read(k, 1, Layout.GLOBAL_POSITIONS, Convention.GLTF, cleanup)[0])
+            continue
+        except FlameError as err:
+            assert err.status == Status.WRONG_STATE
+        if stepped == 0:
+            break
+    pump_on(b)
+    whole = b.read(0, 172, Layout.GLOBAL_POSITIONS, Convention.GLTF, cleanup)
+    assert len(got) == 172
+    assert np.stack(got).tobytes() == whole.tobytes()
+    bone = b.read(0, 172, Layout.ROOT_BONE, Convention.GLTF, cleanup)
+    assert np.all(bone[:, 1] == 0.0)
+    with pytest.raises(FlameError) as e:
+        b.read(0, 172, Layout.GLOBAL_POSITIONS, Convention.GLTF, flame.Cleanup(fps=60.0))
+    assert e.value.status == Status.WRONG_STATE
+    with pytest.raises(FlameError) as e:
+        small(m).read(0, 1, Layout.GLOBAL_POSITIONS, 0, flame.Cleanup(wrap=True))
+    assert e.value.status == Status.INVALID_ARGUMENT

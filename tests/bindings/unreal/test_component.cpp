@@ -78,7 +78,8 @@ static int NpyRows(const char* path) {
 }
 
 /* flame_session_write_gltf on a session of the component's settings (Configure's, with the
- * given frames and steps), straight through flame.h: what ExportGltf must return. */
+ * given frames and steps, and Configure's cleanup: the defaults with feet and floor off),
+ * straight through flame.h: what ExportGltf must return. */
 static std::vector<uint8_t> DirectGltf(const char* model, int frames, int steps, int container, uint32_t flags) {
     std::vector<uint8_t> out;
     FlameModel* m = nullptr;
@@ -100,6 +101,11 @@ static std::vector<uint8_t> DirectGltf(const char* model, int frames, int steps,
         flame_gltf_params_default(&g);
         g.container = container;
         g.flags = flags;
+        FlameCleanupParams cleanup;
+        flame_cleanup_params_default(&cleanup);
+        cleanup.feet = FLAME_FEET_OFF;
+        cleanup.ground = 0;
+        g.cleanup = &cleanup;
         size_t n = 0;
         if (left == 0 && flame_session_write_gltf(s, FLAME_WHICH_SAMPLE, &g, nullptr, 0, &n) == FLAME_STATUS_OK) {
             out.resize(n);
