@@ -985,6 +985,27 @@ public:
         return len;
     }
 
+    // read() after a cleanup (flame_stream_read_cleaned): a frame is readable once its cleanup
+    // is final (WRONG_STATE before: pump more, or end_timeline()), and never changes after; the
+    // first cleaned read sets the stream's cleanup for good; with a frame rate, frames count at
+    // that rate.
+    std::vector<float> read_cleaned(const FlameCleanupParams& cleanup, uint64_t first_frame,
+                                    uint32_t count, FlameLayout layout,
+                                    FlameConvention convention = FLAME_CONVENTION_NATIVE) const {
+        std::size_t len = 0;
+        detail::check(flame_stream_read_cleaned(handle_, first_frame, count, layout, convention,
+                                                &cleanup, nullptr, 0, &len));
+        std::vector<float> out(len);
+        detail::check(flame_stream_read_cleaned(handle_, first_frame, count, layout, convention,
+                                                &cleanup, out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // flame_stream_close: the timeline is complete (push and interrupt throw WRONG_STATE
+    // afterwards); once the pushed segments are generated, every frame's cleanup settles.
+    void end_timeline() const { detail::check(flame_stream_close(handle_)); }
+
     FlameStream* get() const noexcept { return handle_; }
     explicit operator bool() const noexcept { return handle_ != nullptr; }
 

@@ -345,6 +345,47 @@ static void test_window() {
     CHECK(same(s.read(70, 45), before));
 }
 
+// ---- cleaned reads ------------------------------------------------------------------------
+
+// read_cleaned / end_timeline: frames read one at a time as they settle are the bytes one read
+// at the end gives; at 30 fps the 115-frame timeline (20 fps) has 172 cleaned frames.
+static void test_cleaned() {
+    flame::Model m = load("flame_tiny");
+    FlameCleanupParams c;
+    CHECK(flame_cleanup_params_default(&c) == FLAME_STATUS_OK);
+    c.fps = 30.0f;
+    flame::Stream a(m, small_params(1)), b(m, small_params(1));
+    timeline(a);
+    timeline(b);
+    a.end_timeline();
+    b.end_timeline();
+    CHECK_THROWS(a.push("a person jumps.", 10), FLAME_STATUS_WRONG_STATE, "");
+    std::vector<float> got;
+    uint32_t k = 0;
+    for (;;) {
+        const uint32_t stepped = a.pump(1).steps;
+        bool read = false;
+        try {
+            const std::vector<float> f =
+                a.read_cleaned(c, k, 1, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF);
+            got.insert(got.end(), f.begin(), f.end());
+            k++;
+            read = true;
+        } catch (const flame::Error &e) {
+            CHECK(e.status() == FLAME_STATUS_WRONG_STATE);
+        }
+        if (!read && stepped == 0) break;
+    }
+    b.pump(flame::Stream::all_steps);
+    const std::vector<float> whole =
+        b.read_cleaned(c, 0, 172, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF);
+    CHECK(k == 172);
+    CHECK(same(got, whole));
+    c.fps = 60.0f;
+    CHECK_THROWS(b.read_cleaned(c, 0, 1, FLAME_LAYOUT_GLOBAL_POSITIONS), FLAME_STATUS_WRONG_STATE,
+                 "");
+}
+
 // ---- interrupt ----------------------------------------------------------------------------
 
 static void test_interrupt() {
@@ -634,6 +675,7 @@ int main(int argc, char **argv) {
         {"round trip (FLAME)", [] { test_round_trip("flame_tiny"); }},
         {"round trip (MDM)", [] { test_round_trip("mdm_tiny"); }},
         {"window", test_window},
+        {"cleaned reads", test_cleaned},
         {"interrupt", test_interrupt},
         {"cancel", test_cancel},
         {"stages (FLAME)", test_stages_flame},
