@@ -98,3 +98,81 @@ fn loops_the_model_cannot_hold_are_refused_by_name() {
     let e = Cycle::new(&model, 12).unwrap_err().to_string();
     assert!(e.contains("at least 40 frames"), "{e}");
 }
+
+/// `flame generate --loop` and `flame stream --loop` on the tiny FLAME fixture.
+fn flame_cli(args: &[&str]) -> (bool, String) {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_flame"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        o.status.success(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn the_cli_writes_a_loop_of_the_frames_asked_and_refuses_what_cannot_loop() {
+    let model = format!(
+        "{}/tests/fixtures/flame_tiny.safetensors",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"));
+    let bvh = dir.join("cycle_loop.bvh");
+    let base = [
+        "generate",
+        "--model",
+        &model,
+        "--prompt",
+        "a person walks",
+        "--steps",
+        "3",
+    ];
+    let (ok, err) = flame_cli(
+        &[
+            &base[..],
+            &["--frames", "40", "--loop", "--out", bvh.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("loop: editing the end (10 frames kept"),
+        "{err}"
+    );
+    let text = std::fs::read_to_string(&bvh).unwrap();
+    assert!(
+        text.contains("Frames: 40\n"),
+        "the loop has the frames asked for"
+    );
+    let npy = dir.join("cycle_loop.npy");
+    let (ok, err) = flame_cli(&[&base[..], &["--loop", "--out", npy.to_str().unwrap()]].concat());
+    assert!(
+        !ok && err.contains("a .npy of raw features is not looped"),
+        "{err}"
+    );
+    let (ok, err) = flame_cli(
+        &[
+            &base[..],
+            &["--frames", "12", "--loop", "--out", bvh.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    assert!(!ok && err.contains("at least 40 frames"), "{err}");
+    let (ok, err) = flame_cli(&[
+        "stream",
+        "--model",
+        &model,
+        "--segment",
+        "a person walks@50",
+        "--steps",
+        "2",
+        "--loop",
+        "--out",
+        bvh.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(std::fs::read_to_string(&bvh)
+        .unwrap()
+        .contains("Frames: 50\n"));
+}

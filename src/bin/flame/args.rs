@@ -377,6 +377,11 @@ pub struct StreamArgs {
         conflicts_with = "prompt_file"
     )]
     pub segment: Vec<String>,
+    /// Make the whole timeline loop: its end corrected to flow into its start (position and
+    /// velocity of every joint), the travel kept as root motion. A correction of the written
+    /// timeline only: unlike `generate --loop`, no chunk is generated to run into the start
+    #[arg(long = "loop")]
+    pub looped: bool,
     /// Segments with texts per body part (FineMoGen), in the HuMMan-MoGen layout of `generate
     /// --prompt-file`: each stage is a segment
     #[arg(long, value_name = "FILE.json")]

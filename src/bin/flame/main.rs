@@ -205,10 +205,7 @@ fn demo_options() -> AssembleOptions {
 fn generate(a: &GenerateArgs) -> Result<(), String> {
     let mut outputs = Outputs::new(&a.output)?;
     if a.looped {
-        if outputs.kind == OutKind::Features {
-            return Err("--loop shapes poses; a .npy of raw features is not looped (write .bvh, .json, .glb or .gltf)".into());
-        }
-        outputs.finish.wrap = true;
+        outputs.loop_poses()?;
     }
     if let Some(noise) = &a.sampling.noise {
         paths::check_readable(noise)?;
@@ -636,7 +633,10 @@ fn parse_segment(spec: &str) -> Result<Segment, String> {
 
 /// One motion over a timeline of segments, generated chunk by chunk and written whole.
 fn stream(a: &StreamArgs) -> Result<(), String> {
-    let outputs = Outputs::new(&a.output)?;
+    let mut outputs = Outputs::new(&a.output)?;
+    if a.looped {
+        outputs.loop_poses()?;
+    }
     let mut segments = a
         .segment
         .iter()
@@ -954,6 +954,19 @@ impl Outputs {
             quat: o.quat,
             finish: finish(o)?,
         })
+    }
+
+    /// `--loop`: the poses written wrap from their end into their start.
+    fn loop_poses(&mut self) -> Result<(), String> {
+        if self.kind == OutKind::Features {
+            return Err(
+                "--loop shapes poses; a .npy of raw features is not looped (write .bvh, \
+                        .json, .glb or .gltf)"
+                    .into(),
+            );
+        }
+        self.finish.wrap = true;
+        Ok(())
     }
 
     /// The decoder for `model`, or `None` when only raw features are written. The model has
