@@ -169,26 +169,14 @@ impl LoopMotion {
     /// frame by one frame of their average rate over the clip.
     pub fn of(poses: &Poses) -> LoopMotion {
         let n = poses.frames;
-        let joints = poses.joint_count();
         let up_axis = poses.format.up_axis();
-        let mut up = [0.0; 3];
-        up[up_axis] = 1.0;
-        let heading = |k: usize| {
-            // Body frames face +Z (skeleton's module doc).
-            let f = rotation::apply(&poses.global[k * joints], &[0.0, 0.0, 1.0]);
-            let mut h = f;
-            h[up_axis] = 0.0;
-            h
-        };
-        let (h0, h1) = (heading(0), heading(n - 1));
-        let angle = rotation::dot(&up, &rotation::cross(&h0, &h1)).atan2(rotation::dot(&h0, &h1));
-        let turn = rotation::axis_angle(&up, angle * n as f64 / (n - 1) as f64);
+        let angle = heading_change(poses, 0, n - 1);
         let (p0, p1) = (poses.root[0], poses.root[n - 1]);
         let step = sub(&p1, &p0).map(|d| d / (n - 1) as f64);
         let mut target = add(&p1, &step);
         target[up_axis] = p0[up_axis];
         LoopMotion {
-            turn,
+            turn: rotation::axis_angle(&up(up_axis), angle * n as f64 / (n - 1) as f64),
             pivot: p0,
             target,
         }
@@ -197,21 +185,11 @@ impl LoopMotion {
     /// The move taking frame `a`'s pelvis (position and heading about the up axis) onto frame
     /// `b`'s, height kept.
     pub fn between(poses: &Poses, a: usize, b: usize) -> LoopMotion {
-        let joints = poses.joint_count();
         let up_axis = poses.format.up_axis();
-        let mut up = [0.0; 3];
-        up[up_axis] = 1.0;
-        let heading = |k: usize| {
-            let mut h = rotation::apply(&poses.global[k * joints], &[0.0, 0.0, 1.0]);
-            h[up_axis] = 0.0;
-            h
-        };
-        let (h0, h1) = (heading(a), heading(b));
-        let angle = rotation::dot(&up, &rotation::cross(&h0, &h1)).atan2(rotation::dot(&h0, &h1));
         let mut target = poses.root[b];
         target[up_axis] = poses.root[a][up_axis];
         LoopMotion {
-            turn: rotation::axis_angle(&up, angle),
+            turn: rotation::axis_angle(&up(up_axis), heading_change(poses, a, b)),
             pivot: poses.root[a],
             target,
         }
@@ -266,6 +244,28 @@ fn correction<X>(
         out.push((k, lin(&jump, -0.5 * w, &kink, -0.5 * s)));
     }
     out
+}
+
+/// The unit vector of the up axis.
+fn up(axis: usize) -> Vec3 {
+    let mut v = [0.0; 3];
+    v[axis] = 1.0;
+    v
+}
+
+/// The signed angle about the up axis from frame `a`'s heading to frame `b`'s: each heading is
+/// the body's forward (+Z in the body frames, skeleton's module doc) turned by the root's world
+/// rotation and laid flat.
+fn heading_change(poses: &Poses, a: usize, b: usize) -> f64 {
+    let joints = poses.joint_count();
+    let up_axis = poses.format.up_axis();
+    let heading = |k: usize| {
+        let mut h = rotation::apply(&poses.global[k * joints], &[0.0, 0.0, 1.0]);
+        h[up_axis] = 0.0;
+        h
+    };
+    let (h0, h1) = (heading(a), heading(b));
+    rotation::dot(&up(up_axis), &rotation::cross(&h0, &h1)).atan2(rotation::dot(&h0, &h1))
 }
 
 fn smoothstep(x: f64) -> f64 {
