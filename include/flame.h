@@ -17,7 +17,7 @@
 #include <stdint.h>
 
 // The ABI version: bumped whenever a function's signature or a struct's layout changes.
-#define FLAME_ABI_VERSION 3
+#define FLAME_ABI_VERSION 4
 
 // libflame's version, major part.
 #define FLAME_VERSION_MAJOR 0
@@ -301,8 +301,9 @@ typedef struct FlameModelInfo {
 // Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
 // negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
 //
-// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets); a caller built
-// against it passes its `sizeof` and gets no respacing.
+// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets), version 2 after
+// `respacing` (48 bytes); a caller built against either passes its `sizeof` and gets the
+// defaults of the later fields (no respacing, no loop).
 typedef struct FlameSessionParams {
   // `sizeof(FlameSessionParams)`.
   uint32_t struct_size;
@@ -328,6 +329,17 @@ typedef struct FlameSessionParams {
   // diffusers spacing or a flow model refuses it (`INVALID_ARGUMENT`). Read only during
   // [`flame_session_new`] (since version 2 of this struct).
   const char *respacing;
+  // 1 = generate a loop of `frames` frames whose end flows into its start (position and
+  // velocity of every joint): the session samples twice, a generation of `frames` plus a
+  // lead of 0.5 s, then an edit of it that keeps the lead on both sides of the wrap
+  // (`flame generate --loop`). [`flame_session_step`] and the progress count both passes.
+  // The finished sample reads as the `frames` frames of the cycle: every pose read applies
+  // the wrap's correction (any cleanup's `wrap` is taken as 2), raw features drop the next
+  // cycle's first frame. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
+  // `wrap` on a plain session), a cycle too short or too long for the model; a loop session
+  // refuses time stages, references, masks and position targets. 0 = a plain generation
+  // (since version 3 of this struct).
+  uint32_t looped;
 } FlameSessionParams;
 
 // Editing settings of a session. Initialise with [`flame_edit_params_default`].

@@ -87,6 +87,78 @@ fn a_relative_root_format_copies_the_start_after_the_cycle() {
 }
 
 #[test]
+fn a_loop_session_runs_both_passes_and_reads_the_cycle_the_two_sessions_give() {
+    for name in ["flame_tiny.safetensors", "mdm_tiny.safetensors"] {
+        let model = fixture(name);
+        let (cycle, edited, _) = looped(&model, 40);
+        let dim = model.motion_dim();
+        let want = cycle.result(&edited, dim).unwrap().to_vec();
+        let params = SessionParams {
+            frames: Some(40),
+            steps: Some(4),
+            seed: 3,
+            threads: 1,
+            looped: true,
+            ..Default::default()
+        };
+        let mut s = Session::new(Arc::clone(&model), &params).unwrap();
+        assert_eq!((s.num_steps(), s.steps_left(), s.frames()), (8, 8, 50));
+        assert_eq!(s.cycle(), Some(&cycle));
+        s.set_prompt("a person walks in a circle").unwrap();
+        for left in (0..8).rev() {
+            assert_eq!(s.step().unwrap(), left, "{name}");
+            assert_eq!(s.steps_left(), left);
+            assert_eq!(s.wraps_to_last(), left == 0);
+            // Between the passes the first pass's sample is still readable.
+            assert!(s.motion(flame::session::Which::Sample).is_ok());
+        }
+        let (x, frames) = s.motion(flame::session::Which::Sample).unwrap();
+        assert_eq!(frames, 41);
+        assert_eq!(
+            x,
+            &want[..],
+            "{name}: the second session's loop, bit for bit"
+        );
+        assert!(s.step().is_err(), "finished");
+        // A reset goes back to the first pass and gives the same bits again.
+        s.reset();
+        assert_eq!((s.steps_left(), s.wraps_to_last()), (8, false));
+        s.run().unwrap();
+        assert_eq!(
+            s.motion(flame::session::Which::Sample).unwrap().0,
+            &want[..]
+        );
+        // The loop's edit is its own.
+        let e = s.set_reference(&want[..dim]).unwrap_err().to_string();
+        assert!(e.contains("a loop session makes its own edit"), "{e}");
+        let e = s.set_mask(&vec![0; 50 * dim]).unwrap_err().to_string();
+        assert!(e.contains("a loop session makes its own edit"), "{e}");
+        let stages = [
+            flame::stages::Stage::new("a person walks", 25),
+            flame::stages::Stage::new("a person jumps", 25),
+        ];
+        let e = s.set_prompt_stages(&stages).unwrap_err().to_string();
+        assert!(e.contains("takes one prompt, not time stages"), "{e}");
+    }
+    // Latent models, and cycles the model cannot hold, are refused when the session is made.
+    let looped = |frames| SessionParams {
+        frames: Some(frames),
+        looped: true,
+        ..Default::default()
+    };
+    let e = Session::new(fixture("mola_tiny.safetensors"), &looped(60))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("samples a latent"), "{e}");
+    let e = Session::new(fixture("flame_tiny.safetensors"), &looped(12))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("at least 40 frames"), "{e}");
+}
+
+#[test]
 fn loops_the_model_cannot_hold_are_refused_by_name() {
     let model = fixture("flame_tiny.safetensors");
     let max = model.max_frames();
@@ -137,7 +209,7 @@ fn the_cli_writes_a_loop_of_the_frames_asked_and_refuses_what_cannot_loop() {
     );
     assert!(ok, "{err}");
     assert!(
-        err.contains("loop: editing the end (10 frames kept"),
+        err.contains("loop: a generation, then an edit of its end (10 frames kept"),
         "{err}"
     );
     let text = std::fs::read_to_string(&bvh).unwrap();

@@ -138,6 +138,7 @@ fn session(m: &Arc<Model>, e: &Expected, sampler: Sampler, threads: usize) -> Se
         clip_denoised: None,
         seed: 7,
         threads,
+        looped: false,
     };
     Session::new(Arc::clone(m), &params).unwrap()
 }

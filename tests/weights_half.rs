@@ -36,6 +36,7 @@ fn generate(model: &Arc<Model>, threads: usize) -> Vec<f32> {
         clip_denoised: None,
         seed: 7,
         threads,
+        looped: false,
     };
     let mut s = Session::new(Arc::clone(model), &params).unwrap();
     s.set_prompt("a person jumps over an obstacle").unwrap();

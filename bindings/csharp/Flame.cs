@@ -782,7 +782,7 @@ namespace Flame
         public const string Lib = "flame";
 #endif
         /// <summary>FLAME_ABI_VERSION of the header these declarations mirror.</summary>
-        public const uint AbiVersion = 3;
+        public const uint AbiVersion = 4;
         /// <summary>FLAME_MAX_THREADS: the most worker threads a load or a session may ask for.</summary>
         public const uint MaxThreads = 256;
         /// <summary>FLAME_ROOT_TRANSLATION: the root translation in flame_session_keep_joints.</summary>

@@ -399,6 +399,7 @@ fn main() {
             seed: 1,
             threads,
             respacing: None,
+            looped: false,
         };
         let mut session = Session::new(Arc::clone(&model), &params).expect("session");
         let mut text_ms = Vec::new();

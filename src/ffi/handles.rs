@@ -324,9 +324,27 @@ impl SessionState {
         })
     }
 
-    /// Frames a read of `which` returns now.
+    /// Frames a read of `which` returns now (a finished loop's cycle, without the next cycle's
+    /// first frame).
     pub(crate) fn read_frames(&mut self, which: i32) -> Result<usize, Fail> {
-        Ok(self.motion(which)?.1)
+        let (_, frames) = self.motion(which)?;
+        Ok(frames - usize::from(self.wraps(which)))
+    }
+
+    /// Whether a read of `which` is a finished loop ([`crate::session::Session::wraps_to_last`]).
+    fn wraps(&self, which: i32) -> bool {
+        which == FlameWhich::Sample as i32 && self.session.wraps_to_last()
+    }
+
+    /// `finish` as a read of `which` applies it: a finished loop always wraps onto its last
+    /// frame (the next cycle's first), whatever the caller's `wrap`.
+    fn finish_for(&self, which: i32, finish: &crate::motion::Finish) -> crate::motion::Finish {
+        let mut f = *finish;
+        if self.wraps(which) {
+            f.wrap = true;
+            f.wrap_to_last = true;
+        }
+        f
     }
 
     /// The motion of `which` as a glTF file (see `motion::gltf`), with the session's prompt,
@@ -344,6 +362,7 @@ impl SessionState {
         let model = Arc::clone(self.session.model());
         let seed = self.session.seed();
         let prompt = self.prompt.clone();
+        let finish = &self.finish_for(which, finish);
         let (features, frames) = self.motion(which)?;
         let poses = super::poses::decode(&model, features, frames, flags, finish)?;
         let fps = match finish.fps {
@@ -370,7 +389,14 @@ impl SessionState {
         finish: &crate::motion::Finish,
     ) -> Result<Vec<f32>, Fail> {
         let model = Arc::clone(self.session.model());
+        let finish = &self.finish_for(which, finish);
+        let wraps = self.wraps(which);
         let (features, frames) = self.motion(which)?;
+        if wraps && layout == super::poses::FlameLayout::Features as i32 {
+            // Raw features: the cycle, without the next cycle's first frame.
+            let dim = features.len() / frames;
+            return Ok(features[..(frames - 1) * dim].to_vec());
+        }
         Ok(super::poses::read(
             &model, features, frames, layout, convention, flags, finish,
         )?)

@@ -41,7 +41,7 @@ pub use stream::{
 };
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
-pub const FLAME_ABI_VERSION: u32 = 3;
+pub const FLAME_ABI_VERSION: u32 = 4;
 /// libflame's version, major part.
 pub const FLAME_VERSION_MAJOR: u32 = 0;
 /// libflame's version, minor part.
@@ -272,8 +272,9 @@ const MODEL_PARAMS_V1: usize = 8;
 /// Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
 /// negative `eta`/`guidance`, a NULL `respacing`) means "the model file's default".
 ///
-/// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets); a caller built
-/// against it passes its `sizeof` and gets no respacing.
+/// Version 1 of this struct ended after `threads` (40 bytes on 64-bit targets), version 2 after
+/// `respacing` (48 bytes); a caller built against either passes its `sizeof` and gets the
+/// defaults of the later fields (no respacing, no loop).
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct FlameSessionParams {
@@ -301,11 +302,24 @@ pub struct FlameSessionParams {
     /// diffusers spacing or a flow model refuses it (`INVALID_ARGUMENT`). Read only during
     /// [`flame_session_new`] (since version 2 of this struct).
     pub respacing: *const c_char,
+    /// 1 = generate a loop of `frames` frames whose end flows into its start (position and
+    /// velocity of every joint): the session samples twice, a generation of `frames` plus a
+    /// lead of 0.5 s, then an edit of it that keeps the lead on both sides of the wrap
+    /// (`flame generate --loop`). [`flame_session_step`] and the progress count both passes.
+    /// The finished sample reads as the `frames` frames of the cycle: every pose read applies
+    /// the wrap's correction (any cleanup's `wrap` is taken as 2), raw features drop the next
+    /// cycle's first frame. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
+    /// `wrap` on a plain session), a cycle too short or too long for the model; a loop session
+    /// refuses time stages, references, masks and position targets. 0 = a plain generation
+    /// (since version 3 of this struct).
+    pub looped: u32,
 }
 
 /// Size of version 1 of [`FlameSessionParams`]: up to `threads` (40 bytes on 64-bit targets,
 /// where the padding after `threads` is where `respacing` now starts).
 const SESSION_PARAMS_V1: usize = std::mem::offset_of!(FlameSessionParams, respacing);
+/// Size of version 2: up to `respacing`.
+const SESSION_PARAMS_V2: usize = std::mem::offset_of!(FlameSessionParams, looped);
 
 /// What [`flame_model_info`] reports. Strings and arrays belong to the model and stay valid
 /// until it is freed.
@@ -663,21 +677,21 @@ fn default_session_params() -> FlameSessionParams {
         seed: 0,
         threads: 0,
         respacing: std::ptr::null(),
+        looped: 0,
     }
 }
 
 /// Reads the caller's session params: only the `struct_size` bytes it declares (at least
-/// version 1's), later fields keeping their defaults (`respacing` NULL).
+/// version 1's), later fields keeping their defaults (`respacing` NULL, `looped` 0).
 unsafe fn session_params_in(params: *const FlameSessionParams) -> Result<SessionParams, Fail> {
     // SAFETY: the caller's struct is readable for at least its first field.
     let declared = std::ptr::read_unaligned(params as *const u32);
     check_size(declared, SESSION_PARAMS_V1, "params")?;
     let full = std::mem::size_of::<FlameSessionParams>();
-    let n = if declared as usize >= full {
-        full
-    } else {
-        SESSION_PARAMS_V1
-    };
+    let n = [full, SESSION_PARAMS_V2, SESSION_PARAMS_V1]
+        .into_iter()
+        .find(|&n| declared as usize >= n)
+        .unwrap_or(SESSION_PARAMS_V1);
     let mut p = default_session_params();
     // SAFETY: the caller's struct is readable for the `declared` ≥ n bytes it says it has, and
     // `p` is a plain-data struct of at least n bytes.
@@ -721,6 +735,11 @@ unsafe fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> 
         respacing: match p.respacing.is_null() {
             true => None,
             false => Some(str_arg(p.respacing, "respacing")?.to_owned()),
+        },
+        looped: match p.looped {
+            0 => false,
+            1 => true,
+            v => return Err(invalid_arg!("`looped` is {v}: 0 (plain) or 1 (a loop)").into()),
         },
     })
 }

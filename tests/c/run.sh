@@ -145,6 +145,13 @@ reference() { # NAME FRAMES STEPS
 }
 step "reference (CLI, 24 frames, 10 steps)" "$OUT/ref.log" reference ref 24 10 || finish
 step "reference (CLI, 8 frames, 2 steps)" "$OUT/ref_quick.log" reference ref_quick 8 2 || finish
+# The poses of a loop (test_cleanup's loop session reads the same).
+loop_positions() {
+    "$LIB/flame" generate --model "$MODEL" --prompt "$PROMPT" --frames 40 --steps 4 \
+        --sampler ddim --seed 5 --threads 1 --loop --feet off --ground off \
+        --positions "$OUT/loop_positions.npy" --out "$OUT/loop.json"
+}
+step "loop positions (CLI, 40 frames, --loop)" "$OUT/loop.log" loop_positions || finish
 # Prompts per time stage on FineMoGen (test_stages), when its fixture is there.
 FMG_MODEL="$ROOT/tests/fixtures/finemogen_tiny.safetensors"
 STAGES_ARGS=("$ROOT/tests/fixtures")
@@ -205,7 +212,7 @@ built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_sh
 built test_stream_shared && run_test "test_stream (shared)" "$OUT/test_stream_shared.log" \
     "$OUT/test_stream_shared" "$ROOT/tests/fixtures"
 built test_cleanup_shared && run_test "test_cleanup (shared)" "$OUT/test_cleanup_shared.log" \
-    "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures"
+    "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures" "$OUT/loop_positions.npy"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
     "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
 built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared)" "$OUT/test_cpp_gltf_shared.log" \

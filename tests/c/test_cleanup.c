@@ -7,7 +7,15 @@
  * export's cleanup (a node named "root" with separate root motion; version 1 callers of
  * FlameGltfParams still served).
  *
- * usage: test_cleanup FIXTURES_DIR   (tests/fixtures: flame_tiny.safetensors, 20 fps)
+ * Loop sessions (FlameSessionParams.looped): both passes counted by the steps and the progress,
+ * the cycle's frames read (features without the next cycle's first frame), the poses equal to
+ * what `flame generate --loop` writes (LOOP_POSITIONS, an .npy the CLI wrote with the same
+ * settings), the wrap's jump no larger than the clip's own frame-to-frame moves, and every
+ * refusal (latent model, `looped` 2, a reference on a loop session); a version 2 struct (no
+ * `looped`) is a plain session.
+ *
+ * usage: test_cleanup FIXTURES_DIR [LOOP_POSITIONS]
+ *   (tests/fixtures: flame_tiny.safetensors, 20 fps; mola_tiny.safetensors)
  *
  * The motion is read after two of ten steps: the tiny model's final motion saturates, where
  * some 6D rotations are degenerate (see test_api's pose checks).
@@ -428,9 +436,148 @@ static void test_gltf(const FlameSession *s) {
     free(retimed);
 }
 
+#define LOOP_FRAMES 40
+#define LOOP_LEAD 10 /* 0.5 s at 20 fps */
+
+/* The CLI's settings for LOOP_POSITIONS (tests/c/run.sh):
+ *   flame generate --frames 40 --steps 4 --sampler ddim --seed 5 --threads 1 --loop
+ *     --feet off --ground off --positions LOOP_POSITIONS */
+static void loop_params(FlameSessionParams *p) {
+    flame_session_params_default(p);
+    p->frames = LOOP_FRAMES;
+    p->steps = 4;
+    p->sampler = FLAME_SAMPLER_DDIM;
+    p->seed = 5;
+    p->threads = 1;
+    p->looped = 1;
+}
+
+static void test_loop(const FlameModel *m, const char *fixtures, const char *cli_positions) {
+    FlameSessionParams p;
+    loop_params(&p);
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    if (!s) {
+        return;
+    }
+    CHECK_OK(flame_session_set_prompt(s, "a person walks forward and waves."));
+    /* Both passes: 8 steps, counted down across the edit. */
+    uint32_t done = 99, total = 0, left = 0;
+    CHECK_OK(flame_session_progress(s, &done, &total));
+    CHECK(done == 0 && total == 8);
+    int order_ok = 1;
+    for (uint32_t want = 7;; want--) {
+        if (flame_session_step(s, &left) != FLAME_STATUS_OK || left != want) {
+            order_ok = 0;
+            break;
+        }
+        if (want == 0) {
+            break;
+        }
+    }
+    CHECK(order_ok);
+    CHECK_OK(flame_session_progress(s, &done, &total));
+    CHECK(done == 8 && total == 8);
+    /* The cycle's frames, raw features without the next cycle's first one. */
+    uint32_t frames = 0;
+    CHECK_OK(flame_session_read_frames(s, FLAME_WHICH_SAMPLE, &frames));
+    CHECK(frames == LOOP_FRAMES);
+    size_t n = 0;
+    FlameStatus st;
+    float *features = read_features(s, FLAME_WHICH_SAMPLE, &n, &st);
+    CHECK(features && n == (size_t)LOOP_FRAMES * 147);
+    free(features);
+    /* A read with no cleanup still wraps: what the CLI wrote with --feet off --ground off. */
+    size_t np = 0;
+    float *pos = NULL;
+    size_t need = 0;
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_GLOBAL_POSITIONS,
+                                FLAME_CONVENTION_NATIVE, FLAME_READ_SMOOTH, NULL, 0, &need));
+    pos = malloc((need ? need : 1) * sizeof *pos);
+    CHECK_OK(flame_session_read(s, FLAME_WHICH_SAMPLE, FLAME_LAYOUT_GLOBAL_POSITIONS,
+                                FLAME_CONVENTION_NATIVE, FLAME_READ_SMOOTH, pos, need, &np));
+    CHECK(np == (size_t)LOOP_FRAMES * JOINTS * 3);
+    if (cli_positions) {
+        size_t rows = 0, cols = 0;
+        float *cli = read_npy_f32(cli_positions, &rows, &cols);
+        CHECK(cli && rows * cols == np);
+        double worst = 0.0;
+        for (size_t i = 0; cli && rows * cols == np && i < np; i++) {
+            worst = fmax(worst, fabs((double)cli[i] - pos[i]));
+        }
+        CHECK(cli && worst < 1e-6);
+        printf("loop: C read vs `flame generate --loop` positions: %.3g m at most\n", worst);
+        free(cli);
+    }
+    /* The wrap (last frame to the first, after the loop's own turn and shift) moves no joint
+     * farther than the largest move between two frames inside: with the root motion removed
+     * (in place, heading kept), frame 0 follows frame 39 as frame 1 follows frame 0. */
+    FlameCleanupParams c = raw_cleanup();
+    c.root_motion = ROOT_IN_PLACE;
+    c.remove_yaw = 1;
+    size_t nq = 0;
+    float *q = read_cleaned(s, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_NATIVE, &c, &nq);
+    CHECK(q && nq == np);
+    if (q && nq == np) {
+        double inside = 0.0, wrap = 0.0;
+        for (int t = 0; t < LOOP_FRAMES; t++) {
+            int u = (t + 1) % LOOP_FRAMES;
+            for (int j = 0; j < JOINTS; j++) {
+                const float *a = q + ((size_t)t * JOINTS + j) * 3, *b = q + ((size_t)u * JOINTS + j) * 3;
+                double d = sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) +
+                                (a[2] - b[2]) * (a[2] - b[2]));
+                if (u == 0) {
+                    wrap = fmax(wrap, d);
+                } else {
+                    inside = fmax(inside, d);
+                }
+            }
+        }
+        printf("loop: largest joint move at the wrap %.4f m, inside %.4f m\n", wrap, inside);
+        CHECK(wrap <= inside);
+    }
+    free(q);
+    free(pos);
+    /* The loop's edit is its own. */
+    float row[147] = {0};
+    CHECK_ERROR_MENTIONS(flame_session_set_reference(s, row, 1, 147), INV, "its own edit");
+    flame_session_free(s);
+
+    /* Refusals when the session is made. */
+    loop_params(&p);
+    p.looped = 2;
+    s = NULL;
+    CHECK_ERROR_MENTIONS(flame_session_new(m, &p, &s), INV, "`looped`");
+    CHECK(s == NULL);
+    loop_params(&p);
+    p.frames = 12;
+    CHECK_ERROR_MENTIONS(flame_session_new(m, &p, &s), INV, "at least 40 frames");
+    /* Version 2 of the struct ended before `looped`: a plain session of the frames asked. */
+    loop_params(&p);
+    p.struct_size = (uint32_t)offsetof(FlameSessionParams, looped);
+    CHECK_OK(flame_session_new(m, &p, &s));
+    if (s) {
+        CHECK_OK(flame_session_progress(s, &done, &total));
+        CHECK(total == 4);
+        flame_session_free(s);
+        s = NULL;
+    }
+    char path[4096];
+    snprintf(path, sizeof path, "%s/mola_tiny.safetensors", fixtures);
+    FlameModel *latent = NULL;
+    CHECK_OK(flame_model_load(path, NULL, &latent));
+    if (latent) {
+        loop_params(&p);
+        p.frames = 60;
+        CHECK_ERROR_MENTIONS(flame_session_new(latent, &p, &s), INV, "samples a latent");
+        CHECK(s == NULL);
+        flame_model_free(latent);
+    }
+}
+
 int main(int argc, char **argv) {
-    if (argc != 2) {
-        fprintf(stderr, "usage: %s FIXTURES_DIR\n", argv[0]);
+    if (argc != 2 && argc != 3) {
+        fprintf(stderr, "usage: %s FIXTURES_DIR [LOOP_POSITIONS]\n", argv[0]);
         return 2;
     }
     char path[4096];
@@ -456,6 +603,7 @@ int main(int argc, char **argv) {
         test_gltf(s);
     }
     flame_session_free(s);
+    test_loop(m, argv[1], argc == 3 ? argv[2] : NULL);
     flame_model_free(m);
     printf("test_cleanup: %.2f s\n", now_seconds() - t0);
     return check_summary();

@@ -63,7 +63,8 @@ static inline int write_file(const char *path, const void *bytes, size_t len) {
     return fclose(f) == 0 && ok;
 }
 
-/* A C-order little-endian float32 2-D .npy (format 1.0 or 2.0) as a malloc'd array. */
+/* A C-order little-endian float32 .npy (format 1.0 or 2.0), 2-D or 3-D (rows of the last two
+ * dimensions' values), as a malloc'd array. */
 static inline float *read_npy_f32(const char *path, size_t *rows, size_t *cols) {
     size_t len = 0;
     unsigned char *b = read_file(path, &len);
@@ -86,10 +87,15 @@ static inline float *read_npy_f32(const char *path, size_t *rows, size_t *cols) 
     }
     char header[1024] = {0};
     memcpy(header, b + start, hlen < sizeof header - 1 ? hlen : sizeof header - 1);
-    unsigned long r = 0, c = 0;
+    unsigned long r = 0, c = 0, d = 1;
     const char *shape = strstr(header, "'shape': (");
+    /* 2-D, or 3-D read as rows of c * d values. */
+    int dims = shape ? sscanf(shape, "'shape': (%lu, %lu, %lu)", &r, &c, &d) : 0;
+    if (dims == 3) {
+        c *= d;
+    }
     if (strstr(header, "'descr': '<f4'") && strstr(header, "'fortran_order': False") && shape &&
-        sscanf(shape, "'shape': (%lu, %lu)", &r, &c) == 2 &&
+        dims >= 2 &&
         len - start - hlen == (size_t)r * c * sizeof(float)) {
         out = (float *)malloc((size_t)r * c * sizeof(float));
         if (out) {

@@ -65,7 +65,7 @@ __all__ = [
 ]
 
 # The ABI version these bindings were written against (FLAME_ABI_VERSION in flame.h).
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 # The most worker threads a load or a session may ask for (FLAME_MAX_THREADS); more is refused
 # with Status.INVALID_ARGUMENT. 0 means one per core, capped at this bound.

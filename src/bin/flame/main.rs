@@ -66,6 +66,7 @@ fn denoise_params(d: &DenoiseArgs) -> SessionParams {
         clip_denoised: None,
         seed: d.seed,
         threads: d.threads,
+        looped: false,
     }
 }
 
@@ -234,22 +235,19 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     // Check the pose side before spending minutes on sampling.
     let decoder = outputs.decoder(model);
     check_latent_arg(model, &a.sampling)?;
-    let cycle = if a.looped && stages.is_none() && !model.is_latent() {
+    if a.looped && stages.is_none() && !model.is_latent() {
+        params.looped = true;
+        // Checked now, before the text encoder and the sampler run.
         let frames = params
             .frames
             .unwrap_or(model.config().defaults.frames.min(model.max_frames()));
-        let c = Cycle::new(model, frames).map_err(|e| format!("--loop: {e}"))?;
-        params = c.params(&params);
-        Some(c)
-    } else {
-        if a.looped {
-            eprintln!(
-                "--loop: this model or prompt cannot keep frames while generating; the wrap is \
-                 made by post-processing alone"
-            );
-        }
-        None
-    };
+        Cycle::new(model, frames).map_err(|e| format!("--loop: {e}"))?;
+    } else if a.looped {
+        eprintln!(
+            "--loop: this model or prompt cannot keep frames while generating; the wrap is \
+             made by post-processing alone"
+        );
+    }
     let mut session = Session::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     match (&stages, &a.prompt) {
         (Some(stages), _) => session
@@ -266,19 +264,20 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
         session.set_initial_noise(&x).map_err(|e| e.to_string())?;
     }
+    if let Some(c) = session.cycle() {
+        eprintln!(
+            "loop: a generation, then an edit of its end ({} frames kept on each side of the \
+             wrap)",
+            c.lead()
+        );
+    }
     sample(&mut session)?;
     write_latent(&session, &a.sampling)?;
     let asked = session.frames();
-    let mut cycled = None;
-    if let Some(cycle) = &cycle {
-        let prompt = a.prompt.as_deref().unwrap_or_default();
-        cycled = Some(make_loop(cycle, &mut session, &params, prompt)?);
+    if session.wraps_to_last() {
         outputs.finish.wrap_to_last = true;
     }
-    let (x, frames) = match &cycled {
-        Some((x, frames)) => (&x[..], *frames),
-        None => session.motion(Which::Sample).map_err(|e| e.to_string())?,
-    };
+    let (x, frames) = session.motion(Which::Sample).map_err(|e| e.to_string())?;
     if model.is_latent() && frames != asked {
         eprintln!("{frames} frames (the length the model's decoder chose; {asked} asked)");
     }
@@ -296,33 +295,6 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
         seed: a.sampling.denoise.seed,
     };
     outputs.write(x, frames, model, decoder.as_ref(), &meta)
-}
-
-/// The second pass of `generate --loop`: `first` ran with [`Cycle::params`]; an edit makes its
-/// end run into the next cycle's start. Returns the loop's features and frame count (the cycle
-/// and the next cycle's first frame).
-fn make_loop(
-    cycle: &Cycle,
-    first: &mut Session,
-    params: &SessionParams,
-    prompt: &str,
-) -> Result<(Vec<f32>, usize), String> {
-    let e = |e: flame::Error| e.to_string();
-    let model = Arc::clone(first.model());
-    let (x, _) = first.motion(Which::Sample).map_err(e)?;
-    let x = x.to_vec();
-    let mut second = Session::new(Arc::clone(&model), params).map_err(e)?;
-    cycle.edit(&mut second, &x).map_err(e)?;
-    second.set_prompt(prompt).map_err(e)?;
-    eprintln!(
-        "loop: editing the end ({} frames kept on each side of the wrap)",
-        cycle.lead()
-    );
-    sample(&mut second)?;
-    let (edited, _) = second.motion(Which::Sample).map_err(e)?;
-    let dim = model.motion_dim();
-    let looped = cycle.result(edited, dim).map_err(e)?.to_vec();
-    Ok((looped, cycle.frames() + 1))
 }
 
 /// `--stage` (repeated) or `--prompt-file`, if given.
