@@ -95,8 +95,19 @@ impl Cycle {
         let (n, lead) = (self.frames, self.lead);
         reference.copy_within(0..lead * dim, n * dim);
         if format == Format::Smpl24Rot6d {
-            let turn = RootMove::between(&first[..dim], &first[n * dim..(n + 1) * dim]);
-            turn.apply(&mut reference[n * dim..], dim);
+            let mut ends = [
+                first[..dim].to_vec(),
+                first[n * dim..(n + 1) * dim].to_vec(),
+            ];
+            let mut turn = None;
+            let [a, b] = &mut ends;
+            in_root_units(&model, a, |a| {
+                in_root_units(&model, b, |b| turn = Some(RootMove::between(a, b)))
+            });
+            let turn = turn.expect("set above");
+            in_root_units(&model, &mut reference[n * dim..], |rows| {
+                turn.apply(rows, dim)
+            });
         }
         let mut mask = Mask::new(format, total)?;
         mask.keep_frames(0, lead)?;
@@ -115,6 +126,30 @@ impl Cycle {
                 edited.len()
             )
         })
+    }
+}
+
+/// Runs `f` on smpl24_6d `rows` with their root channels (0..9: translation and root rotation
+/// rows) in the format's own units: a normalised model's features are de-normalised around it,
+/// since a turn mixes channels that the statistics scale differently.
+pub(crate) fn in_root_units(model: &Model, rows: &mut [f32], f: impl FnOnce(&mut [f32])) {
+    const ROOT: usize = 9;
+    let dim = model.motion_dim();
+    let opts = model.read_options(0.0, true);
+    let Some(norm) = opts.normalization else {
+        return f(rows);
+    };
+    let (mean, std) = (&norm.mean[..ROOT], &norm.std[..ROOT]);
+    for row in rows.chunks_exact_mut(dim) {
+        for c in 0..ROOT {
+            row[c] = (row[c] as f64 * std[c] as f64 + mean[c] as f64) as f32;
+        }
+    }
+    f(rows);
+    for row in rows.chunks_exact_mut(dim) {
+        for c in 0..ROOT {
+            row[c] = ((row[c] as f64 - mean[c] as f64) / std[c] as f64) as f32;
+        }
     }
 }
 

@@ -608,27 +608,10 @@ impl Stream {
         Ok(())
     }
 
-    /// Runs `f` on `rows` with the root channels (0..9: translation and root rotation rows) in
-    /// the format's own units: a normalised model's features are de-normalised around it.
+    /// Runs `f` on `rows` with the root channels in the format's own units
+    /// ([`crate::cycle::in_root_units`]).
     fn root_channels(&self, rows: &mut [f32], f: impl FnOnce(&mut [f32])) {
-        const ROOT: usize = 9;
-        let dim = self.model.motion_dim();
-        let opts = self.model.read_options(0.0, true);
-        let Some(norm) = opts.normalization else {
-            return f(rows);
-        };
-        let (mean, std) = (&norm.mean[..ROOT], &norm.std[..ROOT]);
-        for row in rows.chunks_exact_mut(dim) {
-            for c in 0..ROOT {
-                row[c] = (row[c] as f64 * std[c] as f64 + mean[c] as f64) as f32;
-            }
-        }
-        f(rows);
-        for row in rows.chunks_exact_mut(dim) {
-            for c in 0..ROOT {
-                row[c] = ((row[c] as f64 - mean[c] as f64) / std[c] as f64) as f32;
-            }
-        }
+        crate::cycle::in_root_units(&self.model, rows, f)
     }
 
     /// Drops frames more than `window` before the playhead (keeping the overlap the next chunk

@@ -75,6 +75,61 @@ fn the_next_cycle_starts_where_the_first_does_moved_by_the_root_motion() {
     assert!(at_wrap <= inside, "wrap {at_wrap} > inside {inside}");
 }
 
+/// The tiny FLAME with motion statistics added (as trained FLAME models and the demo carry):
+/// its sampled space is normalised, each root channel by a different scale.
+fn normalized_tiny() -> Arc<Model> {
+    use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+    let path = format!(
+        "{}/tests/fixtures/flame_tiny.safetensors",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let bytes = std::fs::read(path).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, meta) = SafeTensors::read_metadata(&bytes).unwrap();
+    let mean: Vec<f32> = (0..147).map(|c| 0.1 * ((c % 7) as f32 - 3.0)).collect();
+    let std: Vec<f32> = (0..147).map(|c| 0.5 + 0.25 * (c % 5) as f32).collect();
+    let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let (mean, std) = (le(&mean), le(&std));
+    let mut tensors: Vec<(String, TensorView)> = st.tensors();
+    tensors.push((
+        "motion.mean".into(),
+        TensorView::new(Dtype::F32, vec![147], &mean).unwrap(),
+    ));
+    tensors.push((
+        "motion.std".into(),
+        TensorView::new(Dtype::F32, vec![147], &std).unwrap(),
+    ));
+    let out = safetensors::serialize(tensors, meta.metadata()).unwrap();
+    let file = flame::checkpoint::ModelFile::from_bytes(&out).unwrap();
+    let model = Model::from_file(file).unwrap();
+    assert!(model.read_options(0.0, true).normalization.is_some());
+    Arc::new(model)
+}
+
+#[test]
+fn a_normalised_model_keeps_the_start_moved_in_metres_and_radians() {
+    // The move acts on the root in the format's units: in the normalised space a turn would
+    // mix channels scaled differently (x by 0.75, y by 1.0 here) and bend the kept frames.
+    let model = normalized_tiny();
+    let (cycle, edited, _) = looped(&model, 40);
+    let (n, lead) = (cycle.frames(), cycle.lead());
+    let opts = model.read_options(0.0, true);
+    let poses = Poses::decode(Format::Smpl24Rot6d, &edited, n + lead, &opts).unwrap();
+    let t = LoopMotion::between(&poses, 0, n);
+    let p = poses.positions(flame::motion::Convention::Native);
+    let mut worst = 0.0f64;
+    for k in 0..lead {
+        for j in 0..24 {
+            let moved = t.position(&p[k * 24 + j]);
+            let kept = p[(n + k) * 24 + j];
+            for i in 0..3 {
+                worst = worst.max((moved[i] - kept[i]).abs());
+            }
+        }
+    }
+    assert!(worst < 2e-5, "kept frames off the moved start by {worst} m");
+}
+
 #[test]
 fn a_relative_root_format_copies_the_start_after_the_cycle() {
     let model = fixture("mdm_tiny.safetensors");
