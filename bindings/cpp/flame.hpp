@@ -116,7 +116,9 @@ struct ModelParams : FlameModelParams {
 
 // Settings of one generation; the defaults come from flame_session_params_default (every
 // setting from the model file, seed 0, one thread per core). `respacing` is a plain
-// `const char*`: it must stay valid until the Session is constructed.
+// `const char*`: it must stay valid until the Session is constructed. `looped = 1` (ABI 4)
+// generates a loop of `frames` frames (flame.h): step() and progress() count both of its
+// passes, and the finished sample's read_frames() is the cycle's `frames`.
 struct SessionParams : FlameSessionParams {
     SessionParams() : FlameSessionParams() { detail::check(flame_session_params_default(this)); }
 };
@@ -666,9 +668,9 @@ public:
         return shape;
     }
 
-    // Frames a read of `which` returns now: the session's frames, or a latent model's valid
-    // length (decided anew after each step). Throws WRONG_STATE before there is anything to
-    // read.
+    // Frames a read of `which` returns now: the session's frames (a finished loop's sample: the
+    // cycle), or a latent model's valid length (decided anew after each step). Throws
+    // WRONG_STATE before there is anything to read.
     uint32_t read_frames(FlameWhich which = FLAME_WHICH_SAMPLE) const {
         uint32_t frames = 0;
         detail::check(flame_session_read_frames(handle_, which, &frames));

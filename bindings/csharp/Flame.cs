@@ -430,6 +430,17 @@ namespace Flame
         /// through FlameModel.NewSession(p, respacing), which keeps the bytes pinned for the
         /// call.</summary>
         public IntPtr respacing;
+        /// <summary>1 = generate a loop of frames frames whose end flows into its start (as
+        /// `flame generate --loop`); 0 = a plain generation (since ABI 4). The session samples
+        /// twice, a generation of frames plus a lead of 0.5 s, then an edit of it that keeps the
+        /// lead on both sides of the wrap: Step and StepsTotal count both passes (steps 4 is 8
+        /// steps in all). The finished sample reads as the cycle's frames frames: every pose
+        /// read applies the wrap's correction (a cleanup's wrap is taken as on), the raw
+        /// features drop the next cycle's first frame. NewSession throws InvalidArgument for a
+        /// latent model (use a cleanup's wrap on a plain session), a cycle too short or too long
+        /// for the model, and any other value than 0 or 1; a loop session refuses time stages,
+        /// references, masks and position targets.</summary>
+        public uint looped;
 
         public static FlameSessionParams Default()
         {
@@ -1212,8 +1223,9 @@ namespace Flame
         static readonly ProgressCallback Trampoline = OnProgress;
 
         public FlameSessionHandle Handle { get; private set; }
-        /// <summary>Frames this session was asked for (what a reference or mask spans). A read's
-        /// frames are ReadFrames: the same, except for a latent model, whose decoder decides
+        /// <summary>Frames this session was asked for (what a reference or mask spans; a loop's
+        /// cycle, FlameSessionParams.looped). A read's frames are ReadFrames: the same (a
+        /// finished loop reads as its cycle), except for a latent model, whose decoder decides
         /// the valid length.</summary>
         public int Frames { get; private set; }
         /// <summary>Feature channels per frame.</summary>

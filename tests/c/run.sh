@@ -145,7 +145,7 @@ reference() { # NAME FRAMES STEPS
 }
 step "reference (CLI, 24 frames, 10 steps)" "$OUT/ref.log" reference ref 24 10 || finish
 step "reference (CLI, 8 frames, 2 steps)" "$OUT/ref_quick.log" reference ref_quick 8 2 || finish
-# The poses of a loop (test_cleanup's loop session reads the same).
+# The poses of a loop (test_cleanup's and test_cpp's loop sessions read the same).
 loop_positions() {
     "$LIB/flame" generate --model "$MODEL" --prompt "$PROMPT" --frames 40 --steps 4 \
         --sampler ddim --seed 5 --threads 1 --loop --feet off --ground off \
@@ -214,7 +214,7 @@ built test_stream_shared && run_test "test_stream (shared)" "$OUT/test_stream_sh
 built test_cleanup_shared && run_test "test_cleanup (shared)" "$OUT/test_cleanup_shared.log" \
     "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures" "$OUT/loop_positions.npy"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
-    "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy"
+    "$OUT/test_cpp_shared" "$MODEL" "$OUT/ref.npy" 10 "$OUT/loop_positions.npy"
 built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared)" "$OUT/test_cpp_gltf_shared.log" \
     "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"
 built test_cpp_stream_shared && run_test "test_cpp_stream (shared)" \
@@ -265,7 +265,8 @@ if [ "$use_valgrind" = 1 ]; then
             "$ROOT/tests/fixtures"
         built test_cpp_shared && run_test "test_cpp (shared, valgrind)" \
             "$OUT/test_cpp_valgrind.log" \
-            "${VALGRIND[@]}" "$OUT/test_cpp_shared" "$MODEL" "${QUICK[@]}" 2
+            "${VALGRIND[@]}" "$OUT/test_cpp_shared" "$MODEL" "${QUICK[@]}" 2 \
+            "$OUT/loop_positions.npy"
         built test_cpp_gltf_shared && run_test "test_cpp_gltf (shared, valgrind)" \
             "$OUT/test_cpp_gltf_valgrind.log" \
             "${VALGRIND[@]}" "$OUT/test_cpp_gltf_shared" "$ROOT/tests/fixtures"

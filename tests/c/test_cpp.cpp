@@ -3,7 +3,10 @@
 // callbacks (including one that throws), cancel from another thread, and bit-equality with the
 // C API and the CLI.
 //
-// usage: test_cpp MODEL REFERENCE_NPY [STEPS]   (as test_api: frames from the file, steps 10)
+// usage: test_cpp MODEL REFERENCE_NPY [STEPS [LOOP_POSITIONS_NPY]]
+//   (as test_api: frames from the file, steps 10; LOOP_POSITIONS_NPY is what
+//   `flame generate --loop --feet off --ground off --positions` wrote, tests/c/run.sh's
+//   loop_positions, which a loop session's positions must equal bit for bit)
 
 #include <algorithm>
 #include <atomic>
@@ -36,6 +39,7 @@ static std::string g_model_path;
 static std::vector<float> g_cli;  // the CLI's features
 static std::vector<float> g_c;    // the same generation through the C API
 static std::size_t g_values;      // ref_frames x 147
+static std::string g_loop_positions;  // the CLI's loop positions (.npy), or empty
 
 // `expr` must throw flame::Error with `status` and a message containing `needle`.
 #define CHECK_THROWS(expr, want, needle)                                                          \
@@ -865,13 +869,87 @@ static void test_cleanup() {
     CHECK(std::string(plain.begin(), plain.end()).find("\"name\":\"root\"") == std::string::npos);
 }
 
+// A loop made by the session (SessionParams::looped, ABI 4), as test_cleanup.c's test_loop:
+// both passes counted (steps 4 are 8), the finished sample read as the cycle's 40 frames, its
+// smoothed positions equal to the CLI's `--loop` output, and the refusals as flame::Error.
+static void test_loop() {
+    auto loop_params = [] {
+        flame::SessionParams p;
+        p.frames = 40;
+        p.steps = 4;
+        p.sampler = FLAME_SAMPLER_DDIM;
+        p.seed = 5;
+        p.threads = 1;
+        p.looped = 1;
+        return p;
+    };
+    flame::Model model = flame::Model::load(g_model_path);
+    {
+        flame::Session s = model.session(loop_params());
+        s.set_prompt(REF_PROMPT);
+        std::vector<flame::Progress> seen;
+        s.on_progress([&seen](uint32_t done, uint32_t total) { seen.push_back({done, total}); });
+        flame::Progress at = s.progress();
+        CHECK(at.done == 0 && at.total == 8);
+        bool order = true;
+        for (uint32_t want = 8; want-- > 0;) {
+            order = order && s.step() == want;
+        }
+        CHECK(order);
+        at = s.progress();
+        CHECK(at.done == 8 && at.total == 8);
+        bool counted = seen.size() == 8;
+        for (std::size_t k = 0; counted && k < seen.size(); k++) {
+            counted = seen[k].done == k + 1 && seen[k].total == 8;
+        }
+        CHECK(counted);
+        // The cycle's frames; the raw features without the next cycle's first frame.
+        CHECK(s.read_frames() == 40);
+        flame::Motion f = s.read_motion();
+        CHECK(f.frames == 40 && f.values.size() == 40u * FLAME_TINY_DIM);
+        // A read with no cleanup still wraps: what the CLI wrote with --feet off --ground off.
+        flame::Motion pos = s.read_motion(FLAME_WHICH_SAMPLE, FLAME_LAYOUT_GLOBAL_POSITIONS,
+                                          FLAME_CONVENTION_NATIVE, FLAME_READ_SMOOTH);
+        CHECK(pos.frames == 40 && pos.values.size() == 40u * 24 * 3);
+        if (!g_loop_positions.empty()) {
+            size_t rows = 0, cols = 0;
+            float *cli = read_npy_f32(g_loop_positions.c_str(), &rows, &cols);
+            CHECK(cli && rows == 40 && cols == 24 * 3);
+            CHECK(cli && same_bits(pos.values.data(), pos.values.size(), cli, rows * cols));
+            free(cli);
+        } else {
+            std::printf("loop: no LOOP_POSITIONS_NPY, the CLI comparison skipped\n");
+        }
+        // The loop's edit is its own.
+        CHECK_THROWS(s.set_reference(std::vector<float>(FLAME_TINY_DIM), 1, FLAME_TINY_DIM),
+                     FLAME_STATUS_INVALID_ARGUMENT, "its own edit");
+    }
+    // Refused when the session is made.
+    flame::SessionParams p = loop_params();
+    p.frames = 12;
+    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "at least 40 frames");
+    p = loop_params();
+    p.looped = 2;
+    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "`looped`");
+    p = loop_params();
+    p.looped = 0;  // the plain session of before
+    CHECK(model.session(p).progress().total == 4);
+    std::string dir = g_model_path.substr(0, g_model_path.find_last_of('/') + 1);
+    flame::Model mola = flame::Model::load(dir + "mola_tiny.safetensors");
+    p = loop_params();
+    p.frames = 60;
+    CHECK_THROWS(mola.session(p), FLAME_STATUS_INVALID_ARGUMENT, "samples a latent");
+}
+
 int main(int argc, char **argv) {
-    if (argc != 3 && argc != 4) {
-        std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS]\n", argv[0]);
+    if (argc < 3 || argc > 5) {
+        std::fprintf(stderr, "usage: %s MODEL REFERENCE_NPY [STEPS [LOOP_POSITIONS_NPY]]\n",
+                     argv[0]);
         return 2;
     }
-    ref_steps = argc == 4 ? static_cast<uint32_t>(std::strtoul(argv[3], nullptr, 10)) : 10;
+    ref_steps = argc >= 4 ? static_cast<uint32_t>(std::strtoul(argv[3], nullptr, 10)) : 10;
     g_model_path = argv[1];
+    g_loop_positions = argc == 5 ? argv[4] : "";
     size_t rows = 0, cols = 0;
     float *ref = read_npy_f32(argv[2], &rows, &cols);
     if (!ref || rows < 2 || cols != FLAME_TINY_DIM || ref_steps < 2) {
@@ -919,6 +997,7 @@ int main(int argc, char **argv) {
         test_latent_model();
         test_prompt_stages();
         test_cleanup();
+        test_loop();
     } catch (const std::exception &e) {
         check_record(0, __FILE__, __LINE__, "unexpected exception", e.what());
     }

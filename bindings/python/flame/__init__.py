@@ -417,6 +417,7 @@ class _SessionParams(ctypes.Structure):
         ("seed", ctypes.c_uint64),
         ("threads", ctypes.c_uint32),
         ("respacing", ctypes.c_char_p),
+        ("looped", ctypes.c_uint32),  # since version 3 of the struct (ABI 4)
     ]
 
 
@@ -854,14 +855,27 @@ class Model:
         seed: int = 0,
         threads: int = 0,
         respacing: Optional[str] = None,
+        looped: bool = False,
     ) -> "Session":
         """Starts a generation. None takes the model file's default; `sampler` is "ddpm",
         "ddim", "euler", "heun", "midpoint" or a Sampler value; `threads` 0 = one per core, at most
         MAX_THREADS (the session owns its threads). `respacing` is a guided-diffusion respacing
         string ("ddim50", "50", "15,15,8,6,6") choosing which training steps to sample; it sets
         the step count (`steps`, if given, must agree) and is refused by flow models and models
-        with diffusers spacing."""
-        return Session(self, frames, steps, sampler, eta, guidance, seed, threads, respacing)
+        with diffusers spacing.
+
+        `looped=True` generates a loop of `frames` frames whose end flows into its start
+        (FlameSessionParams.looped, as `flame generate --loop`): the session samples twice, a
+        generation of `frames` plus a lead of 0.5 s, then an edit of it that keeps the lead on
+        both sides of the wrap. step() and `progress` count both passes (`steps=4` is 8 steps
+        in all). The finished sample reads as the cycle's `frames` frames: every pose read
+        applies the wrap's correction (a Cleanup's `wrap` is taken as on), the raw features
+        drop the next cycle's first frame. FlameError INVALID_ARGUMENT for a latent model
+        (Model.latent: use Cleanup(wrap=True) on a plain session) and a cycle too short or too
+        long for the model; a loop session refuses time stages, references, masks and position
+        targets."""
+        return Session(self, frames, steps, sampler, eta, guidance, seed, threads, respacing,
+                       looped=looped)
 
     def close(self) -> None:
         handle, self._handle = self._handle, None
@@ -1183,7 +1197,9 @@ class Session:
     """One generation on a model. Methods raise FlameError when libflame reports a failure."""
 
     def __init__(self, model: Model, frames, steps, sampler, eta, guidance, seed, threads,
-                 respacing=None):
+                 respacing=None, *, looped: bool = False):
+        """Prefer Model.session(...), which documents the settings. `looped` makes a loop
+        session: `frames` is then the cycle's length, what reads return once it is finished."""
         self._handle: Optional[int] = None
         # Held by every call but cancel(), so close() from another thread waits for a running
         # step instead of freeing the session under it. Reentrant: a progress callback may call
@@ -1205,10 +1221,14 @@ class Session:
             if "\0" in respacing:
                 raise ValueError("respacing contains a NUL character")
             p.respacing = respacing.encode("utf-8")  # kept alive by `p` until the call returns
+        p.looped = 1 if looped else 0
         out = _P()
         _check(_lib().flame_session_new(model._h(), ctypes.byref(p), ctypes.byref(out)))
         self._handle = out.value
+        # The frames asked for: a loop's cycle, which is also what its finished sample reads as
+        # (the lead the loop samples beyond it is not part of the session's frames).
         self.frames = frames or info.default_frames
+        self.looped = bool(looped)
         self.feature_dim = info.feature_dim
         self.joint_count = info.joint_count
 
@@ -1485,8 +1505,9 @@ class Session:
         return int(which)
 
     def read_frames(self, which: Union[str, int] = "sample") -> int:
-        """How many frames read(which) returns now: the session's frames, or a latent model's
-        valid length, which its decoder decides anew after every step. Raises FlameError
+        """How many frames read(which) returns now: the session's frames (a finished loop's
+        sample: the cycle, without the lead it sampled), or a latent model's valid length, which
+        its decoder decides anew after every step. Raises FlameError
         (WRONG_STATE) before there is anything to read."""
         frames = ctypes.c_uint32()
         self._call(_lib().flame_session_read_frames, self._which(which), ctypes.byref(frames))

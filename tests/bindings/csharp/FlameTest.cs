@@ -62,6 +62,8 @@ static class FlameTest
             Run("StepsEstimateReset", TestStepsEstimateReset);
             Run("SessionErrors", TestSessionErrors);
             Run("Respacing", TestRespacing);
+            Run("LoopSession", TestLoopSession);
+            Run("LoopRefusals", TestLoopRefusals);
             Run("PromptInfo", TestPromptInfo);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
@@ -312,6 +314,9 @@ static class FlameTest
         Check(sp.frames == 0 && sp.steps == 0 && sp.sampler == 0 && sp.eta < 0 && sp.guidance < 0 && sp.seed == 0 && sp.threads == 0, "session defaults");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "seed") == 24, "offset of seed");
         Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "respacing") == 40 && sp.respacing == IntPtr.Zero, "respacing field");
+        // ABI 4: a uint32 after the pointer (C on x86-64: offsetof looped 48, sizeof 56).
+        Check((int)Marshal.OffsetOf(typeof(FlameSessionParams), "looped") == 40 + IntPtr.Size && sp.looped == 0, "looped field");
+        Check(Marshal.SizeOf(typeof(FlameSessionParams)) == 56 || IntPtr.Size == 4, "sizeof FlameSessionParams " + Marshal.SizeOf(typeof(FlameSessionParams)));
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "architecture") == 48 || IntPtr.Size == 4, "offset of architecture");
         // ABI 2: two uint32 after the five pointers (C on x86-64: offsetof latent 88, sizeof 96).
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "latent") == 88 || IntPtr.Size == 4, "offset of latent");
@@ -483,6 +488,98 @@ static class FlameTest
         q.steps = 5;
         Throws(FlameStatus.InvalidArgument, "steps 5 disagrees with respacing \"ddim4\"", () => model.NewSession(q, "ddim4").Dispose());
         Throws(FlameStatus.InvalidArgument, "cannot create exactly 999 steps", () => model.NewSession(RefParams(), "ddim999").Dispose());
+    }
+
+    // --- loops made by the session (FlameSessionParams.looped, ABI 4) ---------------------------
+    // Two passes (a generation, then an edit across the wrap); the finished sample reads as the
+    // cycle. Reference: `flame generate --loop --feet off --ground off --positions` (as
+    // tests/c/run.sh's loop_positions and test_cleanup.c's test_loop).
+
+    const int LoopFrames = 40;
+
+    static FlameSessionParams LoopParams()
+    {
+        var p = FlameSessionParams.Default();
+        p.frames = LoopFrames;
+        p.steps = 4;
+        p.sampler = (int)FlameSampler.Ddim;
+        p.seed = 5;
+        p.threads = 1;
+        p.looped = 1;
+        return p;
+    }
+
+    static void TestLoopSession()
+    {
+        string positionsPath = Path.Combine(tmpDir, "loop_positions.npy");
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + modelPath + "\" --prompt \"" + RefPrompt + "\" --frames 40 --steps 4 --sampler ddim --seed 5 --threads 1 " +
+            "--loop --feet off --ground off --positions \"" + positionsPath + "\" --out \"" + Path.Combine(tmpDir, "loop.json") + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI --loop exit code " + proc.ExitCode);
+        }
+        int[] shape;
+        var cli = Npy.Read(positionsPath, out shape);
+        Check(shape.Length == 3 && shape[0] == LoopFrames && shape[1] == 24 && shape[2] == 3, "CLI positions shape " + string.Join("x", shape));
+
+        var seen = new List<int[]>();
+        using (var s = model.NewSession(LoopParams()))
+        {
+            Check(s.Frames == LoopFrames, "Frames = the cycle: " + s.Frames);
+            s.SetPrompt(RefPrompt);
+            s.SetProgressCallback((done, total) => seen.Add(new[] { done, total }));
+            // Both passes: 8 steps, counted down across the edit.
+            Check(s.StepsDone == 0 && s.StepsTotal == 8, "progress " + s.StepsDone + "/" + s.StepsTotal);
+            var left = new List<int>();
+            for (int i = 0; i < 8; i++)
+                left.Add(s.Step());
+            Check(left.SequenceEqual(new[] { 7, 6, 5, 4, 3, 2, 1, 0 }), "steps left " + string.Join(",", left));
+            Check(s.StepsDone == 8 && s.StepsTotal == 8 && s.StepsLeft == 0, "progress at the end " + s.StepsDone + "/" + s.StepsTotal);
+            Check(seen.Count == 8 && seen.Select((c, i) => c[0] == i + 1 && c[1] == 8).All(x => x),
+                  "callback: " + string.Join(" ", seen.Select(c => c[0] + "/" + c[1])));
+            // The cycle's frames; the raw features without the next cycle's first frame.
+            Check(s.ReadFrames(FlameWhich.Sample) == LoopFrames, "ReadFrames " + s.ReadFrames(FlameWhich.Sample));
+            int featureFrames;
+            var features = s.Read(FlameWhich.Sample, FlameLayout.Features, FlameConvention.Native, 0, out featureFrames);
+            Check(featureFrames == LoopFrames && features.Length == LoopFrames * Dim, "features " + featureFrames + " frames, " + features.Length + " values");
+            Check(features.All(v => !float.IsNaN(v) && !float.IsInfinity(v)), "finite features");
+            // A read with no cleanup still wraps: what the CLI wrote, bit for bit.
+            int posFrames;
+            var pos = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Native, FlameReadFlags.Smooth, out posFrames);
+            Check(posFrames == LoopFrames && pos.Length == LoopFrames * 24 * 3, "positions " + posFrames + " frames, " + pos.Length + " values");
+            Check(BitEqual(pos, cli), "loop positions = CLI --loop --positions, bit for bit");
+            // The loop's edit is its own.
+            Throws(FlameStatus.InvalidArgument, "its own edit", () => s.SetReference(new float[Dim], 1, Dim));
+        }
+    }
+
+    static void TestLoopRefusals()
+    {
+        var p = LoopParams();
+        p.frames = 12;
+        Throws(FlameStatus.InvalidArgument, "at least 40 frames", () => model.NewSession(p).Dispose());
+        p = LoopParams();
+        p.looped = 2;
+        Throws(FlameStatus.InvalidArgument, "`looped`", () => model.NewSession(p).Dispose());
+        // looped 0 is the plain session of before (4 steps).
+        p = LoopParams();
+        p.looped = 0;
+        using (var s = model.NewSession(p))
+            Check(s.StepsTotal == 4, "plain session: " + s.StepsTotal + " steps");
+        string mola = Path.Combine(Path.GetDirectoryName(Path.GetFullPath(modelPath)), "mola_tiny.safetensors");
+        using (var m = FlameModel.Load(mola, 1))
+        {
+            p = LoopParams();
+            p.frames = 60;
+            Throws(FlameStatus.InvalidArgument, "samples a latent", () => m.NewSession(p).Dispose());
+        }
     }
 
     static void TestSessionErrors()

@@ -1182,6 +1182,76 @@ def test_latent_read_after_reset_is_the_new_generation(mola):
         assert s.read().tobytes() == fresh.read().tobytes()
 
 
+# --- loops made by the session (looped, ABI 4) ------------------------------------------------
+# A loop session samples twice (a generation, then an edit of it across the wrap); the finished
+# sample reads as the cycle. Reference: `flame generate --loop --feet off --ground off
+# --positions` (as tests/c/run.sh's loop_positions and test_cleanup.c's test_loop).
+
+LOOP_SETTINGS = dict(frames=40, steps=4, sampler="ddim", seed=5, threads=1)
+
+
+def loop_cli_positions(out_dir: Path) -> np.ndarray:
+    s = LOOP_SETTINGS
+    positions = out_dir / "loop_positions.npy"
+    cmd = [cli_path(), "generate", "--model", MODEL, "--prompt", REF_PROMPT,
+           "--frames", str(s["frames"]), "--steps", str(s["steps"]), "--sampler", s["sampler"],
+           "--seed", str(s["seed"]), "--threads", str(s["threads"]), "--loop", "--feet", "off",
+           "--ground", "off", "--positions", str(positions), "--out", str(out_dir / "loop.json")]
+    subprocess.run(cmd, check=True, capture_output=True)
+    return np.load(positions)
+
+
+def test_session_params_struct_through_ctypes():
+    """libflame writes sizeof(FlameSessionParams) into struct_size (and the whole struct): the
+    ctypes mirror must be as large, `looped` after `respacing`."""
+    raw = flame._SessionParams()
+    assert flame._lib().flame_session_params_default(ctypes.byref(raw)) == Status.OK
+    assert raw.struct_size == ctypes.sizeof(flame._SessionParams)
+    fields = flame._SessionParams
+    assert fields.looped.offset == fields.respacing.offset + ctypes.sizeof(ctypes.c_void_p)
+    assert raw.looped == 0 and not raw.respacing
+    if ctypes.sizeof(ctypes.c_void_p) == 8:
+        assert (raw.struct_size, fields.looped.offset) == (56, 48)
+
+
+def test_loop_session_matches_cli(model, tmp_path):
+    cli = loop_cli_positions(tmp_path)
+    assert cli.shape == (40, 24, 3) and cli.dtype == np.float32
+    seen = []
+    with model.session(**LOOP_SETTINGS, looped=True) as s:
+        assert s.looped and s.frames == 40  # the cycle asked for
+        s.set_prompt(REF_PROMPT)
+        s.set_progress(lambda done, total: seen.append((done, total)))
+        # Both passes: 8 steps, counted down across the edit.
+        assert s.progress == (0, 8) and s.steps_left == 8
+        assert [s.step() for _ in range(8)] == list(range(7, -1, -1))
+        assert s.progress == (8, 8)
+        assert seen == [(k, 8) for k in range(1, 9)]
+        # The cycle's frames; the raw features without the next cycle's first frame.
+        assert s.read_frames() == 40
+        features = s.read()
+        assert features.shape == (40, DIM) and np.isfinite(features).all()
+        # A read with no cleanup still wraps: what the CLI wrote, bit for bit.
+        pos = s.read("sample", Layout.GLOBAL_POSITIONS, Convention.NATIVE, ReadFlags.SMOOTH)
+        assert pos.shape == (40, 24, 3)
+        assert pos.tobytes() == cli.tobytes()
+        # The loop's edit is its own.
+        expect_error(Status.INVALID_ARGUMENT, "its own edit", s.set_reference, np.zeros((1, DIM)))
+
+
+def test_loop_session_refusals(model):
+    expect_error(Status.INVALID_ARGUMENT, "at least 40 frames", model.session,
+                 **{**LOOP_SETTINGS, "frames": 12}, looped=True)
+    with flame.Model.load(MOLA) as mola:
+        expect_error(Status.INVALID_ARGUMENT, "samples a latent", mola.session,
+                     **{**LOOP_SETTINGS, "frames": 60}, looped=True)
+        with mola.session(**{**LOOP_SETTINGS, "frames": 60}) as plain:  # looped=False: fine
+            assert not plain.looped and plain.progress == (0, 4)
+    # looped=False is the plain session of before (4 steps).
+    with model.session(**LOOP_SETTINGS) as plain:
+        assert not plain.looped and plain.progress == (0, 4)
+
+
 # --- prompts per time stage ------------------------------------------------------------------
 
 STAGE_SETTINGS = dict(frames=16, steps=3, sampler="ddim", seed=5, threads=1)
