@@ -335,7 +335,8 @@ typedef struct FlameSessionParams {
   // (`flame generate --loop`). [`flame_session_step`] and the progress count both passes.
   // The finished sample reads as the `frames` frames of the cycle: every pose read applies
   // the wrap's correction (any cleanup's `wrap` is taken as 2), raw features drop the next
-  // cycle's first frame. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
+  // cycle's first frame. The sampled space (what [`flame_session_set_noise`] takes) has
+  // the `frames` plus the lead's rows. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
   // `wrap` on a plain session), a cycle too short or too long for the model; a loop session
   // refuses time stages, references, masks and position targets. 0 = a plain generation
   // (since version 3 of this struct).
@@ -1080,6 +1081,24 @@ enum FlameStatus flame_stream_read(const struct FlameStream *stream,
 // # Safety
 // `stream` is a live stream.
 enum FlameStatus flame_stream_close(const struct FlameStream *stream);
+
+// Declares the stream's timeline complete, as [`flame_stream_close`], and makes it loop: after
+// the pushed segments the stream generates a bridge of `bridge_frames` frames (the last
+// segment's prompt) whose end runs into the timeline's first frames, moved by the loop's root
+// motion (a walking loop walks on). It is made as `flame generate --loop` makes a clip: a
+// probe continues the timeline to see where it goes, then an edit keeps the timeline's last
+// `overlap` frames before the bridge and its first 0.5 s after it. The bridge costs two
+// chunks' steps; frames already generated never change, the timeline grows by
+// `bridge_frames`, and cleaned reads settle to its end as after [`flame_stream_close`].
+// Playing frame 0 after the last continues the motion (an engine moves the character by the
+// root travel of the timeline). `INVALID_ARGUMENT` for a latent model (MLD, MoLA) and for a
+// bridge shorter than 1 s or longer than the model's frames allow (overlap + bridge + 0.5 s);
+// `WRONG_STATE` when the stream is already closed, has no segment, or dropped frame 0.
+//
+// # Safety
+// `stream` is a live stream.
+enum FlameStatus flame_stream_close_looped(const struct FlameStream *stream,
+                                           uint32_t bridge_frames);
 
 // [`flame_stream_read`] with post-processing: frames `first_frame..first_frame + count` of
 // the timeline after `cleanup` (NULL = the raw poses, exactly `flame_stream_read`), at the

@@ -157,7 +157,7 @@ pub(crate) fn in_root_units(model: &Model, rows: &mut [f32], f: impl FnOnce(&mut
 /// (translation 0..3, root rotation rows 3..9 in 6D ROW form): the move taking one frame's root
 /// onto another's heading and horizontal position.
 #[derive(Clone, Copy, Debug)]
-struct RootMove {
+pub(crate) struct RootMove {
     cos: f64,
     sin: f64,
     from: [f64; 2],
@@ -166,7 +166,7 @@ struct RootMove {
 
 impl RootMove {
     /// The move taking `a`'s root to `b`'s (rows of smpl24_6d features).
-    fn between(a: &[f32], b: &[f32]) -> RootMove {
+    pub(crate) fn between(a: &[f32], b: &[f32]) -> RootMove {
         // Forward = the decoded root rotation's third column (body +Z); its horizontal part is
         // (R[0][2], R[1][2]).
         let heading = |r: &[f32]| {
@@ -185,7 +185,7 @@ impl RootMove {
     /// Applies the move to every row of `rows`. The root rotation is decoded first (6D → matrix,
     /// as the decoder does) and written back as the 6D of `Rz·R`: mixing the raw 6D rows would
     /// not commute with the decoder's Gram–Schmidt when a model's 6D output is not orthonormal.
-    fn apply(&self, rows: &mut [f32], dim: usize) {
+    pub(crate) fn apply(&self, rows: &mut [f32], dim: usize) {
         let (c, s) = (self.cos, self.sin);
         let turn = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]];
         for row in rows.chunks_exact_mut(dim) {

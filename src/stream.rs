@@ -195,7 +195,23 @@ struct Chunk {
     kept: usize,
     /// The canonical frame's change for `smpl24_6d` (identity otherwise).
     frame: Rebase,
+    /// Which pass of a loop's bridge this chunk is, if it is one.
+    bridge: Option<Bridge>,
 }
+
+/// The two passes of a looped timeline's bridge ([`Stream::close_looped`]), as a loop clip's
+/// are ([`crate::cycle`]): a probe continues the timeline `frames` + the lead frames to see
+/// where the motion goes after the bridge (heading and horizontal position: the loop's root
+/// motion `T`); the final pass keeps the timeline's last frames at its start and the
+/// timeline's first frames moved by `T` at its end, and generates the bridge between.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Bridge {
+    Probe,
+    Final,
+}
+
+/// Seconds of the timeline's start kept at a bridge's end (as [`crate::cycle::LEAD_SECONDS`]).
+const BRIDGE_LEAD_SECONDS: f64 = crate::cycle::LEAD_SECONDS;
 
 /// A heading change about the world up axis and a horizontal shift, applied to the root
 /// channels of absolute formats.
@@ -293,6 +309,16 @@ pub struct Stream {
     closed: bool,
     /// Where the first chunk ended (the cleanup's floors come from its frames).
     first_chunk: Option<usize>,
+    /// A looped close: the bridge's frames, once [`Stream::close_looped`] asked for one.
+    bridge: Option<usize>,
+    /// The timeline's first [`Stream::bridge_lead`] frames, kept for the bridge's end (in the
+    /// stream's frame; captured before any frame is dropped).
+    start_rows: Vec<f32>,
+    /// After a finished bridge: the frame after the timeline's last, the first frame of the
+    /// next cycle (the timeline's frame 0 moved by the loop's root motion).
+    loop_end: Option<Vec<f32>>,
+    /// The prompt of the last segment generated (a bridge's).
+    last_prompt: String,
 }
 
 /// Sign-continuous quaternion tracks of the held frames, one per (local or world rotations,
@@ -375,6 +401,10 @@ impl Stream {
             cleanup: None,
             closed: false,
             first_chunk: None,
+            bridge: None,
+            start_rows: Vec::new(),
+            loop_end: None,
+            last_prompt: String::new(),
         })
     }
 
@@ -510,7 +540,10 @@ impl Stream {
             self.segments.pop_front();
         }
         let Some((seg, done)) = self.segments.front() else {
-            return Ok(false);
+            return match self.bridge {
+                Some(frames) if self.loop_end.is_none() => self.start_bridge(frames, Bridge::Probe),
+                _ => Ok(false),
+            };
         };
         let dim = self.model.motion_dim();
         let have = self.features.len() / dim;
@@ -569,14 +602,161 @@ impl Stream {
             start: self.ready() - kept,
             kept,
             frame,
+            bridge: None,
         });
         Ok(true)
+    }
+
+    /// Frames of the timeline's start a bridge keeps at its end.
+    fn bridge_lead(&self) -> usize {
+        let fps = self.model.config().motion.fps as f64;
+        ((BRIDGE_LEAD_SECONDS * fps).round() as usize).max(2)
+    }
+
+    /// Starts a pass of the bridge of `frames` frames: the timeline's last `overlap` frames
+    /// kept at the start, then `frames` generated, then the lead (see [`Bridge`]).
+    fn start_bridge(&mut self, frames: usize, pass: Bridge) -> Result<bool> {
+        self.start_bridge_with(frames, pass, None)
+    }
+
+    /// [`Stream::start_bridge`]; the final pass takes the probe's frame after the bridge (the
+    /// canonical frame's, model space).
+    fn start_bridge_with(
+        &mut self,
+        frames: usize,
+        pass: Bridge,
+        after: Option<&[f32]>,
+    ) -> Result<bool> {
+        let dim = self.model.motion_dim();
+        let have = self.features.len() / dim;
+        let kept = self.params.overlap.min(have);
+        let lead = self.bridge_lead();
+        if self.start_rows.len() < lead * dim {
+            return Err(Error::WrongState(format!(
+                "the timeline has {have} frames: a loop's bridge runs into its first {lead}, so \
+                 it needs at least that many"
+            )));
+        }
+        let total = kept + frames + lead;
+        let prompt = self.last_prompt.clone();
+        let params = SessionParams {
+            frames: Some(total),
+            seed: chunk_seed(self.params.session.seed, self.chunks),
+            ..self.params.session.clone()
+        };
+        let mut session = Session::new(Arc::clone(&self.model), &params)?;
+        session.share_cancel_flag(Arc::clone(&self.cancel));
+        session.set_prompt(&prompt)?;
+        let mut reference = vec![0.0; total * dim];
+        reference[..kept * dim].copy_from_slice(&self.features[(have - kept) * dim..]);
+        let mut frame = Rebase::IDENTITY;
+        let absolute = self.model.motion_format() == Format::Smpl24Rot6d;
+        if absolute {
+            let mut first = reference[..dim].to_vec();
+            self.root_channels(&mut first, |rows| frame = Rebase::canonical(rows));
+            self.root_channels(&mut reference[..kept * dim], |rows| frame.apply(rows, dim));
+        }
+        let mut keep = vec![false; total * dim];
+        keep[..kept * dim].fill(true);
+        if let Some(after) = after {
+            // The timeline's start, moved by the loop's root motion T (the turn and shift
+            // taking frame 0's root onto the probe's frame after the bridge), in the canonical
+            // frame; humanml263's relative features continue the path by themselves.
+            let end = &mut reference[(kept + frames) * dim..];
+            end.copy_from_slice(&self.start_rows[..lead * dim]);
+            if absolute {
+                let mut a = self.start_rows[..dim].to_vec();
+                let mut b = after.to_vec();
+                let back = frame.inverse();
+                self.root_channels(&mut b, |rows| back.apply(rows, dim));
+                let mut t = None;
+                self.root_channels(&mut a, |a| {
+                    crate::cycle::in_root_units(&self.model, &mut b, |b| {
+                        t = Some(crate::cycle::RootMove::between(a, b))
+                    })
+                });
+                let t = t.expect("set above");
+                self.root_channels(end, |rows| {
+                    t.apply(rows, dim);
+                    frame.apply(rows, dim);
+                });
+            }
+            keep[(kept + frames) * dim..].fill(true);
+        }
+        session.set_reference(&reference)?;
+        session.set_keep(keep)?;
+        self.current = Some(Chunk {
+            session,
+            start: self.ready() - kept,
+            kept,
+            frame,
+            bridge: Some(pass),
+        });
+        Ok(true)
+    }
+
+    /// Declares the timeline complete and makes it loop: after the pushed segments, a bridge
+    /// of `frames` frames (the last segment's prompt) is generated that runs from the
+    /// timeline's end into its start, as `flame generate --loop` makes a clip's end run into
+    /// its start. Frames already generated never change; the bridge adds `frames` frames, and
+    /// [`Stream::loop_end`] then holds the frame after the last (the next cycle's first).
+    /// Needs the timeline's first frames (refused once they were dropped), a model that keeps
+    /// frames (not latent), and `frames` of at least two leads (1 s) with the overlap and the
+    /// lead fitting in the model's frames.
+    pub fn close_looped(&mut self, frames: usize) -> Result<()> {
+        self.check_open()?;
+        if self.model.is_latent() {
+            return Err(invalid_arg!(
+                "a looped stream generates a bridge that keeps frames at both ends, and this {} \
+                 model samples a latent",
+                self.model.config().architecture
+            ));
+        }
+        let lead = self.bridge_lead();
+        let max = self.model.max_frames();
+        if frames < 2 * lead || self.params.overlap + frames + lead > max {
+            return Err(invalid_arg!(
+                "a loop's bridge of {frames} frames: it needs {}..={} frames ({lead} of the \
+                 start kept after it and the {}-frame overlap before it, at most the model's \
+                 {max} in all)",
+                2 * lead,
+                max.saturating_sub(self.params.overlap + lead),
+                self.params.overlap
+            ));
+        }
+        if self.first > 0 {
+            return Err(Error::WrongState(format!(
+                "frames before {} were dropped: a loop runs into the timeline's first frames",
+                self.first
+            )));
+        }
+        if self.segments.is_empty() && self.ready() == 0 {
+            return Err(Error::WrongState(
+                "push a segment before closing the stream into a loop".into(),
+            ));
+        }
+        self.bridge = Some(frames);
+        self.closed = true;
+        Ok(())
+    }
+
+    /// The frame after the timeline's last once a looped timeline is complete: the next
+    /// cycle's first frame (frame 0 moved by the loop's root motion), model-space features.
+    pub fn loop_end(&self) -> Option<&[f32]> {
+        self.loop_end.as_deref()
     }
 
     /// Appends the finished chunk's new frames, back in the stream's frame.
     fn finish_chunk(&mut self) -> Result<()> {
         let mut c = self.current.take().expect("a chunk is running");
         let dim = self.model.motion_dim();
+        if let (Some(Bridge::Probe), Some(frames)) = (c.bridge, self.bridge) {
+            let (x, _) = c.session.motion(Which::Sample)?;
+            let at = c.kept + frames;
+            let after = x[at * dim..(at + 1) * dim].to_vec();
+            self.start_bridge_with(frames, Bridge::Final, Some(&after))?;
+            return Ok(());
+        }
         // A latent model decides its decoded length itself (MoLA's valid flag, at least 10
         // frames): the chunk adds what it decoded past the kept frames, up to what was asked.
         let asked = c.session.frames();
@@ -595,14 +775,30 @@ impl Stream {
             let back = c.frame.inverse();
             self.root_channels(&mut new, |rows| back.apply(rows, dim));
         }
-        let added = frames - c.kept;
+        let mut added = frames - c.kept;
+        if let (Some(Bridge::Final), Some(bridge)) = (c.bridge, self.bridge) {
+            // The bridge's frames are the timeline's; the lead after them is the next cycle's
+            // start, of which the first frame is kept.
+            added = bridge;
+            self.loop_end = Some(new[bridge * dim..(bridge + 1) * dim].to_vec());
+            new.truncate(bridge * dim);
+        }
         self.features.extend_from_slice(&new);
+        if self.start_rows.is_empty() && self.first == 0 {
+            let lead = self.bridge_lead();
+            if self.ready() >= lead {
+                self.start_rows = self.features[..lead * dim].to_vec();
+            }
+        }
         if self.first_chunk.is_none() {
             self.first_chunk = Some(self.ready());
         }
         self.held_changed();
-        if let Some((_, done)) = self.segments.front_mut() {
-            *done += added;
+        if c.bridge.is_none() {
+            if let Some((seg, done)) = self.segments.front_mut() {
+                *done += added;
+                self.last_prompt.clone_from(&seg.prompt);
+            }
         }
         self.chunks += 1;
         Ok(())
@@ -1036,9 +1232,13 @@ impl Stream {
         self.closed
     }
 
-    /// Closed and every pushed frame generated: the timeline's length is [`Stream::ready`].
+    /// Closed and every pushed frame generated (and a looped close's bridge): the timeline's
+    /// length is [`Stream::ready`].
     pub fn is_complete(&self) -> bool {
-        self.closed && self.current.is_none() && self.segments.iter().all(|(s, d)| *d >= s.frames)
+        self.closed
+            && self.current.is_none()
+            && self.segments.iter().all(|(s, d)| *d >= s.frames)
+            && (self.bridge.is_none() || self.loop_end.is_some())
     }
 
     /// Output frames of [`Stream::read_cleaned`] settled so far (frames `..settled` exist,

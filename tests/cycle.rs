@@ -10,6 +10,7 @@ use flame::models::Model;
 use flame::motion::looping::{velocity_jumps, LoopMotion};
 use flame::motion::{Finish, Format, Poses, ReadOptions};
 use flame::session::{Session, SessionParams};
+use flame::stream::{Segment, Stream, StreamParams};
 
 fn fixture(name: &str) -> Arc<Model> {
     let path = format!("{}/tests/fixtures/{name}", env!("CARGO_MANIFEST_DIR"));
@@ -213,6 +214,120 @@ fn a_loop_session_runs_both_passes_and_reads_the_cycle_the_two_sessions_give() {
     assert!(e.contains("at least 40 frames"), "{e}");
 }
 
+/// A stream over `segments` (tiny fixtures: chunks of 60 keeping 20, 3 steps), closed into a
+/// loop with a bridge of `bridge` frames when asked, pumped to the end.
+fn looped_stream(model: &Arc<Model>, segments: &[(&str, usize)], bridge: Option<usize>) -> Stream {
+    let params = StreamParams {
+        chunk: 60,
+        overlap: 20,
+        lookahead: 1000,
+        window: 1000,
+        session: SessionParams {
+            steps: Some(3),
+            seed: 9,
+            threads: 1,
+            ..Default::default()
+        },
+    };
+    let mut s = Stream::new(Arc::clone(model), &params).unwrap();
+    for (text, frames) in segments {
+        s.push(Segment::new(*text, *frames)).unwrap();
+    }
+    match bridge {
+        Some(b) => s.close_looped(b).unwrap(),
+        None => s.close(),
+    }
+    while !s.is_complete() {
+        assert!(s.pump(100).unwrap().steps > 0);
+    }
+    s
+}
+
+#[test]
+fn a_looped_stream_appends_a_bridge_that_runs_into_its_first_frames() {
+    for name in ["flame_tiny.safetensors", "mdm_tiny.safetensors"] {
+        let model = fixture(name);
+        let dim = model.motion_dim();
+        let segs = [("a person walks", 70), ("a person jumps", 30)];
+        let plain = looped_stream(&model, &segs, None);
+        let looped = looped_stream(&model, &segs, Some(20));
+        assert_eq!((plain.ready(), looped.ready()), (100, 120), "{name}");
+        // The bridge only appends: the timeline's frames are the plain stream's, bit for bit.
+        assert_eq!(
+            plain.features(0, 100).unwrap(),
+            looped.features(0, 100).unwrap(),
+            "{name}"
+        );
+        // The frame after the bridge is the timeline's first frame moved by the loop's root
+        // motion (pasted by the edit): every joint of it is T of frame 0's.
+        let mut x = looped.features(0, 120).unwrap().to_vec();
+        x.extend_from_slice(looped.loop_end().unwrap());
+        let opts = model.read_options(0.0, true);
+        let format = model.motion_format();
+        let poses = Poses::decode(format, &x, 121, &opts).unwrap();
+        let t = LoopMotion::between(&poses, 0, 120);
+        let p = poses.positions(flame::motion::Convention::Native);
+        let joints = format.skeleton().joint_count();
+        for j in 0..joints {
+            let moved = t.position(&p[j]);
+            let end = p[120 * joints + j];
+            for i in 0..3 {
+                assert!(
+                    (moved[i] - end[i]).abs() < 2e-5,
+                    "{name} joint {j}: {moved:?} {end:?}"
+                );
+            }
+        }
+        // Written as a loop (the wrap onto that frame): no jump larger than inside the clip.
+        let finish = Finish {
+            wrap: true,
+            wrap_to_last: true,
+            ..Finish::default()
+        };
+        let clip = finish.apply(&poses, 20.0).unwrap();
+        assert_eq!(clip.frames(), 120);
+        let (inside, at_wrap) = velocity_jumps(&clip, &t);
+        assert!(
+            at_wrap <= inside,
+            "{name}: wrap {at_wrap} > inside {inside}"
+        );
+        let _ = dim;
+    }
+}
+
+#[test]
+fn a_looped_close_is_refused_when_it_cannot_loop() {
+    let model = fixture("flame_tiny.safetensors");
+    let params = StreamParams {
+        chunk: 60,
+        overlap: 20,
+        ..Default::default()
+    };
+    let mut s = Stream::new(Arc::clone(&model), &params).unwrap();
+    let e = s.close_looped(20).unwrap_err().to_string();
+    assert!(e.contains("push a segment"), "{e}");
+    s.push(Segment::new("a person walks", 40)).unwrap();
+    let e = s.close_looped(12).unwrap_err().to_string();
+    assert!(e.contains("a loop's bridge of 12 frames"), "{e}");
+    let max = model.max_frames();
+    let e = s.close_looped(max).unwrap_err().to_string();
+    assert!(e.contains(&format!("at most the model's {max}")), "{e}");
+    s.close_looped(20).unwrap();
+    let e = s
+        .push(Segment::new("a person jumps", 40))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("closed"), "{e}");
+    let e = s.close_looped(20).unwrap_err().to_string();
+    assert!(e.contains("closed"), "{e}");
+    let latent = fixture("mola_tiny.safetensors");
+    if let Ok(mut s) = Stream::new(latent, &params) {
+        s.push(Segment::new("a person walks", 40)).unwrap();
+        let e = s.close_looped(20).unwrap_err().to_string();
+        assert!(e.contains("samples a latent"), "{e}");
+    }
+}
+
 #[test]
 fn loops_the_model_cannot_hold_are_refused_by_name() {
     let model = fixture("flame_tiny.safetensors");
@@ -302,4 +417,20 @@ fn the_cli_writes_a_loop_of_the_frames_asked_and_refuses_what_cannot_loop() {
     assert!(std::fs::read_to_string(&bvh)
         .unwrap()
         .contains("Frames: 50\n"));
+    let (ok, err) = flame_cli(&[
+        "stream",
+        "--model",
+        &model,
+        "--segment",
+        "a person walks@20",
+        "--steps",
+        "2",
+        "--loop",
+        "--out",
+        bvh.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("the last segment has 20 frames"),
+        "{err}"
+    );
 }

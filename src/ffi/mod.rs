@@ -33,11 +33,11 @@ use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
 pub use stream::{
-    flame_stream_cancel, flame_stream_close, flame_stream_free, flame_stream_interrupt,
-    flame_stream_interrupt_stage, flame_stream_new, flame_stream_params_default, flame_stream_pump,
-    flame_stream_push, flame_stream_push_stage, flame_stream_read, flame_stream_read_cleaned,
-    flame_stream_set_playhead, flame_stream_status, FlameStream, FlameStreamParams,
-    FlameStreamStatus,
+    flame_stream_cancel, flame_stream_close, flame_stream_close_looped, flame_stream_free,
+    flame_stream_interrupt, flame_stream_interrupt_stage, flame_stream_new,
+    flame_stream_params_default, flame_stream_pump, flame_stream_push, flame_stream_push_stage,
+    flame_stream_read, flame_stream_read_cleaned, flame_stream_set_playhead, flame_stream_status,
+    FlameStream, FlameStreamParams, FlameStreamStatus,
 };
 
 /// The ABI version: bumped whenever a function's signature or a struct's layout changes.
@@ -308,7 +308,8 @@ pub struct FlameSessionParams {
     /// (`flame generate --loop`). [`flame_session_step`] and the progress count both passes.
     /// The finished sample reads as the `frames` frames of the cycle: every pose read applies
     /// the wrap's correction (any cleanup's `wrap` is taken as 2), raw features drop the next
-    /// cycle's first frame. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
+    /// cycle's first frame. The sampled space (what [`flame_session_set_noise`] takes) has
+    /// the `frames` plus the lead's rows. `INVALID_ARGUMENT` for latent models (MLD, MoLA: use the cleanup's
     /// `wrap` on a plain session), a cycle too short or too long for the model; a loop session
     /// refuses time stages, references, masks and position targets. 0 = a plain generation
     /// (since version 3 of this struct).

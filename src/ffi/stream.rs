@@ -509,6 +509,29 @@ pub unsafe extern "C" fn flame_stream_close(stream: *const FlameStream) -> Flame
     })
 }
 
+/// Declares the stream's timeline complete, as [`flame_stream_close`], and makes it loop: after
+/// the pushed segments the stream generates a bridge of `bridge_frames` frames (the last
+/// segment's prompt) whose end runs into the timeline's first frames, moved by the loop's root
+/// motion (a walking loop walks on). It is made as `flame generate --loop` makes a clip: a
+/// probe continues the timeline to see where it goes, then an edit keeps the timeline's last
+/// `overlap` frames before the bridge and its first 0.5 s after it. The bridge costs two
+/// chunks' steps; frames already generated never change, the timeline grows by
+/// `bridge_frames`, and cleaned reads settle to its end as after [`flame_stream_close`].
+/// Playing frame 0 after the last continues the motion (an engine moves the character by the
+/// root travel of the timeline). `INVALID_ARGUMENT` for a latent model (MLD, MoLA) and for a
+/// bridge shorter than 1 s or longer than the model's frames allow (overlap + bridge + 0.5 s);
+/// `WRONG_STATE` when the stream is already closed, has no segment, or dropped frame 0.
+///
+/// # Safety
+/// `stream` is a live stream.
+#[no_mangle]
+pub unsafe extern "C" fn flame_stream_close_looped(
+    stream: *const FlameStream,
+    bridge_frames: u32,
+) -> FlameStatus {
+    guard(|| stream_ref(stream)?.with(|st| Ok(st.close_looped(bridge_frames as usize)?)))
+}
+
 /// [`flame_stream_read`] with post-processing: frames `first_frame..first_frame + count` of
 /// the timeline after `cleanup` (NULL = the raw poses, exactly `flame_stream_read`), at the
 /// cleanup's frame rate: frame `k` is at `k / fps` seconds of the timeline (with `fps` 0, the

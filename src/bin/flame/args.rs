@@ -377,9 +377,10 @@ pub struct StreamArgs {
         conflicts_with = "prompt_file"
     )]
     pub segment: Vec<String>,
-    /// Make the whole timeline loop: its end corrected to flow into its start (position and
-    /// velocity of every joint), the travel kept as root motion. A correction of the written
-    /// timeline only: unlike `generate --loop`, no chunk is generated to run into the start
+    /// Make the whole timeline loop: its last second is generated to run into its first frames
+    /// (the last segment's prompt; kept at both ends, as `generate --loop` does), then the wrap
+    /// corrected so position and velocity of every joint flow on; the travel is kept as root
+    /// motion. Latent models (MLD, MoLA) get the wrap correction alone
     #[arg(long = "loop")]
     pub looped: bool,
     /// Segments with texts per body part (FineMoGen), in the HuMMan-MoGen layout of `generate

@@ -634,6 +634,30 @@ fn stream(a: &StreamArgs) -> Result<(), String> {
     for s in &segments {
         note_unknown_actions(&loaded, &s.prompt);
     }
+    // --loop: the last second of the timeline is a bridge generated into its start.
+    let bridge = match (a.looped, model.is_latent()) {
+        (true, false) => {
+            let b = (model.config().motion.fps.round() as usize).max(1);
+            let last = segments.last_mut().expect("clap requires a segment");
+            if last.frames <= b {
+                return Err(format!(
+                    "--loop: the last segment has {} frames; its last {b} (1 s) become the \
+                     bridge into the start, so it needs more",
+                    last.frames
+                ));
+            }
+            last.frames -= b;
+            Some(b)
+        }
+        (true, true) => {
+            eprintln!(
+                "--loop: this model samples a latent and cannot keep frames while generating; \
+                 the wrap is made by post-processing alone"
+            );
+            None
+        }
+        _ => None,
+    };
     let decoder = outputs.decoder(model);
     // Everything is generated (lookahead) and kept (window): the playhead never moves.
     let params = StreamParams {
@@ -646,6 +670,10 @@ fn stream(a: &StreamArgs) -> Result<(), String> {
     let mut stream = Stream::new(Arc::clone(model), &params).map_err(|e| e.to_string())?;
     for s in &segments {
         stream.push(s.clone()).map_err(|e| e.to_string())?;
+    }
+    if let Some(b) = bridge {
+        stream.close_looped(b).map_err(|e| format!("--loop: {e}"))?;
+        eprintln!("loop: the last {b} frames are generated to run into the first ones");
     }
     let t0 = Instant::now();
     let (mut steps, mut chunks, mut ready) = (0, 0, 0);
@@ -672,7 +700,17 @@ fn stream(a: &StreamArgs) -> Result<(), String> {
         a.overlap,
         elapsed * 1e3 / steps.max(1) as f64
     );
-    let x = stream.features(0, total).map_err(|e| e.to_string())?;
+    let mut x = stream
+        .features(0, total)
+        .map_err(|e| e.to_string())?
+        .to_vec();
+    let mut frames = total;
+    if let Some(end) = stream.loop_end() {
+        // The next cycle's first frame: the wrap's exact target, dropped after it.
+        x.extend_from_slice(end);
+        frames += 1;
+        outputs.finish.wrap_to_last = true;
+    }
     let prompt = segments
         .iter()
         .map(|s| s.prompt.as_str())
@@ -683,7 +721,7 @@ fn stream(a: &StreamArgs) -> Result<(), String> {
         model: &loaded.name,
         seed: a.denoise.seed,
     };
-    outputs.write(x, total, model, decoder.as_ref(), &meta)
+    outputs.write(&x, frames, model, decoder.as_ref(), &meta)
 }
 
 /// `--targets`: float32 `[frames, joints, 3]` positions in `convention`, NaN = free.
