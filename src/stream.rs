@@ -68,7 +68,9 @@
 //!   `k / fps` seconds of the timeline (timeline frame `t` at `t / model fps`), resampled from
 //!   settled frames only ([`resample`]'s exact arithmetic: frames on a source frame's time are
 //!   its bits). Without `fps`, cleaned frame `k` is timeline frame `k`.
-//! - **Loop wrap** joins a clip's end to its start: a stream has no end, so it is refused.
+//! - **Loop wrap** joins a clip's end to its start: a stream has no end, so it is refused. A
+//!   looping timeline is generated instead ([`Stream::close_looped`]: a bridge from the
+//!   timeline's end into its first frames), so no frame handed out has to change.
 //! - **End**: [`Stream::close`] declares the timeline complete; once its frames are generated,
 //!   every frame settles (the last spans and swings end with the timeline, as a clip's do).
 //!   Without it the stream cannot know a span at the newest frame is the last.
