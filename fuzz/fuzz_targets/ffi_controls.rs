@@ -339,7 +339,7 @@ fn stream(input: &mut Input, m: &Model, texts: &Texts) {
         && steps > 0;
     for _ in 0..8 {
         let op = input.u8();
-        match op % 9 {
+        match op % 10 {
             0 => {
                 ok(unsafe { flame_stream_push(s, texts.pick(op >> 4), input.u16() as u32) });
             }
@@ -409,6 +409,13 @@ fn stream(input: &mut Input, m: &Model, texts: &Texts) {
             }
             8 => {
                 ok(unsafe { flame_stream_cancel(s) });
+            }
+            9 if op & 16 != 0 => {
+                // Short bridges only (the frames of a bridge's two passes are stepped).
+                ok(unsafe { flame_stream_close_looped(s, input.u8() as u32 % 48) });
+            }
+            9 => {
+                ok(unsafe { flame_stream_close(s) });
             }
             _ => {}
         }

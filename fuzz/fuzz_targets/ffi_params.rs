@@ -95,6 +95,8 @@ fuzz_target!(|data: &[u8]| {
         seed: input.u64(),
         threads: bounded_threads(input.u32()),
         respacing: ptr::null(),
+        // 0 and 1, and one value refused.
+        looped: input.u32() % 3,
     };
     // A short respacing string from the input (made of "ddim", digits, commas), or none.
     let spec: [u8; 8] = input.bytes();
