@@ -146,7 +146,8 @@ static void Configure(UFlameMotionComponent& c, const char* model, int frames, i
  * through flame.h with flame_session_read_cleaned (cleanup NULL: raw), or exported to GLB with
  * that cleanup when layout is -1: what the component must publish. */
 static std::vector<float> DirectCleaned(const char* model, int frames, int steps, const FlameCleanupParams* cleanup,
-                                        int layout, int convention, std::vector<uint8_t>* glb = nullptr) {
+                                        int layout, int convention, std::vector<uint8_t>* glb = nullptr,
+                                        bool looped = false) {
     std::vector<float> out;
     FlameModel* m = nullptr;
     if (flame_model_load(model, nullptr, &m) != FLAME_STATUS_OK) return out;
@@ -157,6 +158,7 @@ static std::vector<float> DirectCleaned(const char* model, int frames, int steps
     p.sampler = FLAME_SAMPLER_DDIM;
     p.seed = 3;
     p.threads = 1;
+    p.looped = looped ? 1 : 0;
     FlameSession* s = nullptr;
     if (flame_session_new(m, &p, &s) == FLAME_STATUS_OK &&
         flame_session_set_prompt(s, "a person walks forward and waves.") == FLAME_STATUS_OK) {
@@ -368,6 +370,37 @@ int main(int argc, char** argv) {
         FQuat outside = c.GetJointRotation(Frames, 0);
         CHECK(outside.W == 1 && outside.X == 0, "identity out of range");
         CHECK(c.GetRootLocation(-1).X == 0, "zero out of range");
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // A loop (bLoop): the cycle's 40 frames, what a looped session reads with the same
+        // cleanup, bit for bit; a loop the model cannot make fails with the library's message.
+        const int LF = 40, J = 24;
+        UFlameMotionComponent c;
+        Configure(c, argv[1], LF, 4, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        c.bLoop = true;
+        c.bLockFeet = true;
+        c.bGround = true;
+        int finishedCalls = 0;
+        bool succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finishedCalls++; succeeded = ok; });
+        CHECK(c.Generate(), "Generate (loop): %s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finishedCalls > 0; }), "finished (loop)");
+        CHECK(succeeded && c.GetFrameCount() == LF && c.Pose.Num() == LF * J * 4,
+              "loop: %d frames, %d values: %s", c.GetFrameCount(), c.Pose.Num(), c.LastError.Utf8().c_str());
+        FlameCleanupParams game;
+        flame_cleanup_params_default(&game);
+        CHECK(SameFloats(c.Pose, DirectCleaned(argv[1], LF, 4, &game, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                               FLAME_CONVENTION_UNREAL, nullptr, true)),
+              "loop: Pose = a looped session's flame_session_read_cleaned");
+        CHECK(!SameFloats(c.Pose, DirectCleaned(argv[1], LF, 4, &game, FLAME_LAYOUT_LOCAL_QUAT_XYZW,
+                                                FLAME_CONVENTION_UNREAL)),
+              "loop: not the plain generation's poses");
+        c.Frames = 12;
+        CHECK(c.Generate(), "Generate (loop too short) starts");
+        CHECK(TickUntil(c, [&] { return finishedCalls > 1; }), "finished (loop too short)");
+        CHECK(!succeeded && c.LastError.Utf8().find("at least 40 frames") != std::string::npos,
+              "loop too short: %s", c.LastError.Utf8().c_str());
     }
     CHECK(WaitForThreads(), "workers exited");
 

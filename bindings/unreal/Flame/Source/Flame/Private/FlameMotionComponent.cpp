@@ -472,6 +472,7 @@ bool UFlameMotionComponent::Generate()
 	NewJob->Respacing = Respacing;
 	NewJob->Params.seed = (uint64)FMath::Max(Seed, 0);
 	NewJob->Params.threads = (uint32)FMath::Max(Threads, 0);
+	NewJob->Params.looped = bLoop ? 1u : 0u;
 	NewJob->Layout = Layout;
 	NewJob->Convention = Convention;
 	NewJob->Flags = (uint32)FMath::Max(ReadFlags, 0);

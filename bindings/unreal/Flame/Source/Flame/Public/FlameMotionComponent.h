@@ -109,6 +109,15 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
 	int32 Frames = 0;
 
+	/** Generate a loop of Frames frames whose end flows into its start, position and velocity
+	 *  of every joint (FlameSessionParams.looped; a walk keeps its travel as root motion): the
+	 *  library samples twice (a generation, then an edit keeping 0.5 s on both sides of the
+	 *  wrap), so Generate takes two passes' steps; Pose holds the cycle. Latent models (MLD,
+	 *  MoLA), prompt stages, editing and targets refuse it: Generate fails with the library's
+	 *  message in LastError. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
+	bool bLoop = false;
+
 	/** Sampler steps; 0 = the model's default (often 1000: set a small number with DDIM). */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame", meta = (ClampMin = "0"))
 	int32 Steps = 50;
