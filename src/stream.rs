@@ -552,13 +552,7 @@ impl Stream {
         let kept = self.params.overlap.min(have);
         let new = (seg.frames - done).min(self.chunk - kept);
         let frames = kept + new;
-        let params = SessionParams {
-            frames: Some(frames),
-            seed: chunk_seed(self.params.session.seed, self.chunks),
-            ..self.params.session.clone()
-        };
-        let mut session = Session::new(Arc::clone(&self.model), &params)?;
-        session.share_cancel_flag(Arc::clone(&self.cancel));
+        let mut session = self.chunk_session(frames)?;
         if seg.has_parts() {
             session.set_prompt_stages(&[Stage {
                 text: seg.prompt.clone(),
@@ -609,6 +603,19 @@ impl Stream {
         Ok(true)
     }
 
+    /// The session of the next chunk: `frames` frames, the chunk's seed, the stream's cancel
+    /// flag.
+    fn chunk_session(&self, frames: usize) -> Result<Session> {
+        let params = SessionParams {
+            frames: Some(frames),
+            seed: chunk_seed(self.params.session.seed, self.chunks),
+            ..self.params.session.clone()
+        };
+        let mut session = Session::new(Arc::clone(&self.model), &params)?;
+        session.share_cancel_flag(Arc::clone(&self.cancel));
+        Ok(session)
+    }
+
     /// Frames of the timeline's start a bridge keeps at its end.
     fn bridge_lead(&self) -> usize {
         let fps = self.model.config().motion.fps as f64;
@@ -640,15 +647,8 @@ impl Stream {
             )));
         }
         let total = kept + frames + lead;
-        let prompt = self.last_prompt.clone();
-        let params = SessionParams {
-            frames: Some(total),
-            seed: chunk_seed(self.params.session.seed, self.chunks),
-            ..self.params.session.clone()
-        };
-        let mut session = Session::new(Arc::clone(&self.model), &params)?;
-        session.share_cancel_flag(Arc::clone(&self.cancel));
-        session.set_prompt(&prompt)?;
+        let mut session = self.chunk_session(total)?;
+        session.set_prompt(&self.last_prompt)?;
         let mut reference = vec![0.0; total * dim];
         reference[..kept * dim].copy_from_slice(&self.features[(have - kept) * dim..]);
         let mut frame = Rebase::IDENTITY;
