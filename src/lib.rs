@@ -36,6 +36,8 @@ pub mod npy;
 /// cbindgen:ignore
 pub mod pool;
 /// cbindgen:ignore
+pub mod retarget;
+/// cbindgen:ignore
 pub mod rng;
 /// cbindgen:ignore
 pub mod session;
