@@ -204,7 +204,7 @@ impl Rig {
 
     /// The same rig with the bone map its file declares (VRM humanBones: `(name, bone)`), each
     /// bone index in the order [`Rig::new`] was given (it is mapped to the stored order).
-    pub(crate) fn with_declared(mut self, declared: Vec<(String, usize)>) -> Result<Rig> {
+    pub fn with_declared(mut self, declared: Vec<(String, usize)>) -> Result<Rig> {
         let n = self.names.len();
         if let Some((name, b)) = declared.iter().find(|(_, b)| *b >= n) {
             return Err(invalid_arg!(
