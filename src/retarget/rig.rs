@@ -79,6 +79,8 @@ pub struct Rig {
     rest: Vec<RestTransform>,
     world_rotation: Vec<Mat3>,
     world_position: Vec<Vec3>,
+    /// Linear parts (rotation and scale) of the rest world transforms.
+    world_linear: Vec<Mat3>,
     metres_per_unit: f64,
     /// Bone map the file declares (VRM humanBones): `(VRM humanBone name, bone)`.
     declared: Vec<(String, usize)>,
@@ -164,13 +166,13 @@ impl Rig {
             rest: Vec::with_capacity(n),
             world_rotation: Vec::with_capacity(n),
             world_position: Vec::with_capacity(n),
+            world_linear: Vec::with_capacity(n),
             metres_per_unit,
             declared: Vec::new(),
             source,
         };
         // World transforms as affine maps (linear part with scale, and translation) for the
         // positions, and scale-free products for the rotations.
-        let mut world_linear: Vec<Mat3> = Vec::with_capacity(n);
         for &i in &order {
             let b = &bones[i];
             let parent = b.parent.map(|p| new_index[p]);
@@ -179,10 +181,10 @@ impl Rig {
                 None => (b.rest.rotation, scaled, b.rest.translation),
                 Some(p) => (
                     rotation::mul(&rig.world_rotation[p], &b.rest.rotation),
-                    rotation::mul(&world_linear[p], &scaled),
+                    rotation::mul(&rig.world_linear[p], &scaled),
                     rotation::add(
                         &rig.world_position[p],
-                        &rotation::apply(&world_linear[p], &b.rest.translation),
+                        &rotation::apply(&rig.world_linear[p], &b.rest.translation),
                     ),
                 ),
             };
@@ -197,7 +199,7 @@ impl Rig {
             rig.rest.push(b.rest);
             rig.world_rotation.push(rot);
             rig.world_position.push(pos);
-            world_linear.push(lin);
+            rig.world_linear.push(lin);
         }
         Ok(rig)
     }
@@ -260,6 +262,12 @@ impl Rig {
     /// Rest world positions in the file's units.
     pub fn rest_world_positions(&self) -> &[Vec3] {
         &self.world_position
+    }
+
+    /// Linear parts (rotation times scale) of the rest world transforms: a rest world position
+    /// is its parent's plus the parent's linear part applied to the rest translation.
+    pub fn rest_world_linear(&self) -> &[Mat3] {
+        &self.world_linear
     }
 
     /// Metres per unit of the file.
