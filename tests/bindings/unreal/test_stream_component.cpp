@@ -19,7 +19,15 @@
  * - errors: a push before StartStream, a non-positive length, a missing model file, a latent
  *   model (OnStarted(false));
  * - StopStream while a long pump runs: it returns at once, the pump is cancelled and its thread
- *   exits soon after; nothing of libflame is left (FFlameModule::ActiveWorkers, LeakSanitizer).
+ *   exits soon after; nothing of libflame is left (FFlameModule::ActiveWorkers, LeakSanitizer);
+ * - cleanup (bCleanup, off by default; the settings and defaults of UFlameMotionComponent): the
+ *   frames the component publishes are, bit for bit, flame_stream_read_cleaned's on a stream
+ *   driven the same way, at the cleanup's frame rate (172 frames at 30 fps from 115 at 20, the
+ *   playhead counting 30 a second); frames arrive as they settle (feet free) or, with locked
+ *   feet on the tiny model, only after EndTimeline (the stream generates on meanwhile, past a
+ *   small Lookahead); a changed cleanup is refused (LastError, the log) and the frames go on
+ *   with the first; a refused cleanup fails the start; Layout 0 stays raw; a stream refuses a
+ *   loop wrap; pushes after EndTimeline are refused.
  *
  * usage: test_stream_component FIXTURES_DIR   (tests/fixtures)
  * Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
@@ -142,6 +150,25 @@ struct Direct {
         flame_stream_read(stream, first, count, layout, convention, 0, out.data(), n, &n);
         return out;
     }
+    /* flame_stream_read_cleaned (empty when refused or not settled). */
+    std::vector<float> read_cleaned(uint64_t first, uint32_t count, int32_t layout, int32_t convention,
+                                    const FlameCleanupParams& cleanup) {
+        size_t n = 0;
+        std::vector<float> out;
+        if (flame_stream_read_cleaned(stream, first, count, layout, convention, &cleanup, nullptr, 0, &n) != FLAME_STATUS_OK)
+            return out;
+        out.resize(n);
+        flame_stream_read_cleaned(stream, first, count, layout, convention, &cleanup, out.data(), n, &n);
+        return out;
+    }
+    /* The cleaned frames settled so far: read one at a time until one is not. */
+    int64 settled(int32_t layout, int32_t convention, const FlameCleanupParams& cleanup) {
+        int64 k = 0;
+        size_t n = 0;
+        while (flame_stream_read_cleaned(stream, (uint64_t)k, 1, layout, convention, &cleanup, nullptr, 0, &n) == FLAME_STATUS_OK)
+            k++;
+        return k;
+    }
 };
 
 /* Whether frames first..first+count of the component equal `want` (count × per-frame values). */
@@ -162,6 +189,16 @@ static bool SameRoots(const UFlameStreamComponent& c, int64 first, int64 count, 
     if (want.size() != (size_t)(count * 3)) return false;
     for (int64 f = 0; f < count; f++) {
         const FVector v = c.GetRootLocationAt(first + f);
+        const float* w = want.data() + f * 3;
+        if ((float)v.X != w[0] || (float)v.Y != w[1] || (float)v.Z != w[2]) return false;
+    }
+    return true;
+}
+
+static bool SameRootBones(const UFlameStreamComponent& c, int64 first, int64 count, const std::vector<float>& want) {
+    if (want.size() != (size_t)(count * 3)) return false;
+    for (int64 f = 0; f < count; f++) {
+        const FVector v = c.GetRootBoneLocationAt(first + f);
         const float* w = want.data() + f * 3;
         if ((float)v.X != w[0] || (float)v.Y != w[1] || (float)v.Z != w[2]) return false;
     }
@@ -501,6 +538,248 @@ static void TestStop() {
     c.EndPlay(EEndPlayReason::Quit);
 }
 
+/* ---- cleanup -------------------------------------------------------------------------------- */
+
+/* At 30 fps the 115 frames at 20 fps are 172 cleaned frames (the last frame's time kept), as in
+ * the Python, C# and C++ bindings' tests. */
+static const int64 kCleaned30 = 172;
+
+/* The timeline pushed straight into a Direct stream. */
+static void DirectTimeline(Direct& d) {
+    d.push("a person walks forward.", 50);
+    d.push("a person waves.", 25);
+    d.push("a person sits down.", 40);
+}
+
+static bool Logged(const std::string& text) {
+    for (const std::string& line : UeStubLogLines())
+        if (line.find(text) != std::string::npos) return true;
+    return false;
+}
+
+/* Feet free (contacts and the floor only): frames settle a few frames behind the generated
+ * ones and arrive as they do; at 30 fps; a second cleanup refused; EndTimeline settles the
+ * last frames. */
+static void TestCleanedAsTheySettle() {
+    const std::string model = Path("flame_tiny");
+    FlameCleanupParams cleanup;
+    flame_cleanup_params_default(&cleanup);
+    cleanup.feet = FLAME_FEET_OFF;
+    cleanup.fps = 30.f;
+    // The independent path: the same stream through flame.h, generated whole, read before and
+    // after flame_stream_close.
+    Direct d(model);
+    DirectTimeline(d);
+    CHECK(d.pump(UINT32_MAX) == (uint64_t)kTimeline, "direct stream");
+    const int64 open = d.settled(FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL, cleanup);
+    CHECK(open > 0 && open < kCleaned30, "direct: %d cleaned frames settle before the timeline ends", (int)open);
+    const std::vector<float> quatsOpen =
+        d.read_cleaned(0, (uint32_t)open, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL, cleanup);
+    CHECK(flame_stream_close(d.stream) == FLAME_STATUS_OK, "direct close");
+    d.pump(UINT32_MAX);
+    CHECK(d.settled(FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL, cleanup) == kCleaned30, "direct: 172 after close");
+    const std::vector<float> quats =
+        d.read_cleaned(0, kCleaned30, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL, cleanup);
+    const std::vector<float> roots =
+        d.read_cleaned(0, kCleaned30, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_UNREAL, cleanup);
+    CHECK(quats.size() == (size_t)kCleaned30 * 96 && roots.size() == (size_t)kCleaned30 * 3, "direct cleaned reads");
+
+    UFlameStreamComponent c;
+    // The cleanup settings: UFlameMotionComponent's names and defaults, and off.
+    CHECK(!c.bCleanup && c.bLockFeet && c.bGround && c.FrameRate == 0.f && c.RootMotion == EFlameRootMotion::Keep &&
+              !c.bRemoveYaw,
+          "cleanup defaults");
+    Configure(c, model);
+    c.bCleanup = true;
+    c.bLockFeet = false;
+    c.FrameRate = 30.f;
+    c.StepsPerTick = 1;
+    CHECK(c.StartStream(), "StartStream: %s", c.LastError.Utf8().c_str());
+    CHECK(c.PushSegmentFrames(FString(TEXT("a person walks forward.")), 50) &&
+              c.PushSegment(FString(TEXT("a person waves.")), 1.25f) &&
+              c.PushSegmentFrames(FString(TEXT("a person sits down.")), 40),
+          "push: %s", c.LastError.Utf8().c_str());
+    // The frames come over several pumps, as they settle.
+    int arrivals = 0;
+    int64 seen = 0;
+    CHECK(TickUntil(c, [&] {
+              if (c.ReadyFrames > seen) {
+                  arrivals++;
+                  seen = c.ReadyFrames;
+              }
+              return c.StepsTotal == 15 && c.bStarving && c.ReadyFrames == open && c.GetFramePose(open - 1).Num() > 0;
+          }),
+          "%d settled frames (%d ready, %d generated, %d steps): %s", (int)open, (int)c.ReadyFrames, (int)c.GeneratedFrames,
+          (int)c.StepsTotal, c.LastError.Utf8().c_str());
+    CHECK(arrivals >= 3, "frames arrived in %d pumps", arrivals);
+    CHECK(c.Fps == 20.f && c.PoseFrameRate == 30.f && c.GeneratedFrames == kTimeline, "fps %f, Pose at %f, %d generated",
+          (double)c.Fps, (double)c.PoseFrameRate, (int)c.GeneratedFrames);
+    CHECK(c.LastError.IsEmpty(), "frames not settled yet are no error: %s", c.LastError.Utf8().c_str());
+    CHECK(SameFrames(c, 0, open, quatsOpen), "the settled frames = flame_stream_read_cleaned's, bit for bit");
+    CHECK(c.GetFramePose(open).Num() == 0, "no frame past the settled ones");
+    // The playhead counts cleaned frames at 30 a second.
+    CHECK(c.CurrentFrame == 0 && c.Pose.Num() == 96 && std::memcmp(c.Pose.GetData(), quats.data(), 96 * 4) == 0,
+          "Pose = cleaned frame 0 (frame %d)", (int)c.CurrentFrame);
+    Tick(c, 0.1f);
+    CHECK(c.CurrentFrame == 3 && std::memcmp(c.Pose.GetData(), quats.data() + 3 * 96, 96 * 4) == 0,
+          "0.1 s: cleaned frame 3 (%d)", (int)c.CurrentFrame);
+    CHECK((float)c.RootLocation.X == roots[9] && (float)c.RootLocation.Y == roots[10] && (float)c.RootLocation.Z == roots[11],
+          "RootLocation = the cleaned root's");
+    Tick(c, 1.f);
+    CHECK(c.CurrentFrame == 33, "1.1 s: cleaned frame 33 (%d)", (int)c.CurrentFrame);
+
+    // Another cleanup: refused by the stream, the frames go on with the first. The playhead
+    // moves (a pump every tick), so a report repeated by every pump would show.
+    c.FrameRate = 60.f;
+    CHECK(TickUntil(c, [&] { return !c.LastError.IsEmpty(); }, 0.02f), "a changed cleanup reports");
+    const std::string refused = c.LastError.Utf8();
+    CHECK(refused.find("FLAME_STATUS_WRONG_STATE") == 0 && refused.find("set once") != std::string::npos &&
+              refused.find("StopStream and StartStream") != std::string::npos,
+          "refused: %s", refused.c_str());
+    CHECK(Logged("stream: FLAME_STATUS_WRONG_STATE"), "and logged");
+    c.LastError.Reset();
+    const int64 before = c.CurrentFrame;
+    for (int i = 0; i < 20; i++) {
+        Tick(c, 0.02f);
+        std::this_thread::sleep_for(std::chrono::milliseconds(3));
+    }
+    CHECK(c.CurrentFrame > before && c.CurrentFrame < open - 1, "the playhead moved: %d to %d", (int)before, (int)c.CurrentFrame);
+    CHECK(c.LastError.IsEmpty() && c.PoseFrameRate == 30.f, "reported once; still 30 fps: %s", c.LastError.Utf8().c_str());
+    CHECK(SameFrames(c, 0, open, quatsOpen), "the frames still the first cleanup's");
+    c.FrameRate = 1000.f; // not a cleanup at all
+    CHECK(TickUntil(c, [&] { return !c.LastError.IsEmpty(); }) &&
+              c.LastError.Utf8().find("FLAME_STATUS_INVALID_ARGUMENT") == 0 &&
+              c.LastError.Utf8().find("frame rate") != std::string::npos,
+          "a bad frame rate refused: %s", c.LastError.Utf8().c_str());
+    c.FrameRate = 30.f; // the stream's again
+    c.LastError.Reset();
+    Tick(c, 100.f);
+    CHECK(c.CurrentFrame == open - 1 && c.bWaitingForFrames, "held at the last settled frame: %d", (int)c.CurrentFrame);
+
+    // EndTimeline: the last frames settle; the timeline takes no more segments.
+    CHECK(c.EndTimeline() && c.bTimelineEnded, "EndTimeline");
+    CHECK(TickUntil(c, [&] { return c.ReadyFrames == kCleaned30 && c.GetFramePose(kCleaned30 - 1).Num() > 0; }),
+          "172 cleaned frames after EndTimeline: %d", (int)c.ReadyFrames);
+    CHECK(c.GetFramePose(kCleaned30).Num() == 0 && c.GeneratedFrames == kTimeline, "172, no more");
+    CHECK(SameFrames(c, 0, kCleaned30, quats), "all 172 = one flame_stream_read_cleaned after close, bit for bit");
+    CHECK(SameRoots(c, 0, kCleaned30, roots), "the cleaned root locations");
+    CHECK(c.GetRootBoneLocationAt(5).X == 0 && c.RootBoneLocation.X == 0, "no root bone without Separate");
+    CHECK(c.LastError.IsEmpty(), "no error: %s", c.LastError.Utf8().c_str());
+    CHECK(TickUntil(c, [&] { return c.CurrentFrame == kCleaned30 - 1; }, 0.05f), "the playhead reaches frame 171: %d",
+          (int)c.CurrentFrame);
+    CHECK(!c.PushSegmentFrames(FString(TEXT("a person jumps.")), 10) &&
+              c.LastError.Utf8().find("the timeline was ended") == 0,
+          "a push after EndTimeline: %s", c.LastError.Utf8().c_str());
+    c.StopStream();
+}
+
+/* Locked feet (libflame's defaults) on the tiny model: no frame settles until the timeline
+ * ends, yet the stream generates all of it past a Lookahead of 40 frames; EndTimeline brings
+ * the 172 frames at 30 fps. The Python test's cleanup: separate root motion, world positions
+ * in glTF's convention. */
+static void TestCleanedFeetLocked() {
+    const std::string model = Path("flame_tiny");
+    FlameCleanupParams cleanup;
+    flame_cleanup_params_default(&cleanup);
+    cleanup.fps = 30.f;
+    cleanup.root_motion = FLAME_ROOT_MOTION_SEPARATE;
+    Direct d(model);
+    DirectTimeline(d);
+    CHECK(d.pump(UINT32_MAX) == (uint64_t)kTimeline, "direct stream");
+    CHECK(d.settled(FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF, cleanup) == 0, "direct: nothing settles while open");
+    CHECK(flame_stream_close(d.stream) == FLAME_STATUS_OK, "direct close");
+    d.pump(UINT32_MAX);
+    const std::vector<float> positions =
+        d.read_cleaned(0, kCleaned30, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF, cleanup);
+    const std::vector<float> roots = d.read_cleaned(0, kCleaned30, FLAME_LAYOUT_ROOT_TRANSLATION, FLAME_CONVENTION_GLTF, cleanup);
+    const std::vector<float> bones = d.read_cleaned(0, kCleaned30, FLAME_LAYOUT_ROOT_BONE, FLAME_CONVENTION_GLTF, cleanup);
+    CHECK(positions.size() == (size_t)kCleaned30 * 72 && bones.size() == (size_t)kCleaned30 * 3, "direct cleaned reads");
+
+    UFlameStreamComponent c;
+    Configure(c, model);
+    c.Lookahead = 40;
+    c.Layout = FLAME_LAYOUT_GLOBAL_POSITIONS;
+    c.Convention = FLAME_CONVENTION_GLTF;
+    c.bCleanup = true;
+    c.FrameRate = 30.f;
+    c.RootMotion = EFlameRootMotion::Separate;
+    c.StepsPerTick = 100;
+    CHECK(c.StartStream(), "StartStream");
+    CHECK(c.PushSegmentFrames(FString(TEXT("a person walks forward.")), 50) &&
+              c.PushSegmentFrames(FString(TEXT("a person waves.")), 25) &&
+              c.PushSegmentFrames(FString(TEXT("a person sits down.")), 40),
+          "push");
+    CHECK(TickUntil(c, [&] { return c.GeneratedFrames == kTimeline && c.bStarving; }, 0.05f),
+          "the whole timeline generated past Lookahead while nothing settles (%d generated)", (int)c.GeneratedFrames);
+    CHECK(c.StepsTotal == 15 && c.ReadyFrames == 0 && c.CurrentFrame == -1 && c.Pose.Num() == 0 && !c.bWaitingForFrames,
+          "nothing published yet: %d ready, frame %d", (int)c.ReadyFrames, (int)c.CurrentFrame);
+    CHECK(c.LastError.IsEmpty(), "waiting is no error: %s", c.LastError.Utf8().c_str());
+    CHECK(c.EndTimeline(), "EndTimeline");
+    CHECK(TickUntil(c, [&] { return c.ReadyFrames == kCleaned30 && c.GetFramePose(kCleaned30 - 1).Num() > 0; }),
+          "the 172 frames after EndTimeline: %d", (int)c.ReadyFrames);
+    CHECK(c.GetValuesPerFrame() == 72 && SameFrames(c, 0, kCleaned30, positions),
+          "positions = flame_stream_read_cleaned's, bit for bit");
+    CHECK(SameRoots(c, 0, kCleaned30, roots) && SameRootBones(c, 0, kCleaned30, bones), "root and root bone");
+    bool ground = true;
+    for (int64 f = 0; f < kCleaned30; f++) ground = ground && c.GetRootBoneLocationAt(f).Y == 0;
+    CHECK(ground, "the root bone on the ground (glTF: Y up)");
+    const FVector bone = c.RootBoneLocation;
+    CHECK(c.CurrentFrame == 0 && (float)bone.X == bones[0] && (float)bone.Y == bones[1] && (float)bone.Z == bones[2],
+          "RootBoneLocation of frame %d", (int)c.CurrentFrame);
+    CHECK(c.LastError.IsEmpty(), "no error: %s", c.LastError.Utf8().c_str());
+    c.StopStream();
+}
+
+/* A cleanup libflame refuses fails the start; a stream refuses a loop wrap (so the component
+ * has no wrap setting); Layout 0 stays raw; EndTimeline needs a stream. */
+static void TestCleanupRefusals() {
+    const std::string model = Path("flame_tiny");
+    {
+        UFlameStreamComponent c;
+        Configure(c, model);
+        c.bCleanup = true;
+        c.FrameRate = 1000.f;
+        bool ok = true;
+        int started = 0;
+        c.OnStarted.AddLambda([&](bool b) { started++; ok = b; });
+        CHECK(c.StartStream(), "StartStream");
+        CHECK(TickUntil(c, [&] { return started > 0; }), "OnStarted");
+        CHECK(!ok && !c.IsStreaming() && c.LastError.Utf8().find("FLAME_STATUS_INVALID_ARGUMENT") == 0 &&
+                  c.LastError.Utf8().find("frame rate") != std::string::npos,
+              "a frame rate of 1000: %s", c.LastError.Utf8().c_str());
+    }
+    {
+        Direct d(model);
+        FlameCleanupParams wrap;
+        flame_cleanup_params_default(&wrap);
+        wrap.wrap = 1;
+        size_t n = 0;
+        const FlameStatus st =
+            flame_stream_read_cleaned(d.stream, 0, 1, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL, &wrap, nullptr, 0, &n);
+        CHECK(st == FLAME_STATUS_INVALID_ARGUMENT && std::string(flame_last_error()).find("cannot wrap") != std::string::npos,
+              "a stream refuses a wrap: %d %s", (int)st, flame_last_error());
+    }
+    {
+        UFlameStreamComponent c;
+        CHECK(!c.EndTimeline() && c.LastError.Utf8().find("the stream is not running") == 0, "EndTimeline before StartStream");
+        Configure(c, model);
+        c.Layout = FLAME_LAYOUT_FEATURES;
+        c.bCleanup = true;
+        c.FrameRate = 30.f;
+        c.StepsPerTick = 100;
+        CHECK(c.StartStream(), "StartStream");
+        CHECK(c.PushSegmentFrames(FString(TEXT("a person walks forward.")), 40), "push");
+        CHECK(TickUntil(c, [&] { return c.ReadyFrames == 40 && c.GetFramePose(39).Num() > 0; }), "40 raw frames: %d",
+              (int)c.ReadyFrames);
+        Direct d(model);
+        d.push("a person walks forward.", 40);
+        d.pump(UINT32_MAX);
+        CHECK(c.PoseFrameRate == 20.f && SameFrames(c, 0, 40, d.read(0, 40, FLAME_LAYOUT_FEATURES, 0)),
+              "Layout 0: the raw features at the model's rate (%f)", (double)c.PoseFrameRate);
+        c.StopStream();
+    }
+}
+
 int main(int argc, char** argv) {
     if (argc != 2) {
         std::fprintf(stderr, "usage: test_stream_component FIXTURES_DIR\n");
@@ -524,6 +803,12 @@ int main(int argc, char** argv) {
     TestErrors();
     CHECK(WaitForThreads(), "pumps exited");
     TestStop();
+    CHECK(WaitForThreads(), "pumps exited");
+    TestCleanedAsTheySettle();
+    CHECK(WaitForThreads(), "pumps exited");
+    TestCleanedFeetLocked();
+    CHECK(WaitForThreads(), "pumps exited");
+    TestCleanupRefusals();
     CHECK(WaitForThreads(), "pumps exited");
     CHECK(FFlameModule::ActiveWorkers.GetValue() == 0, "nothing of libflame left: %d", FFlameModule::ActiveWorkers.GetValue());
     module.ShutdownModule();

@@ -2,7 +2,9 @@
 // (flame_stream_*): Blueprints push segments (a prompt for some seconds or frames, or an
 // FFlameStage with part texts) and interrupt the current one; every tick pumps at most
 // StepsPerTick denoiser steps on a background thread and moves the playhead with game time at
-// the model's frame rate, and Pose holds the frame under the playhead.
+// the model's frame rate, and Pose holds the frame under the playhead. With bCleanup the frames
+// are read cleaned (flame_stream_read_cleaned: feet, floor, root motion, frame rate) as they
+// settle, and the playhead moves at the cleanup's frame rate.
 
 #pragma once
 
@@ -45,11 +47,14 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stream", meta = (ClampMin = "0"))
 	int32 Overlap = 0;
 
-	/** Frames to keep generated ahead of the playhead; 0 = 60 (3 s at 20 fps). */
+	/** Frames to keep generated ahead of the playhead; 0 = 60 (3 s at 20 fps). With a cleanup,
+	 *  timeline frames settled ahead of it: the stream generates on while frames wait to
+	 *  settle. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stream", meta = (ClampMin = "0"))
 	int32 Lookahead = 0;
 
-	/** Frames kept behind the playhead (older ones are dropped); 0 = 1200. */
+	/** Frames kept behind the playhead (older ones are dropped); 0 = 1200. Timeline frames:
+	 *  with a cleanup FrameRate the component keeps as many seconds of Pose's frames. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stream", meta = (ClampMin = "0"))
 	int32 Window = 0;
 
@@ -83,6 +88,45 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame")
 	int32 Convention = 2;
 
+	// ---- Cleanup (flame_stream_read_cleaned) -----------------------------------------------
+
+	/** Read the frames cleaned, with the settings below (UFlameMotionComponent's, the same
+	 *  defaults): Pose, RootLocation and RootBoneLocation then hold the cleaned frames, at
+	 *  PoseFrameRate, each once it has settled (its cleanup final: with bLockFeet, once its
+	 *  foot contact span or swing has ended; EndTimeline settles the last ones). Read by
+	 *  StartStream; off by default (the raw frames, as before). With Layout 0 (the raw
+	 *  features, never post-processed) the frames stay raw. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bCleanup = false;
+
+	/** Cleanup: pin each planted foot where it stands, the leg solved by two-bone IK. The
+	 *  cleanup settings are passed with every read; the stream keeps those of its first read
+	 *  (made by StartStream): a change while streaming is refused (LastError, the log) and
+	 *  the frames go on with the first settings. StopStream and StartStream to change them. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bLockFeet = true;
+
+	/** Cleanup: put the first chunk's lowest foot contact at height 0 (the floor is fixed for
+	 *  the whole stream). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bGround = true;
+
+	/** Cleanup: frames per second of Pose, 1 to 240 (30 or 60 for a game); 0 = the model's.
+	 *  Cleaned frame k is at k / FrameRate seconds of the timeline: CurrentFrame, ReadyFrames,
+	 *  FirstHeldFrame and GetFramePose count frames at this rate (115 frames at 20 fps are
+	 *  172 at 30). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup", meta = (ClampMin = "0", ClampMax = "240"))
+	float FrameRate = 0.f;
+
+	/** Cleanup: where the horizontal travel goes. Separate fills RootBoneLocation. (No loop
+	 *  wrap: a stream has no end to wrap.) */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	EFlameRootMotion RootMotion = EFlameRootMotion::Keep;
+
+	/** Cleanup, with InPlace or Separate root motion: also remove the heading's drift. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
+	bool bRemoveYaw = false;
+
 	// ---- Playback, read every tick --------------------------------------------------------
 
 	/** The most denoiser steps one tick's pump may run (on a background thread; the next pump
@@ -94,7 +138,7 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stream")
 	bool bPlaying = true;
 
-	/** Playback speed: 1 = the model's frame rate in game time. */
+	/** Playback speed: 1 = real time (the model's frame rate, or the cleanup's). */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Stream", meta = (ClampMin = "0"))
 	float PlayRate = 1.f;
 
@@ -143,6 +187,14 @@ public:
 	UFUNCTION(BlueprintCallable, Category = "Flame|Stream")
 	bool InterruptStage(const FFlameStage& Stage);
 
+	/** Declares the timeline complete (flame_stream_close, at the next pump): once the pushed
+	 *  segments are generated every frame settles, so with bCleanup the last frames, whose
+	 *  contact spans or swings were still open, arrive. Pushes and interrupts are refused
+	 *  afterwards (StartStream starts a new timeline). False, with LastError, when the stream
+	 *  is not started. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Stream")
+	bool EndTimeline();
+
 	// ---- Output ---------------------------------------------------------------------------
 
 	/** The frame under the playhead in Layout and Convention: GetValuesPerFrame() floats
@@ -154,13 +206,30 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	FVector RootLocation = FVector::ZeroVector;
 
-	/** The timeline frame in Pose (-1 before the first frame). */
+	/** With RootMotion Separate (and bCleanup), the root bone's position in that frame (on the
+	 *  ground: height 0, in Convention); zero otherwise. The pelvis (RootLocation) plus this is
+	 *  the pelvis's path with RootMotion Keep. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Cleanup")
+	FVector RootBoneLocation = FVector::ZeroVector;
+
+	/** The frame in Pose (-1 before the first frame): a timeline frame, or with a cleanup a
+	 *  cleaned frame at PoseFrameRate. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame|Stream")
 	int64 CurrentFrame = -1;
 
-	/** Frames generated so far on the timeline (the playhead never passes them). */
+	/** Frames the component can play (the playhead never passes them): the timeline frames
+	 *  generated so far, or with a cleanup the cleaned frames settled so far (at
+	 *  PoseFrameRate). */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame|Stream")
 	int64 ReadyFrames = 0;
+
+	/** Timeline frames generated so far (at Fps): ReadyFrames without a cleanup. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Stream")
+	int64 GeneratedFrames = 0;
+
+	/** EndTimeline was called: the timeline takes no more segments. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Stream")
+	bool bTimelineEnded = false;
 
 	/** The first frame GetFramePose can still return (older ones were dropped: Window). */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame|Stream")
@@ -186,6 +255,11 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	float Fps = 0.f;
 
+	/** Frames per second of Pose and CurrentFrame: the cleanup's FrameRate with bCleanup, or
+	 *  Fps (0 until the stream has started). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Cleanup")
+	float PoseFrameRate = 0.f;
+
 	UFUNCTION(BlueprintPure, Category = "Flame")
 	int32 GetValuesPerFrame() const { return ValuesPerFrame; }
 
@@ -204,6 +278,10 @@ public:
 
 	UFUNCTION(BlueprintPure, Category = "Flame")
 	FVector GetRootLocationAt(int64 Frame) const;
+
+	/** The root bone's position in a held frame (RootBoneLocation's; zero without it). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Cleanup")
+	FVector GetRootBoneLocationAt(int64 Frame) const;
 
 	/** The model's skeleton (from flame_model_info), filled once the stream has started. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
@@ -234,23 +312,25 @@ private:
 	bool Queue(const FFlameStage& Stage, float Seconds, bool bInterrupt, bool bStage);
 	/** Starts the next pump on a background thread. */
 	void Launch();
-	/** Pose and RootLocation from the frames received, for CurrentFrame. */
+	/** Pose, RootLocation and RootBoneLocation from the frames received, for CurrentFrame. */
 	void UpdatePose();
 
 	/** The running stream, shared with its pumps (null when stopped). */
 	TSharedPtr<FFlameStreamJob, ESPMode::ThreadSafe> Job;
 	/** The loaded model, reused while ModelPath stays the same. */
 	TSharedPtr<FFlameModelRef, ESPMode::ThreadSafe> Model;
-	/** The frames received from the pumps, frame-major, from timeline frame CacheFirst on:
-	 *  CacheFrames × ValuesPerFrame values in Layout, and × 3 root locations. */
+	/** The frames received from the pumps, frame-major, from frame CacheFirst on (timeline
+	 *  frames, or cleaned frames at PoseFrameRate): CacheFrames × ValuesPerFrame values in
+	 *  Layout, and × 3 root locations (and root bone locations with RootMotion Separate). */
 	TArray<float> Cache;
 	TArray<float> RootCache;
+	TArray<float> RootBoneCache;
 	int64 CacheFirst = 0;
 	int64 CacheFrames = 0;
 	int32 ValuesPerFrame = 0;
-	/** Held frames behind the playhead (the stream's window). */
+	/** Held frames behind the playhead (the stream's window, in Pose's frames). */
 	int64 KeepBehind = 1200;
-	/** Seconds played: the playhead is at PlayTime × Fps. */
+	/** Seconds played: the playhead is at PlayTime × PoseFrameRate. */
 	double PlayTime = 0.0;
 	/** The playhead the last pump was given, and whether it ran steps or failed. */
 	int64 SentPlayhead = -1;
