@@ -1008,6 +1008,19 @@ public:
     // afterwards); once the pushed segments are generated, every frame's cleanup settles.
     void end_timeline() const { detail::check(flame_stream_close(handle_)); }
 
+    // flame_stream_close_looped: end_timeline(), and the timeline loops. After the pushed
+    // segments the stream generates a bridge of `bridge_frames` frames (the last segment's
+    // prompt) whose end runs into the timeline's first frames, moved by the loop's root motion,
+    // as `flame generate --loop` closes a clip: playing frame 0 after the last continues the
+    // motion. Frames already generated never change; the timeline grows by bridge_frames (two
+    // chunks' steps more to pump), and cleaned reads settle to its end. Throws
+    // INVALID_ARGUMENT for a latent model (MLD, MoLA) and for a bridge shorter than 1 s or
+    // longer than the model's frames allow (overlap + bridge + 0.5 s), WRONG_STATE when the
+    // stream is already closed, has no segment or dropped frame 0.
+    void end_timeline_looped(uint32_t bridge_frames) const {
+        detail::check(flame_stream_close_looped(handle_, bridge_frames));
+    }
+
     FlameStream* get() const noexcept { return handle_; }
     explicit operator bool() const noexcept { return handle_ != nullptr; }
 

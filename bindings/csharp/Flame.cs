@@ -777,6 +777,23 @@ namespace Flame
             FlameException.Check(FlameNative.flame_stream_close(Handle));
         }
 
+        /// <summary>flame_stream_close_looped: EndTimeline, and the timeline loops. After the
+        /// pushed segments the stream generates a bridge of bridgeFrames frames (the last
+        /// segment's prompt) whose end runs into the timeline's first frames, moved by the loop's
+        /// root motion, as `flame generate --loop` closes a clip: playing frame 0 after the last
+        /// continues the motion. Frames already generated never change; the timeline grows by
+        /// bridgeFrames (two chunks' steps more to pump), and cleaned reads settle to its end.
+        /// Throws with InvalidArgument for a latent model (MLD, MoLA) and for a bridge shorter
+        /// than 1 s or longer than the model's frames allow (overlap + bridge + 0.5 s), with
+        /// WrongState when the stream is already closed, has no segment or dropped frame
+        /// 0.</summary>
+        public void EndTimelineLooped(int bridgeFrames)
+        {
+            if (bridgeFrames < 0)
+                throw new ArgumentOutOfRangeException("bridgeFrames");
+            FlameException.Check(FlameNative.flame_stream_close_looped(Handle, (uint)bridgeFrames));
+        }
+
         /// <summary>Frees the stream (deferred until a Pump running on another thread returns:
         /// Cancel first so it returns soon).</summary>
         public void Dispose() { Handle.Dispose(); }
@@ -966,6 +983,9 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_close(FlameStreamHandle stream);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_stream_close_looped(FlameStreamHandle stream, uint bridgeFrames);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_cleanup_params_default(out FlameCleanupParams p);

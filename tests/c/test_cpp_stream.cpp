@@ -16,7 +16,11 @@
 // - push_stage / interrupt_stage: a stage without part texts is push / interrupt; part texts
 //   are refused on FLAME (INVALID_ARGUMENT: only FineMoGen reads them) and composed on
 //   FineMoGen;
-// - a latent model that cannot continue a motion (MLD): INVALID_ARGUMENT at construction.
+// - a latent model that cannot continue a motion (MLD): INVALID_ARGUMENT at construction;
+// - end_timeline_looped (tests/c/test_stream.c's loop): 120 frames, the first 100 those of
+//   end_timeline()'s stream and of the C API's flame_stream_close_looped bit for bit, all 120
+//   settled for cleaned reads; a 12-frame bridge and a latent model (mola_tiny) throw
+//   INVALID_ARGUMENT naming them, a second close and an empty timeline WRONG_STATE.
 //
 // usage: test_cpp_stream FIXTURES_DIR   (tests/fixtures; FLAME_TEST_QUICK=1: shorter timelines
 // for valgrind)
@@ -386,6 +390,93 @@ static void test_cleaned() {
                  "");
 }
 
+// ---- a timeline closed into a loop -------------------------------------------------------
+
+// tests/c/test_stream.c's loop (the settings of tests/cycle.rs): chunks of 60 frames keeping 20,
+// 3 steps, seed 9; "a person walks" 70 + "a person jumps" 30 = 100 frames, a 20-frame bridge.
+static flame::StreamParams loop_params() {
+    flame::StreamParams p;
+    p.chunk = 60;
+    p.overlap = 20;
+    p.lookahead = 1000;
+    p.window = 1000;
+    p.steps = 3;
+    p.seed = 9;
+    p.threads = 1;
+    return p;
+}
+
+static void test_end_timeline_looped() {
+    flame::Model m = load("flame_tiny");
+    const uint32_t dim = m.info().feature_dim, joints = m.info().joint_count;
+    flame::Stream plain(m, loop_params()), looped(m, loop_params());
+    for (flame::Stream *s : {&plain, &looped}) {
+        s->push("a person walks", 70);
+        s->push("a person jumps", 30);
+    }
+    plain.end_timeline();
+    looped.end_timeline_looped(20);
+    CHECK_THROWS(looped.push("a person waves", 10), FLAME_STATUS_WRONG_STATE, "closed");
+    CHECK_THROWS(looped.end_timeline_looped(20), FLAME_STATUS_WRONG_STATE, "closed");
+    run(plain, 1);
+    run(looped, 1);
+    CHECK(plain.status().ready == 100);
+    const flame::StreamStatus st = looped.status();
+    CHECK(st.ready == 120 && st.starving);
+    CHECK_THROWS(looped.read(120, 1), FLAME_STATUS_WRONG_STATE, "not generated yet");
+
+    // The bridge only appends: the first 100 frames are the plain stream's, bit for bit.
+    const std::vector<float> base = plain.read(0, 100);
+    const std::vector<float> all = looped.read(0, 120);
+    CHECK(base.size() == 100u * dim && all.size() == 120u * dim && finite(all));
+    CHECK(all.size() >= base.size() &&
+          std::memcmp(all.data(), base.data(), base.size() * sizeof(float)) == 0);
+
+    // The C API's looped close gives the same frames.
+    {
+        const flame::StreamParams p = loop_params();
+        FlameStream *c = nullptr;
+        if (CHECK_OK(flame_stream_new(m.get(), &p, &c))) {
+            CHECK_OK(flame_stream_push(c, "a person walks", 70));
+            CHECK_OK(flame_stream_push(c, "a person jumps", 30));
+            CHECK_OK(flame_stream_close_looped(c, 20));
+            CHECK_OK(flame_stream_pump(c, UINT32_MAX, nullptr));
+            std::vector<float> direct(all.size() + 1);
+            size_t n = 0;
+            CHECK_OK(flame_stream_read(c, 0, 120, FLAME_LAYOUT_FEATURES, 0, 0, direct.data(),
+                                       direct.size(), &n));
+            direct.resize(n);
+            CHECK(same(direct, all));
+            flame_stream_free(c);
+        }
+    }
+
+    // Cleaned reads (the default cleanup: feet locked) settle all 120 frames.
+    FlameCleanupParams c;
+    CHECK(flame_cleanup_params_default(&c) == FLAME_STATUS_OK);
+    const std::vector<float> clean =
+        looped.read_cleaned(c, 0, 120, FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF);
+    CHECK(clean.size() == 120u * joints * 3 && finite(clean));
+
+    // Refusals: nothing to loop, a bridge under 1 s (the stream stays open), a latent model.
+    flame::Stream s(m, loop_params());
+    CHECK_THROWS(s.end_timeline_looped(20), FLAME_STATUS_WRONG_STATE, "push a segment");
+    s.push("a person walks", 40);
+    CHECK_THROWS(s.end_timeline_looped(12), FLAME_STATUS_INVALID_ARGUMENT, "bridge of 12 frames");
+    s.push("a person jumps", 20);
+    s.end_timeline_looped(20);
+    flame::Stream empty;
+    CHECK_THROWS(empty.end_timeline_looped(20), FLAME_STATUS_INVALID_ARGUMENT, "`stream` is NULL");
+    flame::Model mola = load("mola_tiny");
+    flame::StreamParams lp = loop_params();
+    lp.chunk = 32;
+    lp.overlap = 8;
+    flame::Stream latent(mola, lp);
+    latent.push("a person walks", 40);
+    CHECK_THROWS(latent.end_timeline_looped(20), FLAME_STATUS_INVALID_ARGUMENT,
+                 "samples a latent");
+}
+
 // ---- interrupt ----------------------------------------------------------------------------
 
 static void test_interrupt() {
@@ -676,6 +767,7 @@ int main(int argc, char **argv) {
         {"round trip (MDM)", [] { test_round_trip("mdm_tiny"); }},
         {"window", test_window},
         {"cleaned reads", test_cleaned},
+        {"end_timeline_looped", test_end_timeline_looped},
         {"interrupt", test_interrupt},
         {"cancel", test_cancel},
         {"stages (FLAME)", test_stages_flame},

@@ -24,7 +24,14 @@
  * - flame_stream_push_stage / interrupt_stage: NULL and short structs, empty part texts follow
  *   the whole-body text, part texts refused by FLAME when the chunk starts, and on FineMoGen
  *   (finemogen_tiny) every part given the segment's text equals the plain push bit for bit;
- * - a MoLA stream (mola_tiny; continues through position targets): deterministic, finite.
+ * - a MoLA stream (mola_tiny; continues through position targets): deterministic, finite;
+ * - flame_stream_close_looped (the settings of tests/cycle.rs: chunks of 60 keeping 20, 3 steps,
+ *   seed 9; "a person walks" 70 + "a person jumps" 30, a 20-frame bridge): 120 frames, six
+ *   steps (two chunks) more than the plain close, frames 0..100 the plain close's bit for bit,
+ *   cleaned reads (feet locked) of all 120 settled; a bridge too short (12) or too long for the
+ *   model (the overlap + the bridge + 0.5 s past max_frames): INVALID_ARGUMENT naming it, the
+ *   stream still open; no segment, a second close: WRONG_STATE; NULL: INVALID_ARGUMENT; a
+ *   latent model (mola_tiny): INVALID_ARGUMENT "samples a latent".
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -792,6 +799,147 @@ static void test_mola(const FlameModel *mola) {
     free(got[1]);
 }
 
+/* ---- closing into a loop ----------------------------------------------------------------- */
+
+/* tests/cycle.rs's looped streams: chunks of 60 frames keeping 20, 3 steps, seed 9, one thread;
+ * "a person walks" for 70 frames, then "a person jumps" for 30. */
+#define LOOP_TIMELINE 100
+#define LOOP_BRIDGE 20
+static FlameStream *loop_stream(const FlameModel *m) {
+    FlameStreamParams p;
+    flame_stream_params_default(&p);
+    p.chunk = 60;
+    p.overlap = 20;
+    p.lookahead = 1000;
+    p.window = 1000;
+    p.steps = 3;
+    p.seed = 9;
+    p.threads = 1;
+    FlameStream *s = new_stream(m, &p);
+    CHECK_OK(flame_stream_push(s, "a person walks", 70));
+    CHECK_OK(flame_stream_push(s, "a person jumps", 30));
+    return s;
+}
+
+/* Pumps to the end; returns the steps run. */
+static uint32_t pump_all(FlameStream *s) {
+    uint32_t steps = 0;
+    for (int calls = 0; calls < 10000; calls++) {
+        FlameStreamStatus st;
+        st.struct_size = sizeof st;
+        if (!CHECK_OK(flame_stream_pump(s, 1, &st)) || st.steps == 0) {
+            break;
+        }
+        steps += st.steps;
+    }
+    return steps;
+}
+
+static void test_close_looped(const FlameModel *m, const FlameModel *mola) {
+    const int32_t INV = FLAME_STATUS_INVALID_ARGUMENT, WS = FLAME_STATUS_WRONG_STATE;
+    FlameModelInfo info;
+    info.struct_size = sizeof info;
+    CHECK_OK(flame_model_info(m, &info));
+    const uint32_t dim = info.feature_dim, joints = info.joint_count;
+
+    FlameStream *plain = loop_stream(m), *looped = loop_stream(m);
+    CHECK_OK(flame_stream_close(plain));
+    CHECK_OK(flame_stream_close_looped(looped, LOOP_BRIDGE));
+    const uint32_t plain_steps = pump_all(plain), looped_steps = pump_all(looped);
+    FlameStreamStatus ps = status_of(plain), ls = status_of(looped);
+    CHECK(ps.ready == LOOP_TIMELINE && ps.starving == 1);
+    CHECK(ls.ready == LOOP_TIMELINE + LOOP_BRIDGE && ls.starving == 1 && ls.first_frame == 0);
+    /* The bridge is two chunks' steps: a probe and the edit that keeps both ends. */
+    CHECK(looped_steps == plain_steps + 2 * 3);
+    if (looped_steps != plain_steps + 2 * 3) {
+        fprintf(stderr, "     (plain %u steps, looped %u)\n", plain_steps, looped_steps);
+    }
+    size_t n = 0;
+    CHECK_ERROR_MENTIONS(flame_stream_read(looped, LOOP_TIMELINE + LOOP_BRIDGE, 1,
+                                           FLAME_LAYOUT_FEATURES, 0, 0, NULL, 0, &n),
+                         WS, "not generated yet");
+
+    /* The bridge only appends: the timeline's frames are the plain close's, bit for bit. */
+    size_t np = 0, nl = 0;
+    float *fp = read_range(plain, 0, LOOP_TIMELINE, FLAME_LAYOUT_FEATURES, 0, &np);
+    float *fl = read_range(looped, 0, LOOP_TIMELINE + LOOP_BRIDGE, FLAME_LAYOUT_FEATURES, 0, &nl);
+    CHECK(np == (size_t)LOOP_TIMELINE * dim && nl == (size_t)(LOOP_TIMELINE + LOOP_BRIDGE) * dim);
+    CHECK(fp && fl && nl >= np && memcmp(fp, fl, np * sizeof(float)) == 0);
+    CHECK(fl && all_finite(fl, nl));
+    free(fp);
+    free(fl);
+
+    /* Cleaned reads (the default cleanup: feet locked, on the ground) settle every frame of
+     * the completed loop, the bridge's too. */
+    FlameCleanupParams c;
+    CHECK_OK(flame_cleanup_params_default(&c));
+    CHECK(c.feet == FLAME_FEET_LOCK && c.fps == 0.0f);
+    size_t need = 0;
+    CHECK_OK(flame_stream_read_cleaned(looped, 0, LOOP_TIMELINE + LOOP_BRIDGE,
+                                       FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF, &c,
+                                       NULL, 0, &need));
+    CHECK(need == (size_t)(LOOP_TIMELINE + LOOP_BRIDGE) * joints * 3);
+    float *clean = (float *)malloc(need * sizeof(float) + 1);
+    CHECK_OK(flame_stream_read_cleaned(looped, 0, LOOP_TIMELINE + LOOP_BRIDGE,
+                                       FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF, &c,
+                                       clean, need, &n));
+    CHECK(n == need && all_finite(clean, n));
+    /* The last frame alone: settled, the same values. */
+    float last[24 * 3];
+    CHECK(joints <= 24);
+    CHECK_OK(flame_stream_read_cleaned(looped, LOOP_TIMELINE + LOOP_BRIDGE - 1, 1,
+                                       FLAME_LAYOUT_GLOBAL_POSITIONS, FLAME_CONVENTION_GLTF, &c,
+                                       last, sizeof last / sizeof last[0], &n));
+    CHECK(n == joints * 3u && memcmp(last, clean + need - n, n * sizeof(float)) == 0);
+    free(clean);
+    flame_stream_free(plain);
+    flame_stream_free(looped);
+
+    /* Refusals. No segment yet: nothing to loop. */
+    FlameStreamParams p;
+    flame_stream_params_default(&p);
+    p.chunk = 60;
+    p.overlap = 20;
+    p.steps = 3;
+    p.threads = 1;
+    FlameStream *s = new_stream(m, &p);
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, LOOP_BRIDGE), WS, "push a segment");
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(NULL, LOOP_BRIDGE), INV, "stream");
+    CHECK_OK(flame_stream_push(s, "a person walks", 40));
+    /* Shorter than 1 s (two leads of 0.5 s), longer than the model's frames allow: named,
+     * and the stream stays open. */
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, 12), INV, "bridge of 12 frames");
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, 0), INV, "bridge of 0 frames");
+    const uint32_t longest = info.max_frames - 20 - 10; /* overlap + bridge + lead <= max */
+    char name[64];
+    snprintf(name, sizeof name, "bridge of %u frames", longest + 1);
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, longest + 1), INV, name);
+    snprintf(name, sizeof name, "at most the model's %u", info.max_frames);
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, longest + 1), INV, name);
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, UINT32_MAX), INV, "bridge of");
+    CHECK_OK(flame_stream_push(s, "a person jumps", 20));
+    CHECK_OK(flame_stream_close_looped(s, longest)); /* the longest is fine */
+    /* Closed: a second close, a push. */
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, LOOP_BRIDGE), WS, "closed");
+    CHECK_ERROR_MENTIONS(flame_stream_push(s, "a person waves", 20), WS, "closed");
+    flame_stream_free(s);
+    /* A plain close, then a looped one. */
+    s = new_stream(m, &p);
+    CHECK_OK(flame_stream_push(s, "a person walks", 40));
+    CHECK_OK(flame_stream_close(s));
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, LOOP_BRIDGE), WS, "closed");
+    flame_stream_free(s);
+
+    /* A latent model (MoLA streams through position targets): a bridge keeps frames at both
+     * ends, which a sampled latent cannot. */
+    p.chunk = 32;
+    p.overlap = 8;
+    s = new_stream(mola, &p);
+    CHECK_OK(flame_stream_push(s, "a person walks", 40));
+    CHECK_ERROR_MENTIONS(flame_stream_close_looped(s, LOOP_BRIDGE), INV, "samples a latent");
+    flame_stream_free(s);
+}
+
 int main(int argc, char **argv) {
     if (argc < 2) {
         fprintf(stderr, "usage: %s FIXTURES_DIR\n", argv[0]);
@@ -823,6 +971,7 @@ int main(int argc, char **argv) {
     test_cancel(mdm, "mdm_tiny");
     test_stages(flame, fmg);
     test_mola(mola);
+    test_close_looped(flame, mola);
     flame_model_free(mola);
     flame_model_free(fmg);
     flame_model_free(flame);

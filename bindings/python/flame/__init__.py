@@ -586,6 +586,7 @@ def _signatures():
              ctypes.POINTER(size_t)],
         ),
         "flame_stream_close": (_status, [_P]),
+        "flame_stream_close_looped": (_status, [_P, u32]),
         "flame_cleanup_params_default": (_status, [ctypes.POINTER(_CleanupParams)]),
         "flame_session_read_cleaned": (
             _status,
@@ -1169,6 +1170,21 @@ class Stream:
         afterwards); once the pushed segments are generated, every frame's cleanup settles."""
         with self._lock:
             _check(_lib().flame_stream_close(self._h()))
+
+    def end_timeline_looped(self, bridge_frames: int) -> None:
+        """flame_stream_close_looped: end_timeline(), and the timeline loops. After the pushed
+        segments the stream generates a bridge of `bridge_frames` frames (the last segment's
+        prompt) whose end runs into the timeline's first frames, moved by the loop's root
+        motion, as `flame generate --loop` closes a clip: playing frame 0 after the last
+        continues the motion. Frames already generated never change; the timeline grows by
+        `bridge_frames` (two chunks' steps more to pump), and cleaned reads settle to its end.
+
+        Raises FlameError with INVALID_ARGUMENT for a latent model (MLD, MoLA) and for a bridge
+        shorter than 1 s or longer than the model's frames allow (overlap + bridge + 0.5 s),
+        WRONG_STATE when the stream is already closed, has no segment or dropped frame 0."""
+        with self._lock:
+            _check(_lib().flame_stream_close_looped(self._h(),
+                                                    _uint32("bridge_frames", bridge_frames)))
 
     def close(self) -> None:
         """Frees the stream (cancelling and waiting for a pump running on another thread)."""

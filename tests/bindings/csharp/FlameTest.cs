@@ -84,6 +84,7 @@ static class FlameTest
             Run("PromptStageErrors", TestPromptStageErrors);
             Run("Stream", TestStream);
             Run("StreamCleaned", TestStreamCleaned);
+            Run("StreamLooped", TestStreamLooped);
             Run("StreamCancelBetweenPumps", TestStreamCancelBetweenPumps);
             Run("StreamCancelFromAnotherThread", TestStreamCancelFromAnotherThread);
             Run("StreamCancelLongPump", TestStreamCancelLongPump);
@@ -1618,6 +1619,67 @@ static class FlameTest
             for (int i = 0; same && i < whole.Length; i++)
                 same = BitConverter.SingleToInt32Bits(got[i]) == BitConverter.SingleToInt32Bits(whole[i]);
             Check(same, "frame by frame = one read, bit for bit");
+        }
+    }
+
+    // tests/c/test_stream.c's loop (the settings of tests/cycle.rs): chunks of 60 frames keeping
+    // 20, 3 steps, seed 9; "a person walks" 70 + "a person jumps" 30 = 100 frames, then
+    // EndTimelineLooped(20): 120 frames, the first 100 those of EndTimeline's stream bit for bit,
+    // all 120 settled for cleaned reads (feet locked); the refusals.
+    static FlameStreamParams LoopStreamParams()
+    {
+        var p = FlameStreamParams.Default();
+        p.chunk = 60; p.overlap = 20; p.lookahead = 1000; p.window = 1000; p.steps = 3; p.seed = 9; p.threads = 1;
+        return p;
+    }
+
+    static void TestStreamLooped()
+    {
+        using (var plain = FlameStream.Create(model, LoopStreamParams()))
+        using (var looped = FlameStream.Create(model, LoopStreamParams()))
+        {
+            foreach (var s in new[] { plain, looped })
+            {
+                s.Push("a person walks", 70);
+                s.Push("a person jumps", 30);
+            }
+            plain.EndTimeline();
+            looped.EndTimelineLooped(20);
+            Throws(FlameStatus.WrongState, "closed", () => looped.EndTimelineLooped(20));
+            Throws(FlameStatus.WrongState, "closed", () => looped.Push("a person waves", 10));
+            Check(PumpOn(plain, 1) == 0 && PumpOn(looped, 1) == 0, "pumped");
+            var st = looped.Status();
+            Check(plain.Status().ready == 100 && st.ready == 120 && st.first_frame == 0 && st.starving == 1,
+                  "100 frames, 120 looped: " + plain.Status().ready + ", " + st.ready);
+            Throws(FlameStatus.WrongState, "not generated yet", () => looped.Read(120, 1, FlameLayout.Features, 0));
+            var all = looped.Read(0, 120, FlameLayout.Features, 0);
+            var first = new float[100 * Dim];
+            Array.Copy(all, first, Math.Min(first.Length, all.Length));
+            Check(all.Length == 120 * Dim && all.All(v => !float.IsNaN(v) && !float.IsInfinity(v)), "120 finite frames");
+            Check(BitEqual(first, plain.Read(0, 100, FlameLayout.Features, 0)), "the first 100 frames = the plain stream's, bit for bit");
+            var cp = FlameCleanupParams.Default();
+            Check(cp.Feet == FlameFeet.Lock, "default cleanup locks the feet");
+            var pos = looped.Read(0, 120, FlameLayout.GlobalPositions, (int)FlameConvention.Gltf, cp);
+            Check(pos.Length == 120 * 24 * 3 && pos.All(v => !float.IsNaN(v) && !float.IsInfinity(v)), "all 120 frames settled");
+        }
+        using (var s = FlameStream.Create(model, LoopStreamParams()))
+        {
+            Throws(FlameStatus.WrongState, "push a segment", () => s.EndTimelineLooped(20));
+            s.Push("a person walks", 40);
+            Throws(FlameStatus.InvalidArgument, "bridge of 12 frames", () => s.EndTimelineLooped(12));
+            ThrowsManaged<ArgumentOutOfRangeException>(() => s.EndTimelineLooped(-1));
+            s.Push("a person jumps", 20);  // the refused closes left the stream open
+            s.EndTimelineLooped(20);
+        }
+        using (var mola = LoadFixture("mola_tiny.safetensors"))
+        {
+            var p = LoopStreamParams();
+            p.chunk = 32; p.overlap = 8;
+            using (var s = FlameStream.Create(mola, p))
+            {
+                s.Push("a person walks", 40);
+                Throws(FlameStatus.InvalidArgument, "samples a latent", () => s.EndTimelineLooped(20));
+            }
         }
     }
 

@@ -1,8 +1,9 @@
 """flame.Stream (flame_stream_*): a timeline of prompts on the FLAME and MDM fixtures,
 determinism under pump patterns, the lookahead, reads of frames not generated or dropped, and
 bad input; cancel (from another thread during pumps, and between pumps), segments with part
-texts (push_stage / interrupt_stage: FineMoGen reads them, FLAME refuses them), a MoLA stream
-and quaternions read one frame at a time."""
+texts (push_stage / interrupt_stage: FineMoGen reads them, FLAME refuses them), a MoLA stream,
+quaternions read one frame at a time, cleaned reads and a timeline closed into a loop
+(end_timeline_looped)."""
 import threading
 import time
 from pathlib import Path
@@ -379,3 +380,68 @@ def test_cleaned_frames_read_one_at_a_time_equal_one_read_at_the_end():
     with pytest.raises(FlameError) as e:
         small(m).read(0, 1, Layout.GLOBAL_POSITIONS, 0, flame.Cleanup(wrap=True))
     assert e.value.status == Status.INVALID_ARGUMENT
+
+
+# --- a timeline closed into a loop -----------------------------------------------------------
+
+# tests/c/test_stream.c's loop (the settings of tests/cycle.rs): chunks of 60 frames keeping 20,
+# 3 steps, seed 9; "a person walks" 70 + "a person jumps" 30 = 100 frames, a 20-frame bridge.
+LOOP = (("a person walks", 70), ("a person jumps", 30))
+
+
+def loop_stream(m, **kw):
+    args = dict(chunk=60, overlap=20, lookahead=1000, window=1000, steps=3, seed=9, threads=1)
+    args.update(kw)
+    return flame.Stream(m, **args)
+
+
+def test_a_timeline_closed_into_a_loop_appends_a_bridge():
+    m = model("flame_tiny")
+    plain, looped = timeline(loop_stream(m), LOOP), timeline(loop_stream(m), LOOP)
+    plain.end_timeline()
+    looped.end_timeline_looped(20)
+    assert pump_on(plain, 1) == 0 and pump_on(looped, 1) == 0
+    assert plain.status().ready == 100
+    st = looped.status()
+    assert (st.ready, st.first_frame, st.starving) == (120, 0, True)
+    with pytest.raises(FlameError) as e:
+        looped.read(120, 1, Layout.FEATURES)
+    assert e.value.status == Status.WRONG_STATE and "not generated yet" in e.value.message
+    # The bridge only appends: the first 100 frames are the plain stream's, bit for bit.
+    x = features(looped, 120)
+    assert x.shape == (120, m.info.feature_dim) and np.isfinite(x).all()
+    assert x[:100].tobytes() == features(plain, 100).tobytes()
+    # Cleaned reads (the default cleanup: feet locked) settle all 120 frames.
+    cleanup = flame.Cleanup()
+    assert cleanup.feet == flame.Feet.LOCK
+    pos = looped.read(0, 120, Layout.GLOBAL_POSITIONS, Convention.GLTF, cleanup)
+    assert pos.shape == (120, m.info.joint_count, 3) and np.isfinite(pos).all()
+    # Closed: a second close and a push are WRONG_STATE.
+    for call in (lambda: looped.end_timeline_looped(20), lambda: looped.push("a person waves", 10)):
+        with pytest.raises(FlameError) as e:
+            call()
+        assert e.value.status == Status.WRONG_STATE and "closed" in e.value.message
+
+
+def test_a_looped_close_is_refused_when_it_cannot_loop():
+    m = model("flame_tiny")
+    s = loop_stream(m)
+    with pytest.raises(FlameError) as e:
+        s.end_timeline_looped(20)
+    assert e.value.status == Status.WRONG_STATE and "push a segment" in e.value.message
+    s.push("a person walks", 40)
+    with pytest.raises(FlameError) as e:
+        s.end_timeline_looped(12)
+    assert e.value.status == Status.INVALID_ARGUMENT
+    assert "bridge of 12 frames" in e.value.message, e.value.message
+    with pytest.raises(ValueError, match="bridge_frames"):
+        s.end_timeline_looped(-1)
+    s.push("a person jumps", 20)  # the refused closes left the stream open
+    s.end_timeline_looped(20)
+    s.close()
+    with pytest.raises(ValueError):
+        s.end_timeline_looped(20)
+    latent = timeline(loop_stream(model("mola_tiny"), chunk=32, overlap=8), LOOP[:1])
+    with pytest.raises(FlameError) as e:
+        latent.end_timeline_looped(20)
+    assert e.value.status == Status.INVALID_ARGUMENT and "samples a latent" in e.value.message
