@@ -8,5 +8,7 @@
 //! a root translation in a convention) and gives poses.
 
 pub mod rig;
+pub mod transfer;
 
 pub use rig::{BoneSpec, RestTransform, Rig, RigSource, VrmVersion};
+pub use transfer::Transfer;

@@ -88,7 +88,9 @@ pub struct Rig {
 }
 
 impl Rig {
-    /// A rig from bones in any order (parents need not come first). Errors name the bone: an
+    /// A rig from bones in any order (parents need not come first; bones are stored parents
+    /// first, otherwise in the given order, so a list that already lists parents first keeps
+    /// its indices). Errors name the bone: an
     /// empty list or more than [`MAX_BONES`], an empty or repeated name, a parent out of range
     /// or a cycle, a non-finite value, a zero scale, a rest rotation that is not a rotation.
     /// `source` lists per bone what the file calls it (node indices), in the same order as
@@ -113,21 +115,21 @@ impl Rig {
                 ));
             }
         }
-        // Parents first: a depth-first order from the roots; a bone never reached is on a
+        // Parents first, otherwise in the given order (a list already parents-first keeps its
+        // indices): Kahn's order, the lowest ready index next. A bone never ready is on a
         // cycle.
         let mut children = vec![Vec::new(); n];
-        let mut roots = Vec::new();
+        let mut ready = std::collections::BinaryHeap::new();
         for (i, b) in bones.iter().enumerate() {
             match b.parent {
                 Some(p) => children[p].push(i),
-                None => roots.push(i),
+                None => ready.push(std::cmp::Reverse(i)),
             }
         }
         let mut order = Vec::with_capacity(n);
-        let mut stack: Vec<usize> = roots.into_iter().rev().collect();
-        while let Some(i) = stack.pop() {
+        while let Some(std::cmp::Reverse(i)) = ready.pop() {
             order.push(i);
-            stack.extend(children[i].iter().rev());
+            ready.extend(children[i].iter().map(|&c| std::cmp::Reverse(c)));
         }
         if order.len() != n {
             let mut reached = vec![false; n];
