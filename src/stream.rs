@@ -1308,6 +1308,10 @@ impl Stream {
                 self.ready()
             )));
         }
+        if count == 0 {
+            // Nothing to read (and, before the first frame settles, nothing cleaned yet).
+            return Ok(Vec::new());
+        }
         let Some(order) = layout.quat_order() else {
             let out = c.out.as_ref().expect("frames are settled");
             return out
@@ -1936,6 +1940,27 @@ mod cleanup_tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn an_empty_cleaned_read_before_anything_settled_is_empty() {
+        // Found by the Unreal component's tests: a read of 0 frames in a layout without
+        // quaternions, before any frame settled, panicked on the missing cleaned poses.
+        let mut s = stream("flame_tiny", &[40]);
+        s.set_finish(finish(None)).unwrap();
+        for layout in [
+            Layout::RootTranslation,
+            Layout::GlobalPositions,
+            Layout::LocalQuatXyzw,
+        ] {
+            let v = s.read_cleaned(0, 0, layout, Convention::Gltf).unwrap();
+            assert!(v.is_empty());
+        }
+        s.pump(1000).unwrap();
+        assert!(s
+            .read_cleaned(0, 0, Layout::RootBone, Convention::Gltf)
+            .unwrap()
+            .is_empty());
     }
 
     #[test]
