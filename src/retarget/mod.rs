@@ -7,6 +7,7 @@
 //! Nothing here knows about sessions, models or the C ABI: it takes poses (local rotations and
 //! a root translation in a convention) and gives poses.
 
+pub mod bonemap;
 pub mod bvh_rig;
 pub mod gltf_rig;
 pub mod rig;
