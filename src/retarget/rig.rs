@@ -207,7 +207,8 @@ impl Rig {
     }
 
     /// The same rig with the bone map its file declares (VRM humanBones: `(name, bone)`), each
-    /// bone index in the order [`Rig::new`] was given (it is mapped to the stored order).
+    /// bone index a stored one (look bones up by name with [`Rig::find`]: [`Rig::new`] may have
+    /// reordered them).
     pub fn with_declared(mut self, declared: Vec<(String, usize)>) -> Result<Rig> {
         let n = self.names.len();
         if let Some((name, b)) = declared.iter().find(|(_, b)| *b >= n) {
