@@ -11,7 +11,9 @@ pub mod bonemap;
 pub mod bvh_rig;
 pub mod gltf_rig;
 pub mod rig;
+pub mod target;
 pub mod transfer;
 
 pub use rig::{BoneSpec, RestTransform, Rig, RigSource, VrmVersion};
+pub use target::Target;
 pub use transfer::Transfer;

@@ -39,6 +39,22 @@ use crate::motion::ik::rotate_onto;
 use crate::motion::rotation::{self, Mat3, Vec3};
 use crate::motion::Skeleton;
 
+/// SMPL's joint indices, shared by SMPL-24 and HumanML3D-22 (SMPL's joint order; HumanML3D's
+/// 22 joints are SMPL's first 22 in the same order, see `crate::motion::skeleton`).
+pub mod smpl {
+    pub const PELVIS: usize = 0;
+    pub const L_HIP: usize = 1;
+    pub const R_HIP: usize = 2;
+    /// Spine1, Spine2, Spine3.
+    pub const SPINE: [usize; 3] = [3, 6, 9];
+    pub const L_ANKLE: usize = 7;
+    pub const R_ANKLE: usize = 8;
+    pub const L_FOOT: usize = 10;
+    pub const R_FOOT: usize = 11;
+    pub const NECK: usize = 12;
+    pub const HEAD: usize = 15;
+}
+
 /// How one rig bone is driven.
 #[derive(Clone, Copy, Debug)]
 enum Drive {
@@ -108,9 +124,14 @@ impl Transfer {
             }
             bone_of[j] = Some(b);
         }
-        let names = source.joint_names();
-        let find = |name: &str| names.iter().position(|&n| n == name);
-        let (pelvis, l_hip, r_hip) = (0, find("L_Hip"), find("R_Hip"));
+        if joints < 22 {
+            return Err(invalid_arg!(
+                "the source skeleton has {joints} joints: SMPL's first 22 are needed"
+            ));
+        }
+        // SMPL-24 and HumanML3D-22 share SMPL's joint order (their names differ).
+        let find = |j: usize| Some(j);
+        let (pelvis, l_hip, r_hip) = (smpl::PELVIS, find(smpl::L_HIP), find(smpl::R_HIP));
         let need = |j: Option<usize>, what: &str| -> Result<usize> {
             j.and_then(|j| bone_of[j]).ok_or_else(|| {
                 invalid_arg!("the bone map needs the {what}: no rig bone is mapped to it")
@@ -118,9 +139,9 @@ impl Transfer {
         };
         let hips = need(Some(pelvis), "hips")?;
         let (lb, rb) = (need(l_hip, "left thigh")?, need(r_hip, "right thigh")?);
-        let top = find("Neck")
+        let top = find(smpl::NECK)
             .filter(|&j| bone_of[j].is_some())
-            .or(find("Head"));
+            .or(find(smpl::HEAD));
         let head = need(top, "neck or head")?;
 
         // Source rest world positions (rotations are all identity in glTF axes).
@@ -152,7 +173,7 @@ impl Transfer {
         let up = [rig_frame[0][1], rig_frame[1][1], rig_frame[2][1]];
 
         // Hips heights above the lowest foot joint: the source's in metres, the rig's in units.
-        let feet = ["L_Ankle", "R_Ankle", "L_Foot", "R_Foot"].map(find);
+        let feet = [smpl::L_ANKLE, smpl::R_ANKLE, smpl::L_FOOT, smpl::R_FOOT].map(find);
         // Heights along each skeleton's own up (its frame's), so one shape gives a ratio of 1.
         let src_up = [src_frame[0][1], src_frame[1][1], src_frame[2][1]];
         let src_floor = feet
@@ -196,7 +217,16 @@ impl Transfer {
             {
                 Some(c) => {
                     let target = rotation::apply(&axes, &sub(&src_pos[c], &src_pos[j]));
-                    let here = sub(&pos[bone_of[c].expect("mapped")], &pos[b]);
+                    let to = bone_of[c].expect("mapped");
+                    let here = sub(&pos[to], &pos[b]);
+                    if norm(&here) * rig.metres_per_unit() < 1e-5 {
+                        return Err(invalid_arg!(
+                            "rig bones `{}` and `{}` are at one place at rest: a zero-length \
+                             bone has no direction to drive",
+                            rig.name(b),
+                            rig.name(to)
+                        ));
+                    }
                     rotate_onto(&here, &target, None)
                 }
                 None => inherited,
@@ -414,7 +444,7 @@ fn unit(a: &Vec3) -> Option<Vec3> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::retarget::{BoneSpec, RestTransform, RigSource};
 
@@ -429,7 +459,7 @@ mod tests {
     /// place of 3, a twist bone under each upper arm and thigh, a `root` bone on the ground,
     /// other names, and a different rest rotation on every bone. Returns the rig and the
     /// (SMPL joint, rig bone) pairs.
-    fn test_rig(spine_bones: usize) -> (Rig, Vec<(usize, usize)>, Vec<usize>) {
+    pub(crate) fn test_rig(spine_bones: usize) -> (Rig, Vec<(usize, usize)>, Vec<usize>) {
         let s = Skeleton::smpl24();
         let mut p = vec![[0.0; 3]; 24];
         for j in 1..24 {
@@ -566,7 +596,7 @@ mod tests {
     }
 
     /// World positions of the rig posed with `local` rotations and the hips' translation.
-    fn posed(rig: &Rig, local: &[Mat3], hips: usize, hips_t: &Vec3) -> Vec<Vec3> {
+    pub(crate) fn posed(rig: &Rig, local: &[Mat3], hips: usize, hips_t: &Vec3) -> Vec<Vec3> {
         let mut world = vec![rotation::IDENTITY; rig.bone_count()];
         let mut pos = vec![[0.0; 3]; rig.bone_count()];
         for b in 0..rig.bone_count() {
@@ -589,7 +619,7 @@ mod tests {
         pos
     }
 
-    fn angle(a: &Vec3, b: &Vec3) -> f64 {
+    pub(crate) fn angle(a: &Vec3, b: &Vec3) -> f64 {
         (rotation::dot(a, b) / (norm(a) * norm(b)))
             .clamp(-1.0, 1.0)
             .acos()
@@ -599,7 +629,7 @@ mod tests {
     /// A source motion in glTF axes: every joint turning about its own axis, the spine's by at
     /// most 0.25 rad (15°) per joint as people bend, limbs by up to 1 rad, the pelvis turning
     /// and drifting. Returns per frame the world rotations, positions and the pelvis position.
-    fn source_motion(frames: usize) -> Vec<(Vec<Mat3>, Vec<Vec3>, Vec3)> {
+    pub(crate) fn source_motion(frames: usize) -> Vec<(Vec<Mat3>, Vec<Vec3>, Vec3)> {
         let s = Skeleton::smpl24();
         (0..frames)
             .map(|t| {
