@@ -1078,9 +1078,17 @@ fn bind_pose(
         .map(|((world, parent), &n)| {
             let local = match parent {
                 None => *world,
+                // The inverse of an inverse bind matrix can still be too ill-conditioned to
+                // invert again in floating point (scales of 1e-3 and 1e5 on one bone).
                 Some(p) => worlds[*p]
                     .inverse()
-                    .expect("an inverse is invertible")
+                    .ok_or_else(|| {
+                        invalid_arg!(
+                            "joint `{}`'s bind pose (inverse bind matrices) is too close to \
+                             singular to put its children under it",
+                            short(&node_name(nodes, joints[*p]))
+                        )
+                    })?
                     .then(world),
             };
             decompose(
@@ -1337,6 +1345,30 @@ mod tests {
             0.0, -1.0, 0.0, 0.0,  1.0, 0.0, 0.0, 0.0,   0.0, 0.0, 1.0, 0.0,   -1.5, 0.0, 0.0, 1.0,
         ]));
         (doc, bin)
+    }
+
+    #[test]
+    fn an_ill_conditioned_bind_pose_is_an_error_not_a_panic() {
+        // Hips' inverse bind matrix diag(1e3, 1e3, 1e-5) passes its own inversion; its inverse
+        // diag(1e-3, 1e-3, 1e5), which the child's local pose needs inverted again, does not.
+        let (doc, _) = posed_doc_and_bin();
+        let mut bin = vec![0xAB; 24];
+        #[rustfmt::skip]
+        bin.extend(f32_bytes(&[
+            1e3, 0.0, 0.0, 0.0,   0.0, 1e3, 0.0, 0.0,   0.0, 0.0, 1e-5, 0.0,   0.0, 0.0, 0.0, 1.0,
+            1.0, 0.0, 0.0, 0.0,   0.0, 1.0, 0.0, 0.0,   0.0, 0.0, 1.0, 0.0,    0.0, 0.0, 0.0, 1.0,
+        ]));
+        // Listed as the file lists them, and child first: either way an error naming Hips
+        // (its own near-zero scale, or its bind pose too singular to put Spine under it).
+        let e = err(&glb(&doc, &bin), None);
+        assert!(e.contains("Hips"), "{e}");
+        let mut swapped = doc.clone();
+        swapped["skins"][0]["joints"] = json!([1, 0]);
+        let mut bin2 = vec![0xAB; 24];
+        bin2.extend_from_slice(&bin[24 + 64..24 + 128]);
+        bin2.extend_from_slice(&bin[24..24 + 64]);
+        let e = err(&glb(&swapped, &bin2), None);
+        assert!(e.contains("Hips"), "{e}");
     }
 
     #[test]
