@@ -21,7 +21,9 @@
 //!   does, in every frame.
 //! - **Spine.** However many bones the rig has between hips and neck (1 to 5 or more, mapped or
 //!   not), each takes the source spine's delta at its place along the chain (by rest length):
-//!   deltas of neighbouring source spine joints blended by spherical interpolation.
+//!   deltas of neighbouring source spine joints blended by spherical interpolation, then the
+//!   smallest turn aiming it at the chord of the source's posed spine between the same
+//!   fractions, so the rig's spine follows the source's curve.
 //! - **Missing and extra bones.** A source joint the rig lacks (no shoulder, no neck) passes its
 //!   motion on through the world deltas of its children. Target bones with no source (twist,
 //!   IK, `root`, fingers) keep their rest rotation relative to their parent: twist bones take no
@@ -66,6 +68,12 @@ enum Drive {
         hi: usize,
         t: f64,
         rest: Mat3,
+        /// The bone's span along the chain (fractions of its rest length) and its retarget
+        /// rest direction (rig axes): it is aimed at the chord of the source's posed spine
+        /// between the same fractions.
+        from: f64,
+        to: f64,
+        dir: Vec3,
     },
     /// Keeps its rest rotation relative to its parent.
     Rest,
@@ -90,7 +98,16 @@ pub struct Transfer {
     /// The hips' parent at rest: world position and inverse linear part (`None`: hips is a
     /// root).
     hips_parent: Option<(Vec3, Mat3)>,
+    /// The source's spine chain (pelvis, spine joints, neck) with each point's rest offset from
+    /// the one before and its fraction of the chain's rest length; `chain_len` points are used.
+    chain: [usize; MAX_CHAIN],
+    chain_off: [Vec3; MAX_CHAIN],
+    chain_frac: [f64; MAX_CHAIN],
+    chain_len: usize,
 }
+
+/// Points of a source spine chain (SMPL's: pelvis, three spine joints, neck).
+const MAX_CHAIN: usize = 8;
 
 impl Transfer {
     /// A transfer from `source` (libflame's skeleton, rest offsets in glTF axes) onto `rig`,
@@ -237,6 +254,8 @@ impl Transfer {
             };
         }
         // The spine: fractions along the chains by rest length.
+        let (mut chain, mut chain_off) = ([0; MAX_CHAIN], [[0.0; 3]; MAX_CHAIN]);
+        let (mut chain_frac, mut chain_len) = ([0.0; MAX_CHAIN], 0);
         if !rig_spine.is_empty() {
             if spine.is_empty() {
                 return Err(invalid_arg!("the source has no spine joints to spread"));
@@ -252,6 +271,21 @@ impl Transfer {
                 .map(|b| pos[b])
                 .collect();
             let (sf, rf) = (fractions(&src_chain), fractions(&rig_chain));
+            let ids: Vec<usize> = std::iter::once(pelvis)
+                .chain(spine.iter().copied())
+                .chain(std::iter::once(top))
+                .collect();
+            if ids.len() > MAX_CHAIN || ids.windows(2).any(|w| source.parent(w[1]) != Some(w[0])) {
+                return Err(invalid_arg!(
+                    "the source's spine joints must form one chain from the pelvis to the neck"
+                ));
+            }
+            chain_len = ids.len();
+            for (i, &j) in ids.iter().enumerate() {
+                chain[i] = j;
+                chain_off[i] = if i == 0 { [0.0; 3] } else { offsets[j] };
+                chain_frac[i] = sf[i];
+            }
             // Source spine joint i spans points i + 1..i + 2 of its chain; rig bone k spans
             // points k + 1..k + 2 of its own. A rig bone takes the source deltas at its
             // midpoint, blended between the two source spine joints' midpoints around it.
@@ -274,7 +308,15 @@ impl Transfer {
                 let target = rotation::apply(&axes, &sub(&src_chain[s + 1], &src_chain[s]));
                 let here = sub(&rig_chain[k + 2], &rig_chain[k + 1]);
                 let rest = rotation::mul(&rotate_onto(&here, &target, None), &world[b]);
-                drive[b] = Drive::Spine { lo, hi, t, rest };
+                drive[b] = Drive::Spine {
+                    lo,
+                    hi,
+                    t,
+                    rest,
+                    from: rf[k + 1],
+                    to: rf[k + 2],
+                    dir: unit(&target).unwrap_or([0.0, 1.0, 0.0]),
+                };
             }
         }
         let hips_parent = rig.parent(hips).map(|p| {
@@ -301,6 +343,10 @@ impl Transfer {
             scale: rig_height / src_height,
             floor: scale(&up, rig_floor),
             hips_parent,
+            chain,
+            chain_off,
+            chain_frac,
+            chain_len,
         })
     }
 
@@ -344,8 +390,29 @@ impl Transfer {
         for b in 0..n {
             world[b] = match self.drive[b] {
                 Drive::Joint { joint, rest } => rotation::mul(&delta(joint), &rest),
-                Drive::Spine { lo, hi, t, rest } => {
-                    rotation::mul(&slerp(&delta(lo), &delta(hi), t), &rest)
+                Drive::Spine {
+                    lo,
+                    hi,
+                    t,
+                    rest,
+                    from,
+                    to,
+                    dir,
+                } => {
+                    // The blended delta, then the smallest turn aiming the bone at the chord
+                    // of the source's posed spine between the same fractions: the rig's spine
+                    // follows the source's curve whatever its bone count.
+                    let blend = slerp(&delta(lo), &delta(hi), t);
+                    let now = rotation::apply(&blend, &dir);
+                    let want = rotation::apply(
+                        &self.axes,
+                        &sub(
+                            &self.spine_point(source_world, to),
+                            &self.spine_point(source_world, from),
+                        ),
+                    );
+                    let aim = rotate_onto(&now, &want, None);
+                    rotation::mul(&rotation::mul(&aim, &blend), &rest)
                 }
                 Drive::Rest => match self.parents[b] {
                     Some(p) => rotation::mul(&world[p], &self.rest_local[b]),
@@ -363,6 +430,33 @@ impl Transfer {
             Some((origin, inv)) => rotation::apply(inv, &sub(&at, origin)),
             None => at,
         })
+    }
+}
+
+impl Transfer {
+    /// The point at fraction `f` of the source's posed spine chain (relative to the pelvis,
+    /// source axes): the chain's points placed by the joints' world rotations, then linear
+    /// between the two around `f`.
+    fn spine_point(&self, source_world: &[Mat3], f: f64) -> Vec3 {
+        let (mut p, mut at) = ([0.0; 3], [0.0; 3]);
+        for i in 1..self.chain_len {
+            let next = rotation::add(
+                &p,
+                &rotation::apply(&source_world[self.chain[i - 1]], &self.chain_off[i]),
+            );
+            let (a, b) = (self.chain_frac[i - 1], self.chain_frac[i]);
+            if f <= b || i + 1 == self.chain_len {
+                let u = if b > a {
+                    ((f - a) / (b - a)).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                at = rotation::add(&scale(&p, 1.0 - u), &scale(&next, u));
+                break;
+            }
+            p = next;
+        }
+        at
     }
 }
 
@@ -660,7 +754,7 @@ pub(crate) mod tests {
 
     #[test]
     fn mapped_bones_point_where_the_source_bones_point_on_an_unlike_rig() {
-        for (spine_bones, spine_bound) in [(3, 1e-4), (5, 5.0), (1, 5.0)] {
+        for (spine_bones, spine_bound) in [(3, 1e-4), (5, 2.0), (1, 2.5)] {
             let (worst_limb, worst_spine) = directions_off(spine_bones);
             assert!(
                 worst_limb < 1e-4,
@@ -717,7 +811,7 @@ pub(crate) mod tests {
                 &sub(&rp[bone("upperarm_twist_01_l")], &rp[bone("upperarm_l")]),
                 &sub(&rp[bone("lowerarm_l")], &rp[bone("upperarm_l")]),
             );
-            assert!(on_line < 1e-6, "twist bone off the arm by {on_line}°");
+            assert!(on_line < 1e-4, "twist bone off the arm by {on_line}°");
             // Legs and hips land where the source's are, in rig axes and centimetres (the
             // same skeleton: a hips-height ratio of 1), up to one offset for the whole clip (the
             // floors): every leg joint, every frame.
