@@ -95,16 +95,7 @@ impl Cycle {
         let (n, lead) = (self.frames, self.lead);
         reference.copy_within(0..lead * dim, n * dim);
         if format == Format::Smpl24Rot6d {
-            let mut ends = [
-                first[..dim].to_vec(),
-                first[n * dim..(n + 1) * dim].to_vec(),
-            ];
-            let mut turn = None;
-            let [a, b] = &mut ends;
-            in_root_units(&model, a, |a| {
-                in_root_units(&model, b, |b| turn = Some(RootMove::between(a, b)))
-            });
-            let turn = turn.expect("set above");
+            let turn = root_move(&model, &first[..dim], &first[n * dim..(n + 1) * dim]);
             in_root_units(&model, &mut reference[n * dim..], |rows| {
                 turn.apply(rows, dim)
             });
@@ -151,6 +142,18 @@ pub(crate) fn in_root_units(model: &Model, rows: &mut [f32], f: impl FnOnce(&mut
             row[c] = ((row[c] as f64 - mean[c] as f64) / std[c] as f64) as f32;
         }
     }
+}
+
+/// The [`RootMove`] taking smpl24_6d row `a`'s root onto row `b`'s, both in model space
+/// (read in the format's units, [`in_root_units`]).
+pub(crate) fn root_move(model: &Model, a: &[f32], b: &[f32]) -> RootMove {
+    let mut rows = [a, b].concat();
+    let dim = a.len();
+    let mut turn = None;
+    in_root_units(model, &mut rows, |r| {
+        turn = Some(RootMove::between(&r[..dim], &r[dim..]))
+    });
+    turn.expect("in_root_units runs its closure")
 }
 
 /// A turn about the world up axis (Z for smpl24_6d) and a horizontal shift of the root channels

@@ -563,9 +563,7 @@ impl Session {
         if let Some(l) = &mut self.looping {
             if l.edited {
                 l.edited = false;
-                self.edit.reference = None;
-                self.edit.ref_frames = 0;
-                self.edit.keep = None;
+                self.drop_edit();
             }
         }
         self.rewind();
@@ -923,9 +921,13 @@ impl Session {
     /// Removes the reference and the mask: plain generation from the next step on. A loop
     /// session's own edit stays.
     pub fn clear_edit(&mut self) {
-        if self.looping.is_some() {
-            return;
+        if self.looping.is_none() {
+            self.drop_edit();
         }
+    }
+
+    /// No reference and no mask.
+    fn drop_edit(&mut self) {
         self.edit.reference = None;
         self.edit.ref_frames = 0;
         self.edit.keep = None;

@@ -581,13 +581,7 @@ impl Stream {
             session.set_position_targets(targets)?;
         } else if kept > 0 {
             let mut reference = self.features[(have - kept) * dim..].to_vec();
-            if self.model.motion_format() == Format::Smpl24Rot6d {
-                let mut first = reference[..dim].to_vec();
-                self.root_channels(&mut first, |rows| {
-                    frame = Rebase::canonical(rows);
-                });
-                self.root_channels(&mut reference, |rows| frame.apply(rows, dim));
-            }
+            frame = self.to_canonical(&mut reference);
             session.set_reference(&reference)?;
             let mut keep = vec![false; frames * dim];
             keep[..kept * dim].fill(true);
@@ -651,13 +645,8 @@ impl Stream {
         session.set_prompt(&self.last_prompt)?;
         let mut reference = vec![0.0; total * dim];
         reference[..kept * dim].copy_from_slice(&self.features[(have - kept) * dim..]);
-        let mut frame = Rebase::IDENTITY;
+        let frame = self.to_canonical(&mut reference[..kept * dim]);
         let absolute = self.model.motion_format() == Format::Smpl24Rot6d;
-        if absolute {
-            let mut first = reference[..dim].to_vec();
-            self.root_channels(&mut first, |rows| frame = Rebase::canonical(rows));
-            self.root_channels(&mut reference[..kept * dim], |rows| frame.apply(rows, dim));
-        }
         let mut keep = vec![false; total * dim];
         keep[..kept * dim].fill(true);
         if let Some(after) = after {
@@ -667,17 +656,10 @@ impl Stream {
             let end = &mut reference[(kept + frames) * dim..];
             end.copy_from_slice(&self.start_rows[..lead * dim]);
             if absolute {
-                let mut a = self.start_rows[..dim].to_vec();
                 let mut b = after.to_vec();
                 let back = frame.inverse();
                 self.root_channels(&mut b, |rows| back.apply(rows, dim));
-                let mut t = None;
-                self.root_channels(&mut a, |a| {
-                    crate::cycle::in_root_units(&self.model, &mut b, |b| {
-                        t = Some(crate::cycle::RootMove::between(a, b))
-                    })
-                });
-                let t = t.expect("set above");
+                let t = crate::cycle::root_move(&self.model, &self.start_rows[..dim], &b);
                 self.root_channels(end, |rows| {
                     t.apply(rows, dim);
                     frame.apply(rows, dim);
@@ -804,6 +786,20 @@ impl Stream {
         }
         self.chunks += 1;
         Ok(())
+    }
+
+    /// Moves smpl24_6d `rows` (model space) into the canonical frame of their first row (at the
+    /// horizontal origin, facing the native forward) and returns that change; other formats
+    /// are left as they are (identity).
+    fn to_canonical(&self, rows: &mut [f32]) -> Rebase {
+        let mut frame = Rebase::IDENTITY;
+        if self.model.motion_format() == Format::Smpl24Rot6d && !rows.is_empty() {
+            let dim = self.model.motion_dim();
+            let mut first = rows[..dim].to_vec();
+            self.root_channels(&mut first, |r| frame = Rebase::canonical(r));
+            self.root_channels(rows, |r| frame.apply(r, dim));
+        }
+        frame
     }
 
     /// Runs `f` on `rows` with the root channels in the format's own units
