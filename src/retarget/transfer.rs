@@ -113,9 +113,8 @@ impl Transfer {
     /// A transfer from `source` (libflame's skeleton, rest offsets in glTF axes) onto `rig`,
     /// with `pairs` of (source joint, rig bone). `spine` lists the source's spine joints from
     /// the pelvis's child up to the neck's parent and `rig_spine` the rig's bones between its
-    /// hips and its neck (or head), both bottom up; `head` is the source joint ending the spine
-    /// (the neck) and `rig_head` the rig bone it maps to. The pairs must map the pelvis, both
-    /// thighs and the spine's end.
+    /// hips and its neck (or head), both bottom up. The pairs must map the pelvis, both thighs
+    /// and the neck or the head (the spine's end).
     pub fn new(
         source: &Skeleton,
         rig: &Rig,
@@ -124,6 +123,11 @@ impl Transfer {
         rig_spine: &[usize],
     ) -> Result<Transfer> {
         let joints = source.joint_count();
+        if joints < 22 {
+            return Err(invalid_arg!(
+                "the source skeleton has {joints} joints: SMPL's first 22 are needed"
+            ));
+        }
         let n = rig.bone_count();
         let mut joint_of = vec![None; n];
         let mut bone_of = vec![None; joints];
@@ -141,24 +145,19 @@ impl Transfer {
             }
             bone_of[j] = Some(b);
         }
-        if joints < 22 {
-            return Err(invalid_arg!(
-                "the source skeleton has {joints} joints: SMPL's first 22 are needed"
-            ));
-        }
         // SMPL-24 and HumanML3D-22 share SMPL's joint order (their names differ).
-        let find = |j: usize| Some(j);
-        let (pelvis, l_hip, r_hip) = (smpl::PELVIS, find(smpl::L_HIP), find(smpl::R_HIP));
-        let need = |j: Option<usize>, what: &str| -> Result<usize> {
-            j.and_then(|j| bone_of[j]).ok_or_else(|| {
+        let (pelvis, l_hip, r_hip) = (smpl::PELVIS, smpl::L_HIP, smpl::R_HIP);
+        let need = |j: usize, what: &str| -> Result<usize> {
+            bone_of[j].ok_or_else(|| {
                 invalid_arg!("the bone map needs the {what}: no rig bone is mapped to it")
             })
         };
-        let hips = need(Some(pelvis), "hips")?;
+        let hips = need(pelvis, "hips")?;
         let (lb, rb) = (need(l_hip, "left thigh")?, need(r_hip, "right thigh")?);
-        let top = find(smpl::NECK)
-            .filter(|&j| bone_of[j].is_some())
-            .or(find(smpl::HEAD));
+        let top = match bone_of[smpl::NECK] {
+            Some(_) => smpl::NECK,
+            None => smpl::HEAD,
+        };
         let head = need(top, "neck or head")?;
 
         // Source rest world positions (rotations are all identity in glTF axes).
@@ -179,8 +178,6 @@ impl Transfer {
         // Both frames are made the same way from the rest skeletons (left from the right thigh
         // to the left, up from the hips to the spine's end), so skeletons of one shape get the
         // exact turn between them: C = F_rig · F_sourceᵀ.
-        let (l_hip, r_hip) = (l_hip.expect("mapped"), r_hip.expect("mapped"));
-        let top = top.expect("mapped");
         let src_frame = frame_of(
             sub(&src_pos[l_hip], &src_pos[r_hip]),
             sub(&src_pos[top], &src_pos[pelvis]),
@@ -190,18 +187,16 @@ impl Transfer {
         let up = [rig_frame[0][1], rig_frame[1][1], rig_frame[2][1]];
 
         // Hips heights above the lowest foot joint: the source's in metres, the rig's in units.
-        let feet = [smpl::L_ANKLE, smpl::R_ANKLE, smpl::L_FOOT, smpl::R_FOOT].map(find);
+        let feet = [smpl::L_ANKLE, smpl::R_ANKLE, smpl::L_FOOT, smpl::R_FOOT];
         // Heights along each skeleton's own up (its frame's), so one shape gives a ratio of 1.
         let src_up = [src_frame[0][1], src_frame[1][1], src_frame[2][1]];
         let src_floor = feet
             .iter()
-            .flatten()
             .map(|&j| rotation::dot(&src_pos[j], &src_up))
             .fold(f64::INFINITY, f64::min);
         let src_height = rotation::dot(&src_pos[pelvis], &src_up) - src_floor;
         let rig_floor = feet
             .iter()
-            .flatten()
             .filter_map(|&j| bone_of[j])
             .map(|b| rotation::dot(&pos[b], &up))
             .fold(f64::INFINITY, f64::min);
