@@ -10,10 +10,12 @@
 pub mod bonemap;
 pub mod bvh_rig;
 pub mod gltf_rig;
+pub mod pose;
 pub mod rig;
 pub mod target;
 pub mod transfer;
 
+pub use pose::{Options, RigMotion, RigPose};
 pub use rig::{BoneSpec, RestTransform, Rig, RigSource, VrmVersion};
 pub use target::Target;
 pub use transfer::Transfer;

@@ -3,6 +3,7 @@
 //! drives it one frame at a time.
 
 use super::bonemap::BoneMap;
+use super::pose::Limbs;
 use super::rig::Rig;
 use super::transfer::{smpl, Transfer};
 use crate::error::Result;
@@ -15,6 +16,7 @@ pub struct Target {
     rig: Rig,
     map: BoneMap,
     transfer: Transfer,
+    limbs: Limbs,
 }
 
 impl Target {
@@ -25,7 +27,13 @@ impl Target {
         let pairs = map.source_pairs(source);
         let spine = map.spine_chain(&rig);
         let transfer = Transfer::new(source, &rig, &pairs, &smpl::SPINE, &spine)?;
-        Ok(Target { rig, map, transfer })
+        let limbs = Limbs::new(&rig, &map, &transfer)?;
+        Ok(Target {
+            rig,
+            map,
+            transfer,
+            limbs,
+        })
     }
 
     /// [`Target::new`] with the automatic bone map ([`BoneMap::auto`]).
@@ -44,6 +52,10 @@ impl Target {
 
     pub fn transfer(&self) -> &Transfer {
         &self.transfer
+    }
+
+    pub(crate) fn limbs(&self) -> &Limbs {
+        &self.limbs
     }
 
     /// One frame ([`Transfer::frame`]): source world rotations and pelvis position in glTF

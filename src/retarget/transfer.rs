@@ -355,6 +355,27 @@ impl Transfer {
         self.hips
     }
 
+    /// A source world point (glTF axes, metres, floor at height 0) where the hips translation
+    /// puts it on the rig: in the rig's world, rig units, scaled by the hips heights' ratio
+    /// and lifted onto the rig's floor. The pelvis lands where [`Transfer::frame`] puts the
+    /// hips.
+    pub fn place(&self, p: &Vec3) -> Vec3 {
+        rotation::add(
+            &self.floor,
+            &scale(&rotation::apply(&self.axes, p), self.scale),
+        )
+    }
+
+    /// The rig's up direction (unit, rig world axes).
+    pub fn up(&self) -> Vec3 {
+        [self.axes[0][1], self.axes[1][1], self.axes[2][1]]
+    }
+
+    /// Rig units per source metre (the hips heights' ratio included).
+    pub fn scale(&self) -> f64 {
+        self.scale
+    }
+
     /// One frame: `source_world` are the source joints' world rotations and `source_root` the
     /// pelvis position (metres, floor at height 0), both in glTF axes; writes every rig bone's
     /// world rotation (`world`) and local rotation (`local`, parent-relative; a root's is its
@@ -419,8 +440,7 @@ impl Transfer {
                 None => world[b],
             };
         }
-        let p = rotation::apply(&self.axes, source_root);
-        let at = rotation::add(&self.floor, &scale(&p, self.scale));
+        let at = self.place(source_root);
         Ok(match &self.hips_parent {
             Some((origin, inv)) => rotation::apply(inv, &sub(&at, origin)),
             None => at,

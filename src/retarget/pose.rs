@@ -1,0 +1,523 @@
+//! A whole rig pose from a libflame pose ([`Target::pose`]) and a whole clip
+//! ([`Target::motion`]): the rest-relative transfer, then two-bone IK on the rig's legs (and,
+//! when asked, arms) so proportions that differ from the source's do not make the feet slide or
+//! float.
+//!
+//! **Feet.** The hips translation is scaled by the hips heights' ratio, but a rig's thigh/shin
+//! split, foot height and hip width still differ from SMPL's, so copied leg directions alone put
+//! the ankles a little off where the scaled source's are: a planted foot slides. Every frame,
+//! each leg (upper leg → lower leg → foot) is solved so the ankle reaches the source ankle
+//! placed on the rig ([`Transfer::place`]: the same map that places the hips), raised by the
+//! difference of the two skeletons' ankle heights below the hips at rest (`h_rig − s·h_source`),
+//! so a source foot flat on its floor is flat on the rig's. Contacts of the source therefore stay contacts,
+//! locked where the source's are locked (the foot cleanup of the game-ready clips runs on the
+//! source before this), and the knee keeps its bend plane (`crate::motion::ik`). The foot keeps
+//! its world rotation; bones between thigh and shin (twist bones) turn with the thigh.
+//!
+//! **Hands** (optional, [`Options::hands`]): the same for upper arm → forearm → hand, the wrist
+//! reaching the source's wrist placed on the rig, for props and contacts with the body.
+//!
+//! A pose is written into a caller-owned [`RigPose`]; nothing is allocated per frame.
+
+use super::bonemap::HumanBone;
+use super::target::Target;
+use crate::error::{invalid_arg, Result};
+use crate::motion::ik;
+use crate::motion::rotation::{self, Mat3, Vec3, IDENTITY};
+use crate::motion::{Convention, Poses};
+
+/// What runs after the rotations are carried over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Options {
+    /// Two-bone IK on the legs onto the source's placed ankles (default on).
+    pub feet: bool,
+    /// Two-bone IK on the arms onto the source's placed wrists (default off).
+    pub hands: bool,
+}
+
+impl Default for Options {
+    fn default() -> Options {
+        Options {
+            feet: true,
+            hands: false,
+        }
+    }
+}
+
+/// One rig pose: per bone world and local rotations and world positions (rig axes and units),
+/// and the hips translation relative to its parent's rest frame (what a file's hips node
+/// takes). Made once per rig ([`RigPose::new`]) and rewritten by every [`Target::pose`].
+#[derive(Clone, Debug)]
+pub struct RigPose {
+    pub world: Vec<Mat3>,
+    pub local: Vec<Mat3>,
+    pub positions: Vec<Vec3>,
+    pub hips: Vec3,
+}
+
+impl RigPose {
+    /// Storage for `target`'s rig, at identity.
+    pub fn new(target: &Target) -> RigPose {
+        let n = target.rig().bone_count();
+        RigPose {
+            world: vec![IDENTITY; n],
+            local: vec![IDENTITY; n],
+            positions: vec![[0.0; 3]; n],
+            hips: [0.0; 3],
+        }
+    }
+}
+
+/// A retargeted clip: `[frames × bones]` local rotations and world positions, `[frames]` hips
+/// translations, at `fps`.
+#[derive(Clone, Debug)]
+pub struct RigMotion {
+    pub fps: f64,
+    pub frames: usize,
+    pub bones: usize,
+    /// The rig's hips bone (the one bone whose translation moves).
+    pub hips_bone: usize,
+    /// Parent-relative rotations in the rig's bone frames (rest rotations included: at rest
+    /// these are the rig's rest local rotations).
+    pub local: Vec<Mat3>,
+    pub world: Vec<Mat3>,
+    pub positions: Vec<Vec3>,
+    /// The hips translation relative to its parent bone's rest frame, rig units.
+    pub hips: Vec<Vec3>,
+}
+
+impl RigMotion {
+    /// Frame `t`'s local rotations.
+    pub fn local_frame(&self, t: usize) -> &[Mat3] {
+        &self.local[t * self.bones..(t + 1) * self.bones]
+    }
+
+    /// Frame `t`'s world rotations.
+    pub fn world_frame(&self, t: usize) -> &[Mat3] {
+        &self.world[t * self.bones..(t + 1) * self.bones]
+    }
+
+    /// Frame `t`'s world positions.
+    pub fn positions_frame(&self, t: usize) -> &[Vec3] {
+        &self.positions[t * self.bones..(t + 1) * self.bones]
+    }
+}
+
+/// A two-bone chain of the rig and the source joint its end follows.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Chain {
+    upper: usize,
+    lower: usize,
+    end: usize,
+    source_end: usize,
+    /// Added to the placed source end (rig units, along up): `h_rig − s·h_source` for
+    /// ankles, nothing for wrists.
+    lift: f64,
+}
+
+/// Which turn of a chain's solution a bone takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Part {
+    Upper,
+    Lower,
+}
+
+/// The IK data of a [`Target`], made once with it.
+#[derive(Clone, Debug)]
+pub(crate) struct Limbs {
+    /// Legs (left, right) then arms (left, right).
+    chains: [Chain; 4],
+    /// Per bone: the chain (index into `chains`) whose solution turns it, and which turn.
+    /// The end's subtree keeps its world rotations.
+    part: Vec<Option<(u8, Part)>>,
+    /// Per bone: the uniform scale of its rest world transform (positions of children are
+    /// `world · scale · translation`).
+    world_scale: Vec<f64>,
+}
+
+impl Limbs {
+    pub(crate) fn new(
+        target_rig: &super::Rig,
+        map: &super::bonemap::BoneMap,
+        transfer: &super::Transfer,
+    ) -> Result<Limbs> {
+        use super::transfer::smpl;
+        use HumanBone::*;
+        let rig = target_rig;
+        let bone = |h: HumanBone| {
+            map.bone(h)
+                .ok_or_else(|| invalid_arg!("the bone map has no `{}`", h.name()))
+        };
+        let src = crate::motion::Skeleton::smpl24();
+        let mut src_pos = vec![[0.0; 3]; 24];
+        for j in 1..24 {
+            let p = src.parent(j).expect("only the root has none");
+            src_pos[j] = rotation::add(&src_pos[p], &src.rest_offsets()[j]);
+        }
+        let up = transfer.up();
+        let pos = rig.rest_world_positions();
+        let mut chains = [Chain {
+            upper: 0,
+            lower: 0,
+            end: 0,
+            source_end: 0,
+            lift: 0.0,
+        }; 4];
+        let specs = [
+            (LeftUpperLeg, LeftLowerLeg, LeftFoot, smpl::L_ANKLE, true),
+            (RightUpperLeg, RightLowerLeg, RightFoot, smpl::R_ANKLE, true),
+            (LeftUpperArm, LeftLowerArm, LeftHand, 20, false),
+            (RightUpperArm, RightLowerArm, RightHand, 21, false),
+        ];
+        for (c, (u, l, e, j, leg)) in specs.into_iter().enumerate() {
+            let end = bone(e)?;
+            // The ankle's rest height above the hips, the rig's against the scaled source's
+            // (source up is glTF's +Y; `up` is where it points on the rig).
+            let lift = if leg {
+                let hips = transfer.hips();
+                let rig_h = rotation::dot(&sub(&pos[end], &pos[hips]), &up);
+                rig_h - transfer.scale() * src_pos[j][1]
+            } else {
+                0.0
+            };
+            chains[c] = Chain {
+                upper: bone(u)?,
+                lower: bone(l)?,
+                end,
+                source_end: j,
+                lift,
+            };
+        }
+        let n = rig.bone_count();
+        let under = |b: usize, top: usize| {
+            let mut at = Some(b);
+            while let Some(x) = at {
+                if x == top {
+                    return true;
+                }
+                at = rig.parent(x);
+            }
+            false
+        };
+        let mut part = vec![None; n];
+        for (c, ch) in chains.iter().enumerate() {
+            if !(under(ch.lower, ch.upper) && under(ch.end, ch.lower)) {
+                return Err(invalid_arg!(
+                    "rig bones `{}`, `{}` and `{}` are not one chain",
+                    rig.name(ch.upper),
+                    rig.name(ch.lower),
+                    rig.name(ch.end)
+                ));
+            }
+            for (b, slot) in part.iter_mut().enumerate() {
+                if under(b, ch.end) {
+                    continue;
+                }
+                if under(b, ch.lower) {
+                    *slot = Some((c as u8, Part::Lower));
+                } else if under(b, ch.upper) {
+                    *slot = Some((c as u8, Part::Upper));
+                }
+            }
+        }
+        let world_scale = rig
+            .rest_world_linear()
+            .iter()
+            .map(|m| rotation::det(m).abs().cbrt())
+            .collect();
+        Ok(Limbs {
+            chains,
+            part,
+            world_scale,
+        })
+    }
+}
+
+fn sub(a: &Vec3, b: &Vec3) -> Vec3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dist(a: &Vec3, b: &Vec3) -> f64 {
+    let d = sub(a, b);
+    rotation::dot(&d, &d).sqrt()
+}
+
+impl Target {
+    /// One rig pose from one source frame, all in glTF axes: `source_world` the joints' world
+    /// rotations, `source_positions` their positions and `source_root` the pelvis (metres,
+    /// floor at height 0). Allocates nothing.
+    pub fn pose(
+        &self,
+        source_world: &[Mat3],
+        source_positions: &[Vec3],
+        source_root: &Vec3,
+        options: &Options,
+        out: &mut RigPose,
+    ) -> Result<()> {
+        let n = self.rig().bone_count();
+        if out.world.len() != n || out.local.len() != n || out.positions.len() != n {
+            return Err(invalid_arg!(
+                "the pose buffers are not for this rig ({n} bones)"
+            ));
+        }
+        if source_positions.len() != source_world.len() {
+            return Err(invalid_arg!(
+                "{} source positions for {} rotations",
+                source_positions.len(),
+                source_world.len()
+            ));
+        }
+        out.hips =
+            self.transfer()
+                .frame(source_world, source_root, &mut out.world, &mut out.local)?;
+        let limbs = self.limbs();
+        self.forward(out);
+        let chains = match (options.feet, options.hands) {
+            (true, true) => 0..4,
+            (true, false) => 0..2,
+            (false, true) => 2..4,
+            (false, false) => 0..0,
+        };
+        if chains.is_empty() {
+            return Ok(());
+        }
+        let up = self.transfer().up();
+        let mut turn = [(IDENTITY, IDENTITY); 4];
+        let mut any = false;
+        for c in chains {
+            let ch = &limbs.chains[c];
+            let goal = rotation::add(
+                &self.transfer().place(&source_positions[ch.source_end]),
+                &[0, 1, 2].map(|i| up[i] * ch.lift),
+            );
+            let p = &out.positions;
+            // A limb already on its goal is left as the transfer made it: the solver's reach
+            // limit would otherwise bend a straight leg by ~1.6°.
+            let length = dist(&p[ch.upper], &p[ch.lower]) + dist(&p[ch.lower], &p[ch.end]);
+            if dist(&p[ch.end], &goal) <= 1e-9 * length {
+                continue;
+            }
+            let s = ik::solve(&p[ch.upper], &p[ch.lower], &p[ch.end], &goal);
+            turn[c] = (s.upper, s.lower);
+            any = true;
+        }
+        if any {
+            for b in 0..n {
+                if let Some((c, part)) = limbs.part[b] {
+                    let (u, l) = &turn[c as usize];
+                    let d = if part == Part::Upper { u } else { l };
+                    out.world[b] = rotation::mul(d, &out.world[b]);
+                }
+            }
+            for b in 0..n {
+                out.local[b] = match self.rig().parent(b) {
+                    Some(p) => rotation::mul(&rotation::transpose(&out.world[p]), &out.world[b]),
+                    None => out.world[b],
+                };
+            }
+            self.forward(out);
+        }
+        Ok(())
+    }
+
+    /// World positions from `out`'s world rotations and hips translation.
+    fn forward(&self, out: &mut RigPose) {
+        let rig = self.rig();
+        let hips = self.transfer().hips();
+        let ws = &self.limbs().world_scale;
+        for b in 0..rig.bone_count() {
+            let t = if b == hips {
+                out.hips
+            } else {
+                rig.rest()[b].translation
+            };
+            out.positions[b] = match rig.parent(b) {
+                Some(p) => {
+                    let v = rotation::apply(&out.world[p], &t);
+                    rotation::add(&out.positions[p], &v.map(|x| x * ws[p]))
+                }
+                None => t,
+            };
+        }
+    }
+
+    /// A whole clip: `poses` (any libflame format, any finish) carried onto the rig.
+    pub fn motion(&self, poses: &Poses, fps: f64, options: &Options) -> Result<RigMotion> {
+        let joints = poses.joint_count();
+        let frames = poses.frames();
+        let world = poses.global_rotations(Convention::Gltf);
+        let positions = poses.positions(Convention::Gltf);
+        let root = poses.root_translation(Convention::Gltf);
+        let n = self.rig().bone_count();
+        let total = frames
+            .checked_mul(n)
+            .filter(|&t| t <= 1 << 28)
+            .ok_or_else(|| invalid_arg!("{frames} frames of a {n}-bone rig is too much"))?;
+        let mut motion = RigMotion {
+            fps,
+            frames,
+            bones: n,
+            hips_bone: self.transfer().hips(),
+            local: Vec::with_capacity(total),
+            world: Vec::with_capacity(total),
+            positions: Vec::with_capacity(total),
+            hips: Vec::with_capacity(frames),
+        };
+        let mut pose = RigPose::new(self);
+        for (t, root) in root.iter().enumerate() {
+            let span = t * joints..(t + 1) * joints;
+            self.pose(
+                &world[span.clone()],
+                &positions[span],
+                root,
+                options,
+                &mut pose,
+            )?;
+            motion.local.extend_from_slice(&pose.local);
+            motion.world.extend_from_slice(&pose.world);
+            motion.positions.extend_from_slice(&pose.positions);
+            motion.hips.push(pose.hips);
+        }
+        Ok(motion)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::motion::Skeleton;
+    use crate::retarget::rig::{BoneSpec, RestTransform, Rig, RigSource};
+    use crate::retarget::transfer::tests::{angle, source_motion, test_rig};
+
+    /// `rig` with the bones named in `shins` moved to `k` of their rest offset from their
+    /// parent (a rig with the source's directions but other proportions).
+    fn reshaped(rig: &Rig, shins: &[&str], k: f64) -> Rig {
+        let bones = (0..rig.bone_count())
+            .map(|b| {
+                let mut rest = rig.rest()[b];
+                if shins.contains(&rig.name(b)) {
+                    rest = RestTransform {
+                        translation: rest.translation.map(|v| v * k),
+                        ..rest
+                    };
+                }
+                BoneSpec {
+                    name: rig.name(b).to_string(),
+                    parent: rig.parent(b),
+                    rest,
+                }
+            })
+            .collect();
+        Rig::new(bones, rig.metres_per_unit(), RigSource::Code).unwrap()
+    }
+
+    #[test]
+    fn feet_reach_the_placed_source_ankles_and_keep_their_rotation() {
+        // Shins 25% shorter than SMPL's in proportion: copied leg directions alone leave the
+        // ankles off the placed source ankles by centimetres; the IK puts them there.
+        let (built, _, _) = test_rig(3);
+        let rig = reshaped(&built, &["foot_l", "foot_r"], 0.75);
+        let target = Target::auto(Skeleton::smpl24(), rig).unwrap();
+        let (mut with, mut without) = (RigPose::new(&target), RigPose::new(&target));
+        let off = Options {
+            feet: false,
+            hands: false,
+        };
+        let (mut worst_without, mut worst_with, mut turned) = (0.0f64, 0.0f64, 0.0f64);
+        let limbs = target.limbs();
+        for (g, p, root) in source_motion(40) {
+            target.pose(&g, &p, &root, &off, &mut without).unwrap();
+            target
+                .pose(&g, &p, &root, &Options::default(), &mut with)
+                .unwrap();
+            for ch in &limbs.chains[..2] {
+                let up = target.transfer().up();
+                let goal = rotation::add(
+                    &target.transfer().place(&p[ch.source_end]),
+                    &up.map(|v| v * ch.lift),
+                );
+                worst_without = worst_without.max(dist(&without.positions[ch.end], &goal));
+                // Reachable goals are reached; a goal past the leg's length leaves the leg
+                // straight toward it.
+                let (hip, ankle) = (with.positions[ch.upper], with.positions[ch.end]);
+                let reach =
+                    dist(&hip, &with.positions[ch.lower]) + dist(&with.positions[ch.lower], &ankle);
+                if dist(&hip, &goal) < 0.99 * reach {
+                    worst_with = worst_with.max(dist(&ankle, &goal));
+                }
+                let (a, b) = (with.world[ch.end], without.world[ch.end]);
+                let d = rotation::mul(&rotation::transpose(&a), &b);
+                let cos = ((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
+                turned = turned.max(cos.acos());
+            }
+        }
+        // Centimetre units: off by more than a centimetre without IK, on target with it.
+        assert!(worst_without > 1.0, "{worst_without}");
+        assert!(worst_with < 1e-6, "{worst_with}");
+        assert!(turned < 1e-9, "the foot turned by {turned} rad");
+    }
+
+    #[test]
+    fn ik_leaves_a_rig_of_the_sources_proportions_as_the_transfer_made_it() {
+        // The unlike rig has SMPL's proportions: the placed ankles are where the legs put
+        // them, so the legs keep their source directions exactly.
+        let (built, _, _) = test_rig(5);
+        let target = Target::auto(Skeleton::smpl24(), built).unwrap();
+        let mut pose = RigPose::new(&target);
+        let axes = rotation::axis_angle(&[1.0, 0.0, 0.0], std::f64::consts::FRAC_PI_2);
+        let rig = target.rig();
+        let bone = |name: &str| rig.find(name).unwrap();
+        let mut worst = 0.0f64;
+        for (g, p, root) in source_motion(30) {
+            target
+                .pose(
+                    &g,
+                    &p,
+                    &root,
+                    &Options {
+                        feet: true,
+                        hands: true,
+                    },
+                    &mut pose,
+                )
+                .unwrap();
+            for (a, b, ra, rb) in [
+                (1, 4, "thigh_l", "calf_l"),
+                (5, 8, "calf_r", "foot_r"),
+                (2, 5, "thigh_r", "calf_r"),
+                (4, 7, "calf_l", "foot_l"),
+            ] {
+                let want = rotation::apply(&axes, &sub(&p[b], &p[a]));
+                let got = sub(&pose.positions[bone(rb)], &pose.positions[bone(ra)]);
+                worst = worst.max(angle(&want, &got));
+            }
+        }
+        assert!(worst < 1e-4, "a leg is {worst}° off its source");
+    }
+
+    #[test]
+    fn a_clip_is_its_frames() {
+        let (built, _, _) = test_rig(2);
+        let target = Target::auto(Skeleton::smpl24(), built).unwrap();
+        let n = target.rig().bone_count();
+        let poses =
+            crate::motion::testutil::sinusoid_motion(crate::motion::Format::Smpl24Rot6d, 12);
+        let m = target.motion(&poses, 20.0, &Options::default()).unwrap();
+        assert_eq!((m.frames, m.bones, m.local.len()), (12, n, 12 * n));
+        let world = poses.global_rotations(Convention::Gltf);
+        let pos = poses.positions(Convention::Gltf);
+        let root = poses.root_translation(Convention::Gltf);
+        let mut one = RigPose::new(&target);
+        target
+            .pose(
+                &world[5 * 24..6 * 24],
+                &pos[5 * 24..6 * 24],
+                &root[5],
+                &Options::default(),
+                &mut one,
+            )
+            .unwrap();
+        assert_eq!(m.local_frame(5), &one.local[..]);
+        assert_eq!(m.hips[5], one.hips);
+    }
+}
