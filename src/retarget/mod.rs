@@ -8,12 +8,15 @@
 //! a root translation in a convention) and gives poses.
 
 pub mod bonemap;
+pub mod bvh_out;
 pub mod bvh_rig;
+pub mod gltf_out;
 pub mod gltf_rig;
 pub mod pose;
 pub mod rig;
 pub mod target;
 pub mod transfer;
+pub mod vrma;
 
 pub use pose::{Options, RigMotion, RigPose};
 pub use rig::{BoneSpec, RestTransform, Rig, RigSource, VrmVersion};
