@@ -52,6 +52,9 @@ pub struct RigPose {
     pub world: Vec<Mat3>,
     pub local: Vec<Mat3>,
     pub positions: Vec<Vec3>,
+    /// Every bone's translation relative to its parent (rig units): the rest translation,
+    /// except for the bones of [`Target::moving`].
+    pub translation: Vec<Vec3>,
     pub hips: Vec3,
 }
 
@@ -63,6 +66,7 @@ impl RigPose {
             world: vec![IDENTITY; n],
             local: vec![IDENTITY; n],
             positions: vec![[0.0; 3]; n],
+            translation: target.rig().rest().iter().map(|r| r.translation).collect(),
             hips: [0.0; 3],
         }
     }
@@ -82,6 +86,12 @@ pub struct RigMotion {
     pub local: Vec<Mat3>,
     pub world: Vec<Mat3>,
     pub positions: Vec<Vec3>,
+    /// `[frames × bones]` translations relative to the parent (rig units): the rest
+    /// translation except for the bones of `moving`.
+    pub translation: Vec<Vec3>,
+    /// Bones whose translation is animated: the hips, then the bones beside the body that
+    /// follow it ([`super::Transfer::follows`]).
+    pub moving: Vec<usize>,
     /// The hips translation relative to its parent bone's rest frame, rig units.
     pub hips: Vec<Vec3>,
 }
@@ -100,6 +110,11 @@ impl RigMotion {
     /// Frame `t`'s world positions.
     pub fn positions_frame(&self, t: usize) -> &[Vec3] {
         &self.positions[t * self.bones..(t + 1) * self.bones]
+    }
+
+    /// Frame `t`'s translations.
+    pub fn translation_frame(&self, t: usize) -> &[Vec3] {
+        &self.translation[t * self.bones..(t + 1) * self.bones]
     }
 }
 
@@ -255,7 +270,11 @@ impl Target {
         out: &mut RigPose,
     ) -> Result<()> {
         let n = self.rig().bone_count();
-        if out.world.len() != n || out.local.len() != n || out.positions.len() != n {
+        if out.world.len() != n
+            || out.local.len() != n
+            || out.positions.len() != n
+            || out.translation.len() != n
+        {
             return Err(invalid_arg!(
                 "the pose buffers are not for this rig ({n} bones)"
             ));
@@ -309,6 +328,7 @@ impl Target {
                     out.world[b] = rotation::mul(d, &out.world[b]);
                 }
             }
+            self.transfer().refresh_followers(&mut out.world);
             for b in 0..n {
                 out.local[b] = match self.rig().parent(b) {
                     Some(p) => rotation::mul(&rotation::transpose(&out.world[p]), &out.world[b]),
@@ -320,17 +340,41 @@ impl Target {
         Ok(())
     }
 
-    /// World positions from `out`'s world rotations and hips translation.
+    /// World positions and translations from `out`'s world rotations and hips translation,
+    /// in the transfer's dependency order: a follower keeps its rest offset from the bone it
+    /// follows, turned with it; its translation is then what puts it there.
     fn forward(&self, out: &mut RigPose) {
         let rig = self.rig();
-        let hips = self.transfer().hips();
+        let transfer = self.transfer();
+        let hips = transfer.hips();
         let ws = &self.limbs().world_scale;
-        for b in 0..rig.bone_count() {
+        let (rest_pos, rest_rot) = (rig.rest_world_positions(), rig.rest_world_rotations());
+        for &b in transfer.position_order() {
+            if let Some(f) = transfer.follows(b) {
+                let d = rotation::mul(&out.world[f], &rotation::transpose(&rest_rot[f]));
+                let at = rotation::add(
+                    &out.positions[f],
+                    &rotation::apply(&d, &sub(&rest_pos[b], &rest_pos[f])),
+                );
+                out.positions[b] = at;
+                out.translation[b] = match rig.parent(b) {
+                    Some(p) => {
+                        let v = rotation::apply(
+                            &rotation::transpose(&out.world[p]),
+                            &sub(&at, &out.positions[p]),
+                        );
+                        v.map(|x| x / ws[p])
+                    }
+                    None => at,
+                };
+                continue;
+            }
             let t = if b == hips {
                 out.hips
             } else {
                 rig.rest()[b].translation
             };
+            out.translation[b] = t;
             out.positions[b] = match rig.parent(b) {
                 Some(p) => {
                     let v = rotation::apply(&out.world[p], &t);
@@ -339,6 +383,15 @@ impl Target {
                 None => t,
             };
         }
+    }
+
+    /// Bones whose translation moves: the hips, then the followers
+    /// ([`super::Transfer::follows`]).
+    pub fn moving(&self) -> Vec<usize> {
+        let t = self.transfer();
+        std::iter::once(t.hips())
+            .chain((0..self.rig().bone_count()).filter(|&b| t.follows(b).is_some()))
+            .collect()
     }
 
     /// A whole clip: `poses` (any libflame format, any finish) carried onto the rig.
@@ -361,6 +414,8 @@ impl Target {
             local: Vec::with_capacity(total),
             world: Vec::with_capacity(total),
             positions: Vec::with_capacity(total),
+            translation: Vec::with_capacity(total),
+            moving: self.moving(),
             hips: Vec::with_capacity(frames),
         };
         let mut pose = RigPose::new(self);
@@ -376,6 +431,7 @@ impl Target {
             motion.local.extend_from_slice(&pose.local);
             motion.world.extend_from_slice(&pose.world);
             motion.positions.extend_from_slice(&pose.positions);
+            motion.translation.extend_from_slice(&pose.translation);
             motion.hips.push(pose.hips);
         }
         Ok(motion)

@@ -28,6 +28,11 @@
 //!   motion on through the world deltas of its children. Target bones with no source (twist,
 //!   IK, `root`, fingers) keep their rest rotation relative to their parent: twist bones take no
 //!   share of a limb's twist, the limb bone carries all of it.
+//! - **Bones beside the hips.** A rig may hang body bones beside the hips rather than under
+//!   them (Blender's Rigify: `DEF-thigh.L` and the face under `ORG-` bones that are siblings of
+//!   the hips `DEF-spine`). Such a bone without a source of its own follows the driven bone
+//!   nearest to it at rest, rigidly, so it moves with the body; its translation then moves
+//!   too, and [`Transfer::follows`] names it for writers that animate translations.
 //! - **Hips translation.** Scaled by the ratio of hips heights above the lowest foot joint (as
 //!   VRMA and three-vrm do), turned into the rig's axes and units, and put in the hips' parent's
 //!   frame (at rest).
@@ -77,6 +82,9 @@ enum Drive {
     },
     /// Keeps its rest rotation relative to its parent.
     Rest,
+    /// A bone outside the hips' subtree (and not above the hips): moves rigidly with driven
+    /// bone `bone`, keeping its rest relation to it: `G = G_bone · rel`.
+    Follow { bone: usize, rel: Mat3 },
 }
 
 /// A source skeleton's pose carried onto a rig (module doc).
@@ -104,6 +112,9 @@ pub struct Transfer {
     chain_off: [Vec3; MAX_CHAIN],
     chain_frac: [f64; MAX_CHAIN],
     chain_len: usize,
+    /// Bones in an order where each comes after what its world position depends on (its
+    /// parent, or the bone it follows).
+    order: Vec<usize>,
 }
 
 /// Points of a source spine chain (SMPL's: pelvis, three spine joints, neck).
@@ -314,6 +325,7 @@ impl Transfer {
                 };
             }
         }
+        let order = follow_outsiders(rig, hips, &mut drive);
         let hips_parent = rig.parent(hips).map(|p| {
             let lin = rig.rest_world_linear()[p];
             (pos[p], invert(&lin))
@@ -342,6 +354,7 @@ impl Transfer {
             chain_off,
             chain_frac,
             chain_len,
+            order,
         })
     }
 
@@ -353,6 +366,30 @@ impl Transfer {
     /// The rig's hips bone.
     pub fn hips(&self) -> usize {
         self.hips
+    }
+
+    /// The driven bone a bone outside the hips' subtree moves with ([`Transfer`] doc), if it
+    /// is one.
+    pub fn follows(&self, bone: usize) -> Option<usize> {
+        match self.drive.get(bone) {
+            Some(Drive::Follow { bone, .. }) => Some(*bone),
+            _ => None,
+        }
+    }
+
+    /// Sets the followers' world rotations again from the bones they follow (after IK turned
+    /// some of those).
+    pub(crate) fn refresh_followers(&self, world: &mut [Mat3]) {
+        for &b in &self.order {
+            if let Drive::Follow { bone, rel } = self.drive[b] {
+                world[b] = rotation::mul(&world[bone], &rel);
+            }
+        }
+    }
+
+    /// Bones ordered so that each comes after its parent, or after the bone it follows.
+    pub fn position_order(&self) -> &[usize] {
+        &self.order
     }
 
     /// A source world point (glTF axes, metres, floor at height 0) where the hips translation
@@ -403,7 +440,8 @@ impl Transfer {
                 &rotation::transpose(&self.axes),
             )
         };
-        for b in 0..n {
+        // In dependency order: a `Rest` bone after its parent, a follower after its bone.
+        for &b in &self.order {
             world[b] = match self.drive[b] {
                 Drive::Joint { joint, rest } => rotation::mul(&delta(joint), &rest),
                 Drive::Spine {
@@ -434,7 +472,10 @@ impl Transfer {
                     Some(p) => rotation::mul(&world[p], &self.rest_local[b]),
                     None => self.rest_local[b],
                 },
+                Drive::Follow { bone, rel } => rotation::mul(&world[bone], &rel),
             };
+        }
+        for b in 0..n {
             local[b] = match self.parents[b] {
                 Some(p) => rotation::mul(&rotation::transpose(&world[p]), &world[b]),
                 None => world[b],
@@ -473,6 +514,104 @@ impl Transfer {
         }
         at
     }
+}
+
+/// Makes every undriven bone with no driven ancestor that is not above the hips (Blender's
+/// Rigify rig: `ORG-spine`, a sibling of the hips `DEF-spine` and parent of `DEF-thigh.L`)
+/// follow the driven bone nearest to it at rest, so it moves with the body instead of staying where the rig
+/// stood; returns an order of the bones in which each comes after what its position depends
+/// on. A follower that would end up depending on itself through the bones it follows keeps
+/// its rest relative to its parent.
+fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
+    let n = rig.bone_count();
+    let ancestor_of = |a: usize, b: usize| {
+        let mut at = Some(b);
+        while let Some(x) = at {
+            if x == a {
+                return true;
+            }
+            at = rig.parent(x);
+        }
+        false
+    };
+    let pos = rig.rest_world_positions();
+    let world = rig.rest_world_rotations();
+    let driven: Vec<usize> = (0..n)
+        .filter(|&b| matches!(drive[b], Drive::Joint { .. } | Drive::Spine { .. }))
+        .collect();
+    // A bone with a driven ancestor (the hips included) is carried by it; a bone above the
+    // hips holds them. The rest are beside the body.
+    let carried = |b: usize, drive: &[Drive]| {
+        let mut at = rig.parent(b);
+        while let Some(x) = at {
+            if matches!(drive[x], Drive::Joint { .. } | Drive::Spine { .. }) {
+                return true;
+            }
+            at = rig.parent(x);
+        }
+        false
+    };
+    for b in 0..n {
+        if !matches!(drive[b], Drive::Rest) || ancestor_of(b, hips) || carried(b, drive) {
+            continue;
+        }
+        let nearest = driven
+            .iter()
+            .copied()
+            .filter(|&f| !ancestor_of(b, f))
+            .min_by(|&x, &y| {
+                let d = |f: usize| norm(&sub(&pos[f], &pos[b]));
+                d(x).total_cmp(&d(y))
+            });
+        if let Some(f) = nearest {
+            drive[b] = Drive::Follow {
+                bone: f,
+                rel: rotation::mul(&rotation::transpose(&world[f]), &world[b]),
+            };
+        }
+    }
+    // Depth-first: a bone's position needs its parent's, a follower's the followed bone's.
+    let needs = |b: usize, drive: &[Drive]| match drive[b] {
+        Drive::Follow { bone, .. } => Some(bone),
+        _ => rig.parent(b),
+    };
+    let mut order = Vec::with_capacity(n);
+    // 0 unvisited, 1 on the path, 2 placed.
+    let mut state = vec![0u8; n];
+    for start in 0..n {
+        let mut path = vec![start];
+        while let Some(&b) = path.last() {
+            if state[b] == 2 {
+                path.pop();
+                continue;
+            }
+            state[b] = 1;
+            match needs(b, drive) {
+                Some(d) if state[d] == 0 => path.push(d),
+                Some(d) if state[d] == 1 => {
+                    // A cycle through followers: the one met last keeps its rest relation to
+                    // its parent (parents alone never cycle), and is looked at again.
+                    let demote = path
+                        .iter()
+                        .rev()
+                        .copied()
+                        .find(|&x| matches!(drive[x], Drive::Follow { .. }))
+                        .expect("a cycle holds a follower");
+                    drive[demote] = Drive::Rest;
+                    for &x in &path {
+                        state[x] = 0;
+                    }
+                    path.truncate(1);
+                }
+                _ => {
+                    state[b] = 2;
+                    order.push(b);
+                    path.pop();
+                }
+            }
+        }
+    }
+    order
 }
 
 /// The child of source joint `j` its direction is taken toward: its mapped child, the one
