@@ -10,6 +10,7 @@
 pub mod bonemap;
 pub mod bvh_out;
 pub mod bvh_rig;
+pub mod engine;
 pub mod gltf_out;
 pub mod gltf_rig;
 pub mod pose;
