@@ -100,8 +100,8 @@ pub struct Transfer {
     hips: usize,
     /// Source metres → rig units, hips heights' ratio included.
     scale: f64,
-    /// The rig's floor (lowest foot joint at rest) along its up axis, in rig units, as a point
-    /// on the up axis through the origin.
+    /// The rig's floor (lowest foot joint at rest) along the rig's direction of the source's
+    /// world up, in rig units, as a point on that axis through the origin.
     floor: Vec3,
     /// The hips' parent at rest: world position and inverse linear part (`None`: hips is a
     /// root).
@@ -326,6 +326,16 @@ impl Transfer {
             }
         }
         let order = follow_outsiders(rig, hips, &mut drive);
+        // The floor point: the rig's lowest foot joint at rest, measured along the rig's
+        // direction of the source's world up (`C·ŷ`, which a leaning spine does not tilt), so
+        // the source's origin lands under the rig's origin, not beside it.
+        let world_up = [axes[0][1], axes[1][1], axes[2][1]];
+        let floor_height = feet
+            .iter()
+            .filter_map(|&j| bone_of[j])
+            .map(|b| rotation::dot(&pos[b], &world_up))
+            .fold(f64::INFINITY, f64::min);
+        let floor = scale(&world_up, floor_height);
         let hips_parent = rig.parent(hips).map(|p| {
             let lin = rig.rest_world_linear()[p];
             (pos[p], invert(&lin))
@@ -348,7 +358,7 @@ impl Transfer {
             // Metres of the source to units of the rig, with the hips heights' ratio: the
             // rig's height in units over the source's in metres.
             scale: rig_height / src_height,
-            floor: scale(&up, rig_floor),
+            floor,
             hips_parent,
             chain,
             chain_off,

@@ -77,6 +77,17 @@ bytes for every --threads. Chunk k draws its noise from --seed mixed with k. Dif
 flow models that sample the motion itself only (FLAME, MDM, Motion Flow Matching); latent
 models are refused. The output options are generate's; the whole timeline is written once.";
 
+const RETARGET_LONG: &str = "\
+Carry a motion made earlier onto the user's character. The motion is a BVH libflame wrote
+(`generate --out x.bvh`, SMPL-24 joint names) or .npy features with the model that made them;
+the pose options (feet, fps, root motion, loop wrap aside) apply as in generate, then the poses
+are retargeted onto --rig: the rest-relative transform of the VRM Animation specification, the
+rig's rest pose first turned to the source's (an A-pose rig's arms are not left 45 degrees off),
+the hips translation scaled by the hips heights' ratio, and the feet put back on the source's
+contacts with two-bone IK. --out .glb/.gltf/.vrm hands the rig's own file back with the
+animation added (an animation of the same name written before is replaced), .bvh writes the
+rig's hierarchy and names, .vrma a VRM Animation.";
+
 #[derive(Parser)]
 #[command(
     name = "flame",
@@ -103,6 +114,9 @@ pub enum Command {
     /// Generate one continuous motion from a timeline of sentences, chunk after chunk
     #[command(long_about = STREAM_LONG, after_help = AFTER_HELP)]
     Stream(StreamArgs),
+    /// Carry a motion made earlier onto the user's character (--rig)
+    #[command(long_about = RETARGET_LONG, after_help = AFTER_HELP)]
+    Retarget(RetargetArgs),
     /// Describe a model file: architecture, text encoder, motion format, defaults
     #[command(after_help = AFTER_HELP)]
     Info(InfoArgs),
@@ -277,6 +291,52 @@ pub struct OutputArgs {
     /// HumanML3D's own contact labels]
     #[arg(long, value_name = "M/S", allow_negative_numbers = true)]
     pub contact_speed: Option<f64>,
+    /// The user's character (a skinned .glb/.gltf/.vrm or a .bvh hierarchy): the finished
+    /// poses are retargeted onto its bones; --out .glb/.gltf/.vrm hands the file back with the
+    /// animation added (the same container as the rig), .bvh writes the rig's hierarchy
+    #[arg(long, value_name = "FILE")]
+    pub rig: Option<PathBuf>,
+    /// Bone map over the automatic one: JSON {"hips": "BoneName", "leftUpperArm": ..., ...}
+    /// with VRM humanBone names as keys (null unmaps a bone)
+    #[arg(long, value_name = "FILE.json")]
+    pub rig_map: Option<PathBuf>,
+    /// The skin to read when the rig's glTF has several
+    #[arg(long, value_name = "NAME")]
+    pub rig_skin: Option<String>,
+    /// Metres per unit of a .bvh rig [default: guessed, centimetres when the skeleton spans
+    /// more than 20 units]
+    #[arg(long, value_name = "M", allow_negative_numbers = true)]
+    pub rig_unit: Option<f64>,
+    /// Two-bone IK on the rig after the rotations: feet onto the source's ankles (so planted
+    /// feet stay planted on other proportions), hands onto its wrists too, or none
+    /// [feet|hands|both|off; default feet]
+    #[arg(long, value_name = "IK", value_enum)]
+    pub rig_ik: Option<RigIk>,
+    /// Also write the rig's bone world positions (float32 .npy, frames x bones x 3, in the rig
+    /// file's axes and units, bones in the file's order with parents first)
+    #[arg(long, value_name = "FILE.npy")]
+    pub rig_positions: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum RigIk {
+    Feet,
+    Hands,
+    Both,
+    Off,
+}
+
+#[derive(Args)]
+pub struct RetargetArgs {
+    /// The motion: a BVH libflame wrote (SMPL-24 joint names), or .npy features of the
+    /// model given with --model
+    #[arg(long = "in", value_name = "FILE.bvh|FILE.npy")]
+    pub input: PathBuf,
+    /// The model whose features a .npy holds [default: $FLAME_MODEL, else the demo model]
+    #[arg(long, value_name = "M")]
+    pub model: Option<PathBuf>,
+    #[command(flatten)]
+    pub output: OutputArgs,
 }
 
 #[derive(Args)]

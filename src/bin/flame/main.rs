@@ -5,6 +5,7 @@
 mod actions;
 mod args;
 mod paths;
+mod rig;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -25,7 +26,7 @@ use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
     AssembleArgs, Cli, Command, DenoiseArgs, EditArgs, EditChoice, GenerateArgs, InfoArgs,
-    ModelArgs, OnOff, OutputArgs, SamplingArgs, StreamArgs,
+    ModelArgs, OnOff, OutputArgs, RetargetArgs, SamplingArgs, StreamArgs,
 };
 
 fn main() -> ExitCode {
@@ -35,6 +36,7 @@ fn main() -> ExitCode {
         Command::Generate(a) => generate(&a),
         Command::Edit(a) => edit(&a),
         Command::Stream(a) => stream(&a),
+        Command::Retarget(a) => retarget(&a),
         Command::Info(a) => info(&a),
         Command::Assemble(a) => assemble(&a),
     };
@@ -803,6 +805,8 @@ struct Outputs {
     smooth: Option<f32>,
     quat: QuatOrder,
     finish: motion::Finish,
+    /// `--rig`: the user's character, read and mapped.
+    rig: Option<rig::RigOut>,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -811,6 +815,12 @@ enum OutKind {
     Bvh,
     Json,
     Gltf(gltf::Container),
+    /// A VRM Animation (`.vrma`).
+    Vrma,
+    /// The `--rig` file handed back with the animation added.
+    RigGltf,
+    /// A BVH of the `--rig` hierarchy.
+    RigBvh,
 }
 
 /// What a glTF export records about the generation.
@@ -877,16 +887,36 @@ impl Outputs {
         {
             return Err(format!("cannot write {}: it is a folder", dir.display()));
         }
-        let kind = match paths::extension(&o.out).as_deref() {
-            Some("npy") => OutKind::Features,
-            Some("bvh") => OutKind::Bvh,
-            Some("json") => OutKind::Json,
-            Some(e @ ("glb" | "gltf")) => {
+        let rig = rig::RigOut::new(o)?;
+        let ext = paths::extension(&o.out);
+        let kind = match (ext.as_deref(), &rig) {
+            (Some("vrma"), _) => OutKind::Vrma,
+            (Some(e @ ("glb" | "gltf" | "vrm")), Some(r)) => {
+                r.check_container(&o.out, e)?;
+                OutKind::RigGltf
+            }
+            (Some("bvh"), Some(_)) => OutKind::RigBvh,
+            (Some(e @ ("npy" | "json")), Some(_)) => {
+                return Err(format!(
+                    "cannot write {}: with --rig, --out is the character (.glb, .gltf, .vrm or                      .bvh) or a .vrma, not .{e}",
+                    o.out.display()
+                ))
+            }
+            (Some("npy"), None) => OutKind::Features,
+            (Some("bvh"), None) => OutKind::Bvh,
+            (Some("json"), None) => OutKind::Json,
+            (Some(e @ ("glb" | "gltf")), None) => {
                 OutKind::Gltf(gltf::Container::from_extension(e).unwrap_or(gltf::Container::Glb))
+            }
+            (Some("vrm"), None) => {
+                return Err(format!(
+                    "cannot write {}: a .vrm is a character; give it with --rig to add the                      animation to it",
+                    o.out.display()
+                ))
             }
             _ => {
                 return Err(format!(
-                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb or .gltf",
+                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb, .gltf or                      .vrma (or .vrm with --rig)",
                     o.out.display()
                 ))
             }
@@ -900,6 +930,18 @@ impl Outputs {
                 ));
             }
             files.push(("--positions", p));
+        }
+        if let Some(p) = rig.as_ref().and_then(|r| r.positions.as_ref()) {
+            files.push(("--rig-positions", p));
+        }
+        if let Some(r) = &rig {
+            // The rig is read; the file handed back must not overwrite it.
+            if paths::same_file(&r.path, &o.out) {
+                return Err(format!(
+                    "--out {} is the --rig file: write the animated character to a new file",
+                    o.out.display()
+                ));
+            }
         }
         for p in &o.preview {
             if !cfg!(feature = "preview") {
@@ -942,7 +984,16 @@ impl Outputs {
             (_, Some(c)) => c,
             (OutKind::Bvh | OutKind::Gltf(_), None) => Convention::Gltf,
             (OutKind::Features | OutKind::Json, None) => Convention::Native,
+            // A rig's files are in the rig's own axes; a VRMA in glTF's.
+            (OutKind::Vrma | OutKind::RigGltf | OutKind::RigBvh, None) => Convention::Gltf,
         };
+        if matches!(kind, OutKind::Vrma | OutKind::RigGltf | OutKind::RigBvh)
+            && convention != Convention::Gltf
+        {
+            return Err(format!(
+                "--convention {convention}: a .vrma is in glTF's convention and a rig's files in                  the rig's own axes; leave --convention out"
+            ));
+        }
         Ok(Outputs {
             out: o.out.clone(),
             kind,
@@ -963,6 +1014,7 @@ impl Outputs {
             smooth: o.smooth,
             quat: o.quat,
             finish: finish(o)?,
+            rig,
         })
     }
 
@@ -1015,14 +1067,49 @@ impl Outputs {
         };
         let opts = model.read_options(d.smooth, true);
         let raw = Poses::decode(d.format, x, frames, &opts).map_err(|e| e.to_string())?;
+        self.write_poses(&raw, Some((x, dim)), d, meta)
+    }
+
+    /// Writes `raw` (decoded, not finished) as the outputs ask; `features` are the raw rows
+    /// (and their width) when `--out` is a `.npy` of them.
+    fn write_poses(
+        &self,
+        raw: &Poses,
+        features: Option<(&[f32], usize)>,
+        d: &Decoder,
+        meta: &Meta,
+    ) -> Result<(), String> {
+        let frames = raw.frames();
         let poses = self
             .finish
-            .apply(&raw, d.fps as f64)
+            .apply(raw, d.fps as f64)
             .map_err(|e| e.to_string())?;
         let d = &Decoder {
             fps: self.finish.output_fps(d.fps as f64) as f32,
             ..*d
         };
+        let name = gltf::animation_name(meta.prompt);
+        let rig_motion = match &self.rig {
+            Some(r) => {
+                let m = r.motion(d.format, &poses, d.fps as f64)?;
+                r.write_positions(&m)?;
+                Some(m)
+            }
+            None => None,
+        };
+        let bytes = match (self.kind, &self.rig, &rig_motion) {
+            (OutKind::Vrma, _, _) => Some(
+                flame::retarget::vrma::to_glb(&poses, d.fps as f64, &name)
+                    .map_err(|e| e.to_string())?,
+            ),
+            (OutKind::RigGltf, Some(r), Some(m)) => Some(r.gltf(m, &name)?),
+            (OutKind::RigBvh, Some(r), Some(m)) => Some(r.bvh(m)?.into_bytes()),
+            _ => None,
+        };
+        if let Some(bytes) = bytes {
+            std::fs::write(&self.out, bytes)
+                .map_err(|e| format!("cannot write {}: {e}", self.out.display()))?;
+        }
         if let OutKind::Gltf(container) = self.kind {
             let opts = gltf::GltfOptions {
                 fps: d.fps,
@@ -1036,7 +1123,11 @@ impl Outputs {
                 .map_err(|e| format!("cannot write {}: {e}", self.out.display()))?;
         }
         let text = match self.kind {
-            OutKind::Features | OutKind::Gltf(_) => None,
+            OutKind::Features
+            | OutKind::Gltf(_)
+            | OutKind::Vrma
+            | OutKind::RigGltf
+            | OutKind::RigBvh => None,
             OutKind::Bvh => Some(motion::bvh::to_string(&poses, self.convention, d.fps)),
             OutKind::Json => Some(motion::json::to_string(
                 &poses,
@@ -1052,6 +1143,7 @@ impl Outputs {
                     .map_err(|e| format!("cannot write {}: {e}", self.out.display()))?
             }
             None if self.kind == OutKind::Features => {
+                let (x, dim) = features.ok_or("a .npy of features needs the model's features")?;
                 flame::npy::write_f32(&self.out, &[frames, dim], x).map_err(|e| e.to_string())?
             }
             None => {}
@@ -1084,6 +1176,96 @@ impl Outputs {
             println!("{}", path.display());
         }
         Ok(())
+    }
+}
+
+/// `flame retarget`: a motion made earlier onto `--rig`.
+fn retarget(a: &RetargetArgs) -> Result<(), String> {
+    let outputs = Outputs::new(&a.output)?;
+    if outputs.rig.is_none() && outputs.kind != OutKind::Vrma {
+        return Err("retarget needs --rig (the character), or --out x.vrma".into());
+    }
+    paths::check_readable(&a.input)?;
+    let path = a.input.display();
+    let smooth = |format: Format| {
+        outputs.smooth.unwrap_or(if format == Format::Smpl24Rot6d {
+            1.0
+        } else {
+            0.0
+        })
+    };
+    match paths::extension(&a.input).as_deref() {
+        Some("bvh") => {
+            if a.model.is_some() {
+                return Err("--model is for .npy features; a BVH holds its poses".into());
+            }
+            let text = std::fs::read_to_string(&a.input)
+                .map_err(|e| format!("cannot read {path}: {e}"))?;
+            let bvh = motion::bvh::parse(&text).map_err(|e| format!("cannot read {path}: {e}"))?;
+            let format = Format::Smpl24Rot6d;
+            let (x, frames, c, fps) = motion::bvh::to_features(&bvh, format)
+                .map_err(|e| format!("cannot use {path}: {e}"))?;
+            eprintln!("{path}: {frames} frames at {fps} fps, {c} convention");
+            // A BVH's poses are already smooth (libflame smoothed them before writing).
+            let opts = motion::ReadOptions {
+                smooth_sigma: outputs.smooth.unwrap_or(0.0),
+                fps,
+                ..Default::default()
+            };
+            let raw = Poses::decode(format, &x, frames, &opts).map_err(|e| e.to_string())?;
+            let d = Decoder {
+                format,
+                fps,
+                smooth: opts.smooth_sigma,
+            };
+            let prompt = a
+                .input
+                .file_stem()
+                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
+            let meta = Meta {
+                prompt: &prompt,
+                model: "",
+                seed: 0,
+            };
+            outputs.write_poses(&raw, None, &d, &meta)
+        }
+        Some("npy") => {
+            let loaded = load_model(&ModelArgs {
+                model: a.model.clone(),
+                weights: None,
+            })?;
+            let model = &loaded.model;
+            let dim = model.motion_dim();
+            let (shape, x) = flame::npy::read_f32(&a.input).map_err(|e| e.to_string())?;
+            if shape.len() != 2 || shape[1] != dim || shape[0] == 0 {
+                return Err(format!(
+                    "cannot use {path}: shape {shape:?}, expected [frames, {dim}] features of {}",
+                    loaded.name
+                ));
+            }
+            let format = model.motion_format();
+            let d = Decoder {
+                format,
+                fps: model.config().motion.fps,
+                smooth: smooth(format),
+            };
+            let opts = model.read_options(d.smooth, true);
+            let raw = Poses::decode(format, &x, shape[0], &opts).map_err(|e| e.to_string())?;
+            let prompt = a
+                .input
+                .file_stem()
+                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
+            let meta = Meta {
+                prompt: &prompt,
+                model: &loaded.name,
+                seed: 0,
+            };
+            outputs.write_poses(&raw, None, &d, &meta)
+        }
+        _ => Err(format!(
+            "cannot read {path}: --in must end in .bvh (written by libflame) or .npy (features, \
+             with --model)"
+        )),
     }
 }
 

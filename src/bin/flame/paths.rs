@@ -70,6 +70,14 @@ pub fn check_readable(path: &Path) -> Result<(), String> {
         .map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
 
+/// Whether `a` and `b` are one existing file (by their canonical paths).
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
 /// Fails when two outputs name the same file (the second write would replace the first).
 pub fn check_distinct(outputs: &[(&str, &Path)]) -> Result<(), String> {
     for (i, (a, pa)) in outputs.iter().enumerate() {
