@@ -43,6 +43,17 @@
 // track sign-continuous between frames.
 #define FLAME_READ_RAW_SIGNS 2
 
+// `kind` of [`flame_rig_load`]: tell the format from the bytes (GLB magic `glTF`, a JSON
+// object, or a BVH `HIERARCHY`).
+#define FLAME_RIG_FORMAT_GUESS 0
+
+// `kind` of [`flame_rig_load`]: glTF 2.0 (`.glb`, or `.gltf` with its buffers embedded as
+// data URIs), VRM 0.x and 1.0 included.
+#define FLAME_RIG_FORMAT_GLTF 1
+
+// `kind` of [`flame_rig_load`]: a BVH file's hierarchy (its MOTION section is not read).
+#define FLAME_RIG_FORMAT_BVH 2
+
 // What every fallible call returns.
 typedef enum FlameStatus {
   FLAME_STATUS_OK = 0,
@@ -232,8 +243,21 @@ typedef enum FlameGltfContainer {
   FLAME_GLTF_CONTAINER_GLTF = 1,
 } FlameGltfContainer;
 
+// A bone map: which bone of one rig is which humanoid bone (hips, spine, upper arms...).
+// Immutable; only usable with the rig it was made for.
+typedef struct FlameBoneMap FlameBoneMap;
+
 // A loaded model: immutable, shareable by any number of sessions and threads.
 typedef struct FlameModel FlameModel;
+
+// A model's poses onto a rig: the rig and its bone map, copied, so both may be freed after
+// [`flame_retarget_new`]. Shareable between threads (calls are serialised on a lock).
+typedef struct FlameRetarget FlameRetarget;
+
+// A rig: the user's skeleton (bone names, parents, rest pose). Immutable: share it between
+// threads freely. Bones are numbered as [`flame_rig_bone_name`] lists them: for a rig from
+// [`flame_rig_from_bones`], in the order they were given; for a file's, parents first.
+typedef struct FlameRig FlameRig;
 
 // One generation. Used by one thread at a time; only `flame_session_cancel` may run
 // concurrently with another call.
@@ -466,6 +490,45 @@ typedef struct FlameGltfParams {
   // `root` bone to the skeleton.
   const struct FlameCleanupParams *cleanup;
 } FlameGltfParams;
+
+// One bone of [`flame_rig_from_bones`]: its rest transform relative to its parent (`T · R ·
+// S`, what Unity's `localPosition`/`localRotation`/`localScale` and Unreal's reference pose
+// hold) in the convention the call names. Set `struct_size = sizeof(FlameRigBone)`.
+typedef struct FlameRigBone {
+  // `sizeof(FlameRigBone)`; every bone of an array has the same.
+  uint32_t struct_size;
+  // Index of the parent in the same array (any order: a parent may come after its
+  // children), -1 for a root.
+  int32_t parent;
+  // A unique name (UTF-8, NUL-terminated); automatic bone maps read it (`Hips`,
+  // `mixamorig:LeftArm`, `upperarm_l`...). Read only during the call.
+  const char *name;
+  // Position relative to the parent, in the convention's unit.
+  float translation[3];
+  // Rotation relative to the parent, quaternion x, y, z, w (normalised by the call).
+  float rotation[4];
+  float scale[3];
+} FlameRigBone;
+
+// How [`flame_retarget_new`] drives a rig. Initialise with [`flame_retarget_params_default`].
+typedef struct FlameRetargetParams {
+  // `sizeof(FlameRetargetParams)`.
+  uint32_t struct_size;
+  // A [`FlameConvention`] value for the poses read: `FLAME_CONVENTION_NATIVE` (0, default)
+  // = the rig's own (glTF axes in metres for a glTF/VRM file, the file's axes and unit for a
+  // BVH file, the engine's convention for [`flame_rig_from_bones`]). Any other value
+  // carries the poses from glTF axes into it (`INVALID_ARGUMENT` for a BVH rig, whose
+  // axes are unknown).
+  int32_t convention;
+  // Nonzero (default 1): two-bone IK on the legs puts each ankle where the source's is, so
+  // a rig of other proportions keeps planted feet planted.
+  uint32_t feet;
+  // Nonzero (default 0): the same on the arms, for the wrists.
+  uint32_t hands;
+  // NULL (default) = the automatic bone map ([`flame_bone_map_auto`]); otherwise a map made
+  // for the same rig. Read only during [`flame_retarget_new`].
+  const struct FlameBoneMap *map;
+} FlameRetargetParams;
 
 // Settings of a stream. Initialise with [`flame_stream_params_default`]; zero (or a negative
 // `guidance`) means the default.
@@ -939,6 +1002,228 @@ const char *flame_last_error(void);
 
 // A static name for a status code, e.g. `"FLAME_STATUS_BAD_MODEL_FILE"`.
 const char *flame_status_string(int32_t status);
+
+// Reads a rig from a file's bytes: `kind` is a `FLAME_RIG_FORMAT_*` value (0 = tell from the
+// content), `skin` the glTF skin to use (NULL: the file's only skin, or for a VRM file the one
+// holding its humanoid bones; must be NULL for BVH). glTF/VRM: the skin's joints, their bind
+// pose, a VRM file's declared humanoid map; BVH: the hierarchy, its unit guessed from its size
+// (above 20 units across: centimetres). The bytes are read only during the call. Errors
+// (`INVALID_ARGUMENT`, message naming the node, bone or line): truncated or malformed files,
+// unknown formats, a skin not found, cycles, zero scales, more than 4096 bones. Free the rig
+// with [`flame_rig_free`].
+//
+// # Safety
+// `bytes` points to `len` readable bytes; `skin` is NULL or a NUL-terminated string; `out`
+// points to a writable `FlameRig *`.
+enum FlameStatus flame_rig_load(const uint8_t *bytes,
+                                size_t len,
+                                uint32_t kind,
+                                const char *skin,
+                                struct FlameRig **out);
+
+// A rig from bones an engine holds (Unreal's reference skeleton, Unity's Transforms):
+// `count` bones (1 to 4096) whose rest transforms are in `convention` (a [`FlameConvention`]
+// value other than native: `FLAME_CONVENTION_UNITY` for Unity, `FLAME_CONVENTION_UNREAL` for
+// Unreal with centimetres). They are carried into right-handed glTF axes in metres before the
+// rig is made (positions `p' = M p / s`, rotations `R' = M R M⁻¹`, keeping up, forward and
+// left), because the retarget derives the rig's forward from a cross product: a left-handed
+// rig taken as it is would get every motion mirrored front to back. Retarget poses come back
+// in `convention` by default, bones numbered as given. The array and names are read only
+// during the call. Errors name the bone: a wrong `struct_size`, a NULL or repeated name, a
+// parent out of range or a cycle, a zero or non-finite quaternion, a zero scale.
+//
+// # Safety
+// `bones` points to `count` readable `FlameRigBone`s; `out` points to a writable
+// `FlameRig *`.
+enum FlameStatus flame_rig_from_bones(const struct FlameRigBone *bones,
+                                      size_t count,
+                                      int32_t convention,
+                                      struct FlameRig **out);
+
+// Frees a rig (NULL is fine). Retargets made from it stay valid (they hold a copy); bone
+// maps made for it can no longer be used with a rig.
+//
+// # Safety
+// `rig` is NULL or a rig not yet freed; its bone names' pointers die with it.
+void flame_rig_free(struct FlameRig *rig);
+
+// The rig's bone count.
+//
+// # Safety
+// `rig` is a live rig; `out` points to a writable `size_t`.
+enum FlameStatus flame_rig_bone_count(const struct FlameRig *rig, size_t *out);
+
+// Bone `bone`'s name (UTF-8, NUL-terminated) into `*out`: owned by the rig, valid until
+// [`flame_rig_free`].
+//
+// # Safety
+// `rig` is a live rig; `out` points to a writable `const char *`.
+enum FlameStatus flame_rig_bone_name(const struct FlameRig *rig, size_t bone, const char **out);
+
+// Bone `bone`'s parent into `*out` (-1 for a root).
+//
+// # Safety
+// `rig` is a live rig; `out` points to a writable `int32_t`.
+enum FlameStatus flame_rig_bone_parent(const struct FlameRig *rig, size_t bone, int32_t *out);
+
+// The automatic bone map of `rig`: the map a VRM file declares, else one read from the bone
+// names (Mixamo, Unreal/UE5, Unity/VRM, Rigify, Character Creator, SMPL, Biped). Bones it
+// cannot find stay unmapped: [`flame_retarget_new`] then lists the missing ones, and
+// [`flame_bone_map_to_json`] shows what was found. `INVALID_ARGUMENT` when the names found
+// contradict the hierarchy (the message names the bones). Free with [`flame_bone_map_free`].
+//
+// # Safety
+// `rig` is a live rig; `out` points to a writable `FlameBoneMap *`.
+enum FlameStatus flame_bone_map_auto(const struct FlameRig *rig, struct FlameBoneMap **out);
+
+// A bone map from JSON over `base` (NULL: over nothing): an object whose keys are VRM 1.0
+// humanoid bone names (`"hips"`, `"spine"`, `"leftUpperArm"`...; any case) and whose values
+// are the rig's bone names or `null`, e.g. `{"hips": "pelvis", "leftHand": "hand_l"}`. Keys the
+// JSON gives replace `base`'s. `INVALID_ARGUMENT` with the key or name: invalid JSON, over
+// 1 MiB, an unknown key, a bone the rig does not have (with the nearest names), one bone for
+// two keys, a map that contradicts the hierarchy, a `base` made for another rig.
+//
+// # Safety
+// `rig` is a live rig; `json` a NUL-terminated UTF-8 string; `base` NULL or a live map;
+// `out` points to a writable `FlameBoneMap *`.
+enum FlameStatus flame_bone_map_from_json(const struct FlameRig *rig,
+                                          const char *json,
+                                          const struct FlameBoneMap *base,
+                                          struct FlameBoneMap **out);
+
+// The map as JSON (every humanoid bone, `null` when unmapped): what
+// [`flame_bone_map_from_json`] reads, for a user to edit. Size protocol: with `buf` NULL,
+// `*len` receives the bytes needed, the terminating NUL included; otherwise `cap` must be at
+// least that (`BUFFER_TOO_SMALL` otherwise, `*len` set to the size) and the NUL-terminated
+// JSON is written, `*len` receiving its size with the NUL.
+//
+// # Safety
+// `map` and `rig` are live (the map made for the rig); `buf` is NULL or points to `cap`
+// writable bytes; `len` points to a writable `size_t`.
+enum FlameStatus flame_bone_map_to_json(const struct FlameBoneMap *map,
+                                        const struct FlameRig *rig,
+                                        char *buf,
+                                        size_t cap,
+                                        size_t *len);
+
+// Frees a bone map (NULL is fine).
+//
+// # Safety
+// `map` is NULL or a map not yet freed.
+void flame_bone_map_free(struct FlameBoneMap *map);
+
+// Fills `*params` with the defaults: the rig's own convention, feet IK on, hands IK off, the
+// automatic bone map.
+//
+// # Safety
+// `params` points to writable memory for a `FlameRetargetParams`.
+enum FlameStatus flame_retarget_params_default(struct FlameRetargetParams *params);
+
+// A retarget of `model`'s poses (its motion format's skeleton: SMPL-24 or HumanML3D-22) onto
+// `rig`, with `params` (NULL = [`flame_retarget_params_default`]). The rig and the map are
+// copied: either may be freed afterwards; the model is not kept. Errors
+// (`INVALID_ARGUMENT`): a required humanoid bone unmapped (hips, spine, head, upper and lower
+// arms and legs, hands, feet; the message lists what is missing, what was found and the
+// rig's bone names), a map made for another rig, a mapped bone of zero length, an unknown
+// convention, a convention asked of a BVH rig. Free with [`flame_retarget_free`].
+//
+// # Safety
+// `model` and `rig` are live; `params` is NULL or a valid `FlameRetargetParams`; `out`
+// points to a writable `FlameRetarget *`.
+enum FlameStatus flame_retarget_new(const struct FlameModel *model,
+                                    const struct FlameRig *rig,
+                                    const struct FlameRetargetParams *params,
+                                    struct FlameRetarget **out);
+
+// Frees a retarget (NULL is fine).
+//
+// # Safety
+// `retarget` is NULL or a retarget not yet freed, used by no other thread.
+void flame_retarget_free(struct FlameRetarget *retarget);
+
+// The bones each pose has: the rig's, numbered as [`flame_rig_bone_name`] lists them.
+//
+// # Safety
+// `retarget` is live; `out` points to a writable `size_t`.
+enum FlameStatus flame_retarget_bone_count(const struct FlameRetarget *retarget, size_t *out);
+
+// Retargeted poses of a session: frames `first..first + count` of the motion
+// [`super::flame_session_read_cleaned`] reads with the same `which` (a [`FlameWhich`]),
+// `flags` (`FLAME_READ_SMOOTH`, `FLAME_READ_RAW_SIGNS`) and `cleanup` (NULL = the raw poses;
+// [`super::flame_cleanup_params_default`] gives game-ready ones: feet locked, the floor at
+// 0), put onto the rig. Per frame and bone: `rotations` `[count][bones][4]` the bone's
+// rotation relative to its parent, quaternion x, y, z, w with w ≥ 0 (rest rotations included:
+// set it as the bone's local rotation); `translations` `[count][bones][3]` its position
+// relative to its parent (every bone's: the rest one except where the retarget moves the
+// bone, as the hips), both in the retarget's convention and unit
+// ([`FlameRetargetParams::convention`]); a top bone's are relative to the scene (for a glTF
+// file, the nodes above the skin's top joint folded in). Either buffer may be NULL when not
+// wanted; a given one must hold `count × bones × 4` (or 3) floats (`BUFFER_TOO_SMALL`).
+// `*out_frames` (may be NULL) receives the frames the read has: call with `count` 0 and NULL
+// buffers to size them (a cleanup's frame rate changes it).
+//
+// Errors: a session of a model with another motion format, a range past the frames
+// (`INVALID_ARGUMENT`); no sample yet, or no estimate before a step (`WRONG_STATE`); the
+// session busy on another thread (`WRONG_STATE`). Values are the same for any thread count.
+//
+// # Safety
+// `retarget` and `session` are live; `cleanup` is NULL or a valid `FlameCleanupParams`;
+// non-NULL buffers point to their lengths' writable floats; `out_frames` is NULL or writable.
+enum FlameStatus flame_retarget_read(const struct FlameRetarget *retarget,
+                                     const struct FlameSession *session,
+                                     int32_t which,
+                                     uint32_t flags,
+                                     const struct FlameCleanupParams *cleanup,
+                                     size_t first,
+                                     size_t count,
+                                     float *rotations,
+                                     size_t rotations_len,
+                                     float *translations,
+                                     size_t translations_len,
+                                     size_t *out_frames);
+
+// [`flame_retarget_read`] for a stream: timeline frames `first_frame..first_frame + count`
+// as [`super::flame_stream_read_cleaned`] gives them with `cleanup` (NULL = the raw frames of
+// `flame_stream_read`; the first cleanup passed sets the stream's, as there), put onto the rig.
+// Buffers as `flame_retarget_read`. Frames not generated (or not settled) yet are
+// `WRONG_STATE` (pump more); dropped ones `INVALID_ARGUMENT`; a stream of a model with
+// another skeleton `INVALID_ARGUMENT`.
+//
+// # Safety
+// `retarget` and `stream` are live; `cleanup` is NULL or a valid `FlameCleanupParams`;
+// non-NULL buffers point to their lengths' writable floats.
+enum FlameStatus flame_retarget_read_stream(const struct FlameRetarget *retarget,
+                                            const struct FlameStream *stream,
+                                            uint64_t first_frame,
+                                            uint32_t count,
+                                            const struct FlameCleanupParams *cleanup,
+                                            float *rotations,
+                                            size_t rotations_len,
+                                            float *translations,
+                                            size_t translations_len);
+
+// One frame from any source onto the rig: `source_world` `[joints][4]` the source skeleton's
+// world rotations (quaternions x, y, z, w; normalised here) and `source_positions`
+// `[joints][3]` its joint positions, in glTF axes and metres with the floor at height 0
+// (`FLAME_LAYOUT_GLOBAL_QUAT_XYZW` and `FLAME_LAYOUT_GLOBAL_POSITIONS` of a read in
+// `FLAME_CONVENTION_GLTF`), `joints` being the model's (`FlameModelInfo.joint_count`, the
+// SMPL-24 or HumanML3D-22 order); the pelvis is joint 0. Writes one pose as
+// [`flame_retarget_read`] does (either buffer may be NULL). Allocates nothing.
+// `INVALID_ARGUMENT` for lengths that are not the skeleton's, a zero or non-finite quaternion,
+// a non-finite position.
+//
+// # Safety
+// `retarget` is live; the source arrays point to their lengths' floats; non-NULL outputs to
+// their lengths' writable floats.
+enum FlameStatus flame_retarget_pose(const struct FlameRetarget *retarget,
+                                     const float *source_world,
+                                     size_t source_world_len,
+                                     const float *source_positions,
+                                     size_t source_positions_len,
+                                     float *rotations,
+                                     size_t rotations_len,
+                                     float *translations,
+                                     size_t translations_len);
 
 // Fills `*params` with the defaults: the model's default frame count per chunk, 20 frames of
 // overlap, 60 of lookahead, a window of 1200, the model file's steps, sampler and guidance,

@@ -10,6 +10,7 @@ mod cleanup;
 mod errors;
 mod handles;
 mod poses;
+mod retarget;
 mod stream;
 
 use std::ffi::{c_char, c_void, CStr};
