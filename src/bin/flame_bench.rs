@@ -28,6 +28,9 @@
 //! random weights in memory, with the tiny test fixture's text encoder (the step's cost is the
 //! denoiser's).
 //!
+//! `flame-bench retarget --rig FILE [--frames 200] [--runs 7]`: microseconds per frame of
+//! carrying a pose onto a user's rig (see `flame_bench/retarget.rs`).
+//!
 //! `flame-bench stream --model M [--chunk N (default: the model's default frames)] [--overlap 20]
 //!  [--steps S (default: the model's)] [--threads 2] [--runs 5] [--seconds 30]
 //!  [--segment-seconds T (default: one chunk's new frames)]`: a [`flame::stream::Stream`]'s
@@ -62,6 +65,8 @@ use flame::stream::{Segment, Stream, StreamParams};
 mod attention;
 #[path = "flame_bench/peak.rs"]
 mod peak;
+#[path = "flame_bench/retarget.rs"]
+mod retarget;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -346,6 +351,10 @@ fn main() {
         stream_bench(&args);
         return;
     }
+    if args.first().map(String::as_str) == Some("retarget") {
+        retarget::retarget_bench(&args);
+        return;
+    }
     let path: String = arg(&args, "--model", String::new());
     if path.is_empty() {
         eprintln!(
@@ -354,7 +363,8 @@ fn main() {
              flame-bench peak [--threads 2]\n       \
              flame-bench cancel (--model M | --random-base) [--frames 196] [--threads 2] [--trials 15]\n       \
              flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
-             [--seconds 30] [--segment-seconds T]"
+             [--seconds 30] [--segment-seconds T]\n       \
+             flame-bench retarget --rig FILE [--rig FILE ...] [--frames 200] [--runs 7]"
         );
         std::process::exit(2);
     }
@@ -676,7 +686,8 @@ fn stream_bench(args: &[String]) {
     if path.is_empty() {
         eprintln!(
             "usage: flame-bench stream --model M [--chunk N] [--overlap 20] [--steps S] [--threads 2] [--runs 5] \
-             [--seconds 30] [--segment-seconds T]"
+             [--seconds 30] [--segment-seconds T]\n       \
+             flame-bench retarget --rig FILE [--rig FILE ...] [--frames 200] [--runs 7]"
         );
         std::process::exit(2);
     }

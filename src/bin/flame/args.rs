@@ -335,6 +335,11 @@ pub struct RetargetArgs {
     /// The model whose features a .npy holds [default: $FLAME_MODEL, else the demo model]
     #[arg(long, value_name = "M")]
     pub model: Option<PathBuf>,
+    /// The convention the input BVH was written in [default: the one whose rest offsets the
+    /// file has; native and gltf share them and are told apart by which stands the body
+    /// upright, which a motion lying down for its whole length cannot tell]
+    #[arg(long, value_name = "C", value_parser = lib::<Convention>)]
+    pub in_convention: Option<Convention>,
     #[command(flatten)]
     pub output: OutputArgs,
 }

@@ -1203,9 +1203,21 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
                 .map_err(|e| format!("cannot read {path}: {e}"))?;
             let bvh = motion::bvh::parse(&text).map_err(|e| format!("cannot read {path}: {e}"))?;
             let format = Format::Smpl24Rot6d;
-            let (x, frames, c, fps) = motion::bvh::to_features(&bvh, format)
-                .map_err(|e| format!("cannot use {path}: {e}"))?;
-            eprintln!("{path}: {frames} frames at {fps} fps, {c} convention");
+            let (x, frames, fps) = match a.in_convention {
+                Some(c) => (
+                    motion::bvh::to_features_in(&bvh, format, c),
+                    bvh.frames(),
+                    bvh.fps(),
+                ),
+                None => match motion::bvh::to_features(&bvh, format) {
+                    Ok((x, frames, c, fps)) => {
+                        eprintln!("{path}: {frames} frames at {fps} fps, {c} convention");
+                        (Ok(x), frames, fps)
+                    }
+                    Err(e) => (Err(e), 0, 0.0),
+                },
+            };
+            let x = x.map_err(|e| format!("cannot use {path}: {e}"))?;
             // A BVH's poses are already smooth (libflame smoothed them before writing).
             let opts = motion::ReadOptions {
                 smooth_sigma: outputs.smooth.unwrap_or(0.0),
@@ -1230,6 +1242,11 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
             outputs.write_poses(&raw, None, &d, &meta)
         }
         Some("npy") => {
+            if a.in_convention.is_some() {
+                return Err(
+                    "--in-convention is for a BVH; features are in the model's space".into(),
+                );
+            }
             let loaded = load_model(&ModelArgs {
                 model: a.model.clone(),
                 weights: None,
