@@ -57,6 +57,11 @@ __all__ = [
     "RootMotion",
     "Cleanup",
     "cleanup_params_default",
+    "Rig",
+    "RigBone",
+    "RigFormat",
+    "BoneMap",
+    "Retarget",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
@@ -878,6 +883,13 @@ class Model:
         return Session(self, frames, steps, sampler, eta, guidance, seed, threads, respacing,
                        looped=looped)
 
+    def retarget(self, rig: "Rig", map: Optional["BoneMap"] = None, feet: bool = True,
+                 hands: bool = False, convention: int = Convention.NATIVE) -> "Retarget":
+        """A Retarget of this model's poses onto `rig` (flame_retarget_new): `map` None = the
+        automatic bone map; `feet` / `hands` two-bone IK on the legs / arms; `convention` of
+        the poses read (NATIVE = the rig's own)."""
+        return Retarget(self, rig, map, feet, hands, convention)
+
     def close(self) -> None:
         handle, self._handle = self._handle, None
         if handle is not None:
@@ -1672,3 +1684,7 @@ class Session:
             self.close()
         except Exception:
             pass
+
+
+# Retargeting lives in its own module; imported last, as it builds on the names above.
+from .retarget import BoneMap, Retarget, Rig, RigBone, RigFormat  # noqa: E402
