@@ -1038,6 +1038,238 @@ private:
     FlameStream* handle_ = nullptr;
 };
 
+// ---- retargeting -----------------------------------------------------------------------------
+
+// One bone of Rig::from_bones: its rest transform relative to its parent (T·R·S) in the rig's
+// convention; `parent` -1 for a root; rotation x, y, z, w.
+struct RigBone {
+    std::string name;
+    int32_t parent = -1;
+    float translation[3] = {0, 0, 0};
+    float rotation[4] = {0, 0, 0, 1};
+    float scale[3] = {1, 1, 1};
+};
+
+// The user's skeleton; immutable, shareable by threads; move-only owner of a FlameRig.
+class Rig {
+public:
+    Rig() noexcept = default;
+    explicit Rig(FlameRig* owned) noexcept : handle_(owned) {}
+
+    // A rig from a file's bytes: `kind` FLAME_RIG_FORMAT_GUESS/GLTF/BVH, `skin` a glTF skin's
+    // name ("" = the only one, or a VRM file's humanoid one).
+    static Rig load(const void* bytes, std::size_t len, uint32_t kind = FLAME_RIG_FORMAT_GUESS,
+                    const std::string& skin = "") {
+        FlameRig* h = nullptr;
+        const char* s = skin.empty() ? nullptr : detail::c_text(skin, "skin");
+        detail::check(flame_rig_load(static_cast<const uint8_t*>(bytes), len, kind, s, &h));
+        return Rig(h);
+    }
+    static Rig load(const std::vector<uint8_t>& bytes, uint32_t kind = FLAME_RIG_FORMAT_GUESS,
+                    const std::string& skin = "") {
+        return load(bytes.data(), bytes.size(), kind, skin);
+    }
+
+    // A rig from bones an engine holds, in `convention` (FLAME_CONVENTION_UNITY, _UNREAL with
+    // centimetres, ...; not native): carried into right-handed glTF axes so a left-handed rig
+    // is not driven mirrored; poses come back in `convention`, bones in the given order.
+    static Rig from_bones(const std::vector<RigBone>& bones, FlameConvention convention) {
+        std::vector<FlameRigBone> c(bones.size());
+        for (std::size_t i = 0; i < bones.size(); ++i) {
+            FlameRigBone& b = c[i];
+            b.struct_size = sizeof(FlameRigBone);
+            b.parent = bones[i].parent;
+            b.name = detail::c_text(bones[i].name, "name");
+            for (int k = 0; k < 3; ++k) {
+                b.translation[k] = bones[i].translation[k];
+                b.scale[k] = bones[i].scale[k];
+            }
+            for (int k = 0; k < 4; ++k) {
+                b.rotation[k] = bones[i].rotation[k];
+            }
+        }
+        FlameRig* h = nullptr;
+        detail::check(flame_rig_from_bones(c.data(), c.size(), convention, &h));
+        return Rig(h);
+    }
+
+    Rig(const Rig&) = delete;
+    Rig& operator=(const Rig&) = delete;
+    Rig(Rig&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    Rig& operator=(Rig&& o) noexcept {
+        if (this != &o) {
+            flame_rig_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    ~Rig() { flame_rig_free(handle_); }
+
+    std::size_t bone_count() const {
+        std::size_t n = 0;
+        detail::check(flame_rig_bone_count(handle_, &n));
+        return n;
+    }
+    std::string bone_name(std::size_t bone) const {
+        const char* name = nullptr;
+        detail::check(flame_rig_bone_name(handle_, bone, &name));
+        return name;
+    }
+    int32_t bone_parent(std::size_t bone) const {
+        int32_t p = -1;
+        detail::check(flame_rig_bone_parent(handle_, bone, &p));
+        return p;
+    }
+
+    const FlameRig* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    FlameRig* handle_ = nullptr;
+};
+
+// Which bone of a rig is which humanoid bone; only for the rig it was made for.
+class BoneMap {
+public:
+    BoneMap() noexcept = default;
+    explicit BoneMap(FlameBoneMap* owned) noexcept : handle_(owned) {}
+
+    static BoneMap automatic(const Rig& rig) {
+        FlameBoneMap* h = nullptr;
+        detail::check(flame_bone_map_auto(rig.get(), &h));
+        return BoneMap(h);
+    }
+    // {"hips": "pelvis", "leftHand": "hand_l", ...} over `base` (NULL: over nothing).
+    static BoneMap from_json(const Rig& rig, const std::string& json,
+                             const BoneMap* base = nullptr) {
+        FlameBoneMap* h = nullptr;
+        detail::check(flame_bone_map_from_json(rig.get(), detail::c_text(json, "json"),
+                                               base ? base->get() : nullptr, &h));
+        return BoneMap(h);
+    }
+    std::string to_json(const Rig& rig) const {
+        std::size_t n = 0;
+        detail::check(flame_bone_map_to_json(handle_, rig.get(), nullptr, 0, &n));
+        std::string out(n, '\0');
+        detail::check(flame_bone_map_to_json(handle_, rig.get(), &out[0], n, &n));
+        out.resize(n ? n - 1 : 0);  // without the terminating NUL
+        return out;
+    }
+
+    BoneMap(const BoneMap&) = delete;
+    BoneMap& operator=(const BoneMap&) = delete;
+    BoneMap(BoneMap&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    BoneMap& operator=(BoneMap&& o) noexcept {
+        if (this != &o) {
+            flame_bone_map_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    ~BoneMap() { flame_bone_map_free(handle_); }
+
+    const FlameBoneMap* get() const noexcept { return handle_; }
+
+private:
+    FlameBoneMap* handle_ = nullptr;
+};
+
+// Options of Retarget (flame_retarget_params_default's: the rig's own convention, feet IK on,
+// hands off, the automatic map).
+struct RetargetParams : FlameRetargetParams {
+    RetargetParams() : FlameRetargetParams() { detail::check(flame_retarget_params_default(this)); }
+};
+
+// Retargeted poses: `frames` × `bones` local rotations (x, y, z, w) and translations.
+struct RigPoses {
+    std::size_t frames = 0;
+    std::size_t bones = 0;
+    std::vector<float> rotations;     // [frames][bones][4]
+    std::vector<float> translations;  // [frames][bones][3]
+};
+
+// A model's poses onto a rig; shareable by threads (calls run one after another). The rig and
+// map are copied: either may go once this is made.
+class Retarget {
+public:
+    Retarget() noexcept = default;
+    Retarget(const Model& model, const Rig& rig, const RetargetParams& params = RetargetParams()) {
+        detail::check(flame_retarget_new(model.get(), rig.get(), &params, &handle_));
+    }
+
+    Retarget(const Retarget&) = delete;
+    Retarget& operator=(const Retarget&) = delete;
+    Retarget(Retarget&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    Retarget& operator=(Retarget&& o) noexcept {
+        if (this != &o) {
+            flame_retarget_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    ~Retarget() { flame_retarget_free(handle_); }
+
+    std::size_t bone_count() const {
+        std::size_t n = 0;
+        detail::check(flame_retarget_bone_count(handle_, &n));
+        return n;
+    }
+
+    // Frames first..first+count of the session's motion as Session::read_cleaned gives it
+    // (cleanup NULL = raw), on the rig; count SIZE_MAX = to the end.
+    RigPoses read(const Session& session, std::size_t first = 0, std::size_t count = SIZE_MAX,
+                  const FlameCleanupParams* cleanup = nullptr,
+                  FlameWhich which = FLAME_WHICH_SAMPLE, uint32_t flags = 0) const {
+        if (count == SIZE_MAX) {
+            std::size_t frames = 0;
+            detail::check(flame_retarget_read(handle_, session.get(), which, flags, cleanup, 0, 0,
+                                              nullptr, 0, nullptr, 0, &frames));
+            count = frames > first ? frames - first : 0;
+        }
+        RigPoses p = empty(count);
+        detail::check(flame_retarget_read(handle_, session.get(), which, flags, cleanup, first,
+                                          count, p.rotations.data(), p.rotations.size(),
+                                          p.translations.data(), p.translations.size(),
+                                          nullptr));
+        return p;
+    }
+
+    // Timeline frames of a stream as Stream::read_cleaned gives them, on the rig.
+    RigPoses read_stream(const Stream& stream, uint64_t first, uint32_t count,
+                         const FlameCleanupParams* cleanup = nullptr) const {
+        RigPoses p = empty(count);
+        detail::check(flame_retarget_read_stream(handle_, stream.get(), first, count, cleanup,
+                                                 p.rotations.data(), p.rotations.size(),
+                                                 p.translations.data(), p.translations.size()));
+        return p;
+    }
+
+    // One frame from any source: world rotations [joints][4] and positions [joints][3] of the
+    // model's skeleton, glTF axes, metres.
+    RigPoses pose(const std::vector<float>& world, const std::vector<float>& positions) const {
+        RigPoses p = empty(1);
+        detail::check(flame_retarget_pose(handle_, world.data(), world.size(), positions.data(),
+                                          positions.size(), p.rotations.data(),
+                                          p.rotations.size(), p.translations.data(),
+                                          p.translations.size()));
+        return p;
+    }
+
+    const FlameRetarget* get() const noexcept { return handle_; }
+
+private:
+    RigPoses empty(std::size_t frames) const {
+        RigPoses p;
+        p.frames = frames;
+        p.bones = bone_count();
+        p.rotations.resize(frames * p.bones * 4);
+        p.translations.resize(frames * p.bones * 3);
+        return p;
+    }
+
+    FlameRetarget* handle_ = nullptr;
+};
+
 inline Session Model::session(const SessionParams& params) const {
     return Session(*this, params);
 }
