@@ -799,6 +799,64 @@ namespace Flame
         public void Dispose() { Handle.Dispose(); }
     }
 
+    /// <summary>kind of FlameRig.Load (FLAME_RIG_FORMAT_*): which reader takes the file's bytes.</summary>
+    public static class FlameRigFormat
+    {
+        /// <summary>Told from the bytes: GLB magic "glTF", a JSON object, or BVH's HIERARCHY.</summary>
+        public const uint Guess = 0;
+        /// <summary>glTF 2.0 (.glb, or .gltf with its buffers as data URIs), VRM 0.x and 1.0 included.</summary>
+        public const uint Gltf = 1;
+        /// <summary>A BVH file's hierarchy (its MOTION section is not read).</summary>
+        public const uint Bvh = 2;
+    }
+
+    /// <summary>Mirror of the C struct FlameRigBone: one bone of flame_rig_from_bones, its rest
+    /// transform relative to its parent (T · R · S: Unity's localPosition, localRotation,
+    /// localScale; Unreal's reference pose) in the convention the call names. The C struct's
+    /// arrays translation[3], rotation[4] (x, y, z, w) and scale[3] are single floats here, so
+    /// the struct stays blittable and an array of them crosses without copying: a uint and an
+    /// int, a pointer, then ten floats (56 bytes on 64-bit targets, 52 on 32-bit). Use
+    /// FlameRig.FromBones with RigBone values, which fills it and pins the names.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameRigBone
+    {
+        public uint struct_size;
+        /// <summary>Index of the parent in the same array (any order), -1 for a root.</summary>
+        public int parent;
+        /// <summary>A unique NUL-terminated UTF-8 name, read only during the call.</summary>
+        public IntPtr name;
+        public float translation_x, translation_y, translation_z;
+        public float rotation_x, rotation_y, rotation_z, rotation_w;
+        public float scale_x, scale_y, scale_z;
+    }
+
+    /// <summary>Mirror of the C struct FlameRetargetParams: how FlameRetarget.Create drives a
+    /// rig. Four 32-bit fields then a pointer (24 bytes on 64-bit targets, 20 on 32-bit). Start
+    /// from Default(): the rig's own convention, feet IK on, hands IK off, the automatic bone
+    /// map; set the map through FlameRetarget.Create(..., map).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameRetargetParams
+    {
+        public uint struct_size;
+        /// <summary>A FlameConvention value for the poses read: Native (0) = the rig's own (the
+        /// engine's convention for FromBones, glTF axes in metres for a glTF/VRM file).</summary>
+        public int convention;
+        /// <summary>1: two-bone IK on the legs puts each ankle where the source's is (a rig of
+        /// other proportions keeps planted feet planted).</summary>
+        public uint feet;
+        /// <summary>1: the same on the arms, for the wrists.</summary>
+        public uint hands;
+        /// <summary>A FlameBoneMap*, or IntPtr.Zero for the automatic map.</summary>
+        public IntPtr map;
+
+        public static FlameRetargetParams Default()
+        {
+            FlameRetargetParams p;
+            FlameException.Check(FlameNative.flame_retarget_params_default(out p));
+            return p;
+        }
+    }
+
     /// <summary>Every function of include/flame.h. Status-returning functions return the raw
     /// status; wrap them in FlameException.Check right away (the message is per thread and valid
     /// only until the next libflame call on it).</summary>
@@ -1017,6 +1075,92 @@ namespace Flame
         /// <summary>Frames a flame_session_read of which returns now.</summary>
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_read_frames(FlameSessionHandle session, int which, out uint frames);
+
+        // --- retargeting onto a user's rig (flame_rig_*, flame_bone_map_*, flame_retarget_*) ---
+
+        /// <param name="skin">NUL-terminated UTF-8 glTF skin name, or null for the file's only one.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_rig_load(byte[] bytes, UIntPtr len, uint kind, byte[] skin, out FlameRigHandle rig);
+
+        /// <param name="bones">count bones whose names stay valid (pinned) for the call.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_rig_from_bones([In] FlameRigBone[] bones, UIntPtr count, int convention, out FlameRigHandle rig);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_rig_free(IntPtr rig);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_rig_bone_count(FlameRigHandle rig, out UIntPtr count);
+
+        /// <param name="name">receives a NUL-terminated UTF-8 name owned by the rig.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_rig_bone_name(FlameRigHandle rig, UIntPtr bone, out IntPtr name);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_rig_bone_parent(FlameRigHandle rig, UIntPtr bone, out int parent);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_bone_map_auto(FlameRigHandle rig, out FlameBoneMapHandle map);
+
+        /// <param name="json">NUL-terminated UTF-8.</param>
+        /// <param name="baseMap">a map of the same rig under the JSON's keys, or IntPtr.Zero.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_bone_map_from_json(FlameRigHandle rig, byte[] json, IntPtr baseMap, out FlameBoneMapHandle map);
+
+        /// <param name="buf">null to query the size (the NUL included) into len.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_bone_map_to_json(FlameBoneMapHandle map, FlameRigHandle rig, [Out] byte[] buf, UIntPtr cap, out UIntPtr len);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_bone_map_free(IntPtr map);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_params_default(out FlameRetargetParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_new(FlameModelHandle model, FlameRigHandle rig, ref FlameRetargetParams p, out FlameRetargetHandle retarget);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_retarget_free(IntPtr retarget);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_bone_count(FlameRetargetHandle retarget, out UIntPtr count);
+
+        /// <param name="rotations">null when not wanted; count × bones × 4 floats otherwise.</param>
+        /// <param name="translations">null when not wanted; count × bones × 3 floats otherwise.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_read(FlameRetargetHandle retarget, FlameSessionHandle session, int which, uint flags,
+                                                             ref FlameCleanupParams cleanup, UIntPtr first, UIntPtr count,
+                                                             [Out] float[] rotations, UIntPtr rotationsLen,
+                                                             [Out] float[] translations, UIntPtr translationsLen, out UIntPtr frames);
+
+        /// <summary>The same with a NULL cleanup (IntPtr.Zero): the raw poses.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_read(FlameRetargetHandle retarget, FlameSessionHandle session, int which, uint flags,
+                                                             IntPtr cleanup, UIntPtr first, UIntPtr count,
+                                                             [Out] float[] rotations, UIntPtr rotationsLen,
+                                                             [Out] float[] translations, UIntPtr translationsLen, out UIntPtr frames);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_read_stream(FlameRetargetHandle retarget, FlameStreamHandle stream, ulong firstFrame, uint count,
+                                                                    ref FlameCleanupParams cleanup,
+                                                                    [Out] float[] rotations, UIntPtr rotationsLen,
+                                                                    [Out] float[] translations, UIntPtr translationsLen);
+
+        /// <summary>The same with a NULL cleanup: the stream's raw frames.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_read_stream(FlameRetargetHandle retarget, FlameStreamHandle stream, ulong firstFrame, uint count,
+                                                                    IntPtr cleanup,
+                                                                    [Out] float[] rotations, UIntPtr rotationsLen,
+                                                                    [Out] float[] translations, UIntPtr translationsLen);
+
+        /// <param name="sourceWorld">joints × 4 world quaternions x, y, z, w (glTF axes).</param>
+        /// <param name="sourcePositions">joints × 3 joint positions (glTF axes, metres).</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_retarget_pose(FlameRetargetHandle retarget, float[] sourceWorld, UIntPtr sourceWorldLen,
+                                                             float[] sourcePositions, UIntPtr sourcePositionsLen,
+                                                             [Out] float[] rotations, UIntPtr rotationsLen,
+                                                             [Out] float[] translations, UIntPtr translationsLen);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern IntPtr flame_last_error();
@@ -1809,6 +1953,407 @@ namespace Flame
         {
             Handle.Dispose();
         }
+    }
+
+    // --- retargeting onto a user's rig ---------------------------------------------------------
+
+    /// <summary>Owns a FlameRig*; releasing it calls flame_rig_free.</summary>
+    public sealed class FlameRigHandle : SafeHandle
+    {
+        public FlameRigHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_rig_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameBoneMap*; releasing it calls flame_bone_map_free.</summary>
+    public sealed class FlameBoneMapHandle : SafeHandle
+    {
+        public FlameBoneMapHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_bone_map_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameRetarget*; releasing it calls flame_retarget_free.</summary>
+    public sealed class FlameRetargetHandle : SafeHandle
+    {
+        public FlameRetargetHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_retarget_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>One bone of FlameRig.FromBones: its name, parent (an index of the same list, -1
+    /// for a root) and rest transform relative to the parent in the call's convention: what
+    /// Unity's Transform.localPosition, localRotation (x, y, z, w) and localScale hold, or an
+    /// Unreal reference pose FTransform. Null Translation, Rotation or Scale mean zero, identity
+    /// and one.</summary>
+    public sealed class RigBone
+    {
+        public string Name;
+        public int Parent = -1;
+        /// <summary>3 floats, or null.</summary>
+        public float[] Translation;
+        /// <summary>4 floats, quaternion x, y, z, w (normalised by libflame), or null.</summary>
+        public float[] Rotation;
+        /// <summary>3 floats, or null.</summary>
+        public float[] Scale;
+
+        public RigBone() { }
+
+        public RigBone(string name, int parent, float[] translation, float[] rotation = null, float[] scale = null)
+        {
+            Name = name;
+            Parent = parent;
+            Translation = translation;
+            Rotation = rotation;
+            Scale = scale;
+        }
+    }
+
+    /// <summary>A user's character skeleton (flame_rig_*): bone names, parents and rest pose,
+    /// read from a glTF/GLB/VRM or BVH file, or given as an engine's bones (FromBones).
+    /// Immutable: any number of threads and retargets may share it. Bones are numbered as
+    /// BoneNames lists them: for FromBones in the order given, for a file parents first.</summary>
+    public sealed class FlameRig : IDisposable
+    {
+        public FlameRigHandle Handle { get; private set; }
+        /// <summary>Copied at creation.</summary>
+        public string[] BoneNames { get; private set; }
+        /// <summary>Each bone's parent, -1 for a root; copied at creation.</summary>
+        public int[] BoneParents { get; private set; }
+        public int BoneCount { get { return BoneNames.Length; } }
+
+        FlameRig(FlameRigHandle handle)
+        {
+            Handle = handle;
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_rig_bone_count(handle, out n));
+            BoneNames = new string[(int)n];
+            BoneParents = new int[(int)n];
+            for (int i = 0; i < BoneNames.Length; i++)
+            {
+                IntPtr name;
+                FlameException.Check(FlameNative.flame_rig_bone_name(handle, (UIntPtr)i, out name));
+                BoneNames[i] = FlameNative.Utf8(name);
+                int parent;
+                FlameException.Check(FlameNative.flame_rig_bone_parent(handle, (UIntPtr)i, out parent));
+                BoneParents[i] = parent;
+            }
+        }
+
+        /// <summary>A rig from a file's bytes (a TextAsset's, File.ReadAllBytes'): kind a
+        /// FlameRigFormat value, skin the glTF skin's name (null: the file's only skin, or a VRM
+        /// file's humanoid one; null for BVH). Throws with InvalidArgument naming the node, bone
+        /// or line for a malformed file.</summary>
+        public static FlameRig Load(byte[] bytes, uint kind = FlameRigFormat.Guess, string skin = null)
+        {
+            if (bytes == null)
+                throw new ArgumentNullException("bytes");
+            FlameRigHandle h;
+            FlameException.Check(FlameNative.flame_rig_load(bytes, (UIntPtr)bytes.Length, kind, FlameNative.Utf8Z(skin), out h));
+            return new FlameRig(h);
+        }
+
+        /// <summary>A rig from the bones an engine holds, their rest transforms in convention
+        /// (a FlameConvention value: Unity for Transforms, Unreal for a reference skeleton).
+        /// libflame carries them into right-handed axes itself, and retargeted poses come back
+        /// in convention, bones in the order given. Throws with InvalidArgument naming the bone
+        /// for a missing or repeated name, a parent out of range or a cycle, a zero quaternion,
+        /// a zero scale; with ArgumentException for a Translation, Rotation or Scale of the
+        /// wrong length.</summary>
+        public static FlameRig FromBones(IList<RigBone> bones, int convention)
+        {
+            if (bones == null)
+                throw new ArgumentNullException("bones");
+            var raw = new FlameRigBone[bones.Count];
+            var pins = new List<GCHandle>();
+            try
+            {
+                for (int i = 0; i < raw.Length; i++)
+                    raw[i] = NativeBone(bones[i], "bones[" + i + "]", pins);
+                FlameRigHandle h;
+                FlameException.Check(FlameNative.flame_rig_from_bones(raw, (UIntPtr)raw.Length, convention, out h));
+                return new FlameRig(h);
+            }
+            finally
+            {
+                foreach (var pin in pins)
+                    pin.Free();
+            }
+        }
+
+        static FlameRigBone NativeBone(RigBone b, string name, List<GCHandle> pins)
+        {
+            if (b == null)
+                throw new ArgumentNullException(name);
+            var t = Values(b.Translation, 3, 0f, name + ".Translation");
+            var r = b.Rotation == null ? new float[] { 0, 0, 0, 1 } : Values(b.Rotation, 4, 0f, name + ".Rotation");
+            var s = Values(b.Scale, 3, 1f, name + ".Scale");
+            var raw = new FlameRigBone
+            {
+                struct_size = (uint)Marshal.SizeOf(typeof(FlameRigBone)),
+                parent = b.Parent,
+                translation_x = t[0], translation_y = t[1], translation_z = t[2],
+                rotation_x = r[0], rotation_y = r[1], rotation_z = r[2], rotation_w = r[3],
+                scale_x = s[0], scale_y = s[1], scale_z = s[2],
+            };
+            // A null name stays NULL: libflame refuses it by the bone's index.
+            if (b.Name != null)
+            {
+                if (b.Name.IndexOf('\0') >= 0)
+                    throw new ArgumentException(name + ".Name contains a NUL character", name);
+                var pin = GCHandle.Alloc(FlameNative.Utf8Z(b.Name), GCHandleType.Pinned);
+                pins.Add(pin);
+                raw.name = pin.AddrOfPinnedObject();
+            }
+            return raw;
+        }
+
+        static float[] Values(float[] v, int n, float fill, string name)
+        {
+            if (v == null)
+                return new float[] { fill, fill, fill, fill };
+            if (v.Length != n)
+                throw new ArgumentException(name + " has " + v.Length + " values, expected " + n, name);
+            return v;
+        }
+
+        /// <summary>The index of the bone named name, or -1.</summary>
+        public int BoneIndex(string name)
+        {
+            return Array.IndexOf(BoneNames, name);
+        }
+
+        public void Dispose() { Handle.Dispose(); }
+    }
+
+    /// <summary>Which bone of a rig is which VRM 1.0 humanoid bone (hips, spine, leftUpperArm...):
+    /// automatic (Auto: a VRM file's declared map, else the bone names of Mixamo, Unreal, Unity,
+    /// Rigify, Character Creator...) or given as JSON (FromJson). Immutable; usable only with the
+    /// rig it was made for.</summary>
+    public sealed class FlameBoneMap : IDisposable
+    {
+        public FlameBoneMapHandle Handle { get; private set; }
+        /// <summary>The rig the map names bones of.</summary>
+        public FlameRig Rig { get; private set; }
+
+        FlameBoneMap(FlameBoneMapHandle handle, FlameRig rig)
+        {
+            Handle = handle;
+            Rig = rig;
+        }
+
+        /// <summary>The automatic map: bones it cannot find stay unmapped (ToJson shows them as
+        /// null; FlameRetarget.Create then names the required ones missing).</summary>
+        public static FlameBoneMap Auto(FlameRig rig)
+        {
+            if (rig == null)
+                throw new ArgumentNullException("rig");
+            FlameBoneMapHandle h;
+            FlameException.Check(FlameNative.flame_bone_map_auto(rig.Handle, out h));
+            return new FlameBoneMap(h, rig);
+        }
+
+        /// <summary>A map from JSON, {"hips": "pelvis", "leftHand": "hand_l", ...} (VRM humanBone
+        /// names as keys, any case; rig bone names or null as values), over baseMap's entries
+        /// (null: over nothing). Throws with InvalidArgument naming the key or bone: invalid
+        /// JSON, an unknown key, a bone the rig lacks (with the nearest names), one bone for two
+        /// keys, a map contradicting the hierarchy, a baseMap of another rig.</summary>
+        public static FlameBoneMap FromJson(FlameRig rig, string json, FlameBoneMap baseMap = null)
+        {
+            if (rig == null)
+                throw new ArgumentNullException("rig");
+            if (json == null)
+                throw new ArgumentNullException("json");
+            bool added = false;
+            try
+            {
+                IntPtr b = IntPtr.Zero;
+                if (baseMap != null)
+                {
+                    // The raw pointer crosses inside no SafeHandle parameter: keep it alive by hand.
+                    baseMap.Handle.DangerousAddRef(ref added);
+                    b = baseMap.Handle.DangerousGetHandle();
+                }
+                FlameBoneMapHandle h;
+                FlameException.Check(FlameNative.flame_bone_map_from_json(rig.Handle, FlameNative.Utf8Z(json), b, out h));
+                return new FlameBoneMap(h, rig);
+            }
+            finally
+            {
+                if (added)
+                    baseMap.Handle.DangerousRelease();
+            }
+        }
+
+        /// <summary>The map as JSON: every humanoid bone libflame drives, null when unmapped
+        /// (what FromJson reads back).</summary>
+        public string ToJson()
+        {
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_bone_map_to_json(Handle, Rig.Handle, null, UIntPtr.Zero, out n));
+            var bytes = new byte[(int)n];
+            FlameException.Check(FlameNative.flame_bone_map_to_json(Handle, Rig.Handle, bytes, (UIntPtr)bytes.Length, out n));
+            return Encoding.UTF8.GetString(bytes, 0, Math.Max(0, (int)n - 1));   // without the NUL
+        }
+
+        public void Dispose() { Handle.Dispose(); }
+    }
+
+    /// <summary>A model's poses put onto a rig (flame_retarget_*): per frame and bone the local
+    /// rotation (x, y, z, w, rest included: set it as the bone's local rotation) and the
+    /// translation relative to the parent, in the rig's convention (FromBones': the engine's).
+    /// The rig and map are copied: they may be disposed after Create. Shareable between threads
+    /// (calls on one retarget run one after another). Reads write into the caller's arrays and
+    /// allocate nothing.</summary>
+    public sealed class FlameRetarget : IDisposable
+    {
+        public FlameRetargetHandle Handle { get; private set; }
+        /// <summary>Bones per pose: the rig's, in its order.</summary>
+        public int BoneCount { get; private set; }
+
+        FlameRetarget(FlameRetargetHandle handle)
+        {
+            Handle = handle;
+            UIntPtr n;
+            FlameException.Check(FlameNative.flame_retarget_bone_count(handle, out n));
+            BoneCount = (int)n;
+        }
+
+        /// <summary>A retarget of model's poses onto rig through map (null: the automatic map)
+        /// with p (null: FlameRetargetParams.Default(); its map field is set from map). Throws
+        /// with InvalidArgument listing the required humanoid bones the map lacks (hips, spine,
+        /// head, arms, legs, hands, feet), for a map of another rig, a zero-length mapped
+        /// bone.</summary>
+        public static FlameRetarget Create(FlameModel model, FlameRig rig, FlameBoneMap map = null, FlameRetargetParams? p = null)
+        {
+            if (model == null)
+                throw new ArgumentNullException("model");
+            if (rig == null)
+                throw new ArgumentNullException("rig");
+            var q = p ?? FlameRetargetParams.Default();
+            q.struct_size = (uint)Marshal.SizeOf(typeof(FlameRetargetParams));
+            q.map = IntPtr.Zero;
+            bool added = false;
+            try
+            {
+                if (map != null)
+                {
+                    map.Handle.DangerousAddRef(ref added);
+                    q.map = map.Handle.DangerousGetHandle();
+                }
+                FlameRetargetHandle h;
+                FlameException.Check(FlameNative.flame_retarget_new(model.Handle, rig.Handle, ref q, out h));
+                return new FlameRetarget(h);
+            }
+            finally
+            {
+                if (added)
+                    map.Handle.DangerousRelease();
+            }
+        }
+
+        /// <summary>Frames a Read of session with these settings has (a cleanup's fps changes
+        /// it): size the arrays as frames × BoneCount × 4 (rotations) and × 3 (translations).</summary>
+        public int Frames(FlameSession session, FlameWhich which = FlameWhich.Sample, uint flags = 0, FlameCleanupParams? cleanup = null)
+        {
+            return Read(session, 0, 0, null, null, which, flags, cleanup);
+        }
+
+        /// <summary>Frames first..first + count of the session's motion, read as
+        /// FlameSession.Read(which, ..., flags, cleanup) reads it (null cleanup: the raw poses),
+        /// put onto the rig: rotations[count × BoneCount × 4], translations[count × BoneCount ×
+        /// 3], either null when not wanted, frame-major. Returns the frames the read has.
+        /// Throws with BufferTooSmall for a short array, InvalidArgument for a range past the
+        /// frames or a session of a model of another skeleton, WrongState before the first
+        /// step.</summary>
+        public int Read(FlameSession session, int first, int count, float[] rotations, float[] translations,
+                        FlameWhich which = FlameWhich.Sample, uint flags = 0, FlameCleanupParams? cleanup = null)
+        {
+            if (session == null)
+                throw new ArgumentNullException("session");
+            CheckRange(first, count);
+            UIntPtr frames;
+            var rl = Len(rotations);
+            var tl = Len(translations);
+            if (cleanup.HasValue)
+            {
+                var c = cleanup.Value;
+                FlameException.Check(FlameNative.flame_retarget_read(Handle, session.Handle, (int)which, flags, ref c, (UIntPtr)first, (UIntPtr)count,
+                                                                     rotations, rl, translations, tl, out frames));
+            }
+            else
+            {
+                FlameException.Check(FlameNative.flame_retarget_read(Handle, session.Handle, (int)which, flags, IntPtr.Zero, (UIntPtr)first,
+                                                                     (UIntPtr)count, rotations, rl, translations, tl, out frames));
+            }
+            return (int)frames;
+        }
+
+        /// <summary>Timeline frames firstFrame..firstFrame + count of a stream, read as
+        /// FlameStream.Read (null cleanup: raw) or Read(..., cleanup) reads them, put onto the
+        /// rig; arrays as Read. Frames not generated (or settled) yet throw with WrongState
+        /// (pump more), dropped ones with InvalidArgument.</summary>
+        public void ReadStream(FlameStream stream, ulong firstFrame, int count, float[] rotations, float[] translations,
+                               FlameCleanupParams? cleanup = null)
+        {
+            if (stream == null)
+                throw new ArgumentNullException("stream");
+            CheckRange(0, count);
+            if (cleanup.HasValue)
+            {
+                var c = cleanup.Value;
+                FlameException.Check(FlameNative.flame_retarget_read_stream(Handle, stream.Handle, firstFrame, (uint)count, ref c,
+                                                                            rotations, Len(rotations), translations, Len(translations)));
+            }
+            else
+            {
+                FlameException.Check(FlameNative.flame_retarget_read_stream(Handle, stream.Handle, firstFrame, (uint)count, IntPtr.Zero,
+                                                                            rotations, Len(rotations), translations, Len(translations)));
+            }
+        }
+
+        /// <summary>One pose from any source: sourceWorld[joints × 4] the model skeleton's world
+        /// rotations (x, y, z, w) and sourcePositions[joints × 3] its joint positions, both in
+        /// FlameConvention.Gltf (a read of FlameLayout.GlobalQuatXyzw and GlobalPositions in
+        /// it), into rotations[BoneCount × 4] and translations[BoneCount × 3] (either may be
+        /// null).</summary>
+        public void Pose(float[] sourceWorld, float[] sourcePositions, float[] rotations, float[] translations)
+        {
+            if (sourceWorld == null)
+                throw new ArgumentNullException("sourceWorld");
+            if (sourcePositions == null)
+                throw new ArgumentNullException("sourcePositions");
+            FlameException.Check(FlameNative.flame_retarget_pose(Handle, sourceWorld, (UIntPtr)sourceWorld.Length, sourcePositions,
+                                                                 (UIntPtr)sourcePositions.Length, rotations, Len(rotations),
+                                                                 translations, Len(translations)));
+        }
+
+        static UIntPtr Len(float[] a)
+        {
+            return a == null ? UIntPtr.Zero : (UIntPtr)a.Length;
+        }
+
+        static void CheckRange(int first, int count)
+        {
+            if (first < 0)
+                throw new ArgumentOutOfRangeException("first");
+            if (count < 0)
+                throw new ArgumentOutOfRangeException("count");
+        }
+
+        public void Dispose() { Handle.Dispose(); }
     }
 }
 

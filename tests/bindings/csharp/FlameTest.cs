@@ -109,6 +109,13 @@ static class FlameTest
             Run("CleanupErrors", TestCleanupErrors);
             Run("CleanupGltf", TestCleanupGltf);
             Run("TwoThreads", TestTwoThreads);
+            Run("RetargetLayouts", TestRetargetLayouts);
+            Run("RigFromBones", TestRigFromBones);
+            Run("RetargetDirections", TestRetargetDirections);
+            Run("RetargetReads", TestRetargetReads);
+            Run("RetargetStream", TestRetargetStream);
+            Run("RigLoad", TestRigLoad);
+            Run("RetargetErrors", TestRetargetErrors);
             Run("DisposedHandles", TestDisposedHandles);
         }
         Console.WriteLine(passed + " passed, " + failed + " failed");
@@ -276,6 +283,7 @@ static class FlameTest
         CheckValues("FLAME_WEIGHTS_", EnumValues(typeof(FlameWeights)));
         CheckValues("FLAME_TARGET_SCHEDULE_", EnumValues(typeof(FlameTargetSchedule)));
         CheckValues("FLAME_GLTF_CONTAINER_", EnumValues(typeof(FlameGltfContainer)));
+        CheckValues("FLAME_RIG_FORMAT_", ConstValues(typeof(FlameRigFormat)));
         // The cleanup enums are not in the header (no function takes them by type): their
         // values come from the Rust declarations in src/ffi/cleanup.rs.
         string rust = File.ReadAllText(Path.Combine(Path.GetDirectoryName(Path.GetDirectoryName(Path.GetFullPath(headerPath))),
@@ -2582,6 +2590,591 @@ static class FlameTest
             t.Join();
         Check(BitEqual(parallel[0], sequential[0]) && BitEqual(parallel[1], sequential[1]), "two threads = sequential");
         Check(!BitEqual(sequential[0], sequential[1]), "different prompts differ");
+    }
+
+    // --- retargeting (flame_rig_*, flame_bone_map_*, flame_retarget_*) -------------------------
+
+    static string RepoRoot()
+    {
+        return Path.GetDirectoryName(Path.GetDirectoryName(Path.GetFullPath(headerPath)));
+    }
+
+    /// <summary>Quaternion x, y, z, w product a·b (doubles).</summary>
+    static double[] QMul(double[] a, double[] b)
+    {
+        return new[]
+        {
+            a[3] * b[0] + a[0] * b[3] + a[1] * b[2] - a[2] * b[1],
+            a[3] * b[1] - a[0] * b[2] + a[1] * b[3] + a[2] * b[0],
+            a[3] * b[2] + a[0] * b[1] - a[1] * b[0] + a[2] * b[3],
+            a[3] * b[3] - a[0] * b[0] - a[1] * b[1] - a[2] * b[2],
+        };
+    }
+
+    static double[] QConj(double[] q)
+    {
+        return new[] { -q[0], -q[1], -q[2], q[3] };
+    }
+
+    /// <summary>v rotated by the unit quaternion q (q v q*).</summary>
+    static double[] QRotate(double[] q, double[] v)
+    {
+        var r = QMul(QMul(q, new[] { v[0], v[1], v[2], 0 }), QConj(q));
+        return new[] { r[0], r[1], r[2] };
+    }
+
+    static double[] QAxisAngle(double x, double y, double z, double degrees)
+    {
+        double n = Math.Sqrt(x * x + y * y + z * z), h = degrees * Math.PI / 360;
+        return new[] { x / n * Math.Sin(h), y / n * Math.Sin(h), z / n * Math.Sin(h), Math.Cos(h) };
+    }
+
+    static double AngleDeg(double[] a, double[] b)
+    {
+        double dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        double na = Math.Sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]), nb = Math.Sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]);
+        return Math.Acos(Math.Max(-1, Math.Min(1, dot / (na * nb)))) * 180 / Math.PI;
+    }
+
+    static double[] Sub(double[] a, double[] b)
+    {
+        return new[] { a[0] - b[0], a[1] - b[1], a[2] - b[2] };
+    }
+
+    /// <summary>A humanoid in Unity's convention (metres, Y up, facing +Z, its left at -X),
+    /// unlike SMPL: arms in an A-pose (45° down), longer limbs, a root above the hips, a twist
+    /// bone, and a different roll on every bone (rest rotations the retarget must see through).
+    /// Given as world positions and rotations, turned into parent-relative bones here.</summary>
+    static List<RigBone> UnityHumanoid(Func<string, string> rename = null)
+    {
+        double s = Math.Sqrt(0.5);
+        var spec = new List<Tuple<string, string, double[]>>();
+        Action<string, string, double, double, double> add = (name, parent, x, y, z) =>
+            spec.Add(Tuple.Create(name, parent, new[] { x, y, z }));
+        add("Root", null, 0, 0, 0);
+        add("Hips", "Root", 0, 1.0, 0.02);
+        add("Spine", "Hips", 0, 1.1, 0);
+        add("Chest", "Spine", 0, 1.25, -0.01);
+        add("Neck", "Chest", 0, 1.5, 0);
+        add("Head", "Neck", 0, 1.62, 0.02);
+        foreach (var side in new[] { "Left", "Right" })
+        {
+            double m = side == "Left" ? -1 : 1;
+            add(side + "Shoulder", "Chest", m * 0.04, 1.45, 0);
+            add(side + "UpperArm", side + "Shoulder", m * 0.17, 1.45, 0);
+            add(side + "UpperArmTwist", side + "UpperArm", m * (0.17 + 0.15 * s), 1.45 - 0.15 * s, 0);
+            add(side + "LowerArm", side + "UpperArm", m * (0.17 + 0.3 * s), 1.45 - 0.3 * s, 0);
+            add(side + "Hand", side + "LowerArm", m * (0.17 + 0.57 * s), 1.45 - 0.57 * s, 0);
+            add(side + "UpperLeg", "Hips", m * 0.1, 0.94, 0);
+            add(side + "LowerLeg", side + "UpperLeg", m * 0.1, 0.5, 0.01);
+            add(side + "Foot", side + "LowerLeg", m * 0.1, 0.08, 0);
+            add(side + "Toes", side + "Foot", m * 0.1, 0.0, 0.13);
+        }
+        var index = new Dictionary<string, int>();
+        var world = new List<double[]>();
+        for (int i = 0; i < spec.Count; i++)
+        {
+            index[spec[i].Item1] = i;
+            world.Add(QAxisAngle(1 + i % 3, 2 - i % 2, 0.5 * i, 17 * i));   // some roll per bone
+        }
+        var bones = new List<RigBone>();
+        for (int i = 0; i < spec.Count; i++)
+        {
+            int p = spec[i].Item2 == null ? -1 : index[spec[i].Item2];
+            double[] t = spec[i].Item3, r = world[i];
+            if (p >= 0)
+            {
+                var inv = QConj(world[p]);
+                t = QRotate(inv, Sub(spec[i].Item3, spec[p].Item3));
+                r = QMul(inv, world[i]);
+            }
+            string name = rename == null ? spec[i].Item1 : rename(spec[i].Item1);
+            bones.Add(new RigBone(name, p, new[] { (float)t[0], (float)t[1], (float)t[2] },
+                                  new[] { (float)r[0], (float)r[1], (float)r[2], (float)r[3] }));
+        }
+        return bones;
+    }
+
+    /// <summary>World positions (and rotations) of one frame's retargeted pose by forward
+    /// kinematics from the local rotations and translations (the rig's bones list parents
+    /// before children, as UnityHumanoid gives them).</summary>
+    static double[][] Fk(int[] parents, float[] rot, float[] tr, int frame)
+    {
+        int n = parents.Length;
+        var pos = new double[n][];
+        var wrot = new double[n][];
+        for (int b = 0; b < n; b++)
+        {
+            int q = (frame * n + b) * 4, t = (frame * n + b) * 3;
+            var local = new double[] { rot[q], rot[q + 1], rot[q + 2], rot[q + 3] };
+            var offset = new double[] { tr[t], tr[t + 1], tr[t + 2] };
+            int p = parents[b];
+            if (p < 0)
+            {
+                wrot[b] = local;
+                pos[b] = offset;
+            }
+            else
+            {
+                wrot[b] = QMul(wrot[p], local);
+                var o = QRotate(wrot[p], offset);
+                pos[b] = new[] { pos[p][0] + o[0], pos[p][1] + o[1], pos[p][2] + o[2] };
+            }
+        }
+        return pos;
+    }
+
+    /// <summary>The rotation taking the source directions (pair[1]) of two pairs onto their rig
+    /// directions (pair[0]): the triad method, exact for exact data.</summary>
+    static double[][] Triad(double[][] p, double[][] q)
+    {
+        Func<double[], double[], double[][]> frame = (a, b) =>
+        {
+            var t1 = Normalize(a);
+            var t2 = Normalize(Cross(a, b));
+            var t3 = Cross(t1, t2);
+            return new[] { t1, t2, t3 };
+        };
+        var rig = frame(p[0], q[0]);
+        var src = frame(p[1], q[1]);
+        var c = new double[3][];
+        for (int i = 0; i < 3; i++)
+        {
+            c[i] = new double[3];
+            for (int j = 0; j < 3; j++)
+                for (int k = 0; k < 3; k++)
+                    c[i][j] += rig[k][i] * src[k][j];
+        }
+        return c;
+    }
+
+    static double[] Cross(double[] a, double[] b)
+    {
+        return new[] { a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0] };
+    }
+
+    static double[] Normalize(double[] a)
+    {
+        double n = Math.Sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+        return new[] { a[0] / n, a[1] / n, a[2] / n };
+    }
+
+    static double[] MatVec(double[][] m, double[] v)
+    {
+        return new[] { m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2], m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+                       m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2] };
+    }
+
+    // Rig bone → its mapped child, and the SMPL joints they stand for (SMPL's order:
+    // 1/2 hips, 4/5 knees, 7/8 ankles, 10/11 feet, 12 neck, 13/14 collars, 15 head,
+    // 16/17 shoulders, 18/19 elbows, 20/21 wrists).
+    static readonly string[,] LimbPairs =
+    {
+        { "LeftUpperArm", "LeftLowerArm", "16", "18" }, { "LeftLowerArm", "LeftHand", "18", "20" },
+        { "RightUpperArm", "RightLowerArm", "17", "19" }, { "RightLowerArm", "RightHand", "19", "21" },
+        { "LeftUpperLeg", "LeftLowerLeg", "1", "4" }, { "LeftLowerLeg", "LeftFoot", "4", "7" },
+        { "RightUpperLeg", "RightLowerLeg", "2", "5" }, { "RightLowerLeg", "RightFoot", "5", "8" },
+        { "LeftFoot", "LeftToes", "7", "10" }, { "RightFoot", "RightToes", "8", "11" },
+        { "LeftShoulder", "LeftUpperArm", "13", "16" }, { "RightShoulder", "RightUpperArm", "14", "17" },
+        { "Neck", "Head", "12", "15" },
+    };
+
+    static void TestRetargetLayouts()
+    {
+        // FlameRetargetParams: four 32-bit fields then a pointer (C on x86-64: sizeof 24,
+        // offsetof map 16); the library writes its sizeof into struct_size.
+        var p = FlameRetargetParams.Default();
+        Check(p.struct_size == Marshal.SizeOf(typeof(FlameRetargetParams)) && p.struct_size == 16 + IntPtr.Size,
+              "sizeof FlameRetargetParams " + p.struct_size + " vs " + Marshal.SizeOf(typeof(FlameRetargetParams)));
+        Check((int)Marshal.OffsetOf(typeof(FlameRetargetParams), "map") == 16, "offset of FlameRetargetParams.map");
+        Check(p.convention == FlameConvention.Native && p.feet == 1 && p.hands == 0 && p.map == IntPtr.Zero,
+              "retarget defaults: the rig's convention, feet IK on, hands off, the automatic map");
+        // FlameRigBone: uint32, int32, a pointer, float[3], float[4], float[3] (C on x86-64:
+        // sizeof 56, offsetof name 8, translation 16, rotation 28, scale 44).
+        int ptr = IntPtr.Size;
+        Check(Marshal.SizeOf(typeof(FlameRigBone)) == 48 + ptr, "sizeof FlameRigBone " + Marshal.SizeOf(typeof(FlameRigBone)));
+        Check((int)Marshal.OffsetOf(typeof(FlameRigBone), "name") == 8 &&
+              (int)Marshal.OffsetOf(typeof(FlameRigBone), "translation_x") == 8 + ptr &&
+              (int)Marshal.OffsetOf(typeof(FlameRigBone), "rotation_x") == 20 + ptr &&
+              (int)Marshal.OffsetOf(typeof(FlameRigBone), "scale_x") == 36 + ptr, "offsets of FlameRigBone");
+        // libflame checks struct_size against its own sizeof: ours is accepted, one less is not.
+        var name = GCHandle.Alloc(FlameNative.Utf8Z("Hips"), GCHandleType.Pinned);
+        try
+        {
+            var bone = new FlameRigBone { struct_size = (uint)Marshal.SizeOf(typeof(FlameRigBone)), parent = -1, name = name.AddrOfPinnedObject(),
+                                          rotation_w = 1, scale_x = 1, scale_y = 1, scale_z = 1 };
+            FlameRigHandle h;
+            FlameException.Check(FlameNative.flame_rig_from_bones(new[] { bone }, (UIntPtr)1, FlameConvention.Unity, out h));
+            h.Dispose();
+            bone.struct_size -= 1;
+            Throws(FlameStatus.InvalidArgument, "bones[0].struct_size is " + bone.struct_size + ", expected at least " + Marshal.SizeOf(typeof(FlameRigBone)),
+                   () => FlameException.Check(FlameNative.flame_rig_from_bones(new[] { bone }, (UIntPtr)1, FlameConvention.Unity, out h)));
+        }
+        finally
+        {
+            name.Free();
+        }
+    }
+
+    static void TestRigFromBones()
+    {
+        var bones = UnityHumanoid();
+        using (var rig = FlameRig.FromBones(bones, FlameConvention.Unity))
+        {
+            // Bones numbered as given, whatever order libflame keeps them in.
+            Check(rig.BoneCount == bones.Count, "bone count " + rig.BoneCount);
+            bool same = true;
+            for (int i = 0; i < bones.Count; i++)
+                same &= rig.BoneNames[i] == bones[i].Name && rig.BoneParents[i] == bones[i].Parent;
+            Check(same, "names and parents as given");
+            Check(rig.BoneIndex("LeftHand") == bones.FindIndex(b => b.Name == "LeftHand") && rig.BoneIndex("nope") == -1, "BoneIndex");
+            using (var map = FlameBoneMap.Auto(rig))
+            {
+                string json = map.ToJson();
+                // Unity's (and VRM's) names are found; the twist bone and the root are not body bones.
+                foreach (var pair in new[] { "hips\": \"Hips", "leftUpperArm\": \"LeftUpperArm", "rightLowerLeg\": \"RightLowerLeg",
+                                             "leftToes\": \"LeftToes", "upperChest\": null" })
+                    Check(json.Contains("\"" + pair.Replace("\": null", "\": null")), "auto map has " + pair + ": " + json);
+                Check(!json.Contains("Twist") && !json.Contains("\"Root\""), "twist and root unmapped: " + json);
+                // What ToJson writes, FromJson reads back to the same map.
+                using (var again = FlameBoneMap.FromJson(rig, json))
+                    Check(again.ToJson() == json, "JSON round trip");
+                // Keys over a base: only the named bone changes.
+                using (var moved = FlameBoneMap.FromJson(rig, "{\"HEAD\": \"Neck\", \"neck\": null}", map))
+                {
+                    string j2 = moved.ToJson();
+                    Check(j2.Contains("\"head\": \"Neck\"") && j2.Contains("\"neck\": null") && j2.Contains("\"hips\": \"Hips\""),
+                          "FromJson over a base: " + j2);
+                }
+            }
+        }
+        // Parents may come after their children: the same rig, listed backwards.
+        var reversed = new List<RigBone>();
+        for (int i = bones.Count - 1; i >= 0; i--)
+            reversed.Add(new RigBone(bones[i].Name, bones[i].Parent < 0 ? -1 : bones.Count - 1 - bones[i].Parent,
+                                     bones[i].Translation, bones[i].Rotation));
+        using (var rig = FlameRig.FromBones(reversed, FlameConvention.Unity))
+            Check(rig.BoneNames[0] == "RightToes" && rig.BoneParents[0] == bones.Count - 1 - bones.FindIndex(b => b.Name == "RightFoot"),
+                  "children before parents kept in the given order");
+    }
+
+    /// <summary>The reference session after one step: a motion whose rotations are all proper
+    /// (the tiny model's final ones hold degenerate rotations, a random network's saturated 6D
+    /// pairs), read as the sample.</summary>
+    static FlameSession MovingSession()
+    {
+        var s = RefSession();
+        s.Step();
+        return s;
+    }
+
+    /// <summary>The reference generation, finished, and a Unity rig's retarget of it.</summary>
+    static FlameRetarget UnityRetarget(FlameRig rig, bool feet)
+    {
+        var p = FlameRetargetParams.Default();
+        p.feet = feet ? 1u : 0u;
+        return FlameRetarget.Create(model, rig, null, p);
+    }
+
+    static void TestRetargetDirections()
+    {
+        // Independent check: forward kinematics (here, in C#) of the returned local rotations and
+        // translations puts every mapped limb bone along its SMPL joint's direction, as the
+        // session's own joint positions (GlobalPositions, Unity's convention) give it.
+        var bones = UnityHumanoid();
+        using (var rig = FlameRig.FromBones(bones, FlameConvention.Unity))
+        using (var r = UnityRetarget(rig, false))
+        using (var s = MovingSession())
+        {
+            int n = r.BoneCount, frames = r.Frames(s);
+            Check(n == bones.Count && frames == RefFrames, "bones " + n + ", frames " + frames);
+            var rot = new float[frames * n * 4];
+            var tr = new float[frames * n * 3];
+            Check(r.Read(s, 0, frames, rot, tr) == RefFrames, "read returns the frames");
+            var joints = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Unity, 0);
+            // Bone k's direction on the rig and its joints' in the source, frame f.
+            Func<int, int, double[][]> dirs = (f, k) =>
+            {
+                var pos = Fk(rig.BoneParents, rot, tr, f);
+                Func<int, double[]> joint = j => new double[] { joints[(f * 24 + j) * 3], joints[(f * 24 + j) * 3 + 1], joints[(f * 24 + j) * 3 + 2] };
+                return new[]
+                {
+                    Sub(pos[rig.BoneIndex(LimbPairs[k, 1])], pos[rig.BoneIndex(LimbPairs[k, 0])]),
+                    Sub(joint(int.Parse(LimbPairs[k, 3])), joint(int.Parse(LimbPairs[k, 2]))),
+                };
+            };
+            // The rig's up, left and forward are found from its rest (hips to head, right to left
+            // thigh), not assumed equal to SMPL's: one fixed rotation C carries source directions
+            // into the rig's. C from frame 0's left upper arm and left thigh (a triad), then every
+            // bone of every frame must be C times its source bone.
+            var axes = Triad(dirs(0, 0), dirs(0, 4));
+            double cAngle = Math.Acos(Math.Min(1, (axes[0][0] + axes[1][1] + axes[2][2] - 1) / 2)) * 180 / Math.PI;
+            Check(cAngle < 5, "the rig's axes are the source's up to " + cAngle + " deg (a mirrored or turned rig is far off)");
+            var worst = new double[LimbPairs.GetLength(0)];
+            for (int f = 0; f < frames; f++)
+                for (int k = 0; k < worst.Length; k++)
+                {
+                    var d = dirs(f, k);
+                    worst[k] = Math.Max(worst[k], AngleDeg(d[0], MatVec(axes, d[1])));
+                }
+            Check(worst.Max() < 0.01, "bone directions within 0.01 deg of C times the source's over " + frames + " frames: " +
+                  string.Join(", ", Enumerable.Range(0, worst.Length).Select(k => LimbPairs[k, 0] + " " + worst[k].ToString("G3"))));
+            // Bones no source drives keep their rest translation: the root and the twist bone.
+            bool rest = true;
+            foreach (var name in new[] { "Root", "LeftUpperArmTwist", "LeftLowerArm" })
+            {
+                int b = rig.BoneIndex(name);
+                for (int f = 0; f < frames; f++)
+                    for (int c = 0; c < 3; c++)
+                        rest &= Math.Abs(tr[(f * n + b) * 3 + c] - bones[b].Translation[c]) < 1e-6;
+            }
+            Check(rest, "undriven translations at rest");
+            // Local rotations are unit quaternions with w >= 0.
+            bool unit = true;
+            for (int i = 0; i < rot.Length; i += 4)
+            {
+                double len = Math.Sqrt(rot[i] * rot[i] + rot[i + 1] * rot[i + 1] + rot[i + 2] * rot[i + 2] + rot[i + 3] * rot[i + 3]);
+                unit &= Math.Abs(len - 1) < 1e-5 && rot[i + 3] >= 0;
+            }
+            Check(unit, "unit quaternions, w >= 0");
+
+            // Feet IK moves the legs onto the source's placed ankles; the arms are untouched.
+            using (var withFeet = UnityRetarget(rig, true))
+            {
+                var rotFeet = new float[rot.Length];
+                withFeet.Read(s, 0, frames, rotFeet, null);
+                int arm = rig.BoneIndex("LeftLowerArm"), shin = rig.BoneIndex("LeftLowerLeg");
+                bool armSame = true;
+                double shinDiff = 0;
+                for (int f = 0; f < frames; f++)
+                    for (int c = 0; c < 4; c++)
+                    {
+                        armSame &= rot[(f * n + arm) * 4 + c] == rotFeet[(f * n + arm) * 4 + c];
+                        shinDiff = Math.Max(shinDiff, Math.Abs(rot[(f * n + shin) * 4 + c] - rotFeet[(f * n + shin) * 4 + c]));
+                    }
+                Check(armSame && shinDiff > 1e-4, "feet IK changes the legs (" + shinDiff + "), not the arms");
+            }
+        }
+    }
+
+    static void TestRetargetReads()
+    {
+        using (var rig = FlameRig.FromBones(UnityHumanoid(), FlameConvention.Unity))
+        using (var r = UnityRetarget(rig, true))
+        using (var s = MovingSession())
+        {
+            int n = r.BoneCount;
+            var a = new float[RefFrames * n * 4];
+            var b = new float[RefFrames * n * 4];
+            var ta = new float[RefFrames * n * 3];
+            r.Read(s, 0, RefFrames, a, ta);
+            r.Read(s, 0, RefFrames, b, null);
+            Check(BitEqual(a, b), "the same read twice: the same bits");
+            // A range is the same frames' slice of the whole.
+            var part = new float[4 * n * 4];
+            r.Read(s, 5, 4, part, null);
+            Check(BitEqual(part, a.Skip(5 * n * 4).Take(4 * n * 4).ToArray()), "frames 5..9 = the slice of all frames");
+            // Pose(): frame 7 from the source's own world rotations and positions (glTF axes).
+            var world = s.Read(FlameWhich.Sample, FlameLayout.GlobalQuatXyzw, FlameConvention.Gltf, 0);
+            var pos = s.Read(FlameWhich.Sample, FlameLayout.GlobalPositions, FlameConvention.Gltf, 0);
+            var one = new float[n * 4];
+            var oneT = new float[n * 3];
+            r.Pose(world.Skip(7 * 24 * 4).Take(24 * 4).ToArray(), pos.Skip(7 * 24 * 3).Take(24 * 3).ToArray(), one, oneT);
+            double qd = 0, td = 0;
+            for (int i = 0; i < n * 4; i++)
+                qd = Math.Max(qd, Math.Abs(one[i] - a[7 * n * 4 + i]));
+            for (int i = 0; i < n * 3; i++)
+                td = Math.Max(td, Math.Abs(oneT[i] - ta[7 * n * 3 + i]));
+            Check(qd < 1e-5 && td < 1e-5, "Pose(frame 7) = Read's frame 7: " + qd + ", " + td);
+            // A cleanup's frame rate changes the frames: 24 at 20 fps are 35 at 30.
+            var game = FlameCleanupParams.Default();
+            game.fps = 30;
+            Check(r.Frames(s, FlameWhich.Sample, 0, game) == 35, "35 frames at 30 fps");
+            var cleaned = new float[35 * n * 4];
+            Check(r.Read(s, 0, 35, cleaned, null, FlameWhich.Sample, 0, game) == 35, "cleaned read");
+            // The estimate is another motion than the sample (after the last step they agree: reset).
+            Check(!BitEqual(cleaned.Take(RefFrames * n * 4).ToArray(), a), "cleaned poses differ from raw ones");
+            // The retarget holds its own copy of the rig: disposing the rig changes nothing.
+            rig.Dispose();
+            r.Read(s, 0, RefFrames, b, null);
+            Check(BitEqual(a, b), "rig disposed: same poses");
+        }
+    }
+
+    static void TestRetargetStream()
+    {
+        var p = FlameStreamParams.Default();
+        p.chunk = 40; p.overlap = 10; p.steps = 2; p.lookahead = 100000; p.sampler = (int)FlameSampler.Ddim;
+        using (var rig = FlameRig.FromBones(UnityHumanoid(), FlameConvention.Unity))
+        using (var r = UnityRetarget(rig, true))
+        using (var st = FlameStream.Create(model, p))
+        {
+            st.Push("a person walks forward.", 30);
+            while (st.Pump(1).steps > 0) { }
+            int n = r.BoneCount;
+            var rot = new float[30 * n * 4];
+            var tr = new float[30 * n * 3];
+            r.ReadStream(st, 0, 30, rot, tr);
+            // Each frame as Pose() puts the stream's own frame (glTF axes) on the rig.
+            var world = st.Read(0, 30, FlameLayout.GlobalQuatXyzw, FlameConvention.Gltf);
+            var pos = st.Read(0, 30, FlameLayout.GlobalPositions, FlameConvention.Gltf);
+            var one = new float[n * 4];
+            double d = 0;
+            for (int f = 0; f < 30; f += 7)
+            {
+                r.Pose(world.Skip(f * 96).Take(96).ToArray(), pos.Skip(f * 72).Take(72).ToArray(), one, null);
+                for (int i = 0; i < n * 4; i++)
+                    d = Math.Max(d, Math.Abs(one[i] - rot[f * n * 4 + i]));
+            }
+            Check(d < 1e-5, "stream frames = Pose() of the stream's frames: " + d);
+            Throws(FlameStatus.WrongState, "", () => r.ReadStream(st, 25, 10, rot, tr));
+            Throws(FlameStatus.BufferTooSmall, "", () => r.ReadStream(st, 0, 30, new float[10], null));
+        }
+    }
+
+    static void TestRigLoad()
+    {
+        // A BVH hierarchy (cm: the unit is guessed from its size), parents listed first.
+        string bvh = "HIERARCHY\nROOT Hips\n{\n OFFSET 0 100 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n" +
+                     " JOINT Spine\n {\n  OFFSET 0 10 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n" +
+                     "  JOINT Head\n  {\n   OFFSET 0 50 0\n   CHANNELS 3 Zrotation Xrotation Yrotation\n   End Site\n   {\n    OFFSET 0 10 0\n   }\n  }\n }\n" +
+                     " JOINT LeftUpLeg\n {\n  OFFSET 10 -5 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n   End Site\n   {\n    OFFSET 0 -40 0\n   }\n }\n}\n" +
+                     "MOTION\nFrames: 1\nFrame Time: 0.05\n0 100 0 0 0 0 0 0 0 0 0 0 0 0 0\n";
+        using (var rig = FlameRig.Load(Encoding.ASCII.GetBytes(bvh)))
+        {
+            Check(rig.BoneNames.SequenceEqual(new[] { "Hips", "Spine", "Head", "LeftUpLeg" }), "BVH bones: " + string.Join(",", rig.BoneNames));
+            Check(rig.BoneParents.SequenceEqual(new[] { -1, 0, 1, 0 }), "BVH parents: " + string.Join(",", rig.BoneParents));
+            // Too few bones for a body: the retarget names what is missing.
+            Throws(FlameStatus.InvalidArgument, "leftUpperArm", () => FlameRetarget.Create(model, rig).Dispose());
+            // A BVH file's axes are its own: no convention may be asked of it.
+            var p = FlameRetargetParams.Default();
+            p.convention = FlameConvention.Unity;
+            Throws(FlameStatus.InvalidArgument, "BVH", () => FlameRetarget.Create(model, rig, null, p).Dispose());
+        }
+        Throws(FlameStatus.InvalidArgument, "neither glTF", () => FlameRig.Load(Encoding.ASCII.GetBytes("not a rig")));
+        Throws(FlameStatus.InvalidArgument, "", () => FlameRig.Load(Encoding.ASCII.GetBytes("glTF\u0002\0\0\0"), FlameRigFormat.Gltf));
+        Throws(FlameStatus.InvalidArgument, "unknown rig file kind 7", () => FlameRig.Load(Encoding.ASCII.GetBytes(bvh), 7));
+        // The rig files of tests/fixtures/rigs, when present: each loads, maps itself and is driven.
+        string dir = Path.Combine(RepoRoot(), "tests", "fixtures", "rigs");
+        var files = Directory.Exists(dir) ? Directory.GetFiles(dir, "*.glb") : new string[0];
+        Console.WriteLine("  rig fixtures: " + (files.Length == 0 ? "none in " + dir : string.Join(", ", files.Select(Path.GetFileName))));
+        using (var s = MovingSession())
+        {
+            foreach (var file in files)
+            {
+                try
+                {
+                    using (var rig = FlameRig.Load(File.ReadAllBytes(file)))
+                    using (var r = FlameRetarget.Create(model, rig))
+                    {
+                        var rot = new float[RefFrames * r.BoneCount * 4];
+                        r.Read(s, 0, RefFrames, rot, null);
+                        bool unit = true;
+                        for (int i = 0; i < rot.Length; i += 4)
+                            unit &= Math.Abs(rot[i] * rot[i] + rot[i + 1] * rot[i + 1] + rot[i + 2] * rot[i + 2] + rot[i + 3] * rot[i + 3] - 1) < 1e-4;
+                        bool parentsFirst = rig.BoneParents.Select((p, k) => p < k).All(x => x);
+                        Check(rig.BoneCount > 15 && r.BoneCount == rig.BoneCount && unit && parentsFirst,
+                              Path.GetFileName(file) + ": " + rig.BoneCount + " bones, parents first, unit rotations");
+                    }
+                }
+                catch (FlameException e)
+                {
+                    Check(false, Path.GetFileName(file) + ": " + e.Message);
+                }
+            }
+        }
+    }
+
+    static void TestRetargetErrors()
+    {
+        var bones = UnityHumanoid();
+        using (var rig = FlameRig.FromBones(bones, FlameConvention.Unity))
+        using (var other = FlameRig.FromBones(bones, FlameConvention.Unity))
+        using (var r = UnityRetarget(rig, true))
+        {
+            // NULL handles and pointers through the raw declarations.
+            using (var none = new FlameRigHandle())
+            {
+                UIntPtr count;
+                Throws(FlameStatus.InvalidArgument, "`rig` is NULL", () => FlameException.Check(FlameNative.flame_rig_bone_count(none, out count)));
+                FlameBoneMapHandle mh;
+                Throws(FlameStatus.InvalidArgument, "`rig` is NULL", () => FlameException.Check(FlameNative.flame_bone_map_auto(none, out mh)));
+                var p = FlameRetargetParams.Default();
+                FlameRetargetHandle rh;
+                Throws(FlameStatus.InvalidArgument, "`rig` is NULL", () => FlameException.Check(FlameNative.flame_retarget_new(model.Handle, none, ref p, out rh)));
+            }
+            using (var none = new FlameRetargetHandle())
+            using (var s = RefSession())
+            {
+                UIntPtr frames;
+                Throws(FlameStatus.InvalidArgument, "`retarget` is NULL", () => FlameException.Check(
+                    FlameNative.flame_retarget_read(none, s.Handle, 0, 0, IntPtr.Zero, UIntPtr.Zero, UIntPtr.Zero, null, UIntPtr.Zero, null, UIntPtr.Zero, out frames)));
+                // Wrong order: a read before any step.
+                Throws(FlameStatus.WrongState, "", () => r.Read(s, 0, 1, new float[r.BoneCount * 4], null));
+                RunAll(s);
+                int n = r.BoneCount;
+                Throws(FlameStatus.BufferTooSmall, (RefFrames * n * 4) + " floats needed, 10 given", () => r.Read(s, 0, RefFrames, new float[10], null));
+                Throws(FlameStatus.BufferTooSmall, "", () => r.Read(s, 0, 2, null, new float[2 * n * 3 - 1]));
+                Throws(FlameStatus.InvalidArgument, "past the read's 24 frames", () => r.Read(s, 20, 5, null, null));
+                Throws(FlameStatus.InvalidArgument, "`session` is NULL", () => FlameException.Check(
+                    FlameNative.flame_retarget_read(r.Handle, new FlameSessionHandle(), 0, 0, IntPtr.Zero, UIntPtr.Zero, UIntPtr.Zero, null, UIntPtr.Zero, null, UIntPtr.Zero, out frames)));
+                Throws(FlameStatus.InvalidArgument, "which", () => r.Read(s, 0, 1, null, null, (FlameWhich)5));
+                ThrowsManaged<ArgumentOutOfRangeException>(() => r.Read(s, -1, 1, null, null));
+                ThrowsManaged<ArgumentNullException>(() => r.Read(null, 0, 1, null, null));
+            }
+            // Pose(): lengths not the skeleton's, a zero quaternion, a non-finite position.
+            var w = new float[24 * 4];
+            var pos = new float[24 * 3];
+            for (int j = 0; j < 24; j++)
+                w[j * 4 + 3] = 1;
+            r.Pose(w, pos, new float[r.BoneCount * 4], null);   // the rest pose is fine
+            Throws(FlameStatus.InvalidArgument, "24 × 4", () => r.Pose(new float[22 * 4], pos, null, null));
+            w[5 * 4 + 3] = 0;
+            Throws(FlameStatus.InvalidArgument, "joint 5", () => r.Pose(w, pos, null, null));
+            w[5 * 4 + 3] = 1;
+            pos[3 * 3 + 1] = float.NaN;
+            Throws(FlameStatus.InvalidArgument, "joint 3", () => r.Pose(w, pos, null, null));
+
+            // Bone maps: a missing bone named (with the nearest names), an unknown key, bad JSON,
+            // one bone for two keys, a map of another rig.
+            Throws(FlameStatus.InvalidArgument, "LeftHnd", () => FlameBoneMap.FromJson(rig, "{\"leftHand\": \"LeftHnd\"}"));
+            Throws(FlameStatus.InvalidArgument, "leftElbow", () => FlameBoneMap.FromJson(rig, "{\"leftElbow\": \"LeftLowerArm\"}"));
+            Throws(FlameStatus.InvalidArgument, "", () => FlameBoneMap.FromJson(rig, "{\"hips\": "));
+            Throws(FlameStatus.InvalidArgument, "Hips", () => FlameBoneMap.FromJson(rig, "{\"hips\": \"Hips\", \"spine\": \"Hips\"}"));
+            using (var theirs = FlameBoneMap.Auto(other))
+            {
+                Throws(FlameStatus.InvalidArgument, "another rig", () => FlameRetarget.Create(model, rig, theirs).Dispose());
+                Throws(FlameStatus.InvalidArgument, "another rig", () => FlameBoneMap.FromJson(rig, "{}", theirs).Dispose());
+            }
+            // A map leaving a required bone out: the retarget lists it.
+            using (var noHand = FlameBoneMap.FromJson(rig, "{\"leftHand\": null}", FlameBoneMap.Auto(rig)))
+                Throws(FlameStatus.InvalidArgument, "leftHand", () => FlameRetarget.Create(model, rig, noHand).Dispose());
+            // Disposed handles are refused by the managed side, not passed on.
+            var gone = FlameBoneMap.Auto(rig);
+            gone.Dispose();
+            ThrowsManaged<ObjectDisposedException>(() => gone.ToJson());
+        }
+        // Bones: a missing name, a repeated one, a parent out of range, a cycle, a zero
+        // quaternion, a zero scale, the wrong number of values, no bones, the native convention.
+        Func<Action<List<RigBone>>, Action> rigWith = change => () =>
+        {
+            var b = UnityHumanoid();
+            change(b);
+            FlameRig.FromBones(b, FlameConvention.Unity).Dispose();
+        };
+        Throws(FlameStatus.InvalidArgument, "bones[3].name", rigWith(b => b[3].Name = null));
+        Throws(FlameStatus.InvalidArgument, "Spine", rigWith(b => b[4].Name = "Spine"));
+        Throws(FlameStatus.InvalidArgument, "parent 99", rigWith(b => b[2].Parent = 99));
+        Throws(FlameStatus.InvalidArgument, "", rigWith(b => { b[1].Parent = 2; b[2].Parent = 1; }));
+        Throws(FlameStatus.InvalidArgument, "Chest", rigWith(b => b[3].Rotation = new float[4]));
+        Throws(FlameStatus.InvalidArgument, "Neck", rigWith(b => b[4].Scale = new float[] { 1, 0, 1 }));
+        ThrowsManaged<ArgumentException>(rigWith(b => b[4].Translation = new float[2]));
+        ThrowsManaged<ArgumentNullException>(rigWith(b => b[4] = null));
+        Throws(FlameStatus.InvalidArgument, "1..=4096 bones, got 0", () => FlameRig.FromBones(new List<RigBone>(), FlameConvention.Unity));
+        Throws(FlameStatus.InvalidArgument, "native", () => FlameRig.FromBones(UnityHumanoid(), FlameConvention.Native));
+        // Names the automatic map cannot read: the retarget says which humanoid bones it lacks.
+        using (var odd = FlameRig.FromBones(UnityHumanoid(name => "bone_" + name.Length + "_" + name.GetHashCode()), FlameConvention.Unity))
+            Throws(FlameStatus.InvalidArgument, "hips", () => FlameRetarget.Create(model, odd).Dispose());
     }
 
     static void TestDisposedHandles()
