@@ -15,9 +15,15 @@
 // - Native statics survive domain reloads (entering play mode again keeps the library loaded):
 //   libflame keeps no global state to reset, and everything this component creates is freed in
 //   OnDestroy. Rebuilding the native library needs an Editor restart to be picked up.
+// - A Humanoid character (the `humanoid` Animator) is driven through libflame's retarget: its
+//   bone Transforms are the rig, in Unity's convention, and Unity's own Humanoid avatar says
+//   which Transform is which body bone (Animator.GetBoneTransform), so no name matching is
+//   needed. FlameHumanoid (below) holds that part; it uses no engine call beyond Transforms.
 #if UNITY_5_3_OR_NEWER
 using System;
+using System.Collections.Generic;
 using System.IO;
+using System.Text;
 using System.Threading;
 using UnityEngine;
 
@@ -62,6 +68,10 @@ namespace Flame
         public bool removeYaw = false;
         [Tooltip("Moved by the root bone track with Separate root motion (the character's root); optional.")]
         public Transform rootBone;
+        [Tooltip("A Humanoid character to drive (its Animator, Avatar set to Humanoid): the motion is retargeted onto its bones, taken in the pose they have at Start as the rest pose. Disable the Animator's controller so it does not overwrite them.")]
+        public Animator humanoid;
+        [Tooltip("Retarget: two-bone IK on the character's legs so planted feet stay planted on its proportions.")]
+        public bool humanoidFeetIk = true;
 
         /// <summary>Steps done and total, for a progress bar (written by the worker).</summary>
         public int StepsDone { get { return Volatile.Read(ref stepsDone); } }
@@ -80,20 +90,33 @@ namespace Flame
         /// <summary>Frames per second of Pose: the cleanup's fps, or the model's.</summary>
         public float Fps { get; private set; }
         public int FrameCount { get; private set; }
+        /// <summary>With humanoid: the character's bones the retarget drives (HumanoidRig's).</summary>
+        public Transform[] HumanoidBones { get; private set; }
+        /// <summary>With humanoid: the retargeted local rotations (x, y, z, w) and positions of
+        /// HumanoidBones, frames × bones × 4 and × 3, in Unity's convention; null before the
+        /// first step.</summary>
+        public float[] HumanoidRotations { get; private set; }
+        public float[] HumanoidPositions { get; private set; }
+        /// <summary>With humanoid: the bone map given to libflame (VRM humanBone names → Transform
+        /// names), from the Avatar.</summary>
+        public string HumanoidMap { get; private set; }
 
         // The handles are created on the worker and freed in OnDestroy; handlesLock makes sure a
         // worker still loading when the component is destroyed frees what it creates itself.
         readonly object handlesLock = new object();
         FlameModel model;        // guarded by handlesLock
         FlameSession session;    // guarded by handlesLock
+        FlameRetarget retarget;  // guarded by handlesLock; with humanoid
         bool stopping;           // guarded by handlesLock
         Thread worker;
         int stepsDone, stepsTotal;
 
         // What the worker publishes, guarded by latestLock.
         readonly object latestLock = new object();
-        float[] latestPose, latestRoot, latestRootMotion;
+        float[] latestPose, latestRoot, latestRootMotion, latestRigRot, latestRigPos;
         bool latestIsNew;
+        // The humanoid as data for the worker (Transforms are read on the main thread only).
+        List<RigBone> humanoidRig;
         float latestFps;
         string workerError;
         ModelInfo info;
@@ -103,6 +126,14 @@ namespace Flame
             // Unity objects only on the main thread: resolve the path / copy the bytes here.
             byte[] bytes = modelAsset != null ? modelAsset.bytes : null;
             string path = Path.Combine(Application.streamingAssetsPath, modelFile);
+            if (humanoid != null)
+            {
+                List<RigBone> rig;
+                string map;
+                HumanoidBones = FlameHumanoid.Collect(humanoid, out rig, out map);
+                humanoidRig = rig;
+                HumanoidMap = map;
+            }
             worker = new Thread(() => Generate(path, bytes)) { IsBackground = true, Name = "flame" };
             worker.Start();
         }
@@ -137,6 +168,19 @@ namespace Flame
                     Volatile.Write(ref stepsTotal, total);
                 });
                 s.SetPrompt(prompt);
+                if (humanoidRig != null)
+                {
+                    // Made here, not on the main thread: it needs the model. The rig and map are
+                    // copied into the retarget, so they go right away.
+                    using (var rig = FlameRig.FromBones(humanoidRig, FlameConvention.Unity))
+                    using (var map = FlameBoneMap.FromJson(rig, HumanoidMap))
+                    {
+                        var rp = FlameRetargetParams.Default();
+                        rp.feet = humanoidFeetIk ? 1u : 0u;
+                        lock (handlesLock)
+                            retarget = FlameRetarget.Create(m, rig, map, rp);
+                    }
+                }
                 Publish(s, m.Info);
             }
             catch (FlameException e)
@@ -176,7 +220,7 @@ namespace Flame
             // so both span the same frames.
             var clean = layout == FlameLayout.Features ? null : CleanupParams();
             bool separate = clean.HasValue && clean.Value.RootMotion == FlameRootMotion.Separate;
-            float[] pose = null, root = null, rootMotionTrack = null;
+            float[] pose = null, root = null, rootMotionTrack = null, rigRot = null, rigPos = null;
             int left = s.StepsLeft;
             while (left > 0)
             {
@@ -191,8 +235,24 @@ namespace Flame
                 root = Fill(s, root, which, FlameLayout.RootTranslation, flags, clean);
                 if (separate)
                     rootMotionTrack = Fill(s, rootMotionTrack, which, FlameLayout.RootBone, flags, clean);
+                FlameRetarget r;
+                lock (handlesLock)
+                    r = retarget;
+                if (r != null)
+                {
+                    // The same motion as Pose (which, flags, cleanup), on the character's bones.
+                    int n = r.Frames(s, which, flags, clean) * r.BoneCount;
+                    if (rigRot == null || rigRot.Length != n * 4)
+                    {
+                        rigRot = new float[n * 4];
+                        rigPos = new float[n * 3];
+                    }
+                    r.Read(s, 0, n / r.BoneCount, rigRot, rigPos, which, flags, clean);
+                }
                 lock (latestLock)
                 {
+                    Swap(ref rigRot, ref latestRigRot);
+                    Swap(ref rigPos, ref latestRigPos);
                     // Swap instead of copying: the worker gets the previous buffers back to fill.
                     Swap(ref pose, ref latestPose);
                     Swap(ref root, ref latestRoot);
@@ -243,6 +303,8 @@ namespace Flame
                     Pose = Copy(latestPose, Pose);
                     RootPositions = Copy(latestRoot, RootPositions);
                     RootMotion = latestRootMotion == null ? null : Copy(latestRootMotion, RootMotion);
+                    HumanoidRotations = latestRigRot == null ? null : Copy(latestRigRot, HumanoidRotations);
+                    HumanoidPositions = latestRigPos == null ? null : Copy(latestRigPos, HumanoidPositions);
                     JointNames = info.JointNames;
                     Fps = latestFps;
                     FrameCount = RootPositions.Length / 3;
@@ -268,6 +330,8 @@ namespace Flame
             // Separate root motion: the pelvis reads in place, the travel moves the root.
             if (rootBone != null && RootMotion != null && RootMotion.Length >= (frame + 1) * 3)
                 rootBone.localPosition = new Vector3(RootMotion[frame * 3], RootMotion[frame * 3 + 1], RootMotion[frame * 3 + 2]);
+            if (HumanoidBones != null && HumanoidRotations != null)
+                FlameHumanoid.Apply(HumanoidBones, HumanoidRotations, HumanoidPositions, frame);
             if (bones == null || layout != FlameLayout.LocalQuatXyzw || JointNames == null || bones.Length != JointNames.Length)
                 return;
             int joints = bones.Length;
@@ -285,13 +349,16 @@ namespace Flame
         {
             FlameModel m;
             FlameSession s;
+            FlameRetarget r;
             lock (handlesLock)
             {
                 stopping = true;
                 m = model;
                 s = session;
+                r = retarget;
                 model = null;
                 session = null;
+                retarget = null;
             }
             if (s != null)
                 s.Cancel();
@@ -303,6 +370,123 @@ namespace Flame
                 s.Dispose();
             if (m != null)
                 m.Dispose();
+            // A worker between its last read and its exit holds none: reads take it under the lock
+            // and a disposed handle makes a late read throw, which the worker catches.
+            if (r != null)
+                r.Dispose();
+        }
+    }
+
+    /// <summary>A Unity Humanoid character as a libflame rig: its Avatar's body bones
+    /// (Animator.GetBoneTransform, https://docs.unity3d.com/ScriptReference/Animator.GetBoneTransform.html)
+    /// named by VRM 1.0 humanBone names for the bone map, the Transforms between them and the
+    /// character's root as the rig's other bones, and retargeted poses written back to them.</summary>
+    public static class FlameHumanoid
+    {
+        /// <summary>Unity's HumanBodyBones (https://docs.unity3d.com/ScriptReference/HumanBodyBones.html)
+        /// that libflame drives, with their VRM 1.0 humanBone names (vrm-c/vrm-specification,
+        /// specification/VRMC_vrm-1.0/humanoid.md): the body; eyes, jaw and fingers are not driven.</summary>
+        public static readonly KeyValuePair<HumanBodyBones, string>[] Body =
+        {
+            Pair(HumanBodyBones.Hips, "hips"), Pair(HumanBodyBones.Spine, "spine"), Pair(HumanBodyBones.Chest, "chest"),
+            Pair(HumanBodyBones.UpperChest, "upperChest"), Pair(HumanBodyBones.Neck, "neck"), Pair(HumanBodyBones.Head, "head"),
+            Pair(HumanBodyBones.LeftShoulder, "leftShoulder"), Pair(HumanBodyBones.LeftUpperArm, "leftUpperArm"),
+            Pair(HumanBodyBones.LeftLowerArm, "leftLowerArm"), Pair(HumanBodyBones.LeftHand, "leftHand"),
+            Pair(HumanBodyBones.RightShoulder, "rightShoulder"), Pair(HumanBodyBones.RightUpperArm, "rightUpperArm"),
+            Pair(HumanBodyBones.RightLowerArm, "rightLowerArm"), Pair(HumanBodyBones.RightHand, "rightHand"),
+            Pair(HumanBodyBones.LeftUpperLeg, "leftUpperLeg"), Pair(HumanBodyBones.LeftLowerLeg, "leftLowerLeg"),
+            Pair(HumanBodyBones.LeftFoot, "leftFoot"), Pair(HumanBodyBones.LeftToes, "leftToes"),
+            Pair(HumanBodyBones.RightUpperLeg, "rightUpperLeg"), Pair(HumanBodyBones.RightLowerLeg, "rightLowerLeg"),
+            Pair(HumanBodyBones.RightFoot, "rightFoot"), Pair(HumanBodyBones.RightToes, "rightToes"),
+        };
+
+        static KeyValuePair<HumanBodyBones, string> Pair(HumanBodyBones b, string vrm)
+        {
+            return new KeyValuePair<HumanBodyBones, string>(b, vrm);
+        }
+
+        /// <summary>The rig of animator's character: every body bone the Avatar maps and every
+        /// Transform between them and the Animator's own Transform (which is not a bone: the top
+        /// bones' rest is relative to it), parents before children, each bone's rest its current
+        /// localPosition, localRotation and localScale (Unity's convention). map receives the bone
+        /// map JSON, {"hips": "&lt;Transform name&gt;", ...}, for FlameBoneMap.FromJson. Returns the
+        /// Transforms in the rig's order, for Apply. Throws ArgumentException for an Animator that
+        /// is not Humanoid, and for two rig Transforms with the same name (libflame names bones
+        /// by them).</summary>
+        public static Transform[] Collect(Animator animator, out List<RigBone> rig, out string map)
+        {
+            if (animator == null)
+                throw new ArgumentNullException("animator");
+            if (!animator.isHuman)
+                throw new ArgumentException("the Animator's Avatar is not Humanoid: set Animation Type to Humanoid in the model's import settings", "animator");
+            var top = animator.transform;
+            var bones = new List<Transform>();
+            var index = new Dictionary<Transform, int>();
+            var json = new StringBuilder("{");
+            foreach (var pair in Body)
+            {
+                var t = animator.GetBoneTransform(pair.Key);
+                if (t == null)
+                    continue;   // an optional bone the Avatar leaves out (upperChest, toes...)
+                // The Transform and its ancestors below the Animator's, parents first.
+                var chain = new List<Transform>();
+                for (var a = t; a != null && a != top && !index.ContainsKey(a); a = a.parent)
+                    chain.Add(a);
+                for (int i = chain.Count - 1; i >= 0; i--)
+                {
+                    index[chain[i]] = bones.Count;
+                    bones.Add(chain[i]);
+                }
+                json.Append(json.Length > 1 ? ", " : "").Append(Quote(pair.Value)).Append(": ").Append(Quote(t.name));
+            }
+            map = json.Append("}").ToString();
+            rig = new List<RigBone>(bones.Count);
+            var names = new HashSet<string>();
+            foreach (var b in bones)
+            {
+                if (!names.Add(b.name))
+                    throw new ArgumentException("two of the character's bones are named \"" + b.name + "\": rename one (libflame tells bones by name)", "animator");
+                Vector3 p = b.localPosition, s = b.localScale;
+                Quaternion q = b.localRotation;
+                int parent;
+                rig.Add(new RigBone(b.name, b.parent != null && index.TryGetValue(b.parent, out parent) ? parent : -1,
+                                    new[] { p.x, p.y, p.z }, new[] { q.x, q.y, q.z, q.w }, new[] { s.x, s.y, s.z }));
+            }
+            return bones.ToArray();
+        }
+
+        /// <summary>Poses bones (Collect's) with frame of a retarget read: rotations frames ×
+        /// bones × 4 (x, y, z, w) as localRotation, positions frames × bones × 3 as localPosition
+        /// (null: rotations only). A frame past the arrays is ignored.</summary>
+        public static void Apply(IList<Transform> bones, float[] rotations, float[] positions, int frame)
+        {
+            int n = bones.Count;
+            if (n == 0 || frame < 0 || rotations == null || (long)(frame + 1) * n * 4 > rotations.Length)
+                return;
+            bool withPositions = positions != null && (long)(frame + 1) * n * 3 <= positions.Length;
+            for (int b = 0; b < n; b++)
+            {
+                int q = (frame * n + b) * 4, t = (frame * n + b) * 3;
+                bones[b].localRotation = new Quaternion(rotations[q], rotations[q + 1], rotations[q + 2], rotations[q + 3]);
+                if (withPositions)
+                    bones[b].localPosition = new Vector3(positions[t], positions[t + 1], positions[t + 2]);
+            }
+        }
+
+        /// <summary>s as a JSON string.</summary>
+        static string Quote(string s)
+        {
+            var o = new StringBuilder("\"");
+            foreach (char c in s)
+            {
+                if (c == '"' || c == '\\')
+                    o.Append('\\').Append(c);
+                else if (c < ' ')
+                    o.Append("\\u").Append(((int)c).ToString("x4"));
+                else
+                    o.Append(c);
+            }
+            return o.Append('"').ToString();
         }
     }
 }

@@ -5,6 +5,7 @@
 // Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
 
 using System;
+using System.Collections.Generic;
 using System.Diagnostics;
 using System.IO;
 using System.Reflection;
@@ -174,6 +175,90 @@ static class FlameExampleTest
         Call(c, "OnDestroy");
         ConsoleOk("cleanup off, separate root motion at 60 fps");
 
+        // A Humanoid character whose bone names say nothing (b00, b01...): Unity's Avatar map
+        // (GetBoneTransform) is what pairs them with libflame's joints. An Armature Transform
+        // above the hips and a twist Transform between upper and lower arm are rig bones too.
+        UnityEngine.Animator animator;
+        var character = Humanoid(out animator);
+        List<RigBone> rigBones;
+        string map;
+        var collected = FlameHumanoid.Collect(animator, out rigBones, out map);
+        Check(collected.Length == 24 && collected[0].name == "Armature" && rigBones.Count == 24, "rig bones: Armature, 21 body bones (no upper chest), 2 twists: " + collected.Length);
+        bool parentsFirst = true;
+        for (int i = 0; i < collected.Length; i++)
+        {
+            int p = rigBones[i].Parent;
+            parentsFirst &= p < i && (p < 0 ? collected[i].parent == animator.transform : collected[i].parent == collected[p]);
+        }
+        Check(parentsFirst, "parents first, each bone's parent its Transform's parent");
+        Check(map.Contains("\"leftLowerArm\": \"" + character["LeftLowerArm"].name + "\"") && map.Contains("\"hips\": \"" + character["Hips"].name + "\"") &&
+              !map.Contains("upperChest") && !map.Contains("Twist"), "map from the Avatar: " + map);
+        using (var m = FlameModel.Load(model))
+        using (var rig = FlameRig.FromBones(rigBones, FlameConvention.Unity))
+        {
+            // Without the Avatar's map libflame cannot tell these bones apart.
+            try
+            {
+                FlameRetarget.Create(m, rig).Dispose();
+                Check(false, "the automatic map found a body in b00..b25");
+            }
+            catch (FlameException e)
+            {
+                Check(e.Status == FlameStatus.InvalidArgument && e.NativeMessage.Contains("hips"), "automatic map refused: " + e.NativeMessage);
+            }
+        }
+        c = new FlameExample { modelFile = model, frames = 24, steps = 10, seed = 3, threads = 1, humanoid = animator };
+        Wait(c);
+        UnityEngine.Time.time = 0.5f;   // 30 fps: frame 15
+        Call(c, "Update");
+        Check(c.Error == null && c.HumanoidRotations != null && c.HumanoidRotations.Length == 35 * 24 * 4 &&
+              c.HumanoidPositions.Length == 35 * 24 * 3, "humanoid poses, 35 frames at 30 fps: " + c.Error);
+        if (c.HumanoidRotations != null)
+        {
+            // Independent of the example: the same generation, retargeted here with the map the
+            // Avatar gave, read as the example reads (the CLI's smoothing, the default cleanup).
+            using (var m = FlameModel.Load(model))
+            using (var rig = FlameRig.FromBones(rigBones, FlameConvention.Unity))
+            using (var bm = FlameBoneMap.FromJson(rig, map))
+            using (var r = FlameRetarget.Create(m, rig, bm))
+            {
+                var p = FlameSessionParams.Default();
+                p.frames = 24; p.steps = 10; p.sampler = (int)FlameSampler.Ddim; p.seed = 3; p.threads = 1;
+                using (var s = m.NewSession(p))
+                {
+                    s.SetPrompt(c.prompt);
+                    while (s.Step() > 0) { }
+                    var rot = new float[35 * 24 * 4];
+                    var pos = new float[35 * 24 * 3];
+                    r.Read(s, 0, 35, rot, pos, FlameWhich.Sample, FlameReadFlags.Smooth, c.CleanupParams());
+                    Check(Same(rot, c.HumanoidRotations) && Same(pos, c.HumanoidPositions), "the example's humanoid poses = a direct retarget read");
+                    bool posed = true;
+                    for (int b = 0; b < 24; b++)
+                    {
+                        var q = collected[b].localRotation;
+                        var t = collected[b].localPosition;
+                        int i = (15 * 24 + b) * 4, k = (15 * 24 + b) * 3;
+                        posed &= q.x == rot[i] && q.y == rot[i + 1] && q.z == rot[i + 2] && q.w == rot[i + 3] &&
+                                 t.x == pos[k] && t.y == pos[k + 1] && t.z == pos[k + 2];
+                    }
+                    Check(posed, "every bone Transform posed with frame 15");
+                }
+            }
+        }
+        Call(c, "OnDestroy");
+        // Not Humanoid: refused before anything starts.
+        animator.isHuman = false;
+        try
+        {
+            FlameHumanoid.Collect(animator, out rigBones, out map);
+            Check(false, "a generic Animator accepted");
+        }
+        catch (ArgumentException e)
+        {
+            Check(e.Message.Contains("Humanoid"), "generic Animator refused: " + e.Message);
+        }
+        ConsoleOk("humanoid character");
+
         // Destroyed mid-generation: OnDestroy returns promptly and frees everything.
         c = new FlameExample { modelFile = model, frames = 470, steps = 1000, threads = 1 };
         Call(c, "Start");
@@ -212,6 +297,52 @@ static class FlameExampleTest
 
         Console.WriteLine(passed + " passed, " + failed + " failed");
         return failed == 0 ? 0 : 1;
+    }
+
+    /// <summary>A T-posed humanoid in Unity's axes (Y up, facing +Z, its left at -X; metres)
+    /// under an Animator's Transform, bones named b00, b01... in creation order, the Avatar's
+    /// map filled for 21 body bones (no upper chest). Returns the Transforms by body name.</summary>
+    static Dictionary<string, UnityEngine.Transform> Humanoid(out UnityEngine.Animator animator)
+    {
+        var top = new UnityEngine.Transform { name = "Character" };
+        animator = new UnityEngine.Animator { transform = top };
+        var all = new Dictionary<string, UnityEngine.Transform>();
+        var world = new Dictionary<string, float[]>();
+        Action<string, string, float, float, float> add = (name, parent, x, y, z) =>
+        {
+            var t = new UnityEngine.Transform { name = name == "Armature" ? name : "b" + all.Count.ToString("00") };
+            t.parent = parent == null ? top : all[parent];
+            var pw = parent == null ? new float[3] : world[parent];
+            t.localPosition = new UnityEngine.Vector3(x - pw[0], y - pw[1], z - pw[2]);
+            all[name] = t;
+            world[name] = new[] { x, y, z };
+        };
+        add("Armature", null, 0, 0, 0);
+        add("Hips", "Armature", 0, 1.0f, 0);
+        add("Spine", "Hips", 0, 1.1f, 0);
+        add("Chest", "Spine", 0, 1.25f, 0);
+        add("Neck", "Chest", 0, 1.5f, 0);
+        add("Head", "Neck", 0, 1.62f, 0);
+        foreach (var side in new[] { "Left", "Right" })
+        {
+            float m = side == "Left" ? -1 : 1;
+            add(side + "Shoulder", "Chest", m * 0.04f, 1.45f, 0);
+            add(side + "UpperArm", side + "Shoulder", m * 0.17f, 1.45f, 0);
+            add(side + "Twist", side + "UpperArm", m * 0.3f, 1.45f, 0);
+            add(side + "LowerArm", side + "Twist", m * 0.45f, 1.45f, 0);
+            add(side + "Hand", side + "LowerArm", m * 0.7f, 1.45f, 0);
+            add(side + "UpperLeg", "Hips", m * 0.1f, 0.94f, 0);
+            add(side + "LowerLeg", side + "UpperLeg", m * 0.1f, 0.5f, 0.01f);
+            add(side + "Foot", side + "LowerLeg", m * 0.1f, 0.08f, 0);
+            add(side + "Toes", side + "Foot", m * 0.1f, 0, 0.13f);
+        }
+        foreach (var kv in all)
+        {
+            UnityEngine.HumanBodyBones b;
+            if (Enum.TryParse(kv.Key, out b))
+                animator.Bones[b] = kv.Value;
+        }
+        return all;
     }
 
     /// <summary>Starts c and updates it, as Unity would, until its generation is done.</summary>
