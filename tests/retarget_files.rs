@@ -9,6 +9,7 @@
 
 use flame::motion::rotation::{self, Mat3, Vec3};
 use flame::motion::{Format, Poses, ReadOptions, Skeleton};
+use flame::retarget::bonemap::HumanBone;
 use flame::retarget::{gltf_out, gltf_rig, vrma, Options, RigMotion, Target};
 use serde_json::{json, Value};
 
@@ -405,9 +406,9 @@ fn animation<'a>(doc: &'a Value, name: &str) -> &'a Value {
     found[0]
 }
 
-/// World transforms of every node at key `k` of animation `name`: the nodes' own TRS, with
+/// World transforms of every node at key `key` of animation `name`: the nodes' own TRS, with
 /// the animated paths replaced by the samples, composed down the `children` hierarchy.
-fn posed_nodes(doc: &Value, bin: &[u8], name: &str, k: usize) -> Vec<Affine> {
+fn posed_nodes(doc: &Value, bin: &[u8], name: &str, key: Option<usize>) -> Vec<Affine> {
     let nodes = doc["nodes"].as_array().unwrap();
     let mut trs: Vec<(Vec3, Mat3, Vec3)> = nodes
         .iter()
@@ -428,15 +429,18 @@ fn posed_nodes(doc: &Value, bin: &[u8], name: &str, k: usize) -> Vec<Affine> {
             ([t[0], t[1], t[2]], quat_xyzw(&r), [s[0], s[1], s[2]])
         })
         .collect();
-    let anim = animation(doc, name);
-    for ch in anim["channels"].as_array().unwrap() {
-        let node = ch["target"]["node"].as_u64().unwrap() as usize;
-        let sampler = &anim["samplers"][ch["sampler"].as_u64().unwrap() as usize];
-        let out = floats(doc, bin, sampler["output"].as_u64().unwrap() as usize);
-        match ch["target"]["path"].as_str().unwrap() {
-            "rotation" => trs[node].1 = quat_xyzw(&out[4 * k..4 * k + 4]),
-            "translation" => trs[node].0 = [out[3 * k], out[3 * k + 1], out[3 * k + 2]],
-            p => panic!("unexpected path {p}"),
+    // `None`: the rest pose, the nodes' own TRS.
+    if let Some(k) = key {
+        let anim = animation(doc, name);
+        for ch in anim["channels"].as_array().unwrap() {
+            let node = ch["target"]["node"].as_u64().unwrap() as usize;
+            let sampler = &anim["samplers"][ch["sampler"].as_u64().unwrap() as usize];
+            let out = floats(doc, bin, sampler["output"].as_u64().unwrap() as usize);
+            match ch["target"]["path"].as_str().unwrap() {
+                "rotation" => trs[node].1 = quat_xyzw(&out[4 * k..4 * k + 4]),
+                "translation" => trs[node].0 = [out[3 * k], out[3 * k + 1], out[3 * k + 2]],
+                p => panic!("unexpected path {p}"),
+            }
         }
     }
     let mut parent = vec![None; nodes.len()];
@@ -486,7 +490,7 @@ fn worst_position_error(file: &[u8], motion: &RigMotion, joints: &[usize], name:
     }
     let mut worst = 0.0f64;
     for k in 0..motion.frames {
-        let world = posed_nodes(&doc, &bin, name, k);
+        let world = posed_nodes(&doc, &bin, name, Some(k));
         for (b, &n) in joints.iter().enumerate() {
             let want = motion.positions[k * motion.bones + b];
             let got = world[n].t;
@@ -762,8 +766,141 @@ fn files_motions_and_buffers_that_do_not_fit_are_refused() {
     assert!(e.contains("not the last data"), "{e}");
 }
 
+/// Every humanoid bone's rotation in three-vrm's normalized space (identity rest, world
+/// aligned: `N_b = D_parentᵀ · D_b`, `D = G' · W'ᵀ` the posed world rotation times the rest
+/// world rotation's inverse, the parent the nearest mapped humanoid ancestor) for every frame,
+/// from libflame's retarget of `poses` onto the avatar itself (no IK), as `x, y, z, w`.
+fn avatar_normalized(poses: &Poses, fps: f64) -> Vec<(HumanBone, Vec<[f64; 4]>)> {
+    let file = std::fs::read(AVATAR).unwrap();
+    let rig = gltf_rig::read(&file, None).unwrap();
+    let target = Target::auto(Skeleton::smpl24(), rig.clone()).unwrap();
+    let plain = Options {
+        feet: false,
+        hands: false,
+    };
+    let m = target.motion(poses, fps, &plain).unwrap();
+    let rest = rig.rest_world_rotations();
+    let bone_of = |h: HumanBone| target.map().bone(h);
+    let delta = |t: usize, b: usize| mat_mul(&m.world_frame(t)[b], &transpose(&rest[b]));
+    HumanBone::ALL
+        .iter()
+        .map(|&h| {
+            let b = bone_of(h).unwrap();
+            let mut up = h.parent();
+            while let Some(p) = up.filter(|&p| bone_of(p).is_none()) {
+                up = p.parent();
+            }
+            let track = (0..m.frames)
+                .map(|t| {
+                    let parent = up.map_or(rotation::IDENTITY, |p| delta(t, bone_of(p).unwrap()));
+                    to_xyzw(&mat_mul(&transpose(&parent), &delta(t, b)))
+                })
+                .collect();
+            (h, track)
+        })
+        .collect()
+}
+
+/// The VRMA's node of each humanoid bone, after checking the extension.
+fn vrma_bones(doc: &Value) -> Vec<(HumanBone, usize)> {
+    let ext = &doc["extensions"]["VRMC_vrm_animation"];
+    assert_eq!(ext["specVersion"], "1.0");
+    assert_eq!(doc["extensionsUsed"], json!(["VRMC_vrm_animation"]));
+    let bones = ext["humanoid"]["humanBones"].as_object().unwrap();
+    assert_eq!(bones.len(), 22);
+    bones
+        .iter()
+        .map(|(name, v)| {
+            let n = v["node"].as_u64().unwrap() as usize;
+            assert_eq!(doc["nodes"][n]["name"], name.as_str());
+            (HumanBone::from_name(name).unwrap(), n)
+        })
+        .collect()
+}
+
+#[test]
+fn a_vrma_holds_the_t_pose_retarget_and_what_it_gives_an_avatar() {
+    let (fps, frames) = (30.0, 25);
+    let poses = sinusoid_motion(frames);
+    let file = vrma::to_glb(&poses, fps, "motion").unwrap();
+    let (doc, bin) = split(&file);
+    let bones = vrma_bones(&doc);
+    // The T-pose: identity rest rotations, no scale, the lowest joint on the floor, the left
+    // hand at +X at the left shoulder's height, the head above the hips.
+    let rest = posed_nodes(&doc, &bin, "", None);
+    let at = |h: HumanBone| rest[bones.iter().find(|b| b.0 == h).unwrap().1].t;
+    for node in doc["nodes"].as_array().unwrap() {
+        assert!(node.get("rotation").is_none() && node.get("scale").is_none());
+    }
+    let lowest = rest.iter().map(|a| a.t[1]).fold(f64::INFINITY, f64::min);
+    assert!(lowest.abs() < 1e-6, "{lowest}");
+    let (hand, arm) = (at(HumanBone::LeftHand), at(HumanBone::LeftUpperArm));
+    assert!(hand[0] > arm[0] + 0.4 && (hand[1] - arm[1]).abs() < 1e-6);
+    assert!(at(HumanBone::Head)[1] > at(HumanBone::Hips)[1] + 0.4);
+    // Played: the hierarchy puts the joints where libflame's retarget onto the same T-pose rig
+    // puts them.
+    let target = Target::auto(Skeleton::smpl24(), vrma::t_pose_rig().unwrap()).unwrap();
+    let plain = Options {
+        feet: false,
+        hands: false,
+    };
+    let m = target.motion(&poses, fps, &plain).unwrap();
+    let joints: Vec<usize> = (0..22)
+        .map(|b| bones.iter().find(|x| x.0.index() == b).unwrap().1)
+        .collect();
+    let worst = worst_position_error(&file, &m, &joints, "motion");
+    assert!(worst < 1e-5, "a VRMA joint is {worst} m off");
+    // What three-vrm-animation does with the file (q' = P · q · W⁻¹ with the file's rest world
+    // rotations, identities here, so q' = q) equals libflame's own retarget onto the avatar in
+    // normalized space: the avatar shares the T-pose's bone directions and spine split
+    // (tools/make_vrm_avatar.py), so the two routes must agree.
+    let anim = animation(&doc, "motion");
+    let mut worst = 0.0f64;
+    for (h, want) in avatar_normalized(&poses, fps) {
+        let node = bones.iter().find(|b| b.0 == h).unwrap().1;
+        let ch = anim["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["target"]["node"] == node && c["target"]["path"] == "rotation")
+            .unwrap();
+        let sampler = &anim["samplers"][ch["sampler"].as_u64().unwrap() as usize];
+        let got = floats(&doc, &bin, sampler["output"].as_u64().unwrap() as usize);
+        for (t, w) in want.iter().enumerate() {
+            // Sign-insensitive component difference (f32 storage: ~6e-8).
+            let q = &got[4 * t..4 * t + 4];
+            let same = (0..4).map(|k| (q[k] - w[k]).abs()).fold(0.0, f64::max);
+            let flip = (0..4).map(|k| (q[k] + w[k]).abs()).fold(0.0, f64::max);
+            worst = worst.max(same.min(flip));
+        }
+    }
+    assert!(worst < 1e-6, "a normalized rotation differs by {worst}");
+    // Refusals.
+    assert!(vrma::to_glb(&poses, 0.0, "m").is_err());
+    assert!(vrma::to_glb(&sinusoid_motion(0), 30.0, "m").is_err());
+}
+
 #[test]
 #[ignore = "writes the three-vrm check's files into $FLAME_RETARGET_OUT (tools/vrma_check.sh)"]
 fn write_vrma_check_files() {
-    let _ = vrma::to_glb;
+    let dir = std::env::var("FLAME_RETARGET_OUT").expect("set FLAME_RETARGET_OUT to a directory");
+    let dir = std::path::Path::new(&dir);
+    let (fps, frames) = (30.0, 40);
+    let poses = sinusoid_motion(frames);
+    std::fs::write(
+        dir.join("motion.vrma"),
+        vrma::to_glb(&poses, fps, "motion").unwrap(),
+    )
+    .unwrap();
+    let bones: serde_json::Map<String, Value> = avatar_normalized(&poses, fps)
+        .into_iter()
+        .map(|(h, track)| (h.name().to_string(), json!(track)))
+        .collect();
+    let expected = json!({ "fps": fps, "frames": frames, "bones": bones });
+    std::fs::write(dir.join("expected.json"), expected.to_string()).unwrap();
+    // The avatar handed back with the motion (foot IK on), for the validator.
+    let file = std::fs::read(AVATAR).unwrap();
+    let (rig, motion, _) = retarget(&file, frames, &Options::default());
+    let out = gltf_out::write(&file, &rig, &motion, "libflame").unwrap();
+    std::fs::write(dir.join("avatar_animated.vrm"), out).unwrap();
 }
