@@ -171,14 +171,10 @@ pub fn rig_from_bones(bones: &[EngineBone], convention: Convention) -> Result<(R
     Ok((rig, order))
 }
 
-/// Bone `b`'s translation relative to its parent in `pose` (rig units): the hips' as the
-/// retarget moved it, every other bone's at rest.
-pub fn local_translation(target: &Target, pose: &RigPose, b: usize) -> Vec3 {
-    if b == target.transfer().hips() {
-        pose.hips
-    } else {
-        target.rig().rest()[b].translation
-    }
+/// Bone `b`'s translation relative to its parent in `pose` (rig units): the rest one, except
+/// for the bones the retarget moves (the hips, bones beside the body).
+pub fn local_translation(_target: &Target, pose: &RigPose, b: usize) -> Vec3 {
+    pose.translation[b]
 }
 
 /// Writes `pose` for the bones `order` lists (output bone `i` is rig bone `order[i]`) in
