@@ -25,6 +25,13 @@ box weighted fully to its bone), so Blender and engines import them as character
 Every bone has its own rest rotation, as exporters make them: its +Y axis along the bone (to its
 first child, a leaf along its parent's bone) and a roll about that axis that differs per bone.
 All three stand on y = 0 (soles) in glTF's Y-up world.
+
+    target/test-venv/bin/python tools/make_test_rigs.py --control OUT_DIR
+
+writes instead smpl.glb (not committed): SMPL-24's own rest skeleton (the offsets of
+tools/motion_reference.py; SMPL-X joint names, `pelvis` ... `right_hand`), lowest foot joint on
+y = 0, every bone rolled like the others: the control of tools/retarget_check.sh, a rig on which
+a retarget has nothing to change but the rest rotations, so its checks must pass.
 """
 
 import os
@@ -180,6 +187,34 @@ def child_joints():
         ("toe.{S}", "foot.{S}", (0.078, 0.015, 0.075)),
     ]
     return mirror([(a, b, np.array(c, dtype=float)) for a, b, c in j])
+
+
+SMPL_NAMES = [
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
+    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+    "left_wrist", "right_wrist", "left_hand", "right_hand",
+]
+
+
+def smpl_joints():
+    """SMPL-24's rest joints from tools/motion_reference.py's offsets (read as literals: that
+    module needs SciPy)."""
+    import ast
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "motion_reference.py")
+    values = {}
+    for node in ast.parse(open(path).read()).body:
+        if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) in (
+                "SMPL_PARENTS", "SMPL_OFFSETS"):
+            v = node.value.args[0] if isinstance(node.value, ast.Call) else node.value
+            values[node.targets[0].id] = ast.literal_eval(v)
+    parents, offsets = values["SMPL_PARENTS"], np.array(values["SMPL_OFFSETS"])
+    pos = np.zeros((24, 3))
+    for j in range(1, 24):
+        pos[j] = pos[parents[j]] + offsets[j]
+    pos[:, 1] -= pos[[7, 8, 10, 11], 1].min()
+    return [(SMPL_NAMES[j], None if parents[j] < 0 else SMPL_NAMES[parents[j]], pos[j])
+            for j in range(24)]
 
 
 def bone_frames(joints):
@@ -364,6 +399,12 @@ RIGS = {
 
 
 def main():
+    if sys.argv[1:2] == ["--control"] and len(sys.argv) == 3:
+        os.makedirs(sys.argv[2], exist_ok=True)
+        path = os.path.join(sys.argv[2], "smpl.glb")
+        data = write_rig(path, smpl_joints(), (None, np.eye(3), 1.0))
+        print(f"smpl.glb: 24 bones, {len(data)} bytes")
+        return
     out = sys.argv[1] if len(sys.argv) > 1 else os.path.join(
         os.path.dirname(os.path.abspath(__file__)), "..", "tests", "fixtures", "rigs")
     os.makedirs(out, exist_ok=True)
