@@ -39,7 +39,8 @@ for h in CoreMinimal.h Components/ActorComponent.h FlameMotionComponent.generate
          FlameStreamComponent.generated.h HAL/ThreadSafeCounter.h HAL/PlatformProcess.h \
          HAL/CriticalSection.h \
          Modules/ModuleInterface.h Modules/ModuleManager.h Interfaces/IPluginManager.h \
-         Misc/Paths.h Misc/ScopeLock.h Async/Async.h; do
+         Misc/Paths.h Misc/ScopeLock.h Async/Async.h \
+         Components/PoseableMeshComponent.h Engine/SkinnedAsset.h ReferenceSkeleton.h; do
     mkdir -p "$stubs/$(dirname "$h")"
     echo "#include \"$ROOT/tests/bindings/unreal/ue_stubs/ue_stub.h\"" >"$stubs/$h"
 done

@@ -9,6 +9,7 @@
  * Ends with one line "N passed, N failed"; the exit code is 1 when anything failed.
  */
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <climits>
@@ -190,6 +191,107 @@ static std::vector<float> DirectCleaned(const char* model, int frames, int steps
 
 static bool SameFloats(const TArray<float>& a, const std::vector<float>& b) {
     return !b.empty() && a.Num() == (int32)b.size() && std::memcmp(a.GetData(), b.data(), b.size() * 4) == 0;
+}
+
+/* A reference skeleton named as the UE5 Mannequin's (root, pelvis, spine_01..03, neck_01,
+ * head, clavicle/upperarm/lowerarm/hand, thigh/calf/foot/ball, an upper-arm twist bone), in
+ * Unreal's convention: Z up, facing +X, its left at -Y, centimetres; parents first as a
+ * reference skeleton lists them. Rest rotations identity, translations from world positions. */
+static void Mannequin(USkinnedAsset& asset) {
+    FReferenceSkeleton& ref = asset.RefSkeleton;
+    std::vector<std::array<double, 3>> world;
+    auto add = [&](const char* name, int parent, double x, double y, double z) {
+        ref.Names.Add(FName(UTF8_TO_TCHAR(name)));
+        ref.Parents.Add(parent);
+        const std::array<double, 3> p = parent < 0 ? std::array<double, 3>{0, 0, 0} : world[(size_t)parent];
+        ref.Pose.Add(FTransform(FQuat::Identity, FVector(x - p[0], y - p[1], z - p[2]), FVector(1, 1, 1)));
+        world.push_back({x, y, z});
+        return ref.Names.Num() - 1;
+    };
+    add("root", -1, 0, 0, 0);
+    const int pelvis = add("pelvis", 0, 0, 0, 100);
+    const int s1 = add("spine_01", pelvis, 0, 0, 110);
+    const int s2 = add("spine_02", s1, 0, 0, 125);
+    const int s3 = add("spine_03", s2, 0, 0, 140);
+    const int neck = add("neck_01", s3, 0, 0, 150);
+    add("head", neck, 1, 0, 162);
+    for (const char* side : {"l", "r"}) {
+        const double m = side[0] == 'l' ? -1 : 1;
+        auto n = [&](const char* bone) { static std::string s; s = std::string(bone) + "_" + side; return s.c_str(); };
+        const int clav = add(n("clavicle"), s3, 0, m * 4, 145);
+        const int upper = add(n("upperarm"), clav, 0, m * 17, 145);
+        add(n("upperarm_twist_01"), upper, 0, m * 30, 145);
+        const int lower = add(n("lowerarm"), upper, 0, m * 45, 145);
+        add(n("hand"), lower, 0, m * 70, 145);
+        const int thigh = add(n("thigh"), pelvis, 0, m * 10, 94);
+        const int calf = add(n("calf"), thigh, 1, m * 10, 50);
+        const int foot = add(n("foot"), calf, 0, m * 10, 8);
+        add(n("ball"), foot, 13, m * 10, 0);
+    }
+}
+
+/* The retarget of a final sample of Configure's settings onto asset's skeleton, straight
+ * through flame.h (flame_rig_from_bones in FLAME_CONVENTION_UNREAL, the automatic map, feet
+ * IK on; flame_retarget_read with cleanup): what the component must publish. */
+static bool DirectRetarget(const char* model, int frames, int steps, const USkinnedAsset& asset, const FlameCleanupParams* cleanup,
+                           std::vector<float>& rot, std::vector<float>& tr) {
+    const FReferenceSkeleton& ref = asset.GetRefSkeleton();
+    std::vector<std::string> names;
+    for (int i = 0; i < ref.GetNum(); i++) names.push_back(ref.GetBoneName(i).ToString().Utf8());
+    std::vector<FlameRigBone> bones((size_t)ref.GetNum());
+    for (int i = 0; i < ref.GetNum(); i++) {
+        FlameRigBone& b = bones[(size_t)i];
+        const FTransform& t = ref.GetRefBonePose()[i];
+        b = FlameRigBone{sizeof(FlameRigBone), ref.GetParentIndex(i), names[(size_t)i].c_str(),
+                         {(float)t.Translation.X, (float)t.Translation.Y, (float)t.Translation.Z},
+                         {(float)t.Rotation.X, (float)t.Rotation.Y, (float)t.Rotation.Z, (float)t.Rotation.W},
+                         {(float)t.Scale3D.X, (float)t.Scale3D.Y, (float)t.Scale3D.Z}};
+    }
+    FlameModel* m = nullptr;
+    FlameRig* rig = nullptr;
+    FlameRetarget* r = nullptr;
+    FlameSession* s = nullptr;
+    bool ok = flame_model_load(model, nullptr, &m) == FLAME_STATUS_OK &&
+              flame_rig_from_bones(bones.data(), bones.size(), FLAME_CONVENTION_UNREAL, &rig) == FLAME_STATUS_OK &&
+              flame_retarget_new(m, rig, nullptr, &r) == FLAME_STATUS_OK;
+    FlameSessionParams p;
+    flame_session_params_default(&p);
+    p.frames = (uint32_t)frames;
+    p.steps = (uint32_t)steps;
+    p.sampler = FLAME_SAMPLER_DDIM;
+    p.seed = 3;
+    p.threads = 1;
+    ok = ok && flame_session_new(m, &p, &s) == FLAME_STATUS_OK &&
+         flame_session_set_prompt(s, "a person walks forward and waves.") == FLAME_STATUS_OK;
+    uint32_t left = 1;
+    while (ok && left > 0) ok = flame_session_step(s, &left) == FLAME_STATUS_OK;
+    size_t n = 0;
+    ok = ok && flame_retarget_read(r, s, FLAME_WHICH_SAMPLE, 0, cleanup, 0, 0, nullptr, 0, nullptr, 0, &n) == FLAME_STATUS_OK;
+    if (ok) {
+        rot.assign(n * bones.size() * 4, 0.f);
+        tr.assign(n * bones.size() * 3, 0.f);
+        ok = flame_retarget_read(r, s, FLAME_WHICH_SAMPLE, 0, cleanup, 0, n, rot.data(), rot.size(), tr.data(), tr.size(), &n) ==
+             FLAME_STATUS_OK;
+    }
+    flame_session_free(s);
+    flame_retarget_free(r);
+    flame_rig_free(rig);
+    flame_model_free(m);
+    return ok;
+}
+
+/* Whether mesh's bone-space transforms hold frame f of the component's retargeted poses. */
+static bool MeshHolds(const UPoseableMeshComponent& mesh, const UFlameMotionComponent& c, int f) {
+    const int n = c.RigBoneNames.Num();
+    bool same = mesh.BoneSpaceTransforms.Num() == n && n > 0;
+    for (int b = 0; same && b < n; b++) {
+        const FTransform& t = mesh.BoneSpaceTransforms[b];
+        const FQuat q = c.GetBoneRotation(f, b);
+        const FVector v = c.GetBoneTranslation(f, b);
+        same = t.Rotation.X == q.X && t.Rotation.Y == q.Y && t.Rotation.Z == q.Z && t.Rotation.W == q.W &&
+               t.Translation.X == v.X && t.Translation.Y == v.Y && t.Translation.Z == v.Z && t.Scale3D.X == 1;
+    }
+    return same;
 }
 
 int main(int argc, char** argv) {
@@ -827,6 +929,91 @@ int main(int argc, char** argv) {
         } else {
             std::printf("skip FineMoGen stages: no %s\n", model.c_str());
         }
+    }
+    CHECK(WaitForThreads(), "workers exited");
+
+    {   // Retarget onto a Mannequin-named reference skeleton: the published poses are a direct
+        // flame_retarget_read's bit for bit, the poseable mesh gets the frame under the playhead.
+        USkinnedAsset asset;
+        Mannequin(asset);
+        const int bones = asset.RefSkeleton.GetNum();
+        UPoseableMeshComponent mesh;
+        mesh.Asset = &asset;
+        mesh.BoneSpaceTransforms.SetNum(bones);
+        UFlameMotionComponent c;
+        Configure(c, argv[1], Frames, 10, true, FLAME_LAYOUT_LOCAL_QUAT_XYZW, FLAME_CONVENTION_UNREAL);
+        c.RetargetMesh = &mesh;
+        c.bPlayOnMesh = false; // the playhead starts below, from a known time
+        bool finished = false, succeeded = false;
+        c.OnFinished.AddLambda([&](bool ok) { finished = true; succeeded = ok; });
+        CHECK(c.Generate(), "Generate: %s", c.LastError.Utf8().c_str());
+        CHECK(TickUntil(c, [&] { return finished; }), "finished");
+        CHECK(succeeded, "%s", c.LastError.Utf8().c_str());
+        bool names = c.RigBoneNames.Num() == bones;
+        for (int b = 0; names && b < bones; b++) names = c.RigBoneNames[b] == asset.RefSkeleton.Names[b].ToString();
+        CHECK(names, "RigBoneNames = the reference skeleton's (%d)", c.RigBoneNames.Num());
+        FlameCleanupParams cleanup;
+        flame_cleanup_params_default(&cleanup);
+        cleanup.feet = FLAME_FEET_OFF; // Configure's
+        cleanup.ground = 0;
+        std::vector<float> rot, tr;
+        CHECK(DirectRetarget(argv[1], Frames, 10, asset, &cleanup, rot, tr), "direct retarget");
+        CHECK(SameFloats(c.BoneRotations, rot) && SameFloats(c.BoneTranslations, tr) && rot.size() == (size_t)Frames * bones * 4,
+              "BoneRotations/BoneTranslations = flame_retarget_read (%d, %d floats)", c.BoneRotations.Num(), (int)rot.size());
+        CHECK(c.MeshFrame == -1 && mesh.RefreshCount == 0, "nothing written with bPlayOnMesh off");
+        // Played on the mesh from frame 0 at 20 fps: 0.1 s later frame 2; 1.2 s more (24
+        // frames) loops back onto frame 2.
+        c.bPlayOnMesh = true;
+        c.TickComponent(0.f, LEVELTICK_All, &c.PrimaryComponentTick);
+        CHECK(c.MeshFrame == 0 && MeshHolds(mesh, c, 0) && mesh.RefreshCount == 1, "mesh posed with frame 0 (frame %d)", c.MeshFrame);
+        c.TickComponent(0.1f, LEVELTICK_All, &c.PrimaryComponentTick);
+        CHECK(c.MeshFrame == 2 && MeshHolds(mesh, c, 2), "mesh posed with frame 2 after 0.1 s (frame %d)", c.MeshFrame);
+        c.TickComponent(1.2f, LEVELTICK_All, &c.PrimaryComponentTick);
+        CHECK(c.MeshFrame == 2 && MeshHolds(mesh, c, 2), "looped at 24 frames: frame %d", c.MeshFrame);
+        c.bPlayOnMesh = false;
+        CHECK(c.ApplyRetargetFrame(17) && MeshHolds(mesh, c, 17), "ApplyRetargetFrame(17)");
+        CHECK(!c.ApplyRetargetFrame(Frames) && !c.ApplyRetargetFrame(-1) && c.MeshFrame == 17, "frames out of range refused");
+        // The pelvis moves with the motion; the root keeps its reference translation.
+        bool pelvisMoves = false, rootStill = true;
+        for (int f = 1; f < Frames; f++) {
+            pelvisMoves |= c.GetBoneTranslation(f, 1).X != c.GetBoneTranslation(0, 1).X;
+            rootStill &= c.GetBoneTranslation(f, 0).X == 0 && c.GetBoneTranslation(f, 0).Z == 0;
+        }
+        CHECK(pelvisMoves && rootStill, "pelvis moves, root still");
+        // Another mesh with other bones: nothing is written to it.
+        UPoseableMeshComponent other;
+        other.Asset = &asset;
+        other.BoneSpaceTransforms.SetNum(3);
+        c.RetargetMesh = &other;
+        CHECK(!c.ApplyRetargetFrame(3) && other.RefreshCount == 0, "a mesh of other bones is left alone");
+
+        // Errors: a bone map naming a bone the mesh lacks (the message names it), a mesh
+        // without a skeletal mesh, bones the automatic map cannot read.
+        c.RetargetMesh = &mesh;
+        c.BoneMapJson = FString(TEXT("{\"leftHand\": \"hand_lx\"}"));
+        finished = false;
+        CHECK(c.Generate(), "Generate (bad map)");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished (bad map)");
+        CHECK(!succeeded && c.LastError.Utf8().find("hand_lx") != std::string::npos && c.BoneRotations.Num() == 0,
+              "bad map: %s", c.LastError.Utf8().c_str());
+        // Entries over the automatic map: naming what it finds anyway changes nothing.
+        c.BoneMapJson = FString(TEXT("{\"hips\": \"pelvis\", \"leftHand\": \"hand_l\"}"));
+        finished = false;
+        CHECK(c.Generate(), "Generate (map over names)");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished (map)");
+        CHECK(succeeded && SameFloats(c.BoneRotations, rot), "a map the automatic one agrees with: same poses: %s", c.LastError.Utf8().c_str());
+        UPoseableMeshComponent empty;
+        c.RetargetMesh = &empty;
+        CHECK(!c.Generate() && c.LastError.Utf8().find("no skeletal mesh") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+        USkinnedAsset odd = asset;
+        for (int b = 0; b < bones; b++) odd.RefSkeleton.Names[b] = FName(UTF8_TO_TCHAR(("b" + std::to_string(b)).c_str()));
+        mesh.Asset = &odd;
+        c.RetargetMesh = &mesh;
+        c.BoneMapJson = FString();
+        finished = false;
+        CHECK(c.Generate(), "Generate (unreadable names)");
+        CHECK(TickUntil(c, [&] { return finished; }), "finished (names)");
+        CHECK(!succeeded && c.LastError.Utf8().find("hips") != std::string::npos, "unreadable names: %s", c.LastError.Utf8().c_str());
     }
     CHECK(WaitForThreads(), "workers exited");
 

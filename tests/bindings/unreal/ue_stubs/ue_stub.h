@@ -96,6 +96,7 @@ template <typename T> struct TArray {
     std::vector<T> v;
     TArray() = default;
     int32 Num() const { return (int32)v.size(); }
+    void SetNum(int32 n) { v.resize((size_t)n); }
     T* GetData() { return v.data(); }
     const T* GetData() const { return v.data(); }
     void Add(const T& x) { v.push_back(x); }
@@ -165,6 +166,51 @@ inline const FVector FVector::ZeroVector{0, 0, 0};
 
 struct FMath {
     template <typename T> static T Max(T a, T b) { return a < b ? b : a; }
+};
+
+/* Names, transforms and a skeletal mesh's reference skeleton (UE 5.1+: USkinnedAsset), and a
+ * poseable mesh whose bone-space transforms the plugin writes; the test builds them. */
+class FName {
+public:
+    FName() = default;
+    explicit FName(const TCHAR* s) : s_(s) {}
+    FString ToString() const { return s_; }
+private:
+    FString s_;
+};
+struct FTransform {
+    FQuat Rotation;
+    FVector Translation;
+    FVector Scale3D{1, 1, 1};
+    FTransform() = default;
+    FTransform(const FQuat& R, const FVector& T, const FVector& S) : Rotation(R), Translation(T), Scale3D(S) {}
+    FQuat GetRotation() const { return Rotation; }
+    FVector GetTranslation() const { return Translation; }
+    FVector GetScale3D() const { return Scale3D; }
+    static const FTransform Identity;
+};
+inline const FTransform FTransform::Identity{};
+struct FReferenceSkeleton {
+    TArray<FName> Names;
+    TArray<int32> Parents;
+    TArray<FTransform> Pose;
+    int32 GetNum() const { return Names.Num(); }
+    FName GetBoneName(int32 i) const { return Names[i]; }
+    int32 GetParentIndex(int32 i) const { return Parents[i]; }
+    const TArray<FTransform>& GetRefBonePose() const { return Pose; }
+};
+class USkinnedAsset {
+public:
+    FReferenceSkeleton RefSkeleton;
+    const FReferenceSkeleton& GetRefSkeleton() const { return RefSkeleton; }
+};
+class UPoseableMeshComponent {
+public:
+    USkinnedAsset* Asset = nullptr;
+    USkinnedAsset* GetSkinnedAsset() const { return Asset; }
+    TArray<FTransform> BoneSpaceTransforms;
+    int32 RefreshCount = 0; /* MarkRefreshTransformDirty calls, for the test */
+    void MarkRefreshTransformDirty() { RefreshCount++; }
 };
 struct FMemory {
     template <typename T> static void Memzero(T& x) { std::memset((void*)&x, 0, sizeof(T)); }

@@ -5,9 +5,12 @@
 
 #pragma once
 
+#include "Components/PoseableMeshComponent.h"
 #include "CoreMinimal.h"
+#include "Engine/SkinnedAsset.h"
 #include "FlameModule.h"
 #include "FlameMotionComponent.h" // FFlameStage
+#include "ReferenceSkeleton.h"
 
 #include "flame.h"
 
@@ -84,4 +87,148 @@ struct FFlameStageUtf8
 
 	TArray<TArray<ANSICHAR>> Texts;
 	FlameStage Raw;
+};
+
+/**
+ * A skeletal mesh's reference skeleton as libflame's rig (flame_rig_from_bones in
+ * FLAME_CONVENTION_UNREAL: libflame carries the left-handed Z-up centimetres into its own axes
+ * and gives poses back in them), copied on the game thread so a worker can make the retarget
+ * once the model is loaded. Bones keep the reference skeleton's indices, so pose bone i is
+ * BoneSpaceTransforms[i].
+ */
+struct FFlameRigSpec
+{
+	TArray<FString> Names;
+	TArray<int32> Parents;
+	TArray<FTransform> Rest;
+	FString BoneMapJson; // entries over libflame's automatic map (Mannequin, Mixamo, ... names); empty: that map
+	bool bFeetIk = true;
+
+	bool IsSet() const { return Names.Num() > 0; }
+
+	/** The reference skeleton of Mesh's skinned asset (its bone names, parents and
+	 *  GetRefBonePose transforms); false with the reason when there is none. */
+	bool FromMesh(const UPoseableMeshComponent* Mesh, FString& Failure)
+	{
+		const USkinnedAsset* Asset = Mesh != nullptr ? Mesh->GetSkinnedAsset() : nullptr;
+		if (Asset == nullptr)
+		{
+			Failure = TEXT("RetargetMesh has no skeletal mesh: set one before Generate");
+			return false;
+		}
+		const FReferenceSkeleton& Ref = Asset->GetRefSkeleton();
+		const TArray<FTransform>& Pose = Ref.GetRefBonePose();
+		Names.Reset();
+		Parents.Reset();
+		Rest.Reset();
+		for (int32 I = 0; I < Ref.GetNum() && I < Pose.Num(); I++)
+		{
+			Names.Add(Ref.GetBoneName(I).ToString());
+			Parents.Add(Ref.GetParentIndex(I));
+			Rest.Add(Pose[I]);
+		}
+		if (Names.Num() == 0)
+		{
+			Failure = TEXT("RetargetMesh's skeletal mesh has no bones");
+			return false;
+		}
+		return true;
+	}
+
+	/** The retarget of Model's poses onto this rig (rig, bone map and retarget made and the
+	 *  first two freed again: the retarget keeps copies); null with libflame's message. */
+	FlameRetarget* Make(FlameModel* Model, FString& Failure) const
+	{
+		TArray<TArray<ANSICHAR>> Utf8;
+		for (int32 I = 0; I < Names.Num(); I++)
+		{
+			Utf8.Add(Utf8Z(Names[I]));
+		}
+		// Pointers into Utf8 only once it is complete (adding may move its buffers).
+		TArray<FlameRigBone> Bones;
+		Bones.SetNumUninitialized(Names.Num());
+		for (int32 I = 0; I < Names.Num(); I++)
+		{
+			FlameRigBone& B = Bones[I];
+			FMemory::Memzero(B);
+			B.struct_size = sizeof(FlameRigBone);
+			B.parent = Parents[I];
+			B.name = Utf8[I].GetData();
+			const FVector T = Rest[I].GetTranslation(), S = Rest[I].GetScale3D();
+			const FQuat R = Rest[I].GetRotation();
+			const double Values[10] = {T.X, T.Y, T.Z, R.X, R.Y, R.Z, R.W, S.X, S.Y, S.Z};
+			for (int32 K = 0; K < 3; K++)
+			{
+				B.translation[K] = (float)Values[K];
+				B.scale[K] = (float)Values[7 + K];
+			}
+			for (int32 K = 0; K < 4; K++)
+			{
+				B.rotation[K] = (float)Values[3 + K];
+			}
+		}
+		FlameRig* Rig = nullptr;
+		FlameBoneMap* Map = nullptr;
+		FlameRetarget* Out = nullptr;
+		FlameStatus Status = flame_rig_from_bones(Bones.GetData(), (size_t)Bones.Num(), FLAME_CONVENTION_UNREAL, &Rig);
+		if (Status == FLAME_STATUS_OK && !BoneMapJson.IsEmpty())
+		{
+			// The JSON's entries over the automatic map: naming the one bone it misses is enough.
+			FlameBoneMap* Auto = nullptr;
+			Status = flame_bone_map_auto(Rig, &Auto);
+			if (Status == FLAME_STATUS_OK)
+			{
+				const TArray<ANSICHAR> Json = Utf8Z(BoneMapJson);
+				Status = flame_bone_map_from_json(Rig, Json.GetData(), Auto, &Map);
+			}
+			flame_bone_map_free(Auto);
+		}
+		FlameRetargetParams Params;
+		if (Status == FLAME_STATUS_OK)
+		{
+			Status = flame_retarget_params_default(&Params);
+		}
+		if (Status == FLAME_STATUS_OK)
+		{
+			Params.feet = bFeetIk ? 1u : 0u;
+			Params.map = Map; // NULL: the automatic map
+			Status = flame_retarget_new(Model, Rig, &Params, &Out);
+		}
+		if (Status != FLAME_STATUS_OK)
+		{
+			Failure = FString(TEXT("retarget onto RetargetMesh: ")) + FlameFailure(Status);
+		}
+		flame_bone_map_free(Map);
+		flame_rig_free(Rig);
+		return Out;
+	}
+
+	/** Writes Frame of a retarget's poses (Rotations: frames × bones × 4, x, y, z, w;
+	 *  Translations: × 3, centimetres; Unreal's convention) into Mesh's bone-space transforms,
+	 *  rest scale kept, and marks them for refresh. False when Frame is not in them or the
+	 *  mesh's bones are no longer this rig's (another mesh was set). */
+	bool Apply(UPoseableMeshComponent* Mesh, const TArray<float>& Rotations, const TArray<float>& Translations, int32 Frame) const
+	{
+		const int32 N = Names.Num();
+		if (Mesh == nullptr || N == 0 || Mesh->BoneSpaceTransforms.Num() != N || Frame < 0 ||
+			(int64)Rotations.Num() < ((int64)Frame + 1) * N * 4 || (int64)Translations.Num() < ((int64)Frame + 1) * N * 3)
+		{
+			return false;
+		}
+		for (int32 B = 0; B < N; B++)
+		{
+			const float* Q = Rotations.GetData() + ((int64)Frame * N + B) * 4;
+			const float* T = Translations.GetData() + ((int64)Frame * N + B) * 3;
+			Mesh->BoneSpaceTransforms[B] = FTransform(FQuat(Q[0], Q[1], Q[2], Q[3]), FVector(T[0], T[1], T[2]), Rest[B].GetScale3D());
+		}
+		Mesh->MarkRefreshTransformDirty();
+		return true;
+	}
+};
+
+/** Owns a retarget for one worker. */
+struct FFlameRetargetRef
+{
+	FlameRetarget* Handle = nullptr;
+	~FFlameRetargetRef() { flame_retarget_free(Handle); }
 };

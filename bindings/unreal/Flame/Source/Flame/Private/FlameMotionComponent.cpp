@@ -6,6 +6,7 @@
 #include "Misc/Paths.h"
 #include "Misc/ScopeLock.h"
 
+#include <cmath>
 #include <limits>
 
 // Last: FlameCommon.h includes the C header, which defines a few unprefixed names.
@@ -90,6 +91,14 @@ struct FFlameJob
 	FString PromptDropped;
 	double TargetLoss = -1.0; // after the last step; -1 without targets
 	TSharedPtr<FFlameFinishedSession, ESPMode::ThreadSafe> Finished; // the session, after a success
+	TArray<float> LatestBoneRotations; // with Rig: the retarget of the latest poses
+	TArray<float> LatestBoneTranslations;
+	int32 LatestBoneFrames = 0;
+
+	// The character's rig (RetargetMesh's, null without one), fixed before the worker starts,
+	// and the worker's retarget of it.
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> Rig;
+	FFlameRetargetRef Retarget;
 
 	void Cancel()
 	{
@@ -165,7 +174,8 @@ private:
 			Session = S;
 		}
 		FrameRate = bCleanup && Cleanup.fps > 0.f ? Cleanup.fps : Info.fps;
-		const bool bOk = Edit(S, Info.feature_dim, Failure) && Targets(S, Info.joint_count, Failure) && Step(S, Failure);
+		const bool bOk = MakeRetarget(M->Handle, Failure) && Edit(S, Info.feature_dim, Failure) &&
+			Targets(S, Info.joint_count, Failure) && Step(S, Failure);
 		double Loss = -1.0;
 		if (bOk && TargetFrames.Num() > 0 && flame_session_target_loss(S, &Loss) != FLAME_STATUS_OK)
 		{
@@ -188,6 +198,39 @@ private:
 			flame_session_free(S);
 		}
 		return bOk;
+	}
+
+	/** The retarget onto Rig, when there is one: made here, where the model is. */
+	bool MakeRetarget(FlameModel* Model, FString& Failure)
+	{
+		if (!Rig.IsValid())
+		{
+			return true;
+		}
+		Retarget.Handle = Rig->Make(Model, Failure);
+		return Retarget.Handle != nullptr;
+	}
+
+	/** Every frame of Which put onto the rig (flame_retarget_read, with the generation's read
+	 *  flags and its cleanup whatever the Layout: a rig takes poses, as the export does). */
+	FlameStatus ReadRig(FlameSession* S, int32 Which, TArray<float>& Rotations, TArray<float>& Translations, int32& OutFrames) const
+	{
+		size_t Frames = 0, Bones = 0;
+		FlameStatus Status = flame_retarget_bone_count(Retarget.Handle, &Bones);
+		if (Status == FLAME_STATUS_OK)
+		{
+			// The frame count first: a cleanup's frame rate changes it.
+			Status = flame_retarget_read(Retarget.Handle, S, Which, Flags, &Cleanup, 0, 0, nullptr, 0, nullptr, 0, &Frames);
+		}
+		if (Status == FLAME_STATUS_OK)
+		{
+			Rotations.SetNumUninitialized((int32)(Frames * Bones * 4));
+			Translations.SetNumUninitialized((int32)(Frames * Bones * 3));
+			Status = flame_retarget_read(Retarget.Handle, S, Which, Flags, &Cleanup, 0, Frames, Rotations.GetData(),
+				(size_t)Rotations.Num(), Translations.GetData(), (size_t)Translations.Num(), &Frames);
+		}
+		OutFrames = (int32)Frames;
+		return Status;
 	}
 
 	/** Sets the edit (parameters, reference, task mask) when EditTask asks for one. */
@@ -366,7 +409,8 @@ private:
 			return false;
 		}
 		FlameStatus Status = FLAME_STATUS_OK;
-		TArray<float> Buffer, RootBuffer, RootBoneBuffer;
+		TArray<float> Buffer, RootBuffer, RootBoneBuffer, BoneRotations, BoneTranslations;
+		int32 BoneFrames = 0;
 		uint32 Left = 1;
 		while (Left > 0)
 		{
@@ -394,6 +438,10 @@ private:
 			{
 				Status = Read(S, Which, FLAME_LAYOUT_ROOT_BONE, RootBoneBuffer);
 			}
+			if (Status == FLAME_STATUS_OK && Retarget.Handle != nullptr)
+			{
+				Status = ReadRig(S, Which, BoneRotations, BoneTranslations, BoneFrames);
+			}
 			if (Status == FLAME_STATUS_OK && bCleanup)
 			{
 				// A cleanup's frame rate changes the frame count: three values per frame.
@@ -404,6 +452,17 @@ private:
 				Failure = FlameFailure(Status);
 				return false;
 			}
+			// Buffers this generation does not read are swapped too: emptied, so that what the
+			// game thread swapped back (a previous generation's track) is not published again.
+			if (!bRootBone)
+			{
+				RootBoneBuffer.Reset();
+			}
+			if (Retarget.Handle == nullptr)
+			{
+				BoneRotations.Reset();
+				BoneTranslations.Reset();
+			}
 			uint32 Done = 0, Total = 0;
 			flame_session_progress(S, &Done, &Total);
 
@@ -411,6 +470,9 @@ private:
 			Swap(Latest, Buffer); // the worker refills the game thread's previous buffers
 			Swap(LatestRoot, RootBuffer);
 			Swap(LatestRootBone, RootBoneBuffer);
+			Swap(LatestBoneRotations, BoneRotations);
+			Swap(LatestBoneTranslations, BoneTranslations);
+			LatestBoneFrames = BoneFrames;
 			LatestFrames = (int32)ReadFrames;
 			LatestFrameRate = FrameRate;
 			bLatestIsNew = true;
@@ -504,8 +566,30 @@ bool UFlameMotionComponent::Generate()
 	{
 		NewJob->Model = Model;
 	}
+	// The character's rig, read here: the mesh is a game-thread object.
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> NewRig;
+	if (RetargetMesh != nullptr)
+	{
+		NewRig = MakeShared<FFlameRigSpec, ESPMode::ThreadSafe>();
+		FString Failure;
+		if (!NewRig->FromMesh(RetargetMesh, Failure))
+		{
+			LastError = Failure;
+			return false;
+		}
+		NewRig->BoneMapJson = BoneMapJson;
+		NewRig->bFeetIk = bRetargetFeetIk;
+	}
+	NewJob->Rig = NewRig;
 
 	LastError.Reset();
+	Rig = NewRig;
+	RigBoneNames = Rig.IsValid() ? Rig->Names : TArray<FString>();
+	BoneRotations.Reset();
+	BoneTranslations.Reset();
+	RigFrames = 0;
+	PlayTime = 0.0;
+	MeshFrame = -1;
 	Finished.Reset(); // the previous motion is no longer exportable
 	TargetLoss = -1.f;
 	bPromptTruncated = false;
@@ -594,6 +678,53 @@ FVector UFlameMotionComponent::GetRootBoneLocation(int32 Frame) const
 	return FVector(P[0], P[1], P[2]);
 }
 
+bool UFlameMotionComponent::ApplyRetargetFrame(int32 Frame)
+{
+	if (!Rig.IsValid() || Frame < 0 || Frame >= RigFrames || !Rig->Apply(RetargetMesh, BoneRotations, BoneTranslations, Frame))
+	{
+		return false;
+	}
+	MeshFrame = Frame;
+	return true;
+}
+
+FQuat UFlameMotionComponent::GetBoneRotation(int32 Frame, int32 Bone) const
+{
+	const int32 N = RigBoneNames.Num();
+	if (Frame < 0 || Frame >= RigFrames || Bone < 0 || Bone >= N || ((int64)Frame * N + Bone) * 4 + 4 > BoneRotations.Num())
+	{
+		return FQuat::Identity;
+	}
+	const float* Q = BoneRotations.GetData() + ((int64)Frame * N + Bone) * 4;
+	return FQuat(Q[0], Q[1], Q[2], Q[3]);
+}
+
+FVector UFlameMotionComponent::GetBoneTranslation(int32 Frame, int32 Bone) const
+{
+	const int32 N = RigBoneNames.Num();
+	if (Frame < 0 || Frame >= RigFrames || Bone < 0 || Bone >= N || ((int64)Frame * N + Bone) * 3 + 3 > BoneTranslations.Num())
+	{
+		return FVector::ZeroVector;
+	}
+	const float* T = BoneTranslations.GetData() + ((int64)Frame * N + Bone) * 3;
+	return FVector(T[0], T[1], T[2]);
+}
+
+void UFlameMotionComponent::PlayOnMesh(float DeltaTime)
+{
+	if (!bPlayOnMesh || !Rig.IsValid() || RetargetMesh == nullptr || RigFrames <= 0 || PoseFrameRate <= 0.f)
+	{
+		return;
+	}
+	if (MeshFrame >= 0)
+	{
+		PlayTime += (double)DeltaTime * (double)(PlayRate > 0.f ? PlayRate : 0.f);
+	}
+	// Looping: a generated clip plays over and over (bLoop makes its ends meet).
+	const int64 Frame = (int64)std::floor(PlayTime * (double)PoseFrameRate + 1e-9) % RigFrames;
+	ApplyRetargetFrame((int32)Frame);
+}
+
 bool UFlameMotionComponent::ExportGltf(bool bBinary, TArray<uint8>& OutBytes)
 {
 	OutBytes.Reset();
@@ -641,6 +772,7 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 	Super::TickComponent(DeltaTime, TickType, ThisTickFunction);
 	if (!Job.IsValid())
 	{
+		PlayOnMesh(DeltaTime);
 		return;
 	}
 	bool bNewPose = false, bFinished = false, bSucceeded = false, bWarnTruncated = false;
@@ -661,6 +793,9 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			Swap(Pose, Job->Latest);
 			Swap(RootLocations, Job->LatestRoot);
 			Swap(RootBoneLocations, Job->LatestRootBone);
+			Swap(BoneRotations, Job->LatestBoneRotations);
+			Swap(BoneTranslations, Job->LatestBoneTranslations);
+			RigFrames = Job->LatestBoneFrames;
 			PoseFrames = Job->LatestFrames;
 			PoseFrameRate = Job->LatestFrameRate;
 			Job->bLatestIsNew = false;
@@ -686,6 +821,7 @@ void UFlameMotionComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		UE_LOG(LogFlame, Warning, TEXT("the prompt has %u tokens; the text encoder keeps its first %u and ignores \"%s\""),
 			PromptTokens, PromptKept, *PromptDropped);
 	}
+	PlayOnMesh(DeltaTime);
 	// Broadcast outside the lock: a handler may call Generate or Cancel.
 	if (bNewPose)
 	{

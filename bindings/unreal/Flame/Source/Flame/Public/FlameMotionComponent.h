@@ -13,6 +13,8 @@
 struct FFlameJob;
 struct FFlameModelRef;
 struct FFlameFinishedSession;
+struct FFlameRigSpec;
+class UPoseableMeshComponent;
 
 /** One time stage of a prompt (FlameStage): what the whole body does for Frames frames, and
  *  optionally what single body parts do (the HuMMan-MoGen annotation's fields; empty = the
@@ -255,6 +257,73 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Flame|Targets")
 	float TargetLoss = -1.f;
 
+	// ---- Retarget onto a character (flame_retarget_*) ---------------------------------------
+
+	/** The character to drive: a Poseable Mesh component whose skeletal mesh's reference
+	 *  skeleton (bone names, parents, reference pose) becomes libflame's rig at Generate, in
+	 *  Unreal's convention. Each step then also fills BoneRotations and BoneTranslations with
+	 *  the motion (Pose's, with the cleanup) put onto that skeleton, and with bPlayOnMesh every
+	 *  tick writes the frame under the playhead into its BoneSpaceTransforms. None (default):
+	 *  no retarget. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	UPoseableMeshComponent* RetargetMesh = nullptr;
+
+	/** Which bone is which humanoid bone, as JSON with VRM 1.0 humanBone names as keys:
+	 *  {"hips": "pelvis", "leftHand": "hand_l"} (null leaves a bone unmapped). Its entries go
+	 *  over libflame's automatic map, which reads the Mannequin's (UE4 and UE5), Mixamo's,
+	 *  Unity's and other common names: name only what that map gets wrong or misses. Empty
+	 *  (default): the automatic map. A bone the mesh lacks fails Generate with the nearest
+	 *  names in LastError. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	FString BoneMapJson;
+
+	/** Two-bone IK on the character's legs: each ankle where the source's is (scaled to the
+	 *  character), so planted feet stay planted on other proportions. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	bool bRetargetFeetIk = true;
+
+	/** Every tick, pose RetargetMesh with the frame at the playhead (looping at PoseFrameRate,
+	 *  from the first pose published); off: call ApplyRetargetFrame yourself. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	bool bPlayOnMesh = true;
+
+	/** Playback speed of bPlayOnMesh: 1 = real time. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget", meta = (ClampMin = "0"))
+	float PlayRate = 1.f;
+
+	/** The retargeted poses of the latest Pose: per frame and RigBoneNames bone the local
+	 *  rotation, quaternion x, y, z, w (set it as the bone's rotation), frame-major:
+	 *  GetFrameCount() × RigBoneNames.Num() × 4 floats, in Unreal's convention. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<float> BoneRotations;
+
+	/** The same bones' translations relative to their parents (centimetres): the reference
+	 *  pose's, except where the retarget moves a bone (the pelvis). × 3 floats a bone. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<float> BoneTranslations;
+
+	/** RetargetMesh's reference skeleton bones, in its order (set by Generate). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<FString> RigBoneNames;
+
+	/** The frame bPlayOnMesh (or ApplyRetargetFrame) last wrote to RetargetMesh; -1 before. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	int32 MeshFrame = -1;
+
+	/** Writes a frame of BoneRotations and BoneTranslations into RetargetMesh's bone-space
+	 *  transforms. False (and nothing written) when there is no such frame or the mesh is not
+	 *  the one Generate took the rig from. */
+	UFUNCTION(BlueprintCallable, Category = "Flame|Retarget")
+	bool ApplyRetargetFrame(int32 Frame);
+
+	/** A bone's retargeted local rotation in a frame (identity when out of range). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Retarget")
+	FQuat GetBoneRotation(int32 Frame, int32 Bone) const;
+
+	/** A bone's retargeted translation in a frame (zero when out of range). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Retarget")
+	FVector GetBoneTranslation(int32 Frame, int32 Bone) const;
+
 	/** Starts a generation on a background thread (the model is loaded there once and kept).
 	 *  False if one is already running or libflame is unavailable (see LastError). */
 	UFUNCTION(BlueprintCallable, Category = "Flame")
@@ -372,4 +441,12 @@ private:
 	 *  or EndPlay (null otherwise). Used on the game thread only, once its worker is done. */
 	TSharedPtr<FFlameFinishedSession, ESPMode::ThreadSafe> Finished;
 	int32 PoseFrames = 0;
+	/** The rig of the last Generate with a RetargetMesh (null without one). */
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> Rig;
+	/** Frames of BoneRotations. */
+	int32 RigFrames = 0;
+	/** Seconds played by bPlayOnMesh since the first retargeted pose of this generation. */
+	double PlayTime = 0.0;
+	/** Advances the playhead and poses RetargetMesh (bPlayOnMesh). */
+	void PlayOnMesh(float DeltaTime);
 };
