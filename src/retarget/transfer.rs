@@ -170,6 +170,15 @@ impl Transfer {
             None => smpl::HEAD,
         };
         let head = need(top, "neck or head")?;
+        // A rig without a neck runs its spine from the hips to the head: the source's neck is
+        // then one more joint of the spine it spreads over the rig's bones.
+        let spine_to_head: Vec<usize>;
+        let spine = if top == smpl::HEAD && source.parent(smpl::HEAD) == Some(smpl::NECK) {
+            spine_to_head = spine.iter().copied().chain([smpl::NECK]).collect();
+            &spine_to_head[..]
+        } else {
+            spine
+        };
 
         // Source rest world positions (rotations are all identity in glTF axes).
         let offsets = source.rest_offsets();
