@@ -25,6 +25,7 @@
 #include "FlameModule.h"
 #include "FlameMotionComponent.h"
 #include "flame.h"
+#include "mannequin.h"
 
 static int passed, failed;
 
@@ -193,67 +194,16 @@ static bool SameFloats(const TArray<float>& a, const std::vector<float>& b) {
     return !b.empty() && a.Num() == (int32)b.size() && std::memcmp(a.GetData(), b.data(), b.size() * 4) == 0;
 }
 
-/* A reference skeleton named as the UE5 Mannequin's (root, pelvis, spine_01..03, neck_01,
- * head, clavicle/upperarm/lowerarm/hand, thigh/calf/foot/ball, an upper-arm twist bone), in
- * Unreal's convention: Z up, facing +X, its left at -Y, centimetres; parents first as a
- * reference skeleton lists them. Rest rotations identity, translations from world positions. */
-static void Mannequin(USkinnedAsset& asset) {
-    FReferenceSkeleton& ref = asset.RefSkeleton;
-    std::vector<std::array<double, 3>> world;
-    auto add = [&](const char* name, int parent, double x, double y, double z) {
-        ref.Names.Add(FName(UTF8_TO_TCHAR(name)));
-        ref.Parents.Add(parent);
-        const std::array<double, 3> p = parent < 0 ? std::array<double, 3>{0, 0, 0} : world[(size_t)parent];
-        ref.Pose.Add(FTransform(FQuat::Identity, FVector(x - p[0], y - p[1], z - p[2]), FVector(1, 1, 1)));
-        world.push_back({x, y, z});
-        return ref.Names.Num() - 1;
-    };
-    add("root", -1, 0, 0, 0);
-    const int pelvis = add("pelvis", 0, 0, 0, 100);
-    const int s1 = add("spine_01", pelvis, 0, 0, 110);
-    const int s2 = add("spine_02", s1, 0, 0, 125);
-    const int s3 = add("spine_03", s2, 0, 0, 140);
-    const int neck = add("neck_01", s3, 0, 0, 150);
-    add("head", neck, 1, 0, 162);
-    for (const char* side : {"l", "r"}) {
-        const double m = side[0] == 'l' ? -1 : 1;
-        auto n = [&](const char* bone) { static std::string s; s = std::string(bone) + "_" + side; return s.c_str(); };
-        const int clav = add(n("clavicle"), s3, 0, m * 4, 145);
-        const int upper = add(n("upperarm"), clav, 0, m * 17, 145);
-        add(n("upperarm_twist_01"), upper, 0, m * 30, 145);
-        const int lower = add(n("lowerarm"), upper, 0, m * 45, 145);
-        add(n("hand"), lower, 0, m * 70, 145);
-        const int thigh = add(n("thigh"), pelvis, 0, m * 10, 94);
-        const int calf = add(n("calf"), thigh, 1, m * 10, 50);
-        const int foot = add(n("foot"), calf, 0, m * 10, 8);
-        add(n("ball"), foot, 13, m * 10, 0);
-    }
-}
-
 /* The retarget of a final sample of Configure's settings onto asset's skeleton, straight
  * through flame.h (flame_rig_from_bones in FLAME_CONVENTION_UNREAL, the automatic map, feet
  * IK on; flame_retarget_read with cleanup): what the component must publish. */
 static bool DirectRetarget(const char* model, int frames, int steps, const USkinnedAsset& asset, const FlameCleanupParams* cleanup,
                            std::vector<float>& rot, std::vector<float>& tr) {
-    const FReferenceSkeleton& ref = asset.GetRefSkeleton();
-    std::vector<std::string> names;
-    for (int i = 0; i < ref.GetNum(); i++) names.push_back(ref.GetBoneName(i).ToString().Utf8());
-    std::vector<FlameRigBone> bones((size_t)ref.GetNum());
-    for (int i = 0; i < ref.GetNum(); i++) {
-        FlameRigBone& b = bones[(size_t)i];
-        const FTransform& t = ref.GetRefBonePose()[i];
-        b = FlameRigBone{sizeof(FlameRigBone), ref.GetParentIndex(i), names[(size_t)i].c_str(),
-                         {(float)t.Translation.X, (float)t.Translation.Y, (float)t.Translation.Z},
-                         {(float)t.Rotation.X, (float)t.Rotation.Y, (float)t.Rotation.Z, (float)t.Rotation.W},
-                         {(float)t.Scale3D.X, (float)t.Scale3D.Y, (float)t.Scale3D.Z}};
-    }
     FlameModel* m = nullptr;
-    FlameRig* rig = nullptr;
     FlameRetarget* r = nullptr;
     FlameSession* s = nullptr;
-    bool ok = flame_model_load(model, nullptr, &m) == FLAME_STATUS_OK &&
-              flame_rig_from_bones(bones.data(), bones.size(), FLAME_CONVENTION_UNREAL, &rig) == FLAME_STATUS_OK &&
-              flame_retarget_new(m, rig, nullptr, &r) == FLAME_STATUS_OK;
+    const size_t bones = (size_t)asset.GetRefSkeleton().GetNum();
+    bool ok = flame_model_load(model, nullptr, &m) == FLAME_STATUS_OK && (r = SkeletonRetarget(m, asset)) != nullptr;
     FlameSessionParams p;
     flame_session_params_default(&p);
     p.frames = (uint32_t)frames;
@@ -268,14 +218,13 @@ static bool DirectRetarget(const char* model, int frames, int steps, const USkin
     size_t n = 0;
     ok = ok && flame_retarget_read(r, s, FLAME_WHICH_SAMPLE, 0, cleanup, 0, 0, nullptr, 0, nullptr, 0, &n) == FLAME_STATUS_OK;
     if (ok) {
-        rot.assign(n * bones.size() * 4, 0.f);
-        tr.assign(n * bones.size() * 3, 0.f);
+        rot.assign(n * bones * 4, 0.f);
+        tr.assign(n * bones * 3, 0.f);
         ok = flame_retarget_read(r, s, FLAME_WHICH_SAMPLE, 0, cleanup, 0, n, rot.data(), rot.size(), tr.data(), tr.size(), &n) ==
              FLAME_STATUS_OK;
     }
     flame_session_free(s);
     flame_retarget_free(r);
-    flame_rig_free(rig);
     flame_model_free(m);
     return ok;
 }

@@ -44,6 +44,7 @@
 #include "FlameModule.h"
 #include "FlameStreamComponent.h"
 #include "flame.h"
+#include "mannequin.h"
 
 static int passed, failed;
 
@@ -538,6 +539,79 @@ static void TestStop() {
     c.EndPlay(EEndPlayReason::Quit);
 }
 
+/* ---- retarget ------------------------------------------------------------------------------- */
+
+/* RetargetMesh: every frame received, put onto a Mannequin-named skeleton, is
+ * flame_retarget_read_stream's on a stream driven the same way, bit for bit; the mesh holds the
+ * frame under the playhead. */
+static void TestRetarget() {
+    const std::string model = Path("flame_tiny");
+    USkinnedAsset asset;
+    Mannequin(asset);
+    const int bones = asset.RefSkeleton.GetNum();
+    Direct d(model);
+    d.push("a person walks forward.", 50);
+    d.push("a person waves.", 25);
+    d.push("a person sits down.", 40);
+    CHECK(d.pump(UINT32_MAX) == (uint64_t)kTimeline, "direct stream");
+    FlameRetarget* r = SkeletonRetarget(d.model, asset);
+    std::vector<float> rot((size_t)kTimeline * bones * 4), tr((size_t)kTimeline * bones * 3);
+    CHECK(r != nullptr && flame_retarget_read_stream(r, d.stream, 0, (uint32_t)kTimeline, nullptr, rot.data(), rot.size(), tr.data(),
+                                                     tr.size()) == FLAME_STATUS_OK,
+          "direct retarget: %s", flame_last_error());
+    flame_retarget_free(r);
+
+    UPoseableMeshComponent mesh;
+    mesh.Asset = &asset;
+    mesh.BoneSpaceTransforms.SetNum(bones);
+    UFlameStreamComponent c;
+    Configure(c, model);
+    c.StepsPerTick = 2;
+    c.RetargetMesh = &mesh;
+    CHECK(c.StartStream(), "StartStream: %s", c.LastError.Utf8().c_str());
+    CHECK(c.PushSegmentFrames(FString(TEXT("a person walks forward.")), 50) &&
+              c.PushSegmentFrames(FString(TEXT("a person waves.")), 25) &&
+              c.PushSegmentFrames(FString(TEXT("a person sits down.")), 40),
+          "push");
+    CHECK(TickUntil(c, [&] { return c.ReadyFrames == kTimeline && c.GetFramePose(kTimeline - 1).Num() > 0; }),
+          "all frames (%d): %s", (int)c.ReadyFrames, c.LastError.Utf8().c_str());
+    CHECK(c.RigBoneNames.Num() == bones, "RigBoneNames");
+    bool same = true;
+    for (int64 f = 0; same && f < kTimeline; f++)
+        for (int b = 0; same && b < bones; b++) {
+            const FQuat q = c.GetBoneRotationAt(f, b);
+            const FVector v = c.GetBoneTranslationAt(f, b);
+            const float* w = rot.data() + (f * bones + b) * 4;
+            const float* t = tr.data() + (f * bones + b) * 3;
+            same = (float)q.X == w[0] && (float)q.Y == w[1] && (float)q.Z == w[2] && (float)q.W == w[3] && (float)v.X == t[0] &&
+                   (float)v.Y == t[1] && (float)v.Z == t[2];
+            if (!same) std::fprintf(stderr, "     frame %d bone %d differs\n", (int)f, b);
+        }
+    CHECK(same, "every frame's retarget = flame_retarget_read_stream's, bit for bit");
+    // 0.5 s at 20 fps: frame 10 in BoneRotations and on the mesh.
+    Tick(c, 0.5f);
+    bool posed = c.CurrentFrame == 10 && c.BoneRotations.Num() == bones * 4 && mesh.RefreshCount > 0;
+    for (int b = 0; posed && b < bones; b++) {
+        const FTransform& t = mesh.BoneSpaceTransforms[b];
+        const float* w = rot.data() + (10 * bones + b) * 4;
+        posed = (float)t.Rotation.X == w[0] && (float)t.Rotation.W == w[3] && c.BoneRotations[b * 4 + 3] == w[3] &&
+                (float)t.Translation.Z == tr[(size_t)(10 * bones + b) * 3 + 2];
+    }
+    CHECK(posed, "frame %d on the mesh and in BoneRotations", (int)c.CurrentFrame);
+    c.StopStream();
+    // A bone map naming a bone the mesh lacks fails the start, the bone named.
+    c.BoneMapJson = FString(TEXT("{\"head\": \"head_x\"}"));
+    int started = 0;
+    bool ok = true;
+    c.OnStarted.AddLambda([&](bool s) { started++; ok = s; });
+    CHECK(c.StartStream(), "StartStream (bad map)");
+    CHECK(TickUntil(c, [&] { return started > 0; }), "OnStarted (bad map)");
+    CHECK(!ok && c.LastError.Utf8().find("head_x") != std::string::npos && !c.IsStreaming(), "bad map: %s", c.LastError.Utf8().c_str());
+    UPoseableMeshComponent empty;
+    c.RetargetMesh = &empty;
+    CHECK(!c.StartStream() && c.LastError.Utf8().find("no skeletal mesh") != std::string::npos, "%s", c.LastError.Utf8().c_str());
+}
+
 /* ---- cleanup -------------------------------------------------------------------------------- */
 
 /* At 30 fps the 115 frames at 20 fps are 172 cleaned frames (the last frame's time kept), as in
@@ -809,6 +883,8 @@ int main(int argc, char** argv) {
     TestCleanedFeetLocked();
     CHECK(WaitForThreads(), "pumps exited");
     TestCleanupRefusals();
+    CHECK(WaitForThreads(), "pumps exited");
+    TestRetarget();
     CHECK(WaitForThreads(), "pumps exited");
     CHECK(FFlameModule::ActiveWorkers.GetValue() == 0, "nothing of libflame left: %d", FFlameModule::ActiveWorkers.GetValue());
     module.ShutdownModule();

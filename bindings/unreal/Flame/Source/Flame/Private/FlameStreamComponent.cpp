@@ -69,6 +69,7 @@ struct FFlameStreamJob
 	bool bCleaned = false; // frames read cleaned (bCleanup, and a Layout other than features)
 	bool bRootBone = false; // RootMotion Separate: the root bone's track is read too
 	FlameCleanupParams Cleanup{}; // the stream's cleanup, set by its first read (in Start)
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> Rig; // RetargetMesh's skeleton, or null
 
 	FCriticalSection Lock;
 	// Guarded by Lock:
@@ -90,6 +91,8 @@ struct FFlameStreamJob
 	TArray<float> NewValues;
 	TArray<float> NewRoots;
 	TArray<float> NewRootBones; // with bRootBone
+	TArray<float> NewBoneRotations; // with Rig: the new frames retargeted
+	TArray<float> NewBoneTranslations;
 	int64 NewFirst = 0;
 	int64 NewFrames = 0;
 	bool bStatusNew = false;
@@ -101,6 +104,7 @@ struct FFlameStreamJob
 
 	// The pumps' own (one at a time):
 	int64 ReadEnd = 0; // frames before it were read and handed over (cleaned ones with a cleanup)
+	FFlameRetargetRef Retarget; // with Rig, made by Start
 	FlameCleanupParams Applied{}; // the stream's cleanup (Cleanup, unless libflame took equal values)
 	FlameCleanupParams Refused{}; // the last settings refused, reported once
 	bool bRefused = false;
@@ -192,7 +196,7 @@ struct FFlameStreamJob
 		// The frames that became ready (or, with a cleanup, settled), in the component's layout
 		// and as root locations (quaternion tracks keep their signs across reads: libflame
 		// anchors them per track).
-		TArray<float> Values, Roots, Bones;
+		TArray<float> Values, Roots, Bones, BoneRotations, BoneTranslations;
 		const int64 MaxFrames = 1 << 16; // per read; the rest comes with the next pump
 		int64 First = 0, Count = 0;
 		bool bMore = false; // frames left for the next pump to read
@@ -225,6 +229,16 @@ struct FFlameStreamJob
 			{
 				R = Read(S, First, (uint32)Count, FLAME_LAYOUT_ROOT_BONE, C, Bones);
 			}
+			if (R == FLAME_STATUS_OK && Retarget.Handle != nullptr)
+			{
+				// The same frames on the character (frame indices as the read's: cleaned ones
+				// with a cleanup).
+				const int64 N = Count * Rig->Names.Num();
+				BoneRotations.SetNumUninitialized((int32)(N * 4));
+				BoneTranslations.SetNumUninitialized((int32)(N * 3));
+				R = flame_retarget_read_stream(Retarget.Handle, S, (uint64)First, (uint32)Count, C, BoneRotations.GetData(),
+					(size_t)BoneRotations.Num(), BoneTranslations.GetData(), (size_t)BoneTranslations.Num());
+			}
 			if (R != FLAME_STATUS_OK)
 			{
 				Failures.Add(FlameFailure(R));
@@ -248,6 +262,8 @@ struct FFlameStreamJob
 				NewValues.Append(Values.GetData(), Values.Num());
 				NewRoots.Append(Roots.GetData(), Roots.Num());
 				NewRootBones.Append(Bones.GetData(), Bones.Num());
+				NewBoneRotations.Append(BoneRotations.GetData(), BoneRotations.Num());
+				NewBoneTranslations.Append(BoneTranslations.GetData(), BoneTranslations.Num());
 				NewFrames += Count;
 			}
 			else
@@ -255,6 +271,8 @@ struct FFlameStreamJob
 				Swap(NewValues, Values);
 				Swap(NewRoots, Roots);
 				Swap(NewRootBones, Bones);
+				Swap(NewBoneRotations, BoneRotations);
+				Swap(NewBoneTranslations, BoneTranslations);
 				NewFirst = First;
 				NewFrames = Count;
 			}
@@ -311,9 +329,18 @@ private:
 			}
 			Applied = Cleanup;
 		}
-		if (Status != FLAME_STATUS_OK)
+		bool bRigFailed = false;
+		if (Status == FLAME_STATUS_OK && Rig.IsValid())
 		{
-			Failure = FlameFailure(Status);
+			Retarget.Handle = Rig->Make(M->Handle, Failure);
+			bRigFailed = Retarget.Handle == nullptr;
+		}
+		if (Status != FLAME_STATUS_OK || bRigFailed)
+		{
+			if (!bRigFailed)
+			{
+				Failure = FlameFailure(Status);
+			}
 			flame_stream_free(S); // NULL when flame_stream_new failed
 			FScopeLock Guard(&Lock);
 			Model = M; // loaded: cached for the next start even though this one failed
@@ -531,6 +558,27 @@ bool UFlameStreamComponent::StartStream()
 	{
 		NewJob->Model = Model;
 	}
+	// The character's rig, read here: the mesh is a game-thread object.
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> NewRig;
+	if (RetargetMesh != nullptr)
+	{
+		NewRig = MakeShared<FFlameRigSpec, ESPMode::ThreadSafe>();
+		FString Failure;
+		if (!NewRig->FromMesh(RetargetMesh, Failure))
+		{
+			LastError = Failure;
+			return false;
+		}
+		NewRig->BoneMapJson = BoneMapJson;
+		NewRig->bFeetIk = bRetargetFeetIk;
+	}
+	NewJob->Rig = NewRig;
+	Rig = NewRig;
+	RigBoneNames = Rig.IsValid() ? Rig->Names : TArray<FString>();
+	BoneRotations.Reset();
+	BoneTranslations.Reset();
+	BoneRotationCache.Reset();
+	BoneTranslationCache.Reset();
 
 	LastError.Reset();
 	Pose.Reset();
@@ -700,11 +748,45 @@ FVector UFlameStreamComponent::GetRootBoneLocationAt(int64 Frame) const
 	return FVector(P[0], P[1], P[2]);
 }
 
+FQuat UFlameStreamComponent::GetBoneRotationAt(int64 Frame, int32 Bone) const
+{
+	const int32 N = RigBoneNames.Num();
+	if (Frame < CacheFirst || Frame >= CacheFirst + CacheFrames || Bone < 0 || Bone >= N ||
+		((Frame - CacheFirst) * N + Bone) * 4 + 4 > BoneRotationCache.Num())
+	{
+		return FQuat::Identity;
+	}
+	const float* Q = BoneRotationCache.GetData() + ((Frame - CacheFirst) * N + Bone) * 4;
+	return FQuat(Q[0], Q[1], Q[2], Q[3]);
+}
+
+FVector UFlameStreamComponent::GetBoneTranslationAt(int64 Frame, int32 Bone) const
+{
+	const int32 N = RigBoneNames.Num();
+	if (Frame < CacheFirst || Frame >= CacheFirst + CacheFrames || Bone < 0 || Bone >= N ||
+		((Frame - CacheFirst) * N + Bone) * 3 + 3 > BoneTranslationCache.Num())
+	{
+		return FVector::ZeroVector;
+	}
+	const float* T = BoneTranslationCache.GetData() + ((Frame - CacheFirst) * N + Bone) * 3;
+	return FVector(T[0], T[1], T[2]);
+}
+
 void UFlameStreamComponent::UpdatePose()
 {
 	Pose = GetFramePose(CurrentFrame);
 	RootLocation = GetRootLocationAt(CurrentFrame);
 	RootBoneLocation = GetRootBoneLocationAt(CurrentFrame);
+	const int32 N = RigBoneNames.Num();
+	const int64 At = CurrentFrame - CacheFirst;
+	BoneRotations.Reset();
+	BoneTranslations.Reset();
+	if (Rig.IsValid() && N > 0 && At >= 0 && (At + 1) * N * 4 <= BoneRotationCache.Num())
+	{
+		BoneRotations.Append(BoneRotationCache.GetData() + At * N * 4, N * 4);
+		BoneTranslations.Append(BoneTranslationCache.GetData() + At * N * 3, N * 3);
+		Rig->Apply(RetargetMesh, BoneRotationCache, BoneTranslationCache, (int32)At);
+	}
 }
 
 void UFlameStreamComponent::Launch()
@@ -734,7 +816,7 @@ void UFlameStreamComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 	bool bBusy = false, bStartedNew = false, bStartOk = false, bBecameStarving = false, bCommandsWaiting = false;
 	bool bCleanupChanged = false;
 	TArray<FString> Errors;
-	TArray<float> NewValues, NewRoots, NewRootBones;
+	TArray<float> NewValues, NewRoots, NewRootBones, NewBoneRotations, NewBoneTranslations;
 	FlameCleanupParams Settings;
 	MakeCleanup(*this, Settings);
 	int64 NewFirst = 0, NewFrames = 0;
@@ -761,6 +843,8 @@ void UFlameStreamComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		Swap(NewValues, Job->NewValues);
 		Swap(NewRoots, Job->NewRoots);
 		Swap(NewRootBones, Job->NewRootBones);
+		Swap(NewBoneRotations, Job->NewBoneRotations);
+		Swap(NewBoneTranslations, Job->NewBoneTranslations);
 		NewFirst = Job->NewFirst;
 		NewFrames = Job->NewFrames;
 		Job->NewFrames = 0;
@@ -802,6 +886,8 @@ void UFlameStreamComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			Cache.Reset();
 			RootCache.Reset();
 			RootBoneCache.Reset();
+			BoneRotationCache.Reset();
+			BoneTranslationCache.Reset();
 			CacheFirst = NewFirst;
 			CacheFrames = 0;
 			ValuesPerFrame = PerFrame;
@@ -809,6 +895,8 @@ void UFlameStreamComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 		Cache.Append(NewValues.GetData(), NewValues.Num());
 		RootCache.Append(NewRoots.GetData(), NewRoots.Num());
 		RootBoneCache.Append(NewRootBones.GetData(), NewRootBones.Num());
+		BoneRotationCache.Append(NewBoneRotations.GetData(), NewBoneRotations.Num());
+		BoneTranslationCache.Append(NewBoneTranslations.GetData(), NewBoneTranslations.Num());
 		CacheFrames += NewFrames;
 	}
 
@@ -840,6 +928,11 @@ void UFlameStreamComponent::TickComponent(float DeltaTime, ELevelTick TickType, 
 			if (RootBoneCache.Num() > 0)
 			{
 				RootBoneCache.RemoveAt(0, (int32)(Drop * 3));
+			}
+			if (BoneRotationCache.Num() > 0)
+			{
+				BoneRotationCache.RemoveAt(0, (int32)(Drop * RigBoneNames.Num() * 4));
+				BoneTranslationCache.RemoveAt(0, (int32)(Drop * RigBoneNames.Num() * 3));
 			}
 			CacheFirst += Drop;
 			CacheFrames -= Drop;

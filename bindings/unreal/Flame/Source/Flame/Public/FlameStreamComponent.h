@@ -16,6 +16,8 @@
 
 struct FFlameStreamJob;
 struct FFlameModelRef;
+struct FFlameRigSpec;
+class UPoseableMeshComponent;
 
 DECLARE_DYNAMIC_MULTICAST_DELEGATE_OneParam(FFlameStreamStartedSignature, bool, bSucceeded);
 DECLARE_DYNAMIC_MULTICAST_DELEGATE(FFlameStreamStarvingSignature);
@@ -126,6 +128,23 @@ public:
 	/** Cleanup, with InPlace or Separate root motion: also remove the heading's drift. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Cleanup")
 	bool bRemoveYaw = false;
+
+	// ---- Retarget onto a character (flame_retarget_read_stream), read by StartStream -------
+
+	/** The character to drive (as UFlameMotionComponent::RetargetMesh): its skeletal mesh's
+	 *  reference skeleton becomes libflame's rig at StartStream; every frame received is also
+	 *  put onto it (the same frames as Pose, cleaned with bCleanup), and each tick the frame
+	 *  under the playhead goes into its BoneSpaceTransforms. None (default): no retarget. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	UPoseableMeshComponent* RetargetMesh = nullptr;
+
+	/** Bone map JSON entries over libflame's automatic map (UFlameMotionComponent::BoneMapJson). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	FString BoneMapJson;
+
+	/** Two-bone IK on the character's legs (planted feet stay planted on its proportions). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Flame|Retarget")
+	bool bRetargetFeetIk = true;
 
 	// ---- Playback, read every tick --------------------------------------------------------
 
@@ -283,6 +302,27 @@ public:
 	UFUNCTION(BlueprintPure, Category = "Flame|Cleanup")
 	FVector GetRootBoneLocationAt(int64 Frame) const;
 
+	/** With RetargetMesh: the frame in Pose put onto its skeleton, per RigBoneNames bone the
+	 *  local rotation (x, y, z, w; 4 floats) and translation (centimetres; 3), in Unreal's
+	 *  convention; empty otherwise. */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<float> BoneRotations;
+
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<float> BoneTranslations;
+
+	/** RetargetMesh's reference skeleton bones, in its order (set by StartStream). */
+	UPROPERTY(BlueprintReadOnly, Category = "Flame|Retarget")
+	TArray<FString> RigBoneNames;
+
+	/** A bone's retargeted local rotation in a held frame (identity when not held). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Retarget")
+	FQuat GetBoneRotationAt(int64 Frame, int32 Bone) const;
+
+	/** A bone's retargeted translation in a held frame (zero when not held). */
+	UFUNCTION(BlueprintPure, Category = "Flame|Retarget")
+	FVector GetBoneTranslationAt(int64 Frame, int32 Bone) const;
+
 	/** The model's skeleton (from flame_model_info), filled once the stream has started. */
 	UPROPERTY(BlueprintReadOnly, Category = "Flame")
 	TArray<FString> JointNames;
@@ -325,6 +365,11 @@ private:
 	TArray<float> Cache;
 	TArray<float> RootCache;
 	TArray<float> RootBoneCache;
+	/** With a rig: the retargeted frames, CacheFrames × bones × 4 rotations and × 3 translations. */
+	TArray<float> BoneRotationCache;
+	TArray<float> BoneTranslationCache;
+	/** The rig of the running stream (null without a RetargetMesh). */
+	TSharedPtr<FFlameRigSpec, ESPMode::ThreadSafe> Rig;
 	int64 CacheFirst = 0;
 	int64 CacheFrames = 0;
 	int32 ValuesPerFrame = 0;
