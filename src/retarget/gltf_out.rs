@@ -1,18 +1,19 @@
 //! The user's glTF/GLB/VRM file handed back with a retargeted animation added ([`write`]).
 //!
 //! - **What is added.** One animation: LINEAR samplers with times `frame / fps`, a rotation
-//!   channel on every skin joint's node and a translation channel on the hips' node. Its data
-//!   is one buffer view appended to the file's buffer (after the existing bytes, 4-byte
-//!   aligned): the times, then one `x, y, z, w` unit quaternion track per joint (sign-continuous
-//!   along the track), then the hips translations, all `f32`.
+//!   channel on every skin joint's node and a translation channel on the hips' node and on the
+//!   nodes of bones beside the body ([`RigMotion::moving`]: Rigify's root-level `DEF-thigh.L`).
+//!   Its data is one buffer view appended to the file's buffer (after the existing bytes,
+//!   4-byte aligned): the times, then one `x, y, z, w` unit quaternion track per joint
+//!   (sign-continuous along the track), then the translations, all `f32`.
 //! - **Node values, not bone values.** A [`RigMotion`]'s local rotations are relative to the
 //!   parent *bone* and hold the transforms [`super::gltf_rig`] folded in (non-joint nodes
 //!   between two joints; for a top joint, the nodes above it such as a Blender/Mixamo
 //!   `Armature` with a 90° turn or a 0.01 scale). The file's node tree still has those nodes,
 //!   so each joint node gets the rotation that puts it at the motion's world rotation under its
 //!   parent node as posed (`Q_parentᵀ · G`, with `Q` the scale-free world rotation of the
-//!   posed parent node), and the hips node the translation that puts it at the motion's world
-//!   position in its parent node's posed frame (scale included: an `Armature` scaled by 0.01
+//!   posed parent node), and the hips node (and any other moving node) the translation that
+//!   puts it at the motion's world position in its parent node's posed frame (scale included: an `Armature` scaled by 0.01
 //!   gets centimetres). glTF is in metres and so is a glTF rig (`metres_per_unit` 1), so world
 //!   positions need no unit change. Joints' translations are the nodes' own: the hierarchy
 //!   reproduces [`RigMotion::positions`] when the nodes rest in the bind pose, as exporters
@@ -929,7 +930,19 @@ fn clip_of(
     }
     let nb = rig.bone_count();
     let mut rotations = vec![IDENTITY; m.frames * nb];
-    let mut hips = Vec::with_capacity(m.frames * 3);
+    // Translation tracks of the bones whose translation moves: the hips, and bones beside the
+    // body placed from another bone (`RigMotion::moving`).
+    let mut moves = vec![false; nb];
+    for &b in &m.moving {
+        if b >= nb {
+            return Err(invalid_arg!("moving bone {b} is past the rig's {nb} bones"));
+        }
+        moves[b] = true;
+    }
+    moves[m.hips_bone] = true;
+    let mut tracks: Vec<Vec<f32>> = (0..nb)
+        .map(|b| Vec::with_capacity(if moves[b] { m.frames * 3 } else { 0 }))
+        .collect();
     let mut world_rot = vec![IDENTITY; count];
     let mut world = vec![ORIGIN; count];
     for t in 0..m.frames {
@@ -947,11 +960,11 @@ fn clip_of(
             };
             let r = rotation::mul(&rotation::transpose(&q_parent), &g[b]);
             rotations[b * m.frames + t] = r;
-            let tr = if b == m.hips_bone {
-                let p = a_parent
-                    .solve(&m.positions_frame(t)[b])
-                    .ok_or_else(|| invalid_arg!("the hips' parent node has a zero scale"))?;
-                hips.extend(p.map(|v| v as f32));
+            let tr = if moves[b] {
+                let p = a_parent.solve(&m.positions_frame(t)[b]).ok_or_else(|| {
+                    invalid_arg!("the parent node of `{}` has a zero scale", rig.name(b))
+                })?;
+                tracks[b].extend(p.map(|v| v as f32));
                 p
             } else {
                 node.t
@@ -966,6 +979,10 @@ fn clip_of(
         let track = &rotations[b * m.frames..(b + 1) * m.frames];
         clip.channel(n, "rotation", &quaternion_track(track.iter().copied()))?;
     }
-    clip.channel(joints[m.hips_bone], "translation", &hips)?;
+    for (b, &n) in joints.iter().enumerate() {
+        if moves[b] {
+            clip.channel(n, "translation", &tracks[b])?;
+        }
+    }
     Ok(clip)
 }

@@ -29,10 +29,12 @@
 //!   IK, `root`, fingers) keep their rest rotation relative to their parent: twist bones take no
 //!   share of a limb's twist, the limb bone carries all of it.
 //! - **Bones beside the hips.** A rig may hang body bones beside the hips rather than under
-//!   them (Blender's Rigify: `DEF-thigh.L` and the face under `ORG-` bones that are siblings of
-//!   the hips `DEF-spine`). Such a bone without a source of its own follows the driven bone
-//!   nearest to it at rest, rigidly, so it moves with the body; its translation then moves
-//!   too, and [`Transfer::follows`] names it for writers that animate translations.
+//!   them (Blender's Rigify, exported with deform bones only: `DEF-thigh.L`, `DEF-upper_arm.L`
+//!   and the face bones are roots of their own). Such a bone without a source of its own
+//!   follows the driven bone nearest to it at rest, rigidly; a driven one keeps its own
+//!   rotation and its rest offset from its humanoid parent's bone (the thigh from the hips,
+//!   the upper arm from the shoulder). Either way it moves with the body and its translation
+//!   is animated; [`Transfer::anchor`] names the bone it is placed from.
 //! - **Hips translation.** Scaled by the ratio of hips heights above the lowest foot joint (as
 //!   VRMA and three-vrm do), turned into the rig's axes and units, and put in the hips' parent's
 //!   frame (at rest).
@@ -113,8 +115,28 @@ pub struct Transfer {
     chain_frac: [f64; MAX_CHAIN],
     chain_len: usize,
     /// Bones in an order where each comes after what its world position depends on (its
-    /// parent, or the bone it follows).
+    /// parent, or its anchor).
     order: Vec<usize>,
+    /// Per bone beside the body: the bone it keeps its rest offset from ([`Transfer::anchor`]).
+    anchor: Vec<Option<usize>>,
+}
+
+/// How far (degrees) a rest direction may be from an axis of its skeleton's world and still be
+/// taken as it: above any spine's lean at rest, far below a rig turned on purpose.
+const SNAP_DEGREES: f64 = 20.0;
+
+/// `u` (unit) replaced by the signed world axis nearest to it when within [`SNAP_DEGREES`].
+fn snap(u: &Vec3) -> Vec3 {
+    let i = (0..3)
+        .max_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
+        .expect("three axes");
+    if u[i].abs() >= SNAP_DEGREES.to_radians().cos() {
+        let mut a = [0.0; 3];
+        a[i] = u[i].signum();
+        a
+    } else {
+        *u
+    }
 }
 
 /// Points of a source spine chain (SMPL's: pelvis, three spine joints, neck).
@@ -189,15 +211,25 @@ impl Transfer {
         }
         let pos = rig.rest_world_positions();
         let frame_of = |left: Vec3, up: Vec3| -> Result<Mat3> {
-            let l = unit(&left).ok_or_else(|| invalid_arg!("the rig's thighs coincide"))?;
-            let u = unit(&sub(&up, &scale(&l, rotation::dot(&up, &l))))
-                .ok_or_else(|| invalid_arg!("the rig's spine runs along its hips"))?;
+            // Up first (a spine leans, but a character stands along its world's up axis), then
+            // left made perpendicular to it.
+            let u = unit(&up)
+                .map(|u| snap(&u))
+                .ok_or_else(|| invalid_arg!("the rig's spine has no length"))?;
+            let l = unit(&sub(&left, &scale(&u, rotation::dot(&left, &u))))
+                .ok_or_else(|| invalid_arg!("the rig's thighs coincide or run along its spine"))?;
+            let l = snap(&l);
+            let l = unit(&sub(&l, &scale(&u, rotation::dot(&l, &u)))).unwrap_or(l);
             let f = rotation::cross(&l, &u);
             Ok([[l[0], u[0], f[0]], [l[1], u[1], f[1]], [l[2], u[2], f[2]]])
         };
-        // Both frames are made the same way from the rest skeletons (left from the right thigh
-        // to the left, up from the hips to the spine's end), so skeletons of one shape get the
-        // exact turn between them: C = F_rig · F_sourceᵀ.
+        // Both frames are made the same way from the rest skeletons (up from the hips to the
+        // spine's end, left from the right thigh to the left), so skeletons of one shape get
+        // the exact turn between them: C = F_rig · F_sourceᵀ. Each direction within
+        // `SNAP_DEGREES` of an axis of its skeleton's world is taken as that axis: SMPL's spine
+        // leans 5° forward at rest, a game rig's stands straight or leans otherwise, and a
+        // frame built on the leans themselves would tilt the source's up on the rig (a walk
+        // forward would go downhill: 25 cm over 4 m on a Mixamo rig).
         let src_frame = frame_of(
             sub(&src_pos[l_hip], &src_pos[r_hip]),
             sub(&src_pos[top], &src_pos[pelvis]),
@@ -334,7 +366,26 @@ impl Transfer {
                 };
             }
         }
-        let order = follow_outsiders(rig, hips, &mut drive);
+        // A driven bone beside the body is placed from the bone of its joint's nearest mapped
+        // ancestor (Rigify's `DEF-thigh.L` from the hips, `DEF-upper_arm.L` from the
+        // shoulder); an unmapped spine bone there, from the hips.
+        let placed_from: Vec<Option<usize>> = (0..n)
+            .map(|b| match drive[b] {
+                Drive::Joint { joint, .. } => {
+                    let mut j = source.parent(joint);
+                    while let Some(a) = j {
+                        if let Some(x) = bone_of[a] {
+                            return Some(x);
+                        }
+                        j = source.parent(a);
+                    }
+                    None
+                }
+                Drive::Spine { .. } => Some(hips),
+                _ => None,
+            })
+            .collect();
+        let (order, anchor) = follow_outsiders(rig, hips, &mut drive, &placed_from);
         // The floor point: the rig's lowest foot joint at rest, measured along the rig's
         // direction of the source's world up (`C·ŷ`, which a leaning spine does not tilt), so
         // the source's origin lands under the rig's origin, not beside it.
@@ -374,6 +425,7 @@ impl Transfer {
             chain_frac,
             chain_len,
             order,
+            anchor,
         })
     }
 
@@ -387,13 +439,10 @@ impl Transfer {
         self.hips
     }
 
-    /// The driven bone a bone outside the hips' subtree moves with ([`Transfer`] doc), if it
-    /// is one.
-    pub fn follows(&self, bone: usize) -> Option<usize> {
-        match self.drive.get(bone) {
-            Some(Drive::Follow { bone, .. }) => Some(*bone),
-            _ => None,
-        }
+    /// The bone a bone beside the body keeps its rest offset from, turned with it, if it is
+    /// one (module doc): its position then comes from there and its translation moves.
+    pub fn anchor(&self, bone: usize) -> Option<usize> {
+        self.anchor.get(bone).copied().flatten()
     }
 
     /// Sets the followers' world rotations again from the bones they follow (after IK turned
@@ -459,7 +508,7 @@ impl Transfer {
                 &rotation::transpose(&self.axes),
             )
         };
-        // In dependency order: a `Rest` bone after its parent, a follower after its bone.
+        // In dependency order: a `Rest` bone after its parent, a follower after its anchor.
         for &b in &self.order {
             world[b] = match self.drive[b] {
                 Drive::Joint { joint, rest } => rotation::mul(&delta(joint), &rest),
@@ -535,13 +584,20 @@ impl Transfer {
     }
 }
 
-/// Makes every undriven bone with no driven ancestor that is not above the hips (Blender's
-/// Rigify rig: `ORG-spine`, a sibling of the hips `DEF-spine` and parent of `DEF-thigh.L`)
-/// follow the driven bone nearest to it at rest, so it moves with the body instead of staying where the rig
-/// stood; returns an order of the bones in which each comes after what its position depends
-/// on. A follower that would end up depending on itself through the bones it follows keeps
-/// its rest relative to its parent.
-fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
+/// Bones beside the body: an undriven bone with no driven ancestor that is not above the hips
+/// (Blender's Rigify rig: `ORG-spine`, a sibling of the hips `DEF-spine` and parent of
+/// `DEF-thigh.L`) follows the driven bone nearest to it at rest, rigidly, so it moves with the
+/// body instead of staying where the rig stood; a driven bone with no driven ancestor (the
+/// same export's `DEF-thigh.L`, a root of its own) keeps its own rotation and is placed from
+/// `placed_from` (its humanoid parent's bone). Returns an order of the bones in which each
+/// comes after what its position depends on, and each such bone's anchor. A bone that would
+/// end up depending on itself through anchors keeps its rest place relative to its parent.
+fn follow_outsiders(
+    rig: &Rig,
+    hips: usize,
+    drive: &mut [Drive],
+    placed_from: &[Option<usize>],
+) -> (Vec<usize>, Vec<Option<usize>>) {
     let n = rig.bone_count();
     let ancestor_of = |a: usize, b: usize| {
         let mut at = Some(b);
@@ -555,23 +611,30 @@ fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
     };
     let pos = rig.rest_world_positions();
     let world = rig.rest_world_rotations();
-    let driven: Vec<usize> = (0..n)
-        .filter(|&b| matches!(drive[b], Drive::Joint { .. } | Drive::Spine { .. }))
-        .collect();
+    let is_driven = |d: &Drive| matches!(d, Drive::Joint { .. } | Drive::Spine { .. });
+    let driven: Vec<usize> = (0..n).filter(|&b| is_driven(&drive[b])).collect();
     // A bone with a driven ancestor (the hips included) is carried by it; a bone above the
     // hips holds them. The rest are beside the body.
     let carried = |b: usize, drive: &[Drive]| {
         let mut at = rig.parent(b);
         while let Some(x) = at {
-            if matches!(drive[x], Drive::Joint { .. } | Drive::Spine { .. }) {
+            if is_driven(&drive[x]) {
                 return true;
             }
             at = rig.parent(x);
         }
         false
     };
+    let mut anchor = vec![None; n];
     for b in 0..n {
-        if !matches!(drive[b], Drive::Rest) || ancestor_of(b, hips) || carried(b, drive) {
+        if b == hips || ancestor_of(b, hips) || carried(b, drive) {
+            continue;
+        }
+        if is_driven(&drive[b]) {
+            anchor[b] = placed_from[b].filter(|&f| !ancestor_of(b, f));
+            continue;
+        }
+        if !matches!(drive[b], Drive::Rest) {
             continue;
         }
         let nearest = driven
@@ -587,13 +650,10 @@ fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
                 bone: f,
                 rel: rotation::mul(&rotation::transpose(&world[f]), &world[b]),
             };
+            anchor[b] = Some(f);
         }
     }
-    // Depth-first: a bone's position needs its parent's, a follower's the followed bone's.
-    let needs = |b: usize, drive: &[Drive]| match drive[b] {
-        Drive::Follow { bone, .. } => Some(bone),
-        _ => rig.parent(b),
-    };
+    // Depth-first: a bone's position needs its anchor's, else its parent's.
     let mut order = Vec::with_capacity(n);
     // 0 unvisited, 1 on the path, 2 placed.
     let mut state = vec![0u8; n];
@@ -605,18 +665,21 @@ fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
                 continue;
             }
             state[b] = 1;
-            match needs(b, drive) {
+            match anchor[b].or(rig.parent(b)) {
                 Some(d) if state[d] == 0 => path.push(d),
                 Some(d) if state[d] == 1 => {
-                    // A cycle through followers: the one met last keeps its rest relation to
-                    // its parent (parents alone never cycle), and is looked at again.
+                    // A cycle through anchors: the one met last keeps its rest place relative
+                    // to its parent (parents alone never cycle), and is looked at again.
                     let demote = path
                         .iter()
                         .rev()
                         .copied()
-                        .find(|&x| matches!(drive[x], Drive::Follow { .. }))
-                        .expect("a cycle holds a follower");
-                    drive[demote] = Drive::Rest;
+                        .find(|&x| anchor[x].is_some())
+                        .expect("a cycle holds an anchored bone");
+                    anchor[demote] = None;
+                    if matches!(drive[demote], Drive::Follow { .. }) {
+                        drive[demote] = Drive::Rest;
+                    }
                     for &x in &path {
                         state[x] = 0;
                     }
@@ -630,7 +693,7 @@ fn follow_outsiders(rig: &Rig, hips: usize, drive: &mut [Drive]) -> Vec<usize> {
             }
         }
     }
-    order
+    (order, anchor)
 }
 
 /// The child of source joint `j` its direction is taken toward: its mapped child, the one
