@@ -4,7 +4,9 @@
 # AVX-512 hidden from the CPU (tools/avx2_only.sh, where the CPU allows), the C ABI tests (shared and
 # static library, C++ wrapper, packaging; valgrind when CI=true or FLAME_VALGRIND=1), the
 # language bindings' tests, the BVH round trip through Blender, the glTF export through the
-# Khronos validator and Blender's importer, the demo model's foot skating ratio with the feet
+# Khronos validator and Blender's importer, the demo model's clips retargeted onto unlike
+# characters (tools/retarget_check.sh: Blender, the validator, three-vrm under Node), the demo
+# model's foot skating ratio with the feet
 # locked (tools/skating.sh: at most 0.02; needs the demo model `tools/try.sh` assembles), and a
 # short run of every fuzz target.
 #
@@ -22,7 +24,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 
-stages=(fmt clippy rust avx2-only c bindings bvh gltf skating fuzz)
+stages=(fmt clippy rust avx2-only c bindings bvh gltf retarget skating fuzz)
 [ $# -gt 0 ] && stages=("$@")
 passed=() failed=()
 
@@ -126,9 +128,10 @@ for stage in "${stages[@]}"; do
         bindings) run_stage bindings bash tests/bindings/run_all.sh ;;
         bvh) run_stage bvh bash tools/bvh_roundtrip.sh ;;
         gltf) run_stage gltf bash tools/gltf_check.sh ;;
+        retarget) run_stage retarget env PYTHON="$venv/bin/python" bash tools/retarget_check.sh ;;
         skating) run_stage skating env PYTHON="$venv/bin/python" bash tools/skating.sh ;;
         fuzz) [ -f tools/fuzz.sh ] && run_stage fuzz fuzz_smoke ;;
-        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust avx2-only c bindings bvh gltf skating fuzz)" >&2
+        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust avx2-only c bindings bvh gltf retarget skating fuzz)" >&2
            failed+=("$stage") ;;
     esac
 done

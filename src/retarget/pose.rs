@@ -5,8 +5,10 @@
 //!
 //! **Feet.** The hips translation is scaled by the hips heights' ratio, but a rig's thigh/shin
 //! split, foot height and hip width still differ from SMPL's, so copied leg directions alone put
-//! the ankles a little off where the scaled source's are: a planted foot slides. Every frame,
-//! each leg (upper leg → lower leg → foot) is solved so the ankle reaches the source ankle
+//! the ankles a little off where the scaled source's are: a planted foot slides. While the
+//! source's foot is planted (its contacts, ramping in and out over four frames; every frame
+//! for poses without contacts or a single [`Target::pose`]), each leg (upper leg → lower leg →
+//! foot) is solved so the ankle reaches the source ankle
 //! placed on the rig ([`Transfer::place`]: the same map that places the hips), raised by the
 //! difference of the two skeletons' ankle heights below the hips at rest (`h_rig − s·h_source`),
 //! so a source foot flat on its floor is flat on the rig's. Contacts of the source therefore stay contacts,
@@ -248,6 +250,39 @@ impl Limbs {
     }
 }
 
+/// Frames over which a foot's IK weight ramps in and out around its contacts.
+const CONTACT_RAMP: usize = 4;
+
+/// Per frame, each foot's IK weight (left, right): 1 while the source's ankle or toe is
+/// planted, ramping linearly to 0 over [`CONTACT_RAMP`] frames before and after, so the leg
+/// eases into its planted place; empty when the poses carry no contacts (then every frame is
+/// weighted 1).
+fn contact_weights(poses: &Poses) -> Vec<[f64; 2]> {
+    let Some(contacts) = poses.foot_contacts() else {
+        return Vec::new();
+    };
+    let n = contacts.len();
+    let planted = |t: usize, side: usize| {
+        contacts[t][2 * side]
+            .max(contacts[t][2 * side + 1])
+            .clamp(0.0, 1.0)
+    };
+    (0..n)
+        .map(|t| {
+            [0, 1].map(|side| {
+                let lo = t.saturating_sub(CONTACT_RAMP);
+                let hi = (t + CONTACT_RAMP).min(n - 1);
+                (lo..=hi)
+                    .map(|u| {
+                        let d = u.abs_diff(t) as f64;
+                        planted(u, side) * (1.0 - d / (CONTACT_RAMP as f64 + 1.0))
+                    })
+                    .fold(0.0, f64::max)
+            })
+        })
+        .collect()
+}
+
 fn sub(a: &Vec3, b: &Vec3) -> Vec3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
@@ -267,6 +302,29 @@ impl Target {
         source_positions: &[Vec3],
         source_root: &Vec3,
         options: &Options,
+        out: &mut RigPose,
+    ) -> Result<()> {
+        self.pose_weighted(
+            source_world,
+            source_positions,
+            source_root,
+            options,
+            [1.0; 2],
+            out,
+        )
+    }
+
+    /// [`Target::pose`] with the feet's IK weighted per foot (left, right; 0 to 1): the ankle
+    /// goes that far from where the rotations put it toward the placed source ankle.
+    /// [`Target::motion`] weights by the source's foot contacts, so a foot in the air keeps the
+    /// source's leg directions and a planted one stays where the source's is.
+    pub fn pose_weighted(
+        &self,
+        source_world: &[Mat3],
+        source_positions: &[Vec3],
+        source_root: &Vec3,
+        options: &Options,
+        feet_weight: [f64; 2],
         out: &mut RigPose,
     ) -> Result<()> {
         let n = self.rig().bone_count();
@@ -305,11 +363,20 @@ impl Target {
         let mut any = false;
         for c in chains {
             let ch = &limbs.chains[c];
-            let goal = rotation::add(
+            let p = &out.positions;
+            let placed = rotation::add(
                 &self.transfer().place(&source_positions[ch.source_end]),
                 &[0, 1, 2].map(|i| up[i] * ch.lift),
             );
-            let p = &out.positions;
+            let w = if c < 2 {
+                feet_weight[c].clamp(0.0, 1.0)
+            } else {
+                1.0
+            };
+            if w <= 0.0 {
+                continue;
+            }
+            let goal = [0, 1, 2].map(|i| p[ch.end][i] + w * (placed[i] - p[ch.end][i]));
             // A limb already on its goal is left as the transfer made it: the solver's reach
             // limit would otherwise bend a straight leg by ~1.6°.
             let length = dist(&p[ch.upper], &p[ch.lower]) + dist(&p[ch.lower], &p[ch.end]);
@@ -419,13 +486,15 @@ impl Target {
             hips: Vec::with_capacity(frames),
         };
         let mut pose = RigPose::new(self);
+        let weights = contact_weights(poses);
         for (t, root) in root.iter().enumerate() {
             let span = t * joints..(t + 1) * joints;
-            self.pose(
+            self.pose_weighted(
                 &world[span.clone()],
                 &positions[span],
                 root,
                 options,
+                weights.get(t).copied().unwrap_or([1.0; 2]),
                 &mut pose,
             )?;
             motion.local.extend_from_slice(&pose.local);
