@@ -69,18 +69,22 @@ pub mod smpl {
 enum Drive {
     /// Takes source joint `joint`'s delta on top of its retarget rest.
     Joint { joint: usize, rest: Mat3 },
-    /// A spine bone: the blend of source joints `lo` and `hi`'s deltas at `t`.
+    /// A spine bone: the blend of source joints `lo` and `hi`'s deltas at `t`, then aimed so
+    /// that its end lands on the source's posed spine at the same fraction of its length.
     Spine {
         lo: usize,
         hi: usize,
         t: f64,
         rest: Mat3,
-        /// The bone's span along the chain (fractions of its rest length) and its retarget
-        /// rest direction (rig axes): it is aimed at the chord of the source's posed spine
-        /// between the same fractions.
-        from: f64,
+        /// Its place in the rig's spine chain (0 = the bone above the hips).
+        k: usize,
+        /// Its start's rest offset from the chain point before (the hips' for `k = 0`, else
+        /// spine bone `k − 1`'s start), in that bone's rest frame; its end's (the next spine
+        /// bone's start, or the neck's or head's) in its own rest frame.
+        start: Vec3,
+        end: Vec3,
+        /// The fraction of the rig's chain length at its end.
         to: f64,
-        dir: Vec3,
     },
     /// Keeps its rest rotation relative to its parent.
     Rest,
@@ -114,6 +118,10 @@ pub struct Transfer {
     chain_off: [Vec3; MAX_CHAIN],
     chain_frac: [f64; MAX_CHAIN],
     chain_len: usize,
+    /// Rig units per source metre along the spines (their lengths' ratio).
+    chain_scale: f64,
+    /// The rig's spine bones, bottom up.
+    spine_bones: Vec<usize>,
     /// Bones in an order where each comes after what its world position depends on (its
     /// parent, or its anchor).
     order: Vec<usize>,
@@ -137,6 +145,14 @@ fn snap(u: &Vec3) -> Vec3 {
     } else {
         *u
     }
+}
+
+/// Bones between a rig's hips and its neck that are spread over the source's spine.
+const MAX_RIG_SPINE: usize = 32;
+
+/// The length of a polyline.
+fn length(chain: &[Vec3]) -> f64 {
+    chain.windows(2).map(|w| norm(&sub(&w[1], &w[0]))).sum()
 }
 
 /// Points of a source spine chain (SMPL's: pelvis, three spine joints, neck).
@@ -303,6 +319,7 @@ impl Transfer {
         // The spine: fractions along the chains by rest length.
         let (mut chain, mut chain_off) = ([0; MAX_CHAIN], [[0.0; 3]; MAX_CHAIN]);
         let (mut chain_frac, mut chain_len) = ([0.0; MAX_CHAIN], 0);
+        let mut chain_scale = 1.0;
         if !rig_spine.is_empty() {
             if spine.is_empty() {
                 return Err(invalid_arg!("the source has no spine joints to spread"));
@@ -318,6 +335,16 @@ impl Transfer {
                 .map(|b| pos[b])
                 .collect();
             let (sf, rf) = (fractions(&src_chain), fractions(&rig_chain));
+            if rig_spine.len() > MAX_RIG_SPINE {
+                return Err(invalid_arg!(
+                    "the rig has {} bones between its hips and its neck; at most {MAX_RIG_SPINE} \
+                     are spread",
+                    rig_spine.len()
+                ));
+            }
+            // Rig units per source metre along the spine: its points land on the source's
+            // posed spine at the same fractions, scaled to the rig's spine.
+            chain_scale = length(&rig_chain) / length(&src_chain).max(1e-12);
             let ids: Vec<usize> = std::iter::once(pelvis)
                 .chain(spine.iter().copied())
                 .chain(std::iter::once(top))
@@ -355,14 +382,18 @@ impl Transfer {
                 let target = rotation::apply(&axes, &sub(&src_chain[s + 1], &src_chain[s]));
                 let here = sub(&rig_chain[k + 2], &rig_chain[k + 1]);
                 let rest = rotation::mul(&rotate_onto(&here, &target, None), &world[b]);
+                let prev = if k == 0 { hips } else { rig_spine[k - 1] };
+                let in_frame =
+                    |bone: usize, v: Vec3| rotation::apply(&rotation::transpose(&world[bone]), &v);
                 drive[b] = Drive::Spine {
                     lo,
                     hi,
                     t,
                     rest,
-                    from: rf[k + 1],
+                    k,
+                    start: in_frame(prev, sub(&rig_chain[k + 1], &rig_chain[k])),
+                    end: in_frame(b, here),
                     to: rf[k + 2],
-                    dir: unit(&target).unwrap_or([0.0, 1.0, 0.0]),
                 };
             }
         }
@@ -424,6 +455,8 @@ impl Transfer {
             chain_off,
             chain_frac,
             chain_len,
+            chain_scale,
+            spine_bones: rig_spine.to_vec(),
             order,
             anchor,
         })
@@ -508,6 +541,8 @@ impl Transfer {
                 &rotation::transpose(&self.axes),
             )
         };
+        // The rig's spine points (relative to the hips), set as its spine bones are.
+        let mut spine_at = [[0.0; 3]; MAX_RIG_SPINE];
         // In dependency order: a `Rest` bone after its parent, a follower after its anchor.
         for &b in &self.order {
             world[b] = match self.drive[b] {
@@ -517,24 +552,32 @@ impl Transfer {
                     hi,
                     t,
                     rest,
-                    from,
+                    k,
+                    start,
+                    end,
                     to,
-                    dir,
                 } => {
-                    // The blended delta, then the smallest turn aiming the bone at the chord
-                    // of the source's posed spine between the same fractions: the rig's spine
-                    // follows the source's curve whatever its bone count.
+                    // The blended delta, then the smallest turn putting the bone's end on the
+                    // source's posed spine at the same fraction (scaled to the rig's spine),
+                    // from where its start is now: the rig's spine follows the source's curve
+                    // whatever its bone count, and hips to neck points where the source's does.
                     let blend = slerp(&delta(lo), &delta(hi), t);
-                    let now = rotation::apply(&blend, &dir);
-                    let want = rotation::apply(
-                        &self.axes,
-                        &sub(
-                            &self.spine_point(source_world, to),
-                            &self.spine_point(source_world, from),
-                        ),
+                    let g = rotation::mul(&blend, &rest);
+                    let prev = if k == 0 {
+                        self.hips
+                    } else {
+                        self.spine_bones[k - 1]
+                    };
+                    let before = if k == 0 { [0.0; 3] } else { spine_at[k - 1] };
+                    let at = rotation::add(&before, &rotation::apply(&world[prev], &start));
+                    spine_at[k] = at;
+                    let now = rotation::apply(&g, &end);
+                    let goal = scale(
+                        &rotation::apply(&self.axes, &self.spine_point(source_world, to)),
+                        self.chain_scale,
                     );
-                    let aim = rotate_onto(&now, &want, None);
-                    rotation::mul(&rotation::mul(&aim, &blend), &rest)
+                    let aim = rotate_onto(&now, &sub(&goal, &at), None);
+                    rotation::mul(&aim, &g)
                 }
                 Drive::Rest => match self.parents[b] {
                     Some(p) => rotation::mul(&world[p], &self.rest_local[b]),
