@@ -130,6 +130,9 @@ pub(crate) struct Chain {
     /// Added to the placed source end (rig units, along up): `h_rig − s·h_source` for
     /// ankles, nothing for wrists.
     lift: f64,
+    /// A leg's toes (rig bone, source joint, lift as the ankle's): while planted, the foot is
+    /// pitched about the ankle so the toes stand at the source's toes' height.
+    toe: Option<(usize, usize, f64)>,
 }
 
 /// Which turn of a chain's solution a bone takes.
@@ -147,6 +150,8 @@ pub(crate) struct Limbs {
     /// Per bone: the chain (index into `chains`) whose solution turns it, and which turn.
     /// The end's subtree keeps its world rotations.
     part: Vec<Option<(u8, Part)>>,
+    /// Per bone: the leg (0 left, 1 right) whose foot's subtree holds it (the foot included).
+    foot: Vec<Option<u8>>,
     /// Per bone: the uniform scale of its rest world transform (positions of children are
     /// `world · scale · translation`).
     world_scale: Vec<f64>,
@@ -179,30 +184,47 @@ impl Limbs {
             end: 0,
             source_end: 0,
             lift: 0.0,
+            toe: None,
         }; 4];
         let specs = [
-            (LeftUpperLeg, LeftLowerLeg, LeftFoot, smpl::L_ANKLE, true),
-            (RightUpperLeg, RightLowerLeg, RightFoot, smpl::R_ANKLE, true),
-            (LeftUpperArm, LeftLowerArm, LeftHand, 20, false),
-            (RightUpperArm, RightLowerArm, RightHand, 21, false),
+            (
+                LeftUpperLeg,
+                LeftLowerLeg,
+                LeftFoot,
+                smpl::L_ANKLE,
+                Some(LeftToes),
+            ),
+            (
+                RightUpperLeg,
+                RightLowerLeg,
+                RightFoot,
+                smpl::R_ANKLE,
+                Some(RightToes),
+            ),
+            (LeftUpperArm, LeftLowerArm, LeftHand, 20, None),
+            (RightUpperArm, RightLowerArm, RightHand, 21, None),
         ];
-        for (c, (u, l, e, j, leg)) in specs.into_iter().enumerate() {
+        // A joint's rest height below the hips, the rig's against the scaled source's (source
+        // up is glTF's +Y; `up` is where it points on the rig).
+        let lift_of = |bone: usize, joint: usize| {
+            let rig_h = rotation::dot(&sub(&pos[bone], &pos[transfer.hips()]), &up);
+            rig_h - transfer.scale() * src_pos[joint][1]
+        };
+        for (c, (u, l, e, j, toes)) in specs.into_iter().enumerate() {
             let end = bone(e)?;
-            // The ankle's rest height above the hips, the rig's against the scaled source's
-            // (source up is glTF's +Y; `up` is where it points on the rig).
-            let lift = if leg {
-                let hips = transfer.hips();
-                let rig_h = rotation::dot(&sub(&pos[end], &pos[hips]), &up);
-                rig_h - transfer.scale() * src_pos[j][1]
-            } else {
-                0.0
-            };
+            let leg = toes.is_some();
+            let lift = if leg { lift_of(end, j) } else { 0.0 };
+            let toe = toes.and_then(|t| map.bone(t)).map(|t| {
+                let joint = if c == 0 { smpl::L_FOOT } else { smpl::R_FOOT };
+                (t, joint, lift_of(t, joint))
+            });
             chains[c] = Chain {
                 upper: bone(u)?,
                 lower: bone(l)?,
                 end,
                 source_end: j,
                 lift,
+                toe,
             };
         }
         let n = rig.bone_count();
@@ -237,6 +259,9 @@ impl Limbs {
                 }
             }
         }
+        let foot = (0..n)
+            .map(|b| (0..2u8).find(|&c| under(b, chains[c as usize].end)))
+            .collect();
         let world_scale = rig
             .rest_world_linear()
             .iter()
@@ -245,6 +270,7 @@ impl Limbs {
         Ok(Limbs {
             chains,
             part,
+            foot,
             world_scale,
         })
     }
@@ -396,15 +422,71 @@ impl Target {
                 }
             }
             self.transfer().refresh_followers(&mut out.world);
-            for b in 0..n {
-                out.local[b] = match self.rig().parent(b) {
-                    Some(p) => rotation::mul(&rotation::transpose(&out.world[p]), &out.world[b]),
-                    None => out.world[b],
-                };
-            }
-            self.forward(out);
+            self.locals_and_positions(out);
+        }
+        if options.feet && self.pitch_toes(source_positions, feet_weight, out) {
+            self.locals_and_positions(out);
         }
         Ok(())
+    }
+
+    /// While a foot is planted (weight `feet_weight`), pitches it about the ankle so that its
+    /// toes stand at the source's toes' height (placed and lifted as the ankle is): a rig's foot
+    /// is longer or shorter against its ankle's height than SMPL's, so copying the foot's
+    /// rotation alone leaves the toes of a rising heel up to centimetres off. The horizontal
+    /// direction of the foot is kept. Returns whether a foot turned.
+    fn pitch_toes(
+        &self,
+        source_positions: &[Vec3],
+        feet_weight: [f64; 2],
+        out: &mut RigPose,
+    ) -> bool {
+        let limbs = self.limbs();
+        let up = self.transfer().up();
+        let mut turned = false;
+        for (c, ch) in limbs.chains[..2].iter().enumerate() {
+            let w = feet_weight[c].clamp(0.0, 1.0);
+            let Some((toe, joint, lift)) = ch.toe else {
+                continue;
+            };
+            if w <= 0.0 || joint >= source_positions.len() {
+                continue;
+            }
+            let (ankle, tip) = (out.positions[ch.end], out.positions[toe]);
+            let v = sub(&tip, &ankle);
+            let len = rotation::dot(&v, &v).sqrt();
+            let goal = rotation::dot(&self.transfer().place(&source_positions[joint]), &up) + lift;
+            let rise = rotation::dot(&v, &up);
+            let want =
+                (rise + w * (goal - rotation::dot(&tip, &up))).clamp(-0.999 * len, 0.999 * len);
+            let flat = sub(&v, &up.map(|x| x * rise));
+            let flat_len = rotation::dot(&flat, &flat).sqrt();
+            if !(flat_len > 1e-9 * len.max(f64::MIN_POSITIVE)) || (want - rise).abs() <= 1e-12 * len
+            {
+                continue;
+            }
+            let k = (len * len - want * want).max(0.0).sqrt() / flat_len;
+            let to = [0, 1, 2].map(|i| flat[i] * k + up[i] * want);
+            let d = ik::rotate_onto(&v, &to, None);
+            for b in 0..out.world.len() {
+                if limbs.foot[b] == Some(c as u8) {
+                    out.world[b] = rotation::mul(&d, &out.world[b]);
+                }
+            }
+            turned = true;
+        }
+        turned
+    }
+
+    /// Local rotations from the world ones, then positions.
+    fn locals_and_positions(&self, out: &mut RigPose) {
+        for b in 0..out.world.len() {
+            out.local[b] = match self.rig().parent(b) {
+                Some(p) => rotation::mul(&rotation::transpose(&out.world[p]), &out.world[b]),
+                None => out.world[b],
+            };
+        }
+        self.forward(out);
     }
 
     /// World positions and translations from `out`'s world rotations and hips translation,
@@ -537,7 +619,7 @@ mod tests {
     }
 
     #[test]
-    fn feet_reach_the_placed_source_ankles_and_keep_their_rotation() {
+    fn feet_reach_the_placed_source_ankles_and_toes() {
         // Shins 25% shorter than SMPL's in proportion: copied leg directions alone leave the
         // ankles off the placed source ankles by centimetres; the IK puts them there.
         let (built, _, _) = test_rig(3);
@@ -549,6 +631,7 @@ mod tests {
             hands: false,
         };
         let (mut worst_without, mut worst_with, mut turned) = (0.0f64, 0.0f64, 0.0f64);
+        let mut toe_off = 0.0f64;
         let limbs = target.limbs();
         for (g, p, root) in source_motion(40) {
             target.pose(&g, &p, &root, &off, &mut without).unwrap();
@@ -570,19 +653,27 @@ mod tests {
                 if dist(&hip, &goal) < 0.99 * reach {
                     worst_with = worst_with.max(dist(&ankle, &goal));
                 }
-                // Element-wise (acos near 1 would round to 3e-8 rad).
-                let (a, b) = (with.world[ch.end], without.world[ch.end]);
-                for r in 0..3 {
-                    for c in 0..3 {
-                        turned = turned.max((a[r][c] - b[r][c]).abs());
-                    }
-                }
+                // The toes stand at the source's toes' height (placed and lifted) whether or
+                // not the ankle reached: a foot pitches to make up for it.
+                let (toe, joint, lift) = ch.toe.unwrap();
+                let toe_goal = rotation::dot(&target.transfer().place(&p[joint]), &up) + lift;
+                toe_off = toe_off.max((rotation::dot(&with.positions[toe], &up) - toe_goal).abs());
+                // Pitched only: the foot's heading (ankle to toes, horizontal) is the one the
+                // rotations gave it.
+                let heading = |pose: &RigPose| {
+                    let v = sub(&pose.positions[toe], &pose.positions[ch.end]);
+                    let h = sub(&v, &up.map(|x| x * rotation::dot(&v, &up)));
+                    h.map(|x| x / rotation::dot(&h, &h).sqrt())
+                };
+                let (a, b) = (heading(&with), heading(&without));
+                turned = turned.max(dist(&a, &b));
             }
         }
         // Centimetre units: off by more than a centimetre without IK, on target with it.
         assert!(worst_without > 1.0, "{worst_without}");
         assert!(worst_with < 1e-6, "{worst_with}");
-        assert!(turned < 1e-12, "the foot's rotation changed by {turned}");
+        assert!(turned < 1e-9, "a foot's heading turned by {turned} rad");
+        assert!(toe_off < 1e-6, "a toe is {toe_off} cm off its height");
     }
 
     #[test]
