@@ -461,8 +461,9 @@ impl Target {
                 (rise + w * (goal - rotation::dot(&tip, &up))).clamp(-0.999 * len, 0.999 * len);
             let flat = sub(&v, &up.map(|x| x * rise));
             let flat_len = rotation::dot(&flat, &flat).sqrt();
-            if !(flat_len > 1e-9 * len.max(f64::MIN_POSITIVE)) || (want - rise).abs() <= 1e-12 * len
-            {
+            // A foot standing on its toes (no horizontal part) or already there: nothing to do.
+            let upright = flat_len.is_nan() || flat_len <= 1e-9 * len.max(f64::MIN_POSITIVE);
+            if upright || (want - rise).abs() <= 1e-12 * len {
                 continue;
             }
             let k = (len * len - want * want).max(0.0).sqrt() / flat_len;
