@@ -170,7 +170,10 @@ fn a_renamed_centimetre_copy_of_the_skeleton_moves_as_libflames_joints() {
     let mut worst = 0.0f64;
     for f in 0..16 {
         let at = |v: &[f32], i: usize| [0, 1, 2].map(|k| v[(f * 24 + i) * 3 + k] as f64);
-        for (j, smpl_name) in SMPL_BVH.iter().enumerate() {
+        // libflame's BVH names SMPL's joints as the skeleton does, in SMPL's order (the order
+        // of `--positions`).
+        let smpl = flame::motion::Skeleton::smpl24().joint_names();
+        for (j, smpl_name) in smpl.iter().enumerate() {
             let name = MIXAMO.iter().find(|(a, _)| a == smpl_name).unwrap().1;
             let b = order.iter().position(|n| *n == name).unwrap();
             let (s, s0) = (at(&src, j), at(&src, 0));
@@ -216,34 +219,6 @@ fn a_renamed_centimetre_copy_of_the_skeleton_moves_as_libflames_joints() {
         .fold(0.0f32, f32::max);
     assert!(diff < 0.05, "retarget from the BVH is {diff} cm off");
 }
-
-/// libflame's BVH names of SMPL's joints, in SMPL's order (the order of `--positions`).
-const SMPL_BVH: [&str; 24] = [
-    "Pelvis",
-    "L_Hip",
-    "R_Hip",
-    "Spine1",
-    "L_Knee",
-    "R_Knee",
-    "Spine2",
-    "L_Ankle",
-    "R_Ankle",
-    "Spine3",
-    "L_Foot",
-    "R_Foot",
-    "Neck",
-    "L_Collar",
-    "R_Collar",
-    "Head",
-    "L_Shoulder",
-    "R_Shoulder",
-    "L_Elbow",
-    "R_Elbow",
-    "L_Wrist",
-    "R_Wrist",
-    "L_Hand",
-    "R_Hand",
-];
 
 #[test]
 fn rig_arguments_are_checked_before_the_model_loads() {

@@ -1187,6 +1187,11 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
     }
     paths::check_readable(&a.input)?;
     let path = a.input.display();
+    // The animation is named after the input file (there is no prompt).
+    let name = a
+        .input
+        .file_stem()
+        .map_or(String::new(), |s| s.to_string_lossy().into_owned());
     let smooth = |format: Format| {
         outputs.smooth.unwrap_or(if format == Format::Smpl24Rot6d {
             1.0
@@ -1230,12 +1235,8 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
                 fps,
                 smooth: opts.smooth_sigma,
             };
-            let prompt = a
-                .input
-                .file_stem()
-                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
             let meta = Meta {
-                prompt: &prompt,
+                prompt: &name,
                 model: "",
                 seed: 0,
             };
@@ -1268,12 +1269,8 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
             };
             let opts = model.read_options(d.smooth, true);
             let raw = Poses::decode(format, &x, shape[0], &opts).map_err(|e| e.to_string())?;
-            let prompt = a
-                .input
-                .file_stem()
-                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
             let meta = Meta {
-                prompt: &prompt,
+                prompt: &name,
                 model: &loaded.name,
                 seed: 0,
             };
