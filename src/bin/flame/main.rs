@@ -898,9 +898,10 @@ impl Outputs {
             (Some("bvh"), Some(_)) => OutKind::RigBvh,
             (Some(e @ ("npy" | "json")), Some(_)) => {
                 return Err(format!(
-                    "cannot write {}: with --rig, --out is the character (.glb, .gltf, .vrm or                      .bvh) or a .vrma, not .{e}",
-                    o.out.display()
-                ))
+                "cannot write {}: with --rig, --out is the character (.glb, .gltf, .vrm or .bvh) \
+                     or a .vrma, not .{e}",
+                o.out.display()
+            ))
             }
             (Some("npy"), None) => OutKind::Features,
             (Some("bvh"), None) => OutKind::Bvh,
@@ -910,13 +911,15 @@ impl Outputs {
             }
             (Some("vrm"), None) => {
                 return Err(format!(
-                    "cannot write {}: a .vrm is a character; give it with --rig to add the                      animation to it",
+                    "cannot write {}: a .vrm is a character; give it with --rig to add the \
+                     animation to it",
                     o.out.display()
                 ))
             }
             _ => {
                 return Err(format!(
-                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb, .gltf or                      .vrma (or .vrm with --rig)",
+                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb, .gltf or .vrma \
+                     (or .vrm with --rig)",
                     o.out.display()
                 ))
             }
@@ -991,7 +994,8 @@ impl Outputs {
             && convention != Convention::Gltf
         {
             return Err(format!(
-                "--convention {convention}: a .vrma is in glTF's convention and a rig's files in                  the rig's own axes; leave --convention out"
+                "--convention {convention}: a .vrma is in glTF's convention and a rig's files in \
+                 the rig's own axes; leave --convention out"
             ));
         }
         Ok(Outputs {
