@@ -504,7 +504,14 @@ _status = ctypes.c_int  # enum FlameStatus
 
 
 def _signatures():
-    """(restype, argtypes) of every function of flame.h, by name."""
+    """(restype, argtypes) of every function of flame.h, by name (the retarget functions'
+    from flame.retarget)."""
+    from . import retarget as _retarget
+
+    return {**_core_signatures(), **_retarget._signatures()}
+
+
+def _core_signatures():
     u32, i32, size_t = ctypes.c_uint32, ctypes.c_int32, ctypes.c_size_t
     pu32 = ctypes.POINTER(u32)
     pf32 = ctypes.POINTER(ctypes.c_float)

@@ -66,6 +66,39 @@ class _RetargetParams(ctypes.Structure):
     ]
 
 
+def _signatures() -> dict:
+    """(restype, argtypes) of the retarget functions of flame.h, by name."""
+    size_t, u32, i32 = ctypes.c_size_t, ctypes.c_uint32, ctypes.c_int32
+    pf32, psize = ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_size_t)
+    return {
+        "flame_rig_load": (_status, [ctypes.c_void_p, size_t, u32, ctypes.c_char_p,
+                                     ctypes.POINTER(_P)]),
+        "flame_rig_from_bones": (_status, [ctypes.POINTER(_RigBone), size_t, i32,
+                                           ctypes.POINTER(_P)]),
+        "flame_rig_free": (None, [_P]),
+        "flame_rig_bone_count": (_status, [_P, psize]),
+        "flame_rig_bone_name": (_status, [_P, size_t, ctypes.POINTER(ctypes.c_char_p)]),
+        "flame_rig_bone_parent": (_status, [_P, size_t, ctypes.POINTER(i32)]),
+        "flame_bone_map_auto": (_status, [_P, ctypes.POINTER(_P)]),
+        "flame_bone_map_from_json": (_status, [_P, ctypes.c_char_p, _P,
+                                               ctypes.POINTER(_P)]),
+        "flame_bone_map_to_json": (_status, [_P, _P, ctypes.c_char_p, size_t, psize]),
+        "flame_bone_map_free": (None, [_P]),
+        "flame_retarget_params_default": (_status, [ctypes.POINTER(_RetargetParams)]),
+        "flame_retarget_new": (_status, [_P, _P, ctypes.POINTER(_RetargetParams),
+                                         ctypes.POINTER(_P)]),
+        "flame_retarget_free": (None, [_P]),
+        "flame_retarget_bone_count": (_status, [_P, psize]),
+        "flame_retarget_read": (_status, [_P, _P, i32, u32, ctypes.c_void_p, size_t,
+                                          size_t, pf32, size_t, pf32, size_t, psize]),
+        "flame_retarget_read_stream": (_status, [_P, _P, ctypes.c_uint64, u32,
+                                                 ctypes.c_void_p, pf32, size_t, pf32,
+                                                 size_t]),
+        "flame_retarget_pose": (_status, [_P, pf32, size_t, pf32, size_t, pf32, size_t,
+                                          pf32, size_t]),
+    }
+
+
 _bound = False
 _bind_lock = threading.Lock()
 
@@ -76,35 +109,7 @@ def _L() -> ctypes.CDLL:
     lib = _lib()
     with _bind_lock:
         if not _bound:
-            size_t, u32, i32 = ctypes.c_size_t, ctypes.c_uint32, ctypes.c_int32
-            pf32, psize = ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_size_t)
-            sigs = {
-                "flame_rig_load": (_status, [ctypes.c_void_p, size_t, u32, ctypes.c_char_p,
-                                             ctypes.POINTER(_P)]),
-                "flame_rig_from_bones": (_status, [ctypes.POINTER(_RigBone), size_t, i32,
-                                                   ctypes.POINTER(_P)]),
-                "flame_rig_free": (None, [_P]),
-                "flame_rig_bone_count": (_status, [_P, psize]),
-                "flame_rig_bone_name": (_status, [_P, size_t, ctypes.POINTER(ctypes.c_char_p)]),
-                "flame_rig_bone_parent": (_status, [_P, size_t, ctypes.POINTER(i32)]),
-                "flame_bone_map_auto": (_status, [_P, ctypes.POINTER(_P)]),
-                "flame_bone_map_from_json": (_status, [_P, ctypes.c_char_p, _P,
-                                                       ctypes.POINTER(_P)]),
-                "flame_bone_map_to_json": (_status, [_P, _P, ctypes.c_char_p, size_t, psize]),
-                "flame_bone_map_free": (None, [_P]),
-                "flame_retarget_params_default": (_status, [ctypes.POINTER(_RetargetParams)]),
-                "flame_retarget_new": (_status, [_P, _P, ctypes.POINTER(_RetargetParams),
-                                                 ctypes.POINTER(_P)]),
-                "flame_retarget_free": (None, [_P]),
-                "flame_retarget_bone_count": (_status, [_P, psize]),
-                "flame_retarget_read": (_status, [_P, _P, i32, u32, ctypes.c_void_p, size_t,
-                                                  size_t, pf32, size_t, pf32, size_t, psize]),
-                "flame_retarget_read_stream": (_status, [_P, _P, ctypes.c_uint64, u32,
-                                                         ctypes.c_void_p, pf32, size_t, pf32,
-                                                         size_t]),
-                "flame_retarget_pose": (_status, [_P, pf32, size_t, pf32, size_t, pf32, size_t,
-                                                  pf32, size_t]),
-            }
+            sigs = _signatures()
             for name, (restype, argtypes) in sigs.items():
                 fn = getattr(lib, name)
                 fn.restype, fn.argtypes = restype, argtypes
