@@ -635,16 +635,16 @@ fn parents_first(parents: &[Option<usize>]) -> Vec<usize> {
     out
 }
 
-/// An affine map `x ↦ l·x + t`.
+/// An affine map `x ↦ l·x + t` (also the writer's, `super::gltf_out`).
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct Affine {
-    l: Mat3,
-    t: Vec3,
+pub(crate) struct Affine {
+    pub(crate) l: Mat3,
+    pub(crate) t: Vec3,
 }
 
 impl Affine {
     /// glTF's `T · R · S`.
-    fn trs(t: Vec3, r: &Mat3, s: &Vec3) -> Affine {
+    pub(crate) fn trs(t: Vec3, r: &Mat3, s: &Vec3) -> Affine {
         let mut l = *r;
         for row in &mut l {
             for (v, k) in row.iter_mut().zip(s) {
@@ -655,11 +655,29 @@ impl Affine {
     }
 
     /// `self · child`.
-    fn then(&self, child: &Affine) -> Affine {
+    pub(crate) fn then(&self, child: &Affine) -> Affine {
         Affine {
             l: rotation::mul(&self.l, &child.l),
             t: rotation::add(&self.t, &rotation::apply(&self.l, &child.t)),
         }
+    }
+
+    /// The point `self⁻¹ · p`, `None` when the linear part is singular.
+    pub(crate) fn solve(&self, p: &Vec3) -> Option<Vec3> {
+        let m = &self.l;
+        let det = rotation::det(m);
+        if !(det.is_finite() && det.abs() > 1e-300) {
+            return None;
+        }
+        let d = [p[0] - self.t[0], p[1] - self.t[1], p[2] - self.t[2]];
+        // Cramer's rule: the inverse's columns are the rows' cross products over det.
+        let cols = [
+            rotation::cross(&m[1], &m[2]),
+            rotation::cross(&m[2], &m[0]),
+            rotation::cross(&m[0], &m[1]),
+        ];
+        let x: Vec3 = [0, 1, 2].map(|r| (0..3).map(|c| cols[c][r] * d[c]).sum::<f64>() / det);
+        x.iter().all(|v| v.is_finite()).then_some(x)
     }
 
     /// The inverse, `None` when singular (relative to the matrix's size) or not finite.
