@@ -34,6 +34,8 @@ pub mod motion;
 /// cbindgen:ignore
 pub mod npy;
 /// cbindgen:ignore
+pub mod npz;
+/// cbindgen:ignore
 pub mod pool;
 /// cbindgen:ignore
 pub mod retarget;

@@ -12,23 +12,35 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
         data.len(),
         "shape does not match data"
     );
+    let mut out = header("<f4", shape);
+    out.reserve(data.len() * 4);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// The magic, version (1.0), header length and header of a `.npy` file holding a C-order array
+/// of NumPy dtype `descr` (`<f4`, `<f8`, `<U7`, ...) and `shape` (`[]` for a 0-d array), padded
+/// with spaces so the data that follows starts on a 64-byte boundary, as NumPy's `np.save`
+/// writes it (numpy/lib/format.py, `_wrap_header`). Version 1.0 keeps the header under 64 KiB,
+/// which any dtype name and shape of a few dimensions fits.
+pub fn header(descr: &str, shape: &[usize]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let shape_txt = match dims.len() {
         1 => format!("({},)", dims[0]),
         _ => format!("({})", dims.join(", ")),
     };
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_txt}, }}");
+    let mut header =
+        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_txt}, }}");
     // Pad so the data starts on a 64-byte boundary, header ends in '\n'.
     let unpadded = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
     header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + data.len() * 4);
+    let mut out = Vec::with_capacity(10 + header.len());
     out.extend_from_slice(b"\x93NUMPY\x01\x00");
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
     out
 }
 

@@ -63,6 +63,7 @@
 //! [`json::to_string`] and [`gltf::to_glb`] / [`gltf::to_gltf`] write files; [`read_layout`] and [`layout_len`] are the C-shaped entry
 //! points.
 
+pub mod amass;
 pub mod bvh;
 pub mod contacts;
 pub mod convention;
