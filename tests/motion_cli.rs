@@ -161,7 +161,7 @@ fn bad_arguments_fail_before_sampling() {
     let cases: [(Vec<String>, &str); 6] = [
         (
             vec!["--out".into(), out("m.txt")],
-            "--out must end in .npy, .bvh, .json, .glb, .gltf or .vrma",
+            "--out must end in .npy, .npz, .bvh, .json, .glb, .gltf or .vrma",
         ),
         (
             vec![

@@ -8,6 +8,7 @@ use std::str::FromStr;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use flame::models::WeightType;
+use flame::motion::amass::AmassLayout;
 use flame::motion::{Convention, Feet, QuatOrder, RootMotion, Task};
 use flame::session::{EditMethod, Sampler};
 use flame::targets::TargetSchedule;
@@ -30,7 +31,11 @@ frames x feature_dim, untouched by the pose options), .bvh = BVH (Euler ZXY, deg
 root translation + local quaternions (--quat order, default wxyz as FLAME's official output)
 with the skeleton, .glb / .gltf = glTF 2.0 (binary / JSON): the skeleton, a skinned box figure
 and the animation, in glTF's convention (Y up, metres), the prompt, model and seed in its
-metadata. --positions also writes world joint positions (float32, frames x joints x 3);
+metadata; .npz = AMASS-style SMPL parameters (float64 axis-angles, AMASS's Z-up world) for
+robot-learning pipelines: SMPL-H keys by default (`poses` [N, 156], `trans`, `betas`, `gender`,
+`mocap_framerate`, `dmpls`; PHC, human2humanoid), SMPL-X keys with --amass smplx
+(`root_orient`, `pose_body`, `trans`, `mocap_frame_rate`, ...; GMR), see docs/amass.md; --fps 30
+gives the rate trackers expect. --positions also writes world joint positions (float32, frames x joints x 3);
 --preview FILE.png a contact sheet (stick figures side by side and the root path seen from
 above), FILE.gif an animation of the same figure beside its path (--preview-fps, default the
 model's).
@@ -86,7 +91,8 @@ rig's rest pose first turned to the source's (an A-pose rig's arms are not left 
 the hips translation scaled by the hips heights' ratio, and the feet put back on the source's
 contacts with two-bone IK. --out .glb/.gltf/.vrm hands the rig's own file back with the
 animation added (an animation of the same name written before is replaced), .bvh writes the
-rig's hierarchy and names, .vrma a VRM Animation.";
+rig's hierarchy and names, .vrma a VRM Animation. Without --rig, --out x.npz writes the poses as
+AMASS SMPL parameters (--amass smplh or smplx, as in generate).";
 
 #[derive(Parser)]
 #[command(
@@ -239,9 +245,15 @@ pub struct SamplingArgs {
 #[derive(Args)]
 pub struct OutputArgs {
     /// Output file: .npy (raw features in the model's normalised space, the valid frames),
-    /// .bvh or .json (poses), .glb or .gltf (a skinned figure with its animation)
+    /// .bvh or .json (poses), .glb or .gltf (a skinned figure with its animation), .npz (AMASS
+    /// SMPL parameters, see --amass)
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    /// The keys of a .npz: smplh (AMASS SMPL-H `*_poses.npz`: `poses` [N, 156], `trans`,
+    /// `mocap_framerate`; PHC, human2humanoid) or smplx (AMASS SMPL-X `*_stageii.npz`:
+    /// `root_orient`, `pose_body`, `trans`, `mocap_frame_rate`; GMR) [default smplh; .npz only]
+    #[arg(long, value_name = "LAYOUT", value_parser = lib::<AmassLayout>)]
+    pub amass: Option<AmassLayout>,
     /// Coordinate convention of the poses [native|unity|unreal|ros|blender|gltf; default gltf
     /// for .bvh and .glb/.gltf (which take no other), native otherwise]
     #[arg(long, value_name = "C", value_parser = lib::<Convention>)]

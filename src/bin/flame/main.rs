@@ -18,6 +18,7 @@ use flame::checkpoint::ModelFile;
 use flame::config::TextConfig;
 use flame::cycle::Cycle;
 use flame::models::{LoadOptions, Model};
+use flame::motion::amass::AmassLayout;
 use flame::motion::{self, gltf, Convention, Format, Layout, Mask, Poses, QuatOrder, Task};
 use flame::session::{EditMethod, EditParams, Session, SessionParams, Which};
 use flame::stages::Stage;
@@ -821,6 +822,8 @@ enum OutKind {
     RigGltf,
     /// A BVH of the `--rig` hierarchy.
     RigBvh,
+    /// AMASS-style SMPL parameters (`.npz`).
+    Amass(AmassLayout),
 }
 
 /// What a glTF export records about the generation.
@@ -896,7 +899,7 @@ impl Outputs {
                 OutKind::RigGltf
             }
             (Some("bvh"), Some(_)) => OutKind::RigBvh,
-            (Some(e @ ("npy" | "json")), Some(_)) => {
+            (Some(e @ ("npy" | "json" | "npz")), Some(_)) => {
                 return Err(format!(
                 "cannot write {}: with --rig, --out is the character (.glb, .gltf, .vrm or .bvh) \
                      or a .vrma, not .{e}",
@@ -904,6 +907,7 @@ impl Outputs {
             ))
             }
             (Some("npy"), None) => OutKind::Features,
+            (Some("npz"), None) => OutKind::Amass(o.amass.unwrap_or(AmassLayout::SmplH)),
             (Some("bvh"), None) => OutKind::Bvh,
             (Some("json"), None) => OutKind::Json,
             (Some(e @ ("glb" | "gltf")), None) => {
@@ -918,12 +922,18 @@ impl Outputs {
             }
             _ => {
                 return Err(format!(
-                    "cannot write {}: --out must end in .npy, .bvh, .json, .glb, .gltf or .vrma \
-                     (or .vrm with --rig)",
+                    "cannot write {}: --out must end in .npy, .npz, .bvh, .json, .glb, .gltf or \
+                     .vrma (or .vrm with --rig)",
                     o.out.display()
                 ))
             }
         };
+        if let (Some(layout), false) = (o.amass, matches!(kind, OutKind::Amass(_))) {
+            return Err(format!(
+                "--amass {layout} is for an AMASS .npz; --out {} is not one",
+                o.out.display()
+            ));
+        }
         let mut files = vec![("--out", o.out.as_path())];
         if let Some(p) = &o.positions {
             if paths::extension(p).as_deref() != Some("npy") {
@@ -984,8 +994,16 @@ impl Outputs {
                      right-handed, metres); leave --convention out or say gltf"
                 ))
             }
+            (OutKind::Amass(_), Some(c)) => {
+                return Err(format!(
+                    "--convention {c}: an AMASS .npz is always in AMASS's world (Z up, metres, \
+                     SMPL's body frame); leave --convention out"
+                ))
+            }
             (_, Some(c)) => c,
             (OutKind::Bvh | OutKind::Gltf(_), None) => Convention::Gltf,
+            // --positions beside an AMASS file: the model's own frame, as for .npy.
+            (OutKind::Amass(_), None) => Convention::Native,
             (OutKind::Features | OutKind::Json, None) => Convention::Native,
             // A rig's files are in the rig's own axes; a VRMA in glTF's.
             (OutKind::Vrma | OutKind::RigGltf | OutKind::RigBvh, None) => Convention::Gltf,
@@ -1108,6 +1126,9 @@ impl Outputs {
             ),
             (OutKind::RigGltf, Some(r), Some(m)) => Some(r.gltf(m, &name)?),
             (OutKind::RigBvh, Some(r), Some(m)) => Some(r.bvh(m)?.into_bytes()),
+            (OutKind::Amass(layout), _, _) => Some(
+                motion::amass::to_npz(&poses, d.fps as f64, layout).map_err(|e| e.to_string())?,
+            ),
             _ => None,
         };
         if let Some(bytes) = bytes {
@@ -1131,7 +1152,8 @@ impl Outputs {
             | OutKind::Gltf(_)
             | OutKind::Vrma
             | OutKind::RigGltf
-            | OutKind::RigBvh => None,
+            | OutKind::RigBvh
+            | OutKind::Amass(_) => None,
             OutKind::Bvh => Some(motion::bvh::to_string(&poses, self.convention, d.fps)),
             OutKind::Json => Some(motion::json::to_string(
                 &poses,
@@ -1186,8 +1208,12 @@ impl Outputs {
 /// `flame retarget`: a motion made earlier onto `--rig`.
 fn retarget(a: &RetargetArgs) -> Result<(), String> {
     let outputs = Outputs::new(&a.output)?;
-    if outputs.rig.is_none() && outputs.kind != OutKind::Vrma {
-        return Err("retarget needs --rig (the character), or --out x.vrma".into());
+    if outputs.rig.is_none() && !matches!(outputs.kind, OutKind::Vrma | OutKind::Amass(_)) {
+        return Err(
+            "retarget needs --rig (the character), or --out x.vrma (a VRM Animation) or x.npz \
+             (AMASS SMPL parameters)"
+                .into(),
+        );
     }
     paths::check_readable(&a.input)?;
     let path = a.input.display();
