@@ -35,6 +35,17 @@
 // Passed in `joints` of [`flame_session_keep_joints`] to keep the root translation channels.
 #define FLAME_ROOT_TRANSLATION -1
 
+// `layout` of [`flame_session_write_amass`]: AMASS SMPL-H keys (`*_poses.npz`: `poses`
+// [N, 156] = root, 21 body joints, 30 hand joints at rest; `trans`, `betas`, `gender`,
+// `mocap_framerate`, `dmpls`), what PHC and human2humanoid read.
+#define FLAME_AMASS_SMPLH 0
+
+// `layout` of [`flame_session_write_amass`]: AMASS SMPL-X keys (`*_stageii.npz`:
+// `root_orient`, `pose_body` [N, 63], `pose_hand`, `pose_jaw`, `pose_eye`, `trans`, `betas`,
+// `num_betas`, `gender`, `surface_model_type`, `mocap_frame_rate`, `mocap_time_length`,
+// `poses` [N, 165]), what GMR reads.
+#define FLAME_AMASS_SMPLX 1
+
 // Read flag: temporal Gaussian smoothing (σ = 1 frame) of the features before posing, as
 // FLAME's official output does.
 #define FLAME_READ_SMOOTH 1
@@ -971,6 +982,32 @@ enum FlameStatus flame_session_sample_shape(const struct FlameSession *session,
 enum FlameStatus flame_session_read_frames(const struct FlameSession *session,
                                            int32_t which,
                                            uint32_t *out_frames);
+
+// Writes the current sample or clean-motion estimate (`which`, a `FlameWhich`) as an
+// AMASS-style `.npz` (a ZIP of `.npy` arrays, what `numpy.load` reads) in `layout`
+// ([`FLAME_AMASS_SMPLH`] or [`FLAME_AMASS_SMPLX`]): SMPL axis-angles in radians
+// (parent-relative, the root's global), `trans` in metres, AMASS's Z-up world, every array
+// float64, `betas` 16 zeros, `gender` "neutral", the frame rate the cleanup's `fps` or the
+// model's (docs/amass.md). `flags` are read flags (`FLAME_READ_SMOOTH`,
+// `FLAME_READ_RAW_SIGNS`); `cleanup` NULL means the raw poses (its `fps` resamples,
+// 30 or 50 being what trackers expect).
+//
+// With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done.
+// Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to
+// the size) and `*out_len` receives the bytes written. Each call builds the file afresh. A
+// motion of no frames or with poses that are not finite is `INVALID_ARGUMENT`.
+//
+// # Safety
+// `session` is a live session; `cleanup` is NULL or points to a valid `FlameCleanupParams`;
+// `out` is NULL or points to `len` writable bytes; `out_len` points to a writable `size_t`.
+enum FlameStatus flame_session_write_amass(const struct FlameSession *session,
+                                           int32_t which,
+                                           int32_t layout,
+                                           uint32_t flags,
+                                           const struct FlameCleanupParams *cleanup,
+                                           uint8_t *out,
+                                           size_t len,
+                                           size_t *out_len);
 
 // Fills `*params` with the game-ready defaults: feet locked, the floor at 0, root motion kept,
 // no wrap, the model's frame rate, the default contact detection.

@@ -347,6 +347,22 @@ impl SessionState {
         f
     }
 
+    /// The poses of `which` after `finish` (decoded with read `flags`) and their frame rate:
+    /// the finish's, else the model's.
+    pub(crate) fn poses(
+        &mut self,
+        which: i32,
+        flags: u32,
+        finish: &crate::motion::Finish,
+    ) -> Result<(crate::motion::Poses, f64), Fail> {
+        let model = Arc::clone(self.session.model());
+        let finish = &self.finish_for(which, finish);
+        let (features, frames) = self.motion(which)?;
+        let poses = super::poses::decode(&model, features, frames, flags, finish)?;
+        let fps = finish.fps.unwrap_or(model.config().motion.fps as f64);
+        Ok((poses, fps))
+    }
+
     /// The motion of `which` as a glTF file (see `motion::gltf`), with the session's prompt,
     /// the model's architecture and the seed as metadata.
     pub(crate) fn gltf(

@@ -6,6 +6,7 @@
 //! [`FlameStatus`] and leaves a message for [`flame_last_error`]. Every entry point checks its
 //! pointers and catches panics, so no panic crosses into the host.
 
+mod amass;
 mod cleanup;
 mod errors;
 mod handles;
@@ -23,6 +24,7 @@ use crate::models::{LoadOptions, Model, WeightType};
 use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 use crate::targets::{TargetParams, TargetSchedule};
 
+pub use amass::{flame_session_write_amass, FLAME_AMASS_SMPLH, FLAME_AMASS_SMPLX};
 use cleanup::finish_arg;
 pub use cleanup::{
     flame_cleanup_params_default, flame_session_read_cleaned, FlameCleanupParams, FlameFeet,

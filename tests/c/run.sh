@@ -191,6 +191,7 @@ compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LI
 compile test_stream_shared gcc "${CFLAGS[@]}" tests/c/test_stream.c "${SHARED_LIBS[@]}"
 compile test_cleanup_shared gcc "${CFLAGS[@]}" tests/c/test_cleanup.c "${SHARED_LIBS[@]}"
 compile test_retarget_shared gcc "${CFLAGS[@]}" tests/c/test_retarget.c "${SHARED_LIBS[@]}"
+compile test_amass_shared gcc "${CFLAGS[@]}" tests/c/test_amass.c "${SHARED_LIBS[@]}"
 compile test_cpp_retarget_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_retarget.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
@@ -217,6 +218,8 @@ built test_cleanup_shared && run_test "test_cleanup (shared)" "$OUT/test_cleanup
     "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures" "$OUT/loop_positions.npy"
 built test_retarget_shared && run_test "test_retarget (shared)" \
     "$OUT/test_retarget_shared.log" "$OUT/test_retarget_shared" "$ROOT/tests/fixtures"
+built test_amass_shared && run_test "test_amass (shared)" "$OUT/test_amass_shared.log" \
+    "$OUT/test_amass_shared" "$ROOT/tests/fixtures"
 built test_cpp_retarget_shared && run_test "test_cpp_retarget (shared)" \
     "$OUT/test_cpp_retarget_shared.log" "$OUT/test_cpp_retarget_shared" "$ROOT/tests/fixtures"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
