@@ -53,6 +53,7 @@ __all__ = [
     "EditTask",
     "TargetSchedule",
     "GltfContainer",
+    "AmassLayout",
     "Feet",
     "RootMotion",
     "Cleanup",
@@ -201,6 +202,13 @@ class GltfContainer:
 
     GLB = 0  # binary glTF (.glb)
     GLTF = 1  # JSON glTF (.gltf), the buffer embedded as a base64 data URI
+
+
+class AmassLayout:
+    """FLAME_AMASS_* values for Session.write_amass (or their names: "smplh", "smplx")."""
+
+    SMPLH = 0  # AMASS SMPL-H *_poses.npz: poses [N, 156], trans, mocap_framerate (PHC, human2humanoid)
+    SMPLX = 1  # AMASS SMPL-X *_stageii.npz: root_orient, pose_body, trans, mocap_frame_rate (GMR)
 
 
 class Feet:
@@ -576,6 +584,11 @@ def _core_signatures():
             _status,
             [_P, i32, ctypes.POINTER(_GltfParams), ctypes.POINTER(ctypes.c_uint8), size_t,
              ctypes.POINTER(size_t)],
+        ),
+        "flame_session_write_amass": (
+            _status,
+            [_P, i32, i32, u32, ctypes.POINTER(_CleanupParams), ctypes.POINTER(ctypes.c_uint8),
+             size_t, ctypes.POINTER(size_t)],
         ),
         "flame_stream_params_default": (_status, [ctypes.POINTER(_StreamParams)]),
         "flame_stream_new": (_status, [_P, ctypes.POINTER(_StreamParams), ctypes.POINTER(_P)]),
@@ -956,6 +969,9 @@ def _named(value, names: dict, what: str) -> int:
             raise ValueError(f"unknown {what} {value!r} ({', '.join(names)})")
         return names[key]
     return int(value)
+
+
+_AMASS_LAYOUTS = {"smplh": AmassLayout.SMPLH, "smplx": AmassLayout.SMPLX}
 
 
 def _gltf_container(container, path) -> int:
@@ -1663,6 +1679,47 @@ class Session:
             _check(lib.flame_session_write_gltf(h, w, ctypes.byref(raw), None, 0, ctypes.byref(n)))
             buf = (ctypes.c_uint8 * max(n.value, 1))()
             _check(lib.flame_session_write_gltf(h, w, ctypes.byref(raw), buf, n.value, ctypes.byref(n)))
+        data = ctypes.string_at(buf, n.value)
+        if path is not None:
+            with open(path, "wb") as f:
+                f.write(data)
+        return data
+
+    def write_amass(
+        self,
+        path: Union[None, str, bytes, os.PathLike] = None,
+        *,
+        which: Union[str, int] = "sample",
+        layout: Union[str, int] = "smplh",
+        smooth: bool = False,
+        raw_signs: bool = False,
+        cleanup: Optional[Cleanup] = None,
+    ) -> bytes:
+        """The current sample ("sample") or clean-motion estimate ("estimate") as an AMASS-style
+        .npz (flame_session_write_amass), what np.load reads: SMPL axis-angles (radians,
+        parent-relative, the root's global) and `trans` (metres) in AMASS's Z-up world, float64,
+        betas 16 zeros, gender "neutral" (docs/amass.md). `layout` "smplh" (AmassLayout.SMPLH:
+        `poses` [N, 156], `trans`, `betas`, `gender`, `mocap_framerate`, `dmpls`; PHC,
+        human2humanoid) or "smplx" (AmassLayout.SMPLX: `root_orient`, `pose_body`, `pose_hand`,
+        `pose_jaw`, `pose_eye`, `trans`, `betas`, `num_betas`, `gender`, `surface_model_type`,
+        `mocap_frame_rate`, `mocap_time_length`, `poses` [N, 165]; GMR). `smooth` and
+        `raw_signs` are ReadFlags.SMOOTH and ReadFlags.RAW_SIGNS; `cleanup` (a Cleanup; None =
+        the raw poses) post-processes first, its `fps` (30 or 50 for trackers) giving the file's
+        rate. Returns the file's bytes, and writes them to `path` when one is given. Raises
+        FlameError (WRONG_STATE) before there is anything to read."""
+        w = self._which(which)
+        lay = _named(layout, _AMASS_LAYOUTS, "AMASS layout")
+        flags = (ReadFlags.SMOOTH if smooth else 0) | (ReadFlags.RAW_SIGNS if raw_signs else 0)
+        raw_cleanup = _cleanup_params(cleanup)
+        cp = ctypes.byref(raw_cleanup) if raw_cleanup is not None else None
+        lib = _lib()
+        n = ctypes.c_size_t()
+        with self._lock:
+            h = self._h()
+            _check(lib.flame_session_write_amass(h, w, lay, flags, cp, None, 0, ctypes.byref(n)))
+            buf = (ctypes.c_uint8 * max(n.value, 1))()
+            _check(lib.flame_session_write_amass(h, w, lay, flags, cp, buf, n.value,
+                                                 ctypes.byref(n)))
         data = ctypes.string_at(buf, n.value)
         if path is not None:
             with open(path, "wb") as f:
