@@ -823,6 +823,27 @@ public:
         return len;
     }
 
+    // The sample (or estimate) as an AMASS-style .npz (flame_session_write_amass), what
+    // numpy.load reads: SMPL axis-angles (radians, parent-relative, the root's global) and
+    // `trans` (metres) in AMASS's Z-up world, float64, betas 16 zeros, gender "neutral".
+    // FLAME_AMASS_SMPLH: `poses` [N, 156], `trans`, `mocap_framerate`, ... (PHC,
+    // human2humanoid); FLAME_AMASS_SMPLX: `root_orient`, `pose_body`, `trans`,
+    // `mocap_frame_rate`, ... (GMR). `cleanup` NULL = the raw poses; its fps (30 or 50 for
+    // trackers) is the file's rate. Throws WRONG_STATE before there is anything to read,
+    // INVALID_ARGUMENT for an unknown layout or flags.
+    std::vector<uint8_t> write_amass(FlameWhich which = FLAME_WHICH_SAMPLE,
+                                     int32_t layout = FLAME_AMASS_SMPLH, uint32_t flags = 0,
+                                     const FlameCleanupParams* cleanup = nullptr) const {
+        std::size_t len = 0;
+        detail::check(
+            flame_session_write_amass(handle_, which, layout, flags, cleanup, nullptr, 0, &len));
+        std::vector<uint8_t> out(len);
+        detail::check(flame_session_write_amass(handle_, which, layout, flags, cleanup,
+                                                out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
     FlameSession* get() const noexcept { return handle_; }
     explicit operator bool() const noexcept { return handle_ != nullptr; }
 

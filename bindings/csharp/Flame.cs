@@ -124,6 +124,19 @@ namespace Flame
         Gltf = 1,
     }
 
+    /// <summary>Layouts of FlameSession.WriteAmass (FLAME_AMASS_SMPLH / FLAME_AMASS_SMPLX):
+    /// which AMASS release's keys the .npz holds.</summary>
+    public static class FlameAmassLayout
+    {
+        /// <summary>AMASS SMPL-H (*_poses.npz): poses [N, 156], trans, betas, gender,
+        /// mocap_framerate, dmpls; what PHC and human2humanoid read.</summary>
+        public const int Smplh = 0;
+        /// <summary>AMASS SMPL-X (*_stageii.npz): root_orient, pose_body, pose_hand, pose_jaw,
+        /// pose_eye, trans, betas, num_betas, gender, surface_model_type, mocap_frame_rate,
+        /// mocap_time_length, poses [N, 165]; what GMR reads.</summary>
+        public const int Smplx = 1;
+    }
+
     /// <summary>Pose layouts of FlameSession.Read (enum FlameLayout; J = joint count). Plain
     /// integers, passed through unchanged, so a layout the library adds works before it is
     /// named here.</summary>
@@ -1059,6 +1072,17 @@ namespace Flame
         public static extern FlameStatus flame_session_read_cleaned(FlameSessionHandle session, int which, int layout, int convention, uint flags,
                                                                     IntPtr cleanup, [Out] float[] output, UIntPtr len, out UIntPtr outLen);
 
+        /// <summary>The sample or estimate as an AMASS-style .npz (layout a FlameAmassLayout
+        /// value); output null queries the size in bytes into outLen.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_write_amass(FlameSessionHandle session, int which, int layout, uint flags,
+                                                                   ref FlameCleanupParams cleanup, [Out] byte[] output, UIntPtr len, out UIntPtr outLen);
+
+        /// <summary>The same with a NULL cleanup (IntPtr.Zero): the raw poses.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_write_amass(FlameSessionHandle session, int which, int layout, uint flags,
+                                                                   IntPtr cleanup, [Out] byte[] output, UIntPtr len, out UIntPtr outLen);
+
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_gltf_params_default(out FlameGltfParams p);
 
@@ -1830,6 +1854,37 @@ namespace Flame
             UIntPtr n;
             FlameException.Check(ReadCleaned(Handle, which, layout, convention, flags, cleanup, output, out n));
             return (int)n;
+        }
+
+        /// <summary>The sample or clean-motion estimate as an AMASS-style .npz
+        /// (flame_session_write_amass), what numpy.load reads: SMPL axis-angles (radians,
+        /// parent-relative, the root's global) and trans (metres) in AMASS's Z-up world, float64,
+        /// betas 16 zeros, gender "neutral"; layout FlameAmassLayout.Smplh (PHC, human2humanoid)
+        /// or Smplx (GMR). cleanup (null: the raw poses) post-processes first; its fps (30 or 50
+        /// for trackers) is the file's rate. Throws with status WrongState before there is
+        /// anything to read, InvalidArgument for an unknown layout or flags.</summary>
+        public byte[] WriteAmass(FlameWhich which = FlameWhich.Sample, int layout = FlameAmassLayout.Smplh,
+                                 uint flags = 0, FlameCleanupParams? cleanup = null)
+        {
+            UIntPtr n;
+            FlameException.Check(WriteAmassInto(which, layout, flags, cleanup, null, out n));
+            var output = new byte[(int)n];
+            FlameException.Check(WriteAmassInto(which, layout, flags, cleanup, output, out n));
+            if ((int)n != output.Length)
+                Array.Resize(ref output, (int)n);
+            return output;
+        }
+
+        FlameStatus WriteAmassInto(FlameWhich which, int layout, uint flags, FlameCleanupParams? cleanup, byte[] output,
+                                   out UIntPtr n)
+        {
+            UIntPtr len = output == null ? UIntPtr.Zero : (UIntPtr)output.Length;
+            if (cleanup.HasValue)
+            {
+                var c = cleanup.Value;
+                return FlameNative.flame_session_write_amass(Handle, (int)which, layout, flags, ref c, output, len, out n);
+            }
+            return FlameNative.flame_session_write_amass(Handle, (int)which, layout, flags, IntPtr.Zero, output, len, out n);
         }
 
         /// <summary>The sample or clean-motion estimate as a glTF 2.0 file
