@@ -70,18 +70,18 @@ pub fn forward(robot: &Robot, base: &Pose, q: &[f64], data: &mut RobotData) -> R
     data.poses[0] = *base;
     for (i, step) in robot.steps.iter().enumerate() {
         let joint = data.poses[step.parent].then(&step.origin);
-        let value = step.scale * q[step.dof] + step.offset;
+        let value = || step.scale * q[step.dof] + step.offset;
         data.poses[i + 1] = match step.moves {
             Moves::No => joint,
             Moves::Rotates => Pose {
-                rotation: rotation::mul(&joint.rotation, &unit_axis_rotation(&step.axis, value)),
+                rotation: rotation::mul(&joint.rotation, &unit_axis_rotation(&step.axis, value())),
                 translation: joint.translation,
             },
             Moves::Slides => {
                 let along = rotation::apply(&joint.rotation, &step.axis);
                 Pose {
                     rotation: joint.rotation,
-                    translation: [0, 1, 2].map(|k| joint.translation[k] + along[k] * value),
+                    translation: [0, 1, 2].map(|k| joint.translation[k] + along[k] * value()),
                 }
             }
         };
