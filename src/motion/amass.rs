@@ -2,8 +2,9 @@
 //! robot-learning pipelines read (GMR, PHC, human2humanoid). Nothing here runs a body model or
 //! reads `.npz` files.
 //!
-//! # What AMASS holds (nghorbani/amass, `notebooks/01-AMASS_Visualization.ipynb` and
-//! `src/amass/data/prepare_data.py`; the SMPL-X keys as its SMPL-X release `*_stageii.npz`)
+//! # What AMASS holds (nghorbani/amass, `notebooks/01-AMASS_Visualization.ipynb`; the SMPL-X
+//! keys as AMASS's SMPL-X release `*_stageii.npz` has them; `poses`' SMPL-X order is smplx's
+//! `full_pose`, vchoutas/smplx `smplx/body_models.py` `SMPLX.forward`)
 //!
 //! - Axis-angle rotations in radians, parent-relative; the root's (`root_orient`) is global:
 //!   it takes SMPL's Y-up body frame into AMASS's Z-up world, so a standing body's root carries
