@@ -31,6 +31,10 @@
 //! `flame-bench retarget --rig FILE [--frames 200] [--runs 7]`: microseconds per frame of
 //! carrying a pose onto a user's rig (see `flame_bench/retarget.rs`).
 //!
+//! `flame-bench robot [--urdf FILE] [--link NAME] [--calls 20000] [--runs 7]`: microseconds per
+//! call of a robot's forward kinematics and of forward plus one Jacobian (see
+//! `flame_bench/robot.rs`).
+//!
 //! `flame-bench stream --model M [--chunk N (default: the model's default frames)] [--overlap 20]
 //!  [--steps S (default: the model's)] [--threads 2] [--runs 5] [--seconds 30]
 //!  [--segment-seconds T (default: one chunk's new frames)]`: a [`flame::stream::Stream`]'s
@@ -67,6 +71,8 @@ mod attention;
 mod peak;
 #[path = "flame_bench/retarget.rs"]
 mod retarget;
+#[path = "flame_bench/robot.rs"]
+mod robot;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -353,6 +359,10 @@ fn main() {
     }
     if args.first().map(String::as_str) == Some("retarget") {
         retarget::retarget_bench(&args);
+        return;
+    }
+    if args.first().map(String::as_str) == Some("robot") {
+        robot::robot_bench(&args);
         return;
     }
     let path: String = arg(&args, "--model", String::new());
