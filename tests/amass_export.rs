@@ -487,11 +487,11 @@ fn rotations_only_fk(poses: &Poses) -> Vec<Vec3> {
             .map(|j| rotation::mul(&global[t * 22 + j], &rest[j]))
             .collect();
         let mut p = vec![pos[t * 22]];
-        for j in 1..22 {
+        for (j, offset) in smpl.iter().enumerate().take(22).skip(1) {
             let parent = skel.parent(j).unwrap();
             p.push(rotation::add(
                 &p[parent],
-                &rotation::apply(&g[parent], &smpl[j]),
+                &rotation::apply(&g[parent], offset),
             ));
         }
         out.extend(p);

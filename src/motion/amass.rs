@@ -212,8 +212,9 @@ impl Amass {
         let mut local = [rotation::IDENTITY; BODY_JOINTS];
         for (t, positions) in out.chunks_exact_mut(BODY_JOINTS).enumerate() {
             local[0] = from_axis_angle(&self.root_orient[t]);
-            for j in 1..BODY_JOINTS {
-                local[j] = from_axis_angle(&self.pose_body[t * (BODY_JOINTS - 1) + j - 1]);
+            let body = &self.pose_body[t * (BODY_JOINTS - 1)..(t + 1) * (BODY_JOINTS - 1)];
+            for (l, v) in local[1..].iter_mut().zip(body) {
+                *l = from_axis_angle(v);
             }
             let pelvis = rotation::add(&self.trans[t], &offsets[0]);
             // Cannot fail: the slices have the hierarchy's length and SMPL's parents come first.
@@ -487,7 +488,8 @@ mod tests {
             assert!((n - angle).abs() < 1e-9, "{axis:?} {angle}: |v| = {n}");
         }
         // +90° about X: (π/2, 0, 0), the tilt of an AMASS body standing.
-        let tilt = axis_angle(&rotation::axis_angle(&[1.0, 0.0, 0.0], 1.5707963267948966));
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        let tilt = axis_angle(&rotation::axis_angle(&[1.0, 0.0, 0.0], half_pi));
         assert!(close(
             &tilt,
             &[std::f64::consts::FRAC_PI_2, 0.0, 0.0],
