@@ -376,6 +376,23 @@ fn continuous_joints_are_unbounded_and_periodic() {
     .unwrap();
     assert!(mat_diff(&a.link_pose(1).rotation, &b.link_pose(1).rotation) < 1e-14);
     assert!(mat_diff(&a.link_pose(1).rotation, &rot_y(7.0)) < 1e-14);
+
+    // About −y: the rotation about y by −q.
+    let negative = Robot::from_urdf(&text.replace(r#"xyz="0 1 0""#, r#"xyz="0 -1 0""#)).unwrap();
+    forward(&negative, &Pose::IDENTITY, &[0.7], &mut a).unwrap();
+    assert!(mat_diff(&a.link_pose(1).rotation, &rot_y(-0.7)) < 1e-15);
+    // A general axis: Rodrigues by hand, about (1, 1, 0)/√2 by π/2.
+    let diagonal = Robot::from_urdf(&text.replace(r#"xyz="0 1 0""#, r#"xyz="1 1 0""#)).unwrap();
+    forward(
+        &diagonal,
+        &Pose::IDENTITY,
+        &[std::f64::consts::FRAC_PI_2],
+        &mut a,
+    )
+    .unwrap();
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let want = [[0.5, 0.5, h], [0.5, 0.5, -h], [-h, h, 0.0]];
+    assert!(mat_diff(&a.link_pose(1).rotation, &want) < 1e-15);
 }
 
 #[test]

@@ -17,7 +17,7 @@
 use super::model::{Moves, Robot};
 use super::pose::{unit_axis_rotation, Pose};
 use crate::error::{invalid_arg, Result};
-use crate::motion::rotation::{self, Vec3};
+use crate::motion::rotation::{self, Mat3, Vec3};
 
 /// Per-run state of a [`Robot`]: the world pose of every link after [`forward`].
 #[derive(Clone, Debug)]
@@ -69,24 +69,48 @@ pub fn forward(robot: &Robot, base: &Pose, q: &[f64], data: &mut RobotData) -> R
     }
     data.poses[0] = *base;
     for (i, step) in robot.steps.iter().enumerate() {
-        let joint = data.poses[step.parent].then(&step.origin);
+        let parent = &data.poses[step.parent];
+        let mut pose = Pose {
+            rotation: if step.origin_turns {
+                rotation::mul(&parent.rotation, &step.origin.rotation)
+            } else {
+                parent.rotation
+            },
+            translation: parent.point(&step.origin.translation),
+        };
         let value = || step.scale * q[step.dof] + step.offset;
-        data.poses[i + 1] = match step.moves {
-            Moves::No => joint,
-            Moves::Rotates => Pose {
-                rotation: rotation::mul(&joint.rotation, &unit_axis_rotation(&step.axis, value())),
-                translation: joint.translation,
+        match step.moves {
+            Moves::No => {}
+            Moves::Rotates => match step.coordinate_axis {
+                Some((k, sign)) => turn_about_column(&mut pose.rotation, k, sign * value()),
+                None => {
+                    let turn = unit_axis_rotation(&step.axis, value());
+                    pose.rotation = rotation::mul(&pose.rotation, &turn);
+                }
             },
             Moves::Slides => {
-                let along = rotation::apply(&joint.rotation, &step.axis);
-                Pose {
-                    rotation: joint.rotation,
-                    translation: [0, 1, 2].map(|k| joint.translation[k] + along[k] * value()),
+                let along = rotation::apply(&pose.rotation, &step.axis);
+                let v = value();
+                for (t, a) in pose.translation.iter_mut().zip(along) {
+                    *t += a * v;
                 }
             }
-        };
+        }
+        data.poses[i + 1] = pose;
     }
     Ok(())
+}
+
+/// `r ← r · R_k(angle)` for the rotation about coordinate axis `k`: column `k` stays, the two
+/// others (in cyclic order `a = k+1`, `b = k+2`) become `c·a + s·b` and `c·b − s·a`.
+fn turn_about_column(r: &mut Mat3, k: usize, angle: f64) {
+    let (s, c) = angle.sin_cos();
+    let (a, b) = ((k + 1) % 3, (k + 2) % 3);
+    for row in r.iter_mut() {
+        let (x, y) = (row[a], row[b]);
+        row[a] = c * x + s * y;
+        row[b] = c * y - s * x;
+    }
 }
 
 /// The 6 × nv Jacobian of the point `point` (given in link `link`'s frame) at the poses of the

@@ -37,7 +37,7 @@ use std::collections::HashMap;
 use super::pose::Pose;
 use super::urdf::{self, Collision, JointType, Limit, Urdf};
 use crate::error::{invalid_arg, Result};
-use crate::motion::rotation::Vec3;
+use crate::motion::rotation::{Vec3, IDENTITY};
 
 /// What a joint does with its position.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -113,7 +113,13 @@ pub struct JointLimits {
 pub(super) struct Step {
     pub parent: usize,
     pub origin: Pose,
+    /// Whether `origin.rotation` differs from the identity (most URDF joints have no `rpy`:
+    /// their product is skipped).
+    pub origin_turns: bool,
     pub axis: Vec3,
+    /// `(k, ±1)` when the axis is `±e_k`: the joint's rotation then mixes two columns of the
+    /// frame instead of a whole matrix product (humanoid joints turn about x, y or z).
+    pub coordinate_axis: Option<(usize, f64)>,
     pub moves: Moves,
     /// Column of `q` (meaningless when `moves` is `Moves::No`).
     pub dof: usize,
@@ -236,6 +242,13 @@ impl Robot {
     pub fn world_mount(&self) -> Option<&Pose> {
         self.world_mount.as_ref()
     }
+}
+
+/// `(k, sign)` when `axis` is exactly `sign · e_k`.
+fn coordinate_axis(axis: &Vec3) -> Option<(usize, f64)> {
+    let k = axis.iter().position(|v| v.abs() == 1.0)?;
+    let others_zero = (0..3).all(|i| i == k || axis[i] == 0.0);
+    others_zero.then_some((k, axis[k]))
 }
 
 /// Up to five names joined for a message, with the count of the rest.
@@ -506,7 +519,9 @@ fn build(urdf: Urdf) -> Result<Robot> {
             steps.push(Step {
                 parent: jt.parent,
                 origin: jt.origin,
+                origin_turns: jt.origin.rotation != IDENTITY,
                 axis: jt.axis,
+                coordinate_axis: coordinate_axis(&jt.axis),
                 moves: match jt.kind {
                     JointKind::Fixed => Moves::No,
                     JointKind::Prismatic => Moves::Slides,

@@ -184,7 +184,12 @@ pub fn parse(text: &str) -> Result<Urdf> {
     };
     let doc = Document::parse_with_options(text, options)
         .map_err(|e| invalid_arg!("URDF: not readable XML: {e}"))?;
-    let at = |node: Node| doc.text_pos_at(node.range().start).row;
+    // Line numbers by binary search over the line starts: roxmltree's `text_pos_at` scans
+    // the text from its start at every call, quadratic over a file's elements.
+    let line_starts: Vec<usize> = std::iter::once(0)
+        .chain(text.match_indices('\n').map(|(i, _)| i + 1))
+        .collect();
+    let at = |node: Node| line_starts.partition_point(|&s| s <= node.range().start) as u32;
     let robot = doc.root_element();
     if robot.tag_name().name() != "robot" {
         return Err(invalid_arg!(
