@@ -40,9 +40,9 @@ pub mod pool;
 /// cbindgen:ignore
 pub mod retarget;
 /// cbindgen:ignore
-pub mod robot;
-/// cbindgen:ignore
 pub mod rng;
+/// cbindgen:ignore
+pub mod robot;
 /// cbindgen:ignore
 pub mod session;
 /// cbindgen:ignore
