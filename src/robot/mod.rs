@@ -40,9 +40,11 @@
 pub mod kinematics;
 pub mod model;
 pub mod pose;
+pub mod trajectory;
 pub mod urdf;
 
 pub use kinematics::{forward, integrate, jacobian_point, RobotData};
 pub use model::{Joint, JointKind, JointLimits, JointMotion, Link, Robot};
 pub use pose::Pose;
+pub use trajectory::Trajectory;
 pub use urdf::{Collision, Geometry};
