@@ -1,5 +1,6 @@
-//! Minimal NumPy `.npy` reading and writing for `f32` arrays (C order, little-endian), so the
-//! CLI can exchange motions and noise with Python without a NumPy dependency.
+//! Minimal NumPy `.npy` reading and writing for `f32` arrays (and writing of `f64` ones; C
+//! order, little-endian), so the CLI can exchange motions and noise with Python without a NumPy
+//! dependency.
 
 use std::path::Path;
 
@@ -18,6 +19,24 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
         out.extend_from_slice(&v.to_le_bytes());
     }
     out
+}
+
+/// Encodes `data` with `shape` as a version 1.0 `.npy` file of `<f8`, after checking that the
+/// shape holds `data.len()` values.
+pub fn encode_f64(shape: &[usize], data: &[f64]) -> Result<Vec<u8>> {
+    let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    if count != Some(data.len()) {
+        return Err(invalid_arg!(
+            ".npy shape {shape:?} does not hold {} values",
+            data.len()
+        ));
+    }
+    let mut out = header("<f8", shape);
+    out.reserve(data.len() * 8);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    Ok(out)
 }
 
 /// The magic, version (1.0), header length and header of a `.npy` file holding a C-order array

@@ -1,8 +1,8 @@
 //! NumPy `.npz` writing: a ZIP archive of `.npy` members, stored without compression, as
 //! `numpy.savez` writes it (numpy/lib/_npyio_impl.py `_savez`: one `<key>.npy` member per array,
 //! `zipfile.ZIP_STORED`), so `np.load(path)` gives a dict-like of the arrays. Members are `f64`
-//! and `f32` arrays of any shape, 0-d `f64` and `i64` scalars and 0-d unicode strings (`<U…`,
-//! what `np.array("neutral")` is). Nothing here reads archives.
+//! and `f32` arrays of any shape, 0-d `f64` and `i64` scalars, 0-d unicode strings (`<U…`,
+//! what `np.array("neutral")` is) and 1-D arrays of them. Nothing here reads archives.
 //!
 //! The archive is plain ZIP (PKWARE's APPNOTE.TXT 6.3.x, sections 4.3.7 local file header,
 //! 4.3.12 central directory header, 4.3.16 end of central directory), without ZIP64: a member
@@ -97,6 +97,40 @@ impl Npz {
             // The empty string is `<U1` holding one NUL, as NumPy stores it.
             out.resize(start + chars * 4, 0);
         })
+    }
+
+    /// Adds `name` as a 1-D unicode array of `values` (`np.array(["a", "bc"])`): dtype `<U{n}`,
+    /// n the most code points of any value (at least 1), each value NUL-padded to n UTF-32 units,
+    /// as NumPy stores it. `list(a)` of the loaded member gives `values` back.
+    pub fn add_strs(&mut self, name: &str, values: &[&str]) -> Result<()> {
+        if values.iter().any(|v| v.contains('\0')) {
+            return Err(invalid_arg!(
+                ".npz member `{name}`: a string with a NUL character"
+            ));
+        }
+        let chars = values
+            .iter()
+            .map(|v| v.chars().count())
+            .max()
+            .unwrap_or(0)
+            .max(1);
+        let descr = format!("<U{chars}");
+        self.add_numbers(
+            name,
+            &descr,
+            &[values.len()],
+            values.len(),
+            chars * 4,
+            |out| {
+                for v in values {
+                    let start = out.len();
+                    for c in v.chars() {
+                        out.extend_from_slice(&(c as u32).to_le_bytes());
+                    }
+                    out.resize(start + chars * 4, 0);
+                }
+            },
+        )
     }
 
     /// Adds a member of `count` values of `width` bytes each, shaped `shape`, after checking the
@@ -349,6 +383,27 @@ mod tests {
         assert_eq!(&b[i..i + 8], &16i64.to_le_bytes());
         let e = data_of(b"{'descr': '<U1', 'fortran_order': False, 'shape': (), }");
         assert_eq!(&b[e..e + 4], &[0; 4]);
+    }
+
+    #[test]
+    fn string_arrays_are_padded_to_the_longest() {
+        let mut z = Npz::new();
+        z.add_strs("joint_names", &["hip", "knee_joint", "é"])
+            .unwrap();
+        z.add_strs("none", &[]).unwrap();
+        assert!(z.add_strs("bad", &["a", "b\0"]).is_err());
+        let b = z.finish();
+        let text = b"{'descr': '<U10', 'fortran_order': False, 'shape': (3,), }";
+        let at = b.windows(text.len()).position(|w| w == text).unwrap();
+        let data = at + u16_at(&b, at - 2) as usize;
+        // "hip" then 7 NUL units, "knee_joint", then U+00E9 and 9 NUL units.
+        assert_eq!(&b[data..data + 12], b"h\0\0\0i\0\0\0p\0\0\0");
+        assert_eq!(&b[data + 12..data + 40], &[0; 28]);
+        assert_eq!(&b[data + 40..data + 44], b"k\0\0\0");
+        assert_eq!(&b[data + 80..data + 84], &0xE9u32.to_le_bytes());
+        assert_eq!(&b[data + 84..data + 120], &[0; 36]);
+        let empty = b"{'descr': '<U1', 'fortran_order': False, 'shape': (0,), }";
+        assert!(b.windows(empty.len()).any(|w| w == empty));
     }
 
     #[test]

@@ -37,6 +37,7 @@
 //! # Ok::<(), flame::Error>(())
 //! ```
 
+pub mod export;
 pub mod kinematics;
 pub mod model;
 pub mod pose;
