@@ -16,6 +16,12 @@
 //!   a link, row-major; [`integrate`] steps a configuration by a velocity in the same
 //!   convention. None of the three allocates.
 //!
+//! - Retargeting a human motion onto the robot ([`retarget`]): a [`RetargetConfig`] ([`config`],
+//!   GMR's IK-table JSON plus feet and solver keys; `robots/<name>.json` ships for GR1T2,
+//!   JVRC-1, G1 and H1, found by [`load_default_config`]), an immutable [`Retargeter`] and a
+//!   per-run [`RetargetState`]: `step` solves one [`HumanFrame`], `motion` a whole clip into a
+//!   [`Trajectory`].
+//!
 //! Units: metres and radians, `f64` throughout. A floating base is always there (module doc of
 //! [`model`]): for a fixed-base robot, give the identity as base and ignore the first six
 //! Jacobian columns.
@@ -37,15 +43,21 @@
 //! # Ok::<(), flame::Error>(())
 //! ```
 
+pub mod config;
 pub mod export;
 pub mod kinematics;
 pub mod model;
 pub mod pose;
+pub mod retarget;
 pub mod trajectory;
 pub mod urdf;
 
+pub use config::{
+    default_config_path, load_default_config, Foot, MatchEntry, RetargetConfig, Sole,
+};
 pub use kinematics::{forward, integrate, jacobian_point, RobotData};
 pub use model::{Joint, JointKind, JointLimits, JointMotion, Link, Robot};
 pub use pose::Pose;
+pub use retarget::{HumanFrame, RetargetState, Retargeter};
 pub use trajectory::Trajectory;
 pub use urdf::{Collision, Geometry};
