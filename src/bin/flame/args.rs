@@ -10,6 +10,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use flame::models::WeightType;
 use flame::motion::amass::AmassLayout;
 use flame::motion::{Convention, Feet, QuatOrder, RootMotion, Task};
+use flame::robot::export::RobotFormat;
 use flame::session::{EditMethod, Sampler};
 use flame::targets::TargetSchedule;
 
@@ -35,7 +36,9 @@ metadata; .npz = AMASS-style SMPL parameters (float64 axis-angles, AMASS's Z-up 
 robot-learning pipelines: SMPL-H keys by default (`poses` [N, 156], `trans`, `betas`, `gender`,
 `mocap_framerate`, `dmpls`; PHC, human2humanoid), SMPL-X keys with --amass smplx
 (`root_orient`, `pose_body`, `trans`, `mocap_frame_rate`, ...; GMR), see docs/amass.md; --fps 30
-gives the rate trackers expect. --positions also writes world joint positions (float32, frames x joints x 3);
+gives the rate trackers expect. With --robot FILE.urdf the poses are retargeted onto the robot
+and --out is its joint trajectory: .csv BeyondMimic's rows, .npz GMR's fields, .npy MuJoCo qpos
+(--robot-format, --retarget, --csv-header; docs/robots.md). --positions also writes world joint positions (float32, frames x joints x 3);
 --preview FILE.png a contact sheet (stick figures side by side and the root path seen from
 above), FILE.gif an animation of the same figure beside its path (--preview-fps, default the
 model's).
@@ -92,7 +95,9 @@ the hips translation scaled by the hips heights' ratio, and the feet put back on
 contacts with two-bone IK. --out .glb/.gltf/.vrm hands the rig's own file back with the
 animation added (an animation of the same name written before is replaced), .bvh writes the
 rig's hierarchy and names, .vrma a VRM Animation. Without --rig, --out x.npz writes the poses as
-AMASS SMPL parameters (--amass smplh or smplx, as in generate).";
+AMASS SMPL parameters (--amass smplh or smplx, as in generate). With --robot FILE.urdf instead
+of --rig, the poses are retargeted onto that robot and --out is its joint trajectory (.csv,
+.npz or .npy, as in generate).";
 
 #[derive(Parser)]
 #[command(
@@ -120,7 +125,7 @@ pub enum Command {
     /// Generate one continuous motion from a timeline of sentences, chunk after chunk
     #[command(long_about = STREAM_LONG, after_help = AFTER_HELP)]
     Stream(StreamArgs),
-    /// Carry a motion made earlier onto the user's character (--rig)
+    /// Carry a motion made earlier onto the user's character (--rig) or a robot (--robot)
     #[command(long_about = RETARGET_LONG, after_help = AFTER_HELP)]
     Retarget(RetargetArgs),
     /// Describe a model file: architecture, text encoder, motion format, defaults
@@ -246,7 +251,7 @@ pub struct SamplingArgs {
 pub struct OutputArgs {
     /// Output file: .npy (raw features in the model's normalised space, the valid frames),
     /// .bvh or .json (poses), .glb or .gltf (a skinned figure with its animation), .npz (AMASS
-    /// SMPL parameters, see --amass)
+    /// SMPL parameters, see --amass); with --robot the robot's trajectory (.csv, .npz, .npy)
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// The keys of a .npz: smplh (AMASS SMPL-H `*_poses.npz`: `poses` [N, 156], `trans`,
@@ -328,6 +333,27 @@ pub struct OutputArgs {
     /// file's axes and units, bones in the file's order with parents first)
     #[arg(long, value_name = "FILE.npy")]
     pub rig_positions: Option<PathBuf>,
+    /// A humanoid robot's URDF: the finished poses are retargeted onto it (whole-body IK with
+    /// joint and velocity limits, feet held on the floor during contacts) and --out is its
+    /// joint trajectory: .csv (BeyondMimic's rows x,y,z,qx,qy,qz,qw,joints), .npz (GMR's
+    /// fields fps, root_pos, root_rot x,y,z,w, dof_pos, joint_names) or .npy (MuJoCo qpos,
+    /// quaternion w first); see --robot-format and docs/robots.md
+    #[arg(long, value_name = "FILE.urdf")]
+    pub robot: Option<PathBuf>,
+    /// The robot's retarget configuration (JSON, GMR's IK tables plus feet and solver keys)
+    /// [default: robots/<robot name>.json in the current directory, then <prefix>/share/flame,
+    /// then the source tree]
+    #[arg(long, value_name = "FILE.json")]
+    pub retarget: Option<PathBuf>,
+    /// The layout of the robot trajectory: beyondmimic (.csv), gmr (.npz) or qpos (MuJoCo's
+    /// qpos rows, w-first root quaternion, MuJoCo's joint order; .csv or .npy) [default: from
+    /// the extension, .csv beyondmimic, .npz gmr, .npy qpos]
+    #[arg(long, value_name = "F", value_parser = lib::<RobotFormat>)]
+    pub robot_format: Option<RobotFormat>,
+    /// Start a robot .csv with a line of column names (`# x,y,z,qx,...,joint names`; the `#`
+    /// makes it a comment to np.loadtxt, which BeyondMimic's csv_to_npz.py uses)
+    #[arg(long)]
+    pub csv_header: bool,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]

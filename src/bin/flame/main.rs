@@ -6,6 +6,7 @@ mod actions;
 mod args;
 mod paths;
 mod rig;
+mod robot;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -808,6 +809,8 @@ struct Outputs {
     finish: motion::Finish,
     /// `--rig`: the user's character, read and mapped.
     rig: Option<rig::RigOut>,
+    /// `--robot`: a humanoid, read with its retarget configuration.
+    robot: Option<robot::RobotOut>,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -824,6 +827,8 @@ enum OutKind {
     RigBvh,
     /// AMASS-style SMPL parameters (`.npz`).
     Amass(AmassLayout),
+    /// A `--robot` joint trajectory.
+    Robot(flame::robot::export::RobotFile),
 }
 
 /// What a glTF export records about the generation.
@@ -891,8 +896,14 @@ impl Outputs {
             return Err(format!("cannot write {}: it is a folder", dir.display()));
         }
         let rig = rig::RigOut::new(o)?;
+        let robot = robot::RobotOut::new(o)?;
         let ext = paths::extension(&o.out);
         let kind = match (ext.as_deref(), &rig) {
+            _ if robot.is_some() => OutKind::Robot(
+                robot
+                    .as_ref()
+                    .map_or(flame::robot::export::RobotFile::BeyondMimicCsv, |r| r.file),
+            ),
             (Some("vrma"), _) => OutKind::Vrma,
             (Some(e @ ("glb" | "gltf" | "vrm")), Some(r)) => {
                 r.check_container(&o.out, e)?;
@@ -1002,6 +1013,8 @@ impl Outputs {
             }
             (_, Some(c)) => c,
             (OutKind::Bvh | OutKind::Gltf(_), None) => Convention::Gltf,
+            // --positions beside a robot trajectory: the model's own frame, as for .npy.
+            (OutKind::Robot(_), None) => Convention::Native,
             // --positions beside an AMASS file: the model's own frame, as for .npy.
             (OutKind::Amass(_), None) => Convention::Native,
             (OutKind::Features | OutKind::Json, None) => Convention::Native,
@@ -1037,6 +1050,7 @@ impl Outputs {
             quat: o.quat,
             finish: finish(o)?,
             rig,
+            robot,
         })
     }
 
@@ -1129,6 +1143,10 @@ impl Outputs {
             (OutKind::Amass(layout), _, _) => Some(
                 motion::amass::to_npz(&poses, d.fps as f64, layout).map_err(|e| e.to_string())?,
             ),
+            (OutKind::Robot(_), _, _) => match &self.robot {
+                Some(r) => Some(r.file_bytes(&poses, d.fps as f64)?),
+                None => None,
+            },
             _ => None,
         };
         if let Some(bytes) = bytes {
@@ -1153,7 +1171,8 @@ impl Outputs {
             | OutKind::Vrma
             | OutKind::RigGltf
             | OutKind::RigBvh
-            | OutKind::Amass(_) => None,
+            | OutKind::Amass(_)
+            | OutKind::Robot(_) => None,
             OutKind::Bvh => Some(motion::bvh::to_string(&poses, self.convention, d.fps)),
             OutKind::Json => Some(motion::json::to_string(
                 &poses,
@@ -1208,10 +1227,15 @@ impl Outputs {
 /// `flame retarget`: a motion made earlier onto `--rig`.
 fn retarget(a: &RetargetArgs) -> Result<(), String> {
     let outputs = Outputs::new(&a.output)?;
-    if outputs.rig.is_none() && !matches!(outputs.kind, OutKind::Vrma | OutKind::Amass(_)) {
+    if outputs.rig.is_none()
+        && !matches!(
+            outputs.kind,
+            OutKind::Vrma | OutKind::Amass(_) | OutKind::Robot(_)
+        )
+    {
         return Err(
-            "retarget needs --rig (the character), or --out x.vrma (a VRM Animation) or x.npz \
-             (AMASS SMPL parameters)"
+            "retarget needs --rig (the character) or --robot (a URDF), or --out x.vrma (a VRM \
+             Animation) or x.npz (AMASS SMPL parameters)"
                 .into(),
         );
     }
