@@ -101,7 +101,8 @@ fn random_trajectory(robot: &Robot, frames: usize, seed: u64) -> Trajectory {
         let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
         t.root_rot_xyzw.push(q.map(|v| v / norm));
         for d in 0..n {
-            let (lo, hi) = (lim.lower[d].max(-3.14), lim.upper[d].min(3.14));
+            let pi = std::f64::consts::PI;
+            let (lo, hi) = (lim.lower[d].max(-pi), lim.upper[d].min(pi));
             t.dof_pos.push(rng.range(lo, hi));
         }
     }
