@@ -600,3 +600,33 @@ pub fn load_default_config(robot: &Robot, dir: &Path) -> Result<Option<RetargetC
 pub fn default_config_path(robot: &Robot, dir: &Path) -> PathBuf {
     dir.join(format!("{}.json", robot.name().to_lowercase()))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn smplx_and_libflame_names_meet_on_smpl_indices() {
+        for (a, b, j) in [
+            ("Pelvis", "pelvis", 0),
+            ("L_Ankle", "left_ankle", 7),
+            ("L_Foot", "left_foot", 10),
+            ("Spine3", "spine3", 9),
+            ("R_Wrist", "right_wrist", 21),
+            ("L_Hand", "left_hand", 22),
+        ] {
+            assert_eq!(human_joint(a), Some(j));
+            assert_eq!(human_joint(b), Some(j));
+        }
+        assert_eq!(human_joint("left_toe"), None);
+        let s = Sole {
+            centre: [0.05, -0.01],
+            half_length: 0.1,
+            half_width: 0.04,
+            height: 0.03,
+        };
+        let c = s.corners();
+        assert_eq!(c[0], [0.15000000000000002, 0.03, -0.03]);
+        assert_eq!(c[3], [-0.05, -0.05, -0.03]);
+    }
+}

@@ -911,3 +911,90 @@ fn solve_free(st: &mut RetargetState, n: usize) {
         st.dx[i] = st.rhs[a];
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_and_exp_invert_each_other_at_every_angle() {
+        for (axis, angle) in [
+            ([1.0, 2.0, -0.5], 0.3),
+            ([0.0, 0.0, 1.0], 3.0),
+            ([-1.0, 0.2, 0.1], 1e-9),
+            ([0.3, -0.4, 0.5], std::f64::consts::PI - 1e-7),
+        ] {
+            let n = rotation::dot(&axis, &axis).sqrt();
+            let v: Vec3 = axis.map(|x| x / n * angle);
+            let back = log_rotation(&exp_rotation(&v));
+            for k in 0..3 {
+                assert!((back[k] - v[k]).abs() < 1e-9, "{v:?} → {back:?}");
+            }
+        }
+        let yaw = yaw_only(&rotation::mul(
+            &exp_rotation(&[0.0, 0.0, 0.7]),
+            &exp_rotation(&[0.2, -0.3, 0.0]),
+        ));
+        assert!((yaw[2][2] - 1.0).abs() < 1e-15);
+    }
+
+    /// The box-constrained solve against the best of every active set, on 3 variables (one
+    /// free, two boxed), for problems where the optimum is inside, on one bound, on both.
+    #[test]
+    fn the_box_solve_finds_the_constrained_minimum() {
+        let robot = Robot::from_urdf(r#"<robot name="r"><link name="a"/></robot>"#).unwrap();
+        let config = RetargetConfig::from_json(
+            r#"{"robot_root_name": "a", "human_root_name": "Pelvis", "ground_height": 0,
+                "human_height_assumption": 1.66, "use_ik_match_table1": true,
+                "use_ik_match_table2": false, "human_scale_table": {"Pelvis": 1},
+                "ik_match_table1": {"a": ["Pelvis", 1, 1, [0, 0, 0], [1, 0, 0, 0]]},
+                "ik_match_table2": {}}"#,
+            &robot,
+        )
+        .unwrap();
+        let r = Retargeter::new(robot, config).unwrap();
+        let mut st = r.state();
+        let n = 3;
+        let h = [4.0, 1.0, 0.5, 1.0, 3.0, -0.8, 0.5, -0.8, 2.0];
+        let objective = |x: &[f64], g: &[f64]| {
+            let mut v = 0.0;
+            for a in 0..n {
+                v -= g[a] * x[a];
+                for b in 0..n {
+                    v += 0.5 * x[a] * h[a * n + b] * x[b];
+                }
+            }
+            v
+        };
+        for g in [[0.1, 0.2, -0.1], [5.0, -4.0, 3.0], [-6.0, 0.5, -7.0]] {
+            st.lo[..3].copy_from_slice(&[f64::NEG_INFINITY, -0.5, -1.0]);
+            st.hi[..3].copy_from_slice(&[f64::INFINITY, 0.5, 0.2]);
+            // `solve_box` reads `n` as the row stride: a 3 × 3 problem in the state's buffers.
+            st.h = h.to_vec();
+            st.g = g.to_vec();
+            solve_box(&mut st, n);
+            let got = st.dx[..3].to_vec();
+            // Exhaustive: every variable free, at its lower or at its upper bound.
+            let mut best = f64::INFINITY;
+            for code in 0..9 {
+                let fix = [code % 3, code / 3];
+                let mut probe = r.state();
+                probe.h = h.to_vec();
+                probe.g = g.to_vec();
+                probe.clamped = vec![false, fix[0] != 0, fix[1] != 0];
+                probe.dx = vec![0.0, [0.0, -0.5, 0.5][fix[0]], [0.0, -1.0, 0.2][fix[1]]];
+                solve_free(&mut probe, n);
+                let x = &probe.dx[..3];
+                if x[1] >= -0.5 - 1e-12
+                    && x[1] <= 0.5 + 1e-12
+                    && x[2] >= -1.0 - 1e-12
+                    && x[2] <= 0.2 + 1e-12
+                {
+                    best = best.min(objective(x, &g));
+                }
+            }
+            assert!(got[1].abs() <= 0.5 && (-1.0..=0.2).contains(&got[2]));
+            assert!((objective(&got, &g) - best).abs() < 1e-12, "{got:?}");
+        }
+    }
+}
