@@ -65,6 +65,26 @@
 // `kind` of [`flame_rig_load`]: a BVH file's hierarchy (its MOTION section is not read).
 #define FLAME_RIG_FORMAT_BVH 2
 
+// `file` of [`flame_robot_retarget_write`]: BeyondMimic's CSV, rows `x, y, z, qx, qy, qz, qw,
+// q_1 … q_n` (base quaternion x, y, z, w; joints in the robot's degree-of-freedom order).
+#define FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW 0
+
+// `file` of [`flame_robot_retarget_write`]: GMR's fields as an `.npz`: `fps`, `root_pos`
+// [N, 3], `root_rot` [N, 4] x, y, z, w, `dof_pos` [N, n], `joint_names` [n].
+#define FLAME_ROBOT_GMR_NPZ_XYZW 1
+
+// `file` of [`flame_robot_retarget_write`]: MuJoCo qpos rows as a CSV, `x, y, z, qw, qx, qy,
+// qz` then the joints in MuJoCo's order of the compiled URDF (mimic joints included).
+#define FLAME_ROBOT_QPOS_CSV_WXYZ 2
+
+// `file` of [`flame_robot_retarget_write`]: the same qpos rows as an `.npy` [N, 7 + joints]
+// of float64.
+#define FLAME_ROBOT_QPOS_NPY_WXYZ 3
+
+// `options` flag of [`flame_robot_retarget_write`]: start a CSV with a `# ` line of column
+// names (a comment to `np.loadtxt`). `INVALID_ARGUMENT` with the `.npz` and `.npy` files.
+#define FLAME_ROBOT_CSV_HEADER 1
+
 // What every fallible call returns.
 typedef enum FlameStatus {
   FLAME_STATUS_OK = 0,
@@ -269,6 +289,18 @@ typedef struct FlameRetarget FlameRetarget;
 // threads freely. Bones are numbered as [`flame_rig_bone_name`] lists them: for a rig from
 // [`flame_rig_from_bones`], in the order they were given; for a file's, parents first.
 typedef struct FlameRig FlameRig;
+
+// A robot: its URDF's kinematic tree, joint limits and collision primitives. Immutable.
+typedef struct FlameRobot FlameRobot;
+
+// A retarget onto one robot: the robot (copied) and its configuration. Immutable and
+// shareable; per-run state lives in [`FlameRobotState`].
+typedef struct FlameRobotRetarget FlameRobotRetarget;
+
+// One run's state for [`flame_robot_retarget_read`] and
+// [`flame_robot_retarget_read_stream`]: the configuration the next frame starts from (warm
+// start, velocity limits) and the feet's anchors during a contact.
+typedef struct FlameRobotState FlameRobotState;
 
 // One generation. Used by one thread at a time; only `flame_session_cancel` may run
 // concurrently with another call.
@@ -1261,6 +1293,183 @@ enum FlameStatus flame_retarget_pose(const struct FlameRetarget *retarget,
                                      size_t rotations_len,
                                      float *translations,
                                      size_t translations_len);
+
+// Reads a robot from a URDF's text (`urdf`, `len` bytes, UTF-8; read only during the call):
+// links, joints (revolute, continuous, prismatic, fixed; mimic joints followed), limits,
+// collision primitives; a floating base at the root link. Errors (`INVALID_ARGUMENT`, the
+// message naming the joint or link and its line): malformed XML, a cycle, a missing parent
+// link, a zero axis, lower limit above upper, several roots. Free with [`flame_robot_free`].
+//
+// # Safety
+// `urdf` points to `len` readable bytes; `out` points to a writable `FlameRobot *`.
+enum FlameStatus flame_robot_load(const uint8_t *urdf, size_t len, struct FlameRobot **out);
+
+// Frees a robot (NULL is fine). Retargets made from it stay valid (they hold a copy).
+//
+// # Safety
+// `robot` is NULL or a robot not yet freed; its name pointers die with it.
+void flame_robot_free(struct FlameRobot *robot);
+
+// The robot's degrees of freedom `n` (its joint vector's length: revolute, continuous and
+// prismatic joints that mimic no other, in URDF document order).
+//
+// # Safety
+// `robot` is live; `out` points to a writable `size_t`.
+enum FlameStatus flame_robot_dof_count(const struct FlameRobot *robot, size_t *out);
+
+// Degree of freedom `index`'s joint name (UTF-8, NUL-terminated) into `*out`, owned by the
+// robot and valid until [`flame_robot_free`]. The order of every joint vector of this ABI.
+//
+// # Safety
+// `robot` is live; `out` points to a writable `const char *`.
+enum FlameStatus flame_robot_dof_name(const struct FlameRobot *robot,
+                                      size_t index,
+                                      const char **out);
+
+// The robot's name (`<robot name>`), owned by the robot, into `*out`. The shipped
+// configurations are named after it (`robots/<name>.json`).
+//
+// # Safety
+// `robot` is live; `out` points to a writable `const char *`.
+enum FlameStatus flame_robot_name(const struct FlameRobot *robot, const char **out);
+
+// A retarget onto `robot` with the configuration `config_json` (`len` bytes of UTF-8 JSON:
+// GMR's IK tables plus libflame's feet and solver keys, docs/robots.md; libflame ships
+// `robots/<robot name>.json`). The robot is copied. Errors (`INVALID_ARGUMENT`): malformed
+// JSON, an unknown key, a body or human joint that does not exist (named), negative weights.
+// Free with [`flame_robot_retarget_free`].
+//
+// # Safety
+// `robot` is live; `config_json` points to `len` readable bytes; `out` points to a writable
+// `FlameRobotRetarget *`.
+enum FlameStatus flame_robot_retarget_new(const struct FlameRobot *robot,
+                                          const uint8_t *config_json,
+                                          size_t len,
+                                          struct FlameRobotRetarget **out);
+
+// Frees a retarget (NULL is fine). States made for it can no longer be used.
+//
+// # Safety
+// `retarget` is NULL or a retarget not yet freed, used by no other call.
+void flame_robot_retarget_free(struct FlameRobotRetarget *retarget);
+
+// The retarget's robot's degrees of freedom (the `q` width of the reads).
+//
+// # Safety
+// `retarget` is live; `out` points to a writable `size_t`.
+enum FlameStatus flame_robot_retarget_dof_count(const struct FlameRobotRetarget *retarget,
+                                                size_t *out);
+
+// Retargets the whole current sample or clean-motion estimate (`which`, a `FlameWhich`) of a
+// session, read with `flags` (`FLAME_READ_SMOOTH`, `FLAME_READ_RAW_SIGNS`) and `cleanup`
+// (NULL = the raw poses; its `fps` resamples, 30 or 50 being what trackers expect), and writes
+// it as `file` (a `FLAME_ROBOT_*` value); `options` may hold [`FLAME_ROBOT_CSV_HEADER`]. The
+// clip is put on the floor, its contacts found, the feet planted for each contact span, then
+// every frame solved from a fresh state (the CLI's `--robot`).
+//
+// With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done (the
+// retargeting runs either way). Otherwise `len` must be at least that (`BUFFER_TOO_SMALL`,
+// with `*out_len` set) and `*out_len` receives the bytes written.
+//
+// # Safety
+// `retarget` and `session` are live; `cleanup` is NULL or a valid `FlameCleanupParams`; `out`
+// is NULL or points to `len` writable bytes; `out_len` points to a writable `size_t`.
+enum FlameStatus flame_robot_retarget_write(const struct FlameRobotRetarget *retarget,
+                                            const struct FlameSession *session,
+                                            int32_t which,
+                                            uint32_t flags,
+                                            const struct FlameCleanupParams *cleanup,
+                                            uint32_t file,
+                                            uint32_t options,
+                                            uint8_t *out,
+                                            size_t len,
+                                            size_t *out_len);
+
+// A fresh state for frame-by-frame reads through `retarget` (the robot at its configured
+// initial configuration, no contacts). Free with [`flame_robot_state_free`].
+//
+// # Safety
+// `retarget` is live; `out` points to a writable `FlameRobotState *`.
+enum FlameStatus flame_robot_state_new(const struct FlameRobotRetarget *retarget,
+                                       struct FlameRobotState **out);
+
+// Frees a state (NULL is fine).
+//
+// # Safety
+// `state` is NULL or a state not yet freed, used by no other call.
+void flame_robot_state_free(struct FlameRobotState *state);
+
+// Puts a state back to the start of a run (call it before reading from another place than
+// the frame after the last one read: the velocity limits hold between consecutive reads).
+//
+// # Safety
+// `state` is live.
+enum FlameStatus flame_robot_state_reset(const struct FlameRobotState *state);
+
+// Robot frames from a live session, one after the other: frames `first..first + count` of the
+// motion [`super::flame_session_read_cleaned`] reads with the same `which`, `flags` and
+// `cleanup` (the read's floor is the robot's floor: pass a cleanup with its ground on, the
+// default of `flame_cleanup_params_default`, for a motion standing on z = 0), each solved from
+// where `state` left the previous one (warm start; joint velocity limits over 1 / fps; a foot
+// in contact held where it was set down). Contacts are those of the whole read. Per frame:
+// `out_root_pos` [3] the base (root link) position, `out_root_rot_xyzw` [4] its quaternion
+// x, y, z, w, `out_q` [n] the joint positions in the robot's degree-of-freedom order,
+// `out_residual` [1] the weighted task residual (large when the robot cannot reach). Each
+// buffer may be NULL; a given one holds `count` frames (`BUFFER_TOO_SMALL`). Outputs are
+// written only on success; on an error the state is reset. `*out_frames` (may be NULL)
+// receives the read's frame count (call with `count` 0 to learn it).
+//
+// Errors: a range past the frames, a motion of another skeleton than the configuration needs
+// (`INVALID_ARGUMENT`); no sample yet, or the session busy (`WRONG_STATE`).
+//
+// # Safety
+// `retarget`, `state` and `session` are live; `cleanup` is NULL or a valid
+// `FlameCleanupParams`; non-NULL buffers point to their lengths' writable doubles;
+// `out_frames` is NULL or writable.
+enum FlameStatus flame_robot_retarget_read(const struct FlameRobotRetarget *retarget,
+                                           const struct FlameRobotState *state,
+                                           const struct FlameSession *session,
+                                           int32_t which,
+                                           uint32_t flags,
+                                           const struct FlameCleanupParams *cleanup,
+                                           size_t first,
+                                           size_t count,
+                                           double *out_root_pos,
+                                           size_t root_pos_len,
+                                           double *out_root_rot_xyzw,
+                                           size_t root_rot_len,
+                                           double *out_q,
+                                           size_t q_len,
+                                           double *out_residual,
+                                           size_t residual_len,
+                                           size_t *out_frames);
+
+// [`flame_robot_retarget_read`] for a stream: timeline frames `first_frame..first_frame +
+// count` as [`super::flame_stream_read_cleaned`] gives them with `cleanup` (NULL = the raw
+// frames; the first cleanup passed sets the stream's, as there), with the stream's foot
+// contacts (`FLAME_LAYOUT_FOOT_CONTACTS`), one after the other from `state`: read the
+// timeline in order, a few frames per call, to drive a robot at run time. The frame rate is
+// the cleanup's or the model's. Buffers as `flame_robot_retarget_read` (no `out_frames`).
+// Frames not generated or settled yet are `WRONG_STATE` (pump more), dropped ones
+// `INVALID_ARGUMENT`.
+//
+// # Safety
+// `retarget`, `state` and `stream` are live; `cleanup` is NULL or a valid
+// `FlameCleanupParams`; non-NULL buffers point to their lengths' writable doubles.
+enum FlameStatus flame_robot_retarget_read_stream(const struct FlameRobotRetarget *retarget,
+                                                  const struct FlameRobotState *state,
+                                                  const struct FlameStream *stream,
+                                                  uint64_t first_frame,
+                                                  uint32_t count,
+                                                  const struct FlameCleanupParams *cleanup,
+                                                  double *out_root_pos,
+                                                  size_t root_pos_len,
+                                                  double *out_root_rot_xyzw,
+                                                  size_t root_rot_len,
+                                                  double *out_q,
+                                                  size_t q_len,
+                                                  double *out_residual,
+                                                  size_t residual_len);
 
 // Fills `*params` with the defaults: the model's default frame count per chunk, 20 frames of
 // overlap, 60 of lookahead, a window of 1200, the model file's steps, sampler and guidance,

@@ -12,6 +12,7 @@ mod errors;
 mod handles;
 mod poses;
 mod retarget;
+mod robot;
 mod stream;
 
 use std::ffi::{c_char, c_void, CStr};
@@ -25,6 +26,11 @@ use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 use crate::targets::{TargetParams, TargetSchedule};
 
 pub use amass::{flame_session_write_amass, FLAME_AMASS_SMPLH, FLAME_AMASS_SMPLX};
+pub use robot::{
+    FlameRobot, FlameRobotRetarget, FlameRobotState, FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW,
+    FLAME_ROBOT_CSV_HEADER, FLAME_ROBOT_GMR_NPZ_XYZW, FLAME_ROBOT_QPOS_CSV_WXYZ,
+    FLAME_ROBOT_QPOS_NPY_WXYZ,
+};
 use cleanup::finish_arg;
 pub use cleanup::{
     flame_cleanup_params_default, flame_session_read_cleaned, FlameCleanupParams, FlameFeet,

@@ -83,7 +83,10 @@ pub struct FlameStreamStatus {
 
 impl FlameStream {
     /// Runs `f` on the stream; a stream busy on another thread is an error, not a wait.
-    fn with<R>(&self, f: impl FnOnce(&mut Stream) -> Result<R, Fail>) -> Result<R, Fail> {
+    pub(super) fn with<R>(
+        &self,
+        f: impl FnOnce(&mut Stream) -> Result<R, Fail>,
+    ) -> Result<R, Fail> {
         let mut s = match self.stream.try_lock() {
             Ok(g) => g,
             Err(TryLockError::WouldBlock) => {
@@ -102,7 +105,7 @@ impl FlameStream {
     }
 }
 
-unsafe fn stream_ref<'a>(stream: *const FlameStream) -> Result<&'a FlameStream, Fail> {
+pub(super) unsafe fn stream_ref<'a>(stream: *const FlameStream) -> Result<&'a FlameStream, Fail> {
     stream
         .as_ref()
         .ok_or_else(|| invalid_arg!("`stream` is NULL").into())
