@@ -26,11 +26,6 @@ use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 use crate::targets::{TargetParams, TargetSchedule};
 
 pub use amass::{flame_session_write_amass, FLAME_AMASS_SMPLH, FLAME_AMASS_SMPLX};
-pub use robot::{
-    FlameRobot, FlameRobotRetarget, FlameRobotState, FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW,
-    FLAME_ROBOT_CSV_HEADER, FLAME_ROBOT_GMR_NPZ_XYZW, FLAME_ROBOT_QPOS_CSV_WXYZ,
-    FLAME_ROBOT_QPOS_NPY_WXYZ,
-};
 use cleanup::finish_arg;
 pub use cleanup::{
     flame_cleanup_params_default, flame_session_read_cleaned, FlameCleanupParams, FlameFeet,
@@ -41,6 +36,11 @@ pub use errors::{flame_last_error, flame_status_string, FlameStatus};
 use handles::{model_ref, session_ref};
 pub use handles::{FlameModel, FlameSession};
 pub use poses::{FlameConvention, FlameLayout, FLAME_READ_RAW_SIGNS, FLAME_READ_SMOOTH};
+pub use robot::{
+    FlameRobot, FlameRobotRetarget, FlameRobotState, FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW,
+    FLAME_ROBOT_CSV_HEADER, FLAME_ROBOT_GMR_NPZ_XYZW, FLAME_ROBOT_QPOS_CSV_WXYZ,
+    FLAME_ROBOT_QPOS_NPY_WXYZ,
+};
 pub use stream::{
     flame_stream_cancel, flame_stream_close, flame_stream_close_looped, flame_stream_free,
     flame_stream_interrupt, flame_stream_interrupt_stage, flame_stream_new,
