@@ -577,9 +577,13 @@ unsafe fn stream_values(
             Err(invalid_arg!("the stream's frames have {} floats, expected {want}", len).into())
         }
         s => {
-            let msg = std::ffi::CStr::from_ptr(flame_last_error())
-                .to_string_lossy()
-                .into_owned();
+            let text = std::ffi::CStr::from_ptr(flame_last_error()).to_string_lossy();
+            // The inner call's message carries its kind; the status says it again.
+            let msg = ["wrong state: ", "invalid argument: "]
+                .iter()
+                .find_map(|p| text.strip_prefix(p))
+                .unwrap_or(&text)
+                .to_string();
             Err(match s {
                 FlameStatus::WrongState => Error::WrongState(msg),
                 _ => Error::InvalidArgument(msg),

@@ -7,7 +7,7 @@
 # 2. the CLI writes the reference features the tests must match bit for bit;
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
 #    against the shared and the static library, test_cancel, test_stream and test_cleanup (C11,
-#    shared),
+#    shared), test_robot (C11, shared; the GR1T2 URDF from tools/fetch_robots.sh),
 #    test_cpp, test_cpp_gltf and test_cpp_stream (C++17, shared), all with -Wall -Wextra
 #    -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
@@ -192,6 +192,7 @@ compile test_stream_shared gcc "${CFLAGS[@]}" tests/c/test_stream.c "${SHARED_LI
 compile test_cleanup_shared gcc "${CFLAGS[@]}" tests/c/test_cleanup.c "${SHARED_LIBS[@]}"
 compile test_retarget_shared gcc "${CFLAGS[@]}" tests/c/test_retarget.c "${SHARED_LIBS[@]}"
 compile test_amass_shared gcc "${CFLAGS[@]}" tests/c/test_amass.c "${SHARED_LIBS[@]}"
+compile test_robot_shared gcc "${CFLAGS[@]}" tests/c/test_robot.c "${SHARED_LIBS[@]}"
 compile test_cpp_retarget_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_retarget.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
@@ -220,6 +221,15 @@ built test_retarget_shared && run_test "test_retarget (shared)" \
     "$OUT/test_retarget_shared.log" "$OUT/test_retarget_shared" "$ROOT/tests/fixtures"
 built test_amass_shared && run_test "test_amass (shared)" "$OUT/test_amass_shared.log" \
     "$OUT/test_amass_shared" "$ROOT/tests/fixtures"
+# The real GR1T2 URDF (PyPI fourier-robot-descriptions), fetched once into target/robots.
+[ -f "$ROOT/target/robots/gr1t2.urdf" ] || bash "$ROOT/tools/fetch_robots.sh" >/dev/null 2>&1
+if [ -f "$ROOT/target/robots/gr1t2.urdf" ]; then
+    built test_robot_shared && run_test "test_robot (shared)" "$OUT/test_robot_shared.log" \
+        "$OUT/test_robot_shared" "$ROOT/tests/fixtures" "$ROOT/target/robots/gr1t2.urdf" \
+        "$ROOT/robots/gr1t2.json"
+else
+    echo "skip test_robot: target/robots/gr1t2.urdf is missing and tools/fetch_robots.sh could not fetch it"
+fi
 built test_cpp_retarget_shared && run_test "test_cpp_retarget (shared)" \
     "$OUT/test_cpp_retarget_shared.log" "$OUT/test_cpp_retarget_shared" "$ROOT/tests/fixtures"
 built test_cpp_shared && run_test "test_cpp (shared)" "$OUT/test_cpp_shared.log" \
