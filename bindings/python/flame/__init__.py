@@ -63,6 +63,10 @@ __all__ = [
     "RigFormat",
     "BoneMap",
     "Retarget",
+    "Robot",
+    "RobotFile",
+    "RobotRetarget",
+    "RobotState",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
     "edit_params_default",
@@ -513,10 +517,11 @@ _status = ctypes.c_int  # enum FlameStatus
 
 def _signatures():
     """(restype, argtypes) of every function of flame.h, by name (the retarget functions'
-    from flame.retarget)."""
+    from flame.retarget, the robot ones' from flame.robot)."""
     from . import retarget as _retarget
+    from . import robot as _robot
 
-    return {**_core_signatures(), **_retarget._signatures()}
+    return {**_core_signatures(), **_retarget._signatures(), **_robot._signatures()}
 
 
 def _core_signatures():
@@ -1752,3 +1757,4 @@ class Session:
 
 # Retargeting lives in its own module; imported last, as it builds on the names above.
 from .retarget import BoneMap, Retarget, Rig, RigBone, RigFormat  # noqa: E402
+from .robot import Robot, RobotFile, RobotRetarget, RobotState  # noqa: E402
