@@ -812,6 +812,24 @@ namespace Flame
         public void Dispose() { Handle.Dispose(); }
     }
 
+    /// <summary>Files of flame_robot_retarget_write (FLAME_ROBOT_*), the quaternion order in
+    /// every name.</summary>
+    public static class FlameRobotFile
+    {
+        /// <summary>BeyondMimic's CSV rows: x, y, z, qx, qy, qz, qw, q_1 ... q_n.</summary>
+        public const uint BeyondmimicCsvXyzw = 0;
+        /// <summary>GMR's fields as an .npz: fps, root_pos, root_rot (x, y, z, w), dof_pos,
+        /// joint_names.</summary>
+        public const uint GmrNpzXyzw = 1;
+        /// <summary>MuJoCo qpos rows as a CSV: x, y, z, qw, qx, qy, qz, joints in MuJoCo's
+        /// order.</summary>
+        public const uint QposCsvWxyz = 2;
+        /// <summary>The same qpos rows as a float64 .npy.</summary>
+        public const uint QposNpyWxyz = 3;
+        /// <summary>options flag: a "# " line of column names before a CSV's rows.</summary>
+        public const uint CsvHeader = 1;
+    }
+
     /// <summary>kind of FlameRig.Load (FLAME_RIG_FORMAT_*): which reader takes the file's bytes.</summary>
     public static class FlameRigFormat
     {
@@ -1185,6 +1203,80 @@ namespace Flame
                                                              float[] sourcePositions, UIntPtr sourcePositionsLen,
                                                              [Out] float[] rotations, UIntPtr rotationsLen,
                                                              [Out] float[] translations, UIntPtr translationsLen);
+
+        // --- humanoid robots (flame_robot_*): quaternion order in every name ---
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_load(byte[] urdf, UIntPtr len, out FlameRobotHandle robot);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_robot_free(IntPtr robot);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_dof_count(FlameRobotHandle robot, out UIntPtr count);
+
+        /// <param name="name">receives a NUL-terminated UTF-8 joint name owned by the robot.</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_dof_name(FlameRobotHandle robot, UIntPtr index, out IntPtr name);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_name(FlameRobotHandle robot, out IntPtr name);
+
+        /// <param name="configJson">the retarget configuration's UTF-8 JSON (robots/&lt;name&gt;.json).</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_new(FlameRobotHandle robot, byte[] configJson, UIntPtr len,
+                                                                  out FlameRobotRetargetHandle retarget);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_robot_retarget_free(IntPtr retarget);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_dof_count(FlameRobotRetargetHandle retarget, out UIntPtr count);
+
+        /// <summary>A session's whole clip on the robot as a file (file a FlameRobotFile value,
+        /// options FlameRobotFile.CsvHeader or 0); output null queries the size into outLen.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_write(FlameRobotRetargetHandle retarget, FlameSessionHandle session, int which,
+                                                                    uint flags, ref FlameCleanupParams cleanup, uint file, uint options,
+                                                                    [Out] byte[] output, UIntPtr len, out UIntPtr outLen);
+
+        /// <summary>The same with a NULL cleanup (IntPtr.Zero): the raw poses.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_write(FlameRobotRetargetHandle retarget, FlameSessionHandle session, int which,
+                                                                    uint flags, IntPtr cleanup, uint file, uint options,
+                                                                    [Out] byte[] output, UIntPtr len, out UIntPtr outLen);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_state_new(FlameRobotRetargetHandle retarget, out FlameRobotStateHandle state);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_robot_state_free(IntPtr state);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_state_reset(FlameRobotStateHandle state);
+
+        /// <summary>Session frames first..first+count solved in order from state: per frame the
+        /// root position [3], root quaternion x, y, z, w [4], joints [n], residual [1]; any
+        /// output may be null.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_read(FlameRobotRetargetHandle retarget, FlameRobotStateHandle state,
+                                                                   FlameSessionHandle session, int which, uint flags, IntPtr cleanup,
+                                                                   UIntPtr first, UIntPtr count,
+                                                                   [Out] double[] rootPos, UIntPtr rootPosLen,
+                                                                   [Out] double[] rootRotXyzw, UIntPtr rootRotLen,
+                                                                   [Out] double[] q, UIntPtr qLen,
+                                                                   [Out] double[] residual, UIntPtr residualLen, out UIntPtr frames);
+
+        /// <summary>flame_robot_retarget_read for a stream's timeline frames (cleanup may be
+        /// IntPtr.Zero or a pinned FlameCleanupParams).</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_robot_retarget_read_stream(FlameRobotRetargetHandle retarget, FlameRobotStateHandle state,
+                                                                          FlameStreamHandle stream, ulong firstFrame, uint count,
+                                                                          IntPtr cleanup,
+                                                                          [Out] double[] rootPos, UIntPtr rootPosLen,
+                                                                          [Out] double[] rootRotXyzw, UIntPtr rootRotLen,
+                                                                          [Out] double[] q, UIntPtr qLen,
+                                                                          [Out] double[] residual, UIntPtr residualLen);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern IntPtr flame_last_error();
@@ -2032,6 +2124,42 @@ namespace Flame
         protected override bool ReleaseHandle()
         {
             FlameNative.flame_bone_map_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameRobot*; releasing it calls flame_robot_free.</summary>
+    public sealed class FlameRobotHandle : SafeHandle
+    {
+        public FlameRobotHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_robot_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameRobotRetarget*; releasing it calls flame_robot_retarget_free.</summary>
+    public sealed class FlameRobotRetargetHandle : SafeHandle
+    {
+        public FlameRobotRetargetHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_robot_retarget_free(handle);
+            return true;
+        }
+    }
+
+    /// <summary>Owns a FlameRobotState*; releasing it calls flame_robot_state_free.</summary>
+    public sealed class FlameRobotStateHandle : SafeHandle
+    {
+        public FlameRobotStateHandle() : base(IntPtr.Zero, true) { }
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+        protected override bool ReleaseHandle()
+        {
+            FlameNative.flame_robot_state_free(handle);
             return true;
         }
     }

@@ -284,6 +284,11 @@ static class FlameTest
         CheckValues("FLAME_TARGET_SCHEDULE_", EnumValues(typeof(FlameTargetSchedule)));
         CheckValues("FLAME_GLTF_CONTAINER_", EnumValues(typeof(FlameGltfContainer)));
         CheckValues("FLAME_RIG_FORMAT_", ConstValues(typeof(FlameRigFormat)));
+        foreach (var f in typeof(FlameRobotFile).GetFields(BindingFlags.Public | BindingFlags.Static))
+        {
+            string c = Regex.Replace(f.Name, "(?<=[a-z])(?=[A-Z])", "_").ToUpperInvariant();
+            Check(header.Contains("#define FLAME_ROBOT_" + c + " " + f.GetRawConstantValue() + "\n"), "FLAME_ROBOT_" + c);
+        }
         // The cleanup enums are not in the header (no function takes them by type): their
         // values come from the Rust declarations in src/ffi/cleanup.rs.
         string rust = File.ReadAllText(Path.Combine(Path.GetDirectoryName(Path.GetDirectoryName(Path.GetFullPath(headerPath))),
