@@ -77,28 +77,38 @@ def quat_wxyz_to_matrix(q):
 class Config:
     """A retarget configuration in GMR's IK-config shape: `ik_match_table1/2` {robot body: [human
     joint, position weight, rotation weight, position offset, rotation offset w, x, y, z]},
-    `human_scale_table` {human joint: scale}, optional `human_root_name` / `robot_root_name`."""
+    `human_scale_table` {human joint: scale} times `human_height / human_height_assumption`
+    (libflame's `human_height` defaults to GMR's 1.66), `ground_height` subtracted from the
+    offsets' z, `use_ik_match_table1/2`, `human_root_name` / `robot_root_name`, and libflame's
+    `feet` {"left"/"right": {"body", "human": [joints], "sole": {"centre", "height", ...}}}."""
 
     def __init__(self, path):
         with open(path) as f:
             self.raw = json.load(f)
+        ground = float(self.raw.get("ground_height", 0.0))
         self.tables = []
-        for key in ("ik_match_table1", "ik_match_table2"):
+        for i, key in enumerate(("ik_match_table1", "ik_match_table2")):
+            if not self.raw.get(f"use_ik_match_table{i + 1}", True):
+                continue
             table = []
             for body, entry in self.raw.get(key, {}).items():
                 joint, wp, wr, off_p, off_q = entry
+                if float(wp) == 0 and float(wr) == 0:
+                    continue
                 table.append(
                     {
                         "body": body,
                         "joint": joint,
                         "pos_weight": float(wp),
                         "rot_weight": float(wr),
-                        "pos_offset": np.asarray(off_p, dtype=float),
+                        "pos_offset": np.asarray(off_p, dtype=float) - np.array([0.0, 0.0, ground]),
                         "rot_offset": quat_wxyz_to_matrix(off_q),
                     }
                 )
             self.tables.append(table)
-        self.scale = {k: float(v) for k, v in self.raw["human_scale_table"].items()}
+        assumed = self.raw.get("human_height_assumption")
+        ratio = float(self.raw.get("human_height", 1.66)) / float(assumed) if assumed else 1.0
+        self.scale = {k: float(v) * ratio for k, v in self.raw["human_scale_table"].items()}
         self.human_root = self.raw.get("human_root_name", "pelvis")
         root_bodies = [e["body"] for t in self.tables for e in t if e["joint"] == self.human_root]
         self.robot_root = self.raw.get("robot_root_name") or root_bodies[0]
@@ -113,7 +123,7 @@ class Config:
 
     def targets(self, positions, rotations, names, entries):
         """GMR's targets of `entries` for one frame: {body: (position, rotation)}."""
-        index = {n: i for i, n in enumerate(names)}
+        index = names if isinstance(names, dict) else {n: i for i, n in enumerate(names)}
         root = positions[index[self.human_root]]
         scaled_root = self.scale[self.human_root] * root
         out = {}
@@ -143,9 +153,15 @@ def groups(config):
 
 
 def load_human(path):
+    """(name -> joint index, accepting every name list in the file, positions, rotations,
+    contacts [N, slots])."""
     h = np.load(path)
+    index = {}
+    for key in h.files:
+        if key.startswith("joint_names"):
+            index.update({str(n): i for i, n in enumerate(h[key])})
     return (
-        [str(n) for n in h["joint_names"]],
+        index,
         np.asarray(h["positions"], dtype=float),
         np.asarray(h["rotations"], dtype=float),
         np.asarray(h["contacts"], dtype=float),
@@ -403,17 +419,22 @@ def mesh_package(spec):
 # --- One case ---------------------------------------------------------------------------------
 
 
-def feet_bodies(config):
-    """The foot bodies whose soles the contacts hold: the configuration's `feet` (a list of
-    bodies, or objects with "body"), else the foot group's bodies (left first by name)."""
-    feet = config.raw.get("feet")
-    if isinstance(feet, dict):
-        feet = [feet[k] if isinstance(feet[k], (str, dict)) else k for k in ("left", "right") if k in feet] or list(feet.values())
-    if feet:
-        out = [f["body"] if isinstance(f, dict) else f for f in feet]
-    else:
-        out = sorted(e["body"] for e in groups(config)[1])
-    return out[:2]
+def feet(config, index, slots):
+    """[(body, point in the body's frame, contact columns)]: the configuration's `feet`, the
+    point the centre of the sole (`sole.centre`, `sole.height` below the body origin), the
+    contact columns those of the foot's `human` joints (`slots`: human joint index -> column of
+    the contacts array)."""
+    out = []
+    for side in ("left", "right"):
+        foot = config.raw.get("feet", {}).get(side)
+        if foot is None:
+            continue
+        sole = foot.get("sole", {})
+        cx, cy = sole.get("centre", [0.0, 0.0])
+        point = np.array([cx, cy, -float(sole.get("height", 0.0))])
+        columns = [slots[index[j]] for j in foot.get("human", []) if index.get(j) in slots]
+        out.append((foot["body"], point, columns))
+    return out
 
 
 def check_case(robot, config, pinr, case, floor):
@@ -424,12 +445,16 @@ def check_case(robot, config, pinr, case, floor):
         raise SystemExit(f"{case['name']}: {n} trajectory frames but {hpos.shape[0]} human frames")
 
     positions = {}
-    feet = feet_bodies(config)
+    soles = feet(config, names, {int(k): v for k, v in case.get("contact_slots", {}).items()})
+    if not soles:
+        raise SystemExit(f"{robot['config']} names no feet")
     for t in range(n):
         q = pinr.configuration(traj["joint_names"], traj["root_pos"][t], traj["root_rot"][t], traj["dof_pos"][t])
         pinr.place(q)
-        bodies = {e["body"] for e in config.final_entries().values()} | set(feet) | {config.robot_root}
+        bodies = {e["body"] for e in config.final_entries().values()} | {config.robot_root}
         positions[t] = {b: pinr.body_position(b) for b in bodies}
+        for body, point, _ in soles:
+            positions[t]["__sole__" + body] = pinr.body_position(body) + pinr.body_rotation(body) @ point
         if floor == "pinocchio-meshes":
             positions[t]["__lowest__"] = pinr.lowest_vertex(q)
 
@@ -441,12 +466,13 @@ def check_case(robot, config, pinr, case, floor):
         lowest = np.asarray([positions[t]["__lowest__"] for t in range(n)])
 
     steps = []
-    for side, body in enumerate(feet):
+    down = [contacts[:, cols].max(axis=1) > 0.5 for _, _, cols in soles]
+    for (body, _, _), on in zip(soles, down):
         for t in range(1, n):
-            if contacts[t, side] > 0.5 and contacts[t - 1, side] > 0.5:
-                d = positions[t][body][:2] - positions[t - 1][body][:2]
+            if on[t] and on[t - 1]:
+                d = positions[t]["__sole__" + body][:2] - positions[t - 1]["__sole__" + body][:2]
                 steps.append(float(np.linalg.norm(d)))
-    in_contact = contacts[:, : len(feet)].max(axis=1) > 0.5
+    in_contact = np.logical_or.reduce(down)
     return {
         "name": case["name"],
         "frames": n,
@@ -462,7 +488,7 @@ def check_case(robot, config, pinr, case, floor):
             "frame": int(lowest.argmin()),
             "max_in_contact": float(lowest[in_contact].max()) if in_contact.any() else None,
         },
-        "sole_bodies": feet,
+        "sole_bodies": [b for b, _, _ in soles],
         "sole_speed": summary(steps),
         "contact_frames": int(in_contact.sum()),
     }

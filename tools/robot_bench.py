@@ -190,11 +190,12 @@ def main():
     p.add_argument("--frames", type=int, default=120)
     p.add_argument("--model", default="models/demo/flame_demo.safetensors")
     p.add_argument("--bench", default="target/release/flame-bench")
+    p.add_argument("--config", help="default: robots/<robot>.json")
     p.add_argument("--no-build", action="store_true")
     args = p.parse_args()
     os.chdir(ROOT)
     args.urdf = f"target/robots/{args.robot}.urdf"
-    args.config = f"robots/{args.robot}.json"
+    args.config = args.config or f"robots/{args.robot}.json"
     if not os.path.isfile(args.urdf):
         subprocess.run(["bash", "tools/fetch_robots.sh"], check=True)
     if not args.no_build:
@@ -252,9 +253,13 @@ def main():
 
     f_fps, k_fps = statistics.median(flame_fps), statistics.median(mink_fps)
     total_frames = sum(len(p[4]) for p in prepared)
-    print(f"machine: {cpu_model()}, {os.cpu_count()} logical CPUs; libflame one thread, "
-          f"kernel path {flame_info.get('kernel', '?')}; mink {solver.mink.__version__ if hasattr(solver.mink, '__version__') else ''}"
-          f" on MuJoCo {__import__('mujoco').__version__}, daqp")
+    from importlib.metadata import version
+
+    print(f"machine: {cpu_model()}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}")
+    print(f"libflame: release build, one thread, scalar f64 retargeting (AVX2 compiled in: "
+          f"{flame_info.get('avx2_compiled', '?')}; the generation kernel, not timed here: "
+          f"{flame_info.get('kernel', '?')}); mink {version('mink')}, MuJoCo {version('mujoco')}, "
+          f"qpsolvers {version('qpsolvers')}, daqp {version('daqp')}")
     print(f"robot {args.robot}: {len(prepared)} motions, {total_frames} frames, {args.runs} interleaved runs")
     print(f"{'':10} {'frames/s':>10} {'hands median/max cm':>22} {'feet median/max cm':>22}")
     for name, fps, err in (("libflame", f_fps, flame_err), ("mink", k_fps, mink_err)):

@@ -35,6 +35,11 @@
 //! call of a robot's forward kinematics and of forward plus one Jacobian (see
 //! `flame_bench/robot.rs`).
 //!
+//! `flame-bench robot-retarget --urdf FILE --config FILE --model M [--frames 120] [--dir D]
+//! [--runs 1]`: frames per second of retargeting the demo model's motions onto a robot, one
+//! thread; writes the human frames and trajectories tools/robot_bench.py compares with mink's
+//! (see `flame_bench/robot_retarget.rs`).
+//!
 //! `flame-bench stream --model M [--chunk N (default: the model's default frames)] [--overlap 20]
 //!  [--steps S (default: the model's)] [--threads 2] [--runs 5] [--seconds 30]
 //!  [--segment-seconds T (default: one chunk's new frames)]`: a [`flame::stream::Stream`]'s
@@ -73,6 +78,8 @@ mod peak;
 mod retarget;
 #[path = "flame_bench/robot.rs"]
 mod robot;
+#[path = "flame_bench/robot_retarget.rs"]
+mod robot_retarget;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -363,6 +370,10 @@ fn main() {
     }
     if args.first().map(String::as_str) == Some("robot") {
         robot::robot_bench(&args);
+        return;
+    }
+    if args.first().map(String::as_str) == Some("robot-retarget") {
+        robot_retarget::robot_retarget_bench(&args);
         return;
     }
     let path: String = arg(&args, "--model", String::new());
