@@ -1291,6 +1291,246 @@ private:
     FlameRetarget* handle_ = nullptr;
 };
 
+// ---- robots ----------------------------------------------------------------------------------
+
+// A robot from its URDF (docs/robots.md): kinematic tree, joint limits, collision primitives.
+// Immutable, shareable by threads; move-only owner of a FlameRobot. Retargets made from it
+// hold a copy: it may go once they are made.
+class Robot {
+public:
+    Robot() noexcept = default;
+    explicit Robot(FlameRobot* owned) noexcept : handle_(owned) {}
+
+    // A robot from a URDF's text (`len` bytes of UTF-8, read only during the call). Throws
+    // INVALID_ARGUMENT for malformed XML, a cycle, a missing link, ... (the message names it).
+    static Robot load(const void* urdf, std::size_t len) {
+        FlameRobot* h = nullptr;
+        detail::check(flame_robot_load(static_cast<const uint8_t*>(urdf), len, &h));
+        return Robot(h);
+    }
+    static Robot load(const std::vector<uint8_t>& urdf) { return load(urdf.data(), urdf.size()); }
+
+    Robot(const Robot&) = delete;
+    Robot& operator=(const Robot&) = delete;
+    Robot(Robot&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    Robot& operator=(Robot&& o) noexcept {
+        if (this != &o) {
+            flame_robot_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    ~Robot() { flame_robot_free(handle_); }
+
+    // `<robot name>` (the shipped configurations are robots/<name>.json).
+    std::string name() const {
+        const char* n = nullptr;
+        detail::check(flame_robot_name(handle_, &n));
+        return n;
+    }
+    // Degrees of freedom: the length of every joint vector (RobotFrames::q's per frame).
+    std::size_t dof_count() const {
+        std::size_t n = 0;
+        detail::check(flame_robot_dof_count(handle_, &n));
+        return n;
+    }
+    // The joint of degree of freedom `index` (INVALID_ARGUMENT past dof_count()).
+    std::string dof_name(std::size_t index) const {
+        const char* n = nullptr;
+        detail::check(flame_robot_dof_name(handle_, index, &n));
+        return n;
+    }
+    // Every degree of freedom's joint, in the order of the joint vectors.
+    std::vector<std::string> dof_names() const {
+        std::vector<std::string> names;
+        const std::size_t n = dof_count();
+        names.reserve(n);
+        for (std::size_t i = 0; i < n; ++i) {
+            names.push_back(dof_name(i));
+        }
+        return names;
+    }
+
+    const FlameRobot* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    FlameRobot* handle_ = nullptr;
+};
+
+// Robot frames of RobotRetarget::read / read_stream, frame-major, float64: the base (root link)
+// position (metres, Z up), its quaternion x, y, z, w, the joint positions in the robot's
+// degree-of-freedom order and the weighted task residual (large when the robot cannot reach).
+struct RobotFrames {
+    std::size_t frames = 0;
+    std::size_t dofs = 0;
+    std::vector<double> root_pos;       // [frames][3]
+    std::vector<double> root_rot_xyzw;  // [frames][4]
+    std::vector<double> q;              // [frames][dofs]
+    std::vector<double> residual;       // [frames]
+};
+
+class RobotRetarget;
+
+// One run's state of frame-by-frame reads (RobotRetarget::read, read_stream): where the next
+// frame starts from (warm start, joint velocity limits, planted feet). Used by one thread at a
+// time, only with the retarget that made it; move-only owner of a FlameRobotState.
+class RobotState {
+public:
+    RobotState() noexcept = default;
+    explicit RobotState(FlameRobotState* owned) noexcept : handle_(owned) {}
+    // A fresh state for `retarget` (the robot at its configured initial configuration).
+    explicit RobotState(const RobotRetarget& retarget);
+
+    RobotState(const RobotState&) = delete;
+    RobotState& operator=(const RobotState&) = delete;
+    RobotState(RobotState&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    RobotState& operator=(RobotState&& o) noexcept {
+        if (this != &o) {
+            flame_robot_state_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    ~RobotState() { flame_robot_state_free(handle_); }
+
+    // Back to the start of a run: call it before reading other frames than the ones after the
+    // last read.
+    void reset() const { detail::check(flame_robot_state_reset(handle_)); }
+
+    const FlameRobotState* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    FlameRobotState* handle_ = nullptr;
+};
+
+// A retarget of the model's motion onto a robot with its configuration (GMR's IK tables plus
+// libflame's feet and solver keys; libflame ships robots/<robot name>.json). Immutable,
+// shareable by threads (per-run state is a RobotState); the robot is copied. Move-only owner
+// of a FlameRobotRetarget.
+//
+//   flame::Robot robot = flame::Robot::load(urdf_bytes);
+//   flame::RobotRetarget r(robot, config_json);
+//   std::vector<uint8_t> csv = r.write(session);  // BeyondMimic's CSV of the whole clip
+//   flame::RobotState state = r.state();
+//   flame::RobotFrames f = r.read(session, state, 0, 10);  // frames 0..10, read in order
+class RobotRetarget {
+public:
+    RobotRetarget() noexcept = default;
+    explicit RobotRetarget(FlameRobotRetarget* owned) noexcept : handle_(owned) {}
+    // `config_json`: `len` bytes of UTF-8 JSON. Throws INVALID_ARGUMENT for malformed JSON, an
+    // unknown key, a body or joint that does not exist (named), negative weights.
+    RobotRetarget(const Robot& robot, const void* config_json, std::size_t len) {
+        detail::check(flame_robot_retarget_new(
+            robot.get(), static_cast<const uint8_t*>(config_json), len, &handle_));
+    }
+    RobotRetarget(const Robot& robot, const std::string& config_json)
+        : RobotRetarget(robot, config_json.data(), config_json.size()) {}
+
+    RobotRetarget(const RobotRetarget&) = delete;
+    RobotRetarget& operator=(const RobotRetarget&) = delete;
+    RobotRetarget(RobotRetarget&& o) noexcept : handle_(std::exchange(o.handle_, nullptr)) {}
+    RobotRetarget& operator=(RobotRetarget&& o) noexcept {
+        if (this != &o) {
+            flame_robot_retarget_free(handle_);
+            handle_ = std::exchange(o.handle_, nullptr);
+        }
+        return *this;
+    }
+    // States made for it can no longer be used.
+    ~RobotRetarget() { flame_robot_retarget_free(handle_); }
+
+    // The robot's degrees of freedom (RobotFrames::dofs).
+    std::size_t dof_count() const {
+        std::size_t n = 0;
+        detail::check(flame_robot_retarget_dof_count(handle_, &n));
+        return n;
+    }
+
+    // A fresh RobotState for read() and read_stream().
+    RobotState state() const { return RobotState(*this); }
+
+    // The session's whole sample (or estimate) retargeted and written as `file`
+    // (flame_robot_retarget_write): FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW, _GMR_NPZ_XYZW,
+    // _QPOS_CSV_WXYZ or _QPOS_NPY_WXYZ; `options` FLAME_ROBOT_CSV_HEADER starts a CSV with a
+    // "# " line of column names. `cleanup` NULL = the raw poses; its fps (30 or 50 for trackers)
+    // is the file's rate. Throws WRONG_STATE before there is anything to read,
+    // INVALID_ARGUMENT for an unknown file or options.
+    std::vector<uint8_t> write(const Session& session,
+                               uint32_t file = FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW,
+                               uint32_t options = 0, const FlameCleanupParams* cleanup = nullptr,
+                               FlameWhich which = FLAME_WHICH_SAMPLE, uint32_t flags = 0) const {
+        std::size_t len = 0;
+        detail::check(flame_robot_retarget_write(handle_, session.get(), which, flags, cleanup,
+                                                 file, options, nullptr, 0, &len));
+        std::vector<uint8_t> out(len);
+        detail::check(flame_robot_retarget_write(handle_, session.get(), which, flags, cleanup,
+                                                 file, options, out.data(), out.size(), &len));
+        out.resize(len);
+        return out;
+    }
+
+    // Frames first..first+count of the session's motion as Session::read_cleaned gives it
+    // (cleanup NULL = raw; a cleanup with its ground on puts the motion on the robot's floor),
+    // each solved from where `state` left the previous one: read in order, reset() the state
+    // before jumping. count SIZE_MAX = to the end. Throws INVALID_ARGUMENT for frames past the
+    // read or a state of another retarget, WRONG_STATE before there is a sample; on an error
+    // the state is reset.
+    RobotFrames read(const Session& session, const RobotState& state, std::size_t first = 0,
+                     std::size_t count = SIZE_MAX, const FlameCleanupParams* cleanup = nullptr,
+                     FlameWhich which = FLAME_WHICH_SAMPLE, uint32_t flags = 0) const {
+        if (count == SIZE_MAX) {
+            std::size_t frames = 0;
+            detail::check(flame_robot_retarget_read(handle_, state.get(), session.get(), which,
+                                                    flags, cleanup, 0, 0, nullptr, 0, nullptr, 0,
+                                                    nullptr, 0, nullptr, 0, &frames));
+            count = frames > first ? frames - first : 0;
+        }
+        RobotFrames f = empty(count);
+        detail::check(flame_robot_retarget_read(
+            handle_, state.get(), session.get(), which, flags, cleanup, first, count,
+            f.root_pos.data(), f.root_pos.size(), f.root_rot_xyzw.data(), f.root_rot_xyzw.size(),
+            f.q.data(), f.q.size(), f.residual.data(), f.residual.size(), nullptr));
+        return f;
+    }
+
+    // Timeline frames first_frame..first_frame+count of a stream as Stream::read_cleaned gives
+    // them, with the stream's foot contacts, from `state`: a few frames per call, in order, to
+    // drive a robot at run time. Frames not generated or settled yet throw WRONG_STATE (pump
+    // more), dropped ones INVALID_ARGUMENT.
+    RobotFrames read_stream(const Stream& stream, const RobotState& state, uint64_t first_frame,
+                            uint32_t count, const FlameCleanupParams* cleanup = nullptr) const {
+        RobotFrames f = empty(count);
+        detail::check(flame_robot_retarget_read_stream(
+            handle_, state.get(), stream.get(), first_frame, count, cleanup, f.root_pos.data(),
+            f.root_pos.size(), f.root_rot_xyzw.data(), f.root_rot_xyzw.size(), f.q.data(),
+            f.q.size(), f.residual.data(), f.residual.size()));
+        return f;
+    }
+
+    const FlameRobotRetarget* get() const noexcept { return handle_; }
+    explicit operator bool() const noexcept { return handle_ != nullptr; }
+
+private:
+    RobotFrames empty(std::size_t frames) const {
+        RobotFrames f;
+        f.frames = frames;
+        f.dofs = dof_count();
+        f.root_pos.resize(frames * 3);
+        f.root_rot_xyzw.resize(frames * 4);
+        f.q.resize(frames * f.dofs);
+        f.residual.resize(frames);
+        return f;
+    }
+
+    FlameRobotRetarget* handle_ = nullptr;
+};
+
+inline RobotState::RobotState(const RobotRetarget& retarget) {
+    detail::check(flame_robot_state_new(retarget.get(), &handle_));
+}
+
 inline Session Model::session(const SessionParams& params) const {
     return Session(*this, params);
 }

@@ -8,7 +8,8 @@
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
 #    against the shared and the static library, test_cancel, test_stream and test_cleanup (C11,
 #    shared), test_robot (C11, shared; the GR1T2 URDF from tools/fetch_robots.sh),
-#    test_cpp, test_cpp_gltf and test_cpp_stream (C++17, shared), all with -Wall -Wextra
+#    test_cpp, test_cpp_gltf, test_cpp_stream and test_cpp_robot (C++17, shared; test_cpp_robot
+#    with the GR1T2 URDF), all with -Wall -Wextra
 #    -Werror, are built and run;
 # 4. with valgrind (FLAME_VALGRIND=1, or CI=true and valgrind installed; FLAME_VALGRIND=0
 #    skips) the shared builds run again under memcheck, on a smaller reference (8 frames,
@@ -197,6 +198,7 @@ compile test_cpp_retarget_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_retarget.
 compile test_cpp_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_gltf_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_gltf.cpp "${SHARED_LIBS[@]}"
 compile test_cpp_stream_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_stream.cpp "${SHARED_LIBS[@]}"
+compile test_cpp_robot_shared g++ "${CXXFLAGS[@]}" tests/c/test_cpp_robot.cpp "${SHARED_LIBS[@]}"
 
 API_ARGS=("$MODEL" "$OUT/ref.npy" "$WORK")
 for kind in shared static; do
@@ -227,8 +229,11 @@ if [ -f "$ROOT/target/robots/gr1t2.urdf" ]; then
     built test_robot_shared && run_test "test_robot (shared)" "$OUT/test_robot_shared.log" \
         "$OUT/test_robot_shared" "$ROOT/tests/fixtures" "$ROOT/target/robots/gr1t2.urdf" \
         "$ROOT/robots/gr1t2.json"
+    built test_cpp_robot_shared && run_test "test_cpp_robot (shared)" \
+        "$OUT/test_cpp_robot_shared.log" "$OUT/test_cpp_robot_shared" "$ROOT/tests/fixtures" \
+        "$ROOT/target/robots/gr1t2.urdf" "$ROOT/robots/gr1t2.json"
 else
-    echo "skip test_robot: target/robots/gr1t2.urdf is missing and tools/fetch_robots.sh could not fetch it"
+    echo "skip test_robot, test_cpp_robot: target/robots/gr1t2.urdf is missing and tools/fetch_robots.sh could not fetch it"
 fi
 built test_cpp_retarget_shared && run_test "test_cpp_retarget (shared)" \
     "$OUT/test_cpp_retarget_shared.log" "$OUT/test_cpp_retarget_shared" "$ROOT/tests/fixtures"
