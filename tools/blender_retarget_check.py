@@ -32,8 +32,8 @@ Checks, on every frame:
   (iii) skating: the foot-skating ratio of tools/skating_ratio.py on the rig's toe joints,
         heights above the rig's floor (its lowest foot joint at rest; heights along glTF's
         +Y, the world's up for rig and source alike), the
-        metric's heights and speeds scaled by the rig's size (hips height over the source's,
-        at rest), is at most the source's.
+        metric's heights and speeds scaled by the rig's size (its legs' length, thigh plus
+        shin at rest, over the source's), is at most the source's.
   (iv)  contacts: where a source toe is planted (the metric's contact, toe below 5 cm at t
         and t+1, and not sliding: slower than 0.5 m/s), the rig's foot is within 5 mm of
         where the source's is: the lowest of its foot joints' (foot, toes) heights above their
@@ -358,7 +358,16 @@ def measure(rep, heads, rest, idx, role, src, fps):
     feet = {s: [role[f"{s}_foot"], role[f"{s}_toe"]] for s in "lr"}
     floor = min(rest[idx[n]] @ up for s in "lr" for n in feet[s] if n)
     src_floor = min(s_rest[j] @ up for j in (L_ANKLE, R_ANKLE, L_TOE, R_TOE))
-    scale = (rest[idx[role["hips"]]] @ up - floor) / (s_rest[PELVIS] @ up - src_floor)
+    # The rig's size: its legs' length (thigh plus shin, both sides' mean) over the source's.
+    # Not the hips bone's height: a rig may hang its hips bone below its thighs (Rigify) or
+    # above them.
+    def leg(p, h, k, a):
+        return np.linalg.norm(p(k) - p(h)) + np.linalg.norm(p(a) - p(k))
+    rig_p = lambda r: rest[idx[role[r]]]
+    rig_legs = np.mean([leg(rig_p, f"{s}_thigh", f"{s}_shin", f"{s}_foot") for s in "lr"])
+    src_legs = np.mean([leg(lambda j: s_rest[j], h, k, a)
+                        for h, k, a in ((L_HIP, L_KNEE, L_ANKLE), (R_HIP, R_KNEE, R_ANKLE))])
+    scale = rig_legs / src_legs
     # The rig's toes, heights above its floor, divided by its size: the metric's 5 cm and
     # 0.5 m/s become the rig's.
     toes = np.zeros((frames, 12, 3))

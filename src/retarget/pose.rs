@@ -3,18 +3,29 @@
 //! when asked, arms) so proportions that differ from the source's do not make the feet slide or
 //! float.
 //!
-//! **Feet.** The hips translation is scaled by the hips heights' ratio, but a rig's thigh/shin
-//! split, foot height and hip width still differ from SMPL's, so copied leg directions alone put
-//! the ankles a little off where the scaled source's are: a planted foot slides. While the
-//! source's foot is planted (its contacts, ramping in and out over four frames; every frame
-//! for poses without contacts or a single [`Target::pose`]), each leg (upper leg → lower leg →
-//! foot) is solved so the ankle reaches the source ankle
-//! placed on the rig ([`Transfer::place`]: the same map that places the hips), raised by the
-//! difference of the two skeletons' ankle heights below the hips at rest (`h_rig − s·h_source`),
-//! so a source foot flat on its floor is flat on the rig's. Contacts of the source therefore stay contacts,
-//! locked where the source's are locked (the foot cleanup of the game-ready clips runs on the
-//! source before this), and the knee keeps its bend plane (`crate::motion::ik`). The foot keeps
-//! its world rotation; bones between thigh and shin (twist bones) turn with the thigh.
+//! **Feet.** The hips translation is scaled by the legs' ratio ([`Transfer::scale`]), but a
+//! rig's thigh/shin split, foot height and hip width still differ from SMPL's, so copied leg
+//! directions alone put the ankles a little off where the scaled source's are: a planted foot
+//! floats, sinks or slides. While the source's foot is planted (its contacts, ramping in and
+//! out over four frames; every frame for poses without contacts or a single [`Target::pose`]),
+//! each leg (upper leg → lower leg → foot) is solved so the ankle reaches
+//! - in height, the source ankle placed on the rig ([`Transfer::place`]: the same map that
+//!   places the hips), raised by the difference of the two skeletons' ankle heights below the
+//!   hips at rest (`h_rig − s·h_source`), so a source foot flat on its floor is flat on the
+//!   rig's;
+//! - horizontally, where the rotations put it, moved by the clip's anchor in
+//!   [`Target::motion`]: over each contact the planted heel is held at one place (or, while
+//!   only the toes are down, the toes are), and on the frames around it the toes move as the
+//!   scaled source's do, the move fading out with the weight (Kovar, Schreiner and Gleicher,
+//!   "Footskate Cleanup for Motion Capture Editing", SCA 2002, section 4). Aiming at the
+//!   placed source ankle in 3D instead would bend the legs of every rig whose thigh/shin split
+//!   is not SMPL's, by up to 8 degrees on a child's proportions, for no contact gained.
+//!
+//! Contacts of the source therefore stay contacts, held where the source's are held (the foot
+//! cleanup of the game-ready clips runs on the source before this), and the knee keeps its
+//! bend plane (`crate::motion::ik`). The foot keeps its world rotation, then is pitched about
+//! the ankle so its toes stand at the source's toes' height; bones between thigh and shin
+//! (twist bones) turn with the thigh.
 //!
 //! **Hands** (optional, [`Options::hands`]): the same for upper arm → forearm → hand, the wrist
 //! reaching the source's wrist placed on the rig, for props and contacts with the body.
@@ -353,6 +364,32 @@ impl Target {
         feet_weight: [f64; 2],
         out: &mut RigPose,
     ) -> Result<()> {
+        self.pose_anchored(
+            source_world,
+            source_positions,
+            source_root,
+            options,
+            feet_weight,
+            [None; 2],
+            out,
+        )
+    }
+
+    /// [`Target::pose_weighted`] with planted feet held in place: a foot with an anchor
+    /// (rig units: the move that puts its ankle where it stands over the whole contact) has
+    /// its ankle's goal moved by it horizontally, so it does not slide while the source's
+    /// does not.
+    #[allow(clippy::too_many_arguments)]
+    fn pose_anchored(
+        &self,
+        source_world: &[Mat3],
+        source_positions: &[Vec3],
+        source_root: &Vec3,
+        options: &Options,
+        feet_weight: [f64; 2],
+        anchors: [Option<Vec3>; 2],
+        out: &mut RigPose,
+    ) -> Result<()> {
         let n = self.rig().bone_count();
         if out.world.len() != n
             || out.local.len() != n
@@ -402,7 +439,22 @@ impl Target {
             if w <= 0.0 {
                 continue;
             }
-            let goal = [0, 1, 2].map(|i| p[ch.end][i] + w * (placed[i] - p[ch.end][i]));
+            // Feet: the height is the placed source ankle's; the horizontal place is the
+            // anchor's, else where the rotations put it (moving it there too would bend the
+            // legs of every rig whose thigh/shin split is not SMPL's, by up to 8 degrees on a
+            // child's proportions, for no contact gained: contacts are heights). Wrists: the
+            // placed source wrist.
+            let want = if c < 2 {
+                let from = match anchors[c] {
+                    Some(d) => rotation::add(&p[ch.end], &d),
+                    None => p[ch.end],
+                };
+                let h = rotation::dot(&sub(&placed, &from), &up);
+                [0, 1, 2].map(|i| from[i] + h * up[i])
+            } else {
+                placed
+            };
+            let goal = [0, 1, 2].map(|i| p[ch.end][i] + w * (want[i] - p[ch.end][i]));
             // A limb already on its goal is left as the transfer made it: the solver's reach
             // limit would otherwise bend a straight leg by ~1.6°.
             let length = dist(&p[ch.upper], &p[ch.lower]) + dist(&p[ch.lower], &p[ch.end]);
@@ -535,6 +587,131 @@ impl Target {
         }
     }
 
+    /// Per frame, each foot's anchor: the horizontal move of its ankle's goal that holds the
+    /// planted part of the foot where it stands. Over a run of fully planted frames, the place
+    /// a first pass (feet on, no anchors) gives the ankle in the middle of the run's
+    /// heel-planted frames (the source's ankle in contact; of the whole run if it never is),
+    /// as Kimodo's cleanup takes one target per contact interval (nv-tlabs/kimodo). Where only
+    /// the toes are planted (a heel rising before toe-off, or a toe landing first), the toes are
+    /// held instead, where the heel-planted frame next to them left them: a rig's foot longer or
+    /// shorter than the scaled source's would otherwise swing its toes forward as it pivots.
+    /// The rig's own stride, not the source's scaled one: only the sliding its proportions add
+    /// is taken out.
+    #[allow(clippy::too_many_arguments)]
+    fn anchors(
+        &self,
+        world: &[Mat3],
+        positions: &[Vec3],
+        root: &[Vec3],
+        options: &Options,
+        weights: &[[f64; 2]],
+        contacts: &[[f64; 4]],
+        pose: &mut RigPose,
+    ) -> Result<Vec<[Option<Vec3>; 2]>> {
+        let joints = if root.is_empty() {
+            0
+        } else {
+            world.len() / root.len()
+        };
+        let limbs = self.limbs();
+        // Pass 1: each frame's ankle and toes (the ankle when the rig has no toes).
+        let mut feet = Vec::with_capacity(root.len());
+        for (t, r) in root.iter().enumerate() {
+            let span = t * joints..(t + 1) * joints;
+            self.pose_weighted(
+                &world[span.clone()],
+                &positions[span],
+                r,
+                options,
+                weights[t],
+                pose,
+            )?;
+            feet.push([0, 1].map(|c| {
+                let ch = &limbs.chains[c];
+                let toe = ch.toe.map_or(ch.end, |(b, _, _)| b);
+                (pose.positions[ch.end], pose.positions[toe])
+            }));
+        }
+        let heel = |t: usize, side: usize| contacts.get(t).is_some_and(|c| c[2 * side] >= 0.5);
+        let mut out = vec![[None; 2]; root.len()];
+        for side in 0..2 {
+            // The fully planted runs, each frame's move within them.
+            let mut moves: Vec<Option<Vec3>> = vec![None; root.len()];
+            let mut runs: Vec<(usize, usize)> = Vec::new();
+            let mut t = 0;
+            while t < weights.len() {
+                if weights[t][side] < 1.0 {
+                    t += 1;
+                    continue;
+                }
+                let start = t;
+                while t < weights.len() && weights[t][side] >= 1.0 {
+                    t += 1;
+                }
+                runs.push((start, t));
+                let heels: Vec<usize> = (start..t).filter(|&u| heel(u, side)).collect();
+                let Some(&middle) = heels.get(heels.len() / 2) else {
+                    // Toes only: held where they stand in the middle of the run.
+                    let at = feet[(start + t - 1) / 2][side].1;
+                    for (u, m) in moves.iter_mut().enumerate().take(t).skip(start) {
+                        *m = Some(sub(&at, &feet[u][side].1));
+                    }
+                    continue;
+                };
+                let anchor = feet[middle][side].0;
+                for u in heels.iter().copied() {
+                    moves[u] = Some(sub(&anchor, &feet[u][side].0));
+                }
+                // Toe-only frames: the toes stay where the nearest heel-planted frame put them.
+                for u in start..t {
+                    if moves[u].is_some() {
+                        continue;
+                    }
+                    let e = *heels
+                        .iter()
+                        .min_by_key(|&&h| h.abs_diff(u))
+                        .expect("the run has a heel-planted frame");
+                    let d = moves[e].expect("set above");
+                    let toes = rotation::add(&feet[e][side].1, &d);
+                    moves[u] = Some(sub(&toes, &feet[u][side].1));
+                }
+            }
+            // A ramp frame (lifting off, touching down) moves its toes as the scaled source's
+            // toes move from the nearest run's end frame, where they are held: the rig's own
+            // stride would otherwise swing them faster or slower than the source's at the
+            // moment they leave or reach the floor. The IK weight then fades the move out
+            // (Kovar et al. 2002, section 4: the adjustment is blended into the neighbouring
+            // frames), so a swinging foot is not pulled back to where it stood.
+            let ch = &limbs.chains[side];
+            let joint = ch.toe.map_or(ch.source_end, |(_, j, _)| j);
+            let src = |u: usize| self.transfer().place(&positions[u * joints + joint]);
+            for (u, o) in out.iter_mut().enumerate() {
+                if weights[u][side] <= 0.0 {
+                    continue;
+                }
+                let near = runs.iter().min_by_key(|&&(a, b)| {
+                    if u < a {
+                        a - u
+                    } else {
+                        u.saturating_sub(b - 1)
+                    }
+                });
+                o[side] = near.and_then(|&(a, b)| {
+                    let e = u.clamp(a, b - 1);
+                    let held = rotation::add(&feet[e][side].1, &moves[e]?);
+                    let want = rotation::add(&held, &sub(&src(u), &src(e)));
+                    // The goal takes `w` of the move (`pose_anchored`); the move is eased out
+                    // as smoothstep(w) instead, so it lets go slowly while the foot is still
+                    // near the floor and quickly once it is up.
+                    let w = weights[u][side];
+                    let ease = w * (3.0 - 2.0 * w);
+                    Some(sub(&want, &feet[u][side].1).map(|x| x * ease))
+                });
+            }
+        }
+        Ok(out)
+    }
+
     /// Bones whose translation moves: the hips, then the bones beside the body
     /// ([`super::Transfer::anchor`]).
     pub fn moving(&self) -> Vec<usize> {
@@ -570,14 +747,23 @@ impl Target {
         };
         let mut pose = RigPose::new(self);
         let weights = contact_weights(poses);
+        let anchors = if options.feet && !weights.is_empty() {
+            let contacts = poses.foot_contacts().unwrap_or(&[]);
+            self.anchors(
+                &world, &positions, &root, options, &weights, contacts, &mut pose,
+            )?
+        } else {
+            Vec::new()
+        };
         for (t, root) in root.iter().enumerate() {
             let span = t * joints..(t + 1) * joints;
-            self.pose_weighted(
+            self.pose_anchored(
                 &world[span.clone()],
                 &positions[span],
                 root,
                 options,
                 weights.get(t).copied().unwrap_or([1.0; 2]),
+                anchors.get(t).copied().unwrap_or([None; 2]),
                 &mut pose,
             )?;
             motion.local.extend_from_slice(&pose.local);
@@ -622,7 +808,8 @@ mod tests {
     #[test]
     fn feet_reach_the_placed_source_ankles_and_toes() {
         // Shins 25% shorter than SMPL's in proportion: copied leg directions alone leave the
-        // ankles off the placed source ankles by centimetres; the IK puts them there.
+        // ankles off the placed source ankles' heights by centimetres; the IK puts them there,
+        // without moving them horizontally (no anchors: a single pose).
         let (built, _, _) = test_rig(3);
         let rig = reshaped(&built, &["foot_l", "foot_r"], 0.75);
         let target = Target::auto(Skeleton::smpl24(), rig).unwrap();
@@ -641,10 +828,15 @@ mod tests {
                 .unwrap();
             for ch in &limbs.chains[..2] {
                 let up = target.transfer().up();
-                let goal = rotation::add(
+                // The goal: where the rotations put the ankle, at the placed (and lifted)
+                // source ankle's height.
+                let placed = rotation::add(
                     &target.transfer().place(&p[ch.source_end]),
                     &up.map(|v| v * ch.lift),
                 );
+                let free = without.positions[ch.end];
+                let h = rotation::dot(&sub(&placed, &free), &up);
+                let goal = rotation::add(&free, &up.map(|v| v * h));
                 worst_without = worst_without.max(dist(&without.positions[ch.end], &goal));
                 // Reachable goals are reached; a goal past the leg's length leaves the leg
                 // straight toward it.

@@ -35,9 +35,13 @@
 //!   rotation and its rest offset from its humanoid parent's bone (the thigh from the hips,
 //!   the upper arm from the shoulder). Either way it moves with the body and its translation
 //!   is animated; [`Transfer::anchor`] names the bone it is placed from.
-//! - **Hips translation.** Scaled by the ratio of hips heights above the lowest foot joint (as
-//!   VRMA and three-vrm do), turned into the rig's axes and units, and put in the hips' parent's
-//!   frame (at rest).
+//! - **Hips translation.** Scaled by the ratio of the legs' lengths (thigh plus shin, both
+//!   sides' mean), turned into the rig's axes and units, put in the hips' parent's frame (at
+//!   rest), and raised by what keeps the rest pose at rest (the rig's hips height minus the
+//!   scaled source's). VRMA and three-vrm scale by the hips heights' ratio, which is the same
+//!   number for a rig whose hips bone sits where SMPL's pelvis does; the legs' ratio also
+//!   holds for one whose hips bone does not (Rigify's sits below its thighs: the hips ratio
+//!   would need its straight legs bent by 20 degrees to reach the floor).
 //!
 //! [`Transfer`] is immutable (shareable); [`Transfer::frame`] writes one frame into caller-owned
 //! buffers and allocates nothing.
@@ -54,6 +58,8 @@ pub mod smpl {
     pub const PELVIS: usize = 0;
     pub const L_HIP: usize = 1;
     pub const R_HIP: usize = 2;
+    pub const L_KNEE: usize = 4;
+    pub const R_KNEE: usize = 5;
     /// Spine1, Spine2, Spine3.
     pub const SPINE: [usize; 3] = [3, 6, 9];
     pub const L_ANKLE: usize = 7;
@@ -104,7 +110,7 @@ pub struct Transfer {
     axes: Mat3,
     source_joints: usize,
     hips: usize,
-    /// Source metres → rig units, hips heights' ratio included.
+    /// Source metres → rig units, the legs' ratio included.
     scale: f64,
     /// The rig's floor (lowest foot joint at rest) along the rig's direction of the source's
     /// world up, in rig units, as a point on that axis through the origin.
@@ -274,6 +280,33 @@ impl Transfer {
                 "the rig's hips are not above its feet at rest (hips height {rig_height} units)"
             ));
         }
+        // Leg lengths: thigh plus shin (hip to knee to ankle joints), both sides' mean.
+        let legs = |p: &dyn Fn(usize) -> Option<Vec3>| -> Option<f64> {
+            let side = |h: usize, k: usize, a: usize| {
+                let norm = |v: Vec3| rotation::dot(&v, &v).sqrt();
+                Some(norm(sub(&p(k)?, &p(h)?)) + norm(sub(&p(a)?, &p(k)?)))
+            };
+            let l = side(l_hip, smpl::L_KNEE, smpl::L_ANKLE)?;
+            let r = side(r_hip, smpl::R_KNEE, smpl::R_ANKLE)?;
+            Some(0.5 * (l + r))
+        };
+        let src_legs = legs(&|j| Some(src_pos[j])).unwrap_or(0.0);
+        let rig_legs = legs(&|j| bone_of[j].map(|b| pos[b])).unwrap_or(0.0);
+        if !(src_legs > 0.0 && rig_legs > 0.0) {
+            return Err(invalid_arg!(
+                "the rig's legs have no length at rest ({rig_legs} units from hips to ankles)"
+            ));
+        }
+        // Source metres to rig units: the legs' ratio, so that a straight source leg at any
+        // angle is a straight rig leg at the same angle and a stride scales with the legs
+        // that take it. The hips heights' ratio (VRMA's and three-vrm's) is nearly the same
+        // number on a rig whose hips bone sits where SMPL's pelvis does; one whose hips bone
+        // or ankles sit elsewhere (Blender's Rigify hangs its hips bone below the thighs)
+        // would have its pelvis's dips scaled by another ratio than its legs, and straight
+        // source legs would need its knees bent by up to 20 degrees to reach the floor.
+        let scale_factor = rig_legs / src_legs;
+        // What keeps the rest pose at rest: the rig's hips height minus the scaled source's.
+        let lift = rig_height - scale_factor * src_height;
 
         // Retarget rests: each mapped bone turned to point where its source bone points.
         let world = rig.rest_world_rotations();
@@ -426,7 +459,7 @@ impl Transfer {
             .filter_map(|&j| bone_of[j])
             .map(|b| rotation::dot(&pos[b], &world_up))
             .fold(f64::INFINITY, f64::min);
-        let floor = scale(&world_up, floor_height);
+        let floor = scale(&world_up, floor_height + lift);
         let hips_parent = rig.parent(hips).map(|p| {
             let lin = rig.rest_world_linear()[p];
             (pos[p], invert(&lin))
@@ -446,9 +479,7 @@ impl Transfer {
             axes,
             source_joints: joints,
             hips,
-            // Metres of the source to units of the rig, with the hips heights' ratio: the
-            // rig's height in units over the source's in metres.
-            scale: rig_height / src_height,
+            scale: scale_factor,
             floor,
             hips_parent,
             chain,
@@ -494,7 +525,7 @@ impl Transfer {
     }
 
     /// A source world point (glTF axes, metres, floor at height 0) where the hips translation
-    /// puts it on the rig: in the rig's world, rig units, scaled by the hips heights' ratio
+    /// puts it on the rig: in the rig's world, rig units, scaled by the legs' ratio
     /// and lifted onto the rig's floor. The pelvis lands where [`Transfer::frame`] puts the
     /// hips.
     pub fn place(&self, p: &Vec3) -> Vec3 {
@@ -509,7 +540,7 @@ impl Transfer {
         [self.axes[0][1], self.axes[1][1], self.axes[2][1]]
     }
 
-    /// Rig units per source metre (the hips heights' ratio included).
+    /// Rig units per source metre (the legs' ratio included).
     pub fn scale(&self) -> f64 {
         self.scale
     }

@@ -91,7 +91,7 @@ Carry a motion made earlier onto the user's character. The motion is a BVH libfl
 the pose options (feet, fps, root motion, loop wrap aside) apply as in generate, then the poses
 are retargeted onto --rig: the rest-relative transform of the VRM Animation specification, the
 rig's rest pose first turned to the source's (an A-pose rig's arms are not left 45 degrees off),
-the hips translation scaled by the hips heights' ratio, and the feet put back on the source's
+the hips translation scaled by the legs' ratio, and the feet put back on the source's
 contacts with two-bone IK. --out .glb/.gltf/.vrm hands the rig's own file back with the
 animation added (an animation of the same name written before is replaced), .bvh writes the
 rig's hierarchy and names, .vrma a VRM Animation. Without --rig, --out x.npz writes the poses as
