@@ -22,9 +22,9 @@
 //! damping plus mink's Levenberg-Marquardt term `Σ_k ‖W_k e_k‖²` (its `lm_damping` 1, as GMR sets
 //! it). The bounds are the joint position limits and, after the first frame, the velocity limits
 //! between frames (`|q − q_prev| ≤ v_max · dt`), intersected; the base is free. The program is
-//! solved by an active set on the bounds (solve the free variables by Cholesky, clamp the ones
-//! that leave their box, release clamped ones whose gradient points inside, a bounded number of
-//! passes), then projected on the box: limits hold exactly whatever happens, and the number of
+//! solved by an active set on the bounds (starting from the bounds the previous solve ended on,
+//! solve the free variables by Cholesky, clamp the ones that leave their box, release clamped
+//! ones whose gradient points inside, a bounded number of passes), then projected on the box: limits hold exactly whatever happens, and the number of
 //! operations per frame is fixed (deterministic, bit-identical between runs). Nothing allocates
 //! per frame: [`RetargetState`] holds every buffer.
 //!
@@ -235,6 +235,10 @@ pub struct RetargetState {
     clamped: Vec<bool>,
     /// The clamped variables' indices, for the right-hand side of the free solve.
     held: Vec<usize>,
+    /// Per variable, the bound it ended on in the last solve (−1 lower, 1 upper, 0 free): the
+    /// next solve starts from that active set, usually already the right one, so it needs one
+    /// or two passes instead of rediscovering every bound.
+    side: Vec<i8>,
     chol: Vec<f64>,
     rhs: Vec<f64>,
 }
@@ -263,6 +267,7 @@ impl RetargetState {
         self.base = Pose::IDENTITY;
         self.fresh = true;
         self.anchors = [None, None];
+        self.side.fill(0);
     }
 }
 
@@ -448,6 +453,7 @@ impl Retargeter {
             hi: vec![0.0; nv],
             clamped: vec![false; nv],
             held: Vec::with_capacity(nv),
+            side: vec![0; nv],
             chol: vec![0.0; nv * nv],
             rhs: vec![0.0; nv.max(n)],
         }
@@ -932,8 +938,16 @@ fn accumulate_task(st: &mut RetargetState, nv: usize, cols: &[usize], w: &[f64; 
 /// `min ½ Δᵀ H Δ − gᵀ Δ` with `lo ≤ Δ ≤ hi` into `st.dx` (module doc: an active set on the
 /// bounds, a bounded number of passes, then projected on the box).
 fn solve_box(st: &mut RetargetState, pattern: &Pattern, n: usize) {
-    st.clamped.fill(false);
-    st.dx.fill(0.0);
+    for k in 0..n {
+        let (lo, hi) = (st.lo[k], st.hi[k]);
+        let (clamped, dx) = match st.side.get(k) {
+            Some(-1) if lo.is_finite() => (true, lo),
+            Some(1) if hi.is_finite() => (true, hi),
+            _ => (false, 0.0),
+        };
+        st.clamped[k] = clamped;
+        st.dx[k] = dx;
+    }
     for _ in 0..MAX_PASSES {
         solve_free(st, pattern, n);
         let mut changed = false;
@@ -978,6 +992,13 @@ fn solve_box(st: &mut RetargetState, pattern: &Pattern, n: usize) {
     }
     for k in 0..n {
         st.dx[k] = st.dx[k].clamp(st.lo[k], st.hi[k]);
+        if let Some(side) = st.side.get_mut(k) {
+            *side = match (st.clamped[k], st.dx[k] <= st.lo[k]) {
+                (false, _) => 0,
+                (true, true) => -1,
+                (true, false) => 1,
+            };
+        }
     }
 }
 
