@@ -7,32 +7,8 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use std::sync::OnceLock;
 
 mod common;
-
-fn real_urdf(test: &str, name: &str) -> Option<PathBuf> {
-    static FETCHED: OnceLock<bool> = OnceLock::new();
-    let path = common::repo(&format!("target/robots/{name}.urdf"));
-    if !path.is_file() {
-        FETCHED.get_or_init(|| {
-            Command::new("bash")
-                .arg(common::repo("tools/fetch_robots.sh"))
-                .status()
-                .is_ok_and(|s| s.success())
-        });
-    }
-    if path.is_file() {
-        return Some(path);
-    }
-    assert!(
-        !common::require_real_weights(),
-        "FLAME_REQUIRE_REAL_WEIGHTS=1 but {} is missing: run bash tools/fetch_robots.sh",
-        path.display()
-    );
-    common::skip(test, &format!("{} is missing (offline?)", path.display()));
-    None
-}
 
 fn scratch(name: &str) -> PathBuf {
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
@@ -97,7 +73,7 @@ fn contains(bytes: &[u8], s: &str) -> bool {
 #[test]
 fn generate_writes_each_layout() {
     const TEST: &str = "robot_cli::generate_writes_each_layout";
-    let Some(urdf) = real_urdf(TEST, "gr1t2") else {
+    let Some((urdf, _)) = common::real_urdf(TEST, "gr1t2") else {
         return;
     };
     let urdf = urdf.display().to_string();
@@ -204,7 +180,7 @@ fn generate_writes_each_layout() {
 #[test]
 fn retarget_carries_a_bvh_onto_the_robot() {
     const TEST: &str = "robot_cli::retarget_carries_a_bvh_onto_the_robot";
-    let Some(urdf) = real_urdf(TEST, "jvrc1") else {
+    let Some((urdf, _)) = common::real_urdf(TEST, "jvrc1") else {
         return;
     };
     let urdf = urdf.display().to_string();

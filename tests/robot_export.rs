@@ -11,39 +11,11 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::sync::OnceLock;
 
 use flame::robot::export::{self, RobotFile};
 use flame::robot::{forward, Pose, Robot, RobotData, Trajectory};
 
 mod common;
-
-/// The real URDF `name` from target/robots, fetched once when missing.
-fn real_urdf(test: &str, name: &str) -> Option<(PathBuf, String)> {
-    static FETCHED: OnceLock<bool> = OnceLock::new();
-    let path = common::repo(&format!("target/robots/{name}.urdf"));
-    if !path.is_file() {
-        FETCHED.get_or_init(|| {
-            Command::new("bash")
-                .arg(common::repo("tools/fetch_robots.sh"))
-                .status()
-                .is_ok_and(|s| s.success())
-        });
-    }
-    match std::fs::read_to_string(&path) {
-        Ok(text) => Some((path, text)),
-        Err(e) => {
-            assert!(
-                !common::require_real_weights(),
-                "FLAME_REQUIRE_REAL_WEIGHTS=1 but {} cannot be read ({e}): run bash \
-                 tools/fetch_robots.sh",
-                path.display()
-            );
-            common::skip(test, &format!("{} is missing (offline?)", path.display()));
-            None
-        }
-    }
-}
 
 /// Python with NumPy: `$FLAME_TEST_PYTHON`, else tools/check.sh's virtual environment.
 fn python() -> Option<PathBuf> {
@@ -118,7 +90,7 @@ fn pipelines_read_the_files_and_mujoco_places_the_qpos_as_libflame_does() {
         return;
     };
     for name in ["gr1t2", "jvrc1"] {
-        let Some((path, text)) = real_urdf(TEST, name) else {
+        let Some((path, text)) = common::real_urdf(TEST, name) else {
             return;
         };
         let robot = Robot::from_urdf(&text).unwrap();

@@ -19,7 +19,6 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::process::Command;
 use std::sync::{Arc, OnceLock};
 
 use flame::models::Model;
@@ -556,34 +555,6 @@ fn every_bad_configuration_is_refused_by_name() {
 
 // --- Real robots, real motion -------------------------------------------------------------------
 
-/// The real URDF `name` from target/robots (tools/fetch_robots.sh once per binary when missing);
-/// None after a skip note unless FLAME_REQUIRE_REAL_WEIGHTS=1 (as tests/robot_urdf.rs).
-fn real_robot(test: &str, name: &str) -> Option<Robot> {
-    static FETCHED: OnceLock<bool> = OnceLock::new();
-    let path = common::repo(&format!("target/robots/{name}.urdf"));
-    if !path.is_file() {
-        FETCHED.get_or_init(|| {
-            Command::new("bash")
-                .arg(common::repo("tools/fetch_robots.sh"))
-                .status()
-                .is_ok_and(|s| s.success())
-        });
-    }
-    match std::fs::read_to_string(&path) {
-        Ok(text) => Some(Robot::from_urdf(&text).unwrap()),
-        Err(e) => {
-            assert!(
-                !common::require_real_weights(),
-                "FLAME_REQUIRE_REAL_WEIGHTS=1 but {} cannot be read ({e}): run \
-                 bash tools/fetch_robots.sh",
-                path.display()
-            );
-            common::skip(test, &format!("{} is missing (offline?)", path.display()));
-            None
-        }
-    }
-}
-
 /// A motion from the demo model (DDIM, 10 steps, seed 0) at its frame rate, decoded with the
 /// model's read options; None when there is no demo model.
 fn demo_motion(prompt: &str, frames: usize) -> Option<(Poses, f64)> {
@@ -723,7 +694,9 @@ fn check_real(
 }
 
 fn real_case(test: &str, name: &str, hands: [(&str, usize); 2], feet: [(&str, usize); 2]) {
-    let Some(robot) = real_robot(test, name) else {
+    let Some(robot) =
+        common::real_urdf(test, name).map(|(_, text)| Robot::from_urdf(&text).unwrap())
+    else {
         return;
     };
     let Some((poses, fps)) = demo_motion("a person walks forward, turns around and waves.", 120)

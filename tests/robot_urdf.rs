@@ -20,7 +20,6 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::path::PathBuf;
 use std::process::Command;
-use std::sync::OnceLock;
 
 use flame::motion::rotation::{self, Mat3, Vec3};
 use flame::robot::{
@@ -78,41 +77,6 @@ impl Lcg {
     }
     fn range(&mut self, lo: f64, hi: f64) -> f64 {
         lo + (hi - lo) * self.next()
-    }
-}
-
-/// The real URDF `name` (gr1t2 or jvrc1) from target/robots, fetched by tools/fetch_robots.sh
-/// once per test binary when missing. None (after a skip note) when it cannot be had, unless
-/// FLAME_REQUIRE_REAL_WEIGHTS=1.
-fn real_urdf(test: &str, name: &str) -> Option<(PathBuf, String)> {
-    static FETCHED: OnceLock<bool> = OnceLock::new();
-    let path = common::repo(&format!("target/robots/{name}.urdf"));
-    if !path.is_file() {
-        FETCHED.get_or_init(|| {
-            Command::new("bash")
-                .arg(common::repo("tools/fetch_robots.sh"))
-                .status()
-                .is_ok_and(|s| s.success())
-        });
-    }
-    match std::fs::read_to_string(&path) {
-        Ok(text) => Some((path, text)),
-        Err(e) => {
-            assert!(
-                !common::require_real_weights(),
-                "FLAME_REQUIRE_REAL_WEIGHTS=1 but {} cannot be read ({e}): run \
-                 bash tools/fetch_robots.sh (PyPI fourier-robot-descriptions, jvrc-description)",
-                path.display()
-            );
-            common::skip(
-                test,
-                &format!(
-                    "{} is missing and tools/fetch_robots.sh could not fetch it (offline?)",
-                    path.display()
-                ),
-            );
-            None
-        }
     }
 }
 
@@ -664,7 +628,7 @@ fn random_configuration(robot: &Robot, rng: &mut Lcg) -> (Pose, Vec<f64>) {
 fn jacobians_match_finite_differences_on_gr1t2_and_jvrc1() {
     let test = "robot_urdf::jacobians_match_finite_differences_on_gr1t2_and_jvrc1";
     for name in ["gr1t2", "jvrc1"] {
-        let Some((_, text)) = real_urdf(test, name) else {
+        let Some((_, text)) = common::real_urdf(test, name) else {
             return;
         };
         let robot = robot(&text);
@@ -895,7 +859,7 @@ fn truncated_files_never_panic() {
     let test = "robot_urdf::truncated_files_never_panic";
     let mut texts = vec![planar_arm()];
     for name in ["gr1t2", "jvrc1"] {
-        if let Some((_, t)) = real_urdf(test, name) {
+        if let Some((_, t)) = common::real_urdf(test, name) {
             texts.push(t);
         }
     }
@@ -928,7 +892,7 @@ fn gr1t2_and_jvrc1_read_as_published() {
         // JVRC-1's 44 revolute joints include 10 finger joints that mimic a thumb joint.
         ("jvrc1", 60, 34, "R_HIP_P"),
     ] {
-        let Some((_, text)) = real_urdf(test, name) else {
+        let Some((_, text)) = common::real_urdf(test, name) else {
             return;
         };
         let robot = robot(&text);
@@ -970,7 +934,7 @@ fn pinocchio_places_every_link_where_libflame_does() {
     let mut requests = Vec::new();
     let mut ours = Vec::new();
     for name in ["gr1t2", "jvrc1"] {
-        let Some((path, text)) = real_urdf(test, name) else {
+        let Some((path, text)) = common::real_urdf(test, name) else {
             return;
         };
         let robot = robot(&text);

