@@ -16,7 +16,8 @@
 //! - horizontally, where the rotations put it, moved by the clip's anchor in
 //!   [`Target::motion`]: over each contact the planted heel is held at one place (or, while
 //!   only the toes are down, the toes are), and on the frames around it the toes move as the
-//!   scaled source's do, the move fading out with the weight (Kovar, Schreiner and Gleicher,
+//!   scaled source's do, whole while the source's toes are within the contact band, then
+//!   fading out with the weight (Kovar, Schreiner and Gleicher,
 //!   "Footskate Cleanup for Motion Capture Editing", SCA 2002, section 4). Aiming at the
 //!   placed source ankle in 3D instead would bend the legs of every rig whose thigh/shin split
 //!   is not SMPL's, by up to 8 degrees on a child's proportions, for no contact gained.
@@ -289,6 +290,11 @@ impl Limbs {
 
 /// Frames over which a foot's IK weight ramps in and out around its contacts.
 const CONTACT_RAMP: usize = 4;
+
+/// Metres: the source toe height under which a foot counts as near the floor (the contact
+/// height of the foot-skating metric and of libflame's contact detection,
+/// [`crate::motion::contacts::ContactParams::height`]).
+const CONTACT_HEIGHT: f64 = 0.05;
 
 /// Per frame, each foot's IK weight (left, right): 1 while the source's ankle or toe is
 /// planted, ramping linearly to 0 over [`CONTACT_RAMP`] frames before and after, so the leg
@@ -700,11 +706,16 @@ impl Target {
                     let e = u.clamp(a, b - 1);
                     let held = rotation::add(&feet[e][side].1, &moves[e]?);
                     let want = rotation::add(&held, &sub(&src(u), &src(e)));
-                    // The goal takes `w` of the move (`pose_anchored`); the move is eased out
-                    // as smoothstep(w) instead, so it lets go slowly while the foot is still
-                    // near the floor and quickly once it is up.
+                    // The goal takes `w` of the move (`pose_anchored`). The move is eased out
+                    // as smoothstep(w) instead, and kept whole while the source's toes are
+                    // still near the floor: below the contact height, fading out by its release
+                    // height (1.5 times it; `ContactParams` height and release, the band of
+                    // libflame's contact detection). A toe that grazes the floor moves as the
+                    // source's does, and lets go once the foot is up.
                     let w = weights[u][side];
-                    let ease = w * (3.0 - 2.0 * w);
+                    let height = positions[u * joints + joint][1];
+                    let near = (3.0 - 2.0 * height / CONTACT_HEIGHT).clamp(0.0, 1.0);
+                    let ease = (w * w * (3.0 - 2.0 * w)).max(near) / w;
                     Some(sub(&want, &feet[u][side].1).map(|x| x * ease))
                 });
             }
