@@ -17,8 +17,6 @@
 //! Without the URDFs or the demo model (offline) the real-robot tests skip and say so in
 //! target/tmp/skipped-tests.log, or fail when FLAME_REQUIRE_REAL_WEIGHTS=1.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::sync::{Arc, OnceLock};
 
 use flame::models::Model;
@@ -33,39 +31,9 @@ use flame::session::{Sampler, Session, SessionParams};
 
 mod common;
 
-// --- Allocation counting (this thread's only: tests run in parallel) ----------------------------
-
-struct Counting;
-
-thread_local! {
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
-}
-
-fn count() {
-    let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-}
-
-// SAFETY: forwards to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        count();
-        System.alloc(layout)
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        count();
-        System.alloc_zeroed(layout)
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        count();
-        System.realloc(ptr, layout, new_size)
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        System.dealloc(ptr, layout)
-    }
-}
-
+// Allocation counting (this thread's only: tests run in parallel).
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: common::counting::Counting = common::counting::Counting;
 
 // --- Small robots ---------------------------------------------------------------------------------
 
@@ -369,13 +337,13 @@ fn two_runs_are_bit_identical_and_step_allocates_nothing() {
     let mut st = r.state();
     let first = &clip[0];
     r.step(&mut st, &frame(first, [true; 4]), 0.05).unwrap();
-    let before = ALLOCATIONS.with(|c| c.get());
+    let before = common::counting::allocations();
     for (t, h) in clip.iter().enumerate() {
         let c = t % 7 < 4;
         r.step(&mut st, &frame(h, [c, c, false, false]), 0.05)
             .unwrap();
     }
-    let after = ALLOCATIONS.with(|c| c.get());
+    let after = common::counting::allocations();
     assert_eq!(after - before, 0, "step allocated");
 }
 

@@ -16,8 +16,6 @@
 //! Without the URDFs (offline) the real-robot tests skip and say so in
 //! target/tmp/skipped-tests.log, or fail when FLAME_REQUIRE_REAL_WEIGHTS=1.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -28,39 +26,9 @@ use flame::robot::{
 
 mod common;
 
-// --- Allocation counting (this thread's only: tests run in parallel) ----------------------------
-
-struct Counting;
-
-thread_local! {
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
-}
-
-fn count() {
-    let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-}
-
-// SAFETY: forwards to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        count();
-        System.alloc(layout)
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        count();
-        System.alloc_zeroed(layout)
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        count();
-        System.realloc(ptr, layout, new_size)
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        System.dealloc(ptr, layout)
-    }
-}
-
+// Allocation counting (this thread's only: tests run in parallel).
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: common::counting::Counting = common::counting::Counting;
 
 // --- Helpers -------------------------------------------------------------------------------------
 
@@ -653,13 +621,13 @@ fn forward_and_jacobians_allocate_nothing() {
     let mut jac = vec![0.0; 6 * robot.nv()];
     let (mut base, mut q) = (Pose::IDENTITY, vec![0.1, 0.2]);
     let v = vec![0.1; robot.nv()];
-    let before = ALLOCATIONS.with(Cell::get);
+    let before = common::counting::allocations();
     for i in 0..100 {
         forward(&robot, &base, &q, &mut data).unwrap();
         jacobian_point(&robot, &data, i % 4, [0.1, 0.0, 0.0], &mut jac).unwrap();
         integrate(&robot, &mut base, &mut q, &v, 0.01).unwrap();
     }
-    assert_eq!(ALLOCATIONS.with(Cell::get), before);
+    assert_eq!(common::counting::allocations(), before);
 }
 
 #[test]
