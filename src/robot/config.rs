@@ -1,6 +1,6 @@
 //! [`RetargetConfig`]: how a human motion is mapped onto one robot, read from JSON in the shape of
 //! GMR's IK configurations (YanjieZe/GMR, `general_motion_retargeting/ik_configs/*.json`, keys
-//! explained in its `docs/IK_CONFIG.md`), so a GMR user can port a table, plus the keys libflame
+//! explained in YanjieZe/GMR `docs/IK_CONFIG.md`), so a GMR user can port a table, plus the keys libflame
 //! adds for the feet and the solver. Every name is resolved when the file is read, against the
 //! robot and the human skeleton; nothing is looked up by name per frame.
 //!
