@@ -1,6 +1,7 @@
-//! Editing a reference motion through a keep-mask: which algorithm imposes the kept values
-//! during sampling (each as its paper's official code does, REFERENCE 1.12, 2.6, 3), and the
-//! final paste with blended seams.
+//! Editing a reference motion through a keep-mask: which algorithm imposes the kept values during
+//! sampling (each as its paper's official code does: docs/official/flame.md#editing,
+//! docs/official/mdm.md#editing, docs/official/motionfm.md#editing), and the final paste with
+//! blended seams.
 //!
 //! Everything here works on model-space features, frame-major `[frames, dim]`, with one keep
 //! flag per value (`true` = keep the reference).

@@ -1,5 +1,6 @@
 //! Joint-position targets: pin joints at chosen frames and steer the sampler toward them with
-//! the gradient of `L = Σ_{frame, joint} ‖(P(x̂) − c) ⊙ m‖₂` (MoLA's MPGD, REFERENCE 7.1), where
+//! the gradient of `L = Σ_{frame, joint} ‖(P(x̂) − c) ⊙ m‖₂` (MoLA's MPGD: sony/MoLA
+//! `models/mola_module.py`; docs/official/mola-mld.md#mola-mpgd-editing), where
 //! `P` decodes the clean-motion estimate x̂ (a latent family's decoder first), de-normalises it
 //! and runs the motion format's forward kinematics; the products are in [`crate::grad`].
 //!

@@ -1,11 +1,12 @@
 //! AMASS `.npz` export (`flame::motion::amass`, `flame --out x.npz`), checked from the bytes:
 //! the archive is read back by a reader written here from PKWARE's APPNOTE (central directory,
 //! local headers, CRC-32) and NumPy's `.npy` format, the keys, dtypes and shapes compared with
-//! AMASS's (nghorbani/amass; REFERENCE 13.2), and the written axis-angles composed with SMPL's
+//! AMASS's (nghorbani/amass; docs/official/robots.md#amass-files), and the written axis-angles
+//! composed with SMPL's
 //! forward kinematics on libflame's skeleton in AMASS's Z-up world must give back libflame's
 //! joint positions within 1e-5 m (`smpl24_6d`). Then NumPy reads the same files
 //! (tests/amass_numpy.py: `np.load`, dtypes, shapes, and its own forward kinematics from
-//! REFERENCE 5's offset table) when a Python with NumPy is there.
+//! the offset table of docs/official/smpl.md#rest-offsets) when a Python with NumPy is there.
 //!
 //! `humanml263`: a demo motion is turned into HumanML3D features the way HumanML3D builds them
 //! from SMPL joints (facing frame, root velocities, `ric` positions, per-chain IK rotations of

@@ -7,7 +7,7 @@ Loads both files with `np.load` as the pipelines do (GMR: `str(d["gender"])`,
 HumanML3D's raw_pose_processing: `poses`, `trans`, `mocap_framerate`), checks every key's dtype
 and shape against AMASS's (nghorbani/amass; SMPL-H `*_poses.npz`, SMPL-X `*_stageii.npz`), and
 runs SMPL forward kinematics written here with NumPy from the offset table of the neutral SMPL
-template (Stanford-TML/EDGE `vis.py` `smpl_offsets`, as shared/REFERENCE.md section 5 lists it):
+template (Stanford-TML/EDGE `vis.py` `smpl_offsets`, as docs/official/smpl.md#rest-offsets lists it):
 the pelvis at `trans + J_pelvis`, `p(j) = p(parent) + G(parent) offset(j)`, `G(j) =
 G(parent) R(pose_j)`. The joints must match the positions libflame wrote (its own joints in the
 AMASS world, float32) within 1e-5 m. Exits non-zero on any mismatch.

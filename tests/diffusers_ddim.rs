@@ -1,6 +1,7 @@
 //! diffusers DDIM parity: the sampler built from a `diffusion` configuration with diffusers'
 //! spacing reproduces diffusers 0.42.1's own `DDIMScheduler` as MoLA (trailing) and MLD
-//! (leading, steps_offset 1) use it, with `set_alpha_to_one` false (REFERENCE 7.1, 7.2, 7.3.3).
+//! (leading, steps_offset 1) use it, with `set_alpha_to_one` false (docs/official/mola-mld.md#mola-scheduler,
+//! docs/official/mola-mld.md#mld-scheduler, docs/official/mola-mld.md#scheduler-tables-in-float32).
 //!
 //! Reference: tools/reference/diffusers_ddim.py (runs `DDIMScheduler` itself); fixture:
 //! tests/fixtures/ddim_diffusers.{safetensors,json}, written by tools/make_ddim_fixtures.py
@@ -162,7 +163,8 @@ fn timesteps_match_set_timesteps() {
     }
     // Trailing at 61 steps and leading with offset 1 at 1000 steps.
     assert_eq!(refused, 2);
-    // The brief's facts (REFERENCE 7.2, 7.3.3): MLD 981, 961, …, 1; MoLA 999, 979, …, 19.
+    // The official schedules (docs/official/mola-mld.md#mld-scheduler, docs/official/mola-mld.md#mola-scheduler): MLD
+    // 981, 961, …, 1; MoLA 999, 979, …, 19.
     let mld = ints(&table["leading_offset1_50"]);
     assert_eq!((mld[0], mld[1], mld[49]), (981, 961, 1));
     let mola = ints(&table["trailing_offset1_50"]);

@@ -1,7 +1,8 @@
 //! Editing-loop parity (reference motion + keep-mask) against the PyTorch reference, one edited
 //! generation per model family on the committed tiny models, within 1e-4 at every step:
-//! FLAME's noised reference imposed on x_t (REFERENCE 1.12), MDM's x0 replacement (2.6) and
-//! Motion Flow Matching's trajectory rewriting "euler_replacement_edit_till" (3).
+//! FLAME's noised reference imposed on x_t (docs/official/flame.md#editing), MDM's x0 replacement
+//! (docs/official/mdm.md#editing) and Motion Flow Matching's trajectory rewriting
+//! "euler_replacement_edit_till" (docs/official/motionfm.md#editing).
 //!
 //! Fixtures: tests/fixtures/edit_expected.{safetensors,json}, written by
 //! tools/make_edit_fixtures.py from tools/reference/edit.py (on top of tools/reference/

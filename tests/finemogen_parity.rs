@@ -1,5 +1,6 @@
 //! FineMoGen against the PyTorch reference of the released code: tools/reference/finemogen.py
-//! (written from REFERENCE 9, the tutel routing written out), on a tiny official-layout random
+//! (written from the released code as docs/official/finemogen.md describes it, the tutel routing
+//! written out), on a tiny official-layout random
 //! model converted by `tools/convert.py finemogen` (tests/fixtures/finemogen_tiny.safetensors),
 //! expected outputs from tools/make_finemogen_fixtures.py (tests/fixtures/finemogen_expected.*).
 //! The fixture's gates are shaped so every routing decision has a margin far above f32 error

@@ -1,5 +1,6 @@
 //! MLD through the session against the PyTorch reference: tools/reference/mld.py (official
-//! module layouts, written from REFERENCE 7.2 with standard post-LN layers) with diffusers'
+//! module layouts, written from ChenFengYe/motion-latent-diffusion as docs/official/mola-mld.md#mld-denoiser
+//! describes it, with standard post-LN layers) with diffusers'
 //! own DDIMScheduler (leading spacing, steps_offset 1, set_alpha_to_one False, η 0);
 //! fixtures tests/fixtures/mld_tiny.safetensors (converted by `tools/convert.py mld` from an
 //! official-layout checkpoint) and tests/fixtures/mld_expected.*, written by

@@ -1,5 +1,6 @@
 //! MoLA through the session against the PyTorch reference: tools/reference/mola.py (official
-//! module layouts, written from REFERENCE 7.1/7.3) with diffusers' own DDIMScheduler (trailing
+//! module layouts, written from sony/MoLA as docs/official/mola-mld.md#mola-denoiser describes
+//! it) with diffusers' own DDIMScheduler (trailing
 //! spacing, set_alpha_to_one False, η 0); fixtures tests/fixtures/mola_tiny.safetensors
 //! (converted by `tools/convert.py mola` from official-layout checkpoints) and
 //! tests/fixtures/mola_expected.*, written by tools/make_latent_fixtures.py. The text vector is

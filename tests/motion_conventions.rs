@@ -113,12 +113,13 @@ fn smpl_features() -> Vec<f32> {
 
 #[test]
 fn smpl24_6d_in_every_convention() {
-    // Body-frame offsets from the pelvis (sums of REFERENCE 5's rows), (left, up, forward):
+    // Body-frame offsets from the pelvis (sums of the rows of docs/official/smpl.md#rest-offsets),
+    // (left, up, forward):
     //   head (3+6+9+12+15)           = (0.00678462, 0.57590586, 0.00831267)
     //   left elbow (3+6+9+13+16+18)  = (0.43384509, 0.43651203, −0.07059347)
     //   left wrist = elbow + Ry(−90°)·offset20, Ry(−90°)(x, y, z) = (−z, y, x):
     //     + (0.00117092, 0.00898603, 0.24923363) = (0.43501601, 0.44549806, 0.17864016)
-    // Pelvis = translation + rest pelvis (SMPL, REFERENCE 5), native Z-up world:
+    // Pelvis = translation + rest pelvis (docs/official/smpl.md#forward-kinematics), native Z-up world:
     //   (1, 2, 3) + (−0.00179506, −0.22333345, 0.02821913) = (0.99820494, 1.77666655, 3.02821913)
     //   → (up, fwd, left) = (3.02821913, −1.77666655, 0.99820494)   [native F = −Y]
     // Head  (up, fwd, left) = (3.02821913 + 0.57590586, −1.77666655 − 0.00678462, 0.99820494 + 0.00831267)

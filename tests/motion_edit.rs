@@ -2,9 +2,9 @@
 //! CLI parsing), references given as poses turned back into `smpl24_6d` features, and BVH files
 //! written by libflame read back as references.
 //!
-//! Published sets: REFERENCE 2.6 (MDM's `HML_LOWER_BODY_MASK` dims, `in_between` with 0.25/0.75)
-//! and 1.12 (FLAME's kept joints 0,1,2,4,5,7,8,10,11 plus the translation); REFERENCE 3 for the
-//! "prediction" mask. Motions are pseudo-random rotations (a fixed xorshift seed), with a root
+//! Published sets: MDM's `HML_LOWER_BODY_MASK` dims and `in_between` with 0.25/0.75
+//! (docs/official/mdm.md#editing), FLAME's kept joints 0,1,2,4,5,7,8,10,11 plus the translation
+//! (docs/official/flame.md#editing), and Motion Flow Matching's "prediction" mask (docs/official/motionfm.md#editing). Motions are pseudo-random rotations (a fixed xorshift seed), with a root
 //! that stands the body up so that the BVH reader can tell `native` from `gltf`.
 
 use flame::motion::mask::{self, joint_channels, parse_frame_ranges, parse_joints, part_channels};
@@ -26,7 +26,7 @@ fn dims(ranges: &[(usize, usize)]) -> Vec<usize> {
 
 #[test]
 fn humanml_lower_body_is_mdms_published_mask() {
-    // REFERENCE 2.6, HML_LOWER_BODY_MASK's True dims.
+    // HML_LOWER_BODY_MASK's True dims (docs/official/mdm.md#upper-body-mask).
     let want = dims(&[
         (0, 9),
         (13, 18),
@@ -48,7 +48,7 @@ fn humanml_lower_body_is_mdms_published_mask() {
 
 #[test]
 fn smpl_lower_body_is_flames_kept_set() {
-    // REFERENCE 1.12: translation 0..2 and joints 0,1,2,4,5,7,8,10,11 at 3+6j .. 3+6j+5.
+    // Translation 0..2 and joints 0,1,2,4,5,7,8,10,11 at 3+6j .. 3+6j+5 (docs/official/flame.md#editing).
     let mut want = vec![0, 1, 2];
     for j in [0, 1, 2, 4, 5, 7, 8, 10, 11] {
         want.extend(3 + 6 * j..3 + 6 * j + 6);
@@ -99,7 +99,8 @@ fn parts_have_hand_counted_sizes() {
         joint_channels(HML, 7).unwrap(),
         vec![22, 23, 24, 103, 104, 105, 106, 107, 108, 214, 215, 216, 259]
     );
-    // The foot contacts follow REFERENCE 4.1's order: L ankle, L foot, R ankle, R foot.
+    // The foot contacts follow docs/official/humanml3d.md#feature-layout's order: L ankle, L foot,
+    // R ankle, R foot.
     for (joint, contact) in [(7, 259), (10, 260), (8, 261), (11, 262)] {
         assert!(joint_channels(HML, joint).unwrap().contains(&contact));
     }

@@ -2,7 +2,9 @@
 //!
 //! Reference: tools/motion_reference.py (pytorch3d 6D→matrix and matrix→quaternion, SMPL forward
 //! kinematics, scipy's gaussian_filter1d, HumanML3D's recover_root_rot_pos / recover_from_ric /
-//! recover_from_rot, written from shared/REFERENCE.md); fixture:
+//! recover_from_rot, written from the official procedures as docs/official/ lists them:
+//! docs/official/flame.md#output-post-processing, docs/official/humanml3d.md#recovering-joint-positions,
+//! docs/official/smpl.md#forward-kinematics); fixture:
 //! tests/fixtures/motion_reference.safetensors (a synthetic walk with root travel and turning,
 //! smooth sinusoidal rotations on every joint axis, encoded to both formats).
 

@@ -1,5 +1,5 @@
-//! OMG-style models against tools/reference/omg.py (the layout's definition; REFERENCE 10 and
-//! docs/omg.md for the choices), on a tiny random model with nonzero up-projections converted
+//! OMG-style models against tools/reference/omg.py (the layout's definition; the paper as
+//! docs/official/omg.md lists it and docs/omg.md for the choices), on a tiny random model with nonzero up-projections converted
 //! by `tools/convert.py omg` (tests/fixtures/omg_tiny.safetensors; expected outputs from
 //! tools/make_omg_fixtures.py in tests/fixtures/omg_expected.*).
 

@@ -22,7 +22,7 @@ use flame::motion::{rest_offsets, Convention, Format, Poses, ReadOptions};
 
 const IDENTITY_6D: [f32; 6] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
 const FLEX: f64 = std::f64::consts::PI / 6.0;
-// SMPL-24 joints used below (REFERENCE 5).
+// SMPL-24 joints used below (docs/official/smpl.md#joint-order).
 const PELVIS: usize = 0;
 const L_HIP: usize = 1;
 const SPINE1: usize = 3;

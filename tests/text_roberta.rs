@@ -155,7 +155,7 @@ fn tiny_roberta_matches_transformers() {
 #[test]
 fn flame_prompt_format_and_limits() {
     let enc = load_tiny();
-    // REFERENCE 1.7: "" → <s> </s> then 18 pads.
+    // "" → <s> </s> then 18 pads (docs/official/flame.md#roberta-prompt-encoding).
     let empty = enc.tokenize("", 20, true).unwrap();
     assert_eq!(empty.ids, [&[0u32, 2][..], &[1; 18]].concat());
     assert_eq!(empty.mask, [&[1u8, 1][..], &[0; 18]].concat());

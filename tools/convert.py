@@ -25,7 +25,8 @@ the text encoder out and records it in the `flame.text_source` metadata; `flame 
       --mean Mean.npy --std Std.npy --out M.safetensors [--steps 10] ...
 
 mdm / motionfm: GuyTevet/motion-diffusion-model `trans_enc` and dongzhuoyao/motionfm `MDM_Flow`
-(same network and names, REFERENCE 2.3 / 3). The checkpoint is a plain state_dict or a dict with
+(same network and names, docs/official/mdm.md#state-dict-names and
+docs/official/motionfm.md#network). The checkpoint is a plain state_dict or a dict with
 'model'/'model_avg' (model_avg is used when present and args.json says use_ema); `clip_model.*` and
 the `pe` buffers are dropped. CLIP_DIR is a Hugging Face CLIP folder (config.json, tokenizer.json,
 model.safetensors of a CLIPModel or CLIPTextModelWithProjection); its text tower is stored under
@@ -132,7 +133,8 @@ def load_state_dict(path):
 
 
 def select_net(state, path):
-    """The EMA net (sampling uses it, REFERENCE 1.6); the raw net only as a warned fallback."""
+    """The EMA net (sampling uses it, docs/official/flame.md#checkpoint-layout); the raw net only as a
+    warned fallback."""
     for prefix in (EMA_PREFIX, RAW_PREFIX):
         net = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
         if net:

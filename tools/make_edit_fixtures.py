@@ -2,11 +2,12 @@
 """Generate the editing-loop parity fixture tests/fixtures/edit_expected.{safetensors,json}.
 
 One edited generation per model family on the committed tiny models, from tools/reference/edit.py:
- - FLAME (flame_tiny.safetensors, REFERENCE 1.12): 10-step respaced DDPM, guidance 8, 24 frames,
+ - FLAME (flame_tiny.safetensors, docs/official/flame.md#editing): 10-step respaced DDPM, guidance 8, 24 frames,
    the reference diffused to every step with stored q_sample noise and imposed on x_t.
- - MDM (mdm_tiny.safetensors, REFERENCE 2.6): 10-step respaced DDPM (fixed-small), guidance 2.5,
+ - MDM (mdm_tiny.safetensors, docs/official/mdm.md#editing): 10-step respaced DDPM (fixed-small), guidance 2.5,
    12 frames, x0 replaced by the reference after CFG (in-between mask).
- - Motion Flow Matching (motionfm_tiny.safetensors, REFERENCE 3 "euler_replacement_edit_till"):
+ - Motion Flow Matching (motionfm_tiny.safetensors, "euler_replacement_edit_till",
+   docs/official/motionfm.md#editing):
    10 Euler steps, guidance 2.5, edit_till 0.5, HumanML3D lower-body mask + the last 2 frames.
 Every random input (reference motion, x_T / z0, all noise) is drawn from a seeded torch.Generator,
 rounded to float16 (so it can be stored exactly at half the size) and STORED, so the Rust test
@@ -51,7 +52,7 @@ OUT_JSON = os.path.join(FIX, "edit_expected.json")
 # FLAME joints kept from the reference by the official edit_motion.py (pelvis and legs).
 FLAME_KEPT_JOINTS = [0, 1, 2, 4, 5, 7, 8, 10, 11]
 FLAME_KEPT_FRAMES = 3
-# REFERENCE 2.6: the True dims of HML_LOWER_BODY_MASK (inclusive ranges).
+# The True dims of HML_LOWER_BODY_MASK, inclusive ranges (docs/official/mdm.md#upper-body-mask).
 HML_LOWER_BODY_RANGES = [(0, 9), (13, 18), (22, 27), (31, 36), (67, 78), (85, 96), (103, 114),
                          (121, 132), (193, 201), (205, 210), (214, 219), (223, 228), (259, 262)]
 FLOW_KEPT_LAST_FRAMES = 2
@@ -129,7 +130,8 @@ def hml_frame_major(x):
 
 def np_spaced_tables(t):
     """abar, abar_prev of spaced step t computed directly from the ORIGINAL cosine abar at
-    timestep_map[t] and timestep_map[t-1] (REFERENCE 1.8/1.9), float64."""
+    timestep_map[t] and timestep_map[t-1] (docs/official/flame.md#noise-schedule, docs/official/flame.md#respacing),
+    float64."""
     s = np.arange(1001, dtype=np.float64) / 1000
     f = np.cos((s + 0.008) / 1.008 * math.pi / 2) ** 2
     betas = np.minimum(1 - f[1:] / f[:-1], 0.999)
@@ -388,7 +390,7 @@ def main():
             "model": "flame_tiny.safetensors", "prompt": PROMPT_FLAME, "uncond_prompt": "",
             "frames": FLAME_FRAMES, "guidance": FLAME_GUIDANCE, "sampler": "ddpm",
             "steps": STEPS, "respacing": RESPACING, "timestep_map": diffusion.timestep_map,
-            "clip_denoised": True, "method": "noised reference imposed on x_t (REFERENCE 1.12)",
+            "clip_denoised": True, "method": "noised reference imposed on x_t (docs/official/flame.md#editing)",
             "mask": "translation (channels 0..3) + joints " + str(FLAME_KEPT_JOINTS)
                     + " (channels 3+6j..3+6j+6) on all frames, plus every channel of frames "
                     f"0..{FLAME_KEPT_FRAMES}",
@@ -412,7 +414,7 @@ def main():
         "mdm": {
             "model": "mdm_tiny.safetensors", "frames": MDM_FRAMES, "guidance": MDM_GUIDANCE,
             "sampler": "ddpm", "steps": STEPS, "respacing": RESPACING,
-            "method": "x0 replacement after CFG (REFERENCE 2.6)",
+            "method": "x0 replacement after CFG (docs/official/mdm.md#editing)",
             "mask": f"in-between: keep everything except frames [{int(0.25 * MDM_FRAMES)}, "
                     f"{int(0.75 * MDM_FRAMES)})",
             "loop": "loop step k = 0..9 at spaced t = 9-k: x0 = u + s(c - u) (network at "
@@ -432,7 +434,7 @@ def main():
             "model": "motionfm_tiny.safetensors", "frames": MDM_FRAMES,
             "guidance": MDM_GUIDANCE, "sampler": "euler", "steps": STEPS,
             "edit_till": EDIT_TILL,
-            "method": "trajectory rewriting, euler_replacement_edit_till (REFERENCE 3)",
+            "method": "trajectory rewriting, euler_replacement_edit_till (docs/official/motionfm.md#editing)",
             "mask": "HumanML3D lower body (HML_LOWER_BODY_MASK, 107 dims) on all frames, plus "
                     f"every dim of the last {FLOW_KEPT_LAST_FRAMES} frames",
             "loop": "for i = 0..9: t = float32(i)/float32(10); x_ref = ((10-i)*z0 + i*ref)/10 in "

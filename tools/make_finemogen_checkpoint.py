@@ -12,7 +12,8 @@
   Then: python tools/convert.py finemogen --ckpt DIR/latest.pth [--clip DIR/clip] \
             --tokenizer DIR/tokenizer.json --mean DIR/mean.npy --std DIR/std.npy --out M.safetensors
 
-Sizes: full = REFERENCE 9.1/9.10 (part_dim 64, 4 layers, time_embed 2048, text 256 x 2 layers,
+Sizes: full = docs/official/finemogen.md#released-configuration and
+docs/official/finemogen.md#tensor-names (part_dim 64, 4 layers, time_embed 2048, text 256 x 2 layers,
 ff 2048, ffn 256, 16 experts, gate 256, expert hidden 1024 / 256; CLIP ViT-B/32 text tower 512
 x 12, 8 heads); tiny = the parity-fixture sizes of docs/model-files-finemogen.md (CLIP tower 8
 wide, 2 layers, 2 heads: convert with --clip-heads 2). Every weight is random and nonzero; the

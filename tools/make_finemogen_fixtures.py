@@ -17,7 +17,8 @@ Steps:
     decisions (experts, kept/dropped) of every MoE call must be identical; the margins of those
     decisions and the capacity drops are recorded; the expected values are written.
 
-Gate shaping (REFERENCE 9.15). For an MoE with input LayerNorm weight γ, the gate's projector
+Gate shaping
+(docs/official/finemogen.md#reproduction-hazards). For an MoE with input LayerNorm weight γ, the gate's projector
 maps the token x = LN(h) + embedding[s, head] to v = W x + b. Its component in the 4-dim span
 of the expert directions is rank one along u = (1/γ)/|1/γ|: since Σ_i z_i = 0 for a LayerNorm
 output z, <u, γ⊙z> = 0, so that component is (1, α<u, β + embedding>) whatever the content: the

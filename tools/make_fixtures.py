@@ -246,7 +246,8 @@ def np_attention(q, k, v, heads, key_bias=None):
 
 
 def np_roberta(w, cfg, ids, mask):
-    """REFERENCE 6a for one sequence; w = libflame tensors as float64 numpy."""
+    """RoBERTa (docs/official/text-encoders.md#roberta-base) for one sequence; w = libflame tensors as float64
+    numpy."""
     g = lambda n: w["text." + n]  # noqa: E731
     eps = cfg["layer_norm_eps"]
     pad = cfg["pad_token_id"]
@@ -280,7 +281,8 @@ def np_sinusoid(s, dim):
 
 
 def np_flame(w, cfg, x, t, motion_length, pooled, hidden):
-    """REFERENCE 1.3/1.4 for one sample: x [147, L] -> [294, L]."""
+    """FLAME's denoiser (docs/official/flame.md#denoiser-forward-pass) for one sample: x [147, L] ->
+    [294, L]."""
     d = cfg["denoiser"]
     c, heads, eps = d["model_channels"], d["num_heads"], d["layer_norm_eps"]
     lin = lambda a, n: a @ w[n + ".weight"].T + w[n + ".bias"]  # noqa: E731
@@ -425,7 +427,7 @@ def check_schedule():
     assert sorted(space_timesteps(1000, [10])) == [0, 111, 222, 333, 444, 555, 666, 777, 888, 999]
     assert sorted(space_timesteps(1000, "ddim50")) == list(range(0, 1000, 20))
     assert len(space_timesteps(1000, [1000])) == 1000
-    log("schedule: REFERENCE 1.8 derived values and 1.9 respacing reproduced")
+    log("schedule: the cosine schedule's derived values and the respacing reproduced")
 
 
 def tokenizer_cases(model):

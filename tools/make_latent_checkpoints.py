@@ -12,8 +12,10 @@ Both also write DIR/mean.npy, DIR/std.npy (263 values). --clip adds DIR/clip/, a
 full-size CLIP text tower (MoLA: ViT-B/32, projection 512; MLD: ViT-L/14, projection 768) with
 the CLIP tokenizer of tests/fixtures/clip_tokenizer, so `convert.py mola|mld` can run on DIR.
 
-Sizes: MoLA REFERENCE 7.3.1/7.3.2 (latent 16, embed 512, depth 9, 4 heads, rotary 64, ff 2048,
-cond 512, time features 128; VAE width 512, 2 up stages, 3 blocks); MLD 7.2 (latent 256, 9-layer
+Sizes: MoLA docs/official/mola-mld.md#mola-denoiser-tensor-names and
+docs/official/mola-mld.md#mola-vae-decoder (latent 16, embed 512, depth 9, 4 heads, rotary 64, ff 2048,
+cond 512, time features 128; VAE width 512, 2 up stages, 3 blocks); MLD
+docs/official/mola-mld.md#mld-denoiser (latent 256, 9-layer
 skip stacks, 4 heads, ff 1024, text 768, position tables 500). The encoder-side tensors are
 stand-ins with invented names under the prefixes the converter skips; their real names do not
 matter to it.

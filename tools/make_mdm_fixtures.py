@@ -44,7 +44,8 @@ GUIDANCE = 2.5
 RESPACING = [10]
 EULER_STEPS = 10
 FORWARD_T_DIFFUSION = 500
-# 0.01f * 5 in float32 is 0.049999997: the pe row is 49, not 50 (REFERENCE 3 truncation).
+# 0.01f * 5 in float32 is 0.049999997: the pe row is 49, not 50 (truncation,
+# docs/official/motionfm.md#time-index).
 FORWARD_T_FLOW = float(np.float32(0.01) * np.float32(5))
 SEEDS = {"mdm": 10, "motionfm": 11, "clip": 12, "stats": 13, "text": 14, "forward_x": 15,
          "ddim": 16, "euler": 17}

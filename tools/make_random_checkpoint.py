@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Write a random-weight FLAME checkpoint in the official PyTorch-Lightning layout (REFERENCE 1.6).
+"""Write a random-weight FLAME checkpoint in the official PyTorch-Lightning layout
+(docs/official/flame.md#checkpoint-layout).
 
 The file is what tools/convert.py expects from kakaobrain/flame: `state_dict` holds two copies of the
 net, `net.*` (raw) and `ema_model.model.*` (EMA, the one sampling uses), each with the LM under

@@ -35,7 +35,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FIX = os.path.join(ROOT, "tests", "fixtures")
 
 MINILM_MAX = 256  # sentence-transformers max_seq_length of all-MiniLM-L6-v2
-FLAME_MAX = 20  # FLAME's RoBERTa prompt length (REFERENCE 1.7)
+FLAME_MAX = 20  # FLAME's RoBERTa prompt length (docs/official/flame.md#roberta-prompt-encoding)
 MAX_FULL = 62  # tiny RoBERTa: 64 positions minus the pad offset of 2
 
 MOTION = [
@@ -191,7 +191,7 @@ def make_roberta():
             out[f"pad.{i}.hidden"] = res.last_hidden_state[0].contiguous()
             out[f"pad.{i}.pooled"] = res.pooler_output[0].contiguous()
             if s == "":
-                assert enc["input_ids"][0].tolist() == [0, 2] + [1] * 18  # REFERENCE 1.7
+                assert enc["input_ids"][0].tolist() == [0, 2] + [1] * 18  # docs/official/flame.md#roberta-prompt-encoding
 
             enc = tok(s, truncation=True, max_length=MAX_FULL, padding=False, return_tensors="pt")
             res = model(input_ids=enc["input_ids"], attention_mask=enc["attention_mask"])

@@ -143,7 +143,8 @@ def tiny_config(vocab_size):
 
 
 def check(out_dir, max_length=20):
-    """REFERENCE 1.7: "" -> [0, 2, 1 x 18], mask [1, 1, 0 x 18] through the HF fast tokenizer."""
+    """"" -> [0, 2, 1 x 18], mask [1, 1, 0 x 18] through the HF fast tokenizer
+    (docs/official/flame.md#roberta-prompt-encoding)."""
     from transformers import RobertaTokenizerFast
     hf = RobertaTokenizerFast(tokenizer_file=os.path.join(out_dir, "tokenizer.json"))
     enc = hf([""], padding="max_length", truncation=True, max_length=max_length)

@@ -1,23 +1,25 @@
 #!/usr/bin/env python3
-"""Independent NumPy reference of libflame's motion decoding, written from shared/REFERENCE.md
-(sections 1.13, 1.14, 4 and 5) without reading the Rust code.
+"""Independent NumPy reference of libflame's motion decoding, written from the official procedures
+(docs/official/flame.md#output-post-processing, docs/official/flame.md#motion-representation,
+docs/official/humanml3d.md and docs/official/smpl.md) without reading the Rust code.
 
 It synthesises two real-looking motions (a walk with root travel and turning, smooth sinusoidal
 joint angles on every axis), encodes them to model features, decodes them with the official
 procedures and writes what libflame must reproduce to tests/fixtures/motion_reference.safetensors
 (float32 tensors; the decoding runs in float64 from the float32 features):
 
-smpl24_6d (FLAME, REFERENCE 1.13/1.14/5), 36 frames:
+smpl24_6d (FLAME; docs/official/flame.md#motion-representation), 36 frames:
   smpl_features [T,147]          translation (AMASS Z-up, metres) + 24 x 6D ROW convention
   smpl_root [T,3]                pelvis world position = trans + rest pelvis (SMPL FK)
   smpl_local_wxyz [T,24,4]       parent-relative rotations, pytorch3d matrix->quaternion, w >= 0
   smpl_global_wxyz [T,24,4]      world rotations, world_R(j) = world_R(parent) . R_local(j)
-  smpl_positions [T,24,3]        SMPL FK with the rest offsets of REFERENCE 5
+  smpl_positions [T,24,3]        SMPL FK with the rest offsets of docs/official/smpl.md#rest-offsets
   smpl_local_wxyz_continuous     the same with q[t] flipped when dot(q[t], q[t-1]) < 0
   smpl_smooth_features [T,147]   scipy gaussian_filter1d(sigma=1, mode reflect, truncate 4) over time
   smpl_smooth_positions, smpl_smooth_local_wxyz   decoded from the smoothed features
 
-humanml263 (HumanML3D, REFERENCE 4), features built directly (smooth root velocities,
+humanml263 (HumanML3D, docs/official/humanml3d.md#feature-layout), features built
+directly (smooth root velocities,
 ric positions, column-convention cont6d rotations, local velocities, 0/1 contacts), 30 frames:
   hml_features [T,263] (normalised), hml_mean [263], hml_std [263]
   hml_positions [T,22,3]         recover_from_ric after x * std + mean
@@ -25,7 +27,8 @@ ric positions, column-convention cont6d rotations, local velocities, 0/1 contact
   hml_local_wxyz, hml_global_wxyz, hml_local_wxyz_continuous   see "HumanML3D tree rotations"
   hml_contacts [T,4]             dims 259..262 de-normalised
 
-HumanML3D tree rotations (libflame's documented derivation, REFERENCE 4.5 states the raw data):
+HumanML3D tree rotations (libflame's documented derivation; docs/official/humanml3d.md#rotation-features
+states the raw data):
 the official recover_from_rot chain product gives, for every joint j >= 1, the world rotation B(j)
 of the bone that ends at j: per kinematic chain, M = R(q_root), then M = M . R6(j) for each next
 joint j, B(j) = M. A standard parent-relative hierarchy needs one world rotation per joint:
@@ -46,7 +49,7 @@ import struct
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-# ---------------------------------------------------------------- skeletons (REFERENCE 5, 4.6)
+# ---------------------------------------- skeletons (docs/official/smpl.md, docs/official/humanml3d.md#skeleton)
 
 SMPL_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
 SMPL_OFFSETS = np.array([
@@ -96,7 +99,7 @@ def normalize(v):
 
 
 def rot6d_rows_to_matrix(d6):
-    """pytorch3d rotation_6d_to_matrix: b1, b2, b3 are the ROWS (REFERENCE 1.13)."""
+    """pytorch3d rotation_6d_to_matrix: b1, b2, b3 are the ROWS (docs/official/flame.md#6d-to-rotation-matrix)."""
     a1, a2 = d6[..., :3], d6[..., 3:]
     b1 = normalize(a1)
     b2 = normalize(a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1)
@@ -109,7 +112,7 @@ def matrix_to_rot6d_rows(m):
 
 
 def cont6d_to_matrix(d6):
-    """HumanML3D cont6d: COLUMN convention (REFERENCE 4.3)."""
+    """HumanML3D cont6d: COLUMN convention (docs/official/humanml3d.md#cont6d-column-convention)."""
     x = normalize(d6[..., :3])
     z = normalize(np.cross(x, d6[..., 3:]))
     y = np.cross(z, x)
@@ -121,7 +124,7 @@ def matrix_to_cont6d(m):
 
 
 def matrix_to_quat_wxyz(m):
-    """pytorch3d matrix_to_quaternion (REFERENCE 1.13), then w >= 0."""
+    """pytorch3d matrix_to_quaternion (docs/official/flame.md#rotation-matrix-to-quaternion), then w >= 0."""
     m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
     m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
     m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
@@ -140,7 +143,7 @@ def matrix_to_quat_wxyz(m):
 
 
 def quat_to_matrix(q):
-    """HumanML3D quaternion_to_matrix (REFERENCE 4.2), w first."""
+    """HumanML3D quaternion_to_matrix (docs/official/humanml3d.md#quaternion-conventions), w first."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     s = 2.0 / np.sum(q * q, axis=-1)
     return np.stack([
@@ -155,7 +158,7 @@ def qinv(q):
 
 
 def qrot(q, v):
-    """Active rotation of v by unit q (REFERENCE 4.2)."""
+    """Active rotation of v by unit q (docs/official/humanml3d.md#quaternion-conventions)."""
     w = q[..., :1]
     u = q[..., 1:]
     uv = np.cross(u, v)
@@ -223,7 +226,8 @@ def smpl_decode(features):
 
 
 def hml_root(d):
-    """recover_root_rot_pos (REFERENCE 4.4): q_root [T,4] and root position [T,3]."""
+    """recover_root_rot_pos (docs/official/humanml3d.md#recovering-joint-positions): q_root [T,4] and root
+    position [T,3]."""
     T = d.shape[0]
     theta = np.zeros(T)
     theta[1:] = np.cumsum(d[:-1, 0])
@@ -388,7 +392,8 @@ def main():
         out["smpl_" + k] = ref[k]
     out["smpl_local_wxyz_continuous"] = continuous(ref["local_wxyz"])
     out["smpl_global_wxyz_continuous"] = continuous(ref["global_wxyz"])
-    # FLAME's official post-processing (REFERENCE 1.13), computed by scipy itself.
+    # FLAME's official post-processing (docs/official/flame.md#temporal-smoothing), computed by scipy
+    # itself.
     smooth = gaussian_filter1d(sf.astype(np.float64), 1.0, axis=0, mode="reflect", truncate=4.0)
     out["smpl_smooth_features"] = smooth
     sref = smpl_decode(smooth)

@@ -3,7 +3,8 @@
 
 A test model, not a demo claim: it shows that the whole path works end to end on a CPU in
 minutes (train -> `convert.py omg` -> `flame generate`), and that the ControlNet changes what
-the backbone generates. Training follows the paper's two phases (REFERENCE 10.2-10.4):
+the backbone generates. Training follows the paper's two phases (sections 3.1 and 3.2;
+docs/official/omg.md#unconditional-denoiser, docs/official/omg.md#motion-controlnet):
 
  1. the DiT backbone D_u alone, unconditionally: x0 prediction, cosine schedule (T = 1000),
     L2 on x0, t uniform over 0..999;

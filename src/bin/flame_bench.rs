@@ -227,7 +227,8 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
             d.ff_dim as f64,
             d.latent_channels as f64,
         );
-        // Four frames per latent row, the global token in front (REFERENCE 7.3.1).
+        // Four frames per latent row, the global token in front
+        // (docs/official/mola-mld.md#mola-denoiser).
         let s = ((frames + 4) / 4) as f64 + 1.0;
         let r = b * s;
         // qkv, out, SwiGLU in (value + gate rows) and out.

@@ -1,4 +1,5 @@
-//! Fixed-step ODE samplers for flow matching (Motion Flow Matching, REFERENCE.md section 3).
+//! Fixed-step ODE samplers for flow matching (Motion Flow Matching: dongzhuoyao/motionfm
+//! `flow/flow_matching_class.py`; docs/official/motionfm.md#euler-sampler).
 //!
 //! Time runs from t = 0 (noise) to t = 1 (data) on the uniform grid t_k = k / N, computed as an
 //! f32 division like the official custom loops. A step integrates dx/dt = v(x, t) from t_k to
@@ -172,7 +173,8 @@ mod tests {
         assert_eq!(s.time(0), 0.0);
         assert_eq!(s.time(3), 3.0f32 / 10.0f32);
         assert_eq!(s.time(10), 1.0);
-        // REFERENCE 3: for N = 50 and 100 the official index trunc(t·1000) is exactly 1000·k/N.
+        // For N = 50 and 100 the official index trunc(t·1000) is exactly 1000·k/N
+        // (docs/official/motionfm.md#time-index).
         for n in [50usize, 100] {
             let s = FlowSampler::new(OdeMethod::Euler, n).unwrap();
             for k in 0..n {

@@ -253,7 +253,8 @@ mod tests {
             BuiltSampler::Diffusion(s) => s,
             BuiltSampler::Flow(_) => panic!("a diffusion model"),
         };
-        // REFERENCE 9.11: the kept steps of FineMoGen's "15,15,8,6,6", ascending.
+        // The kept steps of FineMoGen's "15,15,8,6,6", ascending (mingyuan-zhang/FineMoGen
+        // `configs/finemogen/finemogen_t2m.py`; docs/official/finemogen.md#respacing).
         let s = built(&choice(Method::Ddim, None, None));
         let map = s.timestep_map();
         assert_eq!(map.len(), 50);

@@ -1,8 +1,11 @@
 //! Timestep spacing: which of the T training steps a shorter sampling run keeps. Two families:
-//! guided-diffusion's `respace.py` (REFERENCE 1.9; the respaced schedule itself is built by
+//! guided-diffusion's `respace.py` (kakaobrain/flame `src/models/components/respace.py`;
+//! docs/official/flame.md#respacing; the respaced schedule itself is built by
 //! [`super::DiffusionSampler::new`] via [`respaced_betas`]) and diffusers' `"leading"` and
-//! `"trailing"` spacings of `DDIMScheduler.set_timesteps` (REFERENCE 7.1, 7.2), whose steps keep
-//! the training table's ᾱ ([`super::DiffusionSampler::new_diffusers`]).
+//! `"trailing"` spacings of `DDIMScheduler.set_timesteps` (huggingface/diffusers
+//! `scheduling_ddim.py`; docs/official/mola-mld.md#mola-scheduler,
+//! docs/official/mola-mld.md#mld-scheduler), whose steps keep the training table's ᾱ
+//! ([`super::DiffusionSampler::new_diffusers`]).
 
 use std::fmt;
 use std::str::FromStr;

@@ -168,7 +168,8 @@ fn check_len(name: &str, len: usize, want: usize) -> Result<()> {
 
 impl DiffusionSampler {
     /// `use_timesteps`: the kept ORIGINAL timesteps (from [`super::space_timesteps`]); the
-    /// respaced tables are rebuilt from them as SpacedDiffusion does (REFERENCE 1.9). Pass all of
+    /// respaced tables are rebuilt from them as SpacedDiffusion does (kakaobrain/flame
+    /// `src/models/components/respace.py`; docs/official/flame.md#respacing). Pass all of
     /// `0..T` for the unspaced process.
     pub fn new(
         base_betas: &[f64],
@@ -417,7 +418,8 @@ impl DiffusionSampler {
         self.step_replacing(t, x_t, pred, var_pred, noise, None, x_prev, x0)
     }
 
-    /// [`DiffusionSampler::step`] with MDM's editing (REFERENCE 2.6): the kept values of x̂0
+    /// [`DiffusionSampler::step`] with MDM's editing (GuyTevet/motion-diffusion-model
+    /// `sample/edit.py`; docs/official/mdm.md#editing): the kept values of x̂0
     /// (after the clamp, if any) are replaced by the reference before the step is taken.
     #[allow(clippy::too_many_arguments)]
     pub fn step_replacing(
@@ -951,7 +953,8 @@ mod tests {
 
     #[test]
     fn final_ddpm_step_with_clip_returns_clamped_x0() {
-        // REFERENCE 1.8: at t = 0, c1 = 1 and c2 = 0, so the sample is the clamped x̂0.
+        // At t = 0, c1 = 1 and c2 = 0, so the sample is the clamped x̂0 (kakaobrain/flame
+        // `gaussian_diffusion.py`; docs/official/flame.md#ddpm-step).
         let s = cosine(
             1000,
             &all(1000),

@@ -67,7 +67,8 @@ fn cosine_alpha_bar(s: f64) -> f64 {
     c * c
 }
 
-/// β_i = min(1 − ᾱ((i+1)/T)/ᾱ(i/T), 0.999), i = 0..T−1 (REFERENCE 1.8).
+/// β_i = min(1 − ᾱ((i+1)/T)/ᾱ(i/T), 0.999), i = 0..T−1 (kakaobrain/flame
+/// `src/models/components/gaussian_diffusion.py`; docs/official/flame.md#noise-schedule).
 fn cosine_betas(t: usize) -> Vec<f64> {
     let tf = t as f64;
     (0..t)
@@ -137,10 +138,11 @@ fn scaled_linear_betas(t: usize) -> Vec<f64> {
 }
 
 /// diffusers' `alphas_cumprod` for `betas`: each β rounded to f32 (diffusers keeps its betas in
-/// float32; the scaled_linear betas are f32 already), α = 1 − β in f32, and `torch.cumprod` as
-/// its CPU kernel computes it — the running product in f64, each entry stored as f32
-/// (REFERENCE 7.3.3; a plain f32 running product differs in 944 of the 1000 scaled_linear
-/// entries). The f32 values are returned widened to f64.
+/// float32; the scaled_linear betas are f32 already), α = 1 − β in f32, and `torch.cumprod` as its
+/// CPU kernel computes it — the running product in f64, each entry stored as f32
+/// (huggingface/diffusers `scheduling_ddim.py` run on CPU;
+/// docs/official/mola-mld.md#scheduler-tables-in-float32; a plain f32 running product differs in
+/// 944 of the 1000 scaled_linear entries). The f32 values are returned widened to f64.
 pub fn diffusers_alphas_cumprod(betas: &[f64]) -> Vec<f64> {
     let mut acc = 1.0f64;
     betas
@@ -152,7 +154,8 @@ pub fn diffusers_alphas_cumprod(betas: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// The float64 tables guided-diffusion derives from a beta sequence (REFERENCE 1.8), plus the two
+/// The float64 tables guided-diffusion derives from a beta sequence (kakaobrain/flame
+/// `gaussian_diffusion.py`; docs/official/flame.md#noise-schedule), plus the two
 /// log-variance tables the sampler's variance modes read.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Schedule {
@@ -242,7 +245,8 @@ impl Schedule {
         ))
     }
 
-    /// Every derived table, from checked betas, ᾱ and ᾱ_prev (REFERENCE 1.8).
+    /// Every derived table, from checked betas, ᾱ and ᾱ_prev
+    /// (docs/official/flame.md#noise-schedule).
     fn from_tables(
         betas: Vec<f64>,
         alphas_cumprod: Vec<f64>,
@@ -344,8 +348,8 @@ mod tests {
 
     #[test]
     fn cosine_1000_matches_reference_numbers() {
-        // REFERENCE 1.8 (derived): β_0 = 4.1284e−5, β_999 = 0.999 is the only capped value,
-        // ᾱ_0 = 0.9999587, ᾱ_499 = 0.4938436, ᾱ_999 = 2.4288e−9.
+        // docs/official/flame.md#noise-schedule (derived): β_0 = 4.1284e−5, β_999 = 0.999 is the
+        // only capped value, ᾱ_0 = 0.9999587, ᾱ_499 = 0.4938436, ᾱ_999 = 2.4288e−9.
         let b = betas(BetaSchedule::Cosine, 1000);
         assert_eq!(b.len(), 1000);
         assert!(close(b[0], 4.1284e-5, 1e-4));
@@ -362,7 +366,8 @@ mod tests {
 
     #[test]
     fn cosine_50_matches_reference_numbers() {
-        // REFERENCE 2.5 (derived): β_0 = 1.7475e−3, ᾱ_49 = 9.712e−7, β_49 = 0.999.
+        // docs/official/mdm.md#sampling-and-guidance (derived): β_0 = 1.7475e−3, ᾱ_49 = 9.712e−7,
+        // β_49 = 0.999.
         let b = betas(BetaSchedule::Cosine, 50);
         assert!(close(b[0], 1.7475e-3, 1e-4));
         assert_eq!(b[49], 0.999);

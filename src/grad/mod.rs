@@ -1,5 +1,6 @@
 //! Reverse-mode products (vector-Jacobian products) for the paths gradient-guided editing
-//! differentiates: MoLA's MPGD (REFERENCE 7.1, 7.3) moves x̂0 along
+//! differentiates: MoLA's MPGD (sony/MoLA `models/mola_module.py`;
+//! docs/official/mola-mld.md#mola-mpgd-editing) moves x̂0 along
 //! `−∇ Σ_{frame, joint} ‖(J(x̂0) − c) ⊙ m‖₂`, with `J` = VAE decoder → de-normalisation →
 //! joint positions. There is no general autograd engine: each operation on those paths has its
 //! hand-written backward here ([`ops`], [`kinematics`]) or beside its forward (the layers'

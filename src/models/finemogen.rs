@@ -1,8 +1,10 @@
-//! FineMoGen (Zhang et al., NeurIPS 2023, mingyuan-zhang/FineMoGen): diffusion in HumanML3D
-//! feature space with spatio-temporal mixture attention (SAMI) over body-part groups, mixtures
-//! of experts on the motion and the text, and prompts per time stage (REFERENCE.md section 9).
-//! Where the released code differs from the paper (9.14), this file follows the code, so the
-//! released checkpoints give their numbers.
+//! FineMoGen (Zhang et al., NeurIPS 2023, mingyuan-zhang/FineMoGen): diffusion in HumanML3D feature
+//! space with spatio-temporal mixture attention (SAMI) over body-part groups, mixtures of experts
+//! on the motion and the text, and prompts per time stage (mingyuan-zhang/FineMoGen
+//! `mogen/models/transformers/finemogen.py`, `mogen/models/attentions/fine_attention.py`;
+//! docs/official/finemogen.md#released-configuration). Where the released code differs from the
+//! paper (docs/official/finemogen.md#paper-versus-released-code), this file follows the code, so
+//! the released checkpoints give their numbers.
 //!
 //! - Text: CLIP's `ln_final` over all 77 positions (padding included), `text_pre_proj`, a
 //!   2-layer post-LN encoder without padding mask and `text_ln`: once per prompt. The text
@@ -111,7 +113,8 @@ pub const GROUPS: usize = PART_COUNT + 1;
 const GROUP_NAMES: [&str; GROUPS] = [
     "head", "stem", "larm", "rarm", "lleg", "rleg", "root", "body",
 ];
-/// HumanML3D joints of each part (REFERENCE 9.4).
+/// HumanML3D joints of each part (FineMoGen `finemogen.py` `get_t2m_slice`;
+/// docs/official/finemogen.md#body-part-split).
 const PART_JOINTS: [&[usize]; PART_COUNT] = [
     &[12, 15],
     &[3, 6, 9],
@@ -837,7 +840,8 @@ impl Stylization {
     }
 }
 
-/// One SAMI block (REFERENCE 9.6).
+/// One SAMI block (FineMoGen `mogen/models/attentions/fine_attention.py`;
+/// docs/official/finemogen.md#sami-attention).
 struct Sami {
     norm: LayerNorm,
     text_norm: LayerNorm,
@@ -853,7 +857,8 @@ struct Sami {
     proj_out: Stylization,
 }
 
-/// The per-part FFN (REFERENCE 9.8).
+/// The per-part FFN (FineMoGen `finemogen.py` `SFFN`;
+/// docs/official/finemogen.md#sffn-and-stylization-block).
 struct Sffn {
     parts: Vec<Mlp>,
     proj_out: Stylization,
@@ -912,7 +917,8 @@ impl FinemogenCondition {
     }
 }
 
-/// The unconditional rows: the text masked out (REFERENCE 9.6).
+/// The unconditional rows: the text masked out (FineMoGen `fine_attention.py`;
+/// docs/official/finemogen.md#sami-attention).
 #[derive(Clone, Copy, Debug)]
 pub struct FinemogenNull;
 
@@ -1807,7 +1813,8 @@ mod tests {
 
     #[test]
     fn capacity_is_tutels() {
-        // REFERENCE 9.7: k·⌊1.5·⌈n/16⌉⌋ — 30 slots for one prompt's text rows (2 × 77 tokens),
+        // microsoft/tutel `fast_dispatch.py`, docs/official/finemogen.md#capacity-and-dropping:
+        // k·⌊1.5·⌈n/16⌉⌋ — 30 slots for one prompt's text rows (2 × 77 tokens),
         // 588 for one 196-frame motion (2 × 196 × 8).
         assert_eq!(capacity(154, 16, 2, 1.5), 30);
         assert_eq!(capacity(3136, 16, 2, 1.5), 588);

@@ -1,5 +1,6 @@
 //! FLAME (Kim et al., AAAI 2023): a transformer decoder that denoises a motion conditioned on a
-//! language model's token states (REFERENCE.md section 1.3).
+//! language model's token states (kakaobrain/flame `src/models/components/text2motion_model.py`;
+//! docs/official/flame.md#denoiser-forward-pass).
 //!
 //! The target sequence is `[ML, TS, CLS, motion frames]` plus sinusoidal positions; the
 //! cross-attention memory is `[ML, TS, CLS, text tokens]` without positions. `ML` is the
@@ -37,7 +38,8 @@ pub const FAMILY: Family = Family {
 /// Number of tokens prepended to the motion and to the text: ML, TS, CLS.
 const AUX_TOKENS: usize = 3;
 
-/// FLAME's `Text2MotionTransformer` sizes (REFERENCE 1.1): the `denoiser` section.
+/// FLAME's `Text2MotionTransformer` sizes (`configs/model/diffusion_hml3d.yaml`;
+/// docs/official/flame.md#configuration): the `denoiser` section.
 #[derive(Clone, Debug, Deserialize)]
 pub struct FlameConfig {
     pub motion_dim: usize,

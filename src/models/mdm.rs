@@ -1,5 +1,7 @@
 //! MDM (Tevet et al., ICLR 2023) `trans_enc` and Motion Flow Matching's `MDM_Flow`, which is the
-//! same network predicting a velocity instead of x0 (REFERENCE.md sections 2.2 and 3).
+//! same network predicting a velocity instead of x0 (GuyTevet/motion-diffusion-model
+//! `model/mdm.py`, dongzhuoyao/motionfm `model/mdm_flow.py`;
+//! docs/official/mdm.md#denoiser-forward-pass, docs/official/motionfm.md#network).
 //!
 //! One conditioning token `emb = embed_text(clip) + embed_timestep(pe[t])` is prepended to the
 //! `poseEmbedding` of every frame, the interleaved sin/cos table `pe` is added at positions
@@ -147,13 +149,15 @@ impl FamilyConfig for MdmFamily {
     }
 }
 
-/// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default, REFERENCE 2.2).
+/// LayerNorm epsilon of `nn.TransformerEncoderLayer` (PyTorch default;
+/// docs/official/mdm.md#conditioning-token-and-encoder).
 const LAYER_NORM_EPS: f32 = 1e-5;
 
 /// Positions taken by the conditioning token in front of the frames.
 const COND_TOKENS: usize = 1;
 
-/// MDM's `trans_enc` sizes (REFERENCE 2.1; the official names from `args.json`).
+/// MDM's `trans_enc` sizes (`utils/model_util.py`, docs/official/mdm.md#configuration; the official
+/// names from `args.json`).
 #[derive(Clone, Debug, Deserialize)]
 pub struct MdmConfig {
     /// Feature channels per frame (263 for HumanML3D).
@@ -255,7 +259,8 @@ impl MdmConfig {
 pub enum TimeIndex {
     /// MDM: `t` is the integer diffusion step, used as the row directly.
     Diffusion,
-    /// Motion Flow Matching: `t ∈ [0, 1]`, row `trunc(f32(t · 1000))` (REFERENCE 3).
+    /// Motion Flow Matching: `t ∈ [0, 1]`, row `trunc(f32(t · 1000))` (motionfm
+    /// `model/mdm_flow.py`; docs/official/motionfm.md#time-index).
     FlowMatching,
 }
 
@@ -565,7 +570,8 @@ mod tests {
         assert_eq!(TimeIndex::Diffusion.row(-1.0), None);
         assert_eq!(TimeIndex::FlowMatching.row(0.0), Some(0));
         assert_eq!(TimeIndex::FlowMatching.row(0.5), Some(500));
-        // 0.01f32 · 5 rounds below 0.05 in f32 and the product truncates (REFERENCE 3).
+        // 0.01f32 · 5 rounds below 0.05 in f32 and the product truncates
+        // (docs/official/motionfm.md#time-index).
         assert_eq!(TimeIndex::FlowMatching.row(0.01f32 * 5.0), Some(49));
         // The custom loops' grid i/N as an f32 division lands exactly.
         assert_eq!(TimeIndex::FlowMatching.row(5.0f32 / 100.0), Some(50));

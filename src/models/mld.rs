@@ -1,7 +1,9 @@
-//! MLD (Chen et al., CVPR 2023, ChenFengYe/motion-latent-diffusion): latent diffusion of
-//! motion. A skip transformer denoises a `[latent_tokens, latent_dim]` latent under a CLIP text
-//! vector; the VAE's skip-transformer decoder turns the latent into as many HumanML3D frames as
-//! the caller asks for (REFERENCE.md section 7.2).
+//! MLD (Chen et al., CVPR 2023, ChenFengYe/motion-latent-diffusion): latent diffusion of motion. A
+//! skip transformer denoises a `[latent_tokens, latent_dim]` latent under a CLIP text vector; the
+//! VAE's skip-transformer decoder turns the latent into as many HumanML3D frames as the caller asks
+//! for (ChenFengYe/motion-latent-diffusion `mld/models/architectures/` `mld_denoiser.py` and
+//! `mld_vae.py`; docs/official/mola-mld.md#mld-denoiser,
+//! docs/official/mola-mld.md#mld-vae-decoder).
 //!
 //! Denoiser: the sequence `[latent tokens, time, text]` plus a learned positional table, where
 //! time = Linear → SiLU → Linear of the cos-first sinusoid of t (`text_dim` wide) and text =

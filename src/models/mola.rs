@@ -1,7 +1,8 @@
-//! MoLA (Uchida et al. 2024, sony/MoLA): latent diffusion of motion. A stable-audio style
-//! diffusion transformer denoises a `[T′, 16]` latent under a CLIP text vector; a convolutional
-//! VAE decoder turns the latent into HumanML3D features and a validity flag that decides the
-//! motion's length (REFERENCE.md sections 7.1 and 7.3).
+//! MoLA (Uchida et al. 2024, sony/MoLA): latent diffusion of motion. A stable-audio style diffusion
+//! transformer denoises a `[T′, 16]` latent under a CLIP text vector; a convolutional VAE decoder
+//! turns the latent into HumanML3D features and a validity flag that decides the motion's length
+//! (sony/MoLA `models/t2m_latent_diffusion.py`, `models/transformer.py`, `models/vaesan.py`;
+//! docs/official/mola-mld.md#mola-denoiser, docs/official/mola-mld.md#mola-vae-decoder).
 //!
 //! Denoiser: Fourier time features `[cos f, sin f]`, `f = 2π·t·W`, through an MLP, plus the
 //! global-condition MLP of the text vector, make ONE token prepended to the latent frames; the
@@ -811,7 +812,8 @@ impl VaeDecoder {
         t
     }
 
-    /// The decoder's reverse-mode product (MPGD, REFERENCE 7.1): a forward pass that keeps each
+    /// The decoder's reverse-mode product (MPGD, docs/official/mola-mld.md#mola-mpgd-editing): a
+    /// forward pass that keeps each
     /// activation the backward needs, `loss` on the features of every decoded frame (flag
     /// dropped: its gradient is 0), then the chain backwards — conv transposes, ReLU masks, the
     /// residual sums and the ×2 upsampling's pair sums — into `d_sample` (`[rows,

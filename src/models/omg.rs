@@ -1,9 +1,9 @@
 //! OMG-style models (Liang et al., CVPR 2024, "Towards Open-vocabulary Motion Generation via
 //! Mixture of Controllers"): an unconditional diffusion transformer pre-trained on motion alone,
-//! and a motion ControlNet that adds text through a Mixture-of-Controllers (REFERENCE.md
-//! section 10). No official code or weights exist: the layout is libflame's, defined by
-//! tools/reference/omg.py; every detail the paper leaves open is a configuration field
-//! (docs/omg.md lists each choice).
+//! and a motion ControlNet that adds text through a Mixture-of-Controllers (the paper, sections 3.1
+//! and 3.2; docs/official/omg.md#code-availability). No official code or weights exist: the layout
+//! is libflame's, defined by tools/reference/omg.py; every detail the paper leaves open is a
+//! configuration field (docs/omg.md lists each choice).
 //!
 //! - Backbone D_u (DiT with rotary positions): one token per frame, a timestep MLP giving `c`,
 //!   adaLN-Zero blocks (LayerNorm without affine; shift, scale and gate for attention and MLP

@@ -23,23 +23,25 @@
 //! # The world frame
 //!
 //! AMASS's world is Z up, right-handed, metres; it fixes no facing (each capture faces where its
-//! subject did). libflame writes every format in one frame, the [`Convention::Blender`] axes
-//! (+Z up, a body with identity rotations facing −Y, its left +X), because that is the frame
-//! `smpl24_6d` models already work in: FLAME's features are AMASS SMPL parameters (REFERENCE
-//! 1.14, 5), so for them the change is the identity and the file holds the model's own
-//! rotations and translation. `humanml263` poses (Y up, +Z forward, +X left) turn by
-//! `Rx(+90°)`: `(x, y, z) → (x, −z, y)`. HumanML3D built its data the other way
-//! (EricGuo5513/HumanML3D, `raw_pose_processing.ipynb`: `trans_matrix` swaps y and z, then
-//! `data[..., 0] *= -1`: `(x, y, z)_HumanML3D = (−x, z, y)_AMASS`), whose inverse
-//! `(x, y, z) → (−x, z, y)` is this change followed by a half turn about Z; HumanML3D then turned
-//! each motion to face +Z at its first frame (`motion_representation.ipynb`), so its AMASS
-//! facing is not recoverable and both are AMASS frames. libflame keeps one facing for both
-//! formats (tested in `world_change_is_blenders_and_humanml3ds_inverse_up_to_a_half_turn`).
+//! subject did). libflame writes every format in one frame, the [`Convention::Blender`] axes (+Z
+//! up, a body with identity rotations facing −Y, its left +X), because that is the frame
+//! `smpl24_6d` models already work in: FLAME's features are AMASS SMPL parameters
+//! (docs/official/flame.md#motion-representation, docs/official/smpl.md#axes), so for them the
+//! change is the identity and the file holds the model's own rotations and translation.
+//! `humanml263` poses (Y up, +Z forward, +X left) turn by `Rx(+90°)`: `(x, y, z) → (x, −z, y)`.
+//! HumanML3D built its data the other way (EricGuo5513/HumanML3D, `raw_pose_processing.ipynb`:
+//! `trans_matrix` swaps y and z, then `data[..., 0] *= -1`: `(x, y, z)_HumanML3D = (−x, z,
+//! y)_AMASS`), whose inverse `(x, y, z) → (−x, z, y)` is this change followed by a half turn about
+//! Z; HumanML3D then turned each motion to face +Z at its first frame
+//! (`motion_representation.ipynb`), so its AMASS facing is not recoverable and both are AMASS
+//! frames. libflame keeps one facing for both formats (tested in
+//! `world_change_is_blenders_and_humanml3ds_inverse_up_to_a_half_turn`).
 //!
 //! # Rotations of `humanml263` poses
 //!
 //! HumanML3D's rotations hang on its own rest skeleton (arms down, feet forward:
-//! `t2m_raw_offsets`), not SMPL's T-pose, and come from an IK without twist (REFERENCE 4.5), so
+//! `t2m_raw_offsets`), not SMPL's T-pose, and come from an IK without twist (HumanML3D issues
+//! #107, #112, #119; docs/official/humanml3d.md#rotation-features), so
 //! [`Poses::local_rotations`] cannot be written as SMPL parameters as they are. Per frame, in
 //! the body frame:
 //!

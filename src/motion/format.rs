@@ -62,7 +62,8 @@ impl Format {
     }
 
     /// Whether models of this format work on z-normalised features (their model files carry
-    /// `motion.mean` / `motion.std`): HumanML3D's are, FLAME's are not (REFERENCE 1.14, 2.7).
+    /// `motion.mean` / `motion.std`): HumanML3D's are, FLAME's are not
+    /// (docs/official/flame.md#motion-representation, docs/official/mdm.md#normalisation).
     pub fn is_normalized(self) -> bool {
         matches!(self, Format::HumanMl263)
     }

@@ -1,4 +1,6 @@
-//! Decoding HumanML3D's 263 features (REFERENCE 4), de-normalised already: joint positions by
+//! Decoding HumanML3D's 263 features (GuyTevet/motion-diffusion-model
+//! `data_loaders/humanml/scripts/motion_process.py`; docs/official/humanml3d.md#feature-layout),
+//! de-normalised already: joint positions by
 //! the official `recover_from_ric`, rotations from the cont6d (COLUMN convention) features by the
 //! official `recover_from_rot` chain product, hung on the 22-joint hierarchy, and foot contacts.
 //!
@@ -16,7 +18,8 @@
 //!   parent's rotation;
 //! - `local(0) = global(0)`, `local(j) = global(parent)ᵀ · global(j)`.
 //!
-//! The rotations come from an IK without twist and are not SMPL rotations (REFERENCE 4.5): the
+//! The rotations come from an IK without twist and are not SMPL rotations
+//! (docs/official/humanml3d.md#rotation-features): the
 //! positions from `recover_from_ric` are the format's reliable output, and posing the rest
 //! skeleton with these rotations only approximates them.
 

@@ -1,4 +1,5 @@
-//! JSON export in the spirit of FLAME's official output for Unity (REFERENCE 1.13: translation
+//! JSON export in the spirit of FLAME's official output for Unity (kakaobrain/flame
+//! `t2m_sample.py`; docs/official/flame.md#json-export: translation
 //! `[L,3]` and rotation_quat `[L,24,4]`), made self-describing: the convention, the quaternion
 //! order, the skeleton (names, parents, rest offsets) travel with the poses.
 //!

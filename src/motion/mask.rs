@@ -4,9 +4,9 @@
 //!
 //! Masks are frame-major `[frames, feature_dim]`, one flag per feature value, in the model's own
 //! feature space: a joint is the set of channels that describe it (see [`joint_channels`]). The
-//! sets follow the official editing code: `humanml263`'s lower body is MDM's
-//! `HML_LOWER_BODY_MASK` and `smpl24_6d`'s is FLAME's kept set (REFERENCE 1.12, 2.6). Nothing
-//! here runs a sampler; the session applies the mask.
+//! sets follow the official editing code: `humanml263`'s lower body is MDM's `HML_LOWER_BODY_MASK`
+//! and `smpl24_6d`'s is FLAME's kept set (docs/official/mdm.md#upper-body-mask,
+//! docs/official/flame.md#editing). Nothing here runs a sampler; the session applies the mask.
 
 use std::fmt;
 use std::str::FromStr;
@@ -31,8 +31,8 @@ pub enum BodyPart {
     Legs,
 }
 
-/// The joints (SMPL ids; HumanML3D uses the first 22) of the legs, REFERENCE 1.12's kept set
-/// without the pelvis.
+/// The joints (SMPL ids; HumanML3D uses the first 22) of the legs: FLAME's kept set without the
+/// pelvis (`configs/edit_motion.yaml`; docs/official/flame.md#editing).
 const LEG_JOINTS: [usize; 8] = [1, 2, 4, 5, 7, 8, 10, 11];
 /// Collars 13/14, shoulders 16/17, elbows 18/19, wrists 20/21, hands 22/23.
 const ARM_JOINTS: [usize; 10] = [13, 14, 16, 17, 18, 19, 20, 21, 22, 23];
@@ -81,7 +81,8 @@ impl fmt::Display for BodyPart {
 /// The standard editing tasks of the official code, as masks over a reference of `L` frames.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Task {
-    /// Keep everything except frames `[⌊L/4⌋, ⌊3L/4⌋)` (MDM's `in_between`, REFERENCE 2.6).
+    /// Keep everything except frames `[⌊L/4⌋, ⌊3L/4⌋)` (MDM's `in_between`,
+    /// docs/official/mdm.md#in-between-mask).
     Inbetween,
     /// Keep frames `[0, ⌊L/4⌋)` and generate the rest (Motion Flow Matching's "prediction").
     Predict,
@@ -125,7 +126,7 @@ impl fmt::Display for Task {
     }
 }
 
-/// `humanml263` offsets (REFERENCE 4.1).
+/// `humanml263` offsets (docs/official/humanml3d.md#feature-layout).
 const HML_RIC: usize = 4;
 const HML_ROT: usize = 67;
 const HML_VEL: usize = 193;

@@ -16,7 +16,8 @@ use crate::error::{invalid_arg, Result};
 #[derive(Clone, Copy, Debug)]
 pub struct ReadOptions<'a> {
     /// σ (in frames) of the temporal Gaussian smoothing applied to the (de-normalised) features
-    /// before decoding; 0 = none. FLAME's official output uses 1.0 (REFERENCE 1.13).
+    /// before decoding; 0 = none. FLAME's official output uses 1.0 (`t2m_sample.py`;
+    /// docs/official/flame.md#temporal-smoothing).
     pub smooth_sigma: f32,
     /// Flip quaternions so that consecutive frames of a joint have a non-negative dot product.
     pub continuous: bool,

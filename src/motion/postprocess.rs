@@ -2,10 +2,11 @@
 //! step) and quaternion sign continuity between frames.
 
 /// Gaussian smoothing over time of every channel of a frame-major `[frames, channels]` array,
-/// exactly as `scipy.ndimage.gaussian_filter1d(x, sigma, axis=0)` with its defaults (REFERENCE
-/// 1.13): mode "reflect" (the edge sample repeated: d c b a | a b c d | d c b a), truncate 4.0,
-/// so radius `⌊4σ + 0.5⌋` and weights `exp(−k²/2σ²)` normalised to sum 1. `sigma <= 0` leaves
-/// the data unchanged. FLAME smooths all 147 channels with σ = 1.
+/// exactly as `scipy.ndimage.gaussian_filter1d(x, sigma, axis=0)` with its defaults (FLAME's
+/// `t2m_sample.py`; docs/official/flame.md#temporal-smoothing): mode "reflect" (the edge sample
+/// repeated: d c b a | a b c d | d c b a), truncate 4.0, so radius `⌊4σ + 0.5⌋` and weights
+/// `exp(−k²/2σ²)` normalised to sum 1. `sigma <= 0` leaves the data unchanged. FLAME smooths all
+/// 147 channels with σ = 1.
 pub fn gaussian_smooth(data: &mut [f64], frames: usize, channels: usize, sigma: f64) {
     if sigma <= 0.0 || frames == 0 || channels == 0 {
         return;

@@ -77,7 +77,8 @@ fn normalize(v: &Vec3) -> Vec3 {
     [v[0] / n, v[1] / n, v[2] / n]
 }
 
-/// FLAME's 6D (pytorch3d `rotation_6d_to_matrix`, REFERENCE 1.13): Gram–Schmidt on the two
+/// FLAME's 6D (pytorch3d `rotation_6d_to_matrix`, docs/official/flame.md#6d-to-rotation-matrix):
+/// Gram–Schmidt on the two
 /// 3-vectors, and the results are the ROWS of the matrix.
 pub fn from_6d_rows(d: &[f64; 6]) -> Mat3 {
     let a1 = [d[0], d[1], d[2]];
@@ -94,7 +95,8 @@ pub fn to_6d_rows(m: &Mat3) -> [f64; 6] {
     [m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2]]
 }
 
-/// HumanML3D's cont6d (REFERENCE 4.3): x = normalise(a), z = normalise(x × b), y = z × x, and
+/// HumanML3D's cont6d (`quaternion.py`, docs/official/humanml3d.md#cont6d-column-convention):
+/// x = normalise(a), z = normalise(x × b), y = z × x, and
 /// x, y, z are the COLUMNS of the matrix.
 pub fn from_6d_columns(d: &[f64; 6]) -> Mat3 {
     let x = normalize(&[d[0], d[1], d[2]]);
@@ -108,10 +110,11 @@ pub fn to_6d_columns(m: &Mat3) -> [f64; 6] {
     [m[0][0], m[1][0], m[2][0], m[0][1], m[1][1], m[2][1]]
 }
 
-/// Matrix → quaternion by pytorch3d's procedure (REFERENCE 1.13): the candidate built from the
-/// largest of the four |q| estimates (the first on ties), divided by `2·max(|q|, 0.1)`; then the
-/// sign is chosen so that w ≥ 0, as newer pytorch3d does, so every caller gets the same
-/// hemisphere whatever the matrix's history.
+/// Matrix → quaternion by pytorch3d's procedure
+/// (docs/official/flame.md#rotation-matrix-to-quaternion): the candidate built from the largest of
+/// the four |q| estimates (the first on ties), divided by `2·max(|q|, 0.1)`; then the sign is
+/// chosen so that w ≥ 0, as newer pytorch3d does, so every caller gets the same hemisphere whatever
+/// the matrix's history.
 pub fn to_quat(m: &Mat3) -> QuatWxyz {
     let [[m00, m01, m02], [m10, m11, m12], [m20, m21, m22]] = *m;
     let q_abs = [
@@ -138,7 +141,8 @@ pub fn to_quat(m: &Mat3) -> QuatWxyz {
     cand.map(|x| x * s)
 }
 
-/// Quaternion (w first) → matrix, HumanML3D's `quaternion_to_matrix` (REFERENCE 4.2): the active
+/// Quaternion (w first) → matrix, HumanML3D's `quaternion_to_matrix`
+/// (docs/official/humanml3d.md#quaternion-conventions): the active
 /// rotation, with `s = 2/|q|²` so a non-unit quaternion still gives a rotation.
 pub fn quat_to_matrix(q: &QuatWxyz) -> Mat3 {
     let [w, x, y, z] = *q;
@@ -231,7 +235,8 @@ mod tests {
         for m in some_rotations() {
             assert!(close(&from_6d_rows(&to_6d_rows(&m)), &m, 1e-12));
             assert!(close(&from_6d_columns(&to_6d_columns(&m)), &m, 1e-12));
-            // The row convention read as columns gives the transpose (REFERENCE 4.3's caution).
+            // The row convention read as columns gives the transpose
+            // (docs/official/humanml3d.md#cont6d-column-convention).
             assert!(close(
                 &from_6d_columns(&to_6d_rows(&m)),
                 &transpose(&m),

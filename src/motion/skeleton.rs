@@ -17,7 +17,7 @@ pub struct Skeleton {
     offsets: Vec<Vec3>,
 }
 
-/// SMPL's joint order (REFERENCE 5).
+/// SMPL's joint order (docs/official/smpl.md#joint-order).
 const SMPL24_NAMES: [&str; 24] = [
     "Pelvis",
     "L_Hip",
@@ -49,7 +49,8 @@ const SMPL24_PARENTS: [i32; 24] = [
     -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
 ];
 
-/// The neutral SMPL template's rest (T-pose) offsets, REFERENCE 5's table: row 0 is the pelvis's
+/// The neutral SMPL template's rest (T-pose) offsets, Stanford-TML/EDGE `vis.py` `smpl_offsets`
+/// (docs/official/smpl.md#rest-offsets): row 0 is the pelvis's
 /// absolute rest position, the others joint − parent, in metres.
 const SMPL24_OFFSETS: [Vec3; 24] = [
     [-0.00179506, -0.22333345, 0.02821913],
@@ -78,7 +79,8 @@ const SMPL24_OFFSETS: [Vec3; 24] = [
     [-0.08462193, -0.00611726, -0.01031508],
 ];
 
-/// HumanML3D's joint names (REFERENCE 4.6).
+/// HumanML3D's joint names (`data_loaders/humanml/utils/paramUtil.py`;
+/// docs/official/humanml3d.md#joint-names).
 const HUMANML22_NAMES: [&str; 22] = [
     "pelvis",
     "left_hip",
@@ -130,7 +132,8 @@ const HUMANML22_DIRECTIONS: [Vec3; 22] = [
     [0.0, -1.0, 0.0],
 ];
 
-/// HumanML3D's kinematic chains (REFERENCE 4.6); the order of joints inside a chain is the order
+/// HumanML3D's kinematic chains (`paramUtil.py`; docs/official/humanml3d.md#kinematic-chains); the
+/// order of joints inside a chain is the order
 /// in which the official forward kinematics accumulates rotations.
 pub(crate) const HUMANML22_CHAINS: [&[usize]; 5] = [
     &[0, 2, 5, 8, 11],
@@ -141,7 +144,8 @@ pub(crate) const HUMANML22_CHAINS: [&[usize]; 5] = [
 ];
 
 impl Skeleton {
-    /// SMPL's 24 joints with the neutral template's rest offsets (REFERENCE 5).
+    /// SMPL's 24 joints with the neutral template's rest offsets
+    /// (docs/official/smpl.md#rest-offsets).
     pub fn smpl24() -> &'static Skeleton {
         static S: OnceLock<Skeleton> = OnceLock::new();
         S.get_or_init(|| Skeleton {
@@ -153,9 +157,9 @@ impl Skeleton {
     }
 
     /// HumanML3D's 22 joints: `t2m_raw_offsets` directions times bone lengths. The dataset's target
-    /// skeleton lengths are in no repository (REFERENCE 4.5), so each bone takes the length of the
-    /// same joint's SMPL-24 rest offset (HumanML3D's joints are SMPL's first 22, same order). The
-    /// root's offset is zero, as in `t2m_raw_offsets`.
+    /// skeleton lengths are in no repository (docs/official/humanml3d.md#rotation-features), so
+    /// each bone takes the length of the same joint's SMPL-24 rest offset (HumanML3D's joints are
+    /// SMPL's first 22, same order). The root's offset is zero, as in `t2m_raw_offsets`.
     pub fn humanml22() -> &'static Skeleton {
         static S: OnceLock<Skeleton> = OnceLock::new();
         S.get_or_init(|| {
@@ -285,7 +289,8 @@ mod tests {
 
     #[test]
     fn rest_positions_match_reference_5() {
-        // REFERENCE 5 (derived): L_Ankle (0.0884, −1.0879, −0.0268), L_Wrist (0.6813, 0.2222, −0.0436).
+        // docs/official/smpl.md#rest-offsets (derived): L_Ankle (0.0884, −1.0879, −0.0268),
+        // L_Wrist (0.6813, 0.2222, −0.0436).
         let s = Skeleton::smpl24();
         let n = s.joint_count();
         let (mut p, mut w) = (vec![[0.0; 3]; n], vec![rotation::IDENTITY; n]);

@@ -1,5 +1,8 @@
-//! The BERT-family text encoder (BERT, MiniLM, RoBERTa): embeddings, post-LN transformer
-//! layers and the tanh pooler, run on the crate's kernels (REFERENCE 6a, 6b, 1.7).
+//! The BERT-family text encoder (BERT, MiniLM, RoBERTa): embeddings, post-LN transformer layers and
+//! the tanh pooler, run on the crate's kernels (Hugging Face transformers' `modeling_roberta.py`
+//! and `modeling_bert.py`; docs/official/text-encoders.md#roberta-base,
+//! docs/official/text-encoders.md#bert-and-all-minilm-l6-v2,
+//! docs/official/flame.md#roberta-prompt-encoding).
 //!
 //! BERT and RoBERTa differ here only in position ids; the tensor names are Hugging Face's,
 //! under a caller-given prefix. Sentence-transformers' mean pooling lives on [`TextOutput`].
@@ -58,7 +61,8 @@ impl TextOutput {
     }
 
     /// Sentence-transformers' embedding: the mean of `hidden` over mask-1 tokens (divided by
-    /// max(count, 1e-9)), then divided by max(‖·‖₂, 1e-12) (REFERENCE 6b).
+    /// max(count, 1e-9)), then divided by max(‖·‖₂, 1e-12) (sentence-transformers' `Pooling` and
+    /// `Normalize`; docs/official/text-encoders.md#sentence-embedding).
     pub fn mean_pooled_normalized(&self) -> Vec<f32> {
         let e = self.hidden_size();
         let mut sum = vec![0f32; e];

@@ -1,6 +1,7 @@
 //! The CLIP text tower (OpenAI CLIP as MDM uses it): token + position embeddings, pre-LN
 //! blocks with a causal mask and QuickGELU, the final LayerNorm, pooling at the first
-//! end-of-text token and the text projection (REFERENCE 6c, 2.4).
+//! end-of-text token and the text projection (openai/CLIP `clip/model.py`;
+//! docs/official/text-encoders.md#clip-text-tower, docs/official/mdm.md#clip-prompt-encoding).
 //!
 //! Tensor names are Hugging Face's (`CLIPTextModelWithProjection`) under a caller-given prefix:
 //! `{prefix}text_model.embeddings.…`, `{prefix}text_model.encoder.layers.N.…`,

@@ -28,7 +28,8 @@
 
 #define INV FLAME_STATUS_INVALID_ARGUMENT
 #define FRAMES 24
-/* The neutral SMPL template's rest pelvis (shared/REFERENCE.md section 5): trans = pelvis - it. */
+/* The neutral SMPL template's rest pelvis (Stanford-TML/EDGE vis.py; docs/official/smpl.md#rest-offsets):
+ * trans = pelvis - it. */
 static const double REST_PELVIS[3] = {-0.00179506, -0.22333345, 0.02821913};
 
 static uint32_t u16_at(const unsigned char *b, size_t i) {

@@ -4,7 +4,8 @@
 The text states fed to the denoiser are what libflame's BERT path produces: the prompt tokenised
 with the model file's tokenizer.json, padded/truncated to max_text_length (20, as FLAME), run
 through BertModel with the attention mask, and ALL 20 positions (padding included) of
-last_hidden_state used as cross-attention memory, plus pooler_output (REFERENCE 1.3 step 5, 1.7).
+last_hidden_state used as cross-attention memory, plus pooler_output (docs/official/flame.md#denoiser-forward-pass,
+docs/official/flame.md#roberta-prompt-encoding).
 """
 import hashlib
 import importlib.util
@@ -162,6 +163,6 @@ def load_ema_net(ckpt_path, dtype=None):
 
 
 def diffusion_tables():
-    """float64 ᾱ of the cosine schedule (REFERENCE 1.8)."""
+    """float64 ᾱ of the cosine schedule (docs/official/flame.md#noise-schedule)."""
     betas = cosine_betas(NUM_TIMESTEPS)
     return np.cumprod(1.0 - betas)

@@ -260,7 +260,8 @@ class Trainer:
             self.args.steps = s["planned_steps"]
 
     def export(self, path):
-        """Official Lightning layout (REFERENCE 1.6) for tools/convert.py flame. Motion-length rows
+        """Official Lightning layout (docs/official/flame.md#checkpoint-layout) for tools/convert.py
+        flame. Motion-length rows
         no corpus motion has (lengths the net never saw) copy the nearest seen row, so a request
         for such a length behaves like the closest trained one instead of reading random init."""
         seen = np.unique(self.lengths)

@@ -1,4 +1,5 @@
-"""Reference of diffusers' DDIM sampling as MoLA and MLD configure it (REFERENCE 7.1, 7.2, 7.3.3):
+"""Reference of diffusers' DDIM sampling as MoLA and MLD configure it
+(docs/official/mola-mld.md#mola-scheduler, docs/official/mola-mld.md#mld-scheduler, docs/official/mola-mld.md#scheduler-tables-in-float32):
 the loop runs diffusers' own `DDIMScheduler` (diffusers 0.42.1), so the oracle of the Rust parity
 test (tests/diffusers_ddim.rs) is the independent implementation itself, not a re-derivation.
 

@@ -1,4 +1,6 @@
-"""Reference of FLAME's diffusion sampling (guided-diffusion semantics), from REFERENCE.md 1.8-1.11.
+"""Reference of FLAME's diffusion sampling (guided-diffusion semantics), from kakaobrain/flame
+`src/models/components/gaussian_diffusion.py`, `respace.py` and `src/utils/sample_util.py`
+(docs/official/flame.md#noise-schedule to docs/official/flame.md#classifier-free-guidance).
 
 dtype behaviour mirrors the official code: every table is float64 numpy, a step gathers its
 coefficients as float64 and casts them to float32 (`.float()`), and all per-step math on x runs in
@@ -15,7 +17,7 @@ import numpy as np
 import torch
 
 
-# -- schedules (REFERENCE 1.8) --------------------------------------------------------------------
+# -- schedules (docs/official/flame.md#noise-schedule) ----------------------------------------------
 
 def cosine_alpha_bar(s):
     return math.cos((s + 0.008) / 1.008 * math.pi / 2) ** 2
@@ -42,7 +44,7 @@ def named_betas(schedule, num_timesteps):
     raise ValueError(f"unknown beta schedule {schedule!r}")
 
 
-# -- respacing (REFERENCE 1.9) --------------------------------------------------------------------
+# -- respacing (docs/official/flame.md#respacing) ---------------------------------------------------
 
 def space_timesteps(num_timesteps, section_counts):
     """Set of original step indices to keep (section rule, or "ddimN")."""
@@ -80,7 +82,7 @@ def _gather(table, t, shape):
 
 
 class GaussianDiffusion:
-    """Epsilon prediction, learned-range variance (REFERENCE 1.8)."""
+    """Epsilon prediction, learned-range variance (docs/official/flame.md#ddpm-step)."""
 
     def __init__(self, betas):
         betas = np.asarray(betas, dtype=np.float64)
@@ -143,7 +145,7 @@ class GaussianDiffusion:
         return {"sample": sample, "pred_xstart": out["pred_xstart"]}
 
     def ddim_sample(self, model, x, t, noise=None, eta=0.0, clip_denoised=True):
-        """REFERENCE 1.10; eps re-derived from the (clamped) x0."""
+        """DDIM (docs/official/flame.md#ddim); eps re-derived from the (clamped) x0."""
         out = self.p_mean_variance(model, x, t, clip_denoised)
         eps = self.predict_eps_from_xstart(x, t, out["pred_xstart"])
         alpha_bar = _gather(self.alphas_cumprod, t, x.shape)
@@ -180,7 +182,7 @@ class GaussianDiffusion:
 
 
 class SpacedDiffusion(GaussianDiffusion):
-    """REFERENCE 1.9: betas rebuilt from the kept steps; the network sees timestep_map[t]."""
+    """Betas rebuilt from the kept steps; the network sees timestep_map[t] (docs/official/flame.md#respacing)."""
 
     def __init__(self, base_betas, use_timesteps):
         base = GaussianDiffusion(base_betas)
@@ -200,7 +202,8 @@ class SpacedDiffusion(GaussianDiffusion):
 
 
 class ClassifierFreeGuidance:
-    """REFERENCE 1.11 as a model(x, timesteps) callable over a 2N batch [cond rows; "" rows].
+    """FLAME's guidance (`src/utils/sample_util.py`; docs/official/flame.md#classifier-free-guidance)
+    as a model(x, timesteps) callable over a 2N batch [cond rows; "" rows].
 
     The first half of x is duplicated, one forward runs on the 2N batch, eps = eps_u + s(eps_c - eps_u)
     goes to both halves, and the variance channels are left per row (so the kept first half uses the

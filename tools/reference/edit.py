@@ -1,6 +1,8 @@
 """Reference of the three editing loops (motion in-painting with a reference and a keep-mask), written
-from REFERENCE.md 1.12 (FLAME), 2.6 (MDM) and 3 ("euler_replacement_edit_till", Motion Flow
-Matching). It is the oracle of tools/make_edit_fixtures.py.
+from the official loops: FLAME (`edit_motion.py`; docs/official/flame.md#editing), MDM
+(`sample/edit.py`; docs/official/mdm.md#editing) and Motion Flow Matching ("euler_replacement_edit_till",
+`flow/flow_matching_class.py`; docs/official/motionfm.md#editing).
+It is the oracle of tools/make_edit_fixtures.py.
 
 Masks are per value (the official FLAME code keeps whole joints and the translation, MDM/MotionFM
 keep frame ranges or feature dims; a per-value boolean mask covers all of them), True = keep the
@@ -40,7 +42,7 @@ def q_sample(diffusion, x_start, t, noise):
 
 def flame_edit_loop(diffusion, model, x_T, reference, keep, q_noises, z_noises,
                     clip_denoised=True, record=False):
-    """FLAME editing (REFERENCE 1.12) over a respaced `SpacedDiffusion`.
+    """FLAME editing (docs/official/flame.md#editing) over a respaced `SpacedDiffusion`.
 
     model: a guided callable model(x, timesteps) on the CFG batch (reference.diffusion
     .ClassifierFreeGuidance); x_T, reference, keep: `[B, 147, L]` (B = the CFG batch, 2N);
@@ -74,7 +76,7 @@ def flame_edit_loop(diffusion, model, x_T, reference, keep, q_noises, z_noises,
 
 
 def mdm_p_sample_replace(diffusion, net, x, t, cond, guidance, reference, keep, noise):
-    """One MDM DDPM step with x0 replacement (REFERENCE 2.5/2.6): x0 = guided net output (CFG on
+    """One MDM DDPM step with x0 replacement (docs/official/mdm.md#editing): x0 = guided net output (CFG on
     x0, uncond = zero text vector), x0 <- where(keep, ref, x0), mean = c1·x0 + c2·x_t,
     sample = mean + [t != 0]·exp(0.5·clipped log posterior variance)·z. Returns (sample, x0, raw)
     where raw is the guided x0 before replacement."""
@@ -88,7 +90,8 @@ def mdm_p_sample_replace(diffusion, net, x, t, cond, guidance, reference, keep, 
 
 
 def mdm_edit_loop(diffusion, net, x_T, cond, guidance, reference, keep, z_noises):
-    """MDM editing (REFERENCE 2.6) over a respaced `SpacedDiffusion`; tensors `[B, 263, 1, T]`.
+    """MDM editing (docs/official/mdm.md#editing) over a respaced `SpacedDiffusion`; tensors
+    `[B, 263, 1, T]`.
 
     z_noises[k] is the p_sample noise of loop step k (spaced t = steps-1-k), ignored at t = 0.
     Returns per-step dicts: t, model_t, x (sample after the step), pred_xstart (replaced x0),
@@ -112,7 +115,8 @@ def flow_reference_point(z0, reference, i, steps):
 
 
 def flow_edit_loop(net, z0, cond, guidance, reference, keep, steps, edit_till):
-    """Motion Flow Matching "euler_replacement_edit_till" (REFERENCE 3); tensors `[B, 263, 1, T]`.
+    """Motion Flow Matching "euler_replacement_edit_till" (docs/official/motionfm.md#editing); tensors
+    `[B, 263, 1, T]`.
 
     For i = 0..N-1: t = float32(i)/float32(N); if i/N <= edit_till (python floats) the kept values
     of x become x_ref,i; v = guided velocity at pe row trunc(float32(t·1000)); x <- x +

@@ -1,5 +1,6 @@
 """PyTorch reference of FineMoGen's released HumanML3D text-to-motion model
-(mingyuan-zhang/FineMoGen, REFERENCE.md section 9), written from the description there.
+(mingyuan-zhang/FineMoGen d5697b5aa6ad), written from the released code as docs/official/finemogen.md
+describes it.
 
 Module names follow the released code, so `FineMoGenNet.state_dict()` has the keys of an official
 checkpoint without the `model.` prefix and without `model.clip.*`:
@@ -29,7 +30,7 @@ from torch import nn
 from .diffusion import SpacedDiffusion, linear_betas, space_timesteps
 
 PARTS = ("head", "stem", "larm", "rarm", "lleg", "rleg", "root", "body")
-# SMPL joints of each part (REFERENCE 9.4); body = all 22 in order.
+# SMPL joints of each part (docs/official/finemogen.md#body-part-split); body = all 22 in order.
 PART_JOINTS = {"head": (12, 15), "stem": (3, 6, 9), "larm": (14, 17, 19, 21),
                "rarm": (13, 16, 18, 20), "lleg": (2, 5, 8, 11), "rleg": (1, 4, 7, 10),
                "root": (0,), "body": tuple(range(22))}
@@ -44,7 +45,7 @@ RELEASED = dict(input_feats=263, dataset="human_ml3d", part_dim=64, num_layers=4
 
 
 def t2m_joint_indices(j):
-    """HumanML3D 263 feature indices of joint j (REFERENCE 9.4)."""
+    """HumanML3D 263 feature indices of joint j (docs/official/finemogen.md#body-part-split)."""
     if j == 0:
         return [0, 1, 2, 3, 193, 194, 195, 259, 260, 261, 262]
     ric, rot, vel = 4 + 3 * (j - 1), 67 + 6 * (j - 1), 193 + 3 * j

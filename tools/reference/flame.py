@@ -1,8 +1,9 @@
 """PyTorch reference of the FLAME text-to-motion denoiser (kakaobrain/flame `Text2MotionTransformer`).
 
-Written from docs REFERENCE.md section 1 (FLAME) and 6a (RoBERTa); it is the oracle the Rust parity
-tests are generated from (tools/make_fixtures.py). Submodule names are the official ones, so
-`state_dict()` has exactly the keys of an official checkpoint's net (REFERENCE 1.5):
+Written from kakaobrain/flame `src/models/components/text2motion_model.py` as described in
+docs/official/flame.md and docs/official/text-encoders.md#roberta-base; it is the oracle the Rust
+parity tests are generated from (tools/make_fixtures.py). Submodule names are the official ones, so
+`state_dict()` has exactly the keys of an official checkpoint's net (docs/official/flame.md#state-dict-names):
 `lm.*`, `motion_length_emb`, `input_projection`, `text_pooler_proj`, `text_h_proj`, `tf_decoder`,
 `last_projection`.
 
@@ -21,7 +22,8 @@ NUM_AUX_TOKENS = 3  # motion-length token, timestep token, text pooler token
 
 
 def sinusoid(s, dim, max_period=10000.0):
-    """REFERENCE 1.2: cos in the first half, sin in the second; frequencies computed in float32.
+    """Cos in the first half, sin in the second; frequencies computed in float32
+    (kakaobrain/flame `src/models/components/nn.py`; docs/official/flame.md#sinusoidal-embedding).
 
     `s` is a 1-D tensor of (integer or real) positions/timesteps; returns `[len(s), dim]` float32.
     """
@@ -61,7 +63,8 @@ class Text2MotionTransformer(nn.Module):
 
     # -- text ---------------------------------------------------------------------------------
     def tokenize(self, texts):
-        """REFERENCE 1.7: <s> tokens </s> <pad>..., padded/truncated to max_text_length."""
+        """<s> tokens </s> <pad>..., padded/truncated to max_text_length
+        (docs/official/flame.md#roberta-prompt-encoding)."""
         enc = self.tokenizer(list(texts), padding="max_length", truncation=True,
                              max_length=self.max_text_length, return_tensors="pt",
                              return_token_type_ids=False)
@@ -76,7 +79,7 @@ class Text2MotionTransformer(nn.Module):
 
     # -- denoiser -----------------------------------------------------------------------------
     def forward(self, x, timesteps, motion_length, texts=None, mask=None, text_features=None):
-        """REFERENCE 1.3.
+        """`Text2MotionTransformer.forward` (docs/official/flame.md#denoiser-forward-pass).
 
         x `[B, motion_dim, L]`; timesteps `[B]` ORIGINAL diffusion step indices; motion_length `[B]`
         int; texts: B strings (or `text_features` = encode_text output); mask `[B, L]` bool, True =

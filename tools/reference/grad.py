@@ -1,5 +1,6 @@
 """PyTorch-autograd reference of the reverse-mode products libflame's gradient-guided editing uses
-(MoLA's MPGD, REFERENCE.md 7.1 and 7.3): x0 <- x0 - rho(t) * grad_x0 sum_{frame,joint}
+(MoLA's MPGD, sony/MoLA `models/mola_module.py`; docs/official/mola-mld.md#mola-mpgd-editing):
+ x0 <- x0 - rho(t) * grad_x0 sum_{frame,joint}
 ||(J(x0) - c) * m||_2 with J = VAE decoder -> de-normalisation -> joint positions. Every product
 here is the forward written from its definition and differentiated by torch.autograd.grad; nothing
 is derived by hand.
@@ -17,7 +18,8 @@ is derived by hand.
   position gradient.
 
 The SMPL parents and rest offsets are not typed in here: they are imported from
-tools/motion_reference.py, which transcribes REFERENCE.md 5's table (the same decimal literals as
+tools/motion_reference.py, which transcribes the offset table of docs/official/smpl.md#rest-offsets (the
+same decimal literals as
 the runtime's skeleton, so both sides hold the same doubles).
 
 Usage: python3 tools/reference/grad.py [--out tests/fixtures/grad_expected.safetensors]

@@ -1,9 +1,10 @@
 """PyTorch reference of MDM's `trans_enc` denoiser (GuyTevet/motion-diffusion-model) and of Motion
 Flow Matching's `MDM_Flow` (dongzhuoyao/motionfm), which is the same network predicting a velocity.
 
-Written from REFERENCE.md sections 2.2-2.5 (MDM) and 3 (MotionFM); it is the oracle the Rust
-parity tests are generated from (tools/make_mdm_fixtures.py). Submodule names are the official
-ones, so `state_dict()` has exactly an official checkpoint's keys (REFERENCE 2.3) minus
+Written from GuyTevet/motion-diffusion-model `model/mdm.py` (docs/official/mdm.md) and
+dongzhuoyao/motionfm `model/mdm_flow.py` (docs/official/motionfm.md); it is the oracle the
+Rust parity tests are generated from (tools/make_mdm_fixtures.py). Submodule names are the official
+ones, so `state_dict()` has exactly an official checkpoint's keys (docs/official/mdm.md#state-dict-names) minus
 `clip_model.*`: `input_process.poseEmbedding`, `sequence_pos_encoder.pe`, `seqTransEncoder`,
 `embed_timestep.{sequence_pos_encoder.pe, time_embed.0, time_embed.2}`, `embed_text`,
 `output_process.poseFinal`.
@@ -21,7 +22,8 @@ from torch import nn
 
 
 class PositionalEncoding(nn.Module):
-    """REFERENCE 2.2.1: pe `[max_len, 1, d]`, sin on even channels, cos on odd (interleaved)."""
+    """pe `[max_len, 1, d]`, sin on even channels, cos on odd (interleaved)
+    (docs/official/mdm.md#positional-encoding)."""
 
     def __init__(self, d_model, max_len=5000):
         super().__init__()
@@ -39,7 +41,7 @@ class PositionalEncoding(nn.Module):
 
 
 class TimestepEmbedder(nn.Module):
-    """REFERENCE 2.2.2: Linear -> SiLU -> Linear on pe[t]; returns `[1, B, d]`."""
+    """Linear -> SiLU -> Linear on pe[t]; returns `[1, B, d]` (docs/official/mdm.md#timestep-embedding)."""
 
     def __init__(self, latent_dim, sequence_pos_encoder):
         super().__init__()
@@ -77,7 +79,8 @@ class OutputProcess(nn.Module):
 
 
 class MDM(nn.Module):
-    """MDM trans_enc, text-conditioned, "add" policy for time + text (REFERENCE 2.2)."""
+    """MDM trans_enc, text-conditioned, "add" policy for time + text
+    (docs/official/mdm.md#denoiser-forward-pass)."""
 
     def __init__(self, njoints=263, latent_dim=512, layers=8, heads=4, ff_size=1024,
                  activation="gelu", clip_dim=512, max_len=5000, dropout=0.1):
@@ -108,7 +111,7 @@ class MDM(nn.Module):
 
 
 def flow_time_index(t):
-    """REFERENCE 3: t in [0, 1] (float32 tensor) -> pe row trunc(float32(t * 1000))."""
+    """t in [0, 1] (float32 tensor) -> pe row trunc(float32(t * 1000)) (docs/official/motionfm.md#time-index)."""
     t = torch.as_tensor(t, dtype=torch.float32)
     return (t * 1000).long()
 
@@ -119,7 +122,8 @@ def frame_major(x):
 
 
 def guided(net, x, timesteps, cond, guidance):
-    """CFG (REFERENCE 2.5): out_u + s*(out_c - out_u), cond = text vectors `[B, clip]`, uncond =
+    """CFG (docs/official/mdm.md#sampling-and-guidance):
+    out_u + s*(out_c - out_u), cond = text vectors `[B, clip]`, uncond =
     zeros; both passes see the same x and t (run as one 2B batch)."""
     b = x.shape[0]
     out = net(torch.cat([x, x]), torch.cat([timesteps, timesteps]),
@@ -150,7 +154,8 @@ def ddim_x0_loop(net, diffusion, x_T, cond, guidance):
 
 
 def euler_loop(net, x0_noise, cond, guidance, steps):
-    """MotionFM Euler ODE from t = 0 (noise) to 1 (data), custom-loop semantics (REFERENCE 3):
+    """MotionFM Euler ODE from t = 0 (noise) to 1 (data), custom-loop semantics
+    (docs/official/motionfm.md#euler-sampler):
     t_k = float32(k) / float32(N), v = guided velocity at t_k, x <- x + float32(1/N)·v.
     Returns a list of per-step dicts {t, index, x, v}."""
     x = x0_noise

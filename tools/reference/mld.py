@@ -1,5 +1,6 @@
 """PyTorch reference of MLD's text-to-motion inference (ChenFengYe/motion-latent-diffusion,
-humanml3d config), from REFERENCE.md 7.2 plus standard PyTorch modules where 7.2 is silent.
+humanml3d config), from the files docs/official/mola-mld.md names (docs/official/mola-mld.md#mld-denoiser,
+docs/official/mola-mld.md#mld-vae-decoder) plus standard PyTorch modules where they are silent.
 
 Module names follow the official Lightning `state_dict` (under `denoiser.` and `vae.`):
 - denoiser: `time_embedding.linear_{1,2}`, `emb_proj.1` (ReLU at index 0), `query_pos.pe`

@@ -1,5 +1,6 @@
-"""PyTorch reference of MoLA's text-to-motion inference (sony/MoLA), from REFERENCE.md 7.1 and
-its corrections 7.3.
+"""PyTorch reference of MoLA's text-to-motion inference (sony/MoLA 3313148), from the files
+docs/official/mola-mld.md names (docs/official/mola-mld.md#mola-denoiser,
+docs/official/mola-mld.md#mola-vae-decoder).
 
 Module names follow the official state dicts, so `state_dict()` has an official checkpoint's keys:
 - `Stage2` = the 'trans' dict: `denoiser.*` (the stable-audio style DiffusionTransformer, 7.3.1)
@@ -253,7 +254,8 @@ class Stage1Decoder(nn.Module):
 
 def valid_length(flag_logits, threshold=FLAG_THRESHOLD, min_frames=MIN_FRAMES):
     """flag logits `[T]` -> number of frames kept: the first frame with sigmoid(flag) <= threshold
-    (all above: T - 1, REFERENCE 7.3.2), at least min_frames. (choice) The result is also capped
+    (all above: T - 1; docs/official/mola-mld.md#length-flag), at least min_frames.
+    (choice) The result is also capped
     at T, which only matters for T < min_frames (not reachable by the official lengths)."""
     below = (torch.sigmoid(flag_logits) <= threshold).nonzero()
     n = int(below[0, 0]) if below.numel() else flag_logits.shape[0] - 1

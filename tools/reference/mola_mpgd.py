@@ -1,4 +1,5 @@
-"""PyTorch reference of MoLA's MPGD motion editing (sony/MoLA 3313148; REFERENCE.md 7.1, 7.3),
+"""PyTorch reference of MoLA's MPGD motion editing (sony/MoLA 3313148;
+docs/official/mola-mld.md#mola-mpgd-editing),
 built on tools/reference/mola.py (its denoiser, decoder and diffusers DDIMScheduler).
 
 Official flow (models/t2m_latent_diffusion.py `_diffusion_reverse` with `control`, and

@@ -1,5 +1,5 @@
 """PyTorch definition of the OMG-style model (Liang et al., "Towards Open-vocabulary Motion
-Generation via Mixture of Controllers", CVPR 2024; REFERENCE.md section 10).
+Generation via Mixture of Controllers", CVPR 2024, sections 3.1 and 3.2; docs/official/omg.md).
 
 No official code or weights were released, so this module DEFINES the model libflame runs: the
 paper's statements plus libflame's documented choice for every detail it does not give

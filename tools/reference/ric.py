@@ -1,4 +1,6 @@
-"""HumanML3D `recover_from_ric` in torch (REFERENCE.md section 4), differentiable, in the dtype
+"""HumanML3D `recover_from_ric` in torch (GuyTevet/motion-diffusion-model
+`data_loaders/humanml/scripts/motion_process.py`; docs/official/humanml3d.md#recovering-joint-positions),
+differentiable, in the dtype
 of its input (float32 or float64).
 
 Features `[..., T, 263]` (denormalised) -> joint positions `[..., T, 22, 3]`:

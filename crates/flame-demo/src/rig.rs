@@ -20,7 +20,8 @@ use flame::motion::skeleton::Skeleton;
 /// Frames per second of every corpus motion (FLAME's rate).
 pub const FPS: f64 = 20.0;
 
-/// SMPL-24 joint indices used by the generator and the classifier (REFERENCE 5).
+/// SMPL-24 joint indices used by the generator and the classifier
+/// (docs/official/smpl.md#joint-order).
 pub mod joint {
     pub const PELVIS: usize = 0;
     pub const L_HIP: usize = 1;

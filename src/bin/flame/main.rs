@@ -511,7 +511,8 @@ fn edit(a: &EditArgs) -> Result<(), String> {
         "velocity" | "flow"
     );
     if flow && params.steps.is_none() {
-        // Motion Flow Matching edits with N = 30 (REFERENCE 3).
+        // Motion Flow Matching edits with N = 30 (libflame's choice;
+        // docs/official/motionfm.md#editing).
         params.steps = Some(30);
     }
     let decoder = outputs.decoder(model);
