@@ -468,7 +468,7 @@ mod tests {
             for n in [1_000_000_000u64, u64::MAX] {
                 let e = err(section, key, n.into());
                 assert!(
-                    e.contains(&format!("{section}.{key} {n} is outside")),
+                    e.contains(&format!("{section}.{key} is {n}; it must be between")),
                     "{e}"
                 );
             }
@@ -589,7 +589,7 @@ mod tests {
             (
                 vec![("spacing", "leading".into()), ("steps_offset", 1000.into())],
                 50,
-                "config diffusion.steps_offset 1000 is outside 0..1000",
+                "config diffusion.steps_offset is 1000; it must be below diffusion.num_timesteps (1000)",
             ),
             (
                 vec![("spacing", "leading".into()), ("steps_offset", 20.into())],
@@ -646,10 +646,16 @@ mod tests {
             e.contains("config diffusion.schedule `linear` with num_timesteps 10"),
             "{e}"
         );
-        assert!(e.contains("outside (0, 1)"), "{e}");
+        assert!(e.contains("must be between 0 and 1, both excluded"), "{e}");
         let e = err("defaults", "steps", 1001.into());
-        assert!(e.contains("defaults.steps 1001 is outside 1..=1000"), "{e}");
+        assert!(
+            e.contains("defaults.steps is 1001; it must be between 1 and 1000"),
+            "{e}"
+        );
         let e = err("defaults", "frames", 471.into());
-        assert!(e.contains("defaults.frames 471 is outside 1..=470"), "{e}");
+        assert!(
+            e.contains("defaults.frames is 471; it must be between 1 and 470"),
+            "{e}"
+        );
     }
 }

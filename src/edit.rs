@@ -48,7 +48,7 @@ impl EditMethod {
         EditMethod::ALL
             .get(v as usize)
             .copied()
-            .ok_or_else(|| invalid_arg!("unknown edit method {v} (expected 0..=3)"))
+            .ok_or_else(|| invalid_arg!("unknown edit method {v} (expected 0, 1, 2 or 3)"))
     }
 }
 
@@ -98,13 +98,13 @@ impl EditParams {
     pub fn validate(&self) -> Result<()> {
         if !(self.edit_till.is_finite() && (0.0..=1.0).contains(&self.edit_till)) {
             return Err(invalid_arg!(
-                "edit_till must be in [0, 1], got {}",
+                "`edit_till` (the share of the steps that rewrite the trajectory) must be between 0 and 1, got {}",
                 self.edit_till
             ));
         }
         if self.seam_frames > 1000 {
             return Err(invalid_arg!(
-                "seam_frames {} is out of range (0..=1000)",
+                "`seam_frames` must be between 0 and 1000, got {}",
                 self.seam_frames
             ));
         }

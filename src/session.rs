@@ -288,7 +288,7 @@ impl Session {
         let mut frames = params.frames.unwrap_or(d.frames.min(model.max_frames()));
         if frames == 0 || frames > model.max_frames() {
             return Err(invalid_arg!(
-                "frames {frames} outside 1..={}",
+                "frames must be between 1 and {} for this model, got {frames}",
                 model.max_frames()
             ));
         }
@@ -313,7 +313,7 @@ impl Session {
         let guidance = params.guidance.unwrap_or(d.guidance);
         if !crate::config::guidance_in_range(guidance) {
             return Err(invalid_arg!(
-                "guidance {guidance} outside 0..={MAX_GUIDANCE} (0 = unconditional, 1 = the prompt alone, more strengthens the prompt; negative guidance is not supported)"
+                "guidance must be between 0 and {MAX_GUIDANCE}, got {guidance} (0 = unconditional, 1 = the prompt alone, more strengthens the prompt; negative guidance is not supported)"
             ));
         }
         let rule = build_rule(&model, params)?;
@@ -632,7 +632,7 @@ impl Session {
         let frames = features.len() / dim;
         if frames == 0 || !features.len().is_multiple_of(dim) || frames > self.frames {
             return Err(invalid_arg!(
-                "the reference holds {} values; 1..={} frames of {dim} features expected",
+                "the reference holds {} values; expected 1 to {} frames of {dim} features",
                 features.len(),
                 self.frames
             ));
@@ -791,7 +791,7 @@ impl Session {
             || features.len() > self.x.len()
         {
             return Err(invalid_arg!(
-                "reference has {} values; it must be 1..={} whole frames of {dim} values (the session has {} frames)",
+                "reference has {} values; it must be between 1 and {} whole frames of {dim} values (the session has {} frames)",
                 features.len(),
                 self.frames,
                 self.frames

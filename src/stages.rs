@@ -162,7 +162,9 @@ pub fn from_prompt_file(text: &str, model_fps: f32) -> Result<Vec<Stage>> {
         .map_err(|e| invalid_arg!("prompt file: {e} (expected {{\"stages\": [{{\"start_frame\", \"end_frame\", \"all\", ...}}]}})"))?;
     let fps = file.fps.unwrap_or(model_fps as f64);
     if !(fps.is_finite() && fps > 0.0 && fps <= 1000.0) {
-        return Err(invalid_arg!("prompt file: fps {fps} is outside (0, 1000]"));
+        return Err(invalid_arg!(
+            "prompt file: fps must be above 0 and at most 1000, got {fps}"
+        ));
     }
     if file.stages.is_empty() || file.stages.len() > 1024 {
         return Err(invalid_arg!(
@@ -280,7 +282,7 @@ mod tests {
             ),
             (
                 r#"{"fps": 0, "stages": [{"start_frame": 0, "end_frame": 4, "all": "x"}]}"#,
-                "fps 0",
+                "fps must be above 0 and at most 1000, got 0",
             ),
             (
                 r#"{"fps": 1000, "stages": [{"start_frame": 0, "end_frame": 1, "all": "x"}]}"#,

@@ -371,13 +371,13 @@ impl Stream {
         }
         if params.overlap == 0 || params.overlap >= chunk {
             return Err(invalid_arg!(
-                "overlap {} must be in 1..{chunk} (the chunk's frames)",
+                "overlap {} must be at least 1 and below the chunk's {chunk} frames",
                 params.overlap
             ));
         }
         if params.session.frames.is_some() {
             return Err(invalid_arg!(
-                "a stream's chunks set their own frame counts: leave SessionParams::frames unset"
+                "a stream's chunks set their own frame counts: leave the session parameters' frame count unset"
             ));
         }
         // Validate the rest of the session parameters now, not at the first chunk.
@@ -953,7 +953,7 @@ impl Stream {
         }
         if end > self.ready() {
             return Err(Error::WrongState(format!(
-                "frames {first}..{end} are not generated yet ({} ready): pump more",
+                "frames from {first} to {end} (end excluded) are not generated yet ({} ready): pump more",
                 self.ready()
             )));
         }

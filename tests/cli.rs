@@ -905,7 +905,7 @@ fn stream_writes_the_whole_timeline() {
     ]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     assert!(
-        stderr(&o).contains("overlap 10 must be in 1..10"),
+        stderr(&o).contains("overlap 10 must be at least 1 and below the chunk's 10 frames"),
         "{}",
         stderr(&o)
     );

@@ -276,17 +276,17 @@ fn wrong_order_and_bad_arguments_are_errors() {
         frames: Some(0),
         ..Default::default()
     })
-    .contains("frames 0 outside"));
+    .contains("frames must be between 1 and 470 for this model, got 0"));
     assert!(bad(SessionParams {
         frames: Some(471),
         ..Default::default()
     })
-    .contains("frames 471 outside 1..=470"));
+    .contains("frames must be between 1 and 470 for this model, got 471"));
     assert!(bad(SessionParams {
         steps: Some(1001),
         ..Default::default()
     })
-    .contains("steps 1001 outside"));
+    .contains("steps must be between 1 and 1000 for this model, got 1001"));
     assert!(bad(SessionParams {
         guidance: Some(f32::NAN),
         ..Default::default()

@@ -19,7 +19,9 @@ use super::*;
 /// `lo <= value <= hi`, or an error naming the field and the range.
 pub(crate) fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Result<()> {
     if value < lo || value > hi {
-        return Err(bad_file!("config {field} {value} is outside {lo}..={hi}"));
+        return Err(bad_file!(
+            "config {field} is {value}; it must be between {lo} and {hi}"
+        ));
     }
     Ok(())
 }
@@ -28,9 +30,9 @@ pub(crate) fn in_range(field: &str, value: usize, lo: usize, hi: usize) -> Resul
 pub(crate) fn in_range_f32(field: &str, value: f32, lo: f32, hi: f32, open_lo: bool) -> Result<()> {
     let above = if open_lo { value > lo } else { value >= lo };
     if !(value.is_finite() && above && value <= hi) {
-        let open = if open_lo { "(" } else { "[" };
+        let above = if open_lo { "above" } else { "at least" };
         return Err(bad_file!(
-            "config {field} {value:?} is outside {open}{lo:?}, {hi:?}]"
+            "config {field} is {value}; it must be a number {above} {lo} and at most {hi}"
         ));
     }
     Ok(())
@@ -336,7 +338,7 @@ fn check_spacing(dc: &DiffusionConfig, flow: bool) -> Result<Spacing> {
     }
     if dc.steps_offset >= dc.num_timesteps {
         return Err(bad_file!(
-            "config diffusion.steps_offset {} is outside 0..{}",
+            "config diffusion.steps_offset is {}; it must be below diffusion.num_timesteps ({})",
             dc.steps_offset,
             dc.num_timesteps
         ));

@@ -86,7 +86,10 @@ impl FlowSampler {
         x1: &mut [f32],
     ) -> Result<()> {
         if k >= self.steps {
-            return Err(invalid_arg!("flow step {k} outside 0..{}", self.steps));
+            return Err(invalid_arg!(
+                "flow step {k} does not exist: the sampler takes {} steps, counted from 0",
+                self.steps
+            ));
         }
         let n = x.len();
         if x_next.len() != n || x1.len() != n {

@@ -63,7 +63,7 @@ pub fn build_sampler(
             }
             let steps = choice.steps.unwrap_or(defaults.steps);
             if steps == 0 || steps > MAX_FLOW_STEPS {
-                return Err(invalid_arg!("steps {steps} outside 1..={MAX_FLOW_STEPS}"));
+                return Err(invalid_arg!("steps must be between 1 and {MAX_FLOW_STEPS}, got {steps}"));
             }
             return Ok(BuiltSampler::Flow(FlowSampler::new(m, steps)?));
         }
@@ -160,7 +160,9 @@ fn method_name(m: Method) -> &'static str {
 
 fn steps_within(steps: usize, num_timesteps: usize) -> Result<usize> {
     if steps == 0 || steps > num_timesteps {
-        return Err(invalid_arg!("steps {steps} outside 1..={num_timesteps}"));
+        return Err(invalid_arg!(
+            "steps must be between 1 and {num_timesteps} for this model, got {steps}"
+        ));
     }
     Ok(steps)
 }
@@ -313,7 +315,10 @@ mod tests {
         let e = err(&c, &choice(Method::Ddpm, None, Some("ddim999")));
         assert!(e.contains("cannot create exactly 999 steps"), "{e}");
         let e = err(&c, &choice(Method::Ddpm, Some(1001), None));
-        assert!(e.contains("steps 1001 outside 1..=1000"), "{e}");
+        assert!(
+            e.contains("steps must be between 1 and 1000 for this model, got 1001"),
+            "{e}"
+        );
     }
 
     #[test]

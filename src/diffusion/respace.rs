@@ -71,7 +71,9 @@ pub fn diffusers_timesteps(
 ) -> Result<Vec<usize>> {
     let t = num_timesteps;
     if steps == 0 || steps > t {
-        return Err(invalid_arg!("steps {steps} outside 1..={t}"));
+        return Err(invalid_arg!(
+            "steps must be between 1 and {t} for this model, got {steps}"
+        ));
     }
     match spacing {
         Spacing::Leading => {

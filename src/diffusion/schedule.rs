@@ -190,7 +190,9 @@ impl Schedule {
             .enumerate()
             .find(|(_, b)| !(**b > 0.0 && **b < 1.0))
         {
-            return Err(invalid_arg!("betas[{i}] = {b} is outside (0, 1)"));
+            return Err(invalid_arg!(
+                "beta {i} of the noise schedule is {b}; it must be between 0 and 1, both excluded"
+            ));
         }
         let n = betas.len();
         // numpy cumprod is a sequential running product.

@@ -203,7 +203,7 @@ impl SessionState {
         let frames = self.session.frames();
         if start >= end || end > frames {
             return Err(
-                invalid_arg!("frame range {start}..{end} is empty or outside 0..{frames}").into(),
+                invalid_arg!("frame range from {start} to {end} (end excluded) is empty or runs past the session's {frames} frames").into(),
             );
         }
         let d = self.session.model().motion_dim();

@@ -932,7 +932,7 @@ pub unsafe extern "C" fn flame_session_set_task_targets(
         let task = usize::try_from(task)
             .ok()
             .and_then(|t| crate::motion::Task::ALL.get(t).copied())
-            .ok_or_else(|| invalid_arg!("unknown editing task {task} (0..=3)"))?;
+            .ok_or_else(|| invalid_arg!("unknown editing task {task} (a FlameEditTask, 0 to 3)"))?;
         let values = reference_arg(features, frames, dim)?;
         s.with(|st| {
             check_reference_shape(st, frames, dim)?;
@@ -1216,7 +1216,7 @@ fn check_reference_shape(st: &handles::SessionState, frames: u32, dim: u32) -> R
     let (f, d) = (st.session.frames(), st.session.model().motion_dim());
     if frames == 0 || frames as usize > f || dim as usize != d {
         return Err(invalid_arg!(
-            "reference shape {frames} × {dim}: want 1..={f} frames × {d} features"
+            "reference shape {frames} × {dim}: want 1 to {f} frames × {d} features"
         )
         .into());
     }
@@ -1288,7 +1288,7 @@ pub unsafe extern "C" fn flame_session_keep_part(
         let part = usize::try_from(part)
             .ok()
             .and_then(|p| crate::motion::BodyPart::ALL.get(p).copied())
-            .ok_or_else(|| invalid_arg!("unknown body part {part} (0..=4)"))?;
+            .ok_or_else(|| invalid_arg!("unknown body part {part} (a FlameBodyPart, 0 to 4)"))?;
         s.with(|st| st.keep_part(part, start as usize, end as usize))
     })
 }
@@ -1307,7 +1307,7 @@ pub unsafe extern "C" fn flame_session_set_task_mask(
         let task = usize::try_from(task)
             .ok()
             .and_then(|t| crate::motion::Task::ALL.get(t).copied())
-            .ok_or_else(|| invalid_arg!("unknown editing task {task} (0..=3)"))?;
+            .ok_or_else(|| invalid_arg!("unknown editing task {task} (a FlameEditTask, 0 to 3)"))?;
         s.with(|st| {
             let format = st.session.model().motion_format();
             let mask = crate::motion::Mask::for_task(format, st.session.frames(), task)?;
@@ -1346,7 +1346,7 @@ pub unsafe extern "C" fn flame_session_set_reference_poses(
         s.with(|st| {
             let f = st.session.frames();
             if frames == 0 || frames as usize > f {
-                return Err(invalid_arg!("reference frames {frames} outside 1..={f}").into());
+                return Err(invalid_arg!("reference frames must be between 1 and {f} (the session's frames), got {frames}").into());
             }
             Ok(st.session.set_reference_poses(
                 root,

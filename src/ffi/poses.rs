@@ -123,7 +123,7 @@ pub(crate) fn convention(convention: i32) -> Result<Convention> {
     usize::try_from(convention)
         .ok()
         .and_then(|c| CONVENTIONS.get(c).copied())
-        .ok_or_else(|| invalid_arg!("unknown convention {convention} (0..=5)"))
+        .ok_or_else(|| invalid_arg!("unknown convention {convention} (a FlameConvention, 0 to 5)"))
 }
 
 /// The features decoded with read `flags` (smoothing, quaternion signs).
@@ -174,7 +174,7 @@ pub(crate) fn read(
         .ok()
         .and_then(|l| l.checked_sub(1))
         .and_then(|l| LAYOUTS.get(l).copied())
-        .ok_or_else(|| invalid_arg!("unknown layout {layout} (0..=10)"))?;
+        .ok_or_else(|| invalid_arg!("unknown layout {layout} (a FlameLayout, 0 to 10)"))?;
     let opts = motion::ReadOptions {
         finish: *finish,
         ..model.read_options(smooth, flags & FLAME_READ_RAW_SIGNS == 0)

@@ -286,7 +286,9 @@ pub unsafe extern "C" fn flame_rig_from_bones(
             return Err(invalid_arg!("`out` is NULL").into());
         }
         if count == 0 || count > MAX_BONES {
-            return Err(invalid_arg!("a rig needs 1..={MAX_BONES} bones, got {count}").into());
+            return Err(
+                invalid_arg!("a rig needs between 1 and {MAX_BONES} bones, got {count}").into(),
+            );
         }
         let convention = super::poses::convention(convention)?;
         let given = slice_arg(bones, count, "bones")?;
@@ -303,7 +305,7 @@ pub unsafe extern "C" fn flame_rig_from_bones(
                 p if p >= 0 && (p as usize) < count => Some(p as usize),
                 p => {
                     return Err(invalid_arg!(
-                        "bones[{i}] (`{name}`): parent {p} is neither -1 nor a bone (0..{count})"
+                        "bones[{i}] (`{name}`): parent {p} is neither -1 nor the index of one of the {count} bones"
                     )
                     .into())
                 }
@@ -803,7 +805,7 @@ pub unsafe extern "C" fn flame_retarget_read(
             let have = poses.frames();
             if first.checked_add(count).is_none_or(|end| end > have) {
                 return Err(invalid_arg!(
-                    "frames {first}..{first}+{count} are past the read's {have} frames"
+                    "{count} frames from frame {first} run past the read's {have} frames"
                 )
                 .into());
             }

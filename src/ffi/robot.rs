@@ -525,7 +525,7 @@ pub unsafe extern "C" fn flame_robot_retarget_read(
             let have = poses.frames();
             if first.checked_add(count).is_none_or(|end| end > have) {
                 return Err(invalid_arg!(
-                    "frames {first}..{first}+{count} are past the read's {have} frames"
+                    "{count} frames from frame {first} run past the read's {have} frames"
                 )
                 .into());
             }

@@ -464,7 +464,7 @@ pub unsafe extern "C" fn flame_stream_read(
                     .ok()
                     .and_then(|l| l.checked_sub(1))
                     .and_then(|l| Layout::ALL.get(l).copied())
-                    .ok_or_else(|| invalid_arg!("unknown layout {l} (0..=9)"))?,
+                    .ok_or_else(|| invalid_arg!("unknown layout {l} (a FlameLayout, 0 to 9)"))?,
             ),
         };
         let first = frame_arg(first_frame, "first_frame")?;

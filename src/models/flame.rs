@@ -442,7 +442,7 @@ impl FlameDenoiser {
         let batch = conds.len();
         if frames == 0 || frames > self.max_frames() {
             return Err(invalid_arg!(
-                "frames {frames} outside 1..={}",
+                "frames must be between 1 and {} for this model, got {frames}",
                 self.max_frames()
             ));
         }

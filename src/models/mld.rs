@@ -682,7 +682,7 @@ impl VaeDecoder {
         let e = self.cfg.latent_dim;
         if frames == 0 || frames > self.cfg.max_len {
             return Err(invalid_arg!(
-                "frames {frames} outside 1..={}",
+                "frames must be between 1 and {} for this model, got {frames}",
                 self.cfg.max_len
             ));
         }

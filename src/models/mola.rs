@@ -436,7 +436,7 @@ impl MolaDenoiser {
         let (c, e, batch) = (d.latent_channels, d.embed_dim, texts.len());
         if rows == 0 || rows > d.max_latent_frames {
             return Err(invalid_arg!(
-                "latent rows {rows} outside 1..={}",
+                "latent rows must be between 1 and {} for this model, got {rows}",
                 d.max_latent_frames
             ));
         }

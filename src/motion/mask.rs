@@ -142,7 +142,7 @@ pub fn joint_channels(format: Format, joint: usize) -> Result<Vec<usize>> {
     let joints = format.skeleton().joint_count();
     if joint >= joints {
         return Err(invalid_arg!(
-            "joint {joint} does not exist: {format} has {joints} joints (0..{})",
+            "joint {joint} does not exist: {format} has {joints} joints (0 to {})",
             joints - 1
         ));
     }
@@ -236,7 +236,7 @@ fn select(item: &str, format: Format) -> Result<Selected> {
             })
             .ok_or_else(|| {
                 invalid_arg!(
-                    "unknown joint `{item}` (give an index 0..{}, a joint name such as {} or root-path)",
+                    "unknown joint `{item}` (give an index from 0 to {}, a joint name such as {} or root-path)",
                     joints - 1,
                     format.skeleton().joint_names()[4]
                 )
@@ -323,12 +323,12 @@ fn split_list<'a>(spec: &'a str, what: &str) -> Result<Vec<&'a str>> {
 fn check_range(start: usize, end: usize, frames: usize) -> Result<()> {
     if start >= end {
         return Err(invalid_arg!(
-            "frames {start}..{end} are an empty range (start must be below end)"
+            "frames from {start} to {end} (end excluded) are an empty range (start must be below end)"
         ));
     }
     if end > frames {
         return Err(invalid_arg!(
-            "frames {start}..{end} run past the motion's {frames} frames"
+            "frames from {start} to {end} (end excluded) run past the motion's {frames} frames"
         ));
     }
     Ok(())

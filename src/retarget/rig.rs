@@ -98,7 +98,9 @@ impl Rig {
     pub fn new(bones: Vec<BoneSpec>, metres_per_unit: f64, source: RigSource) -> Result<Rig> {
         let n = bones.len();
         if n == 0 || n > MAX_BONES {
-            return Err(invalid_arg!("a rig needs 1..={MAX_BONES} bones, got {n}"));
+            return Err(invalid_arg!(
+                "a rig needs between 1 and {MAX_BONES} bones, got {n}"
+            ));
         }
         if !(metres_per_unit.is_finite() && metres_per_unit > 0.0) {
             return Err(invalid_arg!(
@@ -417,7 +419,7 @@ mod tests {
                 .unwrap_err()
                 .to_string()
         };
-        assert!(err(vec![]).contains("1..=4096 bones"));
+        assert!(err(vec![]).contains("between 1 and 4096 bones"));
         let e = err(vec![
             bone("a", Some(1), [0.0; 3]),
             bone("b", Some(0), [0.0; 3]),

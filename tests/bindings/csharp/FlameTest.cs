@@ -611,10 +611,10 @@ static class FlameTest
             s.Step();
             Throws(FlameStatus.InvalidArgument, "unknown layout 999", () => s.Read(FlameWhich.Sample, 999, FlameConvention.Native, 0));
             Throws(FlameStatus.InvalidArgument, "unknown `which` 5", () => s.Read((FlameWhich)5, 0, 0, 0));
-            Throws(FlameStatus.InvalidArgument, "frame range 5..5", () => s.KeepFrames(5, 5));
-            Throws(FlameStatus.InvalidArgument, "outside 0..24", () => s.KeepFrames(0, 25));
+            Throws(FlameStatus.InvalidArgument, "frame range from 5 to 5", () => s.KeepFrames(5, 5));
+            Throws(FlameStatus.InvalidArgument, "past the session's 24 frames", () => s.KeepFrames(0, 25));
             Throws(FlameStatus.InvalidArgument, "joint 24", () => s.KeepJoints(24));
-            Throws(FlameStatus.InvalidArgument, "want 1..=24 frames", () => s.SetReference(new float[25 * Dim], 25, Dim));
+            Throws(FlameStatus.InvalidArgument, "want 1 to 24 frames", () => s.SetReference(new float[25 * Dim], 25, Dim));
             Throws(FlameStatus.InvalidArgument, "does not match", () => s.SetMask(new byte[RefFrames * 146], RefFrames, 146));
             Throws(FlameStatus.WrongState, "before the first step", () => s.SetNoise(new float[RefFrames * Dim]));
             ThrowsManaged<ArgumentException>(() => s.SetReference(new float[10]));   // checked before native code
@@ -623,10 +623,10 @@ static class FlameTest
         }
         var p = RefParams();
         p.frames = 471;
-        Throws(FlameStatus.InvalidArgument, "frames 471 outside 1..=470", () => model.NewSession(p).Dispose());
+        Throws(FlameStatus.InvalidArgument, "frames must be between 1 and 470 for this model, got 471", () => model.NewSession(p).Dispose());
         p = RefParams();
         p.steps = 1001;
-        Throws(FlameStatus.InvalidArgument, "steps 1001 outside 1..=1000", () => model.NewSession(p).Dispose());
+        Throws(FlameStatus.InvalidArgument, "steps must be between 1 and 1000 for this model, got 1001", () => model.NewSession(p).Dispose());
         p = RefParams();
         p.sampler = 7;
         Throws(FlameStatus.InvalidArgument, "unknown sampler 7", () => model.NewSession(p).Dispose());
@@ -1156,7 +1156,7 @@ static class FlameTest
             Throws(FlameStatus.InvalidArgument, "layout", () => s.SetReferencePoses(root, rot6d, FlameLayout.GlobalQuatXyzw, 0));
             Throws(FlameStatus.InvalidArgument, "convention", () => s.SetReferencePoses(root, rot6d, FlameLayout.Local6d, 6));
             Throws(FlameStatus.InvalidArgument, "rotations", () => s.SetReferencePoses(root, rot6d, FlameLayout.LocalQuatXyzw, 0));
-            Throws(FlameStatus.InvalidArgument, "outside 1..=24", () => s.SetReferencePoses(new float[25 * 3], new float[25 * 24 * 6], FlameLayout.Local6d, 0));
+            Throws(FlameStatus.InvalidArgument, "between 1 and 24 (the session's frames), got 25", () => s.SetReferencePoses(new float[25 * 3], new float[25 * 24 * 6], FlameLayout.Local6d, 0));
             ThrowsManaged<ArgumentException>(() => s.SetReferencePoses(new float[5], rot6d, FlameLayout.Local6d, 0));
             ThrowsManaged<ArgumentNullException>(() => s.SetReferencePoses(root, null, FlameLayout.Local6d, 0));
             Throws(FlameStatus.InvalidArgument, "`rotations` is NULL",
@@ -3175,7 +3175,7 @@ static class FlameTest
         Throws(FlameStatus.InvalidArgument, "Neck", rigWith(b => b[4].Scale = new float[] { 1, 0, 1 }));
         ThrowsManaged<ArgumentException>(rigWith(b => b[4].Translation = new float[2]));
         ThrowsManaged<ArgumentNullException>(rigWith(b => b[4] = null));
-        Throws(FlameStatus.InvalidArgument, "1..=4096 bones, got 0", () => FlameRig.FromBones(new List<RigBone>(), FlameConvention.Unity));
+        Throws(FlameStatus.InvalidArgument, "between 1 and 4096 bones, got 0", () => FlameRig.FromBones(new List<RigBone>(), FlameConvention.Unity));
         Throws(FlameStatus.InvalidArgument, "native", () => FlameRig.FromBones(UnityHumanoid(), FlameConvention.Native));
         // Names the automatic map cannot read: the retarget says which humanoid bones it lacks.
         using (var odd = FlameRig.FromBones(UnityHumanoid(name => "bone_" + name.Length + "_" + name.GetHashCode()), FlameConvention.Unity))

@@ -277,14 +277,14 @@ def test_session_errors(model):
         expect_error(Status.INVALID_ARGUMENT, "unknown `which` 5", s.read, 5)
         with pytest.raises(ValueError):
             s.read("noisy")
-        expect_error(Status.INVALID_ARGUMENT, "frame range 5..5", s.keep_frames, 5, 5)
-        expect_error(Status.INVALID_ARGUMENT, "outside 0..24", s.keep_frames, 0, 25)
+        expect_error(Status.INVALID_ARGUMENT, "frame range from 5 to 5", s.keep_frames, 5, 5)
+        expect_error(Status.INVALID_ARGUMENT, "past the session's 24 frames", s.keep_frames, 0, 25)
         expect_error(Status.INVALID_ARGUMENT, "joint 24", s.keep_joints, [24])
-        expect_error(Status.INVALID_ARGUMENT, "want 1..=24 frames", s.set_reference, np.zeros((25, DIM)))
+        expect_error(Status.INVALID_ARGUMENT, "want 1 to 24 frames", s.set_reference, np.zeros((25, DIM)))
         expect_error(Status.INVALID_ARGUMENT, "does not match", s.set_mask, np.zeros((24, 146)))
     for kwargs, fragment in [
-        (dict(frames=471), "frames 471 outside 1..=470"),
-        (dict(steps=1001), "steps 1001 outside 1..=1000"),
+        (dict(frames=471), "frames must be between 1 and 470 for this model, got 471"),
+        (dict(steps=1001), "steps must be between 1 and 1000 for this model, got 1001"),
         (dict(sampler=7), "unknown sampler 7"),
         (dict(guidance=float("nan")), "`guidance` is NaN"),
         (dict(eta=float("nan")), "`eta` is NaN"),
@@ -842,7 +842,7 @@ def test_reference_poses_round_trip(model):
             expect_error(Status.INVALID_ARGUMENT, "layout", s.set_reference_poses, root, rot6d, Layout.GLOBAL_QUAT_XYZW)
             expect_error(Status.INVALID_ARGUMENT, "convention", s.set_reference_poses, root, rot6d, Layout.LOCAL_6D, 6)
             expect_error(Status.INVALID_ARGUMENT, "rotations", s.set_reference_poses, root, rot6d, Layout.LOCAL_QUAT_XYZW)
-            expect_error(Status.INVALID_ARGUMENT, "outside 1..=24", s.set_reference_poses,
+            expect_error(Status.INVALID_ARGUMENT, "between 1 and 24 (the session's frames), got 25", s.set_reference_poses,
                          np.zeros((25, 3)), np.zeros((25, 24, 6)), Layout.LOCAL_6D)
             bad = root.copy()
             bad[2, 1] = np.nan
