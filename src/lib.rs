@@ -55,3 +55,30 @@ pub mod targets;
 pub mod text;
 
 pub use error::{Error, Result};
+
+/// The guide's Rust examples (README.md and the pages of docs/ that have any), compiled by
+/// `cargo test --doc` as doctests of this crate (in tools/check.sh's `rust` stage); examples
+/// that need a converted checkpoint are `no_run`, the others run on the test fixtures.
+/// tools/docs_blocks.py checks that every page with a Rust block is listed here.
+/// cbindgen:ignore
+#[cfg(doctest)]
+mod guide {
+    macro_rules! pages {
+        ($($name:ident = $path:literal),* $(,)?) => {
+            $(
+                #[doc = include_str!($path)]
+                pub struct $name;
+            )*
+        };
+    }
+    pages! {
+        Readme = "../README.md",
+        RustApi = "../docs/rust-api.md",
+        Streams = "../docs/streams.md",
+        Conventions = "../docs/conventions.md",
+        GameReady = "../docs/game-ready.md",
+        Architecture = "../docs/architecture.md",
+        Preview = "../docs/preview.md",
+        Robots = "../docs/robots.md",
+    }
+}
