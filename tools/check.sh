@@ -7,8 +7,9 @@
 # Khronos validator and Blender's importer, the demo model's clips retargeted onto unlike
 # characters (tools/retarget_check.sh: Blender, the validator, three-vrm under Node), the demo
 # model's foot skating ratio with the feet
-# locked (tools/skating.sh: at most 0.02; needs the demo model `tools/try.sh` assembles), and a
-# short run of every fuzz target.
+# locked (tools/skating.sh: at most 0.02; needs the demo model `tools/try.sh` assembles), the
+# guide (docs/: mdBook builds it into target/book without a warning, tools/check_citations.py
+# checks its links, tools/docs_blocks.py its code blocks), and a short run of every fuzz target.
 #
 # Every stage runs even when an earlier one failed; the last line says which passed and which
 # failed, and the exit status is non-zero when any failed. Python runs only inside a virtual
@@ -24,7 +25,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 
-stages=(fmt clippy rust avx2-only c bindings bvh gltf retarget skating fuzz)
+stages=(fmt clippy rust avx2-only c bindings bvh gltf retarget skating docs fuzz)
 [ $# -gt 0 ] && stages=("$@")
 passed=() failed=()
 
@@ -50,7 +51,15 @@ setup_python() {
         export FLAME_MINILM_DIR="$dir"
     fi
 }
-if setup_python; then
+# Stages that use no Python package (docs runs the system python3 with its standard library)
+# leave the shared environment alone when they are all that was asked for.
+needs_python=0
+for stage in "${stages[@]}"; do
+    case "$stage" in fmt | clippy | docs) ;; *) needs_python=1 ;; esac
+done
+if [ "$needs_python" = 0 ]; then
+    :
+elif setup_python; then
     export PATH="$venv/bin:$PATH" VIRTUAL_ENV="$venv"
     passed+=(python-env)
 else
@@ -109,6 +118,35 @@ avx2_only_view() {
     }
 }
 
+# The guide (docs/, README.md): mdBook (pinned, installed once into target/mdbook) builds it into
+# target/book and must print no warning; the citations and links must resolve; every code block
+# must pass tools/docs_blocks.py. Its Rust blocks are doctests of src/lib.rs, run by the rust
+# stage's `cargo test --workspace`, so no Rust is compiled here but the CLI and the library
+# (`cargo build`, as the c and bindings stages run it: a no-op after them).
+mdbook_version=0.5.4
+docs_check() {
+    local mdbook="$ROOT/target/mdbook/bin/mdbook" rc=0
+    if [ "$("$mdbook" --version 2>/dev/null)" != "mdbook v$mdbook_version" ]; then
+        echo "docs: installing mdBook $mdbook_version into target/mdbook"
+        cargo install --quiet --locked mdbook --version "$mdbook_version" --no-default-features \
+            --features search --root "$ROOT/target/mdbook" || return 1
+    fi
+    local log="$ROOT/target/tmp/mdbook-build.log"
+    mkdir -p "$(dirname "$log")"
+    "$mdbook" build docs >"$log" 2>&1 || { cat "$log"; return 1; }
+    if grep -E 'WARN|ERROR' "$log"; then
+        echo "docs: mdbook build printed warnings (above)" >&2
+        rc=1
+    fi
+    echo "docs: the guide is in target/book/index.html"
+    if [ -f tools/check_citations.py ]; then
+        python3 tools/check_citations.py || rc=1
+    fi
+    cargo build --quiet || return 1   # as the c and bindings stages: a no-op after them
+    python3 tools/docs_blocks.py || rc=1
+    return $rc
+}
+
 fuzz_smoke() {
     local seconds="${FLAME_FUZZ_SECONDS:-20}"
     if [ "$seconds" = 0 ]; then
@@ -130,8 +168,9 @@ for stage in "${stages[@]}"; do
         gltf) run_stage gltf bash tools/gltf_check.sh ;;
         retarget) run_stage retarget env PYTHON="$venv/bin/python" bash tools/retarget_check.sh ;;
         skating) run_stage skating env PYTHON="$venv/bin/python" bash tools/skating.sh ;;
+        docs) run_stage docs docs_check ;;
         fuzz) [ -f tools/fuzz.sh ] && run_stage fuzz fuzz_smoke ;;
-        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust avx2-only c bindings bvh gltf retarget skating fuzz)" >&2
+        *) echo "check.sh: unknown stage \`$stage\` (fmt clippy rust avx2-only c bindings bvh gltf retarget skating docs fuzz)" >&2
            failed+=("$stage") ;;
     esac
 done
