@@ -180,7 +180,7 @@ typedef enum FlameLayout {
   FLAME_LAYOUT_ROOT_BONE = 10,
 } FlameLayout;
 
-// The coordinate frame poses are expressed in (README: "Poses").
+// The coordinate frame poses are expressed in (docs/conventions.md).
 typedef enum FlameConvention {
   // The motion format's own frame, untouched.
   FLAME_CONVENTION_NATIVE = 0,
@@ -694,7 +694,7 @@ enum FlameStatus flame_session_set_edit_params(struct FlameSession *session,
 
 // Fills `*params` with MoLA's target defaults: scale 0.6, the MPGD schedule. A session that
 // never receives target params uses its family's defaults instead: MPGD for latent models,
-// the constant schedule for FLAME, MDM and Motion Flow Matching (see the README).
+// the constant schedule for FLAME, MDM and Motion Flow Matching (see docs/targets.md).
 //
 // # Safety
 // `params` points to writable memory for a `FlameTargetParams`.
@@ -724,7 +724,7 @@ enum FlameStatus flame_session_target_params(const struct FlameSession *session,
 // `targets` (nonzero = constrained), or NULL: then a NaN value is free and every other value
 // is constrained. A constrained value must be finite and at least one must be constrained.
 // Each step then moves its clean-motion estimate down the gradient of the sum over frames and
-// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see the README). A mask and reference
+// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see docs/targets.md). A mask and reference
 // set for editing still keep their values. Replaces earlier targets; on error nothing changes.
 //
 // # Safety
@@ -977,7 +977,7 @@ enum FlameStatus flame_gltf_params_default(struct FlameGltfParams *params);
 // file: the skeleton as nodes named after its joints, a skinned box figure, one animation
 // (root translation and joint rotations, LINEAR at the model's fps, glTF's convention: Y up,
 // right-handed, metres), and the prompt, architecture, seed and libflame version in
-// `asset.extras` (README "glTF export"). `params` NULL means [`flame_gltf_params_default`].
+// `asset.extras` (docs/exports.md). `params` NULL means [`flame_gltf_params_default`].
 //
 // With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done.
 // Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to

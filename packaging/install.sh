@@ -15,7 +15,7 @@
 # The release profile builds with line tables (debug = 1: backtraces, profilers); the installed
 # libraries leave them out (packaging/strip.sh): the shared library's go to libflame.so.debug,
 # which gdb finds through the library's .gnu_debuglink (delete it if unwanted).
-# Linux and macOS; on Windows build with cargo and copy the files by hand (see README).
+# Linux and macOS; on Windows build with cargo and copy the files by hand (see docs/linking.md).
 set -euo pipefail
 
 if [ $# -ne 1 ]; then

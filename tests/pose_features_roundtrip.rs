@@ -1,4 +1,4 @@
-//! What README's "Editing through the ABI" promises about poses read out and passed back
+//! What docs/editing.md ("Through the C ABI") promises about poses read out and passed back
 //! (`ROOT_TRANSLATION` + `LOCAL6D` → `set_reference_poses`): features made from poses come back
 //! within 1e-5; generated features come back as their Gram–Schmidt projection (their 6D
 //! values are not exact rotations), which is derived here by hand from pytorch3d's

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The project's test command (README "Build and test"): formatting, lints and the Rust tests of
+# The project's test command (README "Test command"; docs/testing.md): formatting, lints and the Rust tests of
 # every crate of the workspace (the runtime and crates/flame-demo), the kernels' tests again with
 # AVX-512 hidden from the CPU (tools/avx2_only.sh, where the CPU allows), the C ABI tests (shared and
 # static library, C++ wrapper, packaging; valgrind when CI=true or FLAME_VALGRIND=1), the

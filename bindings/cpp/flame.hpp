@@ -22,7 +22,7 @@
 //                                                  FLAME_LAYOUT_LOCAL_QUAT_XYZW,
 //                                                  FLAME_CONVENTION_UNITY);
 //
-//   // Continuous motion from a timeline of prompts (README "Streams"):
+//   // Continuous motion from a timeline of prompts (docs/streams.md):
 //   flame::Stream stream(model);              // or model.stream(flame::StreamParams())
 //   stream.push("a person walks forward.", 120);
 //   stream.push("a person waves.", 80);
@@ -878,7 +878,7 @@ private:
     std::unique_ptr<Hook> hook_;
 };
 
-// Continuous motion from a timeline of prompts (README "Streams"); move-only owner of a
+// Continuous motion from a timeline of prompts (docs/streams.md); move-only owner of a
 // FlameStream (and of its worker threads). Push segments (a prompt for a number of frames),
 // pump a bounded number of denoiser steps at a time (e.g. once per engine frame), move the
 // playhead and read frames by their position on the timeline. Chunks of `chunk` frames are

@@ -652,7 +652,7 @@ namespace Flame
         }
     }
 
-    /// <summary>Continuous motion from a timeline of prompts (README "Streams"): Push segments,
+    /// <summary>Continuous motion from a timeline of prompts (docs/streams.md): Push segments,
     /// Pump a bounded number of denoiser steps per call, move the playhead, Read frames. Frames
     /// not generated yet throw with WrongState, dropped ones with InvalidArgument, a cancelled
     /// pump with Cancelled. A latent model whose decoder has a gradient (MoLA) streams through

@@ -1,6 +1,6 @@
 //! The C ABI: thin functions over the Rust API, and nothing else.
 //!
-//! Conventions (also in the README): every handle has a `_new`/`_load` and a `_free` that accepts
+//! Conventions (also in docs/c-abi.md): every handle has a `_new`/`_load` and a `_free` that accepts
 //! NULL; a `const` pointer parameter is not mutated; outputs go only through out-pointers and are
 //! written only on success; every buffer comes with its length; every fallible call returns a
 //! [`FlameStatus`] and leaves a message for [`flame_last_error`]. Every entry point checks its
@@ -802,7 +802,7 @@ pub unsafe extern "C" fn flame_session_set_edit_params(
 
 /// Fills `*params` with MoLA's target defaults: scale 0.6, the MPGD schedule. A session that
 /// never receives target params uses its family's defaults instead: MPGD for latent models,
-/// the constant schedule for FLAME, MDM and Motion Flow Matching (see the README).
+/// the constant schedule for FLAME, MDM and Motion Flow Matching (see docs/targets.md).
 ///
 /// # Safety
 /// `params` points to writable memory for a `FlameTargetParams`.
@@ -877,7 +877,7 @@ pub unsafe extern "C" fn flame_session_target_params(
 /// `targets` (nonzero = constrained), or NULL: then a NaN value is free and every other value
 /// is constrained. A constrained value must be finite and at least one must be constrained.
 /// Each step then moves its clean-motion estimate down the gradient of the sum over frames and
-/// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see the README). A mask and reference
+/// joints of ‖(position − target) ⊙ mask‖ (MoLA's MPGD; see docs/targets.md). A mask and reference
 /// set for editing still keep their values. Replaces earlier targets; on error nothing changes.
 ///
 /// # Safety
@@ -1542,7 +1542,7 @@ unsafe fn gltf_params(params: *const FlameGltfParams) -> Result<FlameGltfParams,
 /// file: the skeleton as nodes named after its joints, a skinned box figure, one animation
 /// (root translation and joint rotations, LINEAR at the model's fps, glTF's convention: Y up,
 /// right-handed, metres), and the prompt, architecture, seed and libflame version in
-/// `asset.extras` (README "glTF export"). `params` NULL means [`flame_gltf_params_default`].
+/// `asset.extras` (docs/exports.md). `params` NULL means [`flame_gltf_params_default`].
 ///
 /// With `out` NULL, `*out_len` receives the file's size in bytes and nothing else is done.
 /// Otherwise `len` must be at least that (`BUFFER_TOO_SMALL` otherwise, with `*out_len` set to

@@ -37,7 +37,7 @@ pub enum FlameLayout {
     RootBone = 10,
 }
 
-/// The coordinate frame poses are expressed in (README: "Poses").
+/// The coordinate frame poses are expressed in (docs/conventions.md).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FlameConvention {

@@ -2108,7 +2108,7 @@ static void test_noise(const FlameModel *m) {
     free(noise);
 }
 
-/* Two worker threads give the same bits as one (the README's promise). */
+/* Two worker threads give the same bits as one (the promise of docs/cli.md). */
 static void test_thread_count_invariance(const FlameModel *m) {
     FlameSessionParams p;
     ref_params(&p);

@@ -1064,7 +1064,7 @@ class StreamStatus:
 
 
 class Stream:
-    """Continuous motion from a timeline of prompts (flame_stream_*, README "Streams"): push
+    """Continuous motion from a timeline of prompts (flame_stream_*, docs/streams.md): push
     segments, pump a bounded number of denoiser steps at a time, move the playhead, read
     frames. A latent model whose decoder has a gradient (MoLA) streams through position
     targets; MLD is refused at creation. Methods raise FlameError when libflame reports a

@@ -1,4 +1,4 @@
-//! The game-ready finish on the demo model's locomotion (README "Game-ready clips"): with the
+//! The game-ready finish on the demo model's locomotion (docs/game-ready.md): with the
 //! feet locked, every frame keeps the SMPL skeleton's bone lengths, joints above the knees move
 //! by less than 1 cm from the raw motion (apart from the floor's one vertical shift), no foot
 //! joint is more than 5 mm under the floor, and the skating ratio of GMD/OmniControl is at most
