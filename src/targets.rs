@@ -117,7 +117,7 @@ impl TargetParams {
     pub fn validate(&self) -> Result<()> {
         if !(self.scale.is_finite() && (0.0..=MAX_TARGET_SCALE).contains(&self.scale)) {
             return Err(invalid_arg!(
-                "target scale must be a finite number in [0, {MAX_TARGET_SCALE}], got {}",
+                "target scale must be a finite number from 0 to {MAX_TARGET_SCALE}, got {}",
                 self.scale
             ));
         }

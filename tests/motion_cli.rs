@@ -174,7 +174,7 @@ fn bad_arguments_fail_before_sampling() {
         ),
         (
             vec!["--out".into(), out("m.bvh"), "--smooth".into(), "-1".into()],
-            "sigma must be a number >= 0",
+            "the sigma must be a number of frames, 0 or more",
         ),
         (
             vec![

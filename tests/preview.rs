@@ -681,7 +681,10 @@ fn animation_options_are_checked() {
         f32::NEG_INFINITY,
     ] {
         let e = err(20.0, AnimationOptions { fps: bad, ..d });
-        assert!(e.contains("fps must be in (0, 50]"), "{bad}: {e}");
+        assert!(
+            e.contains("fps must be above 0 and at most 50"),
+            "{bad}: {e}"
+        );
     }
     assert!(animate(&poses, 20.0, &AnimationOptions { fps: 50.0, ..d }).is_ok());
     // The motion's own rate must itself be usable.

@@ -83,7 +83,7 @@ pub fn build_sampler(
         Method::Ddim => {
             let eta = choice.eta.unwrap_or(defaults.eta);
             if !(eta.is_finite() && eta >= 0.0) {
-                return Err(invalid_arg!("eta must be a finite value >= 0"));
+                return Err(invalid_arg!("eta must be a finite number, 0 or more"));
             }
             SamplerKind::Ddim { eta }
         }

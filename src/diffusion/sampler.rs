@@ -151,9 +151,9 @@ pub struct DiffusionSampler {
 
 fn check_eta(kind: SamplerKind) -> Result<()> {
     match kind {
-        SamplerKind::Ddim { eta } if !(eta.is_finite() && eta >= 0.0) => {
-            Err(invalid_arg!("DDIM eta must be finite and >= 0, got {eta}"))
-        }
+        SamplerKind::Ddim { eta } if !(eta.is_finite() && eta >= 0.0) => Err(invalid_arg!(
+            "DDIM eta must be a finite number, 0 or more, got {eta}"
+        )),
         _ => Ok(()),
     }
 }

@@ -133,7 +133,7 @@ impl Poses {
         let sigma = opts.smooth_sigma;
         if !(sigma.is_finite() && sigma >= 0.0) {
             return Err(invalid_arg!(
-                "smoothing sigma must be a finite number >= 0, got {sigma}"
+                "smoothing sigma must be a finite number of frames, 0 or more, got {sigma}"
             ));
         }
         let mut x: Vec<f64> = features.iter().map(|&v| v as f64).collect();

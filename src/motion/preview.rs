@@ -945,12 +945,12 @@ pub fn animate(poses: &Poses, source_fps: f32, opts: &AnimationOptions) -> Resul
     let rate = if fps == 0.0 { source_fps } else { fps };
     if !(rate.is_finite() && rate > 0.0 && rate <= MAX_FPS) {
         let what = if fps == 0.0 {
-            format!("the motion's rate {rate} fps (set a GIF rate in (0, {MAX_FPS}])")
+            format!("the motion's rate {rate} fps (set a GIF rate above 0 and at most {MAX_FPS})")
         } else {
             format!("{fps}")
         };
         return Err(invalid_arg!(
-            "preview animation fps must be in (0, {MAX_FPS}] (browsers slow down faster GIFs), \
+            "preview animation fps must be above 0 and at most {MAX_FPS} (browsers slow down faster GIFs), \
              got {what}"
         ));
     }

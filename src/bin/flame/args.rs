@@ -15,7 +15,8 @@ use flame::session::{EditMethod, Sampler};
 use flame::targets::TargetSchedule;
 
 const ABOUT: &str =
-    "Text to human motion on the CPU with libflame models (FLAME, MDM, Motion Flow Matching).";
+    "Text to human motion on the CPU with libflame models: FLAME, MDM, Motion Flow \
+                     Matching, MoLA, MLD, FineMoGen and OMG-style models.";
 
 const AFTER_HELP: &str = "\
 Without --model (and for `info` without MODEL) the model is $FLAME_MODEL, else the demo model
@@ -81,9 +82,11 @@ then \"waves@80\" = 200 frames). The motion is generated in chunks of at most --
 one before and generates the rest from its segment's sentence (the model's editing algorithm,
 the kept frames pasted exactly and the seam blended), in a frame where the root path continues
 where the previous chunk left off. A chunk never spans two segments. The result is the same
-bytes for every --threads. Chunk k draws its noise from --seed mixed with k. Diffusion and
-flow models that sample the motion itself only (FLAME, MDM, Motion Flow Matching); latent
-models are refused. The output options are generate's; the whole timeline is written once.";
+bytes for every --threads. Chunk k draws its noise from --seed mixed with k. Models that
+sample the motion itself (FLAME, MDM, Motion Flow Matching, FineMoGen, OMG-style) keep the
+overlap exactly; MoLA, which samples a latent, steers each chunk towards it with position
+guidance; MLD is refused (libflame has no gradient of its decoder). The output options are
+generate's; the whole timeline is written once.";
 
 const RETARGET_LONG: &str = "\
 Carry a motion made earlier onto the user's character. The motion is a BVH libflame wrote
@@ -186,7 +189,9 @@ fn fps(s: &str) -> Result<f64, String> {
 fn sigma(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
-        _ => Err(format!("sigma must be a number >= 0, got `{s}`")),
+        _ => Err(format!(
+            "the sigma must be a number of frames, 0 or more, got `{s}`"
+        )),
     }
 }
 

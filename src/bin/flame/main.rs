@@ -266,7 +266,9 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     // After the prompt: stages lay the noise out [stages, longest stage, features].
     if let Some(noise) = &a.sampling.noise {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
-        session.set_initial_noise(&x).map_err(|e| e.to_string())?;
+        session
+            .set_initial_noise(&x)
+            .map_err(|e| format!("--noise {}: {e}", noise.display()))?;
     }
     if let Some(c) = session.cycle() {
         eprintln!(
@@ -571,7 +573,9 @@ fn edit(a: &EditArgs) -> Result<(), String> {
     }
     if let Some(noise) = &a.sampling.noise {
         let (_, x) = flame::npy::read_f32(noise).map_err(|e| e.to_string())?;
-        session.set_initial_noise(&x).map_err(e)?;
+        session
+            .set_initial_noise(&x)
+            .map_err(|e| format!("--noise {}: {e}", noise.display()))?;
     }
     session.set_prompt(&a.prompt).map_err(e)?;
     note_prompt_fit(&session);
