@@ -19,6 +19,11 @@
 //! `ρ = s·w(τ)` with τ the noise level (diffusion: `timestep / num_timesteps`; flow: `1 − t`):
 //! [`TargetSchedule::Mpgd`] `w = 4·τ·(1 − τ)` (MoLA's `4·s·t·(1000 − t)/1000²`), or
 //! [`TargetSchedule::Constant`] `w = 1`.
+//!
+//! [`TargetParams`]: crate::targets::TargetParams
+//! [`pull`]: crate::targets::pull
+//! [`TargetSchedule::Mpgd`]: crate::targets::TargetSchedule::Mpgd
+//! [`TargetSchedule::Constant`]: crate::targets::TargetSchedule::Constant
 
 use std::str::FromStr;
 
@@ -102,7 +107,7 @@ impl TargetParams {
     /// What a session of `model` starts with: scale 0.6 and, for latent families, MoLA's MPGD
     /// schedule; motion-space families (FLAME, MDM, Motion Flow Matching) take the constant
     /// schedule, since their network re-predicts the estimate at every step and a pull that
-    /// fades out by the last steps is mostly undone (demo numbers in the README).
+    /// fades out by the last steps is mostly undone (demo numbers in docs/targets.md).
     pub fn for_model(model: &Model) -> TargetParams {
         TargetParams {
             scale: 0.6,

@@ -54,7 +54,7 @@ otherwise; 0 = off).
 Pose outputs are game-ready by default: the feet are locked during their contacts (two-bone
 IK; bone lengths and everything above the knees unchanged) and the lowest contact is put at
 height 0; --feet off gives the raw poses. --fps resamples, --root-motion moves the travel,
---loop makes the end flow into the start (README \"Game-ready clips\").
+--loop makes the end flow into the start (docs/game-ready.md).
 
 Unset options take the model file's defaults (see `flame info`). Every output folder is checked
 before the model is loaded.";
