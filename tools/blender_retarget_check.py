@@ -290,25 +290,13 @@ def posed_heads(arm, names, frames):
     return out
 
 
-# The limits issue 43 sets that libflame does not meet on every rig yet (legs bent by holding
-# planted feet on rigs whose thigh/shin split is far from SMPL's: Rigify's reach 13.6 deg):
-# measured and printed every run, and a failure only with FLAME_RETARGET_STRICT=1. Every other
-# check (skating and planted feet included) always fails the run.
-OPEN = ("directions legs",)
-STRICT = os.environ.get("FLAME_RETARGET_STRICT") == "1"
-
-
 class Report:
     def __init__(self, name):
-        self.name, self.failed, self.open = name, [], []
+        self.name, self.failed = name, []
 
     def line(self, check, ok, text):
-        soft = not ok and check in OPEN and not STRICT
-        word = "ok" if ok else ("over the issue's limit (not enforced)" if soft else "FAIL")
-        print(f"{self.name}: {check}: {word}: {text}")
-        if soft:
-            self.open.append(check)
-        elif not ok:
+        print(f"{self.name}: {check}: {'ok' if ok else 'FAIL'}: {text}")
+        if not ok:
             self.failed.append(check)
 
 
@@ -488,9 +476,7 @@ def main():
         rep.line("file", err.max() <= TOL_FILE_M,
                  f"{os.path.basename(bvh_path)}: max {err.max() * 1000:.4f} mm from "
                  f"--rig-positions (frame {t}, {order[b]})")
-    verdict = "FAIL " + ", ".join(rep.failed) if rep.failed else "enforced checks ok"
-    if rep.open:
-        verdict += f" (over the issue's limits, not enforced: {', '.join(rep.open)})"
+    verdict = "FAIL " + ", ".join(rep.failed) if rep.failed else "all checks ok"
     print(f"{name}: {verdict} [blender {bpy.app.version_string}, {time.time() - t0:.1f} s]")
     sys.exit(1 if rep.failed else 0)
 

@@ -19,10 +19,7 @@
 #     frame: (i) bone heads = --rig-positions within 1 mm; (ii) mapped bone directions against
 #     the source's (arms and spine/head <= 2 deg median, <= 5 max; legs <= 2 median, <= 10
 #     max); (iii) the rig's foot-skating ratio no higher than the source's; (iv) planted feet
-#     within 5 mm of the source's. It prints its numbers per rig. The legs' limits are not met
-#     on every rig yet (Rigify's reach 13.6 deg; issue 43 is open): they fail the run only with
-#     FLAME_RETARGET_STRICT=1; the files, the arms, the spine and head, skating, the planted
-#     feet, the validator and the VRMA always do.
+#     within 5 mm of the source's. It prints its numbers per rig; every check fails the run.
 # Then tools/vrma_check.sh, if it exists.
 #
 #   bash tools/retarget_check.sh            # files in a temporary folder

@@ -20,7 +20,12 @@
 //!   fading out with the weight (Kovar, Schreiner and Gleicher,
 //!   "Footskate Cleanup for Motion Capture Editing", SCA 2002, section 4). Aiming at the
 //!   placed source ankle in 3D instead would bend the legs of every rig whose thigh/shin split
-//!   is not SMPL's, by up to 8 degrees on a child's proportions, for no contact gained.
+//!   is not SMPL's, by up to 8 degrees on a child's proportions, for no contact gained. A hold
+//!   is taken only as far as it turns the thigh and shin at most `HOLD_TURN` (8°) from the
+//!   transferred leg and stays within reach: near full extension a centimetre nearer costs
+//!   ~17° of knee, and on a rig whose thigh/shin split is far from SMPL's (Blender's Rigify
+//!   metarig, 54/46 against 49/51) a full hold bent the legs 13.6° off the source's. The foot
+//!   gives the rest, a few millimetres a frame, far below a skating speed.
 //!
 //! Contacts of the source therefore stay contacts, held where the source's are held (the foot
 //! cleanup of the game-ready clips runs on the source before this), and the knee keeps its
@@ -326,6 +331,20 @@ fn contact_weights(poses: &Poses) -> Vec<[f64; 2]> {
         .collect()
 }
 
+/// Radians (8°): the most a held foot may turn its thigh or shin away from the transferred
+/// leg (`pose_anchored`). Leg directions are to stay within 10° of the source's; this leaves
+/// room for the height goal's own bend.
+const HOLD_TURN: f64 = 8.0 * std::f64::consts::PI / 180.0;
+
+/// Halvings of the anchor's share when the hold is limited: 2⁻¹² of a few centimetres.
+const HOLD_BISECTIONS: usize = 12;
+
+/// The angle between two vectors (0 when either is zero).
+fn angle(a: &Vec3, b: &Vec3) -> f64 {
+    let c = rotation::cross(a, b);
+    rotation::dot(&c, &c).sqrt().atan2(rotation::dot(a, b))
+}
+
 fn sub(a: &Vec3, b: &Vec3) -> Vec3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
@@ -450,24 +469,62 @@ impl Target {
             // legs of every rig whose thigh/shin split is not SMPL's, by up to 8 degrees on a
             // child's proportions, for no contact gained: contacts are heights). Wrists: the
             // placed source wrist.
-            let want = if c < 2 {
-                let from = match anchors[c] {
-                    Some(d) => rotation::add(&p[ch.end], &d),
-                    None => p[ch.end],
+            // The goal with `k` of the anchor's move (feet) or the placed wrist (hands).
+            let goal_with = |k: f64| {
+                let want = if c < 2 {
+                    let from = match anchors[c] {
+                        Some(d) => [0, 1, 2].map(|i| p[ch.end][i] + k * d[i]),
+                        None => p[ch.end],
+                    };
+                    let h = rotation::dot(&sub(&placed, &from), &up);
+                    [0, 1, 2].map(|i| from[i] + h * up[i])
+                } else {
+                    placed
                 };
-                let h = rotation::dot(&sub(&placed, &from), &up);
-                [0, 1, 2].map(|i| from[i] + h * up[i])
-            } else {
-                placed
+                [0, 1, 2].map(|i| p[ch.end][i] + w * (want[i] - p[ch.end][i]))
             };
-            let goal = [0, 1, 2].map(|i| p[ch.end][i] + w * (want[i] - p[ch.end][i]));
+            let goal = goal_with(1.0);
             // A limb already on its goal is left as the transfer made it: the solver's reach
             // limit would otherwise bend a straight leg by ~1.6°.
             let length = dist(&p[ch.upper], &p[ch.lower]) + dist(&p[ch.lower], &p[ch.end]);
             if dist(&p[ch.end], &goal) <= 1e-9 * length {
                 continue;
             }
-            let s = ik::solve(&p[ch.upper], &p[ch.lower], &p[ch.end], &goal);
+            let solve = |goal: &Vec3| ik::solve(&p[ch.upper], &p[ch.lower], &p[ch.end], goal);
+            let mut s = solve(&goal);
+            if c < 2 && anchors[c].is_some() {
+                // Holding a foot must not cost the leg its direction or its height: near full
+                // extension a centimetre nearer needs ~17° more knee, and a hold past the
+                // leg's reach would leave the foot off the floor. So where the held goal
+                // would turn the thigh or shin more than HOLD_TURN from the transferred leg
+                // (the source's directions), or is out of reach where the unheld one is not,
+                // only as much of the hold is taken as avoids both (bisection on the anchor's
+                // share). The foot then gives by what is left, millimetres a frame, far below
+                // a skating speed.
+                let (thigh, shin) = (
+                    sub(&p[ch.lower], &p[ch.upper]),
+                    sub(&p[ch.end], &p[ch.lower]),
+                );
+                let free = solve(&goal_with(0.0));
+                let fits = |s: &ik::TwoBone| {
+                    let turn = angle(&thigh, &sub(&s.mid, &p[ch.upper]))
+                        .max(angle(&shin, &sub(&s.end, &s.mid)));
+                    turn <= HOLD_TURN && (s.reached || !free.reached)
+                };
+                if !fits(&s) {
+                    let (mut lo, mut hi) = (0.0, 1.0);
+                    s = free;
+                    for _ in 0..HOLD_BISECTIONS {
+                        let k = 0.5 * (lo + hi);
+                        let t = solve(&goal_with(k));
+                        if fits(&t) {
+                            (lo, s) = (k, t);
+                        } else {
+                            hi = k;
+                        }
+                    }
+                }
+            }
             turn[c] = (s.upper, s.lower);
             any = true;
         }
@@ -878,6 +935,87 @@ mod tests {
         assert!(worst_with < 1e-6, "{worst_with}");
         assert!(turned < 1e-9, "a foot's heading turned by {turned} rad");
         assert!(toe_off < 1e-6, "a toe is {toe_off} cm off its height");
+    }
+
+    #[test]
+    fn a_held_foot_turns_the_leg_at_most_hold_turn_and_always_meets_its_height() {
+        // Anchors of 1 mm to 20 cm (rig units are centimetres) toward and away from each hip,
+        // on a rig whose shins are 10% longer: small holds are met in full; large ones would
+        // bend the knee far past HOLD_TURN from the transferred leg, so only part of the move
+        // is taken, the thigh and shin turn by HOLD_TURN (to the bisection's precision), never
+        // more unless the height alone needs it, and the ankle is at its goal height always.
+        let (built, _, _) = test_rig(3);
+        let rig = reshaped(&built, &["foot_l", "foot_r"], 1.1);
+        let target = Target::auto(Skeleton::smpl24(), rig).unwrap();
+        let mut poses = [0; 3].map(|_| RigPose::new(&target));
+        let limbs = target.limbs();
+        let up = target.transfer().up();
+        let (mut full, mut limited, mut excess, mut worst_height) = (0, 0, 0.0f64, 0.0f64);
+        let turn = |a: &[Vec3], b: &[Vec3], ch: &Chain| {
+            super::angle(
+                &sub(&a[ch.lower], &a[ch.upper]),
+                &sub(&b[ch.lower], &b[ch.upper]),
+            )
+            .max(super::angle(
+                &sub(&a[ch.end], &a[ch.lower]),
+                &sub(&b[ch.end], &b[ch.lower]),
+            ))
+        };
+        let flat = |v: &Vec3| sub(v, &up.map(|x| x * rotation::dot(v, &up)));
+        for (g, p, root) in source_motion(12) {
+            for size in [0.1, 1.0, 5.0, 20.0] {
+                for sign in [1.0, -1.0] {
+                    let [bare, free, held] = &mut poses;
+                    let off = Options {
+                        feet: false,
+                        hands: false,
+                    };
+                    let on = Options::default();
+                    target.pose(&g, &p, &root, &off, bare).unwrap();
+                    target.pose(&g, &p, &root, &on, free).unwrap();
+                    // Moves from the transferred ankle, horizontally toward (+) or away from
+                    // (−) the hip.
+                    let moves = [0, 1].map(|c| {
+                        let ch = &limbs.chains[c];
+                        let d = flat(&sub(&bare.positions[ch.upper], &bare.positions[ch.end]));
+                        let n = rotation::dot(&d, &d).sqrt().max(1e-9);
+                        Some(d.map(|x| sign * size * x / n))
+                    });
+                    target
+                        .pose_anchored(&g, &p, &root, &on, [1.0; 2], moves, held)
+                        .unwrap();
+                    for (c, ch) in limbs.chains[..2].iter().enumerate() {
+                        let (b, f, h) = (&bare.positions, &free.positions, &held.positions);
+                        let height = |q: &[Vec3]| rotation::dot(&q[ch.end], &up);
+                        worst_height = worst_height.max((height(h) - height(f)).abs());
+                        let bend = turn(b, h, ch);
+                        excess = excess.max(bend - HOLD_TURN.max(turn(b, f, ch)));
+                        // The goal: the moved ankle at the free pose's height.
+                        let moved = rotation::add(&b[ch.end], &moves[c].unwrap());
+                        let goal = rotation::add(
+                            &moved,
+                            &up.map(|x| x * (height(f) - rotation::dot(&moved, &up))),
+                        );
+                        let reach =
+                            dist(&b[ch.upper], &b[ch.lower]) + dist(&b[ch.lower], &b[ch.end]);
+                        let off = flat(&sub(&h[ch.end], &goal));
+                        if rotation::dot(&off, &off).sqrt() < 1e-6 {
+                            full += 1;
+                        } else if dist(&b[ch.upper], &goal) < reach - 1e-6 {
+                            limited += 1;
+                            assert!(bend > HOLD_TURN - 1e-3, "gave way at {bend} rad");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(full > 0 && limited > 0, "{full} met, {limited} limited");
+        assert!(
+            excess <= 1e-12,
+            "{} deg past the limit",
+            excess.to_degrees()
+        );
+        assert!(worst_height < 1e-6, "{worst_height}");
     }
 
     #[test]
