@@ -65,23 +65,23 @@
 // `kind` of [`flame_rig_load`]: a BVH file's hierarchy (its MOTION section is not read).
 #define FLAME_RIG_FORMAT_BVH 2
 
-// `file` of [`flame_robot_retarget_write`]: BeyondMimic's CSV, rows `x, y, z, qx, qy, qz, qw,
+// `file` of `flame_robot_retarget_write`: BeyondMimic's CSV, rows `x, y, z, qx, qy, qz, qw,
 // q_1 … q_n` (base quaternion x, y, z, w; joints in the robot's degree-of-freedom order).
 #define FLAME_ROBOT_BEYONDMIMIC_CSV_XYZW 0
 
-// `file` of [`flame_robot_retarget_write`]: GMR's fields as an `.npz`: `fps`, `root_pos`
-// [N, 3], `root_rot` [N, 4] x, y, z, w, `dof_pos` [N, n], `joint_names` [n].
+// `file` of `flame_robot_retarget_write`: GMR's fields as an `.npz`: `fps`, `root_pos`
+// [N, 3], `root_rot` [N, 4] x, y, z, w, `dof_pos` [N, n], `joint_names` `[n]`.
 #define FLAME_ROBOT_GMR_NPZ_XYZW 1
 
-// `file` of [`flame_robot_retarget_write`]: MuJoCo qpos rows as a CSV, `x, y, z, qw, qx, qy,
+// `file` of `flame_robot_retarget_write`: MuJoCo qpos rows as a CSV, `x, y, z, qw, qx, qy,
 // qz` then the joints in MuJoCo's order of the compiled URDF (mimic joints included).
 #define FLAME_ROBOT_QPOS_CSV_WXYZ 2
 
-// `file` of [`flame_robot_retarget_write`]: the same qpos rows as an `.npy` [N, 7 + joints]
+// `file` of `flame_robot_retarget_write`: the same qpos rows as an `.npy` [N, 7 + joints]
 // of float64.
 #define FLAME_ROBOT_QPOS_NPY_WXYZ 3
 
-// `options` flag of [`flame_robot_retarget_write`]: start a CSV with a `# ` line of column
+// `options` flag of `flame_robot_retarget_write`: start a CSV with a `# ` line of column
 // names (a comment to `np.loadtxt`). `INVALID_ARGUMENT` with the `.npz` and `.npy` files.
 #define FLAME_ROBOT_CSV_HEADER 1
 
@@ -297,8 +297,8 @@ typedef struct FlameRobot FlameRobot;
 // shareable; per-run state lives in [`FlameRobotState`].
 typedef struct FlameRobotRetarget FlameRobotRetarget;
 
-// One run's state for [`flame_robot_retarget_read`] and
-// [`flame_robot_retarget_read_stream`]: the configuration the next frame starts from (warm
+// One run's state for `flame_robot_retarget_read` and
+// `flame_robot_retarget_read_stream`: the configuration the next frame starts from (warm
 // start, velocity limits) and the feet's anchors during a contact.
 typedef struct FlameRobotState FlameRobotState;
 

@@ -21,6 +21,10 @@
 //!
 //! Not here: fetching the text encoder (the set-up scripts do that) or checking its hash (the
 //! `sha256` in `flame.text_source` is recorded for them).
+//!
+//! [`Model`]: crate::models::Model
+//! [`AssembleOptions::actions`]: crate::assemble::AssembleOptions::actions
+//! [`ACTIONS_KEY`]: crate::assemble::ACTIONS_KEY
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

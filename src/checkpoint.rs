@@ -4,11 +4,13 @@
 //! A libflame model file carries, in the safetensors metadata, `format = "libflame"`, the model
 //! configuration as JSON under `flame.config` (see [`crate::config`]) and the tokenizer.json text
 //! under `flame.tokenizer`. Plain safetensors files (for example a Hugging Face text encoder)
-//! open too; only [`ModelFile::config`] needs the metadata.
+//! open too; only reading the configuration ([`Config::from_file`]) needs the metadata.
 //!
 //! f32 tensors are borrowed straight from the mapping (one copy of the weights, in the page
 //! cache); f16 and bf16 tensors are widened to f32 once at load. Linear weights, which the models
-//! pack into their own layout, are [released](ModelFile::release) as soon as they are packed.
+//! pack into their own layout, are [released](crate::checkpoint::ModelFile::release) as soon as they are packed.
+//!
+//! [`Config::from_file`]: crate::config::Config::from_file
 
 use std::collections::HashMap;
 use std::fs::File;

@@ -104,6 +104,18 @@
 //! sampler does. The per-part checks ([`FlameConfig::validate`], [`MdmConfig::validate`],
 //! [`TextEncoderConfig::validate`], [`ClipConfig::validate`]) are also what each loader runs
 //! first when used on its own.
+//!
+//! [`Config::from_file`]: crate::config::Config::from_file
+//! [`MAX_WIDTH`]: crate::config::MAX_WIDTH
+//! [`MAX_FEEDFORWARD`]: crate::config::MAX_FEEDFORWARD
+//! [`MAX_LAYERS`]: crate::config::MAX_LAYERS
+//! [`MAX_VOCAB`]: crate::config::MAX_VOCAB
+//! [`MAX_TEXT_POSITIONS`]: crate::config::MAX_TEXT_POSITIONS
+//! [`MAX_MOTION_POSITIONS`]: crate::config::MAX_MOTION_POSITIONS
+//! [`FlameConfig::validate`]: crate::models::FlameConfig::validate
+//! [`MdmConfig::validate`]: crate::models::MdmConfig::validate
+//! [`TextEncoderConfig::validate`]: crate::config::TextEncoderConfig::validate
+//! [`ClipConfig::validate`]: crate::text::ClipConfig::validate
 
 pub(crate) mod validate;
 

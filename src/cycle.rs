@@ -17,6 +17,8 @@
 //! position, so copying the frames continues the path by itself. Latent families (MLD, MoLA)
 //! cannot keep frames of a reference; for them, and for prompts given as time stages, a loop is
 //! the post-processing wrap alone.
+//!
+//! [`Cycle`]: crate::cycle::Cycle
 
 use crate::error::{invalid_arg, Result};
 use crate::models::Model;

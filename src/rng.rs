@@ -19,6 +19,9 @@
 //! count keeps the unused `z1` for the next call, so chunking never changes the values.
 //! `tools/rng_reference.py` is an independent pure-Python implementation of the same algorithm;
 //! `tests/fixtures/rng_reference.json` holds its output and a unit test compares bit for bit.
+//!
+//! [`NoiseSource`]: crate::rng::NoiseSource
+//! [`NoiseSource::fill`]: crate::rng::NoiseSource::fill
 
 /// Where samplers get their N(0, I) noise. `Send` so a session can move between threads.
 pub trait NoiseSource: Send {

@@ -1,6 +1,8 @@
 //! One generation's state: prompt conditioning, sampler, current sample and clean-motion
 //! estimate, noise source and thread pool. A session is cheap next to its [`Model`], which it
 //! shares; one thread uses a session at a time.
+//!
+//! [`Model`]: crate::models::Model
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;

@@ -89,6 +89,18 @@
 //! are kept past the window until settled. Bit-for-bit equality with a whole read assumes no
 //! humanml263 frame was dropped before its settle (dropping re-anchors the root path, as for
 //! raw reads).
+//!
+//! [`Stream`]: crate::stream::Stream
+//! [`Stream::pump`]: crate::stream::Stream::pump
+//! [`Stream::interrupt`]: crate::stream::Stream::interrupt
+//! [`Stream::read_cleaned`]: crate::stream::Stream::read_cleaned
+//! [`Finish`]: crate::motion::Finish
+//! [`Stream::set_finish`]: crate::stream::Stream::set_finish
+//! [`feet::FADE_SECONDS`]: crate::motion::feet::FADE_SECONDS
+//! [`feet`]: crate::motion::feet
+//! [`resample`]: crate::motion::resample
+//! [`Stream::close_looped`]: crate::stream::Stream::close_looped
+//! [`Stream::close`]: crate::stream::Stream::close
 
 use std::collections::VecDeque;
 use std::sync::atomic::AtomicBool;

@@ -12,7 +12,7 @@
 //! - flow matching: the velocity's implied end point `x̂1 = x + (1 − t)·v` is moved the same
 //!   way, i.e. `v ← v + δ/(1 − t)` for the move δ of x̂1.
 //!
-//! How far it moves ([`pull`]): latent families take MoLA's one plain step `−ρ·∇L`;
+//! How far it moves (`pull`): latent families take MoLA's one plain step `−ρ·∇L`;
 //! motion-space families up to 100 backtracking gradient steps of at most ρ each. Values an
 //! editing mask keeps never move.
 //!
@@ -21,7 +21,6 @@
 //! [`TargetSchedule::Constant`] `w = 1`.
 //!
 //! [`TargetParams`]: crate::targets::TargetParams
-//! [`pull`]: crate::targets::pull
 //! [`TargetSchedule::Mpgd`]: crate::targets::TargetSchedule::Mpgd
 //! [`TargetSchedule::Constant`]: crate::targets::TargetSchedule::Constant
 

@@ -8,6 +8,11 @@
 //! FLAME and MDM: f64 tables, f32 per-step arithmetic (see [`DiffusionSampler::step`]); models
 //! with diffusers spacing (MoLA, MLD) follow diffusers' `DDIMScheduler` instead
 //! ([`DiffusionSampler::new_diffusers`]).
+//!
+//! [`flow`]: crate::diffusion::flow
+//! [`build_sampler`]: crate::diffusion::build_sampler
+//! [`DiffusionSampler::step`]: crate::diffusion::DiffusionSampler::step
+//! [`DiffusionSampler::new_diffusers`]: crate::diffusion::DiffusionSampler::new_diffusers
 
 pub mod flow;
 mod from_config;

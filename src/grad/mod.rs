@@ -6,6 +6,9 @@
 //! hand-written backward here ([`ops`], [`kinematics`]) or beside its forward (the layers'
 //! `backward_input`), checked against PyTorch autograd. The kernels stay free of model
 //! knowledge; what a model's backward chain is, the model says.
+//!
+//! [`ops`]: crate::grad::ops
+//! [`kinematics`]: crate::grad::kinematics
 
 pub mod kinematics;
 pub mod ops;

@@ -445,7 +445,7 @@ fn pack_panels<T: Copy>(w: &[f32], n: usize, k: usize, dst: &mut [T], conv: impl
 /// Rows of a panel packed per block by [`pack_panels`] (64 lines of 64 bytes, 4 KiB of f32).
 const PACK_ROWS: usize = 64;
 
-/// A `Linear` weight `[n, k]` packed into [`NR`]-column panels.
+/// A `Linear` weight `[n, k]` packed into `NR`-column panels.
 pub struct PackedWeights {
     k: usize,
     n: usize,

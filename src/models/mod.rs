@@ -26,6 +26,19 @@
 //! and one line in [`FAMILIES`]. The noise schedule and the samplers are shared
 //! ([`crate::diffusion`]), configured by the file's `diffusion` section; text encoders are
 //! shared too ([`TextModel`]).
+//!
+//! [`Model`]: crate::models::Model
+//! [`FamilyConfig`]: crate::models::FamilyConfig
+//! [`Family`]: crate::models::Family
+//! [`FamilyConfig::check`]: crate::models::FamilyConfig::check
+//! [`FamilyConfig::validate`]: crate::models::FamilyConfig::validate
+//! [`FamilyConfig::load`]: crate::models::FamilyConfig::load
+//! [`Denoiser`]: crate::models::Denoiser
+//! [`Condition`]: crate::models::Condition
+//! [`Denoiser::guidance`]: crate::models::Denoiser::guidance
+//! [`MotionDecoder`]: crate::models::MotionDecoder
+//! [`FAMILIES`]: crate::models::FAMILIES
+//! [`TextModel`]: crate::models::TextModel
 
 pub mod finemogen;
 pub mod flame;

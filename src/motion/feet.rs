@@ -37,7 +37,7 @@
 //!   rotations change, their positions do not).
 //! - **Swings**: between two planted spans the foot's path is redrawn from pin to pin, rising
 //!   before it travels and travelling before it lands, at least [`SWING_CLEARANCE`] above the
-//!   floor at mid-swing ([`shape_swings`] says why); a leg never planted is left as it is.
+//!   floor at mid-swing (`shape_swings` says why); a leg never planted is left as it is.
 //! - **Floor**: every target is kept at or above the floor, and a toe whose target is nearer
 //!   than the foot's length is turned no lower than the floor, so the lock never pushes a foot
 //!   under it.

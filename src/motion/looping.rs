@@ -39,7 +39,7 @@ pub const MIN_FRAMES: usize = 6;
 const BLEND_SECONDS: f64 = 0.5;
 
 /// Makes `poses` (at `fps`) loop: see the module doc. The correction spans at least
-/// [`BLEND_SECONDS`] on each side; a larger jump gets a longer span (up to half the clip
+/// `BLEND_SECONDS` on each side; a larger jump gets a longer span (up to half the clip
 /// on each side), the shortest whose wrap changes every joint's velocity by no more than the
 /// clip's own largest frame-to-frame change ([`velocity_jumps`]).
 pub fn wrap(poses: &mut Poses, fps: f64) -> Result<()> {

@@ -35,7 +35,7 @@
 //! `global(j) = global(parent)·local(j)`, `p(j) = p(parent) + global(parent)·offset(j)` with the
 //! rest offsets of [`rest_offsets`] in the same convention. Quaternions come from pytorch3d's
 //! matrix→quaternion with w ≥ 0; with [`ReadOptions::continuous`] (the default) each joint's
-//! track is then made sign-continuous (q[t] flipped when dot(q[t], q[t−1]) < 0).
+//! track is then made sign-continuous (`q[t]` flipped when `dot(q[t], q[t−1]) < 0`).
 //!
 //! # Conventions ([`Convention`])
 //!
@@ -62,6 +62,21 @@
 //! `gaussian_filter1d` defaults) to the features before decoding. [`bvh::to_string`] and
 //! [`json::to_string`] and [`gltf::to_glb`] / [`gltf::to_gltf`] write files; [`read_layout`] and [`layout_len`] are the C-shaped entry
 //! points.
+//!
+//! [`Format`]: crate::motion::Format
+//! [`Skeleton::humanml22`]: crate::motion::Skeleton::humanml22
+//! [`Layout`]: crate::motion::Layout
+//! [`RootMotion::Separate`]: crate::motion::RootMotion::Separate
+//! [`rest_offsets`]: crate::motion::rest_offsets
+//! [`ReadOptions::continuous`]: crate::motion::ReadOptions::continuous
+//! [`Convention`]: crate::motion::Convention
+//! [`ReadOptions::smooth_sigma`]: crate::motion::ReadOptions::smooth_sigma
+//! [`bvh::to_string`]: crate::motion::bvh::to_string
+//! [`json::to_string`]: crate::motion::json::to_string
+//! [`gltf::to_glb`]: crate::motion::gltf::to_glb
+//! [`gltf::to_gltf`]: crate::motion::gltf::to_gltf
+//! [`read_layout`]: crate::motion::read_layout
+//! [`layout_len`]: crate::motion::layout_len
 
 pub mod amass;
 pub mod bvh;

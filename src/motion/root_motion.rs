@@ -9,7 +9,7 @@
 //!   in-place clip then sits over the origin whatever the model's start, which is what an
 //!   engine's in-place animation expects (the character's own transform places it).
 //! - [`RootMotion::Separate`]: the pelvis as in-place, and the removed track stored in
-//!   [`Poses::root_bone`] as the point on the ground (height 0) under the pelvis, so that
+//!   `Poses::root_bone` as the point on the ground (height 0) under the pelvis, so that
 //!   `root_bone + (in-place position)` is the original position of every joint. Exporters write
 //!   it as a `root` bone, parent of the pelvis, without rotation.
 //! - `remove_yaw` (with in-place or separate): the heading's drift is removed as well. The

@@ -1,4 +1,4 @@
-//! The user's glTF/GLB/VRM file handed back with a retargeted animation added ([`write`]).
+//! The user's glTF/GLB/VRM file handed back with a retargeted animation added ([`write()`]).
 //!
 //! - **What is added.** One animation: LINEAR samplers with times `frame / fps`, a rotation
 //!   channel on every skin joint's node and a translation channel on the hips' node and on the

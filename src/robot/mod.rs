@@ -42,6 +42,26 @@
 //! assert_eq!((robot.nq(), robot.nv()), (8, 7));
 //! # Ok::<(), flame::Error>(())
 //! ```
+//!
+//! [`Robot`]: crate::robot::Robot
+//! [`model`]: crate::robot::model
+//! [`Robot::from_urdf`]: crate::robot::Robot::from_urdf
+//! [`urdf`]: crate::robot::urdf
+//! [`RobotData`]: crate::robot::RobotData
+//! [`kinematics`]: crate::robot::kinematics
+//! [`RobotData::new`]: crate::robot::RobotData::new
+//! [`forward`]: crate::robot::forward
+//! [`Pose`]: crate::robot::Pose
+//! [`jacobian_point`]: crate::robot::jacobian_point
+//! [`integrate`]: crate::robot::integrate
+//! [`retarget`]: crate::robot::retarget
+//! [`RetargetConfig`]: crate::robot::RetargetConfig
+//! [`config`]: crate::robot::config
+//! [`load_default_config`]: crate::robot::load_default_config
+//! [`Retargeter`]: crate::robot::Retargeter
+//! [`RetargetState`]: crate::robot::RetargetState
+//! [`HumanFrame`]: crate::robot::HumanFrame
+//! [`Trajectory`]: crate::robot::Trajectory
 
 pub mod config;
 pub mod export;

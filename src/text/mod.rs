@@ -7,6 +7,10 @@
 //!
 //! The encoders only read weights and
 //! run kernels; which encoder a model uses is the model file's configuration's business.
+//!
+//! [`tokenizer`]: crate::text::tokenizer
+//! [`bert`]: crate::text::bert
+//! [`clip`]: crate::text::clip
 
 pub mod bert;
 pub mod clip;

@@ -3,7 +3,7 @@
 //! repetitions, size), present simple and progressive, and for two-action motions the usual
 //! ways of saying "then".
 //!
-//! A verb-phrase template marks its verbs with braces (`{walk} forward`); [`conjugate`] turns
+//! A verb-phrase template marks its verbs with braces (`{walk} forward`); `conjugate` turns
 //! each into the third person (`walks`) or the `-ing` form (`walking`). `{pos}` becomes the
 //! subject's possessive (his, her, their).
 
