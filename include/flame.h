@@ -87,6 +87,7 @@
 
 // What every fallible call returns.
 typedef enum FlameStatus {
+  // The call succeeded.
   FLAME_STATUS_OK = 0,
   // A NULL pointer, a wrong length, a value out of range.
   FLAME_STATUS_INVALID_ARGUMENT = 1,
@@ -133,7 +134,9 @@ typedef enum FlameRootMotion {
 typedef enum FlameSampler {
   // The model file's default.
   FLAME_SAMPLER_DEFAULT = 0,
+  // Diffusion: ancestral DDPM steps (fresh noise at every step).
   FLAME_SAMPLER_DDPM = 1,
+  // Diffusion: DDIM steps (`eta` sets how much fresh noise; 0 = deterministic).
   FLAME_SAMPLER_DDIM = 2,
   // Flow matching (Motion Flow Matching models): Euler steps.
   FLAME_SAMPLER_EULER = 3,
@@ -337,14 +340,19 @@ typedef struct FlameModelInfo {
   uint32_t joint_count;
   // The largest frame count a session may ask for.
   uint32_t max_frames;
+  // Frames a session generates when `FlameSessionParams.frames` is 0.
   uint32_t default_frames;
+  // Sampling steps a session takes when `FlameSessionParams.steps` is 0.
   uint32_t default_steps;
   // Steps of the trained diffusion schedule (the most a session may ask for).
   uint32_t num_timesteps;
   // A [`FlameSampler`] value.
   int32_t default_sampler;
+  // Frames per second of the motion format.
   float fps;
+  // Classifier-free guidance scale a session uses when it asks for the default.
   float default_guidance;
+  // DDIM eta a session uses when it asks for the default.
   float default_eta;
   // For example `"flame"`.
   const char *architecture;
@@ -448,12 +456,18 @@ typedef struct FlameStage {
   uint32_t frames;
   // What the whole body does (UTF-8, NUL-terminated).
   const char *text;
+  // What the head does (UTF-8, NUL-terminated; NULL = it follows `text`, as every part
+  // below).
   const char *head;
   // The spine.
   const char *stem;
+  // The left arm.
   const char *left_arm;
+  // The right arm.
   const char *right_arm;
+  // The left leg.
   const char *left_leg;
+  // The right leg.
   const char *right_leg;
   // The root's trajectory.
   const char *pelvis;
@@ -462,6 +476,7 @@ typedef struct FlameStage {
 // What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
 // encoder's window. Set `struct_size = sizeof(FlamePromptInfo)` first.
 typedef struct FlamePromptInfo {
+  // Set by the caller to `sizeof(FlamePromptInfo)`.
   uint32_t struct_size;
   // Tokens of the whole prompt, special tokens included.
   uint32_t tokens;

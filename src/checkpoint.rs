@@ -56,12 +56,16 @@ impl Backing {
 /// Element type of a stored tensor, as far as libflame reads it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StoredDtype {
+    /// 32-bit IEEE float, borrowed from the file as it is.
     F32,
+    /// IEEE half precision, widened to f32 at load.
     F16,
+    /// bfloat16, widened to f32 at load.
     Bf16,
 }
 
 impl StoredDtype {
+    /// The lower-case name messages and `flame info` print (`f32`, `f16`, `bf16`).
     pub fn name(self) -> &'static str {
         match self {
             StoredDtype::F32 => "f32",
@@ -116,6 +120,7 @@ impl Tensor {
         }
     }
 
+    /// The values, row-major: borrowed from the file's mapping for f32 tensors, owned otherwise.
     pub fn data(&self) -> &[f32] {
         match &self.data {
             TensorData::Owned(v) => v,
@@ -132,6 +137,7 @@ impl Tensor {
         }
     }
 
+    /// The dimensions, outermost first.
     pub fn shape(&self) -> &[usize] {
         &self.shape
     }

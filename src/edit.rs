@@ -28,6 +28,7 @@ pub enum EditMethod {
 }
 
 impl EditMethod {
+    /// Every method; the index of each is its value in the C ABI (`FlameEditMethod`).
     pub const ALL: [EditMethod; 4] = [
         EditMethod::Auto,
         EditMethod::NoisedReference,
@@ -35,6 +36,7 @@ impl EditMethod {
         EditMethod::RewriteTrajectory,
     ];
 
+    /// The name `FromStr` and the CLI's `--method` take (`auto`, `noised-reference`, ...).
     pub fn name(self) -> &'static str {
         match self {
             EditMethod::Auto => "auto",
@@ -44,6 +46,8 @@ impl EditMethod {
         }
     }
 
+    /// The method of C ABI value `v` (its index in [`EditMethod::ALL`]); an error for any other
+    /// value.
     pub fn from_u32(v: u32) -> Result<EditMethod> {
         EditMethod::ALL
             .get(v as usize)
@@ -69,6 +73,7 @@ impl std::str::FromStr for EditMethod {
 /// Editing settings of a session.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EditParams {
+    /// How the kept values are imposed while sampling.
     pub method: EditMethod,
     /// Flow models: the fraction of the steps (from the noise end) during which the trajectory
     /// is rewritten, in [0, 1]. The Motion Flow Matching paper's default is 0.2.

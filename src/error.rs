@@ -8,12 +8,16 @@ use std::fmt;
 pub enum Error {
     /// Reading a file failed (`path` says which).
     Io {
+        /// The file, as given.
         path: String,
+        /// What the operating system reported.
         source: std::io::Error,
     },
     /// Writing a file failed (`path` says which); the C ABI reports it as an I/O error too.
     Write {
+        /// The file, as given.
         path: String,
+        /// What the operating system reported.
         source: std::io::Error,
     },
     /// The model file is not a valid libflame file: bad header, bad JSON config, a missing or

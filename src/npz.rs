@@ -43,6 +43,7 @@ pub struct Npz {
 }
 
 impl Npz {
+    /// An empty archive.
     pub fn new() -> Npz {
         Npz::default()
     }

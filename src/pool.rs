@@ -76,6 +76,7 @@ impl WorkerPool {
             .install(f)
     }
 
+    /// Worker threads in the pool (what `threads` = 0 resolved to, or the count asked for).
     pub fn threads(&self) -> usize {
         self.workers.len()
     }

@@ -59,19 +59,25 @@ impl std::str::FromStr for Sampler {
 /// Settings of one generation. `None` means "the model file's default".
 #[derive(Clone, Debug, Default)]
 pub struct SessionParams {
+    /// Frames to generate; `None` = the model's default, capped at its maximum.
     pub frames: Option<usize>,
+    /// Sampling steps, respaced from the trained ones; `None` = the model's default.
     pub steps: Option<usize>,
+    /// The sampler; `None` = the model's default.
     pub sampler: Option<Sampler>,
     /// A guided-diffusion respacing string (`"ddim50"`, `"10"`, `"15,15,8,6,6"`) choosing
     /// which training steps to sample; it sets the step count (an explicit `steps` must
     /// agree). Only for models with `diffusion.spacing` `respace`.
     pub respacing: Option<String>,
+    /// DDIM eta: how much fresh noise each DDIM step adds (0 = deterministic); `None` = the
+    /// model's default.
     pub eta: Option<f32>,
     /// Classifier-free guidance scale in [0, [`MAX_GUIDANCE`]]: 0 = unconditional, 1 = the
     /// prompt alone (no unconditional pass), above 1 strengthens the prompt.
     pub guidance: Option<f32>,
     /// Clamp the x0 estimate to [-1, 1] at every step (the official FLAME sampling does).
     pub clip_denoised: Option<bool>,
+    /// Seed of the session's Gaussian noise: the same seed and settings give the same motion.
     pub seed: u64,
     /// Worker threads for this session's kernels: 1..=[`crate::pool::MAX_THREADS`], or 0 = one
     /// per core (capped at the same bound).
@@ -357,6 +363,7 @@ impl Session {
         })
     }
 
+    /// The model this session samples.
     pub fn model(&self) -> &Arc<Model> {
         &self.model
     }
@@ -652,6 +659,7 @@ impl Session {
         self.target_loss = None;
     }
 
+    /// The position targets the session steers towards, if any were set.
     pub fn position_targets(&self) -> Option<&PositionTargets> {
         self.targets.as_ref()
     }
@@ -663,6 +671,7 @@ impl Session {
         Ok(())
     }
 
+    /// How strongly position targets steer (scale and schedule).
     pub fn target_params(&self) -> &TargetParams {
         &self.target_params
     }
@@ -899,6 +908,7 @@ impl Session {
         Ok(())
     }
 
+    /// The editing settings in force (method, edit-till fraction, paste, seams).
     pub fn edit_params(&self) -> &EditParams {
         &self.edit.params
     }

@@ -9,12 +9,17 @@ use crate::error::{invalid_arg, Result};
 /// Body parts a stage may describe, in FineMoGen's group order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BodyPart {
+    /// The head.
     Head = 0,
     /// The spine.
     Stem = 1,
+    /// The left arm.
     LeftArm = 2,
+    /// The right arm.
     RightArm = 3,
+    /// The left leg.
     LeftLeg = 4,
+    /// The right leg.
     RightLeg = 5,
     /// The root's trajectory.
     Pelvis = 6,
@@ -24,6 +29,7 @@ pub enum BodyPart {
 pub const PART_COUNT: usize = 7;
 
 impl BodyPart {
+    /// Every part, in FineMoGen's group order: `BodyPart::ALL[p as usize] == p`.
     pub const ALL: [BodyPart; PART_COUNT] = [
         BodyPart::Head,
         BodyPart::Stem,
@@ -67,8 +73,11 @@ impl std::str::FromStr for BodyPart {
 /// parts do (`parts[BodyPart as usize]`; `None` = the part follows `text`).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Stage {
+    /// What the whole body does.
     pub text: String,
+    /// How many frames the stage lasts.
     pub frames: usize,
+    /// Texts of single parts, indexed by `BodyPart as usize`; `None` = the part follows `text`.
     pub parts: [Option<String>; PART_COUNT],
 }
 

@@ -120,12 +120,17 @@ use crate::targets::PositionTargets;
 /// follows `prompt`). Other families refuse part texts when the segment's first chunk starts.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Segment {
+    /// What the whole body does during the segment.
     pub prompt: String,
+    /// How many frames the segment lasts.
     pub frames: usize,
+    /// Texts of single parts, indexed by `BodyPart as usize`; `None` = the part follows
+    /// `prompt`.
     pub parts: [Option<String>; PART_COUNT],
 }
 
 impl Segment {
+    /// A segment of `frames` frames with one prompt for the whole body.
     pub fn new(prompt: impl Into<String>, frames: usize) -> Segment {
         Segment {
             prompt: prompt.into(),
@@ -430,6 +435,7 @@ impl Stream {
         Arc::clone(&self.cancel)
     }
 
+    /// The model the stream generates with.
     pub fn model(&self) -> &Arc<Model> {
         &self.model
     }
@@ -495,6 +501,7 @@ impl Stream {
         Ok(())
     }
 
+    /// The frame being played, as last set by [`Stream::set_playhead`] (0 at the start).
     pub fn playhead(&self) -> usize {
         self.playhead
     }
@@ -1238,6 +1245,7 @@ impl Stream {
         self.closed = true;
     }
 
+    /// Whether [`Stream::close`] (or a looping close) declared the timeline complete.
     pub fn is_closed(&self) -> bool {
         self.closed
     }

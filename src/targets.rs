@@ -48,8 +48,10 @@ pub enum TargetSchedule {
 }
 
 impl TargetSchedule {
+    /// Every schedule; the index of each is its value in the C ABI (`FlameTargetSchedule`).
     pub const ALL: [TargetSchedule; 2] = [TargetSchedule::Mpgd, TargetSchedule::Constant];
 
+    /// The name `FromStr` and the CLI's `--target-schedule` take (`mpgd`, `constant`).
     pub fn name(self) -> &'static str {
         match self {
             TargetSchedule::Mpgd => "mpgd",
@@ -57,6 +59,8 @@ impl TargetSchedule {
         }
     }
 
+    /// The schedule of C ABI value `v` (its index in [`TargetSchedule::ALL`]); an error for any
+    /// other value.
     pub fn from_u32(v: u32) -> Result<TargetSchedule> {
         TargetSchedule::ALL.get(v as usize).copied().ok_or_else(|| {
             invalid_arg!("unknown target schedule {v} (expected 0 mpgd or 1 constant)")
@@ -89,6 +93,7 @@ impl FromStr for TargetSchedule {
 pub struct TargetParams {
     /// `s` in `ρ = s·w(τ)`, in [0, [`MAX_TARGET_SCALE`]]; 0 turns the guidance off.
     pub scale: f32,
+    /// How the weight `w(τ)` follows the noise level.
     pub schedule: TargetSchedule,
 }
 
@@ -118,6 +123,7 @@ impl TargetParams {
         }
     }
 
+    /// An error unless `scale` is finite and within [0, [`MAX_TARGET_SCALE`]].
     pub fn validate(&self) -> Result<()> {
         if !(self.scale.is_finite() && (0.0..=MAX_TARGET_SCALE).contains(&self.scale)) {
             return Err(invalid_arg!(
@@ -272,6 +278,7 @@ impl PositionTargets {
         PositionTargets::from_positions(format, positions, frames, &keep)
     }
 
+    /// The motion format whose joints the targets are given for.
     pub fn format(&self) -> Format {
         self.format
     }

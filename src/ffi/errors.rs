@@ -18,6 +18,7 @@ use crate::error::Error;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FlameStatus {
+    /// The call succeeded.
     Ok = 0,
     /// A NULL pointer, a wrong length, a value out of range.
     InvalidArgument = 1,

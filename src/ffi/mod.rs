@@ -69,7 +69,9 @@ pub const FLAME_ROOT_TRANSLATION: i32 = -1;
 pub enum FlameSampler {
     /// The model file's default.
     Default = 0,
+    /// Diffusion: ancestral DDPM steps (fresh noise at every step).
     Ddpm = 1,
+    /// Diffusion: DDIM steps (`eta` sets how much fresh noise; 0 = deterministic).
     Ddim = 2,
     /// Flow matching (Motion Flow Matching models): Euler steps.
     Euler = 3,
@@ -151,12 +153,18 @@ pub struct FlameStage {
     pub frames: u32,
     /// What the whole body does (UTF-8, NUL-terminated).
     pub text: *const c_char,
+    /// What the head does (UTF-8, NUL-terminated; NULL = it follows `text`, as every part
+    /// below).
     pub head: *const c_char,
     /// The spine.
     pub stem: *const c_char,
+    /// The left arm.
     pub left_arm: *const c_char,
+    /// The right arm.
     pub right_arm: *const c_char,
+    /// The left leg.
     pub left_leg: *const c_char,
+    /// The right leg.
     pub right_leg: *const c_char,
     /// The root's trajectory.
     pub pelvis: *const c_char,
@@ -344,14 +352,19 @@ pub struct FlameModelInfo {
     pub joint_count: u32,
     /// The largest frame count a session may ask for.
     pub max_frames: u32,
+    /// Frames a session generates when `FlameSessionParams.frames` is 0.
     pub default_frames: u32,
+    /// Sampling steps a session takes when `FlameSessionParams.steps` is 0.
     pub default_steps: u32,
     /// Steps of the trained diffusion schedule (the most a session may ask for).
     pub num_timesteps: u32,
     /// A [`FlameSampler`] value.
     pub default_sampler: i32,
+    /// Frames per second of the motion format.
     pub fps: f32,
+    /// Classifier-free guidance scale a session uses when it asks for the default.
     pub default_guidance: f32,
+    /// DDIM eta a session uses when it asks for the default.
     pub default_eta: f32,
     /// For example `"flame"`.
     pub architecture: *const c_char,
@@ -377,6 +390,7 @@ pub struct FlameModelInfo {
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct FlamePromptInfo {
+    /// Set by the caller to `sizeof(FlamePromptInfo)`.
     pub struct_size: u32,
     /// Tokens of the whole prompt, special tokens included.
     pub tokens: u32,
