@@ -69,7 +69,6 @@ pub mod stream;
 /// cbindgen:ignore
 pub mod targets;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod text;
 
 pub use error::{Error, Result};

@@ -56,6 +56,7 @@ pub struct TextOutput {
 }
 
 impl TextOutput {
+    /// Channels per token (the length of `pooled`).
     pub fn hidden_size(&self) -> usize {
         self.pooled.len()
     }
@@ -272,10 +273,12 @@ impl TextEncoder {
         self.layers.iter().map(layer).sum::<usize>() + self.pooler.weight_bytes()
     }
 
+    /// Which position-id rule the encoder follows (BERT or RoBERTa).
     pub fn kind(&self) -> EncoderKind {
         self.kind
     }
 
+    /// Channels per token of the encoder's output.
     pub fn hidden_size(&self) -> usize {
         self.dims.hidden
     }
@@ -294,6 +297,7 @@ impl TextEncoder {
         }
     }
 
+    /// The tokenizer the model file carries for this encoder.
     pub fn tokenizer(&self) -> &TextTokenizer {
         &self.tokenizer
     }

@@ -27,9 +27,13 @@ use super::tokenizer::{PromptInfo, TextTokenizer};
 /// MLP 2048, projection 512). Checked by [`ClipConfig::validate`] (in [`crate::config`]).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 pub struct ClipConfig {
+    /// Tokens in the embedding table (49408 for OpenAI's BPE).
     pub vocab_size: usize,
+    /// Channels of the residual stream.
     pub width: usize,
+    /// Transformer blocks.
     pub layers: usize,
+    /// Attention heads per block (they divide `width`).
     pub heads: usize,
     /// Channels of each block's MLP (`mlp.fc1` out); files written before it was stored have
     /// none, meaning 4 × width (OpenAI CLIP). See [`ClipConfig::mlp_size`].
@@ -38,8 +42,10 @@ pub struct ClipConfig {
     /// Positions in the table; every text is padded to this length (77).
     #[serde(default = "clip_context")]
     pub context_length: usize,
+    /// Channels of the text vector the final projection gives (what the denoisers read).
     pub projection_dim: usize,
     #[serde(default = "clip_ln_eps")]
+    /// Epsilon of every LayerNorm (default 1e-5, PyTorch's).
     pub layer_norm_eps: f32,
 }
 
@@ -227,14 +233,17 @@ impl ClipTextEncoder {
         self.blocks.iter().map(block).sum::<usize>() + self.projection.weight_bytes()
     }
 
+    /// The sizes this tower was built with.
     pub fn config(&self) -> &ClipConfig {
         &self.cfg
     }
 
+    /// Channels of the residual stream (per-token states).
     pub fn width(&self) -> usize {
         self.cfg.width
     }
 
+    /// Channels of the projected text vector.
     pub fn projection_dim(&self) -> usize {
         self.cfg.projection_dim
     }

@@ -13,15 +13,19 @@ use crate::error::{bad_file, invalid_arg, Error, Result};
 /// Token ids and their attention mask (1 = real token, 0 = padding), of equal length.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Tokens {
+    /// Token ids, special tokens and padding included.
     pub ids: Vec<u32>,
+    /// 1 for a real token, 0 for padding; one per id.
     pub mask: Vec<u8>,
 }
 
 impl Tokens {
+    /// Tokens, padding included.
     pub fn len(&self) -> usize {
         self.ids.len()
     }
 
+    /// Whether there are no tokens at all.
     pub fn is_empty(&self) -> bool {
         self.ids.is_empty()
     }
@@ -143,6 +147,7 @@ impl TextTokenizer {
         self.num_special
     }
 
+    /// The id padding positions hold.
     pub fn pad_id(&self) -> u32 {
         self.pad_id
     }
