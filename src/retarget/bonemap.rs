@@ -85,29 +85,53 @@ const NAMES_LISTED: usize = 40;
 const NAME_CHARS: usize = 64;
 
 /// The VRM 1.0 humanoid bones libflame drives (the body; eyes, jaw and fingers are not driven).
+/// Each variant names its VRM humanBone, the SMPL joint that drives it, and whether VRM 1.0
+/// requires it ([`HumanBone::is_required`]). Left and right are the character's own.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum HumanBone {
+    /// `hips`: the humanoid's root, the bone the root motion moves; SMPL's `Pelvis`. Required.
     Hips,
+    /// `spine`: the lowest spine bone, above the hips; SMPL's `Spine1`. Required.
     Spine,
+    /// `chest`: above the spine; SMPL's `Spine2`. Optional.
     Chest,
+    /// `upperChest`: above the chest (only with a chest); SMPL's `Spine3`. Optional.
     UpperChest,
+    /// `neck`: SMPL's `Neck`. Optional.
     Neck,
+    /// `head`: SMPL's `Head`. Required.
     Head,
+    /// `leftShoulder`: the collarbone (clavicle); SMPL's `L_Collar`. Optional.
     LeftShoulder,
+    /// `leftUpperArm`: shoulder to elbow; SMPL's `L_Shoulder`. Required.
     LeftUpperArm,
+    /// `leftLowerArm`: the forearm, elbow to wrist; SMPL's `L_Elbow`. Required.
     LeftLowerArm,
+    /// `leftHand`: from the wrist (its fingers are not driven); SMPL's `L_Wrist`. Required.
     LeftHand,
+    /// `rightShoulder`: the collarbone (clavicle); SMPL's `R_Collar`. Optional.
     RightShoulder,
+    /// `rightUpperArm`: shoulder to elbow; SMPL's `R_Shoulder`. Required.
     RightUpperArm,
+    /// `rightLowerArm`: the forearm, elbow to wrist; SMPL's `R_Elbow`. Required.
     RightLowerArm,
+    /// `rightHand`: from the wrist (its fingers are not driven); SMPL's `R_Wrist`. Required.
     RightHand,
+    /// `leftUpperLeg`: the thigh, hip to knee; SMPL's `L_Hip`. Required.
     LeftUpperLeg,
+    /// `leftLowerLeg`: the shin, knee to ankle; SMPL's `L_Knee`. Required.
     LeftLowerLeg,
+    /// `leftFoot`: ankle to the ball of the foot; SMPL's `L_Ankle`. Required.
     LeftFoot,
+    /// `leftToes`: from the ball of the foot; SMPL's `L_Foot`. Optional.
     LeftToes,
+    /// `rightUpperLeg`: the thigh, hip to knee; SMPL's `R_Hip`. Required.
     RightUpperLeg,
+    /// `rightLowerLeg`: the shin, knee to ankle; SMPL's `R_Knee`. Required.
     RightLowerLeg,
+    /// `rightFoot`: ankle to the ball of the foot; SMPL's `R_Ankle`. Required.
     RightFoot,
+    /// `rightToes`: from the ball of the foot; SMPL's `R_Foot`. Optional.
     RightToes,
 }
 

@@ -31,12 +31,16 @@ use crate::motion::{Convention, Format};
 /// reference pose `FTransform`s).
 #[derive(Clone, Debug, PartialEq)]
 pub struct EngineBone {
+    /// The bone's name: not empty, unique in the list; the bone map reads it.
     pub name: String,
     /// Index of the parent in the same list (any order), `None` for a root.
     pub parent: Option<usize>,
+    /// Position relative to the parent, in the convention's axes and unit (Unity: metres;
+    /// Unreal: centimetres).
     pub translation: Vec3,
     /// Quaternion `x, y, z, w` (normalised here; a zero or non-finite one is refused).
     pub rotation: [f64; 4],
+    /// Scale along the bone's own axes (`1, 1, 1`: none); no component zero.
     pub scale: Vec3,
 }
 

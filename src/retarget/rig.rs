@@ -20,8 +20,14 @@ pub const MAX_BONES: usize = 4096;
 /// A bone's rest transform relative to its parent (glTF's TRS: `T · R · S`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RestTransform {
+    /// The origin's offset from the parent's, in the parent's frame (the parent's scale
+    /// applies) and the file's units.
     pub translation: Vec3,
+    /// The rotation relative to the parent (row-major, acting on column vectors; a proper
+    /// rotation: orthonormal, determinant +1).
     pub rotation: Mat3,
+    /// Scale along the bone's own axes, applied first; no component zero (a negative one
+    /// mirrors).
     pub scale: Vec3,
 }
 
@@ -39,21 +45,32 @@ impl RestTransform {
 /// One bone of a [`Rig::new`] call.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BoneSpec {
+    /// The bone's name: not empty, unique in the rig; bone maps refer to it.
     pub name: String,
     /// Index of the parent in the same list (any order), `None` for a root.
     pub parent: Option<usize>,
+    /// The rest (bind) pose relative to the parent.
     pub rest: RestTransform,
 }
 
 /// Where a rig came from, for writers that hand the user's file back.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum RigSource {
-    /// A glTF 2.0 / GLB file's skin: `nodes[i]` is bone `i`'s node index in the file.
-    Gltf { skin: usize, nodes: Vec<usize> },
+    /// A glTF 2.0 / GLB file's skin.
+    Gltf {
+        /// The skin (index into the file's `skins`) whose joints are the bones.
+        skin: usize,
+        /// `nodes[i]` is bone `i`'s node index in the file.
+        nodes: Vec<usize>,
+    },
     /// A VRM file (glTF with the VRMC_vrm 1.0 or VRM 0.x extension).
     Vrm {
+        /// VRM 0.x or 1.0: which way the model faces.
         version: VrmVersion,
+        /// The skin (index into the file's `skins`) whose joints are the bones; with `None`
+        /// the file handed back is not checked against a skin.
         skin: Option<usize>,
+        /// `nodes[i]` is bone `i`'s node index in the file.
         nodes: Vec<usize>,
     },
     /// A BVH hierarchy.
@@ -227,10 +244,12 @@ impl Rig {
         self.names.len()
     }
 
+    /// Every bone's name, parents first (the index is the bone).
     pub fn names(&self) -> &[String] {
         &self.names
     }
 
+    /// Bone `bone`'s name. Panics when `bone` is not below [`Rig::bone_count`].
     pub fn name(&self, bone: usize) -> &str {
         &self.names[bone]
     }
@@ -245,6 +264,8 @@ impl Rig {
         &self.parents
     }
 
+    /// Bone `bone`'s parent, `None` for a root. Panics when `bone` is not below
+    /// [`Rig::bone_count`].
     pub fn parent(&self, bone: usize) -> Option<usize> {
         self.parents[bone]
     }
@@ -286,6 +307,8 @@ impl Rig {
         &self.declared
     }
 
+    /// Where the rig came from: the glTF/VRM skin and node indices a writer needs to hand
+    /// the user's file back with the animation added.
     pub fn source(&self) -> &RigSource {
         &self.source
     }

@@ -42,14 +42,17 @@ impl Target {
         Target::new(source, rig, map)
     }
 
+    /// The rig being driven.
     pub fn rig(&self) -> &Rig {
         &self.rig
     }
 
+    /// The bone map in use (to show or save it: [`BoneMap::to_json`]).
     pub fn map(&self) -> &BoneMap {
         &self.map
     }
 
+    /// The rest-relative transform from the source skeleton to the rig.
     pub fn transfer(&self) -> &Transfer {
         &self.transfer
     }

@@ -55,18 +55,29 @@ use crate::motion::Skeleton;
 /// SMPL's joint indices, shared by SMPL-24 and HumanML3D-22 (SMPL's joint order; HumanML3D's
 /// 22 joints are SMPL's first 22 in the same order, see `crate::motion::skeleton`).
 pub mod smpl {
+    /// Pelvis: the root; its position is the motion's root translation.
     pub const PELVIS: usize = 0;
+    /// L_Hip: the left hip joint, where the left thigh starts.
     pub const L_HIP: usize = 1;
+    /// R_Hip: the right hip joint, where the right thigh starts.
     pub const R_HIP: usize = 2;
+    /// L_Knee: where the left shin starts.
     pub const L_KNEE: usize = 4;
+    /// R_Knee: where the right shin starts.
     pub const R_KNEE: usize = 5;
     /// Spine1, Spine2, Spine3.
     pub const SPINE: [usize; 3] = [3, 6, 9];
+    /// L_Ankle: where the left foot starts.
     pub const L_ANKLE: usize = 7;
+    /// R_Ankle: where the right foot starts.
     pub const R_ANKLE: usize = 8;
+    /// L_Foot: the ball of the left foot, where the toes start.
     pub const L_FOOT: usize = 10;
+    /// R_Foot: the ball of the right foot, where the toes start.
     pub const R_FOOT: usize = 11;
+    /// Neck: the top of the spine, where the neck starts.
     pub const NECK: usize = 12;
+    /// Head: where the head starts.
     pub const HEAD: usize = 15;
 }
 
