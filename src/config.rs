@@ -160,14 +160,19 @@ pub const FORMAT_VERSION: u32 = 1;
 /// The whole configuration of a model file.
 #[derive(Clone, Debug)]
 pub struct Config {
+    /// The schema version the file was written with: 1..=[`FORMAT_VERSION`].
     pub format_version: u32,
     /// The model family's name for this file (see [`crate::models::FAMILIES`]).
     pub architecture: String,
     /// The family's own sections (`denoiser`, and any other it reads).
     pub denoiser: std::sync::Arc<dyn FamilyConfig>,
+    /// The prompt encoder: BERT or RoBERTa for FLAME, CLIP for the other families.
     pub text_encoder: TextConfig,
+    /// The per-frame feature layout and frame rate of the motion the model produces.
     pub motion: MotionConfig,
+    /// The noise schedule and prediction target the denoiser was trained with.
     pub diffusion: DiffusionConfig,
+    /// The sampling settings a session uses for whatever its parameters leave unset.
     pub defaults: Defaults,
 }
 
@@ -176,14 +181,19 @@ pub struct Config {
 pub enum TextConfig {
     /// `bert` or `roberta`.
     Bert(TextEncoderConfig),
+    /// `clip`: a CLIP text tower (MDM, Motion Flow Matching and the later families).
     Clip(ClipTextConfig),
 }
 
 /// A CLIP text tower and the context length prompts are truncated to (MDM: 22).
 #[derive(Clone, Debug, Deserialize)]
 pub struct ClipTextConfig {
+    /// The tower's sizes (the JSON's other `text_encoder` fields).
     #[serde(flatten)]
     pub clip: ClipConfig,
+    /// Tokens a prompt keeps, start and end tokens included (2..=`context_length`); longer
+    /// prompts are cut and end on the end token, as MDM's `encode_text` does
+    /// (docs/official/mdm.md#clip-prompt-encoding).
     pub max_length: usize,
 }
 
@@ -213,17 +223,28 @@ struct RawConfig {
 pub struct TextEncoderConfig {
     /// `bert` or `roberta`.
     pub kind: String,
+    /// Rows of the token-embedding table (RoBERTa-base: 50265).
     pub vocab_size: usize,
+    /// Width of every token's hidden state (base models: 768).
     pub hidden_size: usize,
+    /// Transformer layers (base models: 12).
     pub num_layers: usize,
+    /// Attention heads per layer; divides `hidden_size`.
     pub num_heads: usize,
+    /// Width of each layer's feed-forward block (base models: 3072).
     pub intermediate_size: usize,
+    /// Rows of the position-embedding table. RoBERTa counts positions from `pad_token_id` + 1
+    /// (docs/official/text-encoders.md#position-ids), so 514 rows hold 512 tokens.
     pub max_position_embeddings: usize,
+    /// Rows of the token-type table (RoBERTa: 1, BERT: 2); only type 0 is used.
     pub type_vocab_size: usize,
+    /// The epsilon added to the variance in every LayerNorm (RoBERTa: 1e-5, BERT: 1e-12).
     pub layer_norm_eps: f32,
+    /// The padding token's id (RoBERTa: 1, BERT: 0); below `vocab_size`.
     pub pad_token_id: u32,
     /// Prompts are padded/truncated to this many tokens (special tokens included).
     pub max_length: usize,
+    /// The feed-forward activation; only `gelu` (exact, erf-based) is accepted, the default.
     #[serde(default = "gelu")]
     pub hidden_act: String,
 }
@@ -233,16 +254,29 @@ pub struct TextEncoderConfig {
 pub struct MotionConfig {
     /// `smpl24_6d` or `humanml263`.
     pub format: String,
+    /// Frames per second of the generated motion, in (0, 1000] (FLAME, HumanML3D models: 20);
+    /// a frame count divided by it gives the clip's duration.
     pub fps: f32,
 }
 
 /// The diffusion process the denoiser was trained with.
 #[derive(Clone, Debug, Deserialize)]
 pub struct DiffusionConfig {
+    /// Training timesteps T (FLAME: 1000); sampling steps are picked among them.
+    /// 1..=[`MAX_TIMESTEPS`].
     pub num_timesteps: usize,
+    /// The beta schedule: `cosine` (guided-diffusion's, docs/official/flame.md#noise-schedule),
+    /// `squaredcos_cap_v2` (diffusers' name for it), `linear` or `scaled_linear`.
     pub schedule: String,
+    /// What the network predicts: `epsilon` (the noise), `x0` (the clean motion), `v`, or
+    /// `velocity` for a flow-matching model.
     pub parameterization: String,
+    /// The variance of each DDPM step: `learned_range` (the network outputs it in a second
+    /// half of its channels; FLAME), `fixed_small` (the posterior variance) or `fixed_large`
+    /// (β_t).
     pub variance: String,
+    /// Whether the clean-motion estimate is clamped to [−1, 1] at every step
+    /// (docs/official/flame.md#ddpm-step); a session's `clip_denoised` overrides it.
     pub clip_denoised: bool,
     /// The unconditional input of classifier-free guidance: `empty_prompt` (FLAME) or `zeros`.
     #[serde(default = "empty_prompt")]
@@ -264,11 +298,20 @@ pub struct DiffusionConfig {
 /// Sampling defaults a session starts from.
 #[derive(Clone, Debug, Deserialize)]
 pub struct Defaults {
+    /// `ddpm` or `ddim` for diffusion models; `euler`, `heun` or `midpoint` for flow matching.
     pub sampler: String,
+    /// Sampling steps: 1..=`num_timesteps` for diffusion (fewer than T skip training steps, as
+    /// `diffusion.spacing` picks them), 1..=[`MAX_FLOW_STEPS`] ODE steps for flow matching.
     pub steps: usize,
+    /// Classifier-free guidance scale in [0, [`MAX_GUIDANCE`]]: 0 = unconditional, 1 = the
+    /// prompt alone, above 1 strengthens the prompt (FLAME: 8, MDM: 2.5).
     pub guidance: f32,
+    /// DDIM's η in [0, 1]: the share of fresh noise each DDIM step adds (0, the default, is
+    /// deterministic); ignored by the other samplers.
     #[serde(default)]
     pub eta: f32,
+    /// Frames generated when a session does not say, at most the model's maximum
+    /// (`max_motion_length` − 1 or `max_len` − 1).
     pub frames: usize,
     /// The respacing string sessions use when they ask for neither a step count nor a
     /// respacing (FineMoGen: `"15,15,8,6,6"`); models with `diffusion.spacing` `respace` only.

@@ -301,6 +301,8 @@ impl ClipConfig {
 }
 
 impl ClipTextConfig {
+    /// The tower's bounds ([`ClipConfig::check`]) and `max_length` within 2..=`context_length`;
+    /// needs no file.
     pub fn check(&self) -> Result<()> {
         self.clip.check()?;
         in_range(

@@ -43,8 +43,9 @@ pub struct FlowSampler {
     steps: usize,
 }
 
-/// the first velocity.
 impl FlowSampler {
+    /// A sampler integrating from t = 0 to 1 in `steps` equal steps of `method`; zero steps is
+    /// an `InvalidArgument`.
     pub fn new(method: OdeMethod, steps: usize) -> Result<FlowSampler> {
         if steps == 0 {
             return Err(invalid_arg!("a flow sampler needs at least one step"));
@@ -52,10 +53,13 @@ impl FlowSampler {
         Ok(FlowSampler { method, steps })
     }
 
+    /// The integration rule.
     pub fn method(&self) -> OdeMethod {
         self.method
     }
 
+    /// N, the steps from noise to data; the network runs N ×
+    /// [`FlowSampler::evaluations_per_step`] times (twice that with guidance).
     pub fn num_steps(&self) -> usize {
         self.steps
     }

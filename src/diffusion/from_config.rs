@@ -12,6 +12,7 @@ use crate::error::{bad_file, invalid_arg, Error, Result};
 /// Which reverse process to run.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Method {
+    /// Ancestral DDPM (guided-diffusion `p_sample`): fresh noise at every step but the last.
     Ddpm,
     /// DDIM with the chosen (or the file's default) η.
     Ddim,
@@ -22,19 +23,26 @@ pub enum Method {
 /// A session's sampling choices; `None` means the model file's default.
 #[derive(Debug, Clone, Copy)]
 pub struct SamplerChoice<'a> {
+    /// The reverse process; it must suit the model (DDPM/DDIM for diffusion, an ODE method for
+    /// flow matching).
     pub method: Method,
+    /// Sampling steps: 1..=`num_timesteps` (diffusion) or 1..=[`MAX_FLOW_STEPS`] (flow).
     pub steps: Option<usize>,
     /// A guided-diffusion `timestep_respacing` string (`"ddim50"`, `"10"`, `"15,15,8,6,6"`) for a
     /// model with `diffusion.spacing` `respace`; it sets the step count.
     pub respacing: Option<&'a str>,
+    /// DDIM's η, finite and ≥ 0 (0 = deterministic); only [`Method::Ddim`] reads it.
     pub eta: Option<f32>,
+    /// Clamp every x̂0 estimate to [−1, 1] (diffusion models only).
     pub clip_denoised: Option<bool>,
 }
 
 /// The sampler [`build_sampler`] made.
 #[derive(Debug, Clone)]
 pub enum BuiltSampler {
+    /// A DDPM or DDIM sampler over the kept timesteps of a diffusion model.
     Diffusion(Box<DiffusionSampler>),
+    /// An ODE sampler of a flow-matching model (`parameterization` `velocity` or `flow`).
     Flow(FlowSampler),
 }
 

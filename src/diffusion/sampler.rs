@@ -105,7 +105,11 @@ pub enum SamplerKind {
     /// Ancestral sampling from the posterior (guided-diffusion `p_sample`).
     Ddpm,
     /// DDIM (guided-diffusion `ddim_sample`); `eta = 0` is deterministic.
-    Ddim { eta: f32 },
+    Ddim {
+        /// η ≥ 0: scales the noise each step adds, σ = η·√((1 − ᾱ_prev)/(1 − ᾱ))·√(1 −
+        /// ᾱ/ᾱ_prev) (docs/official/flame.md#ddim); 1 gives DDPM's posterior variance.
+        eta: f32,
+    },
 }
 
 impl FromStr for SamplerKind {
@@ -681,7 +685,9 @@ pub type X0Guide<'a> = dyn FnMut(&mut [f32]) -> Result<()> + 'a;
 /// The reference values that replace x̂0's kept values (one flag per value, `true` = keep).
 #[derive(Clone, Copy, Debug)]
 pub struct X0Replacement<'a> {
+    /// The values to impose, laid out like x̂0 (`[rows, dim]` flattened, same length).
     pub reference: &'a [f32],
+    /// One flag per x̂0 value: `true` takes the reference's value, `false` the model's.
     pub keep: &'a [bool],
 }
 

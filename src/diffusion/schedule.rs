@@ -159,19 +159,28 @@ pub fn diffusers_alphas_cumprod(betas: &[f64]) -> Vec<f64> {
 /// log-variance tables the sampler's variance modes read.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Schedule {
+    /// β_t, one per step, t = 0 (least noise) first; each in (0, 1) (a diffusers step with
+    /// ᾱ_prev = ᾱ has β = 0).
     pub betas: Vec<f64>,
+    /// ᾱ_t = ∏_{s≤t}(1 − β_s): the signal's share of x_t's variance, falling towards 0.
     pub alphas_cumprod: Vec<f64>,
     /// `[1, ᾱ_0, …, ᾱ_{T−2}]`.
     pub alphas_cumprod_prev: Vec<f64>,
+    /// √ᾱ_t, the clean motion's scale in x_t = √ᾱ_t·x0 + √(1 − ᾱ_t)·ε.
     pub sqrt_alphas_cumprod: Vec<f64>,
+    /// √(1 − ᾱ_t), the noise's scale in x_t.
     pub sqrt_one_minus_alphas_cumprod: Vec<f64>,
+    /// √(1/ᾱ_t), x_t's weight in x̂0 = √(1/ᾱ_t)·x_t − √(1/ᾱ_t − 1)·ε.
     pub sqrt_recip_alphas_cumprod: Vec<f64>,
+    /// √(1/ᾱ_t − 1), ε's weight in that x̂0.
     pub sqrt_recipm1_alphas_cumprod: Vec<f64>,
     /// σ̃²_t = β_t(1 − ᾱ_prev,t)/(1 − ᾱ_t); σ̃²_0 = 0.
     pub posterior_variance: Vec<f64>,
     /// log σ̃²_t with entry 0 replaced by log σ̃²_1 (log 0 would be −∞).
     pub posterior_log_variance_clipped: Vec<f64>,
+    /// c1_t = β_t·√ᾱ_prev,t/(1 − ᾱ_t): x̂0's weight in the posterior mean c1·x̂0 + c2·x_t.
     pub posterior_mean_coef1: Vec<f64>,
+    /// c2_t = (1 − ᾱ_prev,t)·√(1 − β_t)/(1 − ᾱ_t): x_t's weight in the posterior mean.
     pub posterior_mean_coef2: Vec<f64>,
     /// log β_t: the upper end of the learned-range interpolation.
     pub log_betas: Vec<f64>,

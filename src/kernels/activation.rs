@@ -53,6 +53,8 @@ unsafe fn map_avx2(x: &mut [f32], f: impl Fn(f32) -> f32) {
     x.iter_mut().for_each(|v| *v = f(*v));
 }
 
+/// ReLU in place, `max(x, 0)`; NaN stays NaN, as in PyTorch (FLAME's and MDM's feed-forward
+/// layers when `activation` is `relu`).
 pub fn relu(x: &mut [f32]) {
     // Memory-bound: never worth a fork. A comparison (not `f32::max`) so NaN propagates as in
     // PyTorch; every element is stored so the loop vectorises into a select (a conditional
@@ -101,6 +103,8 @@ fn quick_gelu_one(v: f32) -> f32 {
     v / (1.0 + exp_fast(-1.702 * v))
 }
 
+/// SiLU (swish) in place, `x · sigmoid(x)` = `x / (1 + e^(−x))` in f32 (the timestep MLPs of
+/// MDM, MoLA and FineMoGen).
 pub fn silu(x: &mut [f32]) {
     map_inplace(x, silu_one);
 }
@@ -110,6 +114,7 @@ fn silu_one(v: f32) -> f32 {
     v / (1.0 + exp_fast(-v))
 }
 
+/// `tanh` in place, with the standard library's `f32::tanh` (the BERT pooler's activation).
 pub fn tanh(x: &mut [f32]) {
     map_inplace(x, f32::tanh);
 }

@@ -60,6 +60,7 @@ pub enum WeightType {
 }
 
 impl WeightType {
+    /// Every type, in the order `flame info` and the benchmarks list them.
     pub const ALL: [WeightType; 5] = [
         WeightType::F32,
         WeightType::F16,
@@ -68,6 +69,8 @@ impl WeightType {
         WeightType::Int8,
     ];
 
+    /// The name [`FromStr`](std::str::FromStr) reads back: `f32`, `f16`, `bf16`,
+    /// `bf16-compute` or `int8`.
     pub fn name(self) -> &'static str {
         match self {
             WeightType::F32 => "f32",
@@ -139,8 +142,10 @@ impl std::str::FromStr for WeightType {
 /// What is applied to each output after the bias.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Activation {
+    /// The outputs as computed (`x·Wᵀ + b`).
     #[default]
     None,
+    /// `max(y, 0)`, the same function as [`super::relu`].
     Relu,
     /// Exact (erf) GELU, the same function as [`super::gelu_erf`].
     Gelu,
@@ -530,6 +535,7 @@ impl PackedWeights {
         }
     }
 
+    /// Input features (`k`).
     pub fn inputs(&self) -> usize {
         self.k
     }
@@ -539,6 +545,7 @@ impl PackedWeights {
         self.n
     }
 
+    /// How the weights are stored and multiplied.
     pub fn weight_type(&self) -> WeightType {
         self.ty
     }
@@ -1534,14 +1541,17 @@ impl PackedLinear {
         }
     }
 
+    /// Input features (`n_in`).
     pub fn inputs(&self) -> usize {
         self.weight.k
     }
 
+    /// Output features (`n_out`).
     pub fn outputs(&self) -> usize {
         self.weight.n
     }
 
+    /// The packed weight (its type, size in memory, values).
     pub fn weights(&self) -> &PackedWeights {
         &self.weight
     }

@@ -17,13 +17,21 @@ static MOE_FLOP: AtomicU64 = AtomicU64::new(0);
 /// Totals since the last [`take`].
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Profile {
+    /// Wall time inside the linear layers (packed GEMMs), in seconds.
     pub linear_seconds: f64,
+    /// Floating-point operations of the linear layers: 2 per multiply-add (2·rows·in·out a
+    /// call), bias and activation not counted.
     pub linear_flop: f64,
+    /// Wall time inside attention (scores, softmax, weighted sum), in seconds.
     pub attention_seconds: f64,
+    /// Floating-point operations of attention: 4·L_q·L_k·width a call (q·kᵀ and p·v, causal
+    /// blocks counted in full, softmax not counted).
     pub attention_flop: f64,
     /// Mixtures of experts as a whole (gate, routing, experts, projection), their linear
     /// layers also counted in `linear_*`.
     pub moe_seconds: f64,
+    /// Floating-point operations of the mixtures of experts (2 per multiply-add, counted as if
+    /// no expert choice were dropped for capacity).
     pub moe_flop: f64,
 }
 

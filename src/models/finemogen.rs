@@ -70,6 +70,7 @@ pub struct FinemogenConfig {
     pub dataset: String,
     /// Channels of each of the 8 groups (64; the latent is 8 × 64).
     pub part_dim: usize,
+    /// Denoiser layers, each SAMI attention then the stylised FFN (4).
     pub num_layers: usize,
     /// Width of the time embedding (2048).
     pub time_embed_dim: usize,
@@ -79,20 +80,30 @@ pub struct FinemogenConfig {
     pub clip_width: usize,
     /// Width of the text features (256).
     pub text_latent_dim: usize,
+    /// Post-LN encoder layers over the CLIP token features (2).
     pub text_layers: usize,
+    /// Heads of those layers; divides `text_latent_dim` (4).
     pub text_heads: usize,
+    /// Feed-forward width of those layers (2048).
     pub text_ff_size: usize,
     /// Text positions (77, all kept).
     pub max_text_len: usize,
     /// Hidden width of the per-part FFN and of the template MLPs (256).
     pub ffn_dim: usize,
+    /// Experts of each mixture-of-experts layer (16).
     pub num_experts: usize,
+    /// Experts each token is routed to, 1..=`num_experts` (2).
     pub topk: usize,
+    /// tutel's capacity factor f: each expert takes `topk`·⌊f·⌈tokens/num_experts⌉⌋ tokens of a
+    /// call, the rest are dropped (1.5; docs/official/finemogen.md#capacity-and-dropping).
     pub capacity_factor: f32,
     /// Width of the cosine gate's projection (256).
     pub gate_dim: usize,
+    /// Hidden width of each text-token expert (the converter reads it from `batched_fc1_w`).
     pub text_expert_hidden: usize,
+    /// Hidden width of each motion-token expert (likewise read from the expert tensors).
     pub motion_expert_hidden: usize,
+    /// LayerNorm's epsilon, in (0, 1] (default 1e-5).
     #[serde(default = "ln_eps")]
     pub layer_norm_eps: f32,
 }
@@ -104,6 +115,7 @@ fn ln_eps() -> f32 {
 /// A FineMoGen file's configuration.
 #[derive(Clone, Debug)]
 pub struct FinemogenFamily {
+    /// The network's sizes (the `denoiser` section).
     pub denoiser: FinemogenConfig,
 }
 
@@ -996,6 +1008,8 @@ impl<'a> NetRows<'a> {
 }
 
 impl FinemogenDenoiser {
+    /// Reads the tensors (under `denoiser.`) and builds the network, linear weights held as
+    /// `ty`; `num_timesteps` (T) sets the guidance ramp w(t) = 1 + scale·t/T.
     pub fn load(
         file: &ModelFile,
         fam: &FinemogenFamily,
@@ -1136,6 +1150,7 @@ impl FinemogenDenoiser {
         })
     }
 
+    /// The sizes the network was built from.
     pub fn config(&self) -> &FinemogenConfig {
         &self.cfg
     }

@@ -42,14 +42,25 @@ const AUX_TOKENS: usize = 3;
 /// docs/official/flame.md#configuration): the `denoiser` section.
 #[derive(Clone, Debug, Deserialize)]
 pub struct FlameConfig {
+    /// Features per frame, = the motion format's (`smpl24_6d`: 147); the network reads
+    /// `[frames, motion_dim]` and outputs `[frames, 2·motion_dim]` (ε, then the variance value).
     pub motion_dim: usize,
+    /// Width C of every token in the decoder (official: 768, the RoBERTa hidden size); even.
     pub model_channels: usize,
+    /// Post-LN decoder layers (official: 8).
     pub num_layers: usize,
+    /// Attention heads per layer; divides `model_channels` (official: 8). Not recoverable from
+    /// the tensors' shapes, so the converter is told it.
     pub num_heads: usize,
+    /// Width of each layer's feed-forward block (official: 2048).
     pub dim_feedforward: usize,
+    /// Rows of the motion-length embedding table (official: 471); a motion of `L` frames uses
+    /// row `L`, so at most `max_motion_length − 1` frames are generated.
     pub max_motion_length: usize,
+    /// The feed-forward activation: `relu` (the official network and the default) or `gelu`.
     #[serde(default = "relu")]
     pub activation: String,
+    /// LayerNorm's epsilon, in (0, 1] (default PyTorch's 1e-5).
     #[serde(default = "ln_eps_torch")]
     pub layer_norm_eps: f32,
 }

@@ -51,6 +51,7 @@ pub const FAMILY: Family = Family {
 pub struct MdmFamily {
     /// Motion Flow Matching (`motionfm`): the time input is flow time in [0, 1].
     pub flow_matching: bool,
+    /// The network's sizes (the JSON's `denoiser` section).
     pub denoiser: MdmConfig,
 }
 
@@ -162,9 +163,14 @@ const COND_TOKENS: usize = 1;
 pub struct MdmConfig {
     /// Feature channels per frame (263 for HumanML3D).
     pub njoints: usize,
+    /// Width of every token in the encoder (official: 512); even.
     pub latent_dim: usize,
+    /// Post-LN transformer encoder layers (official: 8).
     pub layers: usize,
+    /// Attention heads per layer; divides `latent_dim` (official: 4). Not recoverable from the
+    /// tensors' shapes, so the converter is told it.
     pub heads: usize,
+    /// Width of each layer's feed-forward block (official: 1024).
     pub ff_size: usize,
     /// `gelu` (exact erf, the official choice) or `relu`.
     #[serde(default = "gelu")]
@@ -354,6 +360,7 @@ impl MdmDenoiser {
         self
     }
 
+    /// How the time input picks its `pe` row (MDM's integer step, or flow time).
     pub fn time_index(&self) -> TimeIndex {
         self.time_index
     }
@@ -374,6 +381,7 @@ impl MdmDenoiser {
             .sum::<usize>()
     }
 
+    /// The sizes the network was built from.
     pub fn config(&self) -> &MdmConfig {
         &self.cfg
     }

@@ -62,12 +62,17 @@ pub struct MldConfig {
     pub text_dim: usize,
     /// Layers of the skip stack (odd: 9).
     pub layers: usize,
+    /// Attention heads per layer; divides `latent_dim` (official: 4).
     pub heads: usize,
+    /// Width of each layer's feed-forward block (official: 1024).
     pub ff_size: usize,
-    /// Rows of the learned positional table (`query_pos.pe`).
+    /// Rows of the learned positional table (`query_pos.pe`; official: 500); the sequence
+    /// [latent tokens, time, text] needs `latent_tokens` + 2 of them.
     pub max_len: usize,
+    /// The feed-forward activation: `gelu` (exact erf, the default) or `relu`.
     #[serde(default = "gelu")]
     pub activation: String,
+    /// LayerNorm's epsilon, in (0, 1] (default 1e-5).
     #[serde(default = "ln_eps")]
     pub layer_norm_eps: f32,
 }
@@ -75,10 +80,13 @@ pub struct MldConfig {
 /// The VAE decoder's sizes: the `vae` section.
 #[derive(Clone, Debug, Deserialize)]
 pub struct MldVaeConfig {
+    /// Width of the latent and of the decoder; = `denoiser.latent_dim` (256).
     pub latent_dim: usize,
     /// Layers of the skip stack (odd: 9).
     pub layers: usize,
+    /// Attention heads per layer; divides `latent_dim`.
     pub heads: usize,
+    /// Width of each layer's feed-forward block.
     pub ff_size: usize,
     /// Features per frame (263).
     pub nfeats: usize,
@@ -86,8 +94,10 @@ pub struct MldVaeConfig {
     pub max_len: usize,
     /// Whether the stack ends in a LayerNorm (`decoder.norm`).
     pub final_norm: bool,
+    /// The feed-forward activation: `gelu` (exact erf, the default) or `relu`.
     #[serde(default = "gelu")]
     pub activation: String,
+    /// LayerNorm's epsilon, in (0, 1] (default 1e-5).
     #[serde(default = "ln_eps")]
     pub layer_norm_eps: f32,
 }
@@ -103,7 +113,9 @@ fn ln_eps() -> f32 {
 /// An MLD file's configuration.
 #[derive(Clone, Debug)]
 pub struct MldFamily {
+    /// The latent denoiser's sizes (the `denoiser` section).
     pub denoiser: MldConfig,
+    /// The VAE decoder's sizes (the `vae` section), which turns a latent into frames.
     pub vae: MldVaeConfig,
 }
 
@@ -502,6 +514,7 @@ impl MldDenoiser {
         })
     }
 
+    /// The sizes the network and its VAE decoder were built from.
     pub fn config(&self) -> &MldFamily {
         &self.cfg
     }

@@ -389,7 +389,10 @@ pub enum TextModel {
     Bert(TextEncoder),
     /// CLIP: the projected end-of-text vector (MDM), prompts truncated to `context` tokens.
     Clip {
+        /// The CLIP text tower.
         encoder: ClipTextEncoder,
+        /// Tokens a prompt keeps, start and end included: the file's `text_encoder.max_length`
+        /// (MDM: 22, docs/official/mdm.md#clip-prompt-encoding).
         context: usize,
     },
 }
@@ -588,10 +591,12 @@ impl Model {
         })
     }
 
+    /// The validated configuration read from the model file.
     pub fn config(&self) -> &Config {
         &self.config
     }
 
+    /// The prompt encoder, of whichever kind the model uses.
     pub fn text_model(&self) -> &TextModel {
         &self.text
     }
@@ -604,6 +609,7 @@ impl Model {
         }
     }
 
+    /// The family's network, behind the interface sessions drive.
     pub fn denoiser(&self) -> &dyn Denoiser {
         &*self.denoiser
     }

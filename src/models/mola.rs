@@ -60,6 +60,7 @@ pub struct MolaConfig {
     pub embed_dim: usize,
     /// Transformer blocks (9).
     pub depth: usize,
+    /// Attention heads per block; divides `embed_dim` (4, of 128 dimensions each).
     pub num_heads: usize,
     /// Leading dims of each head that rotate (64 of 128).
     pub rotary_dim: usize,
@@ -69,6 +70,7 @@ pub struct MolaConfig {
     pub cond_dim: usize,
     /// Rows of the Fourier weight `[time_features, 1]` (128; the features are twice as many).
     pub time_features: usize,
+    /// LayerNorm's epsilon, in (0, 1] (default 1e-5).
     #[serde(default = "ln_eps")]
     pub layer_norm_eps: f32,
     /// The most latent rows a session may ask for.
@@ -86,6 +88,7 @@ pub struct MolaVaeConfig {
     pub upsample_layers: usize,
     /// Residual blocks per stage (3), dilations `growth^(blocks − 1 − i)`.
     pub res_blocks: usize,
+    /// Factor between the dilations of successive residual blocks (3: dilations 9, 3, 1).
     pub dilation_growth: usize,
     /// A frame is valid while sigmoid(flag) is above this (0.999).
     pub flag_threshold: f32,
@@ -100,7 +103,10 @@ fn ln_eps() -> f32 {
 /// A MoLA file's configuration.
 #[derive(Clone, Debug)]
 pub struct MolaFamily {
+    /// The latent denoiser's sizes (the `denoiser` section).
     pub denoiser: MolaConfig,
+    /// The convolutional VAE decoder's sizes (the `vae` section), which turns latent rows into
+    /// frames and finds the motion's length.
     pub vae: MolaVaeConfig,
 }
 
@@ -411,6 +417,7 @@ impl MolaDenoiser {
         })
     }
 
+    /// The sizes the network and its VAE decoder were built from.
     pub fn config(&self) -> &MolaFamily {
         &self.cfg
     }

@@ -63,8 +63,9 @@ pub struct OmgConfig {
     pub ff_size: usize,
     /// Dims of the timestep sinusoid (256).
     pub time_freq_dim: usize,
-    /// RoPE base (10000) and how many leading dims of each head rotate (all).
+    /// RoPE base (10000): inverse frequencies `rope_base^(−2i/rope_dims)`.
     pub rope_base: f32,
+    /// How many leading dims of each head rotate (even, at most the head dim; all of them).
     pub rope_dims: usize,
     /// LayerNorm eps (1e-6, DiT's).
     pub norm_eps: f32,
@@ -92,14 +93,19 @@ pub struct ControlConfig {
     pub experts: usize,
     /// Hidden width of each expert (2 × control_dim).
     pub expert_hidden: usize,
-    /// `gelu` or `gelu_tanh`.
+    /// `gelu`, `gelu_tanh` or `silu`.
     pub expert_activation: String,
     /// Hidden width of the 3-layer gating MLP.
     pub gate_hidden: usize,
+    /// The gating MLP's activation: `gelu`, `gelu_tanh` or `silu` (the paper does not say;
+    /// docs/official/omg.md#mixture-of-controllers-block).
     pub gate_activation: String,
-    /// γ and β of the attention mask (24, 0.25).
+    /// γ and β of the attention mask M_i = sigmoid(γ·(A_i − β·max over frames of A_i)):
+    /// γ (24) sets how sharp the mask is.
     pub mask_gamma: f32,
+    /// β (0.25): the share of a token's peak attention above which frames are mostly kept.
     pub mask_beta: f32,
+    /// The epsilon added to the variance in the AdaIN that normalises each channel over time.
     pub adain_eps: f32,
     /// Whether the text tokens include the padding after end-of-text (false: SOT…EOT).
     pub text_padding: bool,
@@ -108,6 +114,7 @@ pub struct ControlConfig {
 /// An OMG file's configuration.
 #[derive(Clone, Debug)]
 pub struct OmgFamily {
+    /// The backbone's and, when present, the ControlNet's sizes (the `denoiser` section).
     pub denoiser: OmgConfig,
 }
 
@@ -489,6 +496,8 @@ pub struct OmgWorkspace {
 }
 
 impl OmgDenoiser {
+    /// Reads the tensors (under `denoiser.`) and builds the network, linear weights held as
+    /// `ty`; the configuration has been validated against the file.
     pub fn load(file: &ModelFile, fam: &OmgFamily, ty: WeightType) -> Result<OmgDenoiser> {
         let d = &fam.denoiser;
         let (f, e) = (d.input_feats, d.d_model);
@@ -577,6 +586,7 @@ impl OmgDenoiser {
         })
     }
 
+    /// The sizes the network was built from.
     pub fn config(&self) -> &OmgConfig {
         &self.cfg
     }
