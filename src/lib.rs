@@ -23,12 +23,10 @@ pub mod assemble;
 /// cbindgen:ignore
 pub mod checkpoint;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod config;
 /// cbindgen:ignore
 pub mod cycle;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod diffusion;
 /// cbindgen:ignore
 pub mod edit;
@@ -38,10 +36,8 @@ pub mod ffi;
 /// cbindgen:ignore
 pub mod grad;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod kernels;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod models;
 /// cbindgen:ignore
 #[allow(missing_docs)]
