@@ -122,7 +122,8 @@ avx2_only_view() {
 # target/book and must print no warning; the citations and links must resolve; every code block
 # must pass tools/docs_blocks.py. Its Rust blocks are doctests of src/lib.rs, run by the rust
 # stage's `cargo test --workspace`, so no Rust is compiled here but the CLI and the library
-# (`cargo build`, as the c and bindings stages run it: a no-op after them).
+# (`cargo build`, as the c and bindings stages run it: a no-op after them) and the API docs
+# (`cargo doc`, failing on any warning: a missing doc, a broken link).
 mdbook_version=0.5.4
 docs_check() {
     local mdbook="$ROOT/target/mdbook/bin/mdbook" rc=0
@@ -144,6 +145,7 @@ docs_check() {
     fi
     cargo build --quiet || return 1   # as the c and bindings stages: a no-op after them
     python3 tools/docs_blocks.py || rc=1
+    RUSTDOCFLAGS="-D warnings" cargo doc --quiet --no-deps --workspace || rc=1   # API docs
     return $rc
 }
 
