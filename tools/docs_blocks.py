@@ -20,6 +20,7 @@ What each kind of block gets:
   `<!-- run ... -->`, or marked `<!-- not run: REASON -->` (a reason is required).
 - ```python: compiled (syntax); never run here, so it needs `<!-- not run: REASON -->`.
 - ```json: parsed.
+- ```text (output, usage synopses): not checked.
 - any other language (cmake, ...): needs `<!-- not run: REASON -->`.
 
 The marker is an HTML comment on the lines right before the fence (blank lines allowed between).
@@ -238,6 +239,8 @@ class Checker:
                 self.fail(b, f"json: {e}")
                 return
             self.count("json", "parsed")
+        elif lang == "text":
+            self.count("text", "not checked")
         elif lang == "":
             self.fail(b, "a code block without a language (```sh, ```rust, ```c, ```text, ...)")
         elif not_run:
