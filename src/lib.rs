@@ -40,7 +40,6 @@ pub mod kernels;
 /// cbindgen:ignore
 pub mod models;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod motion;
 /// cbindgen:ignore
 pub mod npy;
@@ -54,7 +53,6 @@ pub mod retarget;
 /// cbindgen:ignore
 pub mod rng;
 /// cbindgen:ignore
-#[allow(missing_docs)]
 pub mod robot;
 /// cbindgen:ignore
 pub mod session;

@@ -98,6 +98,7 @@ pub enum AmassLayout {
 }
 
 impl AmassLayout {
+    /// Every layout, indexed by its integer value (the C ABI's: 0 `smplh`, 1 `smplx`).
     pub const ALL: [AmassLayout; 2] = [AmassLayout::SmplH, AmassLayout::SmplX];
 
     /// `smplh` or `smplx`, as `FromStr` and the CLI's `--amass` take them.
@@ -197,6 +198,7 @@ impl Amass {
         Ok(out)
     }
 
+    /// Number of frames (the length of `trans` and `root_orient`).
     pub fn frames(&self) -> usize {
         self.trans.len()
     }

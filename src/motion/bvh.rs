@@ -148,11 +148,17 @@ fn write_joint(
 /// One BVH channel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Channel {
+    /// Translation along X, in the file's length unit.
     Xposition,
+    /// Translation along Y, in the file's length unit.
     Yposition,
+    /// Translation along Z, in the file's length unit.
     Zposition,
+    /// Rotation about X, degrees.
     Xrotation,
+    /// Rotation about Y, degrees.
     Yrotation,
+    /// Rotation about Z, degrees.
     Zrotation,
 }
 
@@ -194,6 +200,7 @@ impl Channel {
         }
     }
 
+    /// Whether this is a rotation channel (degrees) rather than a position one.
     pub fn is_rotation(self) -> bool {
         matches!(
             self,
@@ -216,6 +223,7 @@ pub struct BvhJoint {
 }
 
 impl BvhJoint {
+    /// The name after `ROOT` or `JOINT` (unique in the hierarchy).
     pub fn name(&self) -> &str {
         &self.name
     }
@@ -225,10 +233,14 @@ impl BvhJoint {
         self.parent
     }
 
+    /// `OFFSET`: the joint's rest position relative to its parent, in the file's axes and unit
+    /// (every joint has one; the parser refuses a joint without).
     pub fn offset(&self) -> Vec3 {
         self.offset.unwrap_or_default()
     }
 
+    /// The joint's `CHANNELS`, in file order (0 to 6): its rotation is the product of its
+    /// rotation channels in this order (`Zrotation Xrotation Yrotation` is `Rz · Rx · Ry`).
     pub fn channels(&self) -> &[Channel] {
         &self.channels
     }
@@ -245,6 +257,8 @@ pub struct BvhMotion {
 }
 
 impl BvhMotion {
+    /// The hierarchy's joints in file order, parents before children (index 0 is the `ROOT`);
+    /// `End Site`s are not joints.
     pub fn joints(&self) -> &[BvhJoint] {
         &self.joints
     }
@@ -254,6 +268,7 @@ impl BvhMotion {
         self.channel_count
     }
 
+    /// Number of frames (equal to the file's `Frames:`).
     pub fn frames(&self) -> usize {
         self.data.len().checked_div(self.channel_count).unwrap_or(0)
     }

@@ -49,38 +49,53 @@ pub enum Convention {
 /// A signed coordinate axis.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Axis {
+    /// `+x`: `[1, 0, 0]`.
     PosX,
+    /// `-x`: `[-1, 0, 0]`.
     NegX,
+    /// `+y`: `[0, 1, 0]`.
     PosY,
+    /// `-y`: `[0, -1, 0]`.
     NegY,
+    /// `+z`: `[0, 0, 1]`.
     PosZ,
+    /// `-z`: `[0, 0, -1]`.
     NegZ,
 }
 
 /// Which hand's rule the axes follow.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Handedness {
+    /// Left = up × forward (ROS, Blender, glTF, and both formats' native frames).
     Right,
+    /// Left = forward × up (Unity, Unreal): converting to or from it mirrors positions.
     Left,
 }
 
 /// The length unit of positions and offsets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Unit {
+    /// Metres: every convention but Unreal, and the models' own output.
     Metre,
+    /// Centimetres (Unreal): positions and offsets are multiplied by 100.
     Centimetre,
 }
 
 /// Where a standing, unturned character's up, forward and left point, and the length unit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Frame {
+    /// The axis pointing up, out of the ground a character stands on.
     pub up: Axis,
+    /// The axis a standing, unturned character faces.
     pub forward: Axis,
+    /// The axis to that character's left (its own left hand's side).
     pub left: Axis,
+    /// The length unit of positions and offsets.
     pub unit: Unit,
 }
 
 impl Axis {
+    /// The unit vector along the axis, with its sign.
     pub fn vector(self) -> Vec3 {
         match self {
             Axis::PosX => [1.0, 0.0, 0.0],
@@ -106,6 +121,7 @@ impl Axis {
 }
 
 impl Handedness {
+    /// `right` or `left`, as the JSON export's `handedness` field writes it.
     pub fn name(self) -> &'static str {
         match self {
             Handedness::Right => "right",

@@ -160,8 +160,10 @@ fn check_fps(fps: f64) -> Result<()> {
 }
 
 impl Feet {
+    /// Every mode, indexed by its integer value (the C ABI's).
     pub const ALL: [Feet; 2] = [Feet::Off, Feet::Lock];
 
+    /// `off` or `lock`, as `FromStr` and the CLI's `--feet` take them.
     pub fn name(self) -> &'static str {
         match self {
             Feet::Off => "off",
@@ -179,8 +181,10 @@ impl Feet {
 }
 
 impl RootMotion {
+    /// Every mode, indexed by its integer value (the C ABI's).
     pub const ALL: [RootMotion; 3] = [RootMotion::Keep, RootMotion::InPlace, RootMotion::Separate];
 
+    /// `keep`, `in-place` or `separate`, as `FromStr` and the CLI's `--root-motion` take them.
     pub fn name(self) -> &'static str {
         match self {
             RootMotion::Keep => "keep",

@@ -104,7 +104,9 @@ impl fmt::Display for Format {
 /// file's `motion.mean` / `motion.std` tensors; FLAME's features are not normalised.
 #[derive(Clone, Copy, Debug)]
 pub struct Normalization<'a> {
+    /// Per-feature mean, one value per feature of a frame (263 for humanml263).
     pub mean: &'a [f32],
+    /// Per-feature standard deviation, as long as `mean`; every value finite and non-zero.
     pub std: &'a [f32],
 }
 

@@ -64,6 +64,7 @@ impl Layout {
         Layout::RootBone,
     ];
 
+    /// The snake-case name (`root_translation`, `local_quat_xyzw`, …), as `FromStr` takes it.
     pub fn name(self) -> &'static str {
         match self {
             Layout::RootTranslation => "root_translation",
@@ -118,6 +119,7 @@ impl Layout {
 }
 
 impl QuatOrder {
+    /// `xyzw` or `wxyz`, as the JSON export's `rotation_quat_order` field writes it.
     pub fn name(self) -> &'static str {
         match self {
             QuatOrder::Xyzw => "xyzw",

@@ -159,8 +159,13 @@ pub fn velocity_jumps(p: &Poses, t: &LoopMotion) -> (f64, f64) {
 /// `pivot` (frame 0's pelvis), then the pivot carried to `target`.
 #[derive(Clone, Copy, Debug)]
 pub struct LoopMotion {
+    /// The heading change: a rotation about the format's native up axis (Y for humanml263, Z for
+    /// smpl24_6d; [`crate::motion::Format::up_axis`]).
     pub turn: Mat3,
+    /// The point turned about: the start frame's pelvis, native world frame, metres.
     pub pivot: Vec3,
+    /// Where `pivot` lands, same frame and unit; its height is the pivot's (the move is
+    /// horizontal).
     pub target: Vec3,
 }
 

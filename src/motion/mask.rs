@@ -38,6 +38,7 @@ const LEG_JOINTS: [usize; 8] = [1, 2, 4, 5, 7, 8, 10, 11];
 const ARM_JOINTS: [usize; 10] = [13, 14, 16, 17, 18, 19, 20, 21, 22, 23];
 
 impl BodyPart {
+    /// Every part, indexed by the C ABI's integer value.
     pub const ALL: [BodyPart; 5] = [
         BodyPart::RootPath,
         BodyPart::LowerBody,
@@ -93,6 +94,7 @@ pub enum Task {
 }
 
 impl Task {
+    /// Every task, indexed by the C ABI's integer value.
     pub const ALL: [Task; 4] = [Task::Inbetween, Task::Predict, Task::UpperBody, Task::Path];
 
     /// The name used by `flame edit --task`.
@@ -422,10 +424,12 @@ impl Mask {
         Ok(m)
     }
 
+    /// The feature format the mask is laid over (its `feature_dim` flags per frame).
     pub fn format(&self) -> Format {
         self.format
     }
 
+    /// Number of frames the mask covers.
     pub fn frames(&self) -> usize {
         self.frames
     }

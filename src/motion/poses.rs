@@ -149,14 +149,17 @@ impl Poses {
         Ok(poses)
     }
 
+    /// The feature format the poses were decoded from; it fixes the skeleton.
     pub fn format(&self) -> Format {
         self.format
     }
 
+    /// Number of frames (after any resampling by the finish).
     pub fn frames(&self) -> usize {
         self.frames
     }
 
+    /// Joints per frame: 24 for smpl24_6d, 22 for humanml263 (the format's skeleton).
     pub fn joint_count(&self) -> usize {
         self.format.skeleton().joint_count()
     }

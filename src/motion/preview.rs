@@ -133,9 +133,11 @@ const MAX_ANIMATION_PIXELS: u64 = 64 << 20;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
 pub enum Ink {
+    /// White: everything not drawn.
     Background = 0,
     /// Panel separators and the path panel's grid.
     Border = 1,
+    /// The ground line under each figure (and an animation's ground ticks, every 0.5 m).
     Ground = 2,
     /// Bones and joints whose joint name starts with `L_` / `left_`.
     Left = 3,
@@ -143,11 +145,15 @@ pub enum Ink {
     Right = 4,
     /// Pelvis, spine, neck and head.
     Spine = 5,
+    /// The pelvis's whole path, seen from above, in the path panel.
     Path = 6,
     /// The drawn frames' pelvis positions on the path.
     Sample = 7,
+    /// Green mark: the pelvis at the first frame.
     Start = 8,
+    /// Red mark: the pelvis at the last frame.
     End = 9,
+    /// Frame numbers in the panels' corners.
     Label = 10,
 }
 
@@ -202,10 +208,12 @@ impl Image {
         }
     }
 
+    /// Width in pixels.
     pub fn width(&self) -> u32 {
         self.width
     }
 
+    /// Height in pixels.
     pub fn height(&self) -> u32 {
         self.height
     }
@@ -902,10 +910,12 @@ impl Animation {
         self.fps
     }
 
+    /// Width in pixels of every frame (side view plus path panel).
     pub fn width(&self) -> u32 {
         self.frames[0].width
     }
 
+    /// Height in pixels of every frame ([`AnimationOptions::panel_height`]).
     pub fn height(&self) -> u32 {
         self.frames[0].height
     }

@@ -190,10 +190,14 @@ impl Skeleton {
         self.name
     }
 
+    /// Number of joints: 24 for `smpl24`, 22 for `humanml22`.
     pub fn joint_count(&self) -> usize {
         self.joint_names.len()
     }
 
+    /// One name per joint, in index order: SMPL's (`Pelvis`, `L_Hip`, …;
+    /// docs/official/smpl.md#joint-order) or HumanML3D's (`pelvis`, `left_hip`, …;
+    /// docs/official/humanml3d.md#joint-names). The two orders coincide on the first 22 joints.
     pub fn joint_names(&self) -> &'static [&'static str] {
         self.joint_names
     }

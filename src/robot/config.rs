@@ -82,12 +82,15 @@ const CONTACT_JOINTS: [usize; 4] = crate::motion::contacts::SLOT_JOINTS;
 /// One row of an IK match table, names resolved.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MatchEntry {
-    /// Robot link index ([`Robot::links`]) and its name.
+    /// Robot link index ([`Robot::links`]) whose pose is driven.
     pub body: usize,
+    /// That link's name, as the table's key gives it (for messages).
     pub body_name: String,
     /// Human joint index in SMPL-24 order (a 22-joint motion holds the first 22).
     pub human: usize,
+    /// Weight of the position error (metres) in the solve, ≥ 0; 0 leaves the position free.
     pub position_weight: f64,
+    /// Weight of the rotation error (radians) in the solve, ≥ 0; 0 leaves the rotation free.
     pub rotation_weight: f64,
     /// In the target frame, `ground_height` already taken off its z (module doc).
     pub position_offset: Vec3,
@@ -98,9 +101,13 @@ pub struct MatchEntry {
 /// A foot's sole rectangle in its body's frame (module doc, `feet`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sole {
+    /// The rectangle's centre (x, y) in the body's frame, metres.
     pub centre: [f64; 2],
+    /// Half the sole's extent along the body's x axis, metres, > 0.
     pub half_length: f64,
+    /// Half the sole's extent along the body's y axis, metres, > 0.
     pub half_width: f64,
+    /// How far below the body origin (along the body's -z) the sole lies, metres, ≥ 0.
     pub height: f64,
 }
 
@@ -121,28 +128,42 @@ impl Sole {
 /// A robot foot and the human contacts that plant it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Foot {
+    /// Robot link index ([`Robot::links`]) of the foot; an entry of a table in use drives it.
     pub body: usize,
+    /// That link's name (`feet.<side>.body`).
     pub body_name: String,
     /// Contact slots (0..4: left ankle, left foot, right ankle, right foot) whose contact makes
     /// this foot's.
     pub slots: Vec<usize>,
+    /// The sole, for floor contact and anchoring.
     pub sole: Sole,
 }
 
 /// A retarget configuration, resolved against one robot (module doc).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RetargetConfig {
+    /// `robot_root_name` as a link index ([`Robot::links`]).
     pub robot_root: usize,
+    /// `human_root_name` as an SMPL-24 joint index: the point positions are scaled about.
     pub human_root: usize,
+    /// `ground_height`, metres (already taken off every entry's position offset).
     pub ground_height: f64,
+    /// `human_height_assumption`, metres: the height the scale table was tuned for.
     pub human_height_assumption: f64,
+    /// `human_height`, metres ([`DEFAULT_HUMAN_HEIGHT`] when absent); the scales are multiplied
+    /// by `human_height / human_height_assumption`.
     pub human_height: f64,
+    /// `use_ik_match_table1`: whether stage 1 runs.
     pub use_table1: bool,
+    /// `use_ik_match_table2`: whether stage 2 runs (at least one of the two does).
     pub use_table2: bool,
     /// Per human joint (SMPL-24 order), the scale with the height ratio applied; `None` when the
     /// joint is not in `human_scale_table`.
     pub scales: [Option<f64>; 24],
+    /// `ik_match_table1`, in the file's key order (entries with both weights 0 included;
+    /// [`MatchEntry::active`] tells them apart).
     pub table1: Vec<MatchEntry>,
+    /// `ik_match_table2`, likewise.
     pub table2: Vec<MatchEntry>,
     /// Left, right; empty when the file has no `feet`.
     pub feet: Vec<Foot>,
@@ -150,7 +171,11 @@ pub struct RetargetConfig {
     pub velocity_limits: Vec<f64>,
     /// Per degree of freedom, the start of a run (within limits).
     pub initial_q: Vec<f64>,
+    /// Solver iterations per stage and frame, 1 to 1000 (default 4; the first frame of a run
+    /// gets [`FIRST_FRAME_FACTOR`] times more).
     pub iterations: usize,
+    /// Tikhonov damping added to the normal equations' diagonal, ≥ 0 (default 0.5): larger is
+    /// smoother and slower to reach the targets.
     pub damping: f64,
 }
 

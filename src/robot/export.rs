@@ -46,6 +46,7 @@ pub enum RobotFormat {
 }
 
 impl RobotFormat {
+    /// Every format; [`FromStr`] looks a name up among them.
     pub const ALL: [RobotFormat; 3] = [
         RobotFormat::BeyondMimic,
         RobotFormat::Gmr,

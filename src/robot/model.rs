@@ -61,8 +61,11 @@ pub enum JointMotion {
     Dof(usize),
     /// `multiplier · q[dof] + offset` (a `<mimic>`, followed to its independent joint).
     Mimic {
+        /// Index into `q` of the independent joint at the end of the mimic chain.
         dof: usize,
+        /// Product of the chain's multipliers.
         multiplier: f64,
+        /// The chain's offsets composed (radians or metres).
         offset: f64,
     },
 }
@@ -70,7 +73,10 @@ pub enum JointMotion {
 /// A joint between two links.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Joint {
+    /// `<joint name>`, unique in the robot.
     pub name: String,
+    /// The joint's type (a `floating` joint is only ever the dropped `world` joint, and `planar`
+    /// is refused, so four kinds remain).
     pub kind: JointKind,
     /// Link index (into [`Robot::links`]).
     pub parent: usize,
@@ -82,12 +88,14 @@ pub struct Joint {
     pub axis: Vec3,
     /// As the file gives it (a continuous joint's lower/upper are not limits).
     pub limit: Option<Limit>,
+    /// Where its position comes from: a degree of freedom, a mimic of one, or none (fixed).
     pub motion: JointMotion,
 }
 
 /// A rigid body of the tree.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Link {
+    /// `<link name>`, unique in the robot ([`Robot::link_index`] finds it).
     pub name: String,
     /// `None` for the root (link 0); always a smaller index otherwise.
     pub parent: Option<usize>,
@@ -101,9 +109,13 @@ pub struct Link {
 /// continuous joint), velocity and effort limits (+∞ when the file gives none).
 #[derive(Clone, Debug, PartialEq)]
 pub struct JointLimits {
+    /// Lowest position, radians (revolute) or metres (prismatic); -∞ for a continuous joint.
     pub lower: Vec<f64>,
+    /// Highest position, same units; +∞ for a continuous joint.
     pub upper: Vec<f64>,
+    /// Largest speed, rad/s or m/s, ≥ 0.
     pub velocity: Vec<f64>,
+    /// Largest torque (N·m) or force (N), ≥ 0, as the file states it.
     pub effort: Vec<f64>,
 }
 

@@ -90,8 +90,12 @@ const MAX_PASSES: usize = 8;
 /// (left ankle, left foot, right ankle, right foot; [`crate::motion::contacts`]).
 #[derive(Clone, Copy, Debug)]
 pub struct HumanFrame<'a> {
+    /// World position of each joint, metres; 22 or 24 entries, as many as `rotations`.
     pub positions: &'a [Vec3],
+    /// World rotation of each joint (row-major, acting on column vectors), same count.
     pub rotations: &'a [Mat3],
+    /// Whether each contact slot touches the floor this frame: left ankle, left foot, right
+    /// ankle, right foot. A foot's contact anchors it (module doc, "Feet and floor").
     pub contacts: [bool; 4],
 }
 
@@ -426,10 +430,12 @@ impl Retargeter {
         })
     }
 
+    /// The robot retargeted onto.
     pub fn robot(&self) -> &Robot {
         &self.robot
     }
 
+    /// The configuration it was built with.
     pub fn config(&self) -> &RetargetConfig {
         &self.config
     }

@@ -44,14 +44,18 @@ pub const MAX_XML_NODES: u32 = 1_000_000;
 pub struct Urdf {
     /// `<robot name>` (empty when absent).
     pub name: String,
+    /// The `<link>` children of `<robot>`, in document order; at least one, names unique.
     pub links: Vec<UrdfLink>,
+    /// The `<joint>` children of `<robot>`, in document order (possibly none); names unique.
     pub joints: Vec<UrdfJoint>,
 }
 
 /// A `<link>`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct UrdfLink {
+    /// `<link name>`: not empty, unique among links; joints name links by it.
     pub name: String,
+    /// The link's `<collision>` shapes, in document order (empty when it has none).
     pub collisions: Vec<Collision>,
 }
 
@@ -62,6 +66,7 @@ pub struct Collision {
     pub name: Option<String>,
     /// `<origin>`: the shape's frame in the link's.
     pub origin: Pose,
+    /// The shape, in the frame `origin` places.
     pub geometry: Geometry,
 }
 
@@ -71,25 +76,35 @@ pub struct Collision {
 pub enum Geometry {
     /// Full side lengths (x, y, z), metres.
     Box {
+        /// Side lengths along x, y and z, metres (each ≥ 0).
         size: Vec3,
     },
     /// Radius and full length along z.
     Cylinder {
+        /// Metres, ≥ 0.
         radius: f64,
+        /// Full height along z, metres, ≥ 0.
         length: f64,
     },
+    /// A ball centred at the origin.
     Sphere {
+        /// Metres, ≥ 0.
         radius: f64,
     },
     /// Radius and length of the straight part along z (not a URDF standard shape; MuJoCo and
     /// Bullet read it).
     Capsule {
+        /// Radius of the cylinder and of its two end caps, metres, ≥ 0.
         radius: f64,
+        /// Length of the cylinder between the caps' centres, metres, ≥ 0 (the whole capsule
+        /// is `length + 2 · radius` long).
         length: f64,
     },
     /// A mesh file, not read: its `filename` as written (often `package://…`) and `scale`.
     Mesh {
+        /// The `filename` attribute, unresolved (a `package://` URI is not looked up).
         filename: String,
+        /// Per-axis scale (x, y, z) of the mesh's vertices; `[1, 1, 1]` when absent.
         scale: Vec3,
     },
 }
@@ -97,11 +112,19 @@ pub enum Geometry {
 /// `<joint type>`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JointType {
+    /// `revolute`: rotation about `axis` between `<limit lower upper>`, radians.
     Revolute,
+    /// `continuous`: rotation about `axis` without position limits.
     Continuous,
+    /// `prismatic`: translation along `axis` between `<limit lower upper>`, metres.
     Prismatic,
+    /// `fixed`: no motion; the child is rigidly at `origin`.
     Fixed,
+    /// `floating`: six free degrees of freedom. [`crate::robot::Robot`] accepts it only as the
+    /// joint from a `world` root (then the base pose places the child), never inside the tree.
     Floating,
+    /// `planar`: motion in the plane normal to `axis`. Parsed, but refused by
+    /// [`crate::robot::Robot`].
     Planar,
 }
 
@@ -140,7 +163,10 @@ impl JointType {
 /// `<limit>`: radians (revolute) or metres (prismatic), per second for `velocity`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Limit {
+    /// Lowest position (0 when absent); `lower ≤ upper` except on a continuous joint, whose
+    /// `lower` and `upper` are not limits and are not checked.
     pub lower: f64,
+    /// Highest position (0 when absent).
     pub upper: f64,
     /// +∞ when the file gives none.
     pub velocity: f64,
@@ -151,15 +177,21 @@ pub struct Limit {
 /// `<mimic>`: this joint's position is `multiplier · q[joint] + offset`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mimic {
+    /// Name of the joint followed; [`crate::robot::Robot`] requires it to exist and to be
+    /// revolute, continuous or prismatic.
     pub joint: String,
+    /// Factor on the followed joint's position (1 when absent).
     pub multiplier: f64,
+    /// Added after the product, radians or metres (0 when absent).
     pub offset: f64,
 }
 
 /// A `<joint>`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct UrdfJoint {
+    /// `<joint name>`: not empty, unique among joints; degrees of freedom are reported by it.
     pub name: String,
+    /// `<joint type>`.
     pub kind: JointType,
     /// The parent link's name.
     pub parent: String,
@@ -169,7 +201,10 @@ pub struct UrdfJoint {
     pub origin: Pose,
     /// Unit length for the types that use it; as written (possibly zero) for fixed and floating.
     pub axis: Vec3,
+    /// `<limit>`: always present on revolute and prismatic joints (the parser requires it),
+    /// optional on the others.
     pub limit: Option<Limit>,
+    /// `<mimic>`, when this joint follows another instead of being a degree of freedom.
     pub mimic: Option<Mimic>,
     /// The line of `<joint>` in the file, for later errors about the tree.
     pub line: u32,
