@@ -169,7 +169,7 @@ pub fn read(bytes: &[u8], skin: Option<&str>) -> Result<Rig> {
 }
 
 /// The JSON and, for a GLB, its BIN chunk.
-fn container(bytes: &[u8]) -> Result<(Value, Option<&[u8]>)> {
+pub(super) fn container(bytes: &[u8]) -> Result<(Value, Option<&[u8]>)> {
     if bytes.starts_with(b"glTF") {
         let (json, bin) = glb_chunks(bytes)?;
         // Chunks are padded with spaces; some writers pad with zeros.
@@ -282,7 +282,7 @@ fn check_version(doc: &Map<String, Value>) -> Result<()> {
 }
 
 /// At most 60 characters of `s`, for messages.
-fn short(s: &str) -> String {
+pub(super) fn short(s: &str) -> String {
     if s.chars().count() <= 60 {
         s.to_string()
     } else {
@@ -291,7 +291,7 @@ fn short(s: &str) -> String {
 }
 
 /// `doc[key]` as an array (missing: empty).
-fn array<'a>(doc: &'a Map<String, Value>, key: &str) -> Result<&'a [Value]> {
+pub(super) fn array<'a>(doc: &'a Map<String, Value>, key: &str) -> Result<&'a [Value]> {
     match doc.get(key) {
         None => Ok(&[]),
         Some(Value::Array(a)) => Ok(a),
@@ -300,7 +300,7 @@ fn array<'a>(doc: &'a Map<String, Value>, key: &str) -> Result<&'a [Value]> {
 }
 
 /// `doc[key]` as an array of objects.
-fn objects<'a>(
+pub(super) fn objects<'a>(
     doc: &'a Map<String, Value>,
     key: &str,
     what: &str,
@@ -316,7 +316,7 @@ fn objects<'a>(
 }
 
 /// `v` as an index (a whole number ≥ 0); `what` names it in the error.
-fn index(v: &Value, what: impl FnOnce() -> String) -> Result<usize> {
+pub(super) fn index(v: &Value, what: impl FnOnce() -> String) -> Result<usize> {
     v.as_u64()
         .and_then(|i| usize::try_from(i).ok())
         .ok_or_else(|| {
@@ -329,7 +329,12 @@ fn index(v: &Value, what: impl FnOnce() -> String) -> Result<usize> {
 }
 
 /// An optional whole number ≥ 0 field (`byteOffset`, `byteLength`, ...), `default` if absent.
-fn count(obj: &Map<String, Value>, key: &str, default: Option<usize>, what: &str) -> Result<usize> {
+pub(super) fn count(
+    obj: &Map<String, Value>,
+    key: &str,
+    default: Option<usize>,
+    what: &str,
+) -> Result<usize> {
     match obj.get(key) {
         None => default.ok_or_else(|| invalid_arg!("glTF: {what} has no `{key}`")),
         Some(v) => index(v, || format!("{what}'s `{key}`")),
@@ -963,17 +968,18 @@ fn buffer_bytes<'a>(
     Ok((data, declared))
 }
 
-/// Accessor `acc`: one float MAT4 per joint, every offset checked against its buffer view and
-/// buffer.
-fn inverse_bind_matrices(
+/// Accessor `acc` (`what` names it in errors): `count` elements of `kind` (`SCALAR`, `VEC3`,
+/// `VEC4`, `MAT4`, ...; `width` floats each), every offset checked against its buffer view and
+/// buffer before anything is allocated. Dense float accessors only.
+pub(super) fn float_accessor(
     doc: &Map<String, Value>,
     bin: Option<&[u8]>,
     acc: usize,
-    joints: &[usize],
-    nodes: &[&Map<String, Value>],
-) -> Result<Vec<Affine>> {
+    kind: &str,
+    width: usize,
+    what: &str,
+) -> Result<Vec<f32>> {
     let accessors = objects(doc, "accessors", "accessor")?;
-    let what = format!("accessor {acc} (inverseBindMatrices)");
     let a = accessors.get(acc).ok_or_else(|| {
         invalid_arg!(
             "glTF: {what} does not exist (the file has {} accessors)",
@@ -988,25 +994,23 @@ fn inverse_bind_matrices(
     let component = a.get("componentType").and_then(Value::as_u64);
     if component != Some(FLOAT) {
         return Err(invalid_arg!(
-            "glTF: {what} has componentType {}; inverse bind matrices are floats ({FLOAT})",
+            "glTF: {what} has componentType {}; it must be floats ({FLOAT})",
             short(&a.get("componentType").unwrap_or(&Value::Null).to_string())
         ));
     }
-    if a.get("type").and_then(Value::as_str) != Some("MAT4") {
+    if a.get("type").and_then(Value::as_str) != Some(kind) {
         return Err(invalid_arg!(
-            "glTF: {what} has type {}; inverse bind matrices are MAT4",
+            "glTF: {what} has type {}; it must be {kind}",
             short(&a.get("type").unwrap_or(&Value::Null).to_string())
         ));
     }
-    let n = count(a, "count", None, &what)?;
-    if n != joints.len() {
-        return Err(invalid_arg!(
-            "glTF: {what} has {n} matrices for the skin's {} joints",
-            joints.len()
-        ));
+    let n = count(a, "count", None, what)?;
+    if n == 0 {
+        return Err(invalid_arg!("glTF: {what} has no elements"));
     }
-    let view_index = count(a, "bufferView", None, &what)?;
-    let acc_offset = count(a, "byteOffset", Some(0), &what)?;
+    let size = 4 * width;
+    let view_index = count(a, "bufferView", None, what)?;
+    let acc_offset = count(a, "byteOffset", Some(0), what)?;
     let views = objects(doc, "bufferViews", "buffer view")?;
     let view = views.get(view_index).ok_or_else(|| {
         invalid_arg!(
@@ -1018,10 +1022,10 @@ fn inverse_bind_matrices(
     let buffer = count(view, "buffer", None, &view_what)?;
     let view_offset = count(view, "byteOffset", Some(0), &view_what)?;
     let view_len = count(view, "byteLength", None, &view_what)?;
-    let stride = count(view, "byteStride", Some(64), &view_what)?;
-    if stride < 64 {
+    let stride = count(view, "byteStride", Some(size), &view_what)?;
+    if stride < size {
         return Err(invalid_arg!(
-            "glTF: {view_what} has byteStride {stride}, less than a float MAT4's 64 bytes"
+            "glTF: {view_what} has byteStride {stride}, less than a float {kind}'s {size} bytes"
         ));
     }
     let (data, buffer_len) = buffer_bytes(doc, buffer, bin)?;
@@ -1033,26 +1037,51 @@ fn inverse_bind_matrices(
                 "glTF: {view_what} (bytes {view_offset} + {view_len}) is out of bounds of buffer {buffer} ({buffer_len} bytes)"
             )
         })?;
-    let need = stride
+    stride
         .checked_mul(n - 1)
-        .and_then(|b| b.checked_add(64))
+        .and_then(|b| b.checked_add(size))
         .and_then(|b| b.checked_add(acc_offset))
         .filter(|&b| b <= view_len)
         .ok_or_else(|| {
             invalid_arg!(
-                "glTF: {what} is out of bounds: {n} matrices from byte {acc_offset} need more than {view_what}'s {view_len} bytes"
+                "glTF: {what} is out of bounds: {n} {kind} from byte {acc_offset} need more than {view_what}'s {view_len} bytes"
             )
         })?;
-    debug_assert!(view_offset + need <= view_end);
     let bytes = &data[view_offset..view_end];
-    (0..n)
-        .map(|k| {
-            let at = acc_offset + k * stride;
-            let mut m = [0.0f64; 16];
-            for (e, v) in m.iter_mut().enumerate() {
-                let b = at + 4 * e;
-                *v = f32::from_le_bytes([bytes[b], bytes[b + 1], bytes[b + 2], bytes[b + 3]]) as f64;
-            }
+    let mut out = Vec::with_capacity(n * width);
+    for k in 0..n {
+        let at = acc_offset + k * stride;
+        out.extend(
+            bytes[at..at + size]
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+        );
+    }
+    Ok(out)
+}
+
+/// Accessor `acc`: one float MAT4 per joint.
+fn inverse_bind_matrices(
+    doc: &Map<String, Value>,
+    bin: Option<&[u8]>,
+    acc: usize,
+    joints: &[usize],
+    nodes: &[&Map<String, Value>],
+) -> Result<Vec<Affine>> {
+    let what = format!("accessor {acc} (inverseBindMatrices)");
+    let floats = float_accessor(doc, bin, acc, "MAT4", 16, &what)?;
+    let n = floats.len() / 16;
+    if n != joints.len() {
+        return Err(invalid_arg!(
+            "glTF: {what} has {n} matrices for the skin's {} joints",
+            joints.len()
+        ));
+    }
+    floats
+        .chunks_exact(16)
+        .enumerate()
+        .map(|(k, f)| {
+            let m: [f64; 16] = std::array::from_fn(|e| f[e] as f64);
             let joint = || node_label(nodes, joints[k]);
             if m.iter().any(|v| !v.is_finite()) {
                 return Err(invalid_arg!(
@@ -1704,10 +1733,7 @@ mod tests {
         let e = case(&|d| d["accessors"][0]["componentType"] = json!(5123));
         assert!(e.contains("componentType 5123"), "{e}");
         let e = case(&|d| d["accessors"][0]["type"] = json!("VEC4"));
-        assert!(
-            e.contains("\"VEC4\"; inverse bind matrices are MAT4"),
-            "{e}"
-        );
+        assert!(e.contains("has type \"VEC4\"; it must be MAT4"), "{e}");
         let e = case(&|d| d["skins"][0]["inverseBindMatrices"] = json!(3));
         assert!(
             e.contains("accessor 3 (inverseBindMatrices) does not exist"),
@@ -1717,8 +1743,9 @@ mod tests {
         assert!(e.contains("must be an index"), "{e}");
         let e = case(&|d| d["bufferViews"][0]["byteStride"] = json!(16));
         assert!(e.contains("byteStride 16"), "{e}");
+        // Bounds are checked before anything is allocated.
         let e = case(&|d| d["accessors"][0]["count"] = json!(u64::MAX));
-        assert!(e.contains("matrices for the skin's 2 joints"), "{e}");
+        assert!(e.contains("is out of bounds"), "{e}");
         let e = case(&|d| d["bufferViews"][0]["byteLength"] = json!(u64::MAX));
         assert!(e.contains("out of bounds"), "{e}");
         let e = case(&|d| {

@@ -13,10 +13,9 @@ pub mod bonemap;
 pub mod bvh_out;
 pub mod bvh_rig;
 pub mod engine;
+pub mod gltf_motion;
 pub mod gltf_out;
 pub mod gltf_rig;
-// Until pose.rs's links name `crate::retarget::transfer::Transfer` (its work is in progress).
-#[allow(rustdoc::broken_intra_doc_links)]
 pub mod pose;
 pub mod rig;
 pub mod target;

@@ -3,13 +3,13 @@
 //! when asked, arms) so proportions that differ from the source's do not make the feet slide or
 //! float.
 //!
-//! **Feet.** The hips translation is scaled by the legs' ratio ([`Transfer::scale`]), but a
+//! **Feet.** The hips translation is scaled by the legs' ratio ([`crate::retarget::Transfer::scale`]), but a
 //! rig's thigh/shin split, foot height and hip width still differ from SMPL's, so copied leg
 //! directions alone put the ankles a little off where the scaled source's are: a planted foot
 //! floats, sinks or slides. While the source's foot is planted (its contacts, ramping in and
 //! out over four frames; every frame for poses without contacts or a single [`Target::pose`]),
 //! each leg (upper leg → lower leg → foot) is solved so the ankle reaches
-//! - in height, the source ankle placed on the rig ([`Transfer::place`]: the same map that
+//! - in height, the source ankle placed on the rig ([`crate::retarget::Transfer::place`]: the same map that
 //!   places the hips), raised by the difference of the two skeletons' ankle heights below the
 //!   hips at rest (`h_rig − s·h_source`), so a source foot flat on its floor is flat on the
 //!   rig's;
@@ -68,12 +68,18 @@ impl Default for Options {
 /// takes). Made once per rig ([`RigPose::new`]) and rewritten by every [`Target::pose`].
 #[derive(Clone, Debug)]
 pub struct RigPose {
+    /// Every bone's world rotation (rig axes; rest rotations included, so at rest these are
+    /// the rig's rest world rotations). Row-major, acting on column vectors.
     pub world: Vec<Mat3>,
+    /// Every bone's rotation relative to its parent: what a file's node or an engine's bone
+    /// takes.
     pub local: Vec<Mat3>,
+    /// Every bone's world position (rig axes and units).
     pub positions: Vec<Vec3>,
     /// Every bone's translation relative to its parent (rig units): the rest translation,
     /// except for the bones of [`Target::moving`].
     pub translation: Vec<Vec3>,
+    /// The hips bone's translation relative to its parent's rest frame (rig units).
     pub hips: Vec3,
 }
 
@@ -95,15 +101,20 @@ impl RigPose {
 /// translations, at `fps`.
 #[derive(Clone, Debug)]
 pub struct RigMotion {
+    /// Frames per second (the source poses').
     pub fps: f64,
+    /// Number of frames.
     pub frames: usize,
+    /// Number of the rig's bones (the stride of the per-bone arrays).
     pub bones: usize,
     /// The rig's hips bone (the one bone whose translation moves).
     pub hips_bone: usize,
     /// Parent-relative rotations in the rig's bone frames (rest rotations included: at rest
     /// these are the rig's rest local rotations).
     pub local: Vec<Mat3>,
+    /// `[frames × bones]` world rotations (rig axes, rest rotations included).
     pub world: Vec<Mat3>,
+    /// `[frames × bones]` world positions (rig axes and units).
     pub positions: Vec<Vec3>,
     /// `[frames × bones]` translations relative to the parent (rig units): the rest
     /// translation except for the bones of `moving`.
