@@ -934,10 +934,14 @@ impl Stream {
         layout: Layout,
         convention: Convention,
     ) -> Result<Vec<f32>> {
+        self.check_range(first, count)?;
+        // Nothing may be held yet (before the first pump), and an empty range needs no decode.
+        if count == 0 {
+            return Ok(Vec::new());
+        }
         let Some(order) = layout.quat_order() else {
             return self.poses(first, count)?.layout(layout, convention);
         };
-        self.check_range(first, count)?;
         let world = matches!(layout, Layout::GlobalQuatXyzw | Layout::GlobalQuatWxyz);
         let track = self.quat_track(track_slot(world, convention))?;
         let joints = self.model.motion_format().skeleton().joint_count();

@@ -218,6 +218,29 @@ fn a_renamed_centimetre_copy_of_the_skeleton_moves_as_libflames_joints() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0f32, f32::max);
     assert!(diff < 0.05, "retarget from the BVH is {diff} cm off");
+
+    // And from the same motion written as glTF (f32 tracks, glTF's own axes: no convention
+    // to name).
+    let (src_glb, rig_pos3) = (d.join("src.glb"), d.join("rig3.npy"));
+    ok(&generate(&["--out", src_glb.to_str().unwrap()]));
+    ok(&flame(&[
+        "retarget",
+        "--rig",
+        rig.to_str().unwrap(),
+        "--in",
+        src_glb.to_str().unwrap(),
+        "--out",
+        d.join("again3.bvh").to_str().unwrap(),
+        "--rig-positions",
+        rig_pos3.to_str().unwrap(),
+    ]));
+    let rp3 = npy(&rig_pos3).1;
+    let diff = rp
+        .iter()
+        .zip(&rp3)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(diff < 0.01, "retarget from the glTF is {diff} cm off");
 }
 
 #[test]
@@ -298,6 +321,6 @@ fn rig_arguments_are_checked_before_the_model_loads() {
             "--out",
             o,
         ]),
-        "--in must end in .bvh",
+        "--in must end in .bvh or .glb/.gltf",
     );
 }

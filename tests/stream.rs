@@ -227,6 +227,18 @@ fn bad_input_is_a_clear_error() {
         .is_err());
     let e = s.set_playhead(31).unwrap_err();
     assert!(e.to_string().contains("past the"), "{e}");
+    // An empty range is empty in every layout and convention, before any frame is ready and
+    // after; so are poses and features.
+    let fresh = Stream::new(Arc::clone(&m), &params(1)).unwrap();
+    for stream in [&fresh, &s] {
+        for layout in Layout::ALL {
+            for c in Convention::ALL {
+                assert_eq!(stream.read(0, 0, layout, c).unwrap(), Vec::<f32>::new());
+            }
+        }
+        assert_eq!(stream.poses(0, 0).unwrap().frames(), 0);
+        assert!(stream.features(0, 0).unwrap().is_empty());
+    }
     for (chunk, overlap) in [(40, 0), (40, 40), (471, 10)] {
         let p = StreamParams {
             chunk,

@@ -1,10 +1,12 @@
 //! Rig files: the bytes to the glTF/GLB/VRM rig reader as they are, and split at their last
 //! 0xFF byte into a file and a skin name; the same bytes as text (lossy UTF-8) to the BVH rig
 //! reader. A rig that reads is consistent: parents first, finite rest frames, a declared map
-//! inside the rig, a positive unit.
+//! inside the rig, a positive unit. The bytes also go to the reader of libflame's own glTF
+//! motions (`flame retarget --in x.glb`): a motion that reads has finite `smpl24_6d`
+//! features for its frames at a positive rate.
 #![no_main]
 
-use flame::retarget::{bvh_rig, gltf_rig, Rig};
+use flame::retarget::{bvh_rig, gltf_motion, gltf_rig, Rig};
 use libfuzzer_sys::fuzz_target;
 
 fn check(rig: &Rig) {
@@ -30,6 +32,11 @@ fn check(rig: &Rig) {
 }
 
 fuzz_target!(|data: &[u8]| {
+    if let Ok(m) = gltf_motion::read(data) {
+        assert!(m.frames >= 1 && m.fps > 0.0);
+        assert_eq!(m.features.len(), m.frames * 147);
+        assert!(m.features.iter().all(|v| v.is_finite()));
+    }
     if let Ok(rig) = gltf_rig::read(data, None) {
         check(&rig);
     }

@@ -89,8 +89,9 @@ guidance; MLD is refused (libflame has no gradient of its decoder). The output o
 generate's; the whole timeline is written once.";
 
 const RETARGET_LONG: &str = "\
-Carry a motion made earlier onto the user's character. The motion is a BVH libflame wrote
-(`generate --out x.bvh`, SMPL-24 joint names) or .npy features with the model that made them;
+Carry a motion made earlier onto the user's character. The motion is a BVH or glTF libflame
+wrote (`generate --out x.bvh` or `x.glb` of an smpl24_6d model) or .npy features with the model
+that made them;
 the pose options (feet, fps, root motion, loop wrap aside) apply as in generate, then the poses
 are retargeted onto --rig: the rest-relative transform of the VRM Animation specification, the
 rig's rest pose first turned to the source's (an A-pose rig's arms are not left 45 degrees off),
@@ -371,9 +372,9 @@ pub enum RigIk {
 
 #[derive(Args)]
 pub struct RetargetArgs {
-    /// The motion: a BVH libflame wrote (SMPL-24 joint names), or .npy features of the
-    /// model given with --model
-    #[arg(long = "in", value_name = "FILE.bvh|FILE.npy")]
+    /// The motion: a BVH or a .glb/.gltf libflame wrote (SMPL-24 joints), or .npy features
+    /// of the model given with --model
+    #[arg(long = "in", value_name = "FILE.bvh|FILE.glb|FILE.npy")]
     pub input: PathBuf,
     /// The model whose features a .npy holds [default: $FLAME_MODEL, else the demo model]
     #[arg(long, value_name = "M")]

@@ -1335,9 +1335,43 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
             };
             outputs.write_poses(&raw, None, &d, &meta)
         }
+        Some("glb" | "gltf") => {
+            if a.model.is_some() || a.in_convention.is_some() {
+                return Err(
+                    "--model and --in-convention are for .npy features and BVH files; a glTF \
+                     holds its poses in glTF's own axes"
+                        .into(),
+                );
+            }
+            let bytes = std::fs::read(&a.input).map_err(|e| format!("cannot read {path}: {e}"))?;
+            let m = flame::retarget::gltf_motion::read(&bytes)
+                .map_err(|e| format!("cannot use {path}: {e}"))?;
+            eprintln!("{path}: {} frames at {} fps", m.frames, m.fps);
+            let format = Format::Smpl24Rot6d;
+            // Like a BVH, the file's poses are already smooth.
+            let opts = motion::ReadOptions {
+                smooth_sigma: outputs.smooth.unwrap_or(0.0),
+                fps: m.fps,
+                ..Default::default()
+            };
+            let raw =
+                Poses::decode(format, &m.features, m.frames, &opts).map_err(|e| e.to_string())?;
+            let d = Decoder {
+                format,
+                fps: m.fps,
+                smooth: opts.smooth_sigma,
+            };
+            let prompt = m.prompt.as_deref().unwrap_or(&name);
+            let meta = Meta {
+                prompt,
+                model: "",
+                seed: 0,
+            };
+            outputs.write_poses(&raw, None, &d, &meta)
+        }
         _ => Err(format!(
-            "cannot read {path}: --in must end in .bvh (written by libflame) or .npy (features, \
-             with --model)"
+            "cannot read {path}: --in must end in .bvh or .glb/.gltf (written by libflame) or \
+             .npy (features, with --model)"
         )),
     }
 }
