@@ -378,6 +378,6 @@ mod tests {
         );
         let mut bad_eta = choice(Method::Ddim, None, None);
         bad_eta.eta = Some(f32::NAN);
-        assert!(err(&c, &bad_eta).contains("eta must be a finite value"));
+        assert!(err(&c, &bad_eta).contains("eta must be a finite number, 0 or more"));
     }
 }
