@@ -1097,7 +1097,7 @@ static void test_lengths(const FlameModel *m) {
     CHECK_OK(flame_session_set_mask(s, mask, ref_frames, FLAME_TINY_DIM));
 
     /* keep_frames: empty, reversed or out-of-range spans. */
-    CHECK_ERROR_MENTIONS(flame_session_keep_frames(s, 0, 0), INV, "0..0");
+    CHECK_ERROR_MENTIONS(flame_session_keep_frames(s, 0, 0), INV, "from 0 to 0");
     CHECK_STATUS(flame_session_keep_frames(s, 5, 3), INV);
     CHECK_STATUS(flame_session_keep_frames(s, 0, F + 1), INV);
     CHECK_STATUS(flame_session_keep_frames(s, F, F + 1), INV);

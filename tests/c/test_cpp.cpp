@@ -169,7 +169,7 @@ static void test_errors() {
     flame::Model model = flame::Model::load(g_model_path);
     flame::SessionParams p = reference_params();
     p.frames = 471;
-    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "frames 471");
+    CHECK_THROWS(model.session(p), FLAME_STATUS_INVALID_ARGUMENT, "got 471");
     p = reference_params();
     p.sampler = 7;
     CHECK_THROWS(flame::Session(model, p), FLAME_STATUS_INVALID_ARGUMENT, "sampler 7");
@@ -197,7 +197,7 @@ static void test_errors() {
                  FLAME_STATUS_INVALID_ARGUMENT, "features");
     CHECK_THROWS(s.set_mask(std::vector<uint8_t>(g_values), ref_frames - 1, FLAME_TINY_DIM),
                  FLAME_STATUS_INVALID_ARGUMENT, "mask");
-    CHECK_THROWS(s.keep_frames(3, 3), FLAME_STATUS_INVALID_ARGUMENT, "3..3");
+    CHECK_THROWS(s.keep_frames(3, 3), FLAME_STATUS_INVALID_ARGUMENT, "from 3 to 3");
     CHECK_THROWS(s.keep_joints({0, 24}), FLAME_STATUS_INVALID_ARGUMENT, "joint 24");
     s.set_prompt(REF_PROMPT);
     s.step();
@@ -320,7 +320,7 @@ static void test_edit_params_tasks_parts() {
     CHECK_THROWS(s.set_edit_params(p), FLAME_STATUS_INVALID_ARGUMENT, "struct_size");
     CHECK_THROWS(s.keep_part(static_cast<FlameBodyPart>(5), 0, F), FLAME_STATUS_INVALID_ARGUMENT,
                  "body part");
-    CHECK_THROWS(s.keep_part(FLAME_BODY_PART_ARMS, 3, 3), FLAME_STATUS_INVALID_ARGUMENT, "3..3");
+    CHECK_THROWS(s.keep_part(FLAME_BODY_PART_ARMS, 3, 3), FLAME_STATUS_INVALID_ARGUMENT, "from 3 to 3");
     CHECK_THROWS(s.set_task_mask(static_cast<FlameEditTask>(4)), FLAME_STATUS_INVALID_ARGUMENT,
                  "task");
 

@@ -1112,8 +1112,8 @@ static class FlameTest
 
             Throws(FlameStatus.InvalidArgument, "unknown editing task 4", () => s.SetTaskMask((FlameEditTask)4));
             Throws(FlameStatus.InvalidArgument, "unknown body part 5", () => s.KeepPart((FlameBodyPart)5));
-            Throws(FlameStatus.InvalidArgument, "3..3", () => s.KeepPart(FlameBodyPart.Arms, 3, 3));
-            Throws(FlameStatus.InvalidArgument, "0..25", () => s.KeepPart(FlameBodyPart.Arms, 0, 25));
+            Throws(FlameStatus.InvalidArgument, "from 3 to 3", () => s.KeepPart(FlameBodyPart.Arms, 3, 3));
+            Throws(FlameStatus.InvalidArgument, "from 0 to 25", () => s.KeepPart(FlameBodyPart.Arms, 0, 25));
             ThrowsManaged<ArgumentOutOfRangeException>(() => s.KeepPart(FlameBodyPart.Arms, -1, 3));
         }
     }
