@@ -84,7 +84,7 @@ run_stage() {
 rust_tests() {
     mkdir -p "$(dirname "$skips")"
     rm -f "$skips"
-    cargo test --workspace
+    cargo test --workspace --no-fail-fast   # every failing test binary, not only the first
     local rc=$?
     # Tests that need what is not here (real weights) say so in this file (tests/common).
     if [ -s "$skips" ]; then
