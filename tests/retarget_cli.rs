@@ -120,6 +120,15 @@ fn mixamo_rig(bvh: &str) -> String {
     out
 }
 
+/// The largest element-wise difference of two equally long arrays.
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
 fn npy(path: &Path) -> (Vec<usize>, Vec<f32>) {
     flame::npy::read_f32(path).unwrap()
 }
@@ -212,11 +221,7 @@ fn a_renamed_centimetre_copy_of_the_skeleton_moves_as_libflames_joints() {
         rig_pos2.to_str().unwrap(),
     ]));
     let rp2 = npy(&rig_pos2).1;
-    let diff = rp
-        .iter()
-        .zip(&rp2)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
+    let diff = max_abs_diff(&rp, &rp2);
     assert!(diff < 0.05, "retarget from the BVH is {diff} cm off");
 
     // And from the same motion written as glTF (f32 tracks, glTF's own axes: no convention
@@ -235,11 +240,7 @@ fn a_renamed_centimetre_copy_of_the_skeleton_moves_as_libflames_joints() {
         rig_pos3.to_str().unwrap(),
     ]));
     let rp3 = npy(&rig_pos3).1;
-    let diff = rp
-        .iter()
-        .zip(&rp3)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
+    let diff = max_abs_diff(&rp, &rp3);
     assert!(diff < 0.01, "retarget from the glTF is {diff} cm off");
 }
 
