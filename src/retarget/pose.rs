@@ -3,16 +3,17 @@
 //! when asked, arms) so proportions that differ from the source's do not make the feet slide or
 //! float.
 //!
-//! **Feet.** The hips translation is scaled by the legs' ratio ([`crate::retarget::Transfer::scale`]), but a
-//! rig's thigh/shin split, foot height and hip width still differ from SMPL's, so copied leg
-//! directions alone put the ankles a little off where the scaled source's are: a planted foot
-//! floats, sinks or slides. While the source's foot is planted (its contacts, ramping in and
-//! out over four frames; every frame for poses without contacts or a single [`Target::pose`]),
-//! each leg (upper leg → lower leg → foot) is solved so the ankle reaches
-//! - in height, the source ankle placed on the rig ([`crate::retarget::Transfer::place`]: the same map that
-//!   places the hips), raised by the difference of the two skeletons' ankle heights below the
-//!   hips at rest (`h_rig − s·h_source`), so a source foot flat on its floor is flat on the
-//!   rig's;
+//! **Feet.** The hips translation is scaled by the legs' ratio
+//! ([`crate::retarget::Transfer::scale`]), but a rig's thigh/shin split, foot height and hip
+//! width still differ from SMPL's, so copied leg directions alone put the ankles a little off
+//! where the scaled source's are: a planted foot floats, sinks or slides. While the source's
+//! foot is planted (its contacts, ramping in and out over four frames; every frame for poses
+//! without contacts or a single [`Target::pose`]), each leg (upper leg → lower leg → foot) is
+//! solved so the ankle reaches
+//! - in height, the source ankle placed on the rig ([`crate::retarget::Transfer::place`]: the
+//!   same map that places the hips), raised by the difference of the two skeletons' ankle
+//!   heights below the hips at rest (`h_rig − s·h_source`), so a source foot flat on its floor
+//!   is flat on the rig's;
 //! - horizontally, where the rotations put it, moved by the clip's anchor in
 //!   [`Target::motion`]: over each contact the planted heel is held at one place (or, while
 //!   only the toes are down, the toes are), and on the frames around it the toes move as the
