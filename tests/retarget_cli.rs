@@ -6,6 +6,10 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod common;
+
+use common::max_abs_diff;
+
 fn tmp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("flame_retarget_cli_{}_{name}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
@@ -118,15 +122,6 @@ fn mixamo_rig(bvh: &str) -> String {
         }
     }
     out
-}
-
-/// The largest element-wise difference of two equally long arrays.
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
 }
 
 fn npy(path: &Path) -> (Vec<usize>, Vec<f32>) {
