@@ -1258,6 +1258,28 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
             0.0
         })
     };
+    // A file libflame wrote (BVH, glTF): smpl24_6d features at the file's rate, whose poses
+    // are already smooth (libflame smoothed them before writing).
+    let write_file_poses = |x: &[f32], frames: usize, fps: f32, prompt: &str| {
+        let format = Format::Smpl24Rot6d;
+        let opts = motion::ReadOptions {
+            smooth_sigma: outputs.smooth.unwrap_or(0.0),
+            fps,
+            ..Default::default()
+        };
+        let raw = Poses::decode(format, x, frames, &opts).map_err(|e| e.to_string())?;
+        let d = Decoder {
+            format,
+            fps,
+            smooth: opts.smooth_sigma,
+        };
+        let meta = Meta {
+            prompt,
+            model: "",
+            seed: 0,
+        };
+        outputs.write_poses(&raw, None, &d, &meta)
+    };
     match paths::extension(&a.input).as_deref() {
         Some("bvh") => {
             if a.model.is_some() {
@@ -1282,24 +1304,7 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
                 },
             };
             let x = x.map_err(|e| format!("cannot use {path}: {e}"))?;
-            // A BVH's poses are already smooth (libflame smoothed them before writing).
-            let opts = motion::ReadOptions {
-                smooth_sigma: outputs.smooth.unwrap_or(0.0),
-                fps,
-                ..Default::default()
-            };
-            let raw = Poses::decode(format, &x, frames, &opts).map_err(|e| e.to_string())?;
-            let d = Decoder {
-                format,
-                fps,
-                smooth: opts.smooth_sigma,
-            };
-            let meta = Meta {
-                prompt: &name,
-                model: "",
-                seed: 0,
-            };
-            outputs.write_poses(&raw, None, &d, &meta)
+            write_file_poses(&x, frames, fps, &name)
         }
         Some("npy") => {
             if a.in_convention.is_some() {
@@ -1347,27 +1352,8 @@ fn retarget(a: &RetargetArgs) -> Result<(), String> {
             let m = flame::retarget::gltf_motion::read(&bytes)
                 .map_err(|e| format!("cannot use {path}: {e}"))?;
             eprintln!("{path}: {} frames at {} fps", m.frames, m.fps);
-            let format = Format::Smpl24Rot6d;
-            // Like a BVH, the file's poses are already smooth.
-            let opts = motion::ReadOptions {
-                smooth_sigma: outputs.smooth.unwrap_or(0.0),
-                fps: m.fps,
-                ..Default::default()
-            };
-            let raw =
-                Poses::decode(format, &m.features, m.frames, &opts).map_err(|e| e.to_string())?;
-            let d = Decoder {
-                format,
-                fps: m.fps,
-                smooth: opts.smooth_sigma,
-            };
             let prompt = m.prompt.as_deref().unwrap_or(&name);
-            let meta = Meta {
-                prompt,
-                model: "",
-                seed: 0,
-            };
-            outputs.write_poses(&raw, None, &d, &meta)
+            write_file_poses(&m.features, m.frames, m.fps, prompt)
         }
         _ => Err(format!(
             "cannot read {path}: --in must end in .bvh or .glb/.gltf (written by libflame) or \
