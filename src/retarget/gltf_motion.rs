@@ -14,7 +14,7 @@
 
 use serde_json::{Map, Value};
 
-use super::gltf_rig::{container, count, float_accessor, objects};
+use super::gltf_rig::{container, count, float_accessor, node_name, objects};
 use crate::error::{invalid_arg, Result};
 use crate::motion::gltf::ROOT_BONE;
 use crate::motion::{reference, Convention, Format, Layout, Skeleton};
@@ -222,14 +222,6 @@ pub fn read(bytes: &[u8]) -> Result<GltfMotion> {
         fps: fps as f32,
         prompt,
     })
-}
-
-fn node_name(nodes: &[&Map<String, Value>], i: usize) -> String {
-    nodes[i]
-        .get("name")
-        .and_then(Value::as_str)
-        .unwrap_or("")
-        .to_string()
 }
 
 #[cfg(test)]

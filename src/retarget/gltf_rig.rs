@@ -341,7 +341,7 @@ pub(super) fn count(
     }
 }
 
-fn node_name(nodes: &[&Map<String, Value>], i: usize) -> String {
+pub(super) fn node_name(nodes: &[&Map<String, Value>], i: usize) -> String {
     match nodes[i].get("name").and_then(Value::as_str) {
         Some(s) if !s.is_empty() => s.to_string(),
         _ => format!("node{i}"),

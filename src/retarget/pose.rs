@@ -517,22 +517,27 @@ impl Target {
                     sub(&p[ch.lower], &p[ch.upper]),
                     sub(&p[ch.end], &p[ch.lower]),
                 );
-                let free = solve(&goal_with(0.0));
-                let fits = |s: &ik::TwoBone| {
-                    let turn = angle(&thigh, &sub(&s.mid, &p[ch.upper]))
-                        .max(angle(&shin, &sub(&s.end, &s.mid)));
-                    turn <= HOLD_TURN && (s.reached || !free.reached)
+                let turn_ok = |s: &ik::TwoBone| {
+                    angle(&thigh, &sub(&s.mid, &p[ch.upper]))
+                        .max(angle(&shin, &sub(&s.end, &s.mid)))
+                        <= HOLD_TURN
                 };
-                if !fits(&s) {
-                    let (mut lo, mut hi) = (0.0, 1.0);
-                    s = free;
-                    for _ in 0..HOLD_BISECTIONS {
-                        let k = 0.5 * (lo + hi);
-                        let t = solve(&goal_with(k));
-                        if fits(&t) {
-                            (lo, s) = (k, t);
-                        } else {
-                            hi = k;
+                // A held goal reached within the turn fits whatever the unheld one does; only
+                // otherwise is the unheld leg solved.
+                if !(s.reached && turn_ok(&s)) {
+                    let free = solve(&goal_with(0.0));
+                    let fits = |t: &ik::TwoBone| turn_ok(t) && (t.reached || !free.reached);
+                    if !fits(&s) {
+                        let (mut lo, mut hi) = (0.0, 1.0);
+                        s = free;
+                        for _ in 0..HOLD_BISECTIONS {
+                            let k = 0.5 * (lo + hi);
+                            let t = solve(&goal_with(k));
+                            if fits(&t) {
+                                (lo, s) = (k, t);
+                            } else {
+                                hi = k;
+                            }
                         }
                     }
                 }
