@@ -228,7 +228,7 @@ pub fn text_encoder_shapes(cfg: &TextEncoderConfig) -> Vec<(String, Vec<usize>)>
 }
 
 /// Tensors by name, in file order.
-type Named<'a> = Vec<(String, TensorView<'a>)>;
+pub(crate) type Named<'a> = Vec<(String, TensorView<'a>)>;
 
 /// The encoder's tensors from a Hugging Face file (a `bert.`/`roberta.` prefix stripped),
 /// checked against `cfg`, and the names left out.
@@ -284,7 +284,11 @@ fn text_encoder_tensors<'a>(
 
 /// Writes the tensors to a temporary file next to `out`, loads it as a model, then renames it
 /// to `out`. Returns the file size.
-fn write_checked(tensors: Named, metadata: HashMap<String, String>, out: &Path) -> Result<u64> {
+pub(crate) fn write_checked(
+    tensors: Named,
+    metadata: HashMap<String, String>,
+    out: &Path,
+) -> Result<u64> {
     let tmp = temp_path(out);
     let written = safetensors::serialize(tensors, &Some(metadata))
         .map_err(|e| bad_file!("cannot write {}: {e:?}", tmp.display()))

@@ -62,6 +62,9 @@ pub enum StoredDtype {
     F16,
     /// bfloat16, widened to f32 at load.
     Bf16,
+    /// Signed 8-bit integers: the weights of a quantised linear layer, read with their scales
+    /// ([`ModelFile::tensor_i8`]), never as f32 values.
+    I8,
 }
 
 impl StoredDtype {
@@ -71,6 +74,7 @@ impl StoredDtype {
             StoredDtype::F32 => "f32",
             StoredDtype::F16 => "f16",
             StoredDtype::Bf16 => "bf16",
+            StoredDtype::I8 => "i8",
         }
     }
 }
@@ -269,17 +273,50 @@ impl ModelFile {
 
     /// The stored dtype most tensors use (for reporting).
     pub fn dominant_dtype(&self) -> Option<StoredDtype> {
-        let mut counts = [0usize; 3];
+        let mut counts = [0usize; 4];
         for e in self.entries.values() {
             match e.dtype {
                 Dtype::F32 => counts[0] += e.end - e.start,
                 Dtype::F16 => counts[1] += e.end - e.start,
                 Dtype::BF16 => counts[2] += e.end - e.start,
+                Dtype::I8 => counts[3] += e.end - e.start,
                 _ => {}
             }
         }
         let (i, &n) = counts.iter().enumerate().max_by_key(|(_, n)| **n)?;
-        (n > 0).then(|| [StoredDtype::F32, StoredDtype::F16, StoredDtype::Bf16][i])
+        (n > 0).then(|| {
+            [
+                StoredDtype::F32,
+                StoredDtype::F16,
+                StoredDtype::Bf16,
+                StoredDtype::I8,
+            ][i]
+        })
+    }
+
+    /// Reads the int8 tensor `name` of shape `shape` (a quantised linear weight).
+    pub fn tensor_i8(&self, name: &str, shape: &[usize]) -> Result<Vec<i8>> {
+        let e = self
+            .entries
+            .get(name)
+            .ok_or_else(|| bad_file!("tensor `{name}` is missing"))?;
+        if e.dtype != Dtype::I8 {
+            return Err(bad_file!(
+                "tensor `{name}` is {:?}, expected I8 (a quantised weight)",
+                e.dtype
+            ));
+        }
+        if e.shape != shape {
+            return Err(bad_file!(
+                "tensor `{name}` has shape {:?}, expected {:?}",
+                e.shape,
+                shape
+            ));
+        }
+        Ok(self.backing.bytes()[e.start..e.end]
+            .iter()
+            .map(|&b| b as i8)
+            .collect())
     }
 
     /// Reads tensor `name`, checking that its shape is exactly `shape`.
@@ -373,6 +410,12 @@ impl ModelFile {
                     .map(|b| bf16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32())
                     .collect(),
             ),
+            StoredDtype::I8 => {
+                return Err(bad_file!(
+                    "tensor `{name}` is int8, which libflame reads only as a quantised linear \
+                     weight with its `{name}_scale`"
+                ))
+            }
         };
         Ok(Tensor { data, shape })
     }
@@ -383,8 +426,10 @@ fn stored_dtype(name: &str, d: Dtype) -> Result<StoredDtype> {
         Dtype::F32 => Ok(StoredDtype::F32),
         Dtype::F16 => Ok(StoredDtype::F16),
         Dtype::BF16 => Ok(StoredDtype::Bf16),
+        Dtype::I8 => Ok(StoredDtype::I8),
         other => Err(bad_file!(
-            "tensor `{name}` has unsupported dtype {other:?} (supported: F32, F16, BF16)"
+            "tensor `{name}` has unsupported dtype {other:?} (supported: F32, F16, BF16, and I8 \
+             for quantised weights)"
         )),
     }
 }

@@ -47,6 +47,8 @@ pub mod npz;
 /// cbindgen:ignore
 pub mod pool;
 /// cbindgen:ignore
+pub mod quantize;
+/// cbindgen:ignore
 pub mod retarget;
 /// cbindgen:ignore
 pub mod rng;

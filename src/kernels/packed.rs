@@ -498,7 +498,28 @@ impl PackedWeights {
         packed
     }
 
-    /// Input features (`k`).
+    /// Packs weights already quantised to int8 (`q [n, k]` in −127..=127, one scale per output
+    /// column: `W ≈ q · scale`), as a quantised model file stores them: the same layout and
+    /// products as [`PackedWeights::pack`] with [`WeightType::Int8`], whose rounding is replaced
+    /// by the file's. The caller has checked the scales (finite, positive).
+    pub fn from_int8(q: &[i8], scales: &[f32], n: usize, k: usize) -> PackedWeights {
+        assert_eq!(q.len(), n * k, "from_int8: weight is not {n}x{k}");
+        assert_eq!(
+            scales.len(),
+            n,
+            "from_int8: {} scales for {n} columns",
+            scales.len()
+        );
+        let mut packed = PackedWeights {
+            k,
+            n,
+            ty: WeightType::Int8,
+            ..PackedWeights::empty()
+        };
+        lowp::pack_int8(&mut packed, q, scales);
+        packed
+    }
+
     /// An empty f32 pack, for [`PackedWeights::repack_kn`].
     pub fn empty() -> PackedWeights {
         PackedWeights {
@@ -1541,6 +1562,18 @@ impl PackedLinear {
         }
     }
 
+    /// A layer on weights packed already (a quantised file's int8 rows); the bias
+    /// (`[n_out]`) stays f32.
+    pub fn from_packed(weight: PackedWeights, bias: Option<&[f32]>) -> PackedLinear {
+        if let Some(b) = bias {
+            assert_eq!(b.len(), weight.n, "PackedLinear: bias length");
+        }
+        PackedLinear {
+            weight,
+            bias: bias.map(<[f32]>::to_vec),
+        }
+    }
+
     /// Input features (`n_in`).
     pub fn inputs(&self) -> usize {
         self.weight.k
@@ -1630,6 +1663,31 @@ mod tests {
         // Three equal M blocks of 84 rows (7 AVX-512 tiles each), K blocks of 256 and 2.
         (252, 258, 40),
     ];
+
+    #[test]
+    fn int8_weights_from_a_file_pack_as_rounding_at_load_does() {
+        // A quantised file's integers with the scales rounding at load would choose give the
+        // same words, column sums and scales, so the products are the ones every int8 kernel
+        // test checks.
+        let mut rng = Rng::new(11);
+        for &(_, k, n) in SHAPES {
+            let w = rng.vec(n * k);
+            let at_load = PackedWeights::pack(&w, n, k, WeightType::Int8);
+            let q: Vec<i8> = w
+                .iter()
+                .enumerate()
+                .map(|(i, &v)| {
+                    let s = at_load.scales[i / k];
+                    let inv = if s > 0.0 { 1.0 / s } else { 0.0 };
+                    (v * inv).round_ties_even().clamp(-127.0, 127.0) as i8
+                })
+                .collect();
+            let from_file = PackedWeights::from_int8(&q, &at_load.scales, n, k);
+            assert_eq!(from_file.words(), at_load.words(), "{n}x{k}");
+            assert_eq!(from_file.colsum, at_load.colsum, "{n}x{k}");
+            assert_eq!(from_file.unpack(), at_load.unpack(), "{n}x{k}");
+        }
+    }
 
     #[test]
     fn a_repacked_right_hand_matrix_gives_the_same_bits_as_its_packed_transpose() {

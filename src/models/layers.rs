@@ -4,11 +4,14 @@
 //! Linear weights are packed at load into the GEMM kernel's panel layout, in the weight type
 //! the caller chose ([`WeightType`]); biases and norms stay f32.
 
+use std::ops::Range;
 use std::sync::OnceLock;
 
-use crate::checkpoint::{ModelFile, Tensor};
-use crate::error::Result;
-use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, WeightType};
+use super::calibrate::Probe;
+use crate::checkpoint::{ModelFile, StoredDtype, Tensor};
+use crate::error::{bad_file, Result};
+use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, PackedWeights, WeightType};
+use crate::quantize::QUANTIZATION_KEY;
 
 /// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
 pub(crate) struct Linear {
@@ -17,6 +20,90 @@ pub(crate) struct Linear {
     /// models that take gradients pay its memory; `OnceLock` because models are shared across
     /// threads.
     transposed: OnceLock<PackedLinear>,
+    /// Where the layer's inputs are recorded while a quantiser calibrates (see
+    /// [`super::calibrate`]).
+    probe: Option<Probe>,
+}
+
+/// A linear weight as the file stores it: floats, or int8 values with one scale per output
+/// row (a file written by `flame quantize`).
+pub(crate) enum StoredWeight {
+    Float(Tensor),
+    Int8 { q: Vec<i8>, scales: Vec<f32> },
+}
+
+impl StoredWeight {
+    /// Reads weight `name` (`[n, k]`) and, when it is int8, its scales `name_scale` (`[n]`),
+    /// each of which must be finite and positive.
+    pub(crate) fn read(file: &ModelFile, name: &str, n: usize, k: usize) -> Result<StoredWeight> {
+        if file.dtype(name)? != StoredDtype::I8 {
+            return Ok(StoredWeight::Float(file.tensor(name, &[n, k])?));
+        }
+        let q = file.tensor_i8(name, &[n, k])?;
+        let scale_name = format!("{name}_scale");
+        let scales = file.tensor(&scale_name, &[n])?.data().to_vec();
+        if let Some((i, v)) = scales
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && **v > 0.0))
+        {
+            return Err(bad_file!(
+                "tensor `{scale_name}`: scale {i} is {v}; a quantised weight's scales must be \
+                 finite and positive"
+            ));
+        }
+        if let Some(i) = q.iter().position(|&v| v == i8::MIN) {
+            return Err(bad_file!(
+                "tensor `{name}`: value {i} is -128; quantised weights lie in -127..=127"
+            ));
+        }
+        Ok(StoredWeight::Int8 { q, scales })
+    }
+
+    /// Rows `rows` of the weight (`k` inputs) and `bias` as one layer of type `ty`. Int8 rows
+    /// keep their integers and scales when `ty` is int8 and are dequantised otherwise; float
+    /// rows of a quantised file stay f32 under int8 (the layers its quantiser kept).
+    fn layer(
+        &self,
+        file: &ModelFile,
+        tensor: &str,
+        k: usize,
+        rows: Range<usize>,
+        bias: Option<&[f32]>,
+        ty: WeightType,
+    ) -> Linear {
+        let probe = Probe::attach(tensor, rows.clone(), k);
+        let n = rows.len();
+        let packed = match self {
+            StoredWeight::Int8 { q, scales } if ty == WeightType::Int8 => {
+                PackedLinear::from_packed(
+                    PackedWeights::from_int8(&q[rows.start * k..rows.end * k], &scales[rows], n, k),
+                    bias,
+                )
+            }
+            StoredWeight::Int8 { q, scales } => {
+                let w: Vec<f32> = q[rows.start * k..rows.end * k]
+                    .chunks_exact(k.max(1))
+                    .zip(&scales[rows])
+                    .flat_map(|(row, &s)| row.iter().map(move |&v| v as f32 * s))
+                    .collect();
+                PackedLinear::new(&w, bias, k, n, ty)
+            }
+            StoredWeight::Float(w) => {
+                let ty = if ty == WeightType::Int8 && file.metadata(QUANTIZATION_KEY).is_some() {
+                    WeightType::F32
+                } else {
+                    ty
+                };
+                PackedLinear::new(&w.data()[rows.start * k..rows.end * k], bias, k, n, ty)
+            }
+        };
+        Linear {
+            packed,
+            transposed: OnceLock::new(),
+            probe,
+        }
+    }
 }
 
 impl Linear {
@@ -27,10 +114,11 @@ impl Linear {
         n_out: usize,
         ty: WeightType,
     ) -> Result<Linear> {
-        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
+        let tensor = format!("{name}.weight");
+        let w = StoredWeight::read(file, &tensor, n_out, n_in)?;
         let b = file.tensor(&format!("{name}.bias"), &[n_out])?;
-        let layer = Linear::rows(&w, &b, n_in, 0..n_out, ty);
-        file.release(&format!("{name}.weight"));
+        let layer = w.layer(file, &tensor, n_in, 0..n_out, Some(b.data()), ty);
+        file.release(&tensor);
         Ok(layer)
     }
 
@@ -42,9 +130,10 @@ impl Linear {
         n_out: usize,
         ty: WeightType,
     ) -> Result<Linear> {
-        let w = file.tensor(&format!("{name}.weight"), &[n_out, n_in])?;
-        let layer = Linear::new(PackedLinear::new(w.data(), None, n_in, n_out, ty));
-        file.release(&format!("{name}.weight"));
+        let tensor = format!("{name}.weight");
+        let w = StoredWeight::read(file, &tensor, n_out, n_in)?;
+        let layer = w.layer(file, &tensor, n_in, 0..n_out, None, ty);
+        file.release(&tensor);
         Ok(layer)
     }
 
@@ -63,29 +152,20 @@ impl Linear {
         Linear {
             packed,
             transposed: OnceLock::new(),
+            probe: None,
         }
-    }
-
-    /// Rows `rows` of a `[n, n_in]` weight and its bias, as one layer.
-    fn rows(
-        w: &Tensor,
-        b: &Tensor,
-        n_in: usize,
-        rows: std::ops::Range<usize>,
-        ty: WeightType,
-    ) -> Linear {
-        let weight = &w.data()[rows.start * n_in..rows.end * n_in];
-        let bias = &b.data()[rows.clone()];
-        Linear::new(PackedLinear::new(weight, Some(bias), n_in, rows.len(), ty))
     }
 
     /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
     pub(crate) fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
-        self.packed.forward(x, rows, y, Activation::None);
+        self.forward_act(x, rows, y, Activation::None);
     }
 
     /// `y = act(x · Wᵀ + b)`, the activation applied as each output tile is finished.
     pub(crate) fn forward_act(&self, x: &[f32], rows: usize, y: &mut [f32], act: Activation) {
+        if let Some(probe) = &self.probe {
+            probe.record(x, rows);
+        }
         self.packed.forward(x, rows, y, act);
     }
 
@@ -118,12 +198,21 @@ pub(crate) fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
     t
 }
 
-/// Reads `nn.MultiheadAttention`'s packed `in_proj_weight` `[3E, E]` (rows q, k, v) and bias.
-fn in_proj(file: &ModelFile, name: &str, e: usize) -> Result<(Tensor, Tensor)> {
-    Ok((
-        file.tensor(&format!("{name}.in_proj_weight"), &[3 * e, e])?,
-        file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?,
-    ))
+/// Reads `nn.MultiheadAttention`'s packed `in_proj_weight` `[3E, E]` (rows q, k, v) and bias,
+/// as one layer per range of `rows`.
+fn in_proj<const N: usize>(
+    file: &ModelFile,
+    name: &str,
+    e: usize,
+    ty: WeightType,
+    rows: [Range<usize>; N],
+) -> Result<[Linear; N]> {
+    let tensor = format!("{name}.in_proj_weight");
+    let w = StoredWeight::read(file, &tensor, 3 * e, e)?;
+    let b = file.tensor(&format!("{name}.in_proj_bias"), &[3 * e])?;
+    let layers = rows.map(|r| w.layer(file, &tensor, e, r.clone(), Some(&b.data()[r]), ty));
+    file.release(&tensor);
+    Ok(layers)
 }
 
 /// `nn.MultiheadAttention` used as self-attention: q, k and v projected in one GEMM.
@@ -139,9 +228,9 @@ impl Attention {
         e: usize,
         ty: WeightType,
     ) -> Result<Attention> {
-        let (w, b) = in_proj(file, name, e)?;
-        let qkv = Linear::rows(&w, &b, e, 0..3 * e, ty);
-        file.release(&format!("{name}.in_proj_weight"));
+        // One range: q, k and v in one GEMM.
+        #[allow(clippy::single_range_in_vec_init)]
+        let [qkv] = in_proj(file, name, e, ty, [0..3 * e])?;
         Ok(Attention {
             qkv,
             out_proj: Linear::load(file, &format!("{name}.out_proj"), e, e, ty)?,
@@ -210,12 +299,7 @@ impl CrossAttention {
         e: usize,
         ty: WeightType,
     ) -> Result<CrossAttention> {
-        let (w, b) = in_proj(file, name, e)?;
-        let (q, kv) = (
-            Linear::rows(&w, &b, e, 0..e, ty),
-            Linear::rows(&w, &b, e, e..3 * e, ty),
-        );
-        file.release(&format!("{name}.in_proj_weight"));
+        let [q, kv] = in_proj(file, name, e, ty, [0..e, e..3 * e])?;
         Ok(CrossAttention {
             q,
             kv,

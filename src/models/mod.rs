@@ -40,6 +40,7 @@
 //! [`FAMILIES`]: crate::models::FAMILIES
 //! [`TextModel`]: crate::models::TextModel
 
+pub mod calibrate;
 pub mod finemogen;
 pub mod flame;
 pub(crate) mod layers;

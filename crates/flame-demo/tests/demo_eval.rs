@@ -12,7 +12,8 @@
 //! The shipped model (docs/demo_training.md, phase 3) measures 92.7% (139 of 150) here.
 //! Settings are tuned on corpus sentences, never on these prompts: `FLAME_DEMO_EVAL_PROMPTS`
 //! (a family<TAB>prompt file), `FLAME_DEMO_EVAL_GUIDANCE` and `FLAME_DEMO_EVAL_STEPS` override
-//! the prompts and the model's defaults for such runs, `FLAME_DEMO_EVAL_FRAMES` the length.
+//! the prompts and the model's defaults for such runs, `FLAME_DEMO_EVAL_FRAMES` the length,
+//! `FLAME_DEMO_EVAL_WEIGHTS` the weight type the model is loaded as.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -22,7 +23,7 @@ use std::sync::Arc;
 mod common;
 
 use common::{demo_model, repo};
-use flame::models::Model;
+use flame::models::{LoadOptions, Model};
 use flame::motion::{Convention, Poses};
 use flame::session::{Session, SessionParams};
 use flame_demo::classify::{self, Features};
@@ -85,7 +86,12 @@ fn held_out_prompts_are_classified_as_intended() {
         );
         return;
     };
-    let model = Arc::new(Model::load(&path).unwrap());
+    // FLAME_DEMO_EVAL_WEIGHTS (f32, f16, bf16, bf16-compute, int8) measures a weight type
+    // (docs/performance.md's accuracy table).
+    let weights = std::env::var("FLAME_DEMO_EVAL_WEIGHTS")
+        .map(|w| w.parse().unwrap())
+        .unwrap_or_default();
+    let model = Arc::new(Model::load_with(&path, &LoadOptions { weights }).unwrap());
     let prompts = prompts();
     assert!(prompts.len() >= 40, "{} prompts", prompts.len());
     let mut confusion = Confusion::default();

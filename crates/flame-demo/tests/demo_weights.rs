@@ -6,6 +6,10 @@
 //! and the test says it skipped them. Int8 runs on the kernel in use (`FLAME_KERNEL=avx2`
 //! measures the AVX2 path, whose activations have 63 levels).
 //!
+//! Two more rows measure the int8 file `flame quantize` writes from this model (GPTQ-rounded
+//! weights calibrated on its own runs, feature projections kept f32; src/quantize.rs), loaded
+//! as int8 and multiplied back out to f32 (int8 weights, f32 activations).
+//!
 //! A second test shows where the reduced types' error comes from: the same features with the
 //! weights themselves rounded to fewer significant bits and run in f32 (bf16 storage gives
 //! exactly those bits at 8).
@@ -65,8 +69,24 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
         (WeightType::Bf16Compute, 0.08, 2e-3),
         (WeightType::Int8, 0.8, 0.05),
     ];
-    for (ty, max_bound, mean_bound) in bounds {
-        let model = match load(ty) {
+    // The int8 file `flame quantize` writes (GPTQ on the model's own runs), as int8 and
+    // multiplied back out to f32.
+    let quantized =
+        std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flame_demo_int8.safetensors");
+    if !quantized.is_file() {
+        flame::quantize::quantize(&path, &quantized, &Default::default()).unwrap();
+    }
+    let load_q = |weights| Model::load_with(&quantized, &LoadOptions { weights }).map(Arc::new);
+    let rows: Vec<(&str, WeightType, bool, f64, f64)> = bounds
+        .iter()
+        .map(|&(ty, a, b)| (ty.name(), ty, false, a, b))
+        .chain([
+            ("int8 file", WeightType::Int8, true, 0.35, 0.012),
+            ("int8 file→f32", WeightType::F32, true, 0.2, 0.002),
+        ])
+        .collect();
+    for (label, ty, from_file, max_bound, mean_bound) in rows {
+        let model = match if from_file { load_q(ty) } else { load(ty) } {
             Ok(m) => m,
             Err(e) => {
                 assert!(!ty.native_on_this_cpu(), "{ty:?}: {e}");
@@ -90,7 +110,7 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
             }
         }
         let mean = sum / count as f64;
-        println!("{:<14} {max:>8.4}   {mean:>8.5}", ty.name());
+        println!("{label:<14} {max:>8.4}   {mean:>8.5}");
         assert!(
             max > 0.0,
             "{ty:?} gave the f32 bits: the type is not in effect"

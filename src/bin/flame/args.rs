@@ -142,7 +142,19 @@ pub enum Command {
                       configuration. The result is the same bytes on every run."
     )]
     Assemble(AssembleArgs),
+    /// Write an int8 model file calibrated on the model's own runs (GPTQ)
+    #[command(long_about = QUANTIZE_LONG)]
+    Quantize(QuantizeArgs),
 }
+
+const QUANTIZE_LONG: &str = "Write an int8 model file calibrated on the model's own runs. The \
+f32 model samples the calibration prompts while each linear layer records its inputs; each \
+weight is then rounded to int8 (one scale per output row) by GPTQ, which carries every rounding \
+error onto the inputs not yet rounded so that the layer's outputs, not its weights, stay close. \
+The projections from and to the sampled features stay f32. Load the result with --weights int8 \
+(the default for such a file): its integers are packed as they are, so every machine on the \
+same kernel path gives the same bits. Loaded as f32, f16 or bf16 they are multiplied back out, \
+which runs anywhere.";
 
 /// The library's `FromStr`, its message without the error kind's prefix.
 /// How `flame edit` imposes the reference: a library editing method, or position guidance
@@ -537,4 +549,29 @@ pub struct AssembleArgs {
     /// Record the demo corpus's action families (for the demo denoiser, see docs/demo_corpus.md)
     #[arg(long)]
     pub demo_actions: bool,
+}
+
+#[derive(Args)]
+pub struct QuantizeArgs {
+    /// The model file to quantise (f32, f16 or bf16)
+    #[arg(long, value_name = "MODEL.safetensors")]
+    pub model: PathBuf,
+    /// The int8 model file to write
+    #[arg(long, value_name = "OUT.safetensors")]
+    pub out: PathBuf,
+    /// Calibration prompts, one per line (default: 16 built-in prompts, one per kind of motion)
+    #[arg(long, value_name = "FILE")]
+    pub prompts: Option<PathBuf>,
+    /// Seeds per prompt
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub seeds: u64,
+    /// Frames per calibration run (the model's default when left out)
+    #[arg(long, value_name = "N")]
+    pub frames: Option<usize>,
+    /// Threads (0: all cores)
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub threads: usize,
+    /// Print each weight's relative output error, rounded at load and as written
+    #[arg(long)]
+    pub verbose: bool,
 }

@@ -28,7 +28,7 @@ use flame::targets::{PositionTargets, TargetParams};
 
 use args::{
     AssembleArgs, Cli, Command, DenoiseArgs, EditArgs, EditChoice, GenerateArgs, InfoArgs,
-    ModelArgs, OnOff, OutputArgs, RetargetArgs, SamplingArgs, StreamArgs,
+    ModelArgs, OnOff, OutputArgs, QuantizeArgs, RetargetArgs, SamplingArgs, StreamArgs,
 };
 
 fn main() -> ExitCode {
@@ -41,6 +41,7 @@ fn main() -> ExitCode {
         Command::Retarget(a) => retarget(&a),
         Command::Info(a) => info(&a),
         Command::Assemble(a) => assemble(&a),
+        Command::Quantize(a) => quantize(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -89,11 +90,28 @@ fn load_model(m: &ModelArgs) -> Result<Loaded, String> {
     };
     check_model_path(&model_path)?;
     let t0 = Instant::now();
-    let opts = LoadOptions {
-        weights: m.weights.unwrap_or_default(),
-    };
     let cannot = |e: flame::Error| format!("cannot load {}: {e}", model_path.display());
     let file = ModelFile::open(&model_path).map_err(cannot)?;
+    // A file written by `flame quantize` runs as int8 unless told otherwise (where the CPU
+    // cannot, its integers are multiplied back out to f32).
+    let quantized = file.metadata(flame::quantize::QUANTIZATION_KEY).is_some();
+    let weights = match m.weights {
+        Some(w) => w,
+        None if quantized && flame::kernels::WeightType::Int8.native_on_this_cpu() => {
+            flame::kernels::WeightType::Int8
+        }
+        None if quantized => {
+            eprintln!(
+                "note: {} is int8, which this CPU does not run ({}); its weights are \
+                 multiplied out to f32",
+                model_path.display(),
+                flame::kernels::WeightType::Int8.compute_path()
+            );
+            flame::kernels::WeightType::F32
+        }
+        None => flame::kernels::WeightType::default(),
+    };
+    let opts = LoadOptions { weights };
     let actions = flame::assemble::trained_actions(&file).map_err(cannot)?;
     let model = Arc::new(Model::from_file_with(file, &opts).map_err(cannot)?);
     eprintln!(
@@ -1388,6 +1406,59 @@ fn assemble(a: &AssembleArgs) -> Result<(), String> {
     Ok(())
 }
 
+fn quantize(a: &QuantizeArgs) -> Result<(), String> {
+    check_model_path(&a.model)?;
+    paths::check_writable(&a.out)?;
+    let mut opts = flame::quantize::QuantizeOptions {
+        seeds: a.seeds,
+        frames: a.frames,
+        threads: a.threads,
+        ..Default::default()
+    };
+    if let Some(path) = &a.prompts {
+        paths::check_readable(path)?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        opts.prompts = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty() && !l.starts_with('#'))
+            .map(String::from)
+            .collect();
+        if opts.prompts.is_empty() {
+            return Err(format!("{} holds no prompt (one per line)", path.display()));
+        }
+    }
+    let t0 = Instant::now();
+    let r = flame::quantize::quantize(&a.model, &a.out, &opts)
+        .map_err(|e| format!("cannot quantise {}: {e}", a.model.display()))?;
+    if a.verbose {
+        println!(
+            "{:<48} {:>5} {:>12} {:>12}",
+            "weight", "type", "rounded", "written"
+        );
+        for l in &r.layers {
+            println!(
+                "{:<48} {:>5} {:>12.3e} {:>12.3e}",
+                l.tensor,
+                if l.int8 { "int8" } else { "f32" },
+                l.error_rounded,
+                l.error_written
+            );
+        }
+    }
+    let int8 = r.layers.iter().filter(|l| l.int8).count();
+    eprintln!(
+        "{int8} weights int8, {} kept f32; {} calibration runs; {:.1} MB in {:.1} s",
+        r.layers.len() - int8,
+        r.runs,
+        r.bytes as f64 / 1e6,
+        t0.elapsed().as_secs_f64()
+    );
+    println!("{}", a.out.display());
+    Ok(())
+}
+
 fn info(a: &InfoArgs) -> Result<(), String> {
     let path = match &a.model {
         Some(p) => p.clone(),
@@ -1397,6 +1468,9 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     let cannot = |e: flame::Error| format!("cannot load {}: {e}", path.display());
     let file = ModelFile::open(&path).map_err(cannot)?;
     let actions = flame::assemble::trained_actions(&file).map_err(cannot)?;
+    let quantization = file
+        .metadata(flame::quantize::QUANTIZATION_KEY)
+        .map(String::from);
     let model = Model::from_file(file).map_err(cannot)?;
     let c = model.config();
     println!("architecture:   {}", c.architecture);
@@ -1424,6 +1498,9 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         "weights dtype:  {}",
         model.stored_dtype().map_or("-", |x| x.name())
     );
+    if let Some(q) = &quantization {
+        println!("quantised:      {q} (flame quantize; runs as int8 by default)");
+    }
     println!(
         "kernel:         {}, f32 tile {} (linear layers; FLAME_KERNEL=avx512|avx512-12x16|avx512-12x32|avx2|portable picks another the CPU runs)",
         flame::kernels::kernel_name(),
@@ -1442,8 +1519,9 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     // docs/performance.md; shown so that a user picks a type knowing its cost.
     println!(
         "                accuracy vs f32 on the demo model (features after 10 steps, max/mean): \
-         f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.056/0.0011, int8 0.44/0.013 \
-         (the same on AVX-VNNI; the vpmaddubsw AVX2 path 0.60/0.025)"
+         f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.056/0.0011, int8 rounded at \
+         load 0.44/0.013 (the vpmaddubsw AVX2 path 0.60/0.025), int8 from `flame quantize` \
+         0.19/0.0073 (as f32: 0.11/0.0008)"
     );
     println!(
         "motion:         {} ({} features per frame, {} fps, at most {} frames)",

@@ -297,6 +297,33 @@ pub(super) fn pack(p: &mut PackedWeights, w: &[f32]) {
     }
 }
 
+/// Packs int8 weights `q` (`[n, k]`) with their column scales into `p` (whose `k`, `n` are set,
+/// type int8): the words and column sums [`pack`] makes from the same integers.
+pub(super) fn pack_int8(p: &mut PackedWeights, q: &[i8], scales: &[f32]) {
+    let (n, k) = (p.n, p.k);
+    let panels = n.div_ceil(NR);
+    let s = steps(WeightType::Int8, k);
+    p.lines = vec![Line([0; 64]); panels * s];
+    // SAFETY: as in `pack`.
+    let words: &mut [u32] = unsafe {
+        std::slice::from_raw_parts_mut(p.lines.as_mut_ptr() as *mut u32, panels * s * NR)
+    };
+    p.scales = scales.to_vec();
+    p.colsum = vec![0; n];
+    for col in 0..n {
+        let row = &q[col * k..(col + 1) * k];
+        let (j, c) = (col / NR, col % NR);
+        for (step, quad) in row.chunks(4).enumerate() {
+            let mut bytes = [0u8; 4];
+            for (b, &v) in bytes.iter_mut().zip(quad) {
+                *b = v as u8;
+            }
+            words[(j * s + step) * NR + c] = u32::from_le_bytes(bytes);
+        }
+        p.colsum[col] = row.iter().map(|&v| v as i32).sum();
+    }
+}
+
 /// The weights back as `[n, k]` f32: bf16 values widened, int8 values times their scale.
 pub(super) fn unpack(p: &PackedWeights) -> Vec<f32> {
     let (n, k) = (p.n, p.k);

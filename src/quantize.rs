@@ -1,0 +1,598 @@
+//! `flame quantize`: an int8 model file calibrated on the model's own runs.
+//!
+//! The model samples a set of prompts in f32 while every linear layer records the Gram matrix
+//! `XᵀX` of its inputs ([`crate::models::calibrate`]). Each layer's weight is then rounded to
+//! int8 with one symmetric scale per output row by GPTQ (Frantar, Ashkboos, Hoefler and
+//! Alistarh 2022, "GPTQ: Accurate Post-Training Quantization for Generative Pre-trained
+//! Transformers", arXiv:2210.17323, Algorithm 1): inputs in order, each rounding error spread
+//! over the inputs not yet rounded through the inverse Hessian `H = XᵀX`, so that `X·Wᵀ`
+//! rather than `W` itself stays close. Each row's scale is the one of 41 shrinks of
+//! `max|w|/127` (1.0 down to 0.6) whose plain rounding has the least squared error: the largest
+//! weight then costs a little clipping so that every other weight gets a finer step.
+//!
+//! On the demo model this is what makes int8's weights close (docs/performance.md, "Where
+//! int8's error comes from"): the features after 10 steps move 0.26 from f32 with weights
+//! rounded per row at load, 0.06 with the same int8 format rounded this way.
+//!
+//! The projections from and to the sampled features (FLAME's `input_projection` and
+//! `last_projection`, MDM's pose embedding and output) stay f32: their inputs are the noisy
+//! sample itself and their outputs are the step's result, and the same measurement put a third
+//! of int8's error in them while they are under 1% of the multiply-adds of FLAME-base.
+//!
+//! The file keeps every other tensor as it was, stores each quantised weight as `I8` with its
+//! scales beside it (`<weight>_scale`, `F32`, one per output row), and records what was done
+//! under the [`QUANTIZATION_KEY`] metadata. Loading it as int8 packs those integers as they are
+//! (no rounding at load, the same bits on every machine that runs the same kernel path);
+//! loading it as f32, f16 or bf16 multiplies them back out.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+use std::sync::Arc;
+
+use safetensors::tensor::{Dtype, TensorView};
+use safetensors::SafeTensors;
+
+use crate::checkpoint::ModelFile;
+use crate::error::{bad_file, invalid_arg, Result};
+use crate::models::calibrate::{record_while, RecordedLayer, Recorder};
+use crate::models::{LoadOptions, Model};
+use crate::session::{Session, SessionParams};
+
+/// Metadata key of a quantised model file: a JSON object saying how it was quantised.
+pub const QUANTIZATION_KEY: &str = "flame.quantization";
+
+/// The calibration prompts used when none are given: one per kind of motion, worded apart from
+/// the demo's held-out evaluation prompts (tests/fixtures/demo_eval_prompts.tsv).
+pub const DEFAULT_PROMPTS: [&str; 16] = [
+    "a person walks forward.",
+    "a person walks backwards slowly.",
+    "a person runs in a circle.",
+    "a person jumps in place.",
+    "a person hops on the left foot.",
+    "a person waves with the left hand.",
+    "a person claps twice.",
+    "a person throws a punch with the left hand.",
+    "a person kicks with the left leg.",
+    "a person squats down.",
+    "a person crouches and stands back up.",
+    "a person turns to the left.",
+    "a person raises the right arm.",
+    "a person bows.",
+    "a person steps to the left.",
+    "a person stands and looks around.",
+];
+
+/// How to calibrate.
+#[derive(Clone, Debug)]
+pub struct QuantizeOptions {
+    /// Prompts the model samples while its layers record their inputs.
+    pub prompts: Vec<String>,
+    /// Seeds per prompt (0, 1, ...).
+    pub seeds: u64,
+    /// Frames per run (the model's default when `None`).
+    pub frames: Option<usize>,
+    /// Threads for the calibration runs (0: all).
+    pub threads: usize,
+}
+
+impl Default for QuantizeOptions {
+    fn default() -> Self {
+        QuantizeOptions {
+            prompts: DEFAULT_PROMPTS.iter().map(|s| s.to_string()).collect(),
+            seeds: 1,
+            frames: None,
+            threads: 0,
+        }
+    }
+}
+
+/// What happened to one stored weight.
+#[derive(Clone, Debug)]
+pub struct LayerReport {
+    /// The weight tensor.
+    pub tensor: String,
+    /// Whether it was quantised (false: kept f32).
+    pub int8: bool,
+    /// Calibration input rows its layers saw.
+    pub rows_seen: usize,
+    /// Relative output error `‖X(W−Q)ᵀ‖² / ‖XWᵀ‖²` on the calibration inputs, with the
+    /// weights rounded per row at load (the `int8` load option of an f32 file) and as written.
+    pub error_rounded: f64,
+    /// As `error_rounded`, for the weights this file holds.
+    pub error_written: f64,
+}
+
+/// What [`quantize`] did.
+#[derive(Clone, Debug)]
+pub struct QuantizeReport {
+    /// Every linear weight, in load order.
+    pub layers: Vec<LayerReport>,
+    /// Calibration runs made.
+    pub runs: usize,
+    /// Bytes written.
+    pub bytes: u64,
+}
+
+/// Calibrates the model at `model` on `opts`'s runs and writes its int8 file to `out`.
+pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<QuantizeReport> {
+    if opts.prompts.is_empty() || opts.seeds == 0 {
+        return Err(invalid_arg!(
+            "calibration needs at least one prompt and one seed (got {} prompts, {} seeds)",
+            opts.prompts.len(),
+            opts.seeds
+        ));
+    }
+    let bytes = std::fs::read(model).map_err(|source| crate::error::Error::Io {
+        path: model.display().to_string(),
+        source,
+    })?;
+    let file = ModelFile::from_bytes(&bytes)?;
+    if file.metadata(QUANTIZATION_KEY).is_some() {
+        return Err(invalid_arg!(
+            "{} is quantised already; quantise its f32, f16 or bf16 original",
+            model.display()
+        ));
+    }
+    let recorder = Arc::new(Recorder::default());
+    let loaded = record_while(&recorder, || {
+        Model::from_file_with(file, &LoadOptions::default())
+    })?;
+    let keep = kept_widths(&loaded);
+    let loaded = Arc::new(loaded);
+    let mut runs = 0;
+    for prompt in &opts.prompts {
+        for seed in 0..opts.seeds {
+            let params = SessionParams {
+                frames: opts.frames,
+                seed,
+                threads: opts.threads,
+                ..Default::default()
+            };
+            let mut session = Session::new(Arc::clone(&loaded), &params)?;
+            session.set_prompt(prompt)?;
+            session.run()?;
+            runs += 1;
+        }
+    }
+    drop(loaded);
+    let recorded = recorder.take();
+    let source =
+        SafeTensors::deserialize(&bytes).map_err(|e| bad_file!("{}: {e:?}", model.display()))?;
+    let (owned, layers) = quantized_tensors(&source, &recorded, &keep)?;
+    let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
+    for (name, view) in source.tensors() {
+        if !owned.contains_key(&name) {
+            tensors.push((name, view));
+        }
+    }
+    for (name, (dtype, shape, data)) in &owned {
+        let view = TensorView::new(*dtype, shape.clone(), data)
+            .map_err(|e| bad_file!("tensor `{name}`: {e:?}"))?;
+        tensors.push((name.clone(), view));
+    }
+    let (_, header) =
+        SafeTensors::read_metadata(&bytes).map_err(|e| bad_file!("{}: {e:?}", model.display()))?;
+    let mut metadata: HashMap<String, String> = header.metadata().clone().unwrap_or_default();
+    let quantised = layers.iter().filter(|l| l.int8).count();
+    metadata.insert(
+        QUANTIZATION_KEY.into(),
+        format!(
+            "{{\"weights\":\"int8, symmetric, one scale per output row\",\"method\":\"GPTQ \
+             (arXiv:2210.17323) on the Gram matrix of each layer's inputs\",\
+             \"calibration_runs\":{runs},\"int8_weights\":{quantised},\"f32_weights\":{}}}",
+            layers.len() - quantised
+        ),
+    );
+    let bytes = crate::assemble::write_checked(tensors, metadata, out)?;
+    Ok(QuantizeReport {
+        layers,
+        runs,
+        bytes,
+    })
+}
+
+/// Input and output widths whose layers stay f32: the sampled features in and out.
+fn kept_widths(model: &Model) -> (Vec<usize>, Vec<usize>) {
+    let inputs = vec![model.sample_dim()];
+    let outputs = vec![model.sample_dim(), model.output_dim(), model.motion_dim()];
+    (inputs, outputs)
+}
+
+type Owned = BTreeMap<String, (Dtype, Vec<usize>, Vec<u8>)>;
+
+/// The new tensors (int8 weights and their scales) and a report per stored weight.
+fn quantized_tensors(
+    source: &SafeTensors<'_>,
+    recorded: &[RecordedLayer],
+    (keep_in, keep_out): &(Vec<usize>, Vec<usize>),
+) -> Result<(Owned, Vec<LayerReport>)> {
+    // The layers built from each stored weight (a packed q/k/v weight may give two).
+    let mut by_tensor: Vec<(String, Vec<&RecordedLayer>)> = Vec::new();
+    for layer in recorded {
+        match by_tensor.iter_mut().find(|(t, _)| *t == layer.tensor) {
+            Some((_, parts)) => parts.push(layer),
+            None => by_tensor.push((layer.tensor.clone(), vec![layer])),
+        }
+    }
+    let mut owned = Owned::new();
+    let mut reports = Vec::new();
+    for (tensor, parts) in by_tensor {
+        let view = source
+            .tensor(&tensor)
+            .map_err(|e| bad_file!("tensor `{tensor}`: {e:?}"))?;
+        let k = parts[0].inputs;
+        let w = floats(&tensor, &view)?;
+        let n = w.len() / k.max(1);
+        let kept = parts
+            .iter()
+            .any(|p| keep_in.contains(&p.inputs) || keep_out.contains(&p.rows.len()));
+        let mut q = vec![0i8; n * k];
+        let mut scales = vec![0.0f32; n];
+        let (mut err_round, mut err_gptq, mut norm) = (0.0, 0.0, 0.0);
+        for part in &parts {
+            if let Some((i, v)) = part.gram.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+                return Err(invalid_arg!(
+                    "calibration inputs of `{tensor}` are not finite (Gram entry {i} is {v}): \
+                     the model does not run cleanly on the calibration prompts"
+                ));
+            }
+            let rows = &w[part.rows.start * k..part.rows.end * k];
+            let (pq, ps) = gptq(rows, part.rows.len(), k, &part.gram)?;
+            let (rq, rs) = round_rows(rows, part.rows.len(), k);
+            err_gptq += output_error(rows, &pq, &ps, k, &part.gram);
+            err_round += output_error(rows, &rq, &rs, k, &part.gram);
+            norm += quadratic(rows, k, &part.gram);
+            q[part.rows.start * k..part.rows.end * k].copy_from_slice(&pq);
+            scales[part.rows.clone()].copy_from_slice(&ps);
+        }
+        let rel = |e: f64| if norm > 0.0 { e / norm } else { 0.0 };
+        reports.push(LayerReport {
+            tensor: tensor.clone(),
+            int8: !kept,
+            rows_seen: parts.iter().map(|p| p.rows_seen).sum(),
+            error_rounded: rel(err_round),
+            error_written: if kept { 0.0 } else { rel(err_gptq) },
+        });
+        if kept {
+            // Stored as f32 so that an int8 load keeps it f32 (a float weight of a quantised
+            // file is never rounded at load).
+            let data = w.iter().flat_map(|v| v.to_le_bytes()).collect();
+            owned.insert(tensor, (Dtype::F32, vec![n, k], data));
+            continue;
+        }
+        owned.insert(
+            tensor.clone(),
+            (Dtype::I8, vec![n, k], q.iter().map(|&v| v as u8).collect()),
+        );
+        owned.insert(
+            format!("{tensor}_scale"),
+            (
+                Dtype::F32,
+                vec![n],
+                scales.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ),
+        );
+    }
+    Ok((owned, reports))
+}
+
+/// A stored float tensor's values.
+fn floats(name: &str, view: &TensorView<'_>) -> Result<Vec<f32>> {
+    let b = view.data();
+    Ok(match view.dtype() {
+        Dtype::F32 => b
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect(),
+        Dtype::F16 => b
+            .chunks_exact(2)
+            .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
+            .collect(),
+        Dtype::BF16 => b
+            .chunks_exact(2)
+            .map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32())
+            .collect(),
+        other => {
+            return Err(bad_file!(
+                "tensor `{name}` has dtype {other:?}, not a float"
+            ))
+        }
+    })
+}
+
+/// Rounds `v / scale` to the nearest integer (ties to even) within −127..=127.
+fn round_to(v: f64, scale: f64) -> f64 {
+    (v / scale).round_ties_even().clamp(-127.0, 127.0)
+}
+
+/// The scale of one row: of the shrinks `max|w|/127 · (1 − i/100)`, `i = 0..=40`, the one
+/// whose rounding has the least squared error (the first on ties); 1 for an all-zero row.
+fn row_scale(row: &[f32]) -> f32 {
+    let max = row.iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
+    if max == 0.0 {
+        return 1.0;
+    }
+    let mut best = (f64::INFINITY, 1.0f32);
+    for i in 0..=40 {
+        // Each candidate is judged as the f32 the file stores.
+        let s = (max * (1.0 - i as f64 / 100.0) / 127.0) as f32;
+        let sd = s as f64;
+        let err: f64 = row
+            .iter()
+            .map(|&v| (v as f64 - round_to(v as f64, sd) * sd).powi(2))
+            .sum();
+        if err < best.0 {
+            best = (err, s);
+        }
+    }
+    best.1
+}
+
+/// Per-row rounding with the largest weight at ±127 (what loading an f32 file as int8 does).
+fn round_rows(w: &[f32], n: usize, k: usize) -> (Vec<i8>, Vec<f32>) {
+    let mut q = vec![0i8; n * k];
+    let mut scales = vec![0.0f32; n];
+    for (r, row) in w.chunks_exact(k.max(1)).take(n).enumerate() {
+        let max = row.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let s = if max > 0.0 { max / 127.0 } else { 1.0 };
+        scales[r] = s;
+        for (d, &v) in q[r * k..(r + 1) * k].iter_mut().zip(row) {
+            *d = round_to(v as f64, s as f64) as i8;
+        }
+    }
+    (q, scales)
+}
+
+/// GPTQ (arXiv:2210.17323, Algorithm 1, one block): `w` (`[n, k]`) rounded to int8 with
+/// per-row scales from [`row_scale`], each input's rounding error carried onto the inputs
+/// after it through the upper Cholesky factor of `H⁻¹`, `H = gram + λI` (λ 1% of the mean
+/// diagonal, as the paper's dampening). An input that was zero in every calibration run gets
+/// `H_ii = 1` and its weights plain rounding: the paper's implementation sets such weights to
+/// zero, which on the demo model moved the features by 1.5 after 10 steps, as inputs unused by
+/// the calibration prompts are used by others.
+pub fn gptq(w: &[f32], n: usize, k: usize, gram: &[f64]) -> Result<(Vec<i8>, Vec<f32>)> {
+    assert_eq!(w.len(), n * k);
+    assert_eq!(gram.len(), k * k);
+    let mut h = gram.to_vec();
+    let dead: Vec<bool> = (0..k).map(|i| h[i * k + i] == 0.0).collect();
+    for i in 0..k {
+        if dead[i] {
+            h[i * k + i] = 1.0;
+        }
+    }
+    let mean_diag = (0..k).map(|i| h[i * k + i]).sum::<f64>() / k.max(1) as f64;
+    let mut u = None;
+    // Dampening grows tenfold until H is numerically positive definite.
+    for damp in [0.01, 0.1, 1.0] {
+        let mut hd = h.clone();
+        for i in 0..k {
+            hd[i * k + i] += damp * mean_diag;
+        }
+        if let Some(f) = inverse_cholesky_upper(&hd, k) {
+            u = Some(f);
+            break;
+        }
+    }
+    let u = u.ok_or_else(|| {
+        invalid_arg!("the inputs' Gram matrix is not positive definite even with dampening")
+    })?;
+    let mut q = vec![0i8; n * k];
+    let mut scales = vec![0.0f32; n];
+    let rows: Vec<(Vec<i8>, f32)> = {
+        use rayon::prelude::*;
+        w.par_chunks_exact(k.max(1))
+            .take(n)
+            .map(|row| {
+                let mut r: Vec<f64> = row.iter().map(|&v| v as f64).collect();
+                let s = row_scale(row) as f64;
+                let mut out = vec![0i8; k];
+                for i in 0..k {
+                    let qi = round_to(r[i], s);
+                    out[i] = qi as i8;
+                    let err = (r[i] - qi * s) / u[i * k + i];
+                    for j in i + 1..k {
+                        r[j] -= err * u[i * k + j];
+                    }
+                }
+                (out, s as f32)
+            })
+            .collect()
+    };
+    for (i, (row, s)) in rows.into_iter().enumerate() {
+        q[i * k..(i + 1) * k].copy_from_slice(&row);
+        scales[i] = s;
+    }
+    Ok((q, scales))
+}
+
+/// The upper Cholesky factor `U` of `a⁻¹` (`a⁻¹ = UᵀU`), or `None` when `a` is not positive
+/// definite.
+fn inverse_cholesky_upper(a: &[f64], k: usize) -> Option<Vec<f64>> {
+    let l = cholesky(a, k)?;
+    // a⁻¹ = L⁻ᵀ L⁻¹, from L⁻¹ by forward substitution.
+    let mut li = vec![0.0; k * k];
+    for i in 0..k {
+        li[i * k + i] = 1.0 / l[i * k + i];
+        for j in 0..i {
+            let s: f64 = (j..i).map(|p| l[i * k + p] * li[p * k + j]).sum();
+            li[i * k + j] = -s / l[i * k + i];
+        }
+    }
+    let mut inv = vec![0.0; k * k];
+    for i in 0..k {
+        for j in 0..=i {
+            let s: f64 = (i..k).map(|p| li[p * k + i] * li[p * k + j]).sum();
+            inv[i * k + j] = s;
+            inv[j * k + i] = s;
+        }
+    }
+    let l2 = cholesky(&inv, k)?;
+    let mut u = vec![0.0; k * k];
+    for i in 0..k {
+        for j in 0..=i {
+            u[j * k + i] = l2[i * k + j];
+        }
+    }
+    Some(u)
+}
+
+/// The lower Cholesky factor of the symmetric `a`, or `None` when a pivot is not positive.
+fn cholesky(a: &[f64], k: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0; k * k];
+    for i in 0..k {
+        for j in 0..=i {
+            let s = a[i * k + j] - (0..j).map(|p| l[i * k + p] * l[j * k + p]).sum::<f64>();
+            if i == j {
+                // Not positive, or NaN.
+                if s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+                    return None;
+                }
+                l[i * k + i] = s.sqrt();
+            } else {
+                l[i * k + j] = s / l[j * k + j];
+            }
+        }
+    }
+    Some(l)
+}
+
+/// `Σ_rows (w − q·s) H (w − q·s)ᵀ`: the squared output error over the calibration inputs.
+fn output_error(w: &[f32], q: &[i8], scales: &[f32], k: usize, gram: &[f64]) -> f64 {
+    let d: Vec<f32> = w
+        .chunks_exact(k.max(1))
+        .zip(q.chunks_exact(k.max(1)))
+        .zip(scales)
+        .flat_map(|((wr, qr), &s)| wr.iter().zip(qr).map(move |(&a, &b)| a - b as f32 * s))
+        .collect();
+    quadratic(&d, k, gram)
+}
+
+/// `Σ_rows w H wᵀ`.
+fn quadratic(w: &[f32], k: usize, gram: &[f64]) -> f64 {
+    w.chunks_exact(k.max(1))
+        .map(|row| {
+            let mut total = 0.0;
+            for i in 0..k {
+                if row[i] == 0.0 {
+                    continue;
+                }
+                let hi = &gram[i * k..(i + 1) * k];
+                let dot: f64 = hi.iter().zip(row).map(|(h, &v)| h * v as f64).sum();
+                total += row[i] as f64 * dot;
+            }
+            total
+        })
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A tiny generator for test data (xorshift).
+    fn values(seed: u64, n: usize) -> Vec<f32> {
+        let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..n)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    fn gram_of(x: &[f32], rows: usize, k: usize) -> Vec<f64> {
+        let mut g = vec![0.0; k * k];
+        for r in x.chunks_exact(k).take(rows) {
+            for i in 0..k {
+                for j in 0..k {
+                    g[i * k + j] += r[i] as f64 * r[j] as f64;
+                }
+            }
+        }
+        g
+    }
+
+    #[test]
+    fn with_uncorrelated_inputs_gptq_is_plain_rounding() {
+        // H diagonal: U is diagonal too, so no error is carried and every weight is rounded on
+        // its own with the row's scale.
+        let (n, k) = (5, 9);
+        let w = values(1, n * k);
+        let mut gram = vec![0.0; k * k];
+        for i in 0..k {
+            gram[i * k + i] = 1.0 + i as f64;
+        }
+        let (q, s) = gptq(&w, n, k, &gram).unwrap();
+        for r in 0..n {
+            let scale = row_scale(&w[r * k..(r + 1) * k]);
+            assert_eq!(s[r], scale);
+            for i in 0..k {
+                let want = round_to(w[r * k + i] as f64, scale as f64) as i8;
+                assert_eq!(q[r * k + i], want, "row {r} input {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn two_inputs_carry_the_error_as_derived_by_hand() {
+        // Inputs always equal: H = c·[[1,1],[1,1]] + λI, whose inverse is
+        // [[c+λ, −c], [−c, c+λ]] / det. The output depends on w₁ + w₂ only, so GPTQ moves the
+        // first weight's rounding error onto the second: with H⁻¹ = UᵀU,
+        // U₀₁/U₀₀ = (H⁻¹)₀₁/(H⁻¹)₀₀ = −c/(c+λ), and the update w₂ −= (w₁ − q₁·s)·U₀₁/U₀₀ is
+        // w₂ + (w₁ − q₁·s)·c/(c+λ).
+        let w = [0.30f32, 0.50];
+        let c = 100.0;
+        let gram = vec![c, c, c, c];
+        let (q, s) = gptq(&w, 1, 2, &gram).unwrap();
+        let s = s[0] as f64;
+        assert_eq!(s as f32, row_scale(&w));
+        let q1 = round_to(0.30, s);
+        assert_eq!(q[0] as f64, q1);
+        let lambda = 0.01 * c;
+        let carried = 0.50 + (0.30 - q1 * s) * c / (c + lambda);
+        assert_eq!(q[1] as f64, round_to(carried, s));
+        // And the sum the output depends on is closer than plain rounding's (or as close).
+        let sum = |a: f64, b: f64| ((a + b) * s - 0.8).abs();
+        let plain = sum(q1, round_to(0.5, s));
+        assert!(sum(q[0] as f64, q[1] as f64) <= plain + 1e-12);
+    }
+
+    #[test]
+    fn gptq_lowers_the_output_error_of_correlated_inputs() {
+        // Inputs with a shared component (correlated features, as a LayerNorm's output has):
+        // GPTQ's output error must be below plain rounding's with the same scales.
+        let (n, k, rows) = (16, 32, 200);
+        let w = values(2, n * k);
+        let base = values(3, rows);
+        let noise = values(4, rows * k);
+        let x: Vec<f32> = (0..rows * k)
+            .map(|i| base[i / k] + 0.3 * noise[i])
+            .collect();
+        let gram = gram_of(&x, rows, k);
+        let (q, s) = gptq(&w, n, k, &gram).unwrap();
+        let plain: Vec<i8> = (0..n * k)
+            .map(|i| round_to(w[i] as f64, s[i / k] as f64) as i8)
+            .collect();
+        let e_gptq = output_error(&w, &q, &s, k, &gram);
+        let e_plain = output_error(&w, &plain, &s, k, &gram);
+        assert!(e_gptq < 0.5 * e_plain, "{e_gptq} vs {e_plain}");
+    }
+
+    #[test]
+    fn the_row_scale_search_is_never_worse_than_the_largest_weight() {
+        for seed in 0..20 {
+            let row = values(seed, 64);
+            let s = row_scale(&row) as f64;
+            let max = (row.iter().fold(0.0f32, |m, v| m.max(v.abs())) / 127.0) as f64;
+            let err = |s: f64| -> f64 {
+                row.iter()
+                    .map(|&v| (v as f64 - round_to(v as f64, s) * s).powi(2))
+                    .sum()
+            };
+            assert!(s <= max && s >= 0.6 * max - 1e-12);
+            assert!(err(s) <= err(max));
+        }
+    }
+}

@@ -1,0 +1,280 @@
+//! `flame quantize`'s int8 files (src/quantize.rs) on the tiny FLAME and MDM fixtures: what the
+//! file holds, that its integers load as written, and that bad files and bad calibrations are
+//! refused with the tensor's name. Its accuracy on the trained demo model is measured by
+//! crates/flame-demo/tests/demo_weights.rs.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+mod common;
+
+use flame::models::{LoadOptions, Model, WeightType};
+use flame::quantize::{quantize, QuantizeOptions, QUANTIZATION_KEY};
+use flame::session::{Session, SessionParams};
+use safetensors::tensor::{Dtype, TensorView};
+use safetensors::SafeTensors;
+
+fn fixture(name: &str) -> PathBuf {
+    common::repo(&format!("tests/fixtures/{name}"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("quantize_{name}"))
+}
+
+fn small() -> QuantizeOptions {
+    QuantizeOptions {
+        prompts: vec!["a person walks forward.".into(), "a person jumps.".into()],
+        frames: Some(40),
+        threads: 2,
+        ..Default::default()
+    }
+}
+
+/// The quantised tiny FLAME fixture (written once per test binary run, by name).
+fn quantized(name: &str) -> PathBuf {
+    let out = tmp(name);
+    quantize(&fixture("flame_tiny.safetensors"), &out, &small()).unwrap();
+    out
+}
+
+/// `bytes` with tensor `name` replaced by `(dtype, data)` (same shape).
+fn replaced(bytes: &[u8], name: &str, dtype: Dtype, data: Vec<u8>) -> Vec<u8> {
+    let file = SafeTensors::deserialize(bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(bytes).unwrap();
+    let shape = file.tensor(name).unwrap().shape().to_vec();
+    let mut views: Vec<(String, TensorView<'_>)> = file
+        .tensors()
+        .into_iter()
+        .filter(|(n, _)| n != name)
+        .collect();
+    views.push((name.into(), TensorView::new(dtype, shape, &data).unwrap()));
+    safetensors::serialize(views, header.metadata()).unwrap()
+}
+
+fn x0(model: &Arc<Model>) -> Vec<f32> {
+    let params = SessionParams {
+        frames: Some(40),
+        steps: Some(1),
+        seed: 3,
+        threads: 1,
+        ..Default::default()
+    };
+    let mut s = Session::new(Arc::clone(model), &params).unwrap();
+    s.set_prompt("a person waves.").unwrap();
+    s.run().unwrap().to_vec()
+}
+
+#[test]
+fn the_file_holds_int8_weights_with_scales_and_keeps_the_feature_projections_f32() {
+    let path = quantized("layout.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let meta = header.metadata().as_ref().unwrap();
+    let info: serde_json::Value = serde_json::from_str(&meta[QUANTIZATION_KEY]).unwrap();
+    assert_eq!(info["calibration_runs"], 2);
+    let original = std::fs::read(fixture("flame_tiny.safetensors")).unwrap();
+    let original = SafeTensors::deserialize(&original).unwrap();
+    let mut int8 = 0;
+    for (name, view) in file.tensors() {
+        if name.ends_with("_scale") {
+            continue;
+        }
+        let was = original.tensor(&name).unwrap();
+        assert_eq!(view.shape(), was.shape(), "{name}");
+        if view.dtype() != Dtype::I8 {
+            continue;
+        }
+        int8 += 1;
+        let scale = file.tensor(&format!("{name}_scale")).unwrap();
+        assert_eq!(scale.shape(), &view.shape()[..1], "{name}");
+        // Each row's integers times its scale stay within a step of the original weights
+        // (GPTQ carries errors along the row, so not within half a step).
+        let w: Vec<f32> = was
+            .data()
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let s: Vec<f32> = scale
+            .data()
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let k = view.shape()[1];
+        let mut worst = 0.0f32;
+        for (i, &q) in view.data().iter().enumerate() {
+            let (q, s) = (q as i8, s[i / k]);
+            assert!(q != i8::MIN && s > 0.0 && s.is_finite());
+            worst = worst.max((q as f32 * s - w[i]).abs() / s);
+        }
+        assert!(worst < 8.0, "{name}: {worst} steps");
+    }
+    assert!(int8 >= 10, "{int8} int8 weights");
+    for kept in ["input_projection.weight", "last_projection.weight"] {
+        assert_eq!(file.tensor(kept).unwrap().dtype(), Dtype::F32, "{kept}");
+    }
+}
+
+#[test]
+fn int8_and_f32_loads_run_the_written_integers() {
+    // The file loaded as f32 multiplies its integers back out: the same bits as an f32 file
+    // holding q·s written here from the file's own tensors. Loaded as int8 it differs from that
+    // only by the activations' rounding.
+    let path = quantized("loads.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let mut meta = header.metadata().clone().unwrap();
+    meta.remove(QUANTIZATION_KEY);
+    let mut floats: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    let mut views = Vec::new();
+    for (name, view) in file.tensors() {
+        if name.ends_with("_scale") {
+            continue;
+        }
+        if view.dtype() != Dtype::I8 {
+            views.push((name, view));
+            continue;
+        }
+        let scale = file.tensor(&format!("{name}_scale")).unwrap();
+        let k = view.shape()[1];
+        let data = view
+            .data()
+            .iter()
+            .enumerate()
+            .flat_map(|(i, &q)| {
+                let s = &scale.data()[4 * (i / k)..4 * (i / k) + 4];
+                (q as i8 as f32 * f32::from_le_bytes(s.try_into().unwrap())).to_le_bytes()
+            })
+            .collect();
+        floats.push((name, view.shape().to_vec(), data));
+    }
+    views.extend(floats.iter().map(|(n, shape, data)| {
+        (
+            n.clone(),
+            TensorView::new(Dtype::F32, shape.clone(), data).unwrap(),
+        )
+    }));
+    let dequantized = safetensors::serialize(views, &Some(meta)).unwrap();
+    let plain = Arc::new(Model::from_bytes(&dequantized).unwrap());
+    let load = |weights| Arc::new(Model::load_with(&path, &LoadOptions { weights }).unwrap());
+    let want = x0(&plain);
+    assert_eq!(x0(&load(WeightType::F32)), want);
+    if WeightType::Int8.native_on_this_cpu() {
+        let int8 = load(WeightType::Int8);
+        assert_eq!(int8.weight_type(), WeightType::Int8);
+        assert!(int8.linear_weight_bytes() < load(WeightType::F32).linear_weight_bytes());
+        let got = x0(&int8);
+        let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let diff = common::max_abs_diff(&got, &want);
+        assert!(diff > 0.0 && diff < 0.05 * scale, "{diff} of {scale}");
+    }
+}
+
+#[test]
+fn bad_scales_and_values_are_refused_with_the_tensor_name() {
+    let path = quantized("bad.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    let name = "tf_decoder.layers.0.linear1.weight".to_string();
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let n = file.tensor(&format!("{name}_scale")).unwrap().shape()[0];
+    let q = file.tensor(&name).unwrap().data().to_vec();
+    for bad in [f32::NAN, 0.0, -0.01, f32::INFINITY] {
+        let mut scales = vec![0.01f32; n];
+        scales[n - 1] = bad;
+        let data = scales.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let edited = replaced(&bytes, &format!("{name}_scale"), Dtype::F32, data);
+        for weights in [WeightType::F32, WeightType::Int8] {
+            let err = Model::from_file_with(
+                flame::checkpoint::ModelFile::from_bytes(&edited).unwrap(),
+                &LoadOptions { weights },
+            );
+            let msg = err.err().map(|e| e.to_string()).unwrap_or_default();
+            if weights == WeightType::Int8 && !weights.native_on_this_cpu() {
+                continue;
+            }
+            assert!(
+                msg.contains(&format!("{name}_scale")) && msg.contains("finite and positive"),
+                "{bad}: {msg}"
+            );
+        }
+    }
+    let mut low = q.clone();
+    low[0] = 0x80;
+    let msg = Model::from_bytes(&replaced(&bytes, &name, Dtype::I8, low))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(msg.contains(&name) && msg.contains("-127..=127"), "{msg}");
+    // A norm stored as int8 is not a quantised weight.
+    let norm = "tf_decoder.layers.0.norm1.weight";
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let v = file.tensor(norm).unwrap();
+    let data = vec![1u8; v.shape().iter().product()];
+    let msg = Model::from_bytes(&replaced(&bytes, norm, Dtype::I8, data))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(msg.contains(norm) && msg.contains("int8"), "{msg}");
+}
+
+#[test]
+fn bad_calibrations_are_refused() {
+    let model = fixture("flame_tiny.safetensors");
+    let none = QuantizeOptions {
+        prompts: Vec::new(),
+        ..small()
+    };
+    let msg = quantize(&model, &tmp("none.safetensors"), &none)
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("at least one prompt"), "{msg}");
+    let zero = QuantizeOptions {
+        seeds: 0,
+        ..small()
+    };
+    assert!(quantize(&model, &tmp("zero.safetensors"), &zero).is_err());
+    // Quantising twice would round rounded weights.
+    let once = quantized("once.safetensors");
+    let msg = quantize(&once, &tmp("twice.safetensors"), &small())
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("quantised already"), "{msg}");
+    // A model whose runs are not finite has no calibration to give.
+    let bytes = std::fs::read(&model).unwrap();
+    let file = SafeTensors::deserialize(&bytes).unwrap();
+    let (name, view) = file
+        .tensors()
+        .into_iter()
+        .find(|(n, v)| n.ends_with("linear1.bias") && v.dtype() == Dtype::F32)
+        .unwrap();
+    let data = vec![0xffu8; view.data().len()];
+    let broken = replaced(&bytes, &name, Dtype::F32, data);
+    let path = tmp("nan_in.safetensors");
+    std::fs::write(&path, broken).unwrap();
+    assert!(quantize(&path, &tmp("nan_out.safetensors"), &small()).is_err());
+}
+
+#[test]
+fn another_family_quantises_too() {
+    // MDM: its pose embedding and final projection stay f32, the rest is int8, and the file
+    // runs as int8 where the CPU can.
+    let out = tmp("mdm.safetensors");
+    let r = quantize(&fixture("mdm_tiny.safetensors"), &out, &small()).unwrap();
+    assert!(r.layers.iter().any(|l| l.int8));
+    for l in &r.layers {
+        let feature = l.tensor.contains("poseEmbedding") || l.tensor.contains("poseFinal");
+        assert_eq!(l.int8, !feature, "{}", l.tensor);
+        if l.int8 && l.rows_seen > 0 {
+            assert!(l.error_written <= l.error_rounded, "{l:?}");
+        }
+    }
+    let weights = if WeightType::Int8.native_on_this_cpu() {
+        WeightType::Int8
+    } else {
+        WeightType::F32
+    };
+    let model = Arc::new(Model::load_with(&out, &LoadOptions { weights }).unwrap());
+    assert!(x0(&model).iter().all(|v| v.is_finite()));
+}
