@@ -406,31 +406,33 @@ pub fn gptq(w: &[f32], n: usize, k: usize, gram: &[f64]) -> Result<(Vec<i8>, Vec
 }
 
 /// The upper Cholesky factor `U` of `a⁻¹` (`a⁻¹ = UᵀU`), or `None` when `a` is not positive
-/// definite.
+/// definite. With `J` the order reversal, `J a J = L̃L̃ᵀ` gives `a⁻¹ = (J L̃⁻¹ J)ᵀ (J L̃⁻¹ J)`,
+/// and `J L̃⁻¹ J` is upper triangular: one Cholesky factorisation and one triangular inverse
+/// (`k³/3` multiply-adds) instead of an inverse and a second factorisation.
 fn inverse_cholesky_upper(a: &[f64], k: usize) -> Option<Vec<f64>> {
-    let l = cholesky(a, k)?;
-    // a⁻¹ = L⁻ᵀ L⁻¹, from L⁻¹ by forward substitution.
-    let mut li = vec![0.0; k * k];
+    let rev = |i: usize| k - 1 - i;
+    let mut ar = vec![0.0; k * k];
     for i in 0..k {
-        li[i * k + i] = 1.0 / l[i * k + i];
-        for j in 0..i {
-            let s: f64 = (j..i).map(|p| l[i * k + p] * li[p * k + j]).sum();
-            li[i * k + j] = -s / l[i * k + i];
+        for j in 0..k {
+            ar[i * k + j] = a[rev(i) * k + rev(j)];
         }
     }
-    let mut inv = vec![0.0; k * k];
-    for i in 0..k {
-        for j in 0..=i {
-            let s: f64 = (i..k).map(|p| li[p * k + i] * li[p * k + j]).sum();
-            inv[i * k + j] = s;
-            inv[j * k + i] = s;
+    let l = cholesky(&ar, k)?;
+    // L̃⁻¹ column by column (forward substitution on each unit vector), written transposed so
+    // that each column is a contiguous row: inv_t[j][i] = (L̃⁻¹)[i][j].
+    let mut inv_t = vec![0.0; k * k];
+    for j in 0..k {
+        let x = &mut inv_t[j * k..(j + 1) * k];
+        for i in j..k {
+            let rhs = if i == j { 1.0 } else { 0.0 };
+            x[i] = (rhs - dot(&l[i * k + j..i * k + i], &x[j..i])) / l[i * k + i];
         }
     }
-    let l2 = cholesky(&inv, k)?;
+    // U[i][j] = (L̃⁻¹)[rev i][rev j], upper because L̃⁻¹ is lower.
     let mut u = vec![0.0; k * k];
     for i in 0..k {
-        for j in 0..=i {
-            u[j * k + i] = l2[i * k + j];
+        for j in i..k {
+            u[i * k + j] = inv_t[rev(j) * k + rev(i)];
         }
     }
     Some(u)
@@ -441,7 +443,7 @@ fn cholesky(a: &[f64], k: usize) -> Option<Vec<f64>> {
     let mut l = vec![0.0; k * k];
     for i in 0..k {
         for j in 0..=i {
-            let s = a[i * k + j] - (0..j).map(|p| l[i * k + p] * l[j * k + p]).sum::<f64>();
+            let s = a[i * k + j] - dot(&l[i * k..i * k + j], &l[j * k..j * k + j]);
             if i == j {
                 // Not positive, or NaN.
                 if s.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
@@ -454,6 +456,24 @@ fn cholesky(a: &[f64], k: usize) -> Option<Vec<f64>> {
         }
     }
     Some(l)
+}
+
+/// `Σ a·b` in four interleaved partial sums (which the compiler can keep in vector lanes).
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            acc[l] += x[l] * y[l];
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// `Σ_rows (w − q·s) H (w − q·s)ᵀ`: the squared output error over the calibration inputs.
@@ -512,6 +532,45 @@ mod tests {
             }
         }
         g
+    }
+
+    #[test]
+    fn the_factor_is_upper_and_its_square_inverts_the_matrix() {
+        // UᵀU·A = I for a random symmetric positive definite A (BᵀB + I), checked by
+        // multiplying out; U is upper triangular.
+        let k = 37;
+        let b = values(9, k * k);
+        let mut a = vec![0.0f64; k * k];
+        for i in 0..k {
+            for j in 0..k {
+                a[i * k + j] = (0..k)
+                    .map(|p| b[p * k + i] as f64 * b[p * k + j] as f64)
+                    .sum();
+            }
+            a[i * k + i] += 1.0;
+        }
+        let u = inverse_cholesky_upper(&a, k).unwrap();
+        for i in 0..k {
+            for j in 0..i {
+                assert_eq!(u[i * k + j], 0.0);
+            }
+        }
+        for i in 0..k {
+            for j in 0..k {
+                // (UᵀU A)[i][j] = Σ_p Σ_q U[p][i] U[p][q] A[q][j]
+                let mut v = 0.0;
+                for p in 0..k {
+                    let row: f64 = (0..k).map(|q| u[p * k + q] * a[q * k + j]).sum();
+                    v += u[p * k + i] * row;
+                }
+                let want = if i == j { 1.0 } else { 0.0 };
+                assert!((v - want).abs() < 1e-9, "{i},{j}: {v}");
+            }
+        }
+        // Not positive definite: refused.
+        let mut bad = a.clone();
+        bad[0] = -1.0;
+        assert!(inverse_cholesky_upper(&bad, k).is_none());
     }
 
     #[test]

@@ -76,13 +76,18 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
     if !quantized.is_file() {
         flame::quantize::quantize(&path, &quantized, &Default::default()).unwrap();
     }
+    // AVX2's vpmaddubsw path quantises activations to 63 levels (0.53 / 0.014 measured with
+    // tools/avx2_only.sh), VNNI to 127 (0.19 / 0.0073).
+    let avx2 = WeightType::Int8.compute_path().contains("vpmaddubsw");
+    let (file_max, file_mean) = if avx2 { (0.8, 0.025) } else { (0.35, 0.012) };
     let load_q = |weights| Model::load_with(&quantized, &LoadOptions { weights }).map(Arc::new);
     let rows: Vec<(&str, WeightType, bool, f64, f64)> = bounds
         .iter()
         .map(|&(ty, a, b)| (ty.name(), ty, false, a, b))
         .chain([
-            ("int8 file", WeightType::Int8, true, 0.35, 0.012),
+            ("int8 file", WeightType::Int8, true, file_max, file_mean),
             ("int8 file→f32", WeightType::F32, true, 0.2, 0.002),
+            ("int8 file→f16", WeightType::F16, true, 0.2, 0.002),
         ])
         .collect();
     for (label, ty, from_file, max_bound, mean_bound) in rows {
