@@ -87,6 +87,15 @@ extra_seeds() {
             d=target/seeds/model_file
             mkdir -p "$d"
             for i in "${fixtures[@]}"; do cp "$root/tests/fixtures/$i.safetensors" "$d/"; done
+            # An int8 file as `flame quantize` writes it (I8 weights, their scales, the
+            # quantisation metadata), from the tiny FLAME fixture.
+            if [ ! -f "$d/flame_tiny_int8.safetensors" ]; then
+                cargo run --quiet --manifest-path "$root/Cargo.toml" --bin flame -- \
+                    quantize --threads 1 --frames 40 \
+                    --model "$root/tests/fixtures/flame_tiny.safetensors" \
+                    --out "$d/flame_tiny_int8.safetensors" >/dev/null 2>&1 ||
+                    echo "fuzz.sh: could not write the int8 seed (model_file runs without it)" >&2
+            fi
             echo "$d"
             ;;
         model_load)
