@@ -62,6 +62,9 @@ pub const DEFAULT_PROMPTS: [&str; 16] = [
     "a person stands and looks around.",
 ];
 
+/// The most steps a calibration run takes when the caller does not say.
+pub const MAX_DEFAULT_STEPS: usize = 50;
+
 /// How to calibrate.
 #[derive(Clone, Debug)]
 pub struct QuantizeOptions {
@@ -71,6 +74,10 @@ pub struct QuantizeOptions {
     pub seeds: u64,
     /// Frames per run (the model's default when `None`).
     pub frames: Option<usize>,
+    /// Sampling steps per run (the model's default when `None`, at most
+    /// [`MAX_DEFAULT_STEPS`]: a 1000-step DDPM default would take 100 times as long for the
+    /// same spread of noise levels).
+    pub steps: Option<usize>,
     /// Threads for the calibration runs (0: all).
     pub threads: usize,
 }
@@ -81,6 +88,7 @@ impl Default for QuantizeOptions {
             prompts: DEFAULT_PROMPTS.iter().map(|s| s.to_string()).collect(),
             seeds: 1,
             frames: None,
+            steps: None,
             threads: 0,
         }
     }
@@ -138,12 +146,16 @@ pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<Quan
         Model::from_file_with(file, &LoadOptions::default())
     })?;
     let keep = kept_widths(&loaded);
+    let steps = opts
+        .steps
+        .unwrap_or_else(|| loaded.config().defaults.steps.min(MAX_DEFAULT_STEPS));
     let loaded = Arc::new(loaded);
     let mut runs = 0;
     for prompt in &opts.prompts {
         for seed in 0..opts.seeds {
             let params = SessionParams {
                 frames: opts.frames,
+                steps: Some(steps),
                 seed,
                 threads: opts.threads,
                 ..Default::default()

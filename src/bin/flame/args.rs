@@ -568,6 +568,9 @@ pub struct QuantizeArgs {
     /// Frames per calibration run (the model's default when left out)
     #[arg(long, value_name = "N")]
     pub frames: Option<usize>,
+    /// Sampling steps per calibration run (the model's default, at most 50, when left out)
+    #[arg(long, value_name = "N")]
+    pub steps: Option<usize>,
     /// Threads (0: all cores)
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub threads: usize,

@@ -1412,6 +1412,7 @@ fn quantize(a: &QuantizeArgs) -> Result<(), String> {
     let mut opts = flame::quantize::QuantizeOptions {
         seeds: a.seeds,
         frames: a.frames,
+        steps: a.steps,
         threads: a.threads,
         ..Default::default()
     };
