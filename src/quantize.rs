@@ -11,19 +11,20 @@
 //! weight then costs a little clipping so that every other weight gets a finer step.
 //!
 //! On the demo model this is what makes int8's weights close (docs/performance.md, "Where
-//! int8's error comes from"): the features after 10 steps move 0.26 from f32 with weights
-//! rounded per row at load, 0.06 with the same int8 format rounded this way.
+//! int8's error comes from"): with f32 activations, the features after 10 steps move 0.26 from
+//! f32 with weights rounded per row at load, 0.11 with this file's weights.
 //!
 //! The projections from and to the sampled features (FLAME's `input_projection` and
 //! `last_projection`, MDM's pose embedding and output) stay f32: their inputs are the noisy
-//! sample itself and their outputs are the step's result, and the same measurement put a third
-//! of int8's error in them while they are under 1% of the multiply-adds of FLAME-base.
+//! sample itself and their outputs are the step's result. Rounding `last_projection`'s input
+//! alone gave three quarters of int8's mean error on the demo model, and the two are under 1%
+//! of FLAME-base's multiply-adds.
 //!
 //! The file keeps every other tensor as it was, stores each quantised weight as `I8` with its
 //! scales beside it (`<weight>_scale`, `F32`, one per output row), and records what was done
-//! under the [`QUANTIZATION_KEY`] metadata. Loading it as int8 packs those integers as they are
-//! (no rounding at load, the same bits on every machine that runs the same kernel path);
-//! loading it as f32, f16 or bf16 multiplies them back out.
+//! under the [`QUANTIZATION_KEY`](crate::quantize::QUANTIZATION_KEY) metadata. Loading it as
+//! int8 packs those integers as they are (no rounding at load, the same bits on every machine
+//! that runs the same kernel path); loading it as f32, f16 or bf16 multiplies them back out.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -356,8 +357,8 @@ fn round_rows(w: &[f32], n: usize, k: usize) -> (Vec<i8>, Vec<f32>) {
 }
 
 /// GPTQ (arXiv:2210.17323, Algorithm 1, one block): `w` (`[n, k]`) rounded to int8 with
-/// per-row scales from [`row_scale`], each input's rounding error carried onto the inputs
-/// after it through the upper Cholesky factor of `H⁻¹`, `H = gram + λI` (λ 1% of the mean
+/// per-row scales of least squared rounding error (41 shrinks of `max|w|/127`), each input's
+/// rounding error carried onto the inputs after it through the upper Cholesky factor of `H⁻¹`, `H = gram + λI` (λ 1% of the mean
 /// diagonal, as the paper's dampening). An input that was zero in every calibration run gets
 /// `H_ii = 1` and its weights plain rounding: the paper's implementation sets such weights to
 /// zero, which on the demo model moved the features by 1.5 after 10 steps, as inputs unused by
