@@ -278,3 +278,73 @@ fn another_family_quantises_too() {
     let model = Arc::new(Model::load_with(&out, &LoadOptions { weights }).unwrap());
     assert!(x0(&model).iter().all(|v| v.is_finite()));
 }
+
+#[test]
+fn the_command_line_writes_a_file_that_generates() {
+    let flame = env!("CARGO_BIN_EXE_flame");
+    let out = tmp("cli.safetensors");
+    let run = |args: &[&str]| {
+        std::process::Command::new(flame)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let model = fixture("flame_tiny.safetensors");
+    let model = model.to_str().unwrap();
+    let q = run(&[
+        "quantize",
+        "--model",
+        model,
+        "--out",
+        out.to_str().unwrap(),
+        "--frames",
+        "40",
+        "--steps",
+        "2",
+        "--threads",
+        "1",
+    ]);
+    assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
+    let said = String::from_utf8_lossy(&q.stderr);
+    assert!(
+        said.contains("weights int8, 2 kept f32; 16 calibration runs"),
+        "{said}"
+    );
+    let npy = tmp("cli.npy");
+    let g = run(&[
+        "generate",
+        "--model",
+        out.to_str().unwrap(),
+        "--prompt",
+        "a person waves",
+        "--frames",
+        "40",
+        "--steps",
+        "2",
+        "--out",
+        npy.to_str().unwrap(),
+    ]);
+    assert!(g.status.success(), "{}", String::from_utf8_lossy(&g.stderr));
+    assert!(npy.is_file());
+    let info = run(&["info", out.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        text.contains("quantised:") && text.contains("GPTQ"),
+        "{text}"
+    );
+    // A prompts file with no prompt is refused before any work.
+    let empty = tmp("empty_prompts.txt");
+    std::fs::write(&empty, "# only a comment\n\n").unwrap();
+    let e = run(&[
+        "quantize",
+        "--model",
+        model,
+        "--out",
+        tmp("never.safetensors").to_str().unwrap(),
+        "--prompts",
+        empty.to_str().unwrap(),
+    ]);
+    assert!(!e.status.success());
+    let said = String::from_utf8_lossy(&e.stderr);
+    assert!(said.contains("holds no prompt"), "{said}");
+}
