@@ -53,6 +53,10 @@ impl Backing {
     }
 }
 
+/// Metadata key of a quantised model file (written by [`crate::quantize`]): a JSON object
+/// saying how it was quantised. Its float linear weights stay f32 when it loads as int8.
+pub const QUANTIZATION_KEY: &str = "flame.quantization";
+
 /// Element type of a stored tensor, as far as libflame reads it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StoredDtype {

@@ -39,8 +39,7 @@ use crate::models::calibrate::{record_while, RecordedLayer, Recorder};
 use crate::models::{LoadOptions, Model};
 use crate::session::{Session, SessionParams};
 
-/// Metadata key of a quantised model file: a JSON object saying how it was quantised.
-pub const QUANTIZATION_KEY: &str = "flame.quantization";
+pub use crate::checkpoint::QUANTIZATION_KEY;
 
 /// The calibration prompts used when none are given: one per kind of motion, worded apart from
 /// the demo's held-out evaluation prompts (tests/fixtures/demo_eval_prompts.tsv).

@@ -8,10 +8,9 @@ use std::ops::Range;
 use std::sync::OnceLock;
 
 use super::calibrate::Probe;
-use crate::checkpoint::{ModelFile, StoredDtype, Tensor};
+use crate::checkpoint::{ModelFile, StoredDtype, Tensor, QUANTIZATION_KEY};
 use crate::error::{bad_file, Result};
 use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, PackedWeights, WeightType};
-use crate::quantize::QUANTIZATION_KEY;
 
 /// A PyTorch `Linear`: weight `[out, in]`, bias `[out]`.
 pub(crate) struct Linear {
