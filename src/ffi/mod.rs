@@ -263,7 +263,8 @@ pub enum FlameWeights {
     Bf16Compute = 3,
     /// 8-bit weights (per-output scales) and 8-bit activations (per-row scales), integer
     /// products: a quarter of the memory; runs on AVX512_VNNI, or on AVX2 with activations in
-    /// 63 levels (`INVALID_ARGUMENT` at load without either).
+    /// 63 levels (`INVALID_ARGUMENT` at load without either). A file written by `flame
+    /// quantize` loads its calibrated integers as stored (any other type multiplies them out).
     Int8 = 4,
 }
 
