@@ -35,6 +35,7 @@ use safetensors::SafeTensors;
 
 use crate::checkpoint::ModelFile;
 use crate::error::{bad_file, invalid_arg, Result};
+use crate::kernels::{PackedWeights, WeightType};
 use crate::models::calibrate::{record_while, RecordedLayer, Recorder};
 use crate::models::{LoadOptions, Model};
 use crate::session::{Session, SessionParams};
@@ -170,7 +171,9 @@ pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<Quan
     let recorded = recorder.take();
     let source =
         SafeTensors::deserialize(&bytes).map_err(|e| bad_file!("{}: {e:?}", model.display()))?;
-    let (owned, layers) = quantized_tensors(&source, &recorded, &keep)?;
+    // The weights as floats, read as the model reads them (mapped, widened from f16/bf16).
+    let reader = ModelFile::open(model)?;
+    let (owned, layers) = quantized_tensors(&reader, &recorded, &keep)?;
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
     for (name, view) in source.tensors() {
         if !owned.contains_key(&name) {
@@ -214,7 +217,7 @@ type Owned = BTreeMap<String, (Dtype, Vec<usize>, Vec<u8>)>;
 
 /// The new tensors (int8 weights and their scales) and a report per stored weight.
 fn quantized_tensors(
-    source: &SafeTensors<'_>,
+    reader: &ModelFile,
     recorded: &[RecordedLayer],
     (keep_in, keep_out): &(Vec<usize>, Vec<usize>),
 ) -> Result<(Owned, Vec<LayerReport>)> {
@@ -229,11 +232,8 @@ fn quantized_tensors(
     let mut owned = Owned::new();
     let mut reports = Vec::new();
     for (tensor, parts) in by_tensor {
-        let view = source
-            .tensor(&tensor)
-            .map_err(|e| bad_file!("tensor `{tensor}`: {e:?}"))?;
         let k = parts[0].inputs;
-        let w = floats(&tensor, &view)?;
+        let w = reader.tensor_any_shape(&tensor)?.data().to_vec();
         let n = w.len() / k.max(1);
         let kept = parts
             .iter()
@@ -250,9 +250,10 @@ fn quantized_tensors(
             }
             let rows = &w[part.rows.start * k..part.rows.end * k];
             let (pq, ps) = gptq(rows, part.rows.len(), k, &part.gram)?;
-            let (rq, rs) = round_rows(rows, part.rows.len(), k);
-            err_gptq += output_error(rows, &pq, &ps, k, &part.gram);
-            err_round += output_error(rows, &rq, &rs, k, &part.gram);
+            // Rounded at load: what the int8 load option does to an f32 file.
+            let rounded = PackedWeights::pack(rows, part.rows.len(), k, WeightType::Int8).unpack();
+            err_gptq += output_error(rows, &dequantized(&pq, &ps, k), k, &part.gram);
+            err_round += output_error(rows, &rounded, k, &part.gram);
             norm += quadratic(rows, k, &part.gram);
             q[part.rows.start * k..part.rows.end * k].copy_from_slice(&pq);
             scales[part.rows.clone()].copy_from_slice(&ps);
@@ -288,30 +289,6 @@ fn quantized_tensors(
     Ok((owned, reports))
 }
 
-/// A stored float tensor's values.
-fn floats(name: &str, view: &TensorView<'_>) -> Result<Vec<f32>> {
-    let b = view.data();
-    Ok(match view.dtype() {
-        Dtype::F32 => b
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect(),
-        Dtype::F16 => b
-            .chunks_exact(2)
-            .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
-            .collect(),
-        Dtype::BF16 => b
-            .chunks_exact(2)
-            .map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32())
-            .collect(),
-        other => {
-            return Err(bad_file!(
-                "tensor `{name}` has dtype {other:?}, not a float"
-            ))
-        }
-    })
-}
-
 /// Rounds `v / scale` to the nearest integer (ties to even) within −127..=127.
 fn round_to(v: f64, scale: f64) -> f64 {
     (v / scale).round_ties_even().clamp(-127.0, 127.0)
@@ -338,21 +315,6 @@ fn row_scale(row: &[f32]) -> f32 {
         }
     }
     best.1
-}
-
-/// Per-row rounding with the largest weight at ±127 (what loading an f32 file as int8 does).
-fn round_rows(w: &[f32], n: usize, k: usize) -> (Vec<i8>, Vec<f32>) {
-    let mut q = vec![0i8; n * k];
-    let mut scales = vec![0.0f32; n];
-    for (r, row) in w.chunks_exact(k.max(1)).take(n).enumerate() {
-        let max = row.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let s = if max > 0.0 { max / 127.0 } else { 1.0 };
-        scales[r] = s;
-        for (d, &v) in q[r * k..(r + 1) * k].iter_mut().zip(row) {
-            *d = round_to(v as f64, s as f64) as i8;
-        }
-    }
-    (q, scales)
 }
 
 /// GPTQ (arXiv:2210.17323, Algorithm 1, one block): `w` (`[n, k]`) rounded to int8 with
@@ -488,14 +450,18 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
-/// `Σ_rows (w − q·s) H (w − q·s)ᵀ`: the squared output error over the calibration inputs.
-fn output_error(w: &[f32], q: &[i8], scales: &[f32], k: usize, gram: &[f64]) -> f64 {
-    let d: Vec<f32> = w
-        .chunks_exact(k.max(1))
-        .zip(q.chunks_exact(k.max(1)))
+/// `q · scale` per row of `k` values.
+fn dequantized(q: &[i8], scales: &[f32], k: usize) -> Vec<f32> {
+    q.chunks_exact(k.max(1))
         .zip(scales)
-        .flat_map(|((wr, qr), &s)| wr.iter().zip(qr).map(move |(&a, &b)| a - b as f32 * s))
-        .collect();
+        .flat_map(|(row, &s)| row.iter().map(move |&v| v as f32 * s))
+        .collect()
+}
+
+/// `Σ_rows (w − a) H (w − a)ᵀ` for an approximation `a` of `w`: the squared output error over
+/// the calibration inputs.
+fn output_error(w: &[f32], approx: &[f32], k: usize, gram: &[f64]) -> f64 {
+    let d: Vec<f32> = w.iter().zip(approx).map(|(a, b)| a - b).collect();
     quadratic(&d, k, gram)
 }
 
@@ -646,8 +612,8 @@ mod tests {
         let plain: Vec<i8> = (0..n * k)
             .map(|i| round_to(w[i] as f64, s[i / k] as f64) as i8)
             .collect();
-        let e_gptq = output_error(&w, &q, &s, k, &gram);
-        let e_plain = output_error(&w, &plain, &s, k, &gram);
+        let e_gptq = output_error(&w, &dequantized(&q, &s, k), k, &gram);
+        let e_plain = output_error(&w, &dequantized(&plain, &s, k), k, &gram);
         assert!(e_gptq < 0.5 * e_plain, "{e_gptq} vs {e_plain}");
     }
 
