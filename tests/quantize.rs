@@ -257,6 +257,82 @@ fn bad_calibrations_are_refused() {
 }
 
 #[test]
+fn named_weights_stay_f32_and_unknown_names_are_refused() {
+    let model = fixture("flame_tiny.safetensors");
+    let keep = QuantizeOptions {
+        keep_f32: vec![
+            "tf_decoder.layers.1.".into(),
+            "tf_decoder.layers.0.linear2.weight".into(),
+        ],
+        ..small()
+    };
+    let out = tmp("keep.safetensors");
+    let r = quantize(&model, &out, &keep).unwrap();
+    let original = std::fs::read(&model).unwrap();
+    let original = flame::checkpoint::ModelFile::from_bytes(&original).unwrap();
+    let written = flame::checkpoint::ModelFile::open(&out).unwrap();
+    let mut kept = 0;
+    for l in &r.layers {
+        let named = l.tensor.starts_with("tf_decoder.layers.1.")
+            || l.tensor == "tf_decoder.layers.0.linear2.weight";
+        let feature = l.tensor.starts_with("input_projection") || l.tensor.starts_with("last_");
+        assert_eq!(l.int8, !(named || feature), "{}", l.tensor);
+        if named {
+            kept += 1;
+            // The original values, widened to f32 where the fixture stores f16.
+            let want = original.tensor_any_shape(&l.tensor).unwrap();
+            let got = written.tensor_any_shape(&l.tensor).unwrap();
+            assert_eq!(
+                written.dtype(&l.tensor).unwrap(),
+                flame::checkpoint::StoredDtype::F32
+            );
+            assert_eq!(want.data(), got.data(), "{}", l.tensor);
+            assert!(!written.contains(&format!("{}_scale", l.tensor)));
+        }
+    }
+    // Layer 1's q/k/v, attention output, cross-attention q/k/v and output, and two FFN
+    // weights, plus layer 0's linear2.
+    assert_eq!(kept, 7);
+    let model_int8 = if WeightType::Int8.native_on_this_cpu() {
+        WeightType::Int8
+    } else {
+        WeightType::F32
+    };
+    let loaded = Arc::new(
+        Model::load_with(
+            &out,
+            &LoadOptions {
+                weights: model_int8,
+            },
+        )
+        .unwrap(),
+    );
+    assert!(x0(&loaded).iter().all(|v| v.is_finite()));
+
+    // A name the file does not have is refused before calibrating; a tensor that is not a
+    // linear weight (a layer norm's) after.
+    for (name, says) in [
+        (
+            "tf_decoder.layers.9.",
+            "has no tensor named `tf_decoder.layers.9.`",
+        ),
+        (
+            "tf_decoder.layers.0.norm1.weight",
+            "no linear weight is named `tf_decoder.layers.0.norm1.weight`",
+        ),
+    ] {
+        let bad = QuantizeOptions {
+            keep_f32: vec![name.into()],
+            ..small()
+        };
+        let msg = quantize(&model, &tmp("keep_bad.safetensors"), &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(msg.contains(says), "{msg}");
+    }
+}
+
+#[test]
 fn another_family_quantises_too() {
     // MDM: its pose embedding and final projection stay f32, the rest is int8, and the file
     // runs as int8 where the CPU can.
@@ -303,11 +379,13 @@ fn the_command_line_writes_a_file_that_generates() {
         "2",
         "--threads",
         "1",
+        "--keep-f32",
+        "tf_decoder.layers.0.linear1.weight",
     ]);
     assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
     let said = String::from_utf8_lossy(&q.stderr);
     assert!(
-        said.contains("weights int8, 2 kept f32; 16 calibration runs"),
+        said.contains("weights int8, 3 kept f32; 16 calibration runs"),
         "{said}"
     );
     let npy = tmp("cli.npy");

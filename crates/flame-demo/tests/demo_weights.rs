@@ -6,9 +6,10 @@
 //! and the test says it skipped them. Int8 runs on the kernel in use (`FLAME_KERNEL=avx2`
 //! measures the AVX2 path, whose activations have 63 levels).
 //!
-//! Two more rows measure the int8 file `flame quantize` writes from this model (GPTQ-rounded
+//! Four more rows measure the int8 file `flame quantize` writes from this model (GPTQ-rounded
 //! weights calibrated on its own runs, feature projections kept f32; src/quantize.rs), loaded
-//! as int8 and multiplied back out to f32 (int8 weights, f32 activations).
+//! as int8 and multiplied back out to f32 and f16 (int8 weights, float activations), and the
+//! file written with the last decoder layer kept f32 (`--keep-f32 tf_decoder.layers.3.`).
 //!
 //! A second test shows where the reduced types' error comes from: the same features with the
 //! weights themselves rounded to fewer significant bits and run in f32 (bf16 storage gives
@@ -75,22 +76,39 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
         std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flame_demo_int8.safetensors");
     // Written on every run, so that a change to the quantiser is what gets measured.
     flame::quantize::quantize(&path, &quantized, &Default::default()).unwrap();
+    // The same with the last decoder layer kept f32 (`--keep-f32 tf_decoder.layers.3.`).
+    let quantized_last = quantized.with_file_name("flame_demo_int8_last_f32.safetensors");
+    let keep_last = flame::quantize::QuantizeOptions {
+        keep_f32: vec!["tf_decoder.layers.3.".into()],
+        ..Default::default()
+    };
+    flame::quantize::quantize(&path, &quantized_last, &keep_last).unwrap();
     // AVX2's vpmaddubsw path quantises activations to 63 levels (0.53 / 0.014 measured with
-    // tools/avx2_only.sh), VNNI to 127 (0.19 / 0.0073).
+    // tools/avx2_only.sh), VNNI to 127 (0.19 / 0.0073; the last layer f32: 0.165 / 0.0020).
     let avx2 = WeightType::Int8.compute_path().contains("vpmaddubsw");
     let (file_max, file_mean) = if avx2 { (0.8, 0.025) } else { (0.35, 0.012) };
+    let (last_max, last_mean) = if avx2 { (0.8, 0.012) } else { (0.3, 0.004) };
     let load_q = |weights| Model::load_with(&quantized, &LoadOptions { weights }).map(Arc::new);
-    let rows: Vec<(&str, WeightType, bool, f64, f64)> = bounds
+    let load_last =
+        |weights| Model::load_with(&quantized_last, &LoadOptions { weights }).map(Arc::new);
+    // Which file: 0 the f32 original, 1 the int8 file, 2 the int8 file with its last layer f32.
+    let rows: Vec<(&str, WeightType, u8, f64, f64)> = bounds
         .iter()
-        .map(|&(ty, a, b)| (ty.name(), ty, false, a, b))
+        .map(|&(ty, a, b)| (ty.name(), ty, 0, a, b))
         .chain([
-            ("int8 file", WeightType::Int8, true, file_max, file_mean),
-            ("int8 file→f32", WeightType::F32, true, 0.2, 0.002),
-            ("int8 file→f16", WeightType::F16, true, 0.2, 0.002),
+            ("int8 file", WeightType::Int8, 1, file_max, file_mean),
+            ("int8 file→f32", WeightType::F32, 1, 0.2, 0.002),
+            ("int8 file→f16", WeightType::F16, 1, 0.2, 0.002),
+            ("int8 last f32", WeightType::Int8, 2, last_max, last_mean),
         ])
         .collect();
-    for (label, ty, from_file, max_bound, mean_bound) in rows {
-        let model = match if from_file { load_q(ty) } else { load(ty) } {
+    for (label, ty, file, max_bound, mean_bound) in rows {
+        let loaded = match file {
+            0 => load(ty),
+            1 => load_q(ty),
+            _ => load_last(ty),
+        };
+        let model = match loaded {
             Ok(m) => m,
             Err(e) => {
                 assert!(!ty.native_on_this_cpu(), "{ty:?}: {e}");

@@ -574,6 +574,10 @@ pub struct QuantizeArgs {
     /// Threads (0: all cores)
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub threads: usize,
+    /// Keep a weight f32: a tensor name, or a prefix such as `tf_decoder.layers.3.` for a whole
+    /// layer (repeatable; `--verbose` lists the names)
+    #[arg(long = "keep-f32", value_name = "NAME")]
+    pub keep_f32: Vec<String>,
     /// Print each weight's relative output error, rounded at load and as written
     #[arg(long)]
     pub verbose: bool,
