@@ -1,6 +1,6 @@
 //! Diffusion: noise schedules, timestep spacing (guided-diffusion's respacing and diffusers'
 //! leading/trailing), the DDPM/DDIM samplers, the fixed-step ODE samplers of flow matching
-//! ([`flow`]), and [`build_sampler`], which picks and builds one from a model's configuration.
+//! ([`flow`]), the latent consistency sampler ([`lcm`]), and [`build_sampler`], which picks and builds one from a model's configuration.
 //! Samplers drive any denoiser through plain slices: they never know which network produced a
 //! prediction.
 //!
@@ -10,12 +10,14 @@
 //! ([`DiffusionSampler::new_diffusers`]).
 //!
 //! [`flow`]: crate::diffusion::flow
+//! [`lcm`]: crate::diffusion::lcm
 //! [`build_sampler`]: crate::diffusion::build_sampler
 //! [`DiffusionSampler::step`]: crate::diffusion::DiffusionSampler::step
 //! [`DiffusionSampler::new_diffusers`]: crate::diffusion::DiffusionSampler::new_diffusers
 
 pub mod flow;
 mod from_config;
+pub mod lcm;
 mod respace;
 mod sampler;
 mod schedule;
