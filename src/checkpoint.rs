@@ -57,6 +57,22 @@ impl Backing {
 /// saying how it was quantised. Its float linear weights stay f32 when it loads as int8.
 pub const QUANTIZATION_KEY: &str = "flame.quantization";
 
+/// The weights of a quantised file's int8 tensor multiplied back out: `q` is `[n, k]`, `scales`
+/// `[n, ⌈k/group⌉]` (one per output row when `group ≥ k`), input `i` of row `r` scaled by
+/// `scales[r][i / group]`.
+pub(crate) fn dequantize_int8(q: &[i8], scales: &[f32], k: usize, group: usize) -> Vec<f32> {
+    let (k, group) = (k.max(1), group.max(1));
+    let per_row = k.div_ceil(group);
+    q.chunks_exact(k)
+        .zip(scales.chunks_exact(per_row))
+        .flat_map(|(row, s)| {
+            row.iter()
+                .enumerate()
+                .map(move |(i, &v)| v as f32 * s[i / group])
+        })
+        .collect()
+}
+
 /// Element type of a stored tensor, as far as libflame reads it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StoredDtype {
@@ -247,6 +263,26 @@ impl ModelFile {
     /// A metadata value of the safetensors header.
     pub fn metadata(&self, key: &str) -> Option<&str> {
         self.metadata.get(key).map(String::as_str)
+    }
+
+    /// For a quantised file ([`QUANTIZATION_KEY`]) whose int8 weights have one scale per group of
+    /// inputs rather than per output row, the group size; `None` for per-row scales or a file
+    /// that is not quantised. A malformed record is an error.
+    pub fn int8_group(&self) -> Result<Option<usize>> {
+        let Some(text) = self.metadata(QUANTIZATION_KEY) else {
+            return Ok(None);
+        };
+        let record: serde_json::Value = serde_json::from_str(text)
+            .map_err(|e| bad_file!("metadata `{QUANTIZATION_KEY}` is not JSON: {e}"))?;
+        match record.get("group") {
+            None => Ok(None),
+            Some(g) => match g.as_u64() {
+                Some(g) if g >= 1 && g <= u32::MAX as u64 => Ok(Some(g as usize)),
+                _ => Err(bad_file!(
+                    "metadata `{QUANTIZATION_KEY}`: group {g} is not a positive whole number"
+                )),
+            },
+        }
     }
 
     /// The tensor names, sorted.

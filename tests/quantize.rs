@@ -116,13 +116,10 @@ fn the_file_holds_int8_weights_with_scales_and_keeps_the_feature_projections_f32
     }
 }
 
-#[test]
-fn int8_and_f32_loads_run_the_written_integers() {
-    // The file loaded as f32 multiplies its integers back out: the same bits as an f32 file
-    // holding q·s written here from the file's own tensors. Loaded as int8 it differs from that
-    // only by the activations' rounding.
-    let path = quantized("loads.safetensors");
-    let bytes = std::fs::read(&path).unwrap();
+/// The quantised file at `path` as an f32 file: every int8 weight multiplied out here, input
+/// `i` of a row by its row's scale `i / group` (`group` = `k` for one scale per row).
+fn multiplied_out(path: &Path, group: Option<usize>) -> Vec<u8> {
+    let bytes = std::fs::read(path).unwrap();
     let file = SafeTensors::deserialize(&bytes).unwrap();
     let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
     let mut meta = header.metadata().clone().unwrap();
@@ -139,12 +136,16 @@ fn int8_and_f32_loads_run_the_written_integers() {
         }
         let scale = file.tensor(&format!("{name}_scale")).unwrap();
         let k = view.shape()[1];
+        let g = group.unwrap_or(k);
+        let per_row = k.div_ceil(g);
+        assert_eq!(scale.data().len(), 4 * view.shape()[0] * per_row, "{name}");
         let data = view
             .data()
             .iter()
             .enumerate()
             .flat_map(|(i, &q)| {
-                let s = &scale.data()[4 * (i / k)..4 * (i / k) + 4];
+                let j = (i / k) * per_row + (i % k) / g;
+                let s = &scale.data()[4 * j..4 * j + 4];
                 (q as i8 as f32 * f32::from_le_bytes(s.try_into().unwrap())).to_le_bytes()
             })
             .collect();
@@ -156,8 +157,16 @@ fn int8_and_f32_loads_run_the_written_integers() {
             TensorView::new(Dtype::F32, shape.clone(), data).unwrap(),
         )
     }));
-    let dequantized = safetensors::serialize(views, &Some(meta)).unwrap();
-    let plain = Arc::new(Model::from_bytes(&dequantized).unwrap());
+    safetensors::serialize(views, &Some(meta)).unwrap()
+}
+
+#[test]
+fn int8_and_f32_loads_run_the_written_integers() {
+    // The file loaded as f32 multiplies its integers back out: the same bits as an f32 file
+    // holding q·s written here from the file's own tensors. Loaded as int8 it differs from that
+    // only by the activations' rounding.
+    let path = quantized("loads.safetensors");
+    let plain = Arc::new(Model::from_bytes(&multiplied_out(&path, None)).unwrap());
     let load = |weights| Arc::new(Model::load_with(&path, &LoadOptions { weights }).unwrap());
     let want = x0(&plain);
     assert_eq!(x0(&load(WeightType::F32)), want);
@@ -170,6 +179,96 @@ fn int8_and_f32_loads_run_the_written_integers() {
         let diff = common::max_abs_diff(&got, &want);
         assert!(diff > 0.0 && diff < 0.05 * scale, "{diff} of {scale}");
     }
+}
+
+#[test]
+fn a_file_with_a_scale_per_group_runs_with_float_activations_only() {
+    // Groups of 12 inputs: most of the tiny model's widths are not multiples of 12, so their
+    // rows end with a shorter group.
+    let opts = QuantizeOptions {
+        group: Some(12),
+        ..small()
+    };
+    let path = tmp("group.safetensors");
+    let r = quantize(&fixture("flame_tiny.safetensors"), &path, &opts).unwrap();
+    let written = flame::checkpoint::ModelFile::open(&path).unwrap();
+    assert_eq!(written.int8_group().unwrap(), Some(12));
+    let (mut grouped, mut partial) = (0, 0);
+    for l in r.layers.iter().filter(|l| l.int8) {
+        let shape = written.shape(&l.tensor).unwrap().to_vec();
+        let scale = written.shape(&format!("{}_scale", l.tensor)).unwrap();
+        assert_eq!(scale, [shape[0], shape[1].div_ceil(12)], "{}", l.tensor);
+        partial += usize::from(!shape[1].is_multiple_of(12));
+        grouped += 1;
+        // Finer scales: no worse on the calibration inputs than one scale per row.
+        if l.rows_seen > 0 {
+            assert!(l.error_written <= l.error_rounded, "{l:?}");
+        }
+    }
+    assert!(grouped > 0 && partial > 0, "{grouped} {partial}");
+    // As f32: the integers multiplied out by their group's scale, bit for bit.
+    let plain = Arc::new(Model::from_bytes(&multiplied_out(&path, Some(12))).unwrap());
+    let f32_load = Arc::new(
+        Model::load_with(
+            &path,
+            &LoadOptions {
+                weights: WeightType::F32,
+            },
+        )
+        .unwrap(),
+    );
+    assert_eq!(x0(&f32_load), x0(&plain));
+    // As int8: refused, saying why and what to do.
+    let msg = Model::load_with(
+        &path,
+        &LoadOptions {
+            weights: WeightType::Int8,
+        },
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        msg.contains("one scale per group of 12 inputs") && msg.contains("load it as f32"),
+        "{msg}"
+    );
+    // A group of 0 is refused before calibrating.
+    let zero = QuantizeOptions {
+        group: Some(0),
+        ..small()
+    };
+    let msg = quantize(
+        &fixture("flame_tiny.safetensors"),
+        &tmp("g0.safetensors"),
+        &zero,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(msg.contains("at least one input"), "{msg}");
+
+    // Bad records: a group that is not a positive whole number, and per-row scales under a
+    // group record, are refused at load.
+    let bytes = std::fs::read(&path).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let meta = header.metadata().clone().unwrap();
+    for bad in ["0", "-3", "12.5", "\"12\""] {
+        let mut m = meta.clone();
+        let record = m[QUANTIZATION_KEY].replace("\"group\":12", &format!("\"group\":{bad}"));
+        m.insert(QUANTIZATION_KEY.into(), record);
+        let file = SafeTensors::deserialize(&bytes).unwrap();
+        let again = safetensors::serialize(file.tensors(), &Some(m)).unwrap();
+        let msg = Model::from_bytes(&again).err().unwrap().to_string();
+        assert!(msg.contains("not a positive whole number"), "{bad}: {msg}");
+    }
+    let per_row = quantized("group_vs_row.safetensors");
+    let rows = std::fs::read(&per_row).unwrap();
+    let (_, rows_header) = SafeTensors::read_metadata(&rows).unwrap();
+    let mut m = rows_header.metadata().clone().unwrap();
+    m.insert(QUANTIZATION_KEY.into(), meta[QUANTIZATION_KEY].clone());
+    let file = SafeTensors::deserialize(&rows).unwrap();
+    let mixed = safetensors::serialize(file.tensors(), &Some(m)).unwrap();
+    let msg = Model::from_bytes(&mixed).err().unwrap().to_string();
+    assert!(msg.contains("_scale"), "{msg}");
 }
 
 #[test]
@@ -410,6 +509,57 @@ fn the_command_line_writes_a_file_that_generates() {
         text.contains("quantised:") && text.contains("GPTQ"),
         "{text}"
     );
+    // `--group`: the file runs as f16 by default, and `--weights int8` is refused.
+    let grouped = tmp("cli_group.safetensors");
+    let g = grouped.to_str().unwrap();
+    let q = run(&[
+        "quantize",
+        "--model",
+        model,
+        "--out",
+        g,
+        "--frames",
+        "40",
+        "--steps",
+        "2",
+        "--threads",
+        "1",
+        "--group",
+        "16",
+    ]);
+    assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
+    let info = run(&["info", g]);
+    let text = String::from_utf8_lossy(&info.stdout);
+    assert!(
+        text.contains("\"group\":16") && text.contains("runs as f16"),
+        "{text}"
+    );
+    let npy = tmp("cli_group.npy");
+    let args = [
+        "generate",
+        "--model",
+        g,
+        "--prompt",
+        "a person waves",
+        "--frames",
+        "40",
+        "--steps",
+        "2",
+        "--out",
+        npy.to_str().unwrap(),
+    ];
+    let ok = run(&args);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let refused = run(&[&args[..], &["--weights", "int8"]].concat());
+    assert!(!refused.status.success());
+    let said = String::from_utf8_lossy(&refused.stderr);
+    if WeightType::Int8.native_on_this_cpu() {
+        assert!(said.contains("one scale per group of 16 inputs"), "{said}");
+    }
     // A prompts file with no prompt is refused before any work.
     let empty = tmp("empty_prompts.txt");
     std::fs::write(&empty, "# only a comment\n\n").unwrap();

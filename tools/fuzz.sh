@@ -96,6 +96,15 @@ extra_seeds() {
                     --out "$d/flame_tiny_int8.safetensors" >/dev/null 2>&1 ||
                     echo "fuzz.sh: could not write the int8 seed (model_file runs without it)" >&2
             fi
+            # The same with one scale per group of 8 inputs (`--group`: 2-D scales, the group
+            # size in the metadata).
+            if [ ! -f "$d/flame_tiny_int8_g8.safetensors" ]; then
+                cargo run --quiet --manifest-path "$root/Cargo.toml" --bin flame -- \
+                    quantize --threads 1 --frames 40 --group 8 \
+                    --model "$root/tests/fixtures/flame_tiny.safetensors" \
+                    --out "$d/flame_tiny_int8_g8.safetensors" >/dev/null 2>&1 ||
+                    echo "fuzz.sh: could not write the grouped int8 seed (model_file runs without it)" >&2
+            fi
             echo "$d"
             ;;
         model_load)

@@ -264,7 +264,9 @@ pub enum FlameWeights {
     /// 8-bit weights (per-output scales) and 8-bit activations (per-row scales), integer
     /// products: a quarter of the memory; runs on AVX512_VNNI, or on AVX2 with activations in
     /// 63 levels (`INVALID_ARGUMENT` at load without either). A file written by `flame
-    /// quantize` loads its calibrated integers as stored (any other type multiplies them out).
+    /// quantize` loads its calibrated integers as stored (any other type multiplies them out);
+    /// one written with `--group` (a scale per group of inputs) is `INVALID_ARGUMENT` here and
+    /// loads as f32, f16 or bf16.
     Int8 = 4,
 }
 

@@ -8,7 +8,7 @@ use std::ops::Range;
 use std::sync::OnceLock;
 
 use super::calibrate::Probe;
-use crate::checkpoint::{ModelFile, StoredDtype, Tensor, QUANTIZATION_KEY};
+use crate::checkpoint::{dequantize_int8, ModelFile, StoredDtype, Tensor, QUANTIZATION_KEY};
 use crate::error::{bad_file, Result};
 use crate::kernels::{self, Activation, AttentionScratch, PackedLinear, PackedWeights, WeightType};
 
@@ -28,19 +28,31 @@ pub(crate) struct Linear {
 /// row (a file written by `flame quantize`).
 pub(crate) enum StoredWeight {
     Float(Tensor),
-    Int8 { q: Vec<i8>, scales: Vec<f32> },
+    /// `scales` holds `⌈k/group⌉` per row (`group` = `k`: one per row).
+    Int8 {
+        q: Vec<i8>,
+        scales: Vec<f32>,
+        group: usize,
+    },
 }
 
 impl StoredWeight {
-    /// Reads weight `name` (`[n, k]`) and, when it is int8, its scales `name_scale` (`[n]`),
-    /// each of which must be finite and positive.
+    /// Reads weight `name` (`[n, k]`) and, when it is int8, its scales `name_scale` (`[n]`, or
+    /// `[n, ⌈k/g⌉]` in a file quantised per group of `g` inputs), each of which must be finite
+    /// and positive.
     pub(crate) fn read(file: &ModelFile, name: &str, n: usize, k: usize) -> Result<StoredWeight> {
         if file.dtype(name)? != StoredDtype::I8 {
             return Ok(StoredWeight::Float(file.tensor(name, &[n, k])?));
         }
         let q = file.tensor_i8(name, &[n, k])?;
         let scale_name = format!("{name}_scale");
-        let scales = file.tensor(&scale_name, &[n])?.data().to_vec();
+        let group = file.int8_group()?;
+        let scales = match group {
+            None => file.tensor(&scale_name, &[n])?,
+            Some(g) => file.tensor(&scale_name, &[n, k.div_ceil(g)])?,
+        };
+        let scales = scales.data().to_vec();
+        let group = group.unwrap_or(k).min(k.max(1));
         if let Some((i, v)) = scales
             .iter()
             .enumerate()
@@ -56,7 +68,7 @@ impl StoredWeight {
                 "tensor `{name}`: value {i} is -128; quantised weights lie in -127..=127"
             ));
         }
-        Ok(StoredWeight::Int8 { q, scales })
+        Ok(StoredWeight::Int8 { q, scales, group })
     }
 
     /// Rows `rows` of the weight (`k` inputs) and `bias` as one layer of type `ty`. Int8 rows
@@ -74,18 +86,27 @@ impl StoredWeight {
         let probe = Probe::attach(tensor, rows.clone(), k);
         let n = rows.len();
         let packed = match self {
-            StoredWeight::Int8 { q, scales } if ty == WeightType::Int8 => {
+            // Per-row scales are what the int8 kernels take; a per-group file is refused for
+            // int8 at load (`Model::from_file_with`) and would be multiplied out here.
+            StoredWeight::Int8 { q, scales, group } if ty == WeightType::Int8 && *group >= k => {
                 PackedLinear::from_packed(
                     PackedWeights::from_int8(&q[rows.start * k..rows.end * k], &scales[rows], n, k),
                     bias,
                 )
             }
-            StoredWeight::Int8 { q, scales } => {
-                let w: Vec<f32> = q[rows.start * k..rows.end * k]
-                    .chunks_exact(k.max(1))
-                    .zip(&scales[rows])
-                    .flat_map(|(row, &s)| row.iter().map(move |&v| v as f32 * s))
-                    .collect();
+            StoredWeight::Int8 { q, scales, group } => {
+                let per_row = k.div_ceil((*group).max(1));
+                let w = dequantize_int8(
+                    &q[rows.start * k..rows.end * k],
+                    &scales[rows.start * per_row..rows.end * per_row],
+                    k,
+                    *group,
+                );
+                let ty = if ty == WeightType::Int8 {
+                    WeightType::F32
+                } else {
+                    ty
+                };
                 PackedLinear::new(&w, bias, k, n, ty)
             }
             StoredWeight::Float(w) => {

@@ -537,6 +537,13 @@ impl Model {
                 crate::kernels::kernel_name()
             ));
         }
+        if let (WeightType::Int8, Some(g)) = (ty, file.int8_group()?) {
+            return Err(invalid_arg!(
+                "{} holds int8 weights with one scale per group of {g} inputs, which the int8 \
+                 kernels (one scale per output row) do not run; load it as f32, f16 or bf16",
+                file.source()
+            ));
+        }
         let config = Config::from_file(&file)?;
         let tokenizer = file
             .metadata(TOKENIZER_KEY)

@@ -6,10 +6,11 @@
 //! and the test says it skipped them. Int8 runs on the kernel in use (`FLAME_KERNEL=avx2`
 //! measures the AVX2 path, whose activations have 63 levels).
 //!
-//! Four more rows measure the int8 file `flame quantize` writes from this model (GPTQ-rounded
+//! Five more rows measure the int8 file `flame quantize` writes from this model (GPTQ-rounded
 //! weights calibrated on its own runs, feature projections kept f32; src/quantize.rs), loaded
 //! as int8 and multiplied back out to f32 and f16 (int8 weights, float activations), and the
-//! file written with the last decoder layer kept f32 (`--keep-f32 tf_decoder.layers.3.`).
+//! file written with the last decoder layer kept f32 (`--keep-f32 tf_decoder.layers.3.`), and
+//! one row for the file with a scale per group of 128 inputs (`--group 128`) loaded as f16.
 //!
 //! A second test shows where the reduced types' error comes from: the same features with the
 //! weights themselves rounded to fewer significant bits and run in f32 (bf16 storage gives
@@ -83,6 +84,15 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
         ..Default::default()
     };
     flame::quantize::quantize(&path, &quantized_last, &keep_last).unwrap();
+    // And with one scale per group of 128 inputs (`--group 128`), for float activations.
+    let quantized_group = quantized.with_file_name("flame_demo_int8_g128.safetensors");
+    let group = flame::quantize::QuantizeOptions {
+        group: Some(128),
+        ..Default::default()
+    };
+    flame::quantize::quantize(&path, &quantized_group, &group).unwrap();
+    let load_group =
+        |weights| Model::load_with(&quantized_group, &LoadOptions { weights }).map(Arc::new);
     // AVX2's vpmaddubsw path quantises activations to 63 levels (0.53 / 0.014 measured with
     // tools/avx2_only.sh), VNNI to 127 (0.19 / 0.0073; the last layer f32: 0.165 / 0.0020).
     let avx2 = WeightType::Int8.compute_path().contains("vpmaddubsw");
@@ -91,7 +101,8 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
     let load_q = |weights| Model::load_with(&quantized, &LoadOptions { weights }).map(Arc::new);
     let load_last =
         |weights| Model::load_with(&quantized_last, &LoadOptions { weights }).map(Arc::new);
-    // Which file: 0 the f32 original, 1 the int8 file, 2 the int8 file with its last layer f32.
+    // Which file: 0 the f32 original, 1 the int8 file, 2 the int8 file with its last layer f32,
+    // 3 the int8 file with a scale per group of 128 inputs.
     let rows: Vec<(&str, WeightType, u8, f64, f64)> = bounds
         .iter()
         .map(|&(ty, a, b)| (ty.name(), ty, 0, a, b))
@@ -100,13 +111,16 @@ fn every_weight_type_is_close_to_f32_on_the_demo_model() {
             ("int8 file→f32", WeightType::F32, 1, 0.2, 0.002),
             ("int8 file→f16", WeightType::F16, 1, 0.2, 0.002),
             ("int8 last f32", WeightType::Int8, 2, last_max, last_mean),
+            // 0.046 / 0.00063 measured.
+            ("int8 g128→f16", WeightType::F16, 3, 0.1, 0.0012),
         ])
         .collect();
     for (label, ty, file, max_bound, mean_bound) in rows {
         let loaded = match file {
             0 => load(ty),
             1 => load_q(ty),
-            _ => load_last(ty),
+            2 => load_last(ty),
+            _ => load_group(ty),
         };
         let model = match loaded {
             Ok(m) => m,

@@ -578,6 +578,10 @@ pub struct QuantizeArgs {
     /// layer (repeatable; `--verbose` lists the names)
     #[arg(long = "keep-f32", value_name = "NAME")]
     pub keep_f32: Vec<String>,
+    /// One scale per group of N inputs instead of one per output row: a file for float
+    /// activations (runs as f16 by default; the int8 kernels take per-row scales only)
+    #[arg(long, value_name = "N")]
+    pub group: Option<usize>,
     /// Print each weight's relative output error, rounded at load and as written
     #[arg(long)]
     pub verbose: bool,

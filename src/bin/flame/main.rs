@@ -93,10 +93,13 @@ fn load_model(m: &ModelArgs) -> Result<Loaded, String> {
     let cannot = |e: flame::Error| format!("cannot load {}: {e}", model_path.display());
     let file = ModelFile::open(&model_path).map_err(cannot)?;
     // A file written by `flame quantize` runs as int8 unless told otherwise (where the CPU
-    // cannot, its integers are multiplied back out to f32).
+    // cannot, its integers are multiplied back out to f32); one quantised per group of inputs
+    // is for float activations and runs as f16.
     let quantized = file.metadata(flame::quantize::QUANTIZATION_KEY).is_some();
+    let grouped = file.int8_group().map_err(cannot)?.is_some();
     let weights = match m.weights {
         Some(w) => w,
+        None if grouped => flame::kernels::WeightType::F16,
         None if quantized && flame::kernels::WeightType::Int8.native_on_this_cpu() => {
             flame::kernels::WeightType::Int8
         }
@@ -1415,6 +1418,7 @@ fn quantize(a: &QuantizeArgs) -> Result<(), String> {
         steps: a.steps,
         threads: a.threads,
         keep_f32: a.keep_f32.clone(),
+        group: a.group,
         ..Default::default()
     };
     if let Some(path) = &a.prompts {
@@ -1473,6 +1477,7 @@ fn info(a: &InfoArgs) -> Result<(), String> {
     let quantization = file
         .metadata(flame::quantize::QUANTIZATION_KEY)
         .map(String::from);
+    let grouped = file.int8_group().map_err(cannot)?.is_some();
     let model = Model::from_file(file).map_err(cannot)?;
     let c = model.config();
     println!("architecture:   {}", c.architecture);
@@ -1501,7 +1506,12 @@ fn info(a: &InfoArgs) -> Result<(), String> {
         model.stored_dtype().map_or("-", |x| x.name())
     );
     if let Some(q) = &quantization {
-        println!("quantised:      {q} (flame quantize; runs as int8 by default)");
+        let runs = if grouped {
+            "runs as f16 by default, refused as int8"
+        } else {
+            "runs as int8 by default"
+        };
+        println!("quantised:      {q} (flame quantize; {runs})");
     }
     println!(
         "kernel:         {}, f32 tile {} (linear layers; FLAME_KERNEL=avx512|avx512-12x16|avx512-12x32|avx2|portable picks another the CPU runs)",
@@ -1524,9 +1534,9 @@ fn info(a: &InfoArgs) -> Result<(), String> {
          f16 0.0015/0.00001, bf16 0.057/0.0008, bf16-compute 0.056/0.0011, int8 rounded at \
          load 0.44/0.013 (the vpmaddubsw AVX2 path 0.60/0.025), int8 from `flame quantize` \
          0.19/0.0073 (AVX2 0.53/0.014; as f32: 0.11/0.0008; its last layer kept f32: \
-         0.16/0.0020); held-out action accuracy f32, f16, bf16, bf16-compute 92.7%, int8 \
-         90.7% (AVX2 85.3%), int8 from `flame quantize` 91.3% (AVX2 91.3%), last layer f32 \
-         92.7%"
+         0.16/0.0020; `--group 128` as f16: 0.046/0.0006); held-out action accuracy f32, \
+         f16, bf16, bf16-compute 92.7%, int8 90.7% (AVX2 85.3%), int8 from `flame quantize` \
+         91.3% (AVX2 91.3%), last layer f32 92.7%, `--group 128` as f16 92.7%"
     );
     println!(
         "motion:         {} ({} features per frame, {} fps, at most {} frames)",
