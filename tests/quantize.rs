@@ -487,20 +487,26 @@ fn the_command_line_writes_a_file_that_generates() {
         said.contains("weights int8, 3 kept f32; 16 calibration runs"),
         "{said}"
     );
+    // `flame generate` on a quantised file, with `extra` options.
+    let generate = |model: &str, npy: &Path, extra: &[&str]| {
+        let npy = npy.to_str().unwrap();
+        let args = [
+            "generate",
+            "--model",
+            model,
+            "--prompt",
+            "a person waves",
+            "--frames",
+            "40",
+            "--steps",
+            "2",
+            "--out",
+            npy,
+        ];
+        run(&[&args[..], extra].concat())
+    };
     let npy = tmp("cli.npy");
-    let g = run(&[
-        "generate",
-        "--model",
-        out.to_str().unwrap(),
-        "--prompt",
-        "a person waves",
-        "--frames",
-        "40",
-        "--steps",
-        "2",
-        "--out",
-        npy.to_str().unwrap(),
-    ]);
+    let g = generate(out.to_str().unwrap(), &npy, &[]);
     assert!(g.status.success(), "{}", String::from_utf8_lossy(&g.stderr));
     assert!(npy.is_file());
     let info = run(&["info", out.to_str().unwrap()]);
@@ -513,19 +519,7 @@ fn the_command_line_writes_a_file_that_generates() {
     let grouped = tmp("cli_group.safetensors");
     let g = grouped.to_str().unwrap();
     let q = run(&[
-        "quantize",
-        "--model",
-        model,
-        "--out",
-        g,
-        "--frames",
-        "40",
-        "--steps",
-        "2",
-        "--threads",
-        "1",
-        "--group",
-        "16",
+        "quantize", "--model", model, "--out", g, "--frames", "40", "--steps", "2", "--group", "16",
     ]);
     assert!(q.status.success(), "{}", String::from_utf8_lossy(&q.stderr));
     let info = run(&["info", g]);
@@ -535,26 +529,13 @@ fn the_command_line_writes_a_file_that_generates() {
         "{text}"
     );
     let npy = tmp("cli_group.npy");
-    let args = [
-        "generate",
-        "--model",
-        g,
-        "--prompt",
-        "a person waves",
-        "--frames",
-        "40",
-        "--steps",
-        "2",
-        "--out",
-        npy.to_str().unwrap(),
-    ];
-    let ok = run(&args);
+    let ok = generate(g, &npy, &[]);
     assert!(
         ok.status.success(),
         "{}",
         String::from_utf8_lossy(&ok.stderr)
     );
-    let refused = run(&[&args[..], &["--weights", "int8"]].concat());
+    let refused = generate(g, &npy, &["--weights", "int8"]);
     assert!(!refused.status.success());
     let said = String::from_utf8_lossy(&refused.stderr);
     if WeightType::Int8.native_on_this_cpu() {
