@@ -19,7 +19,7 @@
 set -euo pipefail
 
 CARGO_FUZZ_VERSION=0.13.2
-ALL_TARGETS=(npy bvh pose_reference prompt ffi_params ffi_controls model_config model_header model_load model_file rig_gltf rig_bvh bone_map urdf robot_config)
+ALL_TARGETS=(npy bvh pose_reference prompt ffi_params ffi_controls model_config model_header model_load model_file rig_gltf rig_bvh bone_map urdf robot_config t5_file)
 
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -58,6 +58,7 @@ cargo fuzz build -a --sanitizer "$sanitizer"
 max_len() {
     case $1 in
         model_file) echo 1200000 ;;
+        t5_file) echo 200000 ;;
         model_load) echo 80000 ;;
         model_header) echo 32768 ;;
         bvh) echo 16384 ;;
@@ -105,6 +106,12 @@ extra_seeds() {
                     --out "$d/flame_tiny_int8_g8.safetensors" >/dev/null 2>&1 ||
                     echo "fuzz.sh: could not write the grouped int8 seed (model_file runs without it)" >&2
             fi
+            echo "$d"
+            ;;
+        t5_file)
+            d=target/seeds/t5_file
+            mkdir -p "$d"
+            cp "$root/tests/fixtures/t5_tiny.safetensors" "$d/"
             echo "$d"
             ;;
         model_load)
