@@ -18,14 +18,17 @@
 //! `last_projection`, MDM's pose embedding and output) stay f32: their inputs are the noisy
 //! sample itself and their outputs are the step's result. Rounding `last_projection`'s input
 //! alone gave three quarters of int8's mean error on the demo model, and the two are under 1%
-//! of FLAME-base's multiply-adds. [`QuantizeOptions::keep_f32`] keeps more by name: FLAME's last
-//! decoder layer kept f32 brings the demo model's held-out accuracy from 91.3% to f32's 92.7%
-//! (mean feature error 0.0073 → 0.0020) for 15–25% of FLAME-base's int8 step.
+//! of FLAME-base's multiply-adds.
+//! [`QuantizeOptions::keep_f32`](crate::quantize::QuantizeOptions::keep_f32) keeps more by
+//! name: FLAME's last decoder layer kept f32 brings the demo model's held-out accuracy from
+//! 91.3% to f32's 92.7% (mean feature error 0.0073 → 0.0020) for 15–25% of FLAME-base's int8
+//! step.
 //!
-//! [`QuantizeOptions::group`] writes one scale per group of inputs instead (GPTQ's `groupsize`):
-//! the int8 kernels take one scale per row, so such a file runs with float activations (loaded
-//! as f16 by default); on the demo model groups of 128 move the features 0.046 from f32 (one
-//! scale per row: 0.106), closer than bf16 weights (0.057).
+//! [`QuantizeOptions::group`](crate::quantize::QuantizeOptions::group) writes one scale per
+//! group of inputs instead (GPTQ's `groupsize`): the int8 kernels take one scale per row, so
+//! such a file runs with float activations (loaded as f16 by default); on the demo model groups
+//! of 128 move the features 0.046 from f32 (one scale per row: 0.106), closer than bf16 weights
+//! (0.057).
 //!
 //! The file keeps every other tensor as it was, stores each quantised weight as `I8` with its
 //! scales beside it (`<weight>_scale`, `F32`, one per output row), and records what was done
@@ -371,10 +374,10 @@ fn row_scale(row: &[f32]) -> f32 {
 /// scale per group of `group` inputs of each row (`group ≥ k`: one per row; returned as
 /// `[n, ⌈k/group⌉]`), each the least-squares one of 41 shrinks of `max|w|/127`, each input's
 /// rounding error carried onto the inputs after it through the upper Cholesky factor of `H⁻¹`,
-/// `H = gram + λI` (λ 1% of the mean diagonal, as the paper's dampening). An input that was zero in every calibration run gets
-/// `H_ii = 1` and its weights plain rounding: the paper's implementation sets such weights to
-/// zero, which on the demo model moved the features by 1.5 after 10 steps, as inputs unused by
-/// the calibration prompts are used by others.
+/// `H = gram + λI` (λ 1% of the mean diagonal, as the paper's dampening). An input that was
+/// zero in every calibration run gets `H_ii = 1` and its weights plain rounding: the paper's
+/// implementation sets such weights to zero, which on the demo model moved the features by 1.5
+/// after 10 steps, as inputs unused by the calibration prompts are used by others.
 pub fn gptq(
     w: &[f32],
     n: usize,

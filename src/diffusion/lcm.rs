@@ -17,7 +17,7 @@
 //! again.
 //!
 //! Arithmetic follows diffusers': the ᾱ table in float32
-//! ([`diffusers_alphas_cumprod`](crate::diffusion::diffusers_alphas_cumprod)), every per-element
+//! ([`diffusers_alphas_cumprod`]), every per-element
 //! operation in f32 in diffusers' order.
 
 use crate::diffusion::{betas, diffusers_alphas_cumprod, BetaSchedule};
