@@ -144,6 +144,8 @@ typedef enum FlameSampler {
   FLAME_SAMPLER_HEUN = 4,
   // Flow matching: midpoint rule, two network evaluations per step.
   FLAME_SAMPLER_MIDPOINT = 5,
+  // Latent consistency models (MotionLCM): 1 to 4 steps, the guidance embedded in one pass.
+  FLAME_SAMPLER_LCM = 6,
 } FlameSampler;
 
 // Which motion [`flame_session_read`] returns.

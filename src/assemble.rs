@@ -100,10 +100,11 @@ pub fn assemble_with(
     let (config, mut metadata) = denoiser_only(&den_bytes, &den, denoiser)?;
     let text_cfg = match &config.text_encoder {
         TextConfig::Bert(t) => t,
-        TextConfig::Clip(_) => {
+        other @ (TextConfig::Clip(_) | TextConfig::T5(_)) => {
             return Err(bad_file!(
-                "{}: assembling a CLIP text encoder is not supported",
-                denoiser.display()
+                "{}: assembling a {} text encoder is not supported",
+                denoiser.display(),
+                other.kind()
             ))
         }
     };

@@ -48,7 +48,7 @@
 //! | field | bound | checked against |
 //! |---|---|---|
 //! | `format_version` | 1 | |
-//! | `architecture` | `flame`, `mdm`, `motionfm`, `mola`, `mld`, `finemogen`, `omg` | the text encoder's kind (flame: bert/roberta; others: clip) |
+//! | `architecture` | `flame`, `mdm`, `motionfm`, `mola`, `mld`, `motionlcm`, `finemogen`, `omg` | the text encoder's kind (flame: bert/roberta; motionlcm: t5; others: clip) |
 //! | flame `denoiser.motion_dim` | 1..=W, = the format's features | `input_projection.weight` `[C, motion_dim]`, `last_projection.weight` `[2·motion_dim, C]` |
 //! | flame `denoiser.model_channels` (C) | 2..=W, even | `input_projection.weight` |
 //! | flame `denoiser.num_layers` | 1..=L | `tf_decoder.layers.{n−1}.*` present, `.{n}.*` absent |
@@ -65,7 +65,7 @@
 //! | mdm `denoiser.clip_dim` | 1..=W, = `text_encoder.projection_dim` | `embed_text.weight` `[latent_dim, clip_dim]` |
 //! | mdm `denoiser.max_len` | 2..=M, × latent_dim ≤ 2^26, ≥ num_timesteps (mdm) or ≥ 1001 (motionfm) | |
 //! | mdm `denoiser.activation` | `gelu`, `relu` | |
-//! | `text_encoder.kind` | `bert`, `roberta`, `clip` | |
+//! | `text_encoder.kind` | `bert`, `roberta`, `clip`, `t5` | |
 //! | bert `text_encoder.vocab_size` | 1..=V | `text.embeddings.word_embeddings.weight` `[vocab, hidden]` |
 //! | bert `text_encoder.hidden_size` | 1..=W | same |
 //! | bert `text_encoder.num_layers` | 1..=L | `text.encoder.layer.{n−1}.*` present, `.{n}.*` absent |
@@ -84,6 +84,8 @@
 //! | clip `text_encoder.context_length` | 2..=P | `text.text_model.embeddings.position_embedding.weight` |
 //! | clip `text_encoder.projection_dim` | 1..=W | `text.text_projection.weight` `[projection_dim, width]` |
 //! | clip `text_encoder.max_length` | 2..=context_length | |
+//! | t5 `text_encoder.max_length` | 2..=4096 | sizes from `text.shared.weight`, `text.encoder.block.*`, `text.dense.weight` |
+//! | t5 `text_encoder.relative_attention_max_distance` | 1..=P (default 128), more than the exact buckets | `text.encoder.block.0.layer.0.SelfAttention.relative_attention_bias.weight` |
 //! | `motion.format` | `smpl24_6d`, `humanml263` | the denoiser's motion width |
 //! | `motion.fps` | finite, in (0, 1000] | |
 //! | `diffusion.num_timesteps` | 1..=100000; the schedule's betas in (0, 1) | |
@@ -91,12 +93,15 @@
 //! | `diffusion.parameterization` | `epsilon`/`eps`, `x0`/`sample`/`start_x`, `v`/`v_prediction`; `velocity`/`flow` for (and only for) motionfm | |
 //! | `diffusion.variance` | `learned_range` (flame only), `fixed_small`, `fixed_large` | |
 //! | `diffusion.uncond` | `empty_prompt`, `zeros` (not flame); `null_text` (finemogen only), `backbone` (omg only) | |
-//! | `diffusion.spacing` | `respace` (default), `leading`, `trailing`; diffusion models only | |
+//! | `diffusion.spacing` | `respace` (default), `leading`, `trailing`, `lcm` (motionlcm); diffusion models only | |
+//! | `diffusion.lcm_timesteps` | `grid` (with `original_inference_steps` 1..=num_timesteps) or `motionlcm_v2` (num_timesteps 1000); `lcm` only | |
+//! | `diffusion.timestep_scaling` | finite, in (0, 10⁶] (default 10); `lcm` only | |
 //! | `diffusion.steps_offset` | 0 (default) ..num_timesteps; `leading` and `trailing` only; `leading`: (defaults.steps − 1)·(num_timesteps div steps) + offset < num_timesteps | |
 //! | `diffusion.set_alpha_to_one` | `true` (default); `false` needs `leading` or `trailing` | |
-//! | `defaults.sampler` | `ddpm`, `ddim` (diffusion); `euler`, `heun`, `midpoint` (motionfm) | |
+//! | `defaults.sampler` | `ddpm`, `ddim` (diffusion); `euler`, `heun`, `midpoint` (motionfm); `lcm` (spacing `lcm`) | |
 //! | `defaults.steps` | 1..=num_timesteps (diffusion), 1..=10000 (motionfm); a count the spacing can take | |
 //! | `defaults.guidance` | finite, in [0, 100] (also a session's) | |
+//! | `defaults.guidance_by_steps` | step count → guidance, each a count the `lcm` rule takes and a guidance in [0, 100]; `lcm` only | |
 //! | `defaults.eta` | finite, in [0, 1] | |
 //! | `defaults.frames` | 1..=max frames (max_motion_length − 1, max_len − 1) | |
 //!
@@ -183,6 +188,24 @@ pub enum TextConfig {
     Bert(TextEncoderConfig),
     /// `clip`: a CLIP text tower (MDM, Motion Flow Matching and the later families).
     Clip(ClipTextConfig),
+    /// `t5`: a T5 v1.0 encoder with sentence-transformers' head (MotionLCM's sentence-t5).
+    T5(T5TextConfig),
+}
+
+/// A sentence-t5 text encoder: its sizes come from the tensors' shapes
+/// ([`crate::text::t5::T5Encoder::load`]); the JSON says what shapes cannot.
+#[derive(Clone, Debug, Deserialize)]
+pub struct T5TextConfig {
+    /// Tokens a prompt keeps, the appended `</s>` included (sentence-t5's `max_seq_length`:
+    /// 256); 2..=[`crate::text::t5::T5_MAX_TOKENS`].
+    pub max_length: usize,
+    /// T5's `relative_attention_max_distance` (128 in every released T5).
+    #[serde(default = "t5_max_distance")]
+    pub relative_attention_max_distance: usize,
+}
+
+fn t5_max_distance() -> usize {
+    crate::text::t5::T5_MAX_DISTANCE
 }
 
 /// A CLIP text tower and the context length prompts are truncated to (MDM: 22).
@@ -198,11 +221,12 @@ pub struct ClipTextConfig {
 }
 
 impl TextConfig {
-    /// `bert`, `roberta` or `clip`.
+    /// `bert`, `roberta`, `clip` or `t5`.
     pub fn kind(&self) -> &str {
         match self {
             TextConfig::Bert(t) => &t.kind,
             TextConfig::Clip(_) => "clip",
+            TextConfig::T5(_) => "t5",
         }
     }
 }
@@ -293,6 +317,18 @@ pub struct DiffusionConfig {
     /// table's ᾱ_0 (false: MoLA, MLD).
     #[serde(default = "yes")]
     pub set_alpha_to_one: bool,
+    /// `spacing` `lcm` only: the latent consistency sampler's timestep rule, `grid` (diffusers'
+    /// `LCMScheduler` grid from `original_inference_steps`: MotionLCM v1) or `motionlcm_v2`
+    /// (MotionLCM v2's table of 1, 2 and 4 steps).
+    #[serde(default)]
+    pub lcm_timesteps: Option<String>,
+    /// `spacing` `lcm`, `grid` rule: the distillation's step count the grid is taken from
+    /// (MotionLCM v1: 50), 1..=num_timesteps.
+    #[serde(default)]
+    pub original_inference_steps: Option<usize>,
+    /// `spacing` `lcm`: diffusers' `timestep_scaling` of the boundary condition (10).
+    #[serde(default)]
+    pub timestep_scaling: Option<f32>,
 }
 
 /// Sampling defaults a session starts from.
@@ -317,6 +353,22 @@ pub struct Defaults {
     /// respacing (FineMoGen: `"15,15,8,6,6"`); models with `diffusion.spacing` `respace` only.
     #[serde(default)]
     pub respacing: Option<String>,
+    /// The guidance scale per step count, where the model's authors tuned one for each
+    /// (MotionLCM v2's "dynamic" scale: 1 → 8.0, 2 → 12.5, 4 → 13.5); a session that sets no
+    /// guidance takes its step count's entry, else `guidance`.
+    #[serde(default)]
+    pub guidance_by_steps: Option<std::collections::BTreeMap<String, f32>>,
+}
+
+impl Defaults {
+    /// The guidance a session of `steps` steps uses when it sets none.
+    pub fn guidance_for(&self, steps: usize) -> f32 {
+        self.guidance_by_steps
+            .as_ref()
+            .and_then(|m| m.get(&steps.to_string()))
+            .copied()
+            .unwrap_or(self.guidance)
+    }
 }
 
 fn gelu() -> String {
@@ -399,9 +451,10 @@ impl Config {
             Some("bert" | "roberta") => {
                 TextConfig::Bert(serde_json::from_value(raw.text_encoder).map_err(schema)?)
             }
+            Some("t5") => TextConfig::T5(serde_json::from_value(raw.text_encoder).map_err(schema)?),
             other => {
                 return Err(bad_file!(
-                    "unknown text_encoder.kind `{}` (supported: bert, roberta, clip)",
+                    "unknown text_encoder.kind `{}` (supported: bert, roberta, clip, t5)",
                     other.unwrap_or("")
                 ))
             }
@@ -458,7 +511,7 @@ mod tests {
             .to_string();
         assert_eq!(
             e,
-            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld, finemogen, omg)"
+            "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld, motionlcm, finemogen, omg)"
         );
         let e =
             Config::from_json(&EXAMPLE.replace("\"format_version\": 1", "\"format_version\": 9"))
@@ -583,7 +636,8 @@ mod tests {
             ("motion", "format", "humanml263", "has 263 features per frame, the denoiser 147"),
             ("denoiser", "activation", "swish", "unknown config denoiser.activation `swish`"),
             ("text_encoder", "hidden_act", "relu", "hidden_act `relu`"),
-            ("text_encoder", "kind", "t5", "unknown text_encoder.kind `t5`"),
+            ("text_encoder", "kind", "t6", "unknown text_encoder.kind `t6` (supported: bert, roberta, clip, t5)"),
+            ("text_encoder", "kind", "t5", "architecture `flame` cannot use a `t5` text encoder"),
         ] {
             let e = err(section, key, value.into());
             assert!(e.contains(needle), "{section}.{key} = {value}: {e}");
@@ -629,7 +683,7 @@ mod tests {
             (
                 vec![("spacing", "linspace".into())],
                 50,
-                "unknown config diffusion.spacing `linspace` (accepted: respace, leading, trailing)",
+                "unknown config diffusion.spacing `linspace` (accepted: respace, leading, trailing, lcm)",
             ),
             (
                 vec![("steps_offset", 1.into())],

@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use crate::cycle::Cycle;
 use crate::diffusion::flow::{FlowSampler, FlowScratch, OdeMethod};
+use crate::diffusion::lcm::LcmSampler;
 use crate::diffusion::{self, DiffusionSampler, X0Replacement};
 use crate::edit;
 pub use crate::edit::{EditMethod, EditParams};
@@ -38,6 +39,9 @@ pub enum Sampler {
     Heun,
     /// Flow matching: the midpoint rule (second order, two evaluations per step).
     Midpoint,
+    /// Latent consistency models (MotionLCM): a consistency estimate per step, re-noised
+    /// between steps ([`crate::diffusion::lcm`]).
+    Lcm,
 }
 
 impl std::str::FromStr for Sampler {
@@ -49,8 +53,9 @@ impl std::str::FromStr for Sampler {
             "euler" => Ok(Sampler::Euler),
             "heun" => Ok(Sampler::Heun),
             "midpoint" => Ok(Sampler::Midpoint),
+            "lcm" => Ok(Sampler::Lcm),
             _ => Err(invalid_arg!(
-                "unknown sampler `{s}` (expected ddpm, ddim, euler, heun or midpoint)"
+                "unknown sampler `{s}` (expected ddpm, ddim, euler, heun, midpoint or lcm)"
             )),
         }
     }
@@ -73,7 +78,9 @@ pub struct SessionParams {
     /// model's default.
     pub eta: Option<f32>,
     /// Classifier-free guidance scale in [0, [`MAX_GUIDANCE`]]: 0 = unconditional, 1 = the
-    /// prompt alone (no unconditional pass), above 1 strengthens the prompt.
+    /// prompt alone (no unconditional pass), above 1 strengthens the prompt. A latent
+    /// consistency model embeds it instead (one pass per step at any scale); unset, it takes
+    /// the file's scale for the step count (`defaults.guidance_by_steps`) or its default.
     pub guidance: Option<f32>,
     /// Clamp the x0 estimate to [-1, 1] at every step (the official FLAME sampling does).
     pub clip_denoised: Option<bool>,
@@ -166,6 +173,7 @@ pub enum Which {
 enum StepRule {
     Diffusion(Box<DiffusionSampler>),
     Flow(FlowSampler),
+    Lcm(LcmSampler),
 }
 
 impl StepRule {
@@ -173,6 +181,7 @@ impl StepRule {
         match self {
             StepRule::Diffusion(d) => d.num_steps(),
             StepRule::Flow(f) => f.num_steps(),
+            StepRule::Lcm(l) => l.len(),
         }
     }
 }
@@ -229,9 +238,12 @@ struct Predictor<'a> {
     cond: &'a Condition,
     /// The caller's unconditional input, if any (else the model's).
     uncond: Option<&'a Condition>,
-    /// The guidance scale; `None` when the condition is itself the unconditional input
-    /// (a blank prompt), so guiding it would change nothing.
-    scale: Option<f32>,
+    /// The session's guidance scale.
+    scale: f32,
+    /// The condition is itself the unconditional input (a blank prompt), so mixing it with
+    /// the unconditional pass would change nothing: one conditional pass (an embedded scale
+    /// still goes in).
+    blank: bool,
 }
 
 impl Predictor<'_> {
@@ -248,19 +260,23 @@ impl Predictor<'_> {
         cancel: &Cancel,
     ) -> Result<()> {
         let (d, od) = (self.model.sample_dim(), self.model.output_dim());
-        let guidance = match self.scale {
-            Some(s) => self.model.denoiser().guidance(s, t),
-            None => Guidance::Conditional,
+        let guidance = match self.model.denoiser().guidance(self.scale, t) {
+            Guidance::Mix(_) if self.blank => Guidance::Conditional,
+            g => g,
         };
-        let uncond = match guidance {
-            Guidance::Mix(w) => Some((
-                match self.uncond {
-                    Some(u) => u,
-                    None => self.model.uncond()?,
-                },
-                w,
-            )),
-            Guidance::Conditional => None,
+        let (uncond, embedded) = match guidance {
+            Guidance::Mix(w) => (
+                Some((
+                    match self.uncond {
+                        Some(u) => u,
+                        None => self.model.uncond()?,
+                    },
+                    w,
+                )),
+                None,
+            ),
+            Guidance::Conditional => (None, None),
+            Guidance::Embedded(w) => (None, Some(w)),
         };
         let batch = 1 + uncond.is_some() as usize;
         b.batch_x.clear();
@@ -269,15 +285,27 @@ impl Predictor<'_> {
         }
         b.out.resize(batch * self.rows * od, 0.0);
         let both = [self.cond, uncond.map_or(self.cond, |u| u.0)];
-        self.model.forward_cancellable(
-            &b.batch_x,
-            self.rows,
-            t,
-            &both[..batch],
-            &mut b.out,
-            &mut b.ws,
-            cancel,
-        )?;
+        match embedded {
+            Some(w) => self.model.forward_embedded(
+                &b.batch_x,
+                self.rows,
+                t,
+                w,
+                &both[..batch],
+                &mut b.out,
+                &mut b.ws,
+                cancel,
+            )?,
+            None => self.model.forward_cancellable(
+                &b.batch_x,
+                self.rows,
+                t,
+                &both[..batch],
+                &mut b.out,
+                &mut b.ws,
+                cancel,
+            )?,
+        }
         let n = self.rows * od;
         split_channels(&b.out[..n], d, od, pred, var);
         if let Some((_, w)) = uncond {
@@ -318,13 +346,15 @@ impl Session {
                 })
             }
         };
-        let guidance = params.guidance.unwrap_or(d.guidance);
+        let rule = build_rule(&model, params)?;
+        let guidance = params
+            .guidance
+            .unwrap_or_else(|| d.guidance_for(rule.num_steps()));
         if !crate::config::guidance_in_range(guidance) {
             return Err(invalid_arg!(
                 "guidance must be between 0 and {MAX_GUIDANCE}, got {guidance} (0 = unconditional, 1 = the prompt alone, more strengthens the prompt; negative guidance is not supported)"
             ));
         }
-        let rule = build_rule(&model, params)?;
         let pool = Arc::new(WorkerPool::new(params.threads)?);
         let n = rule.num_steps();
         let rows = model.sample_rows(frames);
@@ -1117,7 +1147,8 @@ impl Session {
             rows: self.rows,
             cond: self.cond.as_ref().expect("checked in step"),
             uncond: self.uncond.as_ref(),
-            scale: (!unconditional).then_some(self.guidance),
+            scale: self.guidance,
+            blank: unconditional,
         };
         let StepBuffers {
             fwd,
@@ -1208,6 +1239,22 @@ impl Session {
                 sampler.step(k, x_t, &mut velocity, flow, x_prev, x0_next)?;
                 cancel.check()?;
             }
+            StepRule::Lcm(sampler) => {
+                // Timesteps run in the listed order; step k's consistency estimate is the
+                // clean-motion estimate, re-noised to the next listed timestep unless last.
+                let k = sampler.len() - self.remaining;
+                let tk = sampler.timesteps()[k];
+                p.predict(fwd, x_t, tk as f32, pred, var, cancel)?;
+                cancel.check()?;
+                sampler.denoise(k, pred, x_t, x0_next);
+                if k + 1 < sampler.len() {
+                    noise.resize(len, 0.0);
+                    self.noise.fill(noise);
+                    sampler.renoise(k, x0_next, noise, x_prev);
+                } else {
+                    x_prev.copy_from_slice(x0_next);
+                }
+            }
         }
         if let Some(why) = non_finite(x_prev, x0_next, model.sample_dim()) {
             let msg = format!(
@@ -1251,6 +1298,7 @@ fn build_rule(model: &Model, params: &SessionParams) -> Result<StepRule> {
         Sampler::Euler => diffusion::Method::Ode(OdeMethod::Euler),
         Sampler::Heun => diffusion::Method::Ode(OdeMethod::Heun),
         Sampler::Midpoint => diffusion::Method::Ode(OdeMethod::Midpoint),
+        Sampler::Lcm => diffusion::Method::Lcm,
     };
     let choice = diffusion::SamplerChoice {
         method,
@@ -1263,6 +1311,7 @@ fn build_rule(model: &Model, params: &SessionParams) -> Result<StepRule> {
         match diffusion::build_sampler(&cfg.diffusion, &cfg.defaults, &choice)? {
             diffusion::BuiltSampler::Diffusion(d) => StepRule::Diffusion(d),
             diffusion::BuiltSampler::Flow(f) => StepRule::Flow(f),
+            diffusion::BuiltSampler::Lcm(l) => StepRule::Lcm(l),
         },
     )
 }

@@ -74,6 +74,9 @@ fn config(
         spacing: spacing.into(),
         steps_offset,
         set_alpha_to_one,
+        lcm_timesteps: None,
+        original_inference_steps: None,
+        timestep_scaling: None,
     }
 }
 
@@ -85,6 +88,7 @@ fn defaults(steps: usize) -> Defaults {
         eta: 0.0,
         frames: 1,
         respacing: None,
+        guidance_by_steps: None,
     }
 }
 
@@ -98,7 +102,7 @@ fn sampler(dc: &DiffusionConfig, steps: usize, eta: f32) -> DiffusionSampler {
     };
     match build_sampler(dc, &defaults(50), &choice).unwrap() {
         BuiltSampler::Diffusion(d) => *d,
-        BuiltSampler::Flow(_) => panic!("a diffusion sampler"),
+        BuiltSampler::Flow(_) | BuiltSampler::Lcm(_) => panic!("a diffusion sampler"),
     }
 }
 

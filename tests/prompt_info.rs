@@ -42,6 +42,7 @@ fn a_long_prompt_is_cut_and_says_what_was_dropped() {
         let window = match &m.config().text_encoder {
             TextConfig::Bert(t) => t.max_length,
             TextConfig::Clip(c) => c.max_length,
+            TextConfig::T5(t) => t.max_length,
         };
         assert_eq!(info.window, window, "{name}");
         assert_eq!(info.kept, window, "{name}: a long prompt fills the window");

@@ -747,8 +747,10 @@ def build_parser():
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import convert_finemogen
     import convert_latent
+    import convert_motionlcm
     import convert_omg
     convert_latent.add_parsers(sub)
+    convert_motionlcm.add_parsers(sub)
     convert_finemogen.add_parsers(sub)
     convert_omg.add_parsers(sub)
     return ap

@@ -53,6 +53,8 @@ namespace Flame
         Heun = 4,
         /// <summary>Flow matching: midpoint rule, two network evaluations per step.</summary>
         Midpoint = 5,
+        /// <summary>Latent consistency models (MotionLCM): 1 to 4 steps, the guidance embedded in one pass.</summary>
+        Lcm = 6,
     }
 
     /// <summary>Which motion FlameSession.Read returns.</summary>

@@ -200,7 +200,7 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
             );
             let text = match &model.config().text_encoder {
                 TextConfig::Bert(t) => t.max_length as f64,
-                TextConfig::Clip(_) => 0.0,
+                TextConfig::Clip(_) | TextConfig::T5(_) => 0.0,
             };
             let (s, mem) = (f + 3.0, text + 3.0);
             let r = b * s;

@@ -328,7 +328,7 @@ fn check_spacing(dc: &DiffusionConfig, flow: bool) -> Result<Spacing> {
     // Case and surrounding spaces ignored, as for the other diffusion names.
     let spacing: Spacing = dc.spacing.parse().map_err(|_| {
         bad_file!(
-            "unknown config diffusion.spacing `{}` (accepted: respace, leading, trailing)",
+            "unknown config diffusion.spacing `{}` (accepted: respace, leading, trailing, lcm)",
             dc.spacing
         )
     })?;
@@ -351,6 +351,30 @@ fn check_spacing(dc: &DiffusionConfig, flow: bool) -> Result<Spacing> {
              (diffusers' DDIM); `{spacing}` has no offset",
             dc.steps_offset
         ));
+    }
+    let lcm_fields = dc.lcm_timesteps.is_some()
+        || dc.original_inference_steps.is_some()
+        || dc.timestep_scaling.is_some();
+    if spacing != Spacing::Lcm && lcm_fields {
+        return Err(bad_file!(
+            "config diffusion.lcm_timesteps, original_inference_steps and timestep_scaling need \
+             diffusion.spacing `lcm` (the latent consistency sampler)"
+        ));
+    }
+    if spacing == Spacing::Lcm {
+        if flow {
+            return Err(bad_file!(
+                "config diffusion.spacing `lcm`: a flow-matching model has no diffusion \
+                 timesteps to space"
+            ));
+        }
+        crate::diffusion::lcm::LcmTimesteps::from_config(dc)?;
+        if let Some(s) = dc.timestep_scaling {
+            in_range_f32("diffusion.timestep_scaling", s, 0.0, 1e6, true)?;
+        }
+        // diffusers' LCMScheduler reads set_alpha_to_one only past the last listed timestep,
+        // which the sampler never visits: either value is accepted.
+        return Ok(spacing);
     }
     if !spacing.is_diffusers() && !dc.set_alpha_to_one {
         return Err(bad_file!(
@@ -393,6 +417,20 @@ impl Config {
                 t.check()?;
             }
             TextConfig::Clip(c) => c.check()?,
+            TextConfig::T5(t) => {
+                in_range(
+                    "text_encoder.max_length",
+                    t.max_length,
+                    2,
+                    crate::text::t5::T5_MAX_TOKENS,
+                )?;
+                in_range(
+                    "text_encoder.relative_attention_max_distance",
+                    t.relative_attention_max_distance,
+                    1,
+                    MAX_TEXT_POSITIONS,
+                )?;
+            }
         }
         // Before the family's checks, which may compare their sizes with it.
         in_range(
@@ -470,6 +508,8 @@ impl Config {
         let df = &self.defaults;
         let samplers: &[&str] = if flow {
             &["euler", "heun", "midpoint"]
+        } else if spacing == Spacing::Lcm {
+            &["lcm"]
         } else {
             &["ddpm", "ddim"]
         };
@@ -484,6 +524,29 @@ impl Config {
         if spacing.is_diffusers() {
             diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset)
                 .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
+        }
+        if spacing == Spacing::Lcm {
+            crate::diffusion::lcm::LcmTimesteps::from_config(dc)?
+                .timesteps(df.steps, dc.num_timesteps)
+                .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
+        }
+        if let Some(map) = &df.guidance_by_steps {
+            if spacing != Spacing::Lcm {
+                return Err(bad_file!(
+                    "config defaults.guidance_by_steps is for latent consistency models \
+                     (diffusion.spacing `lcm`)"
+                ));
+            }
+            for (k, &g) in map {
+                let field = format!("defaults.guidance_by_steps.{k}");
+                let steps: usize = k
+                    .parse()
+                    .map_err(|_| bad_file!("config {field}: the key is not a step count"))?;
+                crate::diffusion::lcm::LcmTimesteps::from_config(dc)?
+                    .timesteps(steps, dc.num_timesteps)
+                    .map_err(|e| bad_file!("config {field}: {}", inner(e)))?;
+                in_range_f32(&field, g, 0.0, MAX_GUIDANCE, false)?;
+            }
         }
         if let Some(spec) = &df.respacing {
             if flow || spacing.is_diffusers() {
@@ -515,6 +578,8 @@ impl Config {
                 t.validate(file, prefix)?;
             }
             TextConfig::Clip(c) => c.clip.validate(file, prefix)?,
+            // The encoder reads its sizes from the shapes and checks them as it loads.
+            TextConfig::T5(_) => {}
         }
         self.denoiser.validate(file)
     }

@@ -3,6 +3,7 @@
 //! respacing string and the sampler kind into a ready [`DiffusionSampler`] or [`FlowSampler`].
 
 use super::flow::{FlowSampler, OdeMethod};
+use super::lcm::{LcmSampler, LcmTimesteps, TIMESTEP_SCALING};
 use super::respace::{diffusers_timesteps, parse_timestep_respacing, space_timesteps, Spacing};
 use super::sampler::{DiffusionSampler, SamplerKind};
 use super::schedule::betas;
@@ -18,6 +19,9 @@ pub enum Method {
     Ddim,
     /// An ODE solver of flow matching.
     Ode(OdeMethod),
+    /// The latent consistency sampler ([`super::lcm`]) of a model with `diffusion.spacing`
+    /// `lcm`.
+    Lcm,
 }
 
 /// A session's sampling choices; `None` means the model file's default.
@@ -44,6 +48,8 @@ pub enum BuiltSampler {
     Diffusion(Box<DiffusionSampler>),
     /// An ODE sampler of a flow-matching model (`parameterization` `velocity` or `flow`).
     Flow(FlowSampler),
+    /// The latent consistency sampler of a model with `diffusion.spacing` `lcm`.
+    Lcm(LcmSampler),
 }
 
 /// Builds the sampler for a model's `diffusion` configuration and sampling `defaults`:
@@ -51,7 +57,10 @@ pub enum BuiltSampler {
 /// (`spacing` `respace`: `steps` by the section rule, or the kept steps of a respacing string)
 /// or diffusers' DDIM/DDPM schedule (`leading`, `trailing`: `steps` only).
 ///
-/// Errors (`InvalidArgument`): a step count out of range, a sampler of the other family, a
+/// Models with `spacing` `lcm` get the latent consistency sampler over their timestep rule.
+///
+/// Errors (`InvalidArgument`): a step count out of range (for `lcm`, one the rule has no
+/// timesteps for, naming the counts it has), a sampler of the other family, a
 /// respacing string that does not parse, disagrees with an explicit `steps`, or is given to a
 /// diffusers-spaced or flow model, a negative or non-finite η.
 pub fn build_sampler(
@@ -61,6 +70,48 @@ pub fn build_sampler(
 ) -> Result<BuiltSampler> {
     let flow_model = matches!(dc.parameterization.as_str(), "velocity" | "flow");
     let name = method_name(choice.method);
+    let lcm_model = dc.spacing.parse::<Spacing>().ok() == Some(Spacing::Lcm);
+    match (lcm_model, choice.method) {
+        (true, Method::Lcm) => {
+            if let Some(spec) = choice.respacing {
+                return Err(invalid_arg!(
+                    "respacing {spec:?} picks steps of a diffusion schedule; this latent \
+                     consistency model takes only a step count"
+                ));
+            }
+            let rule = LcmTimesteps::from_config(dc)?;
+            let steps = choice.steps.unwrap_or(defaults.steps);
+            let timesteps = rule.timesteps(steps, dc.num_timesteps)?;
+            let schedule = dc.schedule.parse().map_err(|_| {
+                bad_file!(
+                    "config diffusion.schedule `{}` is not supported",
+                    dc.schedule
+                )
+            })?;
+            let base = betas(schedule, dc.num_timesteps);
+            let scaling = dc.timestep_scaling.unwrap_or(TIMESTEP_SCALING);
+            return Ok(BuiltSampler::Lcm(LcmSampler::new(
+                &base, timesteps, scaling,
+            )?));
+        }
+        (true, _) => {
+            return Err(invalid_arg!(
+                "sampler {name} does not fit this latent consistency model, which samples with lcm"
+            ))
+        }
+        (false, Method::Lcm) => {
+            return Err(invalid_arg!(
+                "sampler lcm needs a latent consistency model (diffusion.spacing `lcm`); this \
+                 model takes {}",
+                if flow_model {
+                    "euler, heun or midpoint"
+                } else {
+                    "ddpm or ddim"
+                }
+            ))
+        }
+        (false, _) => {}
+    }
     match (flow_model, choice.method) {
         (true, Method::Ode(m)) => {
             if let Some(spec) = choice.respacing {
@@ -163,6 +214,7 @@ fn method_name(m: Method) -> &'static str {
         Method::Ode(OdeMethod::Euler) => "euler",
         Method::Ode(OdeMethod::Heun) => "heun",
         Method::Ode(OdeMethod::Midpoint) => "midpoint",
+        Method::Lcm => "lcm",
     }
 }
 
@@ -216,6 +268,9 @@ mod tests {
             spacing: spacing.into(),
             steps_offset: 1,
             set_alpha_to_one: false,
+            lcm_timesteps: None,
+            original_inference_steps: None,
+            timestep_scaling: None,
         }
     }
 
@@ -227,6 +282,7 @@ mod tests {
             eta: 0.0,
             frames: 1,
             respacing: None,
+            guidance_by_steps: None,
         }
     }
 
@@ -243,7 +299,7 @@ mod tests {
     fn diffusion(c: &DiffusionConfig, ch: &SamplerChoice) -> Result<DiffusionSampler> {
         match build_sampler(c, &defaults(), ch)? {
             BuiltSampler::Diffusion(d) => Ok(*d),
-            BuiltSampler::Flow(_) => panic!("a diffusion sampler"),
+            BuiltSampler::Flow(_) | BuiltSampler::Lcm(_) => panic!("a diffusion sampler"),
         }
     }
 
@@ -255,13 +311,51 @@ mod tests {
     }
 
     #[test]
+    fn latent_consistency_models_take_lcm_and_their_step_counts() {
+        let mut c = dc("lcm", "epsilon");
+        c.steps_offset = 0;
+        c.lcm_timesteps = Some("motionlcm_v2".into());
+        let mut d = defaults();
+        d.steps = 1;
+        let lcm_of = |c: &DiffusionConfig, ch: &SamplerChoice| match build_sampler(c, &d, ch) {
+            Ok(BuiltSampler::Lcm(s)) => Ok(s),
+            Ok(_) => panic!("an lcm sampler"),
+            Err(e) => Err(e.to_string()),
+        };
+        let lcm = |ch: &SamplerChoice| lcm_of(&c, ch);
+        assert_eq!(
+            lcm(&choice(Method::Lcm, None, None)).unwrap().timesteps(),
+            [799]
+        );
+        let four = lcm(&choice(Method::Lcm, Some(4), None)).unwrap();
+        assert_eq!(four.timesteps(), [699, 399, 299, 299]);
+        let e = lcm(&choice(Method::Lcm, Some(3), None)).unwrap_err();
+        assert!(
+            e.contains("no 3-step schedule") && e.contains("1, 2, 4"),
+            "{e}"
+        );
+        let e = lcm(&choice(Method::Ddim, None, None)).unwrap_err();
+        assert!(e.contains("samples with lcm"), "{e}");
+        let e = lcm(&choice(Method::Lcm, None, Some("10"))).unwrap_err();
+        assert!(e.contains("takes only a step count"), "{e}");
+        let mut v1 = c.clone();
+        v1.lcm_timesteps = Some("grid".into());
+        v1.original_inference_steps = Some(50);
+        let two = lcm_of(&v1, &choice(Method::Lcm, Some(2), None)).unwrap();
+        assert_eq!(two.timesteps(), [999, 499]);
+        // A diffusion model refuses lcm.
+        let e = err(&dc("leading", "epsilon"), &choice(Method::Lcm, None, None));
+        assert!(e.contains("needs a latent consistency model"), "{e}");
+    }
+
+    #[test]
     fn a_default_respacing_applies_when_neither_steps_nor_respacing_are_asked() {
         let c = dc("respace", "x0");
         let mut d = defaults();
         d.respacing = Some("15,15,8,6,6".into());
         let built = |ch: &SamplerChoice| match build_sampler(&c, &d, ch).unwrap() {
             BuiltSampler::Diffusion(s) => s,
-            BuiltSampler::Flow(_) => panic!("a diffusion model"),
+            BuiltSampler::Flow(_) | BuiltSampler::Lcm(_) => panic!("a diffusion model"),
         };
         // The kept steps of FineMoGen's "15,15,8,6,6", ascending (mingyuan-zhang/FineMoGen
         // `configs/finemogen/finemogen_t2m.py`; docs/official/finemogen.md#respacing).

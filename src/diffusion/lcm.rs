@@ -20,8 +20,9 @@
 //! ([`diffusers_alphas_cumprod`]), every per-element
 //! operation in f32 in diffusers' order.
 
+use crate::config::DiffusionConfig;
 use crate::diffusion::{betas, diffusers_alphas_cumprod, BetaSchedule};
-use crate::error::{invalid_arg, Result};
+use crate::error::{bad_file, invalid_arg, Result};
 
 /// diffusers' `timestep_scaling` default, which both MotionLCM releases keep.
 pub const TIMESTEP_SCALING: f32 = 10.0;
@@ -46,6 +47,43 @@ pub enum LcmTimesteps {
 }
 
 impl LcmTimesteps {
+    /// The rule a model file's `diffusion` section names (`lcm_timesteps`, with
+    /// `original_inference_steps` for the grid); `BadModelFile` naming the field otherwise.
+    pub fn from_config(dc: &DiffusionConfig) -> Result<LcmTimesteps> {
+        match dc.lcm_timesteps.as_deref().map(str::trim) {
+            Some("grid") => match dc.original_inference_steps {
+                Some(n) if (1..=dc.num_timesteps).contains(&n) => {
+                    Ok(LcmTimesteps::Grid { original_steps: n })
+                }
+                Some(n) => Err(bad_file!(
+                    "config diffusion.original_inference_steps is {n}; it must be between 1 \
+                     and num_timesteps ({})",
+                    dc.num_timesteps
+                )),
+                None => Err(bad_file!(
+                    "config diffusion.lcm_timesteps `grid` needs diffusion.original_inference_steps"
+                )),
+            },
+            Some("motionlcm_v2") => {
+                if dc.num_timesteps != 1000 {
+                    return Err(bad_file!(
+                        "config diffusion.lcm_timesteps `motionlcm_v2` is a table over 1000 \
+                         training steps, not {}",
+                        dc.num_timesteps
+                    ));
+                }
+                Ok(LcmTimesteps::V2Table)
+            }
+            Some(other) => Err(bad_file!(
+                "unknown config diffusion.lcm_timesteps `{other}` (accepted: grid, motionlcm_v2)"
+            )),
+            None => Err(bad_file!(
+                "config diffusion.spacing `lcm` needs diffusion.lcm_timesteps (grid or \
+                 motionlcm_v2)"
+            )),
+        }
+    }
+
     /// The step counts this rule samples, for error messages and `flame info`.
     pub fn allowed(self) -> String {
         match self {

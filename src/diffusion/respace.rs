@@ -22,6 +22,9 @@ pub enum Spacing {
     Leading,
     /// diffusers' `round(arange(T, 0, −T/N)) − 1` (MoLA: 999, 979, …, 19).
     Trailing,
+    /// The latent consistency sampler's own timesteps ([`crate::diffusion::lcm`]: MotionLCM's
+    /// grid or table, from `diffusion.lcm_timesteps`).
+    Lcm,
 }
 
 impl Spacing {
@@ -31,12 +34,13 @@ impl Spacing {
             Spacing::Respace => "respace",
             Spacing::Leading => "leading",
             Spacing::Trailing => "trailing",
+            Spacing::Lcm => "lcm",
         }
     }
 
     /// Whether steps follow diffusers' `DDIMScheduler` (leading or trailing).
     pub fn is_diffusers(self) -> bool {
-        self != Spacing::Respace
+        matches!(self, Spacing::Leading | Spacing::Trailing)
     }
 }
 
@@ -53,8 +57,9 @@ impl FromStr for Spacing {
             "respace" => Ok(Spacing::Respace),
             "leading" => Ok(Spacing::Leading),
             "trailing" => Ok(Spacing::Trailing),
+            "lcm" => Ok(Spacing::Lcm),
             _ => Err(invalid_arg!(
-                "timestep spacing {s:?}: expected respace, leading or trailing"
+                "timestep spacing {s:?}: expected respace, leading, trailing or lcm"
             )),
         }
     }
@@ -89,9 +94,9 @@ pub fn diffusers_timesteps(
             Ok((0..steps).rev().map(|k| k * ratio + steps_offset).collect())
         }
         Spacing::Trailing => trailing_timesteps(t, steps),
-        Spacing::Respace => Err(invalid_arg!(
-            "respace is guided-diffusion's spacing, not a diffusers one"
-        )),
+        Spacing::Respace | Spacing::Lcm => {
+            Err(invalid_arg!("{spacing} is not a diffusers DDIM spacing"))
+        }
     }
 }
 

@@ -60,6 +60,7 @@ impl FlameModel {
             "euler" => FlameSampler::Euler,
             "heun" => FlameSampler::Heun,
             "midpoint" => FlameSampler::Midpoint,
+            "lcm" => FlameSampler::Lcm,
             _ => FlameSampler::Default,
         };
         FlameModelInfo {

@@ -79,6 +79,8 @@ pub enum FlameSampler {
     Heun = 4,
     /// Flow matching: midpoint rule, two network evaluations per step.
     Midpoint = 5,
+    /// Latent consistency models (MotionLCM): 1 to 4 steps, the guidance embedded in one pass.
+    Lcm = 6,
 }
 
 /// How a session imposes the kept reference values ([`FlameEditParams::method`]).
@@ -743,9 +745,11 @@ unsafe fn session_params(p: &FlameSessionParams) -> Result<SessionParams, Fail> 
         3 => Some(Sampler::Euler),
         4 => Some(Sampler::Heun),
         5 => Some(Sampler::Midpoint),
+        6 => Some(Sampler::Lcm),
         s => {
             return Err(invalid_arg!(
-                "unknown sampler {s} (0 default, 1 DDPM, 2 DDIM, 3 Euler, 4 Heun, 5 midpoint)"
+                "unknown sampler {s} (0 default, 1 DDPM, 2 DDIM, 3 Euler, 4 Heun, 5 midpoint, 6 \
+                 LCM)"
             )
             .into())
         }

@@ -54,6 +54,29 @@ pub fn sinusoid_interleaved(p: f32, out: &mut [f32]) {
     }
 }
 
+/// The guidance-scale embedding of latent consistency distillation (MotionLCM's
+/// `get_guidance_scale_embedding`, as in diffusers' LCM pipelines; Dai-Wenxun/MotionLCM v2.0
+/// `mld/utils/utils.py`): with `half = dim/2`, `w' = 1000·w` and
+/// `f_i = exp(−(ln 10000 / (half − 1))·i)`, `out = [sin(w'·f_0..), cos(w'·f_0..)]` (sine first).
+/// Every factor is formed in f32 as PyTorch does (`torch.log(torch.tensor(10000.0))` is an f32
+/// scalar). `dim` is even and at least 4.
+pub fn guidance_embedding(w: f32, out: &mut [f32]) {
+    assert!(
+        out.len().is_multiple_of(2) && out.len() >= 4,
+        "guidance_embedding: dim must be even and at least 4"
+    );
+    let half = out.len() / 2;
+    let step = (LN_10000 as f32) / (half - 1) as f32;
+    let w = w * 1000.0;
+    let (sin, cos) = out.split_at_mut(half);
+    for (i, (s_out, c)) in sin.iter_mut().zip(cos.iter_mut()).enumerate() {
+        let f = exp_f32(i as f32 * -step);
+        let arg = (w * f) as f64;
+        *s_out = arg.sin() as f32;
+        *c = arg.cos() as f32;
+    }
+}
+
 /// Correctly rounded (barring double rounding) and platform-independent f32 exp.
 fn exp_f32(x: f32) -> f32 {
     (x as f64).exp() as f32
@@ -62,6 +85,15 @@ fn exp_f32(x: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn guidance_embedding_is_sine_first_over_half_minus_one() {
+        // dim 4: half 2, frequencies exp(0) = 1 and exp(−ln 10000) = 1e-4; w = 0.5 → w' = 500.
+        let mut e = [0f32; 4];
+        guidance_embedding(0.5, &mut e);
+        let want = [500f64.sin(), 0.05f64.sin(), 500f64.cos(), 0.05f64.cos()];
+        assert_close(&e, &want, 1e-6);
+    }
 
     fn assert_close(got: &[f32], want: &[f64], tol: f64) {
         assert_eq!(got.len(), want.len());

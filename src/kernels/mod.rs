@@ -25,7 +25,7 @@ mod testutil;
 pub use activation::{gelu_erf, gelu_tanh, quick_gelu, relu, silu, softmax_rows, tanh};
 pub use attention::{multi_head_attention, AttentionScratch};
 pub use elementwise::{add_bias, add_inplace, scale_inplace};
-pub use embedding::{embedding, sinusoid_cos_first, sinusoid_interleaved};
+pub use embedding::{embedding, guidance_embedding, sinusoid_cos_first, sinusoid_interleaved};
 pub use gemm::{linear, matmul_nn, matmul_nt};
 pub use norm::{add_layer_norm, layer_norm};
 pub use packed::{

@@ -151,6 +151,61 @@ impl FamilyConfig for MldFamily {
     }
 
     fn check(&self, cfg: &Config) -> Result<()> {
+        self.check_networks(cfg)?;
+        expect_text(cfg, &["clip"])?;
+        if let TextConfig::Clip(c) = &cfg.text_encoder {
+            if c.clip.projection_dim != self.denoiser.text_dim {
+                return Err(bad_file!(
+                    "config text_encoder.projection_dim {} differs from denoiser.text_dim {}",
+                    c.clip.projection_dim,
+                    self.denoiser.text_dim
+                ));
+            }
+        }
+        expect_flow(cfg, false)?;
+        refuse_learned_range(cfg)
+    }
+
+    fn validate(&self, file: &ModelFile) -> Result<()> {
+        self.validate_networks(file)
+    }
+
+    fn feature_dim(&self) -> usize {
+        self.vae.nfeats
+    }
+
+    fn max_frames(&self) -> usize {
+        self.vae.max_len
+    }
+
+    fn summary(&self) -> String {
+        let d = &self.denoiser;
+        format!(
+            "MLD skip transformer, {} layers x {}, {} heads, ff {}, latent {} x {}",
+            d.layers, d.latent_dim, d.heads, d.ff_size, d.latent_tokens, d.latent_dim
+        )
+    }
+
+    fn load(
+        &self,
+        file: &ModelFile,
+        _cfg: &Config,
+        _text: &TextModel,
+        ty: WeightType,
+    ) -> Result<Box<dyn Denoiser>> {
+        Ok(Box::new(MldDenoiser::load(file, self, ty)?))
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+impl MldFamily {
+    /// The denoiser's and the VAE decoder's sections, and the motion format against the
+    /// decoder's features (everything of [`FamilyConfig::check`] but the text encoder and the
+    /// diffusion section, which MotionLCM checks its own way).
+    pub(crate) fn check_networks(&self, cfg: &Config) -> Result<()> {
         let (d, v) = (&self.denoiser, &self.vae);
         in_range("denoiser.latent_dim", d.latent_dim, 1, MAX_WIDTH)?;
         heads_divide(
@@ -198,21 +253,11 @@ impl FamilyConfig for MldFamily {
                 cfg.motion.format
             ));
         }
-        expect_text(cfg, &["clip"])?;
-        if let TextConfig::Clip(c) = &cfg.text_encoder {
-            if c.clip.projection_dim != d.text_dim {
-                return Err(bad_file!(
-                    "config text_encoder.projection_dim {} differs from denoiser.text_dim {}",
-                    c.clip.projection_dim,
-                    d.text_dim
-                ));
-            }
-        }
-        expect_flow(cfg, false)?;
-        refuse_learned_range(cfg)
+        Ok(())
     }
 
-    fn validate(&self, file: &ModelFile) -> Result<()> {
+    /// Every size of the two networks against the file's shapes.
+    pub(crate) fn validate_networks(&self, file: &ModelFile) -> Result<()> {
         let (d, v) = (&self.denoiser, &self.vae);
         let e = d.latent_dim;
         let shape =
@@ -261,36 +306,6 @@ impl FamilyConfig for MldFamily {
             &[v.nfeats, e],
             "vae.nfeats, latent_dim",
         )
-    }
-
-    fn feature_dim(&self) -> usize {
-        self.vae.nfeats
-    }
-
-    fn max_frames(&self) -> usize {
-        self.vae.max_len
-    }
-
-    fn summary(&self) -> String {
-        let d = &self.denoiser;
-        format!(
-            "MLD skip transformer, {} layers x {}, {} heads, ff {}, latent {} x {}",
-            d.layers, d.latent_dim, d.heads, d.ff_size, d.latent_tokens, d.latent_dim
-        )
-    }
-
-    fn load(
-        &self,
-        file: &ModelFile,
-        _cfg: &Config,
-        _text: &TextModel,
-        ty: WeightType,
-    ) -> Result<Box<dyn Denoiser>> {
-        Ok(Box::new(MldDenoiser::load(file, self, ty)?))
-    }
-
-    fn as_any(&self) -> &dyn Any {
-        self
     }
 }
 
@@ -464,10 +479,41 @@ impl<L: StackLayer> SkipStack<L> {
     }
 }
 
+/// What MotionLCM (Dai-Wenxun/MotionLCM v1.0 f534a7f, v2.0 086f8db,
+/// `mld/models/architectures/mld_denoiser.py`, `mld_vae.py`) adds to MLD's networks; MLD itself
+/// has none of it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct LatentParts {
+    /// Channels of a latent token (C). When it differs from the width, `latent_pre` (C → D)
+    /// and `latent_post` (D → C) wrap the denoiser's stack and the VAE decoder's `latent_post`
+    /// (C → D) reads the latent (MotionLCM v2: 32 against 256).
+    pub channels: usize,
+    /// Width of the guidance embedding `time_embedding.cond_proj` takes (MotionLCM: 256).
+    pub cond_dim: Option<usize>,
+    /// Whether `emb_proj` applies ReLU before its Linear (MLD, MotionLCM v1) or nothing (v2).
+    pub text_relu: bool,
+}
+
+impl LatentParts {
+    /// MLD's own network: none of the additions.
+    pub(crate) fn mld(cfg: &MldConfig) -> LatentParts {
+        LatentParts {
+            channels: cfg.latent_dim,
+            cond_dim: None,
+            text_relu: true,
+        }
+    }
+}
+
 /// MLD's denoiser and VAE decoder.
 pub struct MldDenoiser {
     cfg: MldFamily,
+    parts: LatentParts,
     time: [Linear; 2],
+    /// `time_embedding.cond_proj` (no bias): the guidance embedding into the time sinusoid.
+    cond_proj: Option<Linear>,
+    /// `latent_pre` (C → D) and `latent_post` (D → C) around the stack.
+    latent_io: Option<[Linear; 2]>,
     emb_proj: Linear,
     /// `query_pos.pe` `[max_len, D]`.
     pe: Tensor,
@@ -479,6 +525,8 @@ pub struct MldDenoiser {
 #[derive(Default)]
 pub struct MldWorkspace {
     sinusoid: Vec<f32>,
+    guidance: Vec<f32>,
+    latent_in: Vec<f32>,
     hidden: Vec<f32>,
     time: Vec<f32>,
     text: Vec<f32>,
@@ -490,7 +538,18 @@ pub struct MldWorkspace {
 impl MldDenoiser {
     /// Reads the tensors (official names under `denoiser.` and `vae.`), in module order.
     pub fn load(file: &ModelFile, cfg: &MldFamily, ty: WeightType) -> Result<MldDenoiser> {
+        MldDenoiser::load_with(file, cfg, LatentParts::mld(&cfg.denoiser), ty)
+    }
+
+    /// [`MldDenoiser::load`] with MotionLCM's additions.
+    pub(crate) fn load_with(
+        file: &ModelFile,
+        cfg: &MldFamily,
+        parts: LatentParts,
+        ty: WeightType,
+    ) -> Result<MldDenoiser> {
         let d = &cfg.denoiser;
+        let c = parts.channels;
         let e = d.latent_dim;
         let lin =
             |name: &str, n_in, n_out| Linear::load(file, &format!("{D}{name}"), n_in, n_out, ty);
@@ -506,11 +565,27 @@ impl MldDenoiser {
                 lin("time_embedding.linear_1", d.text_dim, e)?,
                 lin("time_embedding.linear_2", e, e)?,
             ],
+            cond_proj: match parts.cond_dim {
+                Some(g) => Some(Linear::load_no_bias(
+                    file,
+                    &format!("{D}time_embedding.cond_proj"),
+                    g,
+                    d.text_dim,
+                    ty,
+                )?),
+                None => None,
+            },
+            latent_io: if c != e {
+                Some([lin("latent_pre", c, e)?, lin("latent_post", e, c)?])
+            } else {
+                None
+            },
             emb_proj: lin("emb_proj.1", d.text_dim, e)?,
             pe: file.tensor(&format!("{D}query_pos.pe"), &[d.max_len, 1, e])?,
             encoder: SkipStack::load(file, &format!("{D}encoder."), d.layers, true, shape, ty)?,
-            vae: VaeDecoder::load(file, &cfg.vae, ty)?,
+            vae: VaeDecoder::load(file, &cfg.vae, parts, ty)?,
             cfg: cfg.clone(),
+            parts,
         })
     }
 
@@ -536,11 +611,36 @@ impl MldDenoiser {
         ws: &mut MldWorkspace,
         cancel: &Cancel,
     ) -> Result<()> {
+        self.forward_guided(x, rows, t, None, texts, out, ws, cancel)
+    }
+
+    /// [`MldDenoiser::forward_texts`] over latents of `channels` per token, with the guidance
+    /// embedding of `w` added to the time sinusoid (MotionLCM: `w` is the scale minus 1;
+    /// required exactly when the network has `cond_proj`).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_guided(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        w: Option<f32>,
+        texts: &[&[f32]],
+        out: &mut [f32],
+        ws: &mut MldWorkspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
         let d = &self.cfg.denoiser;
         let (e, l, batch) = (d.latent_dim, d.latent_tokens, texts.len());
-        if rows != l || x.len() != batch * l * e || out.len() != batch * l * e {
+        let c = self.parts.channels;
+        if rows != l || x.len() != batch * l * c || out.len() != batch * l * c {
             return Err(invalid_arg!(
-                "forward buffers do not match batch {batch} × {l} latent tokens × {e}"
+                "forward buffers do not match batch {batch} × {l} latent tokens × {c}"
+            ));
+        }
+        if w.is_some() != self.cond_proj.is_some() {
+            return Err(invalid_arg!(
+                "this network {} a guidance embedding",
+                if w.is_some() { "takes no" } else { "needs" }
             ));
         }
         if let Some(v) = texts.iter().find(|v| v.len() != d.text_dim) {
@@ -553,6 +653,13 @@ impl MldDenoiser {
         let seq = l + 2;
         let sin = sized(&mut ws.sinusoid, d.text_dim);
         kernels::sinusoid_cos_first(t, sin);
+        if let (Some(proj), Some(w), Some(g)) = (&self.cond_proj, w, self.parts.cond_dim) {
+            let emb = sized(&mut ws.guidance, g);
+            kernels::guidance_embedding(w, emb);
+            let add = sized(&mut ws.hidden, d.text_dim);
+            proj.forward(emb, 1, add);
+            kernels::add_inplace(sin, add);
+        }
         let hidden = sized(&mut ws.hidden, e);
         self.time[0].forward(sin, 1, hidden);
         kernels::silu(hidden);
@@ -562,9 +669,19 @@ impl MldDenoiser {
         for (dst, v) in texts_in.chunks_exact_mut(d.text_dim).zip(texts) {
             dst.copy_from_slice(v);
         }
-        kernels::relu(texts_in);
+        if self.parts.text_relu {
+            kernels::relu(texts_in);
+        }
         let text = sized(&mut ws.text, batch * e);
         self.emb_proj.forward(texts_in, batch, text);
+        let x = match &self.latent_io {
+            Some([pre, _]) => {
+                let projected = sized(&mut ws.latent_in, batch * l * e);
+                pre.forward(x, batch * l, projected);
+                &*projected
+            }
+            None => x,
+        };
         let xs = sized(&mut ws.x, batch * seq * e);
         let pe = &self.pe.data()[..seq * e];
         for b in 0..batch {
@@ -576,8 +693,18 @@ impl MldDenoiser {
         }
         self.encoder
             .forward(xs, batch, seq, &[], 0, &mut ws.stack, cancel)?;
-        for b in 0..batch {
-            out[b * l * e..(b + 1) * l * e].copy_from_slice(&xs[b * seq * e..][..l * e]);
+        match &self.latent_io {
+            Some([_, post]) => {
+                for b in 0..batch {
+                    let tokens = &xs[b * seq * e..][..l * e];
+                    post.forward(tokens, l, &mut out[b * l * c..(b + 1) * l * c]);
+                }
+            }
+            None => {
+                for b in 0..batch {
+                    out[b * l * e..(b + 1) * l * e].copy_from_slice(&xs[b * seq * e..][..l * e]);
+                }
+            }
         }
         Ok(())
     }
@@ -585,7 +712,7 @@ impl MldDenoiser {
 
 impl Denoiser for MldDenoiser {
     fn sample_dim(&self) -> usize {
-        self.cfg.denoiser.latent_dim
+        self.parts.channels
     }
 
     /// The latent's tokens, whatever the length.
@@ -637,6 +764,11 @@ impl Denoiser for MldDenoiser {
             + self.time[0].weight_bytes()
             + self.time[1].weight_bytes()
             + self.emb_proj.weight_bytes()
+            + self.cond_proj.as_ref().map_or(0, |l| l.weight_bytes())
+            + self
+                .latent_io
+                .as_ref()
+                .map_or(0, |[a, b]| a.weight_bytes() + b.weight_bytes())
             + self.vae.weight_bytes()
     }
 
@@ -648,6 +780,9 @@ impl Denoiser for MldDenoiser {
 /// MLD's VAE decoder.
 pub struct VaeDecoder {
     cfg: MldVaeConfig,
+    /// `latent_post` (C → D), applied to the latent first (MotionLCM v2).
+    latent_post: Option<Linear>,
+    channels: usize,
     /// `query_pos_decoder.pe` `[max_len, D]`.
     pe: Tensor,
     decoder: SkipStack<DecoderLayer>,
@@ -658,12 +793,19 @@ pub struct VaeDecoder {
 #[derive(Default)]
 pub struct VaeWorkspace {
     x: Vec<f32>,
+    memory: Vec<f32>,
     stack: StackBuffers,
 }
 
 impl VaeDecoder {
-    fn load(file: &ModelFile, v: &MldVaeConfig, ty: WeightType) -> Result<VaeDecoder> {
+    fn load(
+        file: &ModelFile,
+        v: &MldVaeConfig,
+        parts: LatentParts,
+        ty: WeightType,
+    ) -> Result<VaeDecoder> {
         let e = v.latent_dim;
+        let c = parts.channels;
         let shape = LayerShape {
             width: e,
             heads: v.heads,
@@ -675,12 +817,20 @@ impl VaeDecoder {
             pe: file.tensor("vae.query_pos_decoder.pe", &[v.max_len, 1, e])?,
             decoder: SkipStack::load(file, "vae.decoder.", v.layers, v.final_norm, shape, ty)?,
             final_layer: Linear::load(file, "vae.final_layer", e, v.nfeats, ty)?,
+            latent_post: if c != e {
+                Some(Linear::load(file, "vae.latent_post", c, e, ty)?)
+            } else {
+                None
+            },
+            channels: c,
             cfg: v.clone(),
         })
     }
 
     fn weight_bytes(&self) -> usize {
-        self.decoder.weight_bytes() + self.final_layer.weight_bytes()
+        self.decoder.weight_bytes()
+            + self.final_layer.weight_bytes()
+            + self.latent_post.as_ref().map_or(0, |l| l.weight_bytes())
     }
 
     /// Decodes a latent of `rows` tokens into `frames` frames of features.
@@ -699,10 +849,26 @@ impl VaeDecoder {
                 self.cfg.max_len
             ));
         }
+        if latent.len() != rows * self.channels {
+            return Err(invalid_arg!(
+                "a latent of {rows} tokens × {} channels has {} values, got {}",
+                self.channels,
+                rows * self.channels,
+                latent.len()
+            ));
+        }
+        let memory = match &self.latent_post {
+            Some(post) => {
+                let m = sized(&mut ws.memory, rows * e);
+                post.forward(latent, rows, m);
+                &*m
+            }
+            None => latent,
+        };
         let x = sized(&mut ws.x, frames * e);
         x.copy_from_slice(&self.pe.data()[..frames * e]);
         self.decoder
-            .forward(x, 1, frames, latent, rows, &mut ws.stack, &Cancel::never())?;
+            .forward(x, 1, frames, memory, rows, &mut ws.stack, &Cancel::never())?;
         let y = sized(out, frames * self.cfg.nfeats);
         self.final_layer.forward(x, frames, y);
         Ok(())

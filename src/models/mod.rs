@@ -47,6 +47,7 @@ pub(crate) mod layers;
 pub mod mdm;
 pub mod mld;
 pub mod mola;
+pub mod motionlcm;
 pub mod omg;
 
 use std::any::Any;
@@ -61,7 +62,8 @@ use crate::edit::EditMethod;
 use crate::error::{bad_file, invalid_arg, Error, Result};
 use crate::motion::{Format, Normalization, ReadOptions};
 use crate::stages::Stage;
-use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder};
+use crate::text::t5::T5Encoder;
+use crate::text::{ClipTextEncoder, PromptInfo, TextEncoder, TextTokenizer};
 
 pub use crate::kernels::WeightType;
 pub use finemogen::{FinemogenDenoiser, FinemogenFamily};
@@ -69,6 +71,7 @@ pub use flame::{FlameCondition, FlameConfig, FlameDenoiser};
 pub use mdm::{MdmConfig, MdmDenoiser, TimeIndex};
 pub use mld::{MldDenoiser, MldFamily};
 pub use mola::{MolaDenoiser, MolaFamily};
+pub use motionlcm::{MotionLcmDenoiser, MotionLcmFamily};
 pub use omg::{OmgDenoiser, OmgFamily};
 
 /// Every family this build runs: the `architecture` values each reads, and its parser.
@@ -77,6 +80,7 @@ pub const FAMILIES: &[Family] = &[
     mdm::FAMILY,
     mola::FAMILY,
     mld::FAMILY,
+    motionlcm::FAMILY,
     finemogen::FAMILY,
     omg::FAMILY,
 ];
@@ -152,6 +156,9 @@ pub enum Guidance {
     Conditional,
     /// `uncond + w · (cond − uncond)`: two rows.
     Mix(f32),
+    /// The network takes the scale as an input (MotionLCM's guidance embedding of `w`, the
+    /// scale minus 1): one row, through [`Denoiser::forward_embedded`].
+    Embedded(f32),
 }
 
 /// What the session needs from a family's network; see the module comment.
@@ -212,6 +219,24 @@ pub trait Denoiser: Send + Sync {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()>;
+    /// [`Denoiser::forward`] for a network that takes the guidance as an input
+    /// ([`Guidance::Embedded`]), conditioned on `w`. Families without one refuse.
+    #[allow(clippy::too_many_arguments)]
+    fn forward_embedded(
+        &self,
+        _x: &[f32],
+        _rows: usize,
+        _t: f32,
+        _w: f32,
+        _conds: &[&Condition],
+        _out: &mut [f32],
+        _ws: &mut Workspace,
+        _cancel: &Cancel,
+    ) -> Result<()> {
+        Err(invalid_arg!(
+            "this model's network does not take the guidance scale as an input"
+        ))
+    }
     /// For latent families: what turns the sample into motion features. `None`: the sample
     /// is the motion.
     fn decoder(&self) -> Option<&dyn MotionDecoder> {
@@ -396,6 +421,15 @@ pub enum TextModel {
         /// (MDM: 22, docs/official/mdm.md#clip-prompt-encoding).
         context: usize,
     },
+    /// sentence-t5: the normalised sentence vector (MotionLCM).
+    T5 {
+        /// The T5 encoder with its Dense head.
+        encoder: T5Encoder,
+        /// The file's tokenizer.json (T5's Unigram; `</s>` appended, pad 0).
+        tokenizer: TextTokenizer,
+        /// Tokens a prompt keeps, `</s>` included (`text_encoder.max_length`).
+        max_length: usize,
+    },
 }
 
 impl TextModel {
@@ -405,7 +439,7 @@ impl TextModel {
             TextModel::Clip { encoder, context } => {
                 Ok(encoder.encode_through_end(prompt, *context)?.projected)
             }
-            TextModel::Bert(_) => Err(invalid_arg!("this model's text encoder is not CLIP")),
+            _ => Err(invalid_arg!("this model's text encoder is not CLIP")),
         }
     }
 
@@ -413,7 +447,31 @@ impl TextModel {
     pub fn clip_projection_dim(&self) -> usize {
         match self {
             TextModel::Clip { encoder, .. } => encoder.projection_dim(),
-            TextModel::Bert(_) => 0,
+            _ => 0,
+        }
+    }
+
+    /// sentence-t5's normalised vector of `prompt` (cut to `max_length` tokens, `</s>`
+    /// included); an error for other encoders.
+    pub fn t5_vector(&self, prompt: &str) -> Result<Vec<f32>> {
+        match self {
+            TextModel::T5 {
+                encoder,
+                tokenizer,
+                max_length,
+            } => {
+                let t = tokenizer.encode(prompt, *max_length, false)?;
+                encoder.sentence_embedding(&t.ids, &t.mask)
+            }
+            _ => Err(invalid_arg!("this model's text encoder is not T5")),
+        }
+    }
+
+    /// Width of [`TextModel::t5_vector`]'s vectors (0 for other encoders).
+    pub fn t5_dim(&self) -> usize {
+        match self {
+            TextModel::T5 { encoder, .. } => encoder.dims().out,
+            _ => 0,
         }
     }
 
@@ -421,6 +479,7 @@ impl TextModel {
         match self {
             TextModel::Bert(t) => t.linear_weight_bytes(),
             TextModel::Clip { encoder, .. } => encoder.linear_weight_bytes(),
+            TextModel::T5 { encoder, .. } => encoder.linear_weight_bytes(),
         }
     }
 }
@@ -573,6 +632,22 @@ impl Model {
                 )?,
                 context: c.max_length,
             },
+            TextConfig::T5(c) => {
+                let encoder = T5Encoder::load(
+                    &file,
+                    TEXT_PREFIX,
+                    Some(&format!("{TEXT_PREFIX}dense")),
+                    c.relative_attention_max_distance,
+                    text_ty,
+                )?;
+                // T5's `<pad>` is id 0; the tokenizer's ids must fit the embedding table.
+                let tokenizer = TextTokenizer::from_json(tokenizer, encoder.dims().vocab, 0)?;
+                TextModel::T5 {
+                    encoder,
+                    tokenizer,
+                    max_length: c.max_length,
+                }
+            }
         };
         let denoiser = config.denoiser.load(&file, &config, &text, ty)?;
         // The configuration's check has matched the format to the family's features.
@@ -613,7 +688,7 @@ impl Model {
     pub fn text_encoder(&self) -> Option<&TextEncoder> {
         match &self.text {
             TextModel::Bert(t) => Some(t),
-            TextModel::Clip { .. } => None,
+            _ => None,
         }
     }
 
@@ -713,6 +788,11 @@ impl Model {
         match &self.text {
             TextModel::Bert(t) => t.tokenizer().fit(prompt, t.max_length()),
             TextModel::Clip { encoder, context } => encoder.fit(prompt, *context),
+            TextModel::T5 {
+                tokenizer,
+                max_length,
+                ..
+            } => tokenizer.fit(prompt, *max_length),
         }
     }
 
@@ -767,6 +847,35 @@ impl Model {
             ));
         }
         self.denoiser.forward(x, rows, t, conds, out, ws, cancel)
+    }
+
+    /// [`Model::forward_cancellable`] with the guidance embedded as an input `w`
+    /// ([`Guidance::Embedded`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_embedded(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        w: f32,
+        conds: &[&Condition],
+        out: &mut [f32],
+        ws: &mut Workspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        if conds.is_empty() || conds.len() > MAX_BATCH {
+            return Err(invalid_arg!(
+                "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
+                conds.len()
+            ));
+        }
+        if !w.is_finite() {
+            return Err(invalid_arg!(
+                "the embedded guidance must be finite, got {w}"
+            ));
+        }
+        self.denoiser
+            .forward_embedded(x, rows, t, w, conds, out, ws, cancel)
     }
 
     /// Decodes a sample of a generation of `frames` frames into motion features (`[valid,

@@ -198,6 +198,18 @@ impl T5Encoder {
         self.dims
     }
 
+    /// Bytes of the packed linear weights.
+    pub fn linear_weight_bytes(&self) -> usize {
+        let block = |b: &Block| {
+            [&b.qkv, &b.o, &b.wi, &b.wo]
+                .iter()
+                .map(|d| d.weight_bytes())
+                .sum::<usize>()
+        };
+        self.blocks.iter().map(block).sum::<usize>()
+            + self.dense.as_ref().map_or(0, |d| d.weight_bytes())
+    }
+
     /// `last_hidden_state` (`[ids, d_model]`) of one unpadded token sequence.
     pub fn hidden(&self, ids: &[u32]) -> Result<Vec<f32>> {
         let (d, n) = (self.dims.d_model, ids.len());

@@ -109,6 +109,7 @@ class Sampler:
     EULER = 3
     HEUN = 4
     MIDPOINT = 5
+    LCM = 6
 
 
 class Which:
@@ -951,7 +952,8 @@ _LAYOUT_SHAPES = {
 }
 
 _SAMPLERS = {None: Sampler.DEFAULT, "default": Sampler.DEFAULT, "ddpm": Sampler.DDPM, "ddim": Sampler.DDIM,
-             "euler": Sampler.EULER, "heun": Sampler.HEUN, "midpoint": Sampler.MIDPOINT}
+             "euler": Sampler.EULER, "heun": Sampler.HEUN, "midpoint": Sampler.MIDPOINT,
+             "lcm": Sampler.LCM}
 _WHICH = {"sample": Which.SAMPLE, "estimate": Which.ESTIMATE}
 _EDIT_METHODS = {"auto": EditMethod.AUTO, "noised-reference": EditMethod.NOISED_REFERENCE,
                  "replace-x0": EditMethod.REPLACE_X0, "rewrite-trajectory": EditMethod.REWRITE_TRAJECTORY}

@@ -231,7 +231,7 @@ pub struct DenoiseArgs {
     /// Only for FLAME/MDM-style models (diffusion.spacing `respace`)
     #[arg(long, value_name = "SPEC")]
     pub respacing: Option<String>,
-    /// Sampler [ddpm|ddim (diffusion) or euler|heun|midpoint (flow matching); default: the model's]
+    /// Sampler [ddpm|ddim (diffusion), euler|heun|midpoint (flow matching) or lcm (latent consistency); default: the model's]
     #[arg(long, value_name = "NAME", value_parser = lib::<Sampler>)]
     pub sampler: Option<Sampler>,
     /// DDIM eta [default: the model's]

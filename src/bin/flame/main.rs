@@ -1500,6 +1500,15 @@ fn info(a: &InfoArgs) -> Result<(), String> {
             "text encoder:   clip ({} layers, {} wide, {} heads, vocab {}, projection {}, max {} tokens)",
             t.clip.layers, t.clip.width, t.clip.heads, t.clip.vocab_size, t.clip.projection_dim, t.max_length
         ),
+        TextConfig::T5(t) => {
+            if let flame::models::TextModel::T5 { encoder, .. } = model.text_model() {
+                let d = encoder.dims();
+                println!(
+                    "text encoder:   t5 v1.0 + sentence head ({} layers, {} wide, {} heads, vocab {}, vector {}, max {} tokens)",
+                    d.layers, d.d_model, d.heads, d.vocab, d.out, t.max_length
+                )
+            }
+        }
     }
     println!(
         "weights dtype:  {}",
