@@ -136,6 +136,9 @@ pub struct Session {
     target_params: TargetParams,
     /// L at the latest step's clean-motion estimate (before its guidance moved it).
     target_loss: Option<f64>,
+    /// The encoded trajectory control ([`Session::set_control`]), which every step's network
+    /// pass takes.
+    control: Option<Vec<f32>>,
     /// The frames of each stage when the condition has several: the sample is
     /// `[stages, longest stage, dim]` and the motion their concatenation.
     staged: Option<Vec<usize>>,
@@ -240,6 +243,8 @@ struct Predictor<'a> {
     uncond: Option<&'a Condition>,
     /// The session's guidance scale.
     scale: f32,
+    /// The encoded trajectory control, for networks that take one.
+    control: Option<&'a [f32]>,
     /// The condition is itself the unconditional input (a blank prompt), so mixing it with
     /// the unconditional pass would change nothing: one conditional pass (an embedded scale
     /// still goes in).
@@ -292,6 +297,7 @@ impl Predictor<'_> {
                 t,
                 w,
                 &both[..batch],
+                self.control,
                 &mut b.out,
                 &mut b.ws,
                 cancel,
@@ -388,6 +394,7 @@ impl Session {
             targets: None,
             target_params,
             target_loss: None,
+            control: None,
             staged: None,
             looping,
         })
@@ -658,6 +665,60 @@ impl Session {
     ) -> Result<()> {
         let t = PositionTargets::new(self.model.motion_format(), values, mask, convention)?;
         self.set_position_targets(t)
+    }
+
+    /// Follows joint positions with the model's trajectory ControlNet (MotionLCM's
+    /// `--control`): `targets`' positions where their weight is 1, over the first
+    /// `targets.frames()` frames (≤ the session's; later frames are free). Encoded once here;
+    /// every later step's network pass takes it. Allowed between steps. Models without a
+    /// ControlNet refuse (position targets steer those that take gradients).
+    pub fn set_control(&mut self, targets: &PositionTargets) -> Result<()> {
+        let format = self.model.motion_format();
+        if targets.format() != format {
+            return Err(invalid_arg!(
+                "the control is for {} joints; this model's motion is {format}",
+                targets.format()
+            ));
+        }
+        if targets.frames() > self.frames {
+            return Err(invalid_arg!(
+                "the control covers {} frames; the session has {}",
+                targets.frames(),
+                self.frames
+            ));
+        }
+        let model = Arc::clone(&self.model);
+        let frames = self.frames;
+        let encoded = self.pool.install(|| {
+            model
+                .denoiser()
+                .encode_control(frames, targets.positions(), targets.weights())
+        })?;
+        self.control = Some(encoded);
+        Ok(())
+    }
+
+    /// [`Session::set_control`] from `[frames × joints × 3]` values in `convention`, one mask
+    /// flag per value (nonzero = followed) or `None` (NaN = free), as position targets take
+    /// them.
+    pub fn set_control_values(
+        &mut self,
+        values: &[f32],
+        mask: Option<&[u8]>,
+        convention: crate::motion::Convention,
+    ) -> Result<()> {
+        let t = PositionTargets::new(self.model.motion_format(), values, mask, convention)?;
+        self.set_control(&t)
+    }
+
+    /// Removes the trajectory control: the next steps follow the prompt alone.
+    pub fn clear_control(&mut self) {
+        self.control = None;
+    }
+
+    /// Whether a trajectory control is set.
+    pub fn has_control(&self) -> bool {
+        self.control.is_some()
     }
 
     /// Position targets for an editing task from a reference motion (`[frames, feature_dim]`
@@ -1148,6 +1209,7 @@ impl Session {
             cond: self.cond.as_ref().expect("checked in step"),
             uncond: self.uncond.as_ref(),
             scale: self.guidance,
+            control: self.control.as_deref(),
             blank: unconditional,
         };
         let StepBuffers {

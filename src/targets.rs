@@ -278,6 +278,16 @@ impl PositionTargets {
         PositionTargets::from_positions(format, positions, frames, &keep)
     }
 
+    /// The target positions, `[frames × joints]`, in the format's native frame (metres).
+    pub fn positions(&self) -> &[Vec3] {
+        &self.target
+    }
+
+    /// One weight (0 or 1) per coordinate of [`PositionTargets::positions`].
+    pub fn weights(&self) -> &[Vec3] {
+        &self.weight
+    }
+
     /// The motion format whose joints the targets are given for.
     pub fn format(&self) -> Format {
         self.format

@@ -984,3 +984,77 @@ fn stream_takes_segments_with_part_texts_from_a_prompt_file() {
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// `flame generate` on a MotionLCM file: the file's sampler (lcm) and v2's guidance for the step
+/// count, a step count the release has no table for refused with the counts it has, and
+/// `flame info` naming the T5 text encoder. A stream is refused (MLD's VAE has no gradient).
+#[test]
+fn motionlcm_generates_in_its_step_counts() {
+    let d = scratch("motionlcm");
+    let path = |n: &str| d.join(n).display().to_string();
+    let v2 = repo("tests/fixtures/motionlcm_v2_tiny.safetensors")
+        .display()
+        .to_string();
+    let out = path("m.npy");
+    let generate = |steps: &str, out: &str| {
+        flame(&[
+            "generate",
+            "--model",
+            &v2,
+            "--prompt",
+            "a person walks forward and waves.",
+            "--steps",
+            steps,
+            "--frames",
+            "24",
+            "--seed",
+            "3",
+            "--out",
+            out,
+        ])
+    };
+    assert_ok(&generate("2", &out));
+    let (shape, x) = flame::npy::read_f32(Path::new(&out)).unwrap();
+    assert_eq!(shape, vec![24, 263]);
+    assert!(x.iter().all(|v| v.is_finite()));
+    // The same run through the library: same bits.
+    let model = std::sync::Arc::new(flame::models::Model::load(&v2).unwrap());
+    let params = flame::session::SessionParams {
+        frames: Some(24),
+        steps: Some(2),
+        seed: 3,
+        ..Default::default()
+    };
+    let mut s = flame::session::Session::new(model, &params).unwrap();
+    s.set_prompt("a person walks forward and waves.").unwrap();
+    s.run().unwrap();
+    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
+    assert_eq!(features, &x[..]);
+    let bad = path("bad.npy");
+    let o = generate("3", &bad);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no 3-step schedule here; it samples 1, 2, 4 steps"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!Path::new(&bad).exists(), "nothing written");
+    let info = stdout(&flame(&["info", &v2]));
+    assert!(info.contains("architecture:   motionlcm"), "{info}");
+    assert!(
+        info.contains("text encoder:   t5 v1.0 + sentence head"),
+        "{info}"
+    );
+    let o = flame(&[
+        "stream",
+        "--model",
+        &v2,
+        "--segment",
+        "walk@30",
+        "--out",
+        &bad,
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("gradient"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&d);
+}

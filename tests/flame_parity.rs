@@ -365,7 +365,7 @@ fn bad_model_files_get_clear_errors() {
     ));
     assert_eq!(
         e,
-        "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld, finemogen, omg)"
+        "bad model file: unknown architecture `unet` (supported: flame, mdm, motionfm, mola, mld, motionlcm, finemogen, omg)"
     );
     let e = load_err(&rewrite(|m| drop(m.remove("flame.tokenizer")), |_| {}));
     assert!(e.contains("flame.tokenizer"), "{e}");

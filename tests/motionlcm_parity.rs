@@ -90,6 +90,7 @@ fn one_denoiser_call_matches_reference() {
             p("t")[0],
             p("w")[0],
             &[&cond],
+            None,
             &mut out,
             &mut Workspace::default(),
             &flame::models::Cancel::never(),

@@ -2,9 +2,10 @@
 """PyTorch eager timings of a libflame model file, for comparison with `flame-bench`.
 
 Runs the same converted checkpoint through the reference modules (tools/reference/flame.py,
-mdm.py, mola.py, mld.py, finemogen.py or omg.py) with `torch.set_num_threads(N)`, the same frames, steps
-and guidance batch (conditional + unconditional rows in one batch of 2), and prints medians in
-the format flame-bench uses, plus one machine-readable `RESULT` line.
+mdm.py, mola.py, mld.py, motionlcm.py, finemogen.py or omg.py) with `torch.set_num_threads(N)`,
+the same frames, steps and guidance batch (conditional + unconditional rows in one batch of 2;
+MotionLCM: one row, its guidance embedded), and prints medians in the format flame-bench uses,
+plus one machine-readable `RESULT` line.
 
     python3 tools/bench_torch.py --model models/flame_base_random.safetensors \
         --frames 196 --steps 10 --threads 2 --runs 3
@@ -21,6 +22,17 @@ DDIM (eta 0) steps through `diffusers`' DDIMScheduler configured as each release
 then `scheduler.step` per step), then the VAE decode of the final latent (MoLA: with its
 valid-length cut). `gen` includes the decode, `decode` is also timed on its own (RESULT
 `decode_ms`). The text vector is random (CLIP is not in the reference modules; text is not timed).
+
+MotionLCM (v1 and v2) runs tools/reference/motionlcm.py as the releases sample: `text` is the
+sentence-t5-large vector of the prompt (tokenizer.json from the file, transformers'
+T5EncoderModel, mean pooling, the Dense layer, L2 normalisation; the prompt of flame-bench);
+a step is one denoiser pass with the guidance scale embedded through `cond_proj` (no
+unconditional row: the distilled model has none) and diffusers' LCMScheduler `step` (v1 its
+grid, v2 its timestep table; the re-noising draw between steps included); `decode` is the VAE
+decode of `--frames` frames; `gen` is the whole motion: the scheduler's timesteps, the guidance
+embedding, `steps` steps and the decode (the text computed once before, not included). The
+guidance is the file's for the step count (v1 7.5; v2 8.0 / 12.5 / 13.5 for 1 / 2 / 4 steps):
+the value does not change the time. RESULT as the latent models' (with `decode_ms`).
 
 FineMoGen runs tools/reference/finemogen.py as the release samples: `text` is CLIP (all 77
 positions) and the text encoder of the prompt (`condition`); a step is the network forward with
@@ -204,6 +216,83 @@ def latent_bench(arch, a):
     print(f"  VAE decode         {med(decodes):9.2f} ms")
     print(f"  whole generation   {med(gens):9.2f} ms  ({a.steps} steps and the decode)")
     print(f"RESULT impl=torch frames={a.frames} text_ms=nan step_ms={med(steps):.2f} "
+          f"gen_ms={med(gens):.2f} decode_ms={med(decodes):.2f}")
+
+
+def lcm_timesteps(ref, sch, cfg, steps):
+    """Sets `sch` (diffusers' LCMScheduler) for `steps` steps as tools/reference/diffusers_lcm.py
+    runs it: v1 `set_timesteps(n)` on its grid, v2 its table written into `timesteps`."""
+    table = ref.timesteps_for(cfg, steps)
+    if isinstance(table, int):
+        sch.set_timesteps(table)
+    else:
+        sch.set_timesteps(timesteps=[table[0]])
+        sch.timesteps = torch.tensor(table, dtype=torch.int64)
+        sch.num_inference_steps = len(table)
+    return sch.timesteps
+
+
+def motionlcm_bench(a):
+    """MotionLCM (v1 and v2): sentence-t5-large's vector of the prompt (`text`), one latent
+    consistency step (one denoiser pass with the guidance embedded, the LCMScheduler step),
+    the VAE decode and the whole motion (`steps` steps and the decode; the text once, before)."""
+    from diffusers.utils import logging as diffusers_logging
+    from reference import diffusers_lcm
+    from reference import motionlcm as ref_lcm
+    # v2's table starts below 999, which set_timesteps warns about on every run.
+    diffusers_logging.set_verbosity_error()
+    with torch.inference_mode():
+        den, dec, t5, tok, cfg = ref_lcm.load_libflame(a.model)
+        d = cfg["denoiser"]
+        release = "v2" if cfg["diffusion"]["lcm_timesteps"] == "motionlcm_v2" else "v1"
+        guidance = ref_lcm.guidance_for(cfg, a.steps)
+        sch = diffusers_lcm.scheduler()
+        torch.manual_seed(0)
+        z_t = torch.randn(1, d["latent_tokens"], d["latent_channels"])
+
+        def encode():
+            return ref_lcm.encode_text(t5, tok, PROMPT)
+
+        ids, vec = encode()  # warm-up
+        text = [ms(encode) for _ in range(a.runs)]
+        vec = vec[None]
+
+        def embed():
+            return ref_lcm.guidance_embedding(torch.tensor([guidance - 1.0]), d["cond_dim"])
+
+        def step(x, t, cond):
+            return sch.step(den(x, t.reshape(1), cond, vec), t, x).prev_sample
+
+        # Warm-up: one generation.
+        cond = embed()
+        x = z_t
+        for t in lcm_timesteps(ref_lcm, sch, cfg, a.steps):
+            x = step(x, t, cond)
+        dec(x, a.frames)
+        steps, gens, decodes = [], [], []
+        for _ in range(a.runs):
+            t0 = time.perf_counter()
+            timesteps = lcm_timesteps(ref_lcm, sch, cfg, a.steps)
+            cond = embed()
+            x = z_t
+            for t in timesteps:
+                ts = time.perf_counter()
+                x = step(x, t, cond)
+                steps.append((time.perf_counter() - ts) * 1e3)
+            td = time.perf_counter()
+            dec(x, a.frames)
+            decodes.append((time.perf_counter() - td) * 1e3)
+            gens.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median
+    print(f"torch {torch.__version__} eager, motionlcm {release}, frames {a.frames}, {a.steps} "
+          f"LCM steps {[int(t) for t in timesteps]} (diffusers), guidance {guidance} embedded "
+          f"(one pass per step), prompt {len(ids)} tokens, {a.threads} threads, {a.runs} runs "
+          f"(medians):")
+    print(f"  text encoding      {med(text):9.2f} ms  (sentence-t5-large)")
+    print(f"  one step           {med(steps):9.2f} ms")
+    print(f"  VAE decode         {med(decodes):9.2f} ms")
+    print(f"  whole generation   {med(gens):9.2f} ms  ({a.steps} steps and the decode)")
+    print(f"RESULT impl=torch frames={a.frames} text_ms={med(text):.2f} step_ms={med(steps):.2f} "
           f"gen_ms={med(gens):.2f} decode_ms={med(decodes):.2f}")
 
 
@@ -488,6 +577,9 @@ def main():
         arch = json.loads(f.metadata()["flame.config"])["architecture"]
     if arch in ("mola", "mld"):
         latent_bench(arch, a)
+        return
+    if arch == "motionlcm":
+        motionlcm_bench(a)
         return
     if arch == "finemogen":
         finemogen_bench(a)

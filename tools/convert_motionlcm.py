@@ -2,7 +2,8 @@
 
   python tools/convert.py motionlcm --ckpt motionlcm_humanml.ckpt --t5 SENTENCE_T5_DIR \
       --mean Mean.npy --std Std.npy --out M.safetensors [--heads 4] [--dtype f32|f16|bf16] \
-      [--frames 196] [--latent-tokens 16] [--skip-prefix P ...]
+      [--frames 196] [--latent-tokens 16] [--skip-prefix P ...] \
+      [--control-mean Mean_raw.npy --control-std Std_raw.npy]   (trajectory-control checkpoints)
 
 Both releases of github.com/Dai-Wenxun/MotionLCM are read: v1.0 (f534a7f) and v2.0 (086f8db).
 The release is told by the tensors: `denoiser.latent_pre.weight` present -> v2, else v1.
@@ -22,6 +23,17 @@ Sources (official repository, file at the tag):
 - text encoder: mld/models/architectures/mld_clip.py (SentenceTransformer(t5_path).encode) with
   t5_path ./deps/sentence-t5-large (prepare/prepare_t5.sh clones
   huggingface.co/sentence-transformers/sentence-t5-large).
+- trajectory control (ControlNet): mld/models/architectures/mld_denoiser.py with
+  is_controlnet=True (the `controlnet` copy of the denoiser: no final encoder norm,
+  `controlnet_cond_embedding`, `controlnet_down_mid_blocks`), mld/models/architectures/
+  mld_traj_encoder.py (`traj_encoder`), mld/models/modeltype/mld.py (the copy is built from the
+  denoiser's configuration with is_controlnet set; v1.0 `control_scale` from
+  configs/motionlcm_control.yaml, 1.0; the frame mask: v1.0 _diffusion_reverse `hint.sum(-1) != 0`,
+  v2.0 forward `hint_mask.view(bs, frames, -1).sum(-1) != 0`), configs/modules/traj_encoder.yaml
+  and configs/modules/denoiser.yaml (v2.0: hidden_dim 256, force_post_proj true,
+  controlnet_embed_dim 256, controlnet_act_fn silu), mld/data/humanml/dataset.py (the hint:
+  (joints - Mean_raw) / Std_raw times the 0/1 mask) and datasets/humanml_spatial_norm/
+  {Mean_raw,Std_raw}.npy (66 values at v1.0, [22, 3] at v2.0, the same numbers).
 
 ## Input
 
@@ -37,9 +49,14 @@ Sources (official repository, file at the tag):
   v2's `vae.latent_pre.*`, which maps the encoder's width to the latent channels) is skipped.
 - `t2m_textencoder.*`, `t2m_moveencoder.*`, `t2m_motionencoder.*` (the evaluators) and
   `text_encoder.*` (should a checkpoint carry the frozen text encoder) are skipped.
-- `controlnet.*`, `traj_encoder.*` (the trajectory-control checkpoints): refused, trajectory
-  control is not converted yet; `--skip-prefix controlnet. --skip-prefix traj_encoder.` converts
-  the text-to-motion part of such a checkpoint.
+- `controlnet.*`, `traj_encoder.*` (the trajectory-control checkpoints, configs/
+  motionlcm_control*.yaml): converted with --control-mean / --control-std (without them:
+  refused, naming the options); both prefixes must be present. `controlnet.latent_post.*` (v2:
+  the copy's unused output projection; its output is the residuals) and `controlnet.mem_pos.pe`
+  (trans_dec only) are recognised and dropped; any other unexpected `controlnet.*` /
+  `traj_encoder.*` tensor is an error naming it. `--skip-prefix controlnet. --skip-prefix
+  traj_encoder.` converts the text-to-motion part alone (the file is then the one a text-to-motion
+  checkpoint of the same denoiser gives).
 - anything else is an error naming it (`--skip-prefix P` skips more).
 
 `--t5`: a sentence-transformers folder as sentence-transformers/sentence-t5-large is published:
@@ -55,6 +72,11 @@ activation_function torch.nn.modules.linear.Identity} and its weight `linear.wei
 absent). T5's sizes come from the shapes and are checked against config.json.
 
 `--mean`, `--std`: HumanML3D Mean.npy / Std.npy (263 values) -> `motion.mean`, `motion.std`.
+
+`--control-mean`, `--control-std` (control checkpoints only): datasets/humanml_spatial_norm/
+Mean_raw.npy / Std_raw.npy of the MotionLCM repository, 66 values each (either [66] or [22, 3]),
+read as [22, 3] (joint, axis) -> `control.mean_raw`, `control.std_raw`; the std must be finite
+and > 0, the mean finite.
 
 ## Tensors of the file
 
@@ -82,6 +104,20 @@ P' = VAE position rows, B = (layers - 1) / 2:
       text.encoder.block.{i}.layer.1.layer_norm.weight; text.encoder.final_layer_norm.weight
   text.dense.weight [T, d_model]                              (sentence-transformers' Dense)
   motion.mean [263], motion.std [263]                         (float32 whatever --dtype)
+With trajectory control (E = the ControlNet's embed width: v1 D, v2 controlnet_embed_dim;
+N_t, F_t, P_t = the trajectory encoder's layers, ff size, position rows; its width must be D):
+  controlnet.{time_embedding.*, emb_proj.1.*, query_pos.pe, encoder.{input_blocks, middle_block,
+      output_blocks, linear_blocks}.*, latent_pre.* (v2)}   (the copy, the denoiser's names and
+      shapes, NO encoder.norm)
+  controlnet.controlnet_cond_embedding.{k}.{weight, bias}   v1: k = 0, 1, 2 each [D, D] (three
+      Linear, no activation); v2: 0 [E, C], 2 [E, E], 4 [C, E] (SiLU after 0 and 2)
+  controlnet.controlnet_down_mid_blocks.{i}.{weight [D, D], bias [D]}   i < layers
+  traj_encoder.skel_embedding.{weight [D, 66], bias [D]}
+  traj_encoder.global_motion_token [L, D]
+  traj_encoder.query_pos_encoder.pe [P_t, 1, D]
+  traj_encoder.encoder.* (the skip stack, with encoder.norm.{weight, bias})
+  traj_encoder.latent_proj.{weight [C, D], bias [C]}        (v2)
+  control.mean_raw [22, 3], control.std_raw [22, 3]          (float32 whatever --dtype)
 Metadata: `format` = `libflame`, `flame.config` (below), `flame.tokenizer` = tokenizer.json.
 
 ## Configuration (`flame.config`)
@@ -103,11 +139,18 @@ Metadata: `format` = `libflame`, `flame.config` (below), `flame.tokenizer` = tok
                  "original_inference_steps": 50 (v1) | 10 (v2), "timestep_scaling": 10.0},
    "defaults": {"sampler": "lcm", "steps": 1, "guidance": 7.5 (v1) | 8.0 (v2), "eta": 0.0,
                 "frames": --frames, "guidance_by_steps": null (v1) |
-                {"1": 8.0, "2": 12.5, "4": 13.5} (v2)}}
+                {"1": 8.0, "2": 12.5, "4": 13.5} (v2)},
+   "control": (trajectory-control files only; absent otherwise)
+               {"joints": 22, "layers": N_t, "heads" (--heads), "ff_size": F_t, "max_len": P_t,
+                "embed_activation": "none" (v1) | "silu" (v2), "embed_dim": E,
+                "frame_mask": "row_sum" (v1: a frame is attended when its 66 normalised masked
+                values do not sum to 0) | "mask" (v2: when any of its values is hinted),
+                "scale": 1.0 (v1 multiplies the residuals by control_scale 1.0; v2 does not)}}
 L: 1 for v1; for v2 the VAE's `global_motion_token` rows / 2 (its encoder makes mu and logvar
 tokens), else --latent-tokens (default 16, the released [16, 32]) - the denoiser's shapes do not
-tell it. The head counts are not in any shape (--heads, official 4). The text activation is told by
-the release (v2.0's configs/modules/denoiser.yaml sets text_act_fn null).
+tell it; a trajectory encoder's `global_motion_token` must have L rows. The head counts are not in
+any shape (--heads, official 4; also used for the ControlNet and the trajectory encoder). The text
+activation is told by the release (v2.0's configs/modules/denoiser.yaml sets text_act_fn null).
 """
 import json
 import os
@@ -115,11 +158,13 @@ import time
 
 import torch
 
-from convert import DTYPES, FORMAT_VERSION, ConvertError, read_stats, warn
+from convert import DTYPES, FORMAT_VERSION, ConvertError, cast, read_stats, warn
 from convert_latent import (MLD_SKIP_TOP, MLD_VAE_ENCODER, load_dict, mld_denoiser_shapes,
-                            mld_stack_layers, mld_vae_shapes, shape_of, take, write)
+                            mld_stack_layers, mld_stack_shapes, mld_vae_shapes, shape_of, take)
 
 CONTROL_TOP = ("controlnet.", "traj_encoder.")
+F32_TOP = ("motion.", "control.")  # statistics stay float32 whatever --dtype
+JOINTS = 22  # HumanML3D's joints (the hint's 66 = 22 x 3 values per frame)
 SKIP_TOP = MLD_SKIP_TOP
 VAE_ENCODER = MLD_VAE_ENCODER + ("vae.latent_pre.",)
 COND_PROJ = "time_embedding.cond_proj.weight"
@@ -291,14 +336,19 @@ def read_sentence_t5(folder, text_dim):
 
 # -- checkpoint -----------------------------------------------------------------------------------
 
-def split_checkpoint(state, what, skip_prefix):
-    den, vae, skipped, gmt = {}, {}, 0, None
+def split_checkpoint(state, what, skip_prefix, control_ok=False):
+    """(denoiser, vae, controlnet, traj_encoder, skipped count, vae.global_motion_token): the
+    tensors under each prefix with the prefix removed. A `controlnet.*` / `traj_encoder.*` tensor
+    not skipped is refused unless `control_ok` (--control-mean and --control-std given)."""
+    den, vae, ctl, traj, skipped, gmt = {}, {}, {}, {}, 0, None
     skip = SKIP_TOP + tuple(skip_prefix or ())
     control = sorted(k for k in state if k.startswith(CONTROL_TOP) and not k.startswith(skip))
-    if control:
+    if control and not control_ok:
         raise ConvertError(f"{what}: '{control[0]}' is a trajectory-control (ControlNet) tensor; "
-                           f"trajectory control is not converted yet (--skip-prefix controlnet. "
-                           f"--skip-prefix traj_encoder. converts the text-to-motion part)")
+                           f"converting trajectory control needs --control-mean Mean_raw.npy "
+                           f"--control-std Std_raw.npy (datasets/humanml_spatial_norm/ in the "
+                           f"MotionLCM repository); --skip-prefix controlnet. --skip-prefix "
+                           f"traj_encoder. converts the text-to-motion part alone")
     for k, v in state.items():
         if k.startswith("denoiser."):
             den[k[len("denoiser."):]] = v
@@ -306,6 +356,10 @@ def split_checkpoint(state, what, skip_prefix):
             if k == "vae.global_motion_token":
                 gmt = v
             skipped += 1
+        elif k.startswith("controlnet."):
+            ctl[k[len("controlnet."):]] = v
+        elif k.startswith("traj_encoder."):
+            traj[k[len("traj_encoder."):]] = v
         elif k.startswith("vae."):
             vae[k[len("vae."):]] = v
         else:
@@ -319,14 +373,130 @@ def split_checkpoint(state, what, skip_prefix):
     if any(k.startswith("decoder.") for k in den):
         raise ConvertError(f"{what}: a 'trans_dec' denoiser ('denoiser.decoder.*'); only the "
                            f"released 'trans_enc' denoiser is supported")
-    return den, vae, skipped, gmt
+    if bool(ctl) != bool(traj):
+        have, lack = ("controlnet", "traj_encoder") if ctl else ("traj_encoder", "controlnet")
+        raise ConvertError(f"{what}: '{have}.*' tensors without '{lack}.*' ones; trajectory "
+                           f"control needs both (or --skip-prefix both)")
+    return den, vae, ctl, traj, skipped, gmt
+
+
+def read_control_stats(path, what):
+    """Mean_raw.npy / Std_raw.npy: 66 values ([66] at v1.0, [22, 3] at v2.0) -> [22, 3] float32."""
+    import numpy as np
+    if not path or not os.path.isfile(path):
+        raise ConvertError(f"{path}: no such {what} file")
+    try:
+        a = np.load(path)
+    except Exception as e:  # noqa: BLE001 - any unreadable file
+        raise ConvertError(f"{path}: not a .npy array ({e})") from None
+    if a.size != 3 * JOINTS or a.shape not in ((3 * JOINTS,), (JOINTS, 3)):
+        raise ConvertError(f"{path}: {what} has shape {a.shape}, want [{3 * JOINTS}] or "
+                           f"[{JOINTS}, 3] (HumanML3D's 22 joints x 3 axes)")
+    a = a.astype(np.float64).reshape(JOINTS, 3)
+    if not np.isfinite(a).all():
+        raise ConvertError(f"{path}: {what} has NaN or Inf entries")
+    if what == "Std_raw" and (a <= 0).any():
+        j, x = (int(i) for i in np.argwhere(a <= 0)[0])
+        raise ConvertError(f"{path}: Std_raw must be > 0; joint {j} axis {x} is {a[j, x]}")
+    return torch.from_numpy(a).float()
+
+
+def control_part(ctl, traj, what, v2, dc, dshapes, heads, frames):
+    """Checks the ControlNet copy and the trajectory encoder against the denoiser's sizes;
+    returns ({file name: tensor}, the `control` configuration)."""
+    d, c, layers, tokens = (dc["latent_dim"], dc["latent_channels"], dc["layers"],
+                            dc["latent_tokens"])
+    # The copy: the denoiser's tensors without the final norm (is_controlnet) and without the
+    # unused output projection / memory positions.
+    ctl = dict(ctl)
+    for k in [k for k in ctl if k.startswith(("latent_post.", "mem_pos."))]:
+        ctl.pop(k)
+    cw = what + " controlnet.*"
+    if v2:
+        keys, acts = ("0", "2", "4"), "silu"
+        e = shape_of(ctl, "controlnet_cond_embedding.0.weight", cw, 2)[0]
+        emb = {"0": (e, c), "2": (e, e), "4": (c, e)}
+    else:
+        keys, acts, e = ("0", "1", "2"), "none", d
+        emb = {k: (d, d) for k in keys}
+    got = sorted({k.split(".")[1] for k in ctl if k.startswith("controlnet_cond_embedding.")})
+    if got != sorted(keys):
+        raise ConvertError(f"{what}: controlnet.controlnet_cond_embedding has modules {got}; the "
+                           f"{'v2' if v2 else 'v1'} ControlNet has Linear layers {list(keys)} "
+                           f"({'Linear, SiLU, Linear, SiLU, Linear' if v2 else 'three Linear'})")
+    shapes = {k: v for k, v in dshapes.items()
+              if not k.startswith(("encoder.norm.", "latent_post."))}
+    for k, (o, i) in emb.items():
+        shapes[f"controlnet_cond_embedding.{k}.weight"] = (o, i)
+        shapes[f"controlnet_cond_embedding.{k}.bias"] = (o,)
+    for i in range(layers):
+        shapes[f"controlnet_down_mid_blocks.{i}.weight"] = (d, d)
+        shapes[f"controlnet_down_mid_blocks.{i}.bias"] = (d,)
+    tensors = {"controlnet." + k: v
+               for k, v in take(ctl, shapes, what, "controlnet.").items()}
+
+    # The trajectory encoder.
+    tw = what + " traj_encoder.*"
+    dt, nin = shape_of(traj, "skel_embedding.weight", tw, 2)
+    if nin != 3 * JOINTS:
+        raise ConvertError(f"{what}: traj_encoder.skel_embedding.weight [{dt}, {nin}], want "
+                           f"[D, {3 * JOINTS}] (22 joints x 3)")
+    if dt != d:
+        raise ConvertError(f"{what}: the trajectory encoder's width {dt} != the denoiser's {d} "
+                           f"(the format has one width)")
+    lt = shape_of(traj, "global_motion_token", tw, 2)[0]
+    if lt != tokens:
+        raise ConvertError(f"{what}: traj_encoder.global_motion_token has {lt} rows, the latent "
+                           f"has {tokens} tokens (the encoder's output is the ControlNet's "
+                           f"condition, one row per latent token)")
+    if v2 != ("latent_proj.weight" in traj):
+        raise ConvertError(f"{what}: traj_encoder.latent_proj "
+                           f"{'missing' if v2 else 'present'}; the {'v2' if v2 else 'v1'} "
+                           f"trajectory encoder {'projects' if v2 else 'does not project'} its "
+                           f"output to the latent channels")
+    tc = {"joints": JOINTS, "layers": mld_stack_layers(traj, "encoder.", tw), "heads": heads,
+          "ff_size": shape_of(traj, "encoder.middle_block.linear1.weight", tw, 2)[0],
+          "max_len": shape_of(traj, "query_pos_encoder.pe", tw, 3)[0],
+          "embed_activation": acts, "embed_dim": e, "frame_mask": "mask" if v2 else "row_sum",
+          "scale": 1.0}
+    tshapes = {"skel_embedding.weight": (d, 3 * JOINTS), "skel_embedding.bias": (d,),
+               "global_motion_token": (tokens, d), "query_pos_encoder.pe": (tc["max_len"], 1, d)}
+    tshapes.update(mld_stack_shapes("encoder.", tc["layers"], d, tc["ff_size"], False, True))
+    if v2:
+        tshapes.update({"latent_proj.weight": (c, d), "latent_proj.bias": (c,)})
+    elif c != d:
+        raise ConvertError(f"{what}: the trajectory encoder's output width {d} != the latent "
+                           f"channels {c}")
+    tensors.update({"traj_encoder." + k: v
+                    for k, v in take(traj, tshapes, what, "traj_encoder.").items()})
+    if tc["max_len"] < tokens + frames:
+        raise ConvertError(f"{what}: traj_encoder.query_pos_encoder.pe has {tc['max_len']} rows; "
+                           f"{tokens} tokens + --frames {frames} need {tokens + frames}")
+    return tensors, tc
+
+
+def write_file(tensors, config, tokenizer, out, dtype_name):
+    """convert_latent.write, with `control.*` statistics kept float32 like `motion.*`."""
+    from safetensors.torch import save_file
+    dtype = DTYPES[dtype_name]
+    t = {k: (v.float().contiguous() if k.startswith(F32_TOP) else cast(v, dtype, k))
+         for k, v in tensors.items()}
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    save_file(t, out, metadata={"format": "libflame", "flame.config": json.dumps(config),
+                                "flame.tokenizer": tokenizer})
+    return sum(v.numel() for v in t.values()), len(t)
 
 
 def convert_motionlcm(args):
     t0 = time.perf_counter()
     state = load_dict(args.ckpt, "state_dict")
     what = f"{args.ckpt} (state_dict)"
-    den, vae, skipped, gmt = split_checkpoint(state, what, args.skip_prefix)
+    control_ok = bool(args.control_mean and args.control_std)
+    den, vae, ctl, traj, skipped, gmt = split_checkpoint(state, what, args.skip_prefix,
+                                                         control_ok)
+    if (args.control_mean or args.control_std) and not ctl:
+        raise ConvertError(f"{what}: --control-mean / --control-std given but the checkpoint has "
+                           f"no (unskipped) 'controlnet.*' / 'traj_encoder.*' tensors")
     v2 = "latent_pre.weight" in den
     den.pop("mem_pos.pe", None)  # trans_dec only; recognised, unused by trans_enc
     heads = args.heads
@@ -409,6 +579,12 @@ def convert_motionlcm(args):
         vshapes.update({"latent_post.weight": (dv, c), "latent_post.bias": (dv,)})
     tensors = {"denoiser." + k: v for k, v in take(den, dshapes, what, "denoiser.").items()}
     tensors.update({"vae." + k: v for k, v in take(vae, vshapes, what, "vae.").items()})
+    control_cfg = None
+    if ctl:
+        ctensors, control_cfg = control_part(ctl, traj, what, v2, dc, dshapes, heads, args.frames)
+        tensors.update(ctensors)
+        tensors["control.mean_raw"] = read_control_stats(args.control_mean, "Mean_raw")
+        tensors["control.std_raw"] = read_control_stats(args.control_std, "Std_raw")
 
     text_cfg, text, tokenizer, text_summary = read_sentence_t5(args.t5, t)
     tensors.update({"text." + k: v for k, v in text.items()})
@@ -428,12 +604,23 @@ def convert_motionlcm(args):
                      "frames": args.frames,
                      "guidance_by_steps": dict(V2_GUIDANCE) if v2 else None},
     }
-    n, count = write(tensors, config, tokenizer, args.out, args.dtype)
+    if control_cfg is not None:
+        config["control"] = control_cfg
+    n, count = write_file(tensors, config, tokenizer, args.out, args.dtype)
     print(f"wrote {args.out}: motionlcm {'v2' if v2 else 'v1'}, {count} tensors, {n / 1e6:.2f} M "
           f"values ({args.dtype}); latent [{lat_tokens}, {c}] width {d}/{dv} layers "
-          f"{dc['layers']}/{vc['layers']} heads {heads} cond {g}; {text_summary}; skipped "
+          f"{dc['layers']}/{vc['layers']} heads {heads} cond {g}; {text_summary}; "
+          f"{control_summary(control_cfg)}skipped "
           f"{skipped} tensors (VAE encoder, evaluators); {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def control_summary(tc):
+    if tc is None:
+        return ""
+    return (f"trajectory control: encoder {tc['layers']} layers ff {tc['ff_size']} rows "
+            f"{tc['max_len']}, embed {tc['embed_dim']} ({tc['embed_activation']}), frame mask "
+            f"{tc['frame_mask']}; ")
 
 
 def add_parsers(sub):
@@ -454,4 +641,9 @@ def add_parsers(sub):
     p.add_argument("--latent-tokens", type=int, default=None,
                    help="v2 latent tokens when the checkpoint has no vae.global_motion_token "
                         "(default 16)")
+    p.add_argument("--control-mean", default=None,
+                   help="trajectory control: Mean_raw.npy (datasets/humanml_spatial_norm/, 66 "
+                        "values); required with a controlnet.* checkpoint")
+    p.add_argument("--control-std", default=None,
+                   help="trajectory control: Std_raw.npy (66 values, > 0)")
     p.set_defaults(func=convert_motionlcm)

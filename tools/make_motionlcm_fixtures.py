@@ -102,40 +102,56 @@ def dump(path, obj):
 
 # -- 1. the tiny sentence-t5 folder -------------------------------------------------------------
 
-def canonical_tokenizer():
-    """make_t5_fixtures.tokenizer()'s Unigram model made reproducible: the `tokenizers` trainer
-    returns the same pieces on every run, but orders pieces of equal score differently and
-    jitters some single characters' scores by 1e-4 from run to run. The pieces are kept, the
-    scores rounded to 3 decimals and the ids assigned by (score descending, piece) after the three
-    specials (`<pad>` 0, `</s>` 1, `<unk>` 2); TOKENIZER_SHA256 pins the result."""
+def canonical_tokenizer(tok=None, digest=TOKENIZER_SHA256):
+    """make_t5_fixtures.tokenizer()'s Unigram model (or `tok`'s) made reproducible: the
+    `tokenizers` trainer returns the same pieces on every run, but orders pieces of equal score
+    differently and jitters some single characters' scores by 1e-4 from run to run. The pieces are
+    kept, the scores rounded to 3 decimals and the ids assigned by (score descending, piece) after
+    the three specials (`<pad>` 0, `</s>` 1, `<unk>` 2); `digest` (TOKENIZER_SHA256 for the
+    fixtures' tokenizer, None: not checked) pins the result."""
     from tokenizers import Tokenizer
-    j = json.loads(t5_tokenizer().to_str())
+    j = json.loads((tok or t5_tokenizer()).to_str())
     vocab = j["model"]["vocab"]
     assert [p for p, _ in vocab[:3]] == ["<pad>", "</s>", "<unk>"], vocab[:3]
     rest = sorted(((p, round(s, 3)) for p, s in vocab[3:]), key=lambda x: (-x[1], x[0]))
     j["model"]["vocab"] = [[p, 0.0] for p, _ in vocab[:3]] + [[p, s] for p, s in rest]
     tok = Tokenizer.from_str(json.dumps(j))
-    digest = hashlib.sha256(tok.to_str().encode()).hexdigest()
-    assert TOKENIZER_SHA256 is None or digest == TOKENIZER_SHA256, digest
+    got = hashlib.sha256(tok.to_str().encode()).hexdigest()
+    assert digest is None or got == digest, got
     return tok
+
+
+def tiny_init(name, p, gen):
+    """The fixtures' T5 weights: RMSNorm scales 1 + 0.3·N, everything else 0.3·N."""
+    base = 1.0 if "layer_norm" in name else 0.0
+    p.copy_(base + 0.3 * torch.randn(p.shape, generator=gen))
+
+
+def t5_encoder(tok, sizes=None, text_dim=TEXT_DIM, seed=SEEDS["t5"], init=tiny_init):
+    """(T5EncoderModel of `sizes` (T5's keyword arguments; default the tiny T5), dense weight
+    [text_dim, d_model]), every weight drawn by `init(name, tensor, generator)` in parameter
+    order, then the Dense weight (named "dense.weight")."""
+    from transformers import T5Config, T5EncoderModel
+    sizes = sizes or T5
+    cfg = T5Config(vocab_size=tok.get_vocab_size(), feed_forward_proj="relu",
+                   layer_norm_epsilon=1e-6, dropout_rate=0.0, is_encoder_decoder=False,
+                   use_cache=False, **sizes)
+    torch.manual_seed(seed)
+    model = T5EncoderModel(cfg).eval()
+    gen = torch.Generator().manual_seed(seed)
+    dense = torch.empty(text_dim, sizes["d_model"])
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            init(name, p, gen)
+        init("dense.weight", dense, gen)
+    return model, dense
 
 
 def tiny_t5():
     """(T5EncoderModel, dense weight [48, 32], tokenizer) with seeded nonzero weights."""
-    from transformers import T5Config, T5EncoderModel
     tok = canonical_tokenizer()
     assert tok.token_to_id("<pad>") == 0 and tok.token_to_id("</s>") == 1
-    cfg = T5Config(vocab_size=tok.get_vocab_size(), feed_forward_proj="relu",
-                   layer_norm_epsilon=1e-6, dropout_rate=0.0, is_encoder_decoder=False,
-                   use_cache=False, **T5)
-    torch.manual_seed(SEEDS["t5"])
-    model = T5EncoderModel(cfg).eval()
-    gen = torch.Generator().manual_seed(SEEDS["t5"])
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            base = 1.0 if "layer_norm" in name else 0.0
-            p.copy_(base + 0.3 * torch.randn(p.shape, generator=gen))
-    dense = 0.3 * torch.randn(TEXT_DIM, 32, generator=gen)
+    model, dense = t5_encoder(tok)
     return model, dense, tok
 
 
@@ -175,37 +191,47 @@ def write_folder(folder, model, dense, tok, binary, dense_cfg=DENSE, pooling=POO
 
 # -- 2. the tiny checkpoints --------------------------------------------------------------------
 
-def tiny_checkpoint(release):
-    """{'state_dict'} of a tiny MotionLCM in the official layout."""
-    tokens, channels = LATENT[release]
+def checkpoint(release, den=None, vae=None, latent=None, seed=None):
+    """{'state_dict'} of a MotionLCM in the official layout: `den` / `vae` the sizes (DEN, VAE
+    keys; default the tiny ones), `latent` (tokens, channels) (default LATENT[release]), `seed`
+    (default SEEDS[release])."""
+    den, vae = den or DEN, vae or VAE
+    tokens, channels = latent or LATENT[release]
+    seed = SEEDS[release] if seed is None else seed
     v2 = release == "v2"
-    torch.manual_seed(SEEDS[release])
-    den = motionlcm.Denoiser(DEN["latent_dim"], tokens, channels, DEN["text_dim"],
-                             DEN["cond_dim"], DEN["layers"], DEN["heads"], DEN["ff_size"],
-                             DEN["max_len"], "none" if v2 else "relu", v2)
-    dec = motionlcm.Decoder(VAE["latent_dim"], channels, VAE["layers"], VAE["heads"],
-                            VAE["ff_size"], VAE["nfeats"], VAE["max_len"], VAE["final_norm"], v2)
-    gen = torch.Generator().manual_seed(SEEDS[release])
-    randomize(den, gen)
+    torch.manual_seed(seed)
+    dnet = motionlcm.Denoiser(den["latent_dim"], tokens, channels, den["text_dim"],
+                              den["cond_dim"], den["layers"], den["heads"], den["ff_size"],
+                              den["max_len"], "none" if v2 else "relu", v2)
+    dec = motionlcm.Decoder(vae["latent_dim"], channels, vae["layers"], vae["heads"],
+                            vae["ff_size"], vae["nfeats"], vae["max_len"], vae["final_norm"], v2)
+    gen = torch.Generator().manual_seed(seed)
+    randomize(dnet, gen)
     randomize(dec, gen)
-    state = {"denoiser." + k: v.clone() for k, v in den.state_dict().items()}
+    state = {"denoiser." + k: v.clone() for k, v in dnet.state_dict().items()}
     state.update({"vae." + k: v.clone() for k, v in dec.state_dict().items()})
     assert state["denoiser.time_embedding.cond_proj.weight"].abs().min() > 0
     # What the converter must recognise and skip.
-    extra = {"vae.skel_embedding.weight": (WIDTH, 263), "vae.skel_embedding.bias": (WIDTH,),
-             "vae.global_motion_token": (2 * tokens, WIDTH),
-             "vae.query_pos_encoder.pe": (VAE["max_len"], 1, WIDTH),
-             "vae.encoder.middle_block.linear1.weight": (VAE["ff_size"], WIDTH),
-             "vae.encoder.norm.weight": (WIDTH,),
+    vw, dw = vae["latent_dim"], den["latent_dim"]
+    extra = {"vae.skel_embedding.weight": (vw, 263), "vae.skel_embedding.bias": (vw,),
+             "vae.global_motion_token": (2 * tokens, vw),
+             "vae.query_pos_encoder.pe": (vae["max_len"], 1, vw),
+             "vae.encoder.middle_block.linear1.weight": (vae["ff_size"], vw),
+             "vae.encoder.norm.weight": (vw,),
              "t2m_textencoder.input_emb.weight": (16, 8)}
     if v2:
-        extra.update({"vae.latent_pre.weight": (channels, WIDTH),
+        extra.update({"vae.latent_pre.weight": (channels, vw),
                       "vae.latent_pre.bias": (channels,)})
     else:
-        extra["denoiser.mem_pos.pe"] = (DEN["max_len"], 1, WIDTH)
+        extra["denoiser.mem_pos.pe"] = (den["max_len"], 1, dw)
     for k, shape in extra.items():
         state[k] = torch.randn(shape, generator=gen)
     return {"state_dict": state}
+
+
+def tiny_checkpoint(release):
+    """{'state_dict'} of a tiny MotionLCM in the official layout."""
+    return checkpoint(release)
 
 
 # -- 3. convert --------------------------------------------------------------------------------

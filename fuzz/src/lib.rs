@@ -8,10 +8,10 @@ pub static FIXTURES: [&[u8]; 3] = [
     include_bytes!("../../tests/fixtures/motionfm_tiny.safetensors"),
 ];
 
-/// Every fixture model family: [`FIXTURES`], the latent models (MLD, MoLA), FineMoGen and the
-/// OMG-style model. The model header targets pick from these; the others keep [`FIXTURES`],
+/// Every fixture model family: [`FIXTURES`], the latent models (MLD, MoLA), FineMoGen, the
+/// OMG-style model and MotionLCM v1 and v2. The model header targets pick from these; the others keep [`FIXTURES`],
 /// which their seeds' pick bytes were made for.
-pub static MODEL_FIXTURES: [&[u8]; 7] = [
+pub static MODEL_FIXTURES: [&[u8]; 9] = [
     FIXTURES[0],
     FIXTURES[1],
     FIXTURES[2],
@@ -19,6 +19,8 @@ pub static MODEL_FIXTURES: [&[u8]; 7] = [
     include_bytes!("../../tests/fixtures/mola_tiny.safetensors"),
     include_bytes!("../../tests/fixtures/finemogen_tiny.safetensors"),
     include_bytes!("../../tests/fixtures/omg_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/motionlcm_v1_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/motionlcm_v2_tiny.safetensors"),
 ];
 
 /// A safetensors file's header JSON text and its tensor data.

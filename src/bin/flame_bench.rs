@@ -4,9 +4,11 @@
 //! `flame-bench --model M [--frames 49,98,196,392] [--steps 10] [--sampler S (default: the model's)] [--threads 2]
 //!  [--runs 5] [--weights f32|f16|bf16|bf16-compute|int8]` also prints GFLOP/s of a step (linear layers and
 //! attention counted from the configuration) and the peak resident memory (VmHWM), and one
-//! `RESULT` line per frame count for tools/bench.sh. For a latent model (MoLA, MLD) the whole
-//! generation also decodes the final latent through the family's VAE decoder, and that decode is
-//! timed on its own as well (`decode_ms`).
+//! `RESULT` line per frame count for tools/bench.sh. For a latent model (MoLA, MLD, MotionLCM)
+//! the whole generation also decodes the final latent through the family's VAE decoder, and that
+//! decode is timed on its own as well (`decode_ms`). A step is what the session runs: the
+//! conditional and unconditional rows as one batch of two for classifier-free guidance, one row
+//! for MotionLCM (its guidance scale is embedded; `--guidance` does not change its time).
 //!
 //! `--targets` adds the cost of position targets: the same steps with a pelvis path on every
 //! frame, interleaved run by run with the plain ones.
@@ -65,7 +67,10 @@ use std::time::Instant;
 
 use flame::config::TextConfig;
 use flame::kernels::{self, linear_packed, Activation, PackedWeights, WeightType};
-use flame::models::{FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily, OmgFamily};
+use flame::models::mld::MldConfig;
+use flame::models::{
+    FinemogenFamily, FlameConfig, MdmConfig, MldFamily, MolaFamily, MotionLcmFamily, OmgFamily,
+};
 use flame::models::{LoadOptions, Model, Workspace};
 use flame::session::{Sampler, Session, SessionParams};
 use flame::stream::{Segment, Stream, StreamParams};
@@ -185,8 +190,23 @@ fn gemm_bench(args: &[String]) {
     }
 }
 
-/// Multiply-adds of one guided step (batch 2) in linear layers and in attention, from the
-/// configuration.
+/// Multiply-adds of MLD's skip transformer on `b` rows of `s` tokens each (latent tokens, time,
+/// text): the layers' in/out projections and feed-forward, the skip joins ([2D] -> D), and the
+/// attention products.
+fn mld_stack_macs(d: &MldConfig, b: f64) -> (f64, f64) {
+    let (e, ff) = (d.latent_dim as f64, d.ff_size as f64);
+    // The latent tokens, then the time and the text tokens.
+    let s = d.latent_tokens as f64 + 2.0;
+    let r = b * s;
+    let joins = (d.layers / 2) as f64;
+    let lin = d.layers as f64 * r * e * (4.0 * e + 2.0 * ff) + joins * r * 2.0 * e * e;
+    let attn = d.layers as f64 * b * 2.0 * s * s * e;
+    (lin, attn)
+}
+
+/// Multiply-adds of one guided step in linear layers and in attention, from the configuration:
+/// batch 2 (conditional and unconditional rows), except MotionLCM's one pass per step with the
+/// guidance embedded.
 fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
     let b = 2.0;
     let f = frames as f64;
@@ -237,16 +257,25 @@ fn step_macs(model: &Model, frames: usize) -> (f64, f64) {
         let attn = d.depth as f64 * b * 2.0 * s * s * e;
         (lin, attn)
     } else if let Some(m) = any.downcast_ref::<MldFamily>() {
+        mld_stack_macs(&m.denoiser, b)
+    } else if let Some(m) = any.downcast_ref::<MotionLcmFamily>() {
+        // MLD's network, one row: the guidance is embedded (no unconditional pass).
         let d = &m.denoiser;
-        let (e, ff) = (d.latent_dim as f64, d.ff_size as f64);
-        // The latent tokens, then the time and the text tokens.
-        let s = d.latent_tokens as f64 + 2.0;
-        let r = b * s;
-        // Layers (in/out projections, feed-forward) and the skip joins ([2D] -> D).
-        let joins = (d.layers / 2) as f64;
-        let lin = d.layers as f64 * r * e * (4.0 * e + 2.0 * ff) + joins * r * 2.0 * e * e;
-        let attn = d.layers as f64 * b * 2.0 * s * s * e;
-        (lin, attn)
+        let (lin, attn) = mld_stack_macs(&d.mld, 1.0);
+        let (e, c, t) = (
+            d.mld.latent_dim as f64,
+            d.latent_channels as f64,
+            d.mld.text_dim as f64,
+        );
+        // The time token (cond_proj, linear_1, linear_2) and the text token (emb_proj).
+        let tokens = d.cond_dim as f64 * t + t * e + e * e + t * e;
+        // v2's latent_pre (C -> D) and latent_post (D -> C) on every latent token.
+        let proj = if d.latent_channels != d.mld.latent_dim {
+            d.mld.latent_tokens as f64 * 2.0 * c * e
+        } else {
+            0.0
+        };
+        (lin + tokens + proj, attn)
     } else if let Some(m) = any.downcast_ref::<FinemogenFamily>() {
         let d = &m.denoiser;
         let (p, ffn, te) = (d.part_dim as f64, d.ffn_dim as f64, d.time_embed_dim as f64);
@@ -497,7 +526,7 @@ fn main() {
             kernels::f32_tile()
         );
         println!("  text encoding      {text:9.2} ms");
-        println!("  one guided step    {step:9.2} ms  ({:.1} GFLOP: {:.1} linear + {:.1} attention; {gflops:.1} GFLOP/s)",
+        println!("  one guided step    {step:9.2} ms  ({:.2} GFLOP: {:.2} linear + {:.2} attention; {gflops:.1} GFLOP/s)",
             2.0 * (lin + attn) / 1e9, 2.0 * lin / 1e9, 2.0 * attn / 1e9);
         if args.iter().any(|a| a == "--targets") {
             target_bench(&model, &mut session, runs);

@@ -176,6 +176,11 @@ impl Linear {
         }
     }
 
+    /// Output width.
+    pub(crate) fn outputs(&self) -> usize {
+        self.packed.outputs()
+    }
+
     /// `y[rows, out] = x[rows, in] · Wᵀ + b`.
     pub(crate) fn forward(&self, x: &[f32], rows: usize, y: &mut [f32]) {
         self.forward_act(x, rows, y, Activation::None);
@@ -276,6 +281,25 @@ impl Attention {
         out: &mut Vec<f32>,
         scratch: &mut AttentionScratch,
     ) {
+        self.self_attention_padded(x, batch, seq, e, heads, None, qkv, attn, out, scratch)
+    }
+
+    /// [`Attention::self_attention`] where `key_padding[j]` (one flag per row of a block, the
+    /// same for every block) excludes key `j`, as PyTorch's `src_key_padding_mask`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn self_attention_padded(
+        &self,
+        x: &[f32],
+        batch: usize,
+        seq: usize,
+        e: usize,
+        heads: usize,
+        key_padding: Option<&[bool]>,
+        qkv: &mut Vec<f32>,
+        attn: &mut Vec<f32>,
+        out: &mut Vec<f32>,
+        scratch: &mut AttentionScratch,
+    ) {
         let rows = batch * seq;
         let qkv = sized(qkv, rows * 3 * e);
         self.qkv.forward(x, rows, qkv);
@@ -294,7 +318,7 @@ impl Attention {
                 seq,
                 heads,
                 e / heads,
-                None,
+                key_padding,
                 false,
                 o,
             );
@@ -520,13 +544,28 @@ impl EncoderLayer {
         s: LayerShape,
         b: &mut LayerBuffers,
     ) {
+        self.forward_padded(x, batch, seq, None, s, b)
+    }
+
+    /// [`EncoderLayer::forward`] with keys excluded by `key_padding` (one flag per row of a
+    /// block).
+    pub(crate) fn forward_padded(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        key_padding: Option<&[bool]>,
+        s: LayerShape,
+        b: &mut LayerBuffers,
+    ) {
         let rows = batch * seq;
-        self.self_attn.self_attention(
+        self.self_attn.self_attention_padded(
             x,
             batch,
             seq,
             s.width,
             s.heads,
+            key_padding,
             &mut b.qkv,
             &mut b.attn,
             &mut b.proj,

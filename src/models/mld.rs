@@ -122,7 +122,7 @@ pub struct MldFamily {
 const D: &str = "denoiser.";
 
 /// Checks a skip stack of `layers` (odd) under `{p}`: its blocks and linear joins.
-fn check_stack(file: &ModelFile, field: &str, layers: usize, p: &str) -> Result<()> {
+pub(crate) fn check_stack(file: &ModelFile, field: &str, layers: usize, p: &str) -> Result<()> {
     in_range(field, layers, 1, MAX_LAYERS)?;
     if layers.is_multiple_of(2) {
         return Err(bad_file!(
@@ -311,11 +311,13 @@ impl MldFamily {
 
 /// A layer of a skip stack: runs over `batch` blocks of `seq` rows, with the memory rows of
 /// the block (decoder layers) or none.
-trait StackLayer {
+pub(crate) trait StackLayer {
     fn load(file: &ModelFile, p: &str, e: usize, ff: usize, ty: WeightType) -> Result<Self>
     where
         Self: Sized;
     fn weight_bytes(&self) -> usize;
+    /// `key_padding` (one flag per row of a block, true = excluded as a key) is for encoder
+    /// layers; decoder stacks pass none.
     #[allow(clippy::too_many_arguments)]
     fn run(
         &self,
@@ -324,6 +326,7 @@ trait StackLayer {
         seq: usize,
         memory: &[f32],
         mem_len: usize,
+        key_padding: Option<&[bool]>,
         s: LayerShape,
         b: &mut LayerBuffers,
     );
@@ -343,10 +346,11 @@ impl StackLayer for EncoderLayer {
         seq: usize,
         _memory: &[f32],
         _mem_len: usize,
+        key_padding: Option<&[bool]>,
         s: LayerShape,
         b: &mut LayerBuffers,
     ) {
-        self.forward(x, batch, seq, s, b)
+        self.forward_padded(x, batch, seq, key_padding, s, b)
     }
 }
 
@@ -364,16 +368,18 @@ impl StackLayer for DecoderLayer {
         seq: usize,
         memory: &[f32],
         mem_len: usize,
+        key_padding: Option<&[bool]>,
         s: LayerShape,
         b: &mut LayerBuffers,
     ) {
+        debug_assert!(key_padding.is_none(), "decoder stacks run unmasked");
         self.forward(x, batch, seq, memory, mem_len, s, b)
     }
 }
 
 /// MLD's U-shaped stack (`input_blocks`, `middle_block`, `output_blocks`, `linear_blocks`,
 /// `norm`).
-struct SkipStack<L> {
+pub(crate) struct SkipStack<L> {
     input: Vec<L>,
     middle: L,
     output: Vec<L>,
@@ -382,16 +388,27 @@ struct SkipStack<L> {
     shape: LayerShape,
 }
 
+/// What [`SkipStack::forward_taps`] adds to a plain pass.
+#[derive(Default)]
+pub(crate) struct Taps<'a> {
+    /// One flag per row of a block: true excludes the row as a key (a single block).
+    pub key_padding: Option<&'a [bool]>,
+    /// `[blocks, rows, width]`: added to the output of block i.
+    pub residuals: Option<&'a [f32]>,
+    /// Receives `[blocks, rows, width]`: every block's output.
+    pub collect: Option<&'a mut Vec<f32>>,
+}
+
 /// Buffers of a skip stack's forward pass.
 #[derive(Default)]
-struct StackBuffers {
+pub(crate) struct StackBuffers {
     layer: LayerBuffers,
     skips: Vec<Vec<f32>>,
     cat: Vec<f32>,
 }
 
 impl<L: StackLayer> SkipStack<L> {
-    fn load(
+    pub(crate) fn load(
         file: &ModelFile,
         p: &str,
         layers: usize,
@@ -422,7 +439,7 @@ impl<L: StackLayer> SkipStack<L> {
         })
     }
 
-    fn weight_bytes(&self) -> usize {
+    pub(crate) fn weight_bytes(&self) -> usize {
         self.input
             .iter()
             .chain(&self.output)
@@ -444,18 +461,54 @@ impl<L: StackLayer> SkipStack<L> {
         b: &mut StackBuffers,
         cancel: &Cancel,
     ) -> Result<()> {
+        self.forward_taps(x, batch, seq, memory, mem_len, Taps::default(), b, cancel)
+    }
+
+    /// [`SkipStack::forward`] with MotionLCM's taps: a key padding mask, ControlNet residuals
+    /// added after every block (before the skip is kept and before the final norm, as
+    /// Dai-Wenxun/MotionLCM v2.0 `mld/models/operator/attention.py` adds them), and every
+    /// block's output collected (the ControlNet's own pass).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward_taps(
+        &self,
+        x: &mut [f32],
+        batch: usize,
+        seq: usize,
+        memory: &[f32],
+        mem_len: usize,
+        mut taps: Taps<'_>,
+        b: &mut StackBuffers,
+        cancel: &Cancel,
+    ) -> Result<()> {
         let (s, e) = (self.shape, self.shape.width);
         let rows = batch * seq;
+        let n = rows * e;
+        let kp = taps.key_padding;
+        if let Some(c) = taps.collect.as_deref_mut() {
+            c.clear();
+        }
+        let mut block = 0;
+        let mut tap = |x: &mut [f32], taps: &mut Taps<'_>| {
+            if let Some(r) = taps.residuals {
+                kernels::add_inplace(x, &r[block * n..(block + 1) * n]);
+            }
+            if let Some(c) = taps.collect.as_deref_mut() {
+                c.extend_from_slice(x);
+            }
+            block += 1;
+        };
         b.skips.resize_with(self.input.len(), Vec::new);
         for (layer, skip) in self.input.iter().zip(b.skips.iter_mut()) {
             cancel.check()?;
-            layer.run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+            layer.run(x, batch, seq, memory, mem_len, kp, s, &mut b.layer);
+            tap(x, &mut taps);
             skip.clear();
             skip.extend_from_slice(x);
         }
         cancel.check()?;
         self.middle
-            .run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+            .run(x, batch, seq, memory, mem_len, kp, s, &mut b.layer);
+        tap(x, &mut taps);
         for (i, (layer, join)) in self.output.iter().zip(&self.joins).enumerate() {
             cancel.check()?;
             // Skips last in, first out: output block i joins input block n − 1 − i.
@@ -470,12 +523,18 @@ impl<L: StackLayer> SkipStack<L> {
                 c[e..].copy_from_slice(sr);
             }
             join.forward(cat, rows, x);
-            layer.run(x, batch, seq, memory, mem_len, s, &mut b.layer);
+            layer.run(x, batch, seq, memory, mem_len, kp, s, &mut b.layer);
+            tap(x, &mut taps);
         }
         if let Some(n) = &self.norm {
             kernels::layer_norm(x, e, n.weight.data(), n.bias.data(), s.eps);
         }
         Ok(())
+    }
+
+    /// Blocks of the stack (the residuals a ControlNet provides, one per block).
+    fn blocks(&self) -> usize {
+        2 * self.input.len() + 1
     }
 }
 
@@ -505,6 +564,20 @@ impl LatentParts {
     }
 }
 
+/// MotionLCM v2's projections between the latent's channels and the width.
+struct LatentIo {
+    /// `latent_pre` (C → D).
+    pre: Linear,
+    /// `latent_post` (D → C); none in a ControlNet's copy.
+    post: Option<Linear>,
+}
+
+impl LatentIo {
+    fn weight_bytes(&self) -> usize {
+        self.pre.weight_bytes() + self.post.as_ref().map_or(0, Linear::weight_bytes)
+    }
+}
+
 /// MLD's denoiser and VAE decoder.
 pub struct MldDenoiser {
     cfg: MldFamily,
@@ -513,12 +586,24 @@ pub struct MldDenoiser {
     /// `time_embedding.cond_proj` (no bias): the guidance embedding into the time sinusoid.
     cond_proj: Option<Linear>,
     /// `latent_pre` (C → D) and `latent_post` (D → C) around the stack.
-    latent_io: Option<[Linear; 2]>,
+    latent_io: Option<LatentIo>,
     emb_proj: Linear,
     /// `query_pos.pe` `[max_len, D]`.
     pe: Tensor,
     encoder: SkipStack<EncoderLayer>,
-    vae: VaeDecoder,
+    /// The VAE decoder (none in a ControlNet's copy of the denoiser).
+    vae: Option<VaeDecoder>,
+}
+
+/// How [`MldDenoiser::load_part`] reads a denoiser: MLD's (and MotionLCM's) own under
+/// `denoiser.` with the VAE decoder and the stack's final norm, or a ControlNet's copy under
+/// `controlnet.` without either.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Part<'a> {
+    /// Tensor name prefix.
+    pub prefix: &'a str,
+    /// Whether the stack ends in `encoder.norm` and the file holds the VAE decoder.
+    pub main: bool,
 }
 
 /// Reusable buffers of the denoiser.
@@ -548,11 +633,27 @@ impl MldDenoiser {
         parts: LatentParts,
         ty: WeightType,
     ) -> Result<MldDenoiser> {
+        let part = Part {
+            prefix: D,
+            main: true,
+        };
+        MldDenoiser::load_part(file, cfg, parts, part, ty)
+    }
+
+    /// [`MldDenoiser::load_with`] of the denoiser `part` names.
+    pub(crate) fn load_part(
+        file: &ModelFile,
+        cfg: &MldFamily,
+        parts: LatentParts,
+        part: Part<'_>,
+        ty: WeightType,
+    ) -> Result<MldDenoiser> {
         let d = &cfg.denoiser;
         let c = parts.channels;
         let e = d.latent_dim;
+        let p = part.prefix;
         let lin =
-            |name: &str, n_in, n_out| Linear::load(file, &format!("{D}{name}"), n_in, n_out, ty);
+            |name: &str, n_in, n_out| Linear::load(file, &format!("{p}{name}"), n_in, n_out, ty);
         let shape = LayerShape {
             width: e,
             heads: d.heads,
@@ -568,22 +669,40 @@ impl MldDenoiser {
             cond_proj: match parts.cond_dim {
                 Some(g) => Some(Linear::load_no_bias(
                     file,
-                    &format!("{D}time_embedding.cond_proj"),
+                    &format!("{p}time_embedding.cond_proj"),
                     g,
                     d.text_dim,
                     ty,
                 )?),
                 None => None,
             },
-            latent_io: if c != e {
-                Some([lin("latent_pre", c, e)?, lin("latent_post", e, c)?])
+            latent_io: match (c != e, part.main) {
+                (true, true) => Some(LatentIo {
+                    pre: lin("latent_pre", c, e)?,
+                    post: Some(lin("latent_post", e, c)?),
+                }),
+                // A ControlNet's output is its blocks' residuals: its `latent_post` is unused.
+                (true, false) => Some(LatentIo {
+                    pre: lin("latent_pre", c, e)?,
+                    post: None,
+                }),
+                (false, _) => None,
+            },
+            emb_proj: lin("emb_proj.1", d.text_dim, e)?,
+            pe: file.tensor(&format!("{p}query_pos.pe"), &[d.max_len, 1, e])?,
+            encoder: SkipStack::load(
+                file,
+                &format!("{p}encoder."),
+                d.layers,
+                part.main,
+                shape,
+                ty,
+            )?,
+            vae: if part.main {
+                Some(VaeDecoder::load(file, &cfg.vae, parts, ty)?)
             } else {
                 None
             },
-            emb_proj: lin("emb_proj.1", d.text_dim, e)?,
-            pe: file.tensor(&format!("{D}query_pos.pe"), &[d.max_len, 1, e])?,
-            encoder: SkipStack::load(file, &format!("{D}encoder."), d.layers, true, shape, ty)?,
-            vae: VaeDecoder::load(file, &cfg.vae, parts, ty)?,
             cfg: cfg.clone(),
             parts,
         })
@@ -594,9 +713,9 @@ impl MldDenoiser {
         &self.cfg
     }
 
-    /// The VAE decoder.
-    pub fn vae(&self) -> &VaeDecoder {
-        &self.vae
+    /// The VAE decoder (`None` for a ControlNet's copy of the denoiser).
+    pub fn vae(&self) -> Option<&VaeDecoder> {
+        self.vae.as_ref()
     }
 
     /// The denoiser alone: `x` is `[batch, latent_tokens, latent_dim]`, ε out the same.
@@ -611,12 +730,13 @@ impl MldDenoiser {
         ws: &mut MldWorkspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        self.forward_guided(x, rows, t, None, texts, out, ws, cancel)
+        self.forward_guided(x, rows, t, None, texts, None, out, ws, cancel)
     }
 
     /// [`MldDenoiser::forward_texts`] over latents of `channels` per token, with the guidance
     /// embedding of `w` added to the time sinusoid (MotionLCM: `w` is the scale minus 1;
-    /// required exactly when the network has `cond_proj`).
+    /// required exactly when the network has `cond_proj`) and ControlNet residuals
+    /// (`[blocks, batch × (latent_tokens + 2), latent_dim]`) added after each block.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward_guided(
         &self,
@@ -625,6 +745,7 @@ impl MldDenoiser {
         t: f32,
         w: Option<f32>,
         texts: &[&[f32]],
+        residuals: Option<&[f32]>,
         out: &mut [f32],
         ws: &mut MldWorkspace,
         cancel: &Cancel,
@@ -632,7 +753,54 @@ impl MldDenoiser {
         let d = &self.cfg.denoiser;
         let (e, l, batch) = (d.latent_dim, d.latent_tokens, texts.len());
         let c = self.parts.channels;
-        if rows != l || x.len() != batch * l * c || out.len() != batch * l * c {
+        if out.len() != batch * l * c {
+            return Err(invalid_arg!(
+                "forward buffers do not match batch {batch} × {l} latent tokens × {c}"
+            ));
+        }
+        let taps = Taps {
+            residuals,
+            ..Taps::default()
+        };
+        self.sequence(x, rows, t, w, texts, taps, ws, cancel)?;
+        let seq = l + 2;
+        let xs = &ws.x[..batch * seq * e];
+        match &self.latent_io {
+            Some(LatentIo {
+                post: Some(post), ..
+            }) => {
+                for b in 0..batch {
+                    let tokens = &xs[b * seq * e..][..l * e];
+                    post.forward(tokens, l, &mut out[b * l * c..(b + 1) * l * c]);
+                }
+            }
+            _ => {
+                for b in 0..batch {
+                    out[b * l * e..(b + 1) * l * e].copy_from_slice(&xs[b * seq * e..][..l * e]);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The whole token sequence `[batch, latent_tokens + 2, latent_dim]` after the stack, in
+    /// `ws.x`, with `taps` (a ControlNet's copy collects its blocks' outputs through them).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn sequence(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        w: Option<f32>,
+        texts: &[&[f32]],
+        taps: Taps<'_>,
+        ws: &mut MldWorkspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let d = &self.cfg.denoiser;
+        let (e, l, batch) = (d.latent_dim, d.latent_tokens, texts.len());
+        let c = self.parts.channels;
+        if rows != l || x.len() != batch * l * c {
             return Err(invalid_arg!(
                 "forward buffers do not match batch {batch} × {l} latent tokens × {c}"
             ));
@@ -675,9 +843,9 @@ impl MldDenoiser {
         let text = sized(&mut ws.text, batch * e);
         self.emb_proj.forward(texts_in, batch, text);
         let x = match &self.latent_io {
-            Some([pre, _]) => {
+            Some(io) => {
                 let projected = sized(&mut ws.latent_in, batch * l * e);
-                pre.forward(x, batch * l, projected);
+                io.pre.forward(x, batch * l, projected);
                 &*projected
             }
             None => x,
@@ -691,22 +859,17 @@ impl MldDenoiser {
             blk[(l + 1) * e..].copy_from_slice(&text[b * e..(b + 1) * e]);
             kernels::add_inplace(blk, pe);
         }
-        self.encoder
-            .forward(xs, batch, seq, &[], 0, &mut ws.stack, cancel)?;
-        match &self.latent_io {
-            Some([_, post]) => {
-                for b in 0..batch {
-                    let tokens = &xs[b * seq * e..][..l * e];
-                    post.forward(tokens, l, &mut out[b * l * c..(b + 1) * l * c]);
-                }
-            }
-            None => {
-                for b in 0..batch {
-                    out[b * l * e..(b + 1) * l * e].copy_from_slice(&xs[b * seq * e..][..l * e]);
-                }
+        if let Some(r) = taps.residuals {
+            let need = self.encoder.blocks() * batch * seq * e;
+            if r.len() != need {
+                return Err(invalid_arg!(
+                    "ControlNet residuals hold {} values, the stack takes {need}",
+                    r.len()
+                ));
             }
         }
-        Ok(())
+        self.encoder
+            .forward_taps(xs, batch, seq, &[], 0, taps, &mut ws.stack, cancel)
     }
 }
 
@@ -756,7 +919,7 @@ impl Denoiser for MldDenoiser {
     }
 
     fn decoder(&self) -> Option<&dyn MotionDecoder> {
-        Some(&self.vae)
+        self.vae.as_ref().map(|v| v as &dyn MotionDecoder)
     }
 
     fn linear_weight_bytes(&self) -> usize {
@@ -765,11 +928,8 @@ impl Denoiser for MldDenoiser {
             + self.time[1].weight_bytes()
             + self.emb_proj.weight_bytes()
             + self.cond_proj.as_ref().map_or(0, |l| l.weight_bytes())
-            + self
-                .latent_io
-                .as_ref()
-                .map_or(0, |[a, b]| a.weight_bytes() + b.weight_bytes())
-            + self.vae.weight_bytes()
+            + self.latent_io.as_ref().map_or(0, LatentIo::weight_bytes)
+            + self.vae.as_ref().map_or(0, VaeDecoder::weight_bytes)
     }
 
     fn as_any(&self) -> &dyn Any {

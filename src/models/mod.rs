@@ -219,8 +219,29 @@ pub trait Denoiser: Send + Sync {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()>;
+    /// Whether the network takes a control signal from joint positions
+    /// ([`Denoiser::encode_control`]: MotionLCM's trajectory ControlNet).
+    fn takes_control(&self) -> bool {
+        false
+    }
+    /// Encodes joint positions to follow for a generation of `frames` frames into the control
+    /// value [`Denoiser::forward_embedded`] takes: `positions` and `weights` (0 or 1 per
+    /// coordinate) are `[hint frames × joints]` in the motion format's native frame (metres),
+    /// hint frames ≤ `frames`. Families without control refuse.
+    fn encode_control(
+        &self,
+        _frames: usize,
+        _positions: &[[f64; 3]],
+        _weights: &[[f64; 3]],
+    ) -> Result<Vec<f32>> {
+        Err(invalid_arg!(
+            "this model has no trajectory control (a ControlNet); steer it with position \
+             targets where its family takes them"
+        ))
+    }
     /// [`Denoiser::forward`] for a network that takes the guidance as an input
-    /// ([`Guidance::Embedded`]), conditioned on `w`. Families without one refuse.
+    /// ([`Guidance::Embedded`]), conditioned on `w` and on `control` (from
+    /// [`Denoiser::encode_control`]). Families without one refuse.
     #[allow(clippy::too_many_arguments)]
     fn forward_embedded(
         &self,
@@ -229,6 +250,7 @@ pub trait Denoiser: Send + Sync {
         _t: f32,
         _w: f32,
         _conds: &[&Condition],
+        _control: Option<&[f32]>,
         _out: &mut [f32],
         _ws: &mut Workspace,
         _cancel: &Cancel,
@@ -850,7 +872,7 @@ impl Model {
     }
 
     /// [`Model::forward_cancellable`] with the guidance embedded as an input `w`
-    /// ([`Guidance::Embedded`]).
+    /// ([`Guidance::Embedded`]) and an optional control value ([`Denoiser::encode_control`]).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_embedded(
         &self,
@@ -859,6 +881,7 @@ impl Model {
         t: f32,
         w: f32,
         conds: &[&Condition],
+        control: Option<&[f32]>,
         out: &mut [f32],
         ws: &mut Workspace,
         cancel: &Cancel,
@@ -875,7 +898,7 @@ impl Model {
             ));
         }
         self.denoiser
-            .forward_embedded(x, rows, t, w, conds, out, ws, cancel)
+            .forward_embedded(x, rows, t, w, conds, control, out, ws, cancel)
     }
 
     /// Decodes a sample of a generation of `frames` frames into motion features (`[valid,

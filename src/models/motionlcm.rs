@@ -28,13 +28,20 @@ use std::sync::Arc;
 use serde::Deserialize;
 
 use crate::checkpoint::ModelFile;
-use crate::config::validate::{expect_shape, in_range, one_of};
-use crate::config::{section, Config, TextConfig, MAX_WIDTH};
+use crate::checkpoint::Tensor;
+use crate::config::validate::{expect_shape, heads_divide, in_range, in_range_f32, one_of};
+use crate::config::{
+    section, Config, TextConfig, MAX_FEEDFORWARD, MAX_LAYERS, MAX_MOTION_POSITIONS, MAX_WIDTH,
+};
 use crate::diffusion::Spacing;
-use crate::error::{bad_file, Result};
-use crate::kernels::WeightType;
+use crate::error::{bad_file, invalid_arg, Result};
+use crate::kernels::{self, WeightType};
 
-use super::mld::{LatentParts, MldConfig, MldVaeConfig, VaeDecoder};
+use super::layers::{activation, sized, EncoderLayer, LayerShape, Linear};
+use super::mld::{
+    LatentParts, MldConfig, MldVaeConfig, MldWorkspace, Part, SkipStack, StackBuffers, Taps,
+    VaeDecoder,
+};
 use super::{
     check_text_vector, text_vector_views, Cancel, Condition, Denoiser, Family, FamilyConfig,
     Guidance, MldDenoiser, MldFamily, MotionDecoder, TextModel, Workspace,
@@ -46,7 +53,12 @@ pub const FAMILY: Family = Family {
     parse: |arch, v| {
         let denoiser: MotionLcmConfig = section(v, arch, "denoiser")?;
         let vae: MotionLcmVaeConfig = section(v, arch, "vae")?;
+        let control: Option<ControlConfig> = match v.get("control") {
+            None | Some(serde_json::Value::Null) => None,
+            Some(_) => Some(section(v, arch, "control")?),
+        };
         Ok(Arc::new(MotionLcmFamily {
+            control,
             mld: MldFamily {
                 denoiser: denoiser.mld.clone(),
                 vae: vae.mld.clone(),
@@ -83,9 +95,40 @@ pub struct MotionLcmVaeConfig {
     pub latent_channels: usize,
 }
 
+/// The trajectory ControlNet's section (`control`; files converted from a control checkpoint).
+#[derive(Clone, Debug, Deserialize)]
+pub struct ControlConfig {
+    /// Joints of a hint frame (HumanML3D's 22); `control.mean_raw`/`std_raw` are `[joints, 3]`.
+    pub joints: usize,
+    /// Layers of the trajectory encoder's skip stack (odd: 9).
+    pub layers: usize,
+    /// Its attention heads (4).
+    pub heads: usize,
+    /// Its feed-forward width (1024).
+    pub ff_size: usize,
+    /// Rows of its position table: global tokens + hint frames.
+    pub max_len: usize,
+    /// Between the condition embedding's three Linears: `none` (v1) or `silu` (v2).
+    pub embed_activation: String,
+    /// The condition embedding's inner width (v1: the latent's 256; v2: 256).
+    pub embed_dim: usize,
+    /// Which hint frames the encoder attends to: `row_sum` (v1: a frame whose normalised
+    /// values do not sum to 0) or `mask` (v2: a frame with any constrained value).
+    pub frame_mask: String,
+    /// The residuals' factor (v1's `control_scale`: 1).
+    #[serde(default = "one")]
+    pub scale: f32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
 /// A MotionLCM file's configuration.
 #[derive(Clone, Debug)]
 pub struct MotionLcmFamily {
+    /// The trajectory ControlNet's section, when the file has one.
+    pub control: Option<ControlConfig>,
     /// The denoiser's section.
     pub denoiser: MotionLcmConfig,
     /// The VAE decoder's section.
@@ -153,6 +196,37 @@ impl FamilyConfig for MotionLcmFamily {
                 dc.spacing
             ));
         }
+        if let Some(k) = &self.control {
+            in_range("control.joints", k.joints, 1, MAX_WIDTH)?;
+            in_range("control.layers", k.layers, 1, MAX_LAYERS)?;
+            if k.layers.is_multiple_of(2) {
+                return Err(bad_file!(
+                    "config control.layers {} is not odd (a skip stack)",
+                    k.layers
+                ));
+            }
+            heads_divide(
+                "denoiser.latent_dim",
+                d.mld.latent_dim,
+                "control.heads",
+                k.heads,
+            )?;
+            in_range("control.ff_size", k.ff_size, 1, MAX_FEEDFORWARD)?;
+            in_range(
+                "control.max_len",
+                k.max_len,
+                d.mld.latent_tokens + 1,
+                MAX_MOTION_POSITIONS,
+            )?;
+            in_range("control.embed_dim", k.embed_dim, 1, MAX_WIDTH)?;
+            one_of(
+                "control.embed_activation",
+                &k.embed_activation,
+                &["none", "silu"],
+            )?;
+            one_of("control.frame_mask", &k.frame_mask, &["row_sum", "mask"])?;
+            in_range_f32("control.scale", k.scale, 0.0, 1e6, false)?;
+        }
         if !matches!(dc.parameterization.trim(), "epsilon" | "eps") {
             return Err(bad_file!(
                 "config diffusion.parameterization `{}`: motionlcm predicts the noise (`epsilon`)",
@@ -198,7 +272,17 @@ impl FamilyConfig for MotionLcmFamily {
             "text.dense.weight",
             d.mld.text_dim,
             "denoiser.text_dim",
-        )
+        )?;
+        match &self.control {
+            Some(k) => self.validate_control(file, k),
+            None if file.has_prefix("controlnet.") || file.has_prefix("traj_encoder.") => {
+                Err(bad_file!(
+                    "the file has ControlNet tensors (`controlnet.*`, `traj_encoder.*`) but its \
+                     config has no `control` section"
+                ))
+            }
+            None => Ok(()),
+        }
     }
 
     fn feature_dim(&self) -> usize {
@@ -237,6 +321,10 @@ impl FamilyConfig for MotionLcmFamily {
     ) -> Result<Box<dyn Denoiser>> {
         Ok(Box::new(MotionLcmDenoiser {
             net: MldDenoiser::load_with(file, &self.mld, self.parts(), ty)?,
+            control: match &self.control {
+                Some(k) => Some(ControlNet::load(file, self, k, ty)?),
+                None => None,
+            },
             text_dim: self.denoiser.mld.text_dim,
             default_w: cfg.defaults.guidance - 1.0,
         }))
@@ -244,6 +332,116 @@ impl FamilyConfig for MotionLcmFamily {
 
     fn as_any(&self) -> &dyn Any {
         self
+    }
+}
+
+impl MotionLcmFamily {
+    /// The ControlNet's tensors against the sizes: the copy has the denoiser's, the trajectory
+    /// encoder its section's.
+    fn validate_control(&self, file: &ModelFile, k: &ControlConfig) -> Result<()> {
+        let d = &self.denoiser;
+        let (e, c, l) = (d.mld.latent_dim, d.latent_channels, d.mld.latent_tokens);
+        let shape =
+            |name: &str, want: &[usize], fields: &str| expect_shape(file, name, want, fields);
+        shape(
+            "controlnet.query_pos.pe",
+            &[d.mld.max_len, 1, e],
+            "denoiser.max_len, latent_dim",
+        )?;
+        shape(
+            "controlnet.time_embedding.cond_proj.weight",
+            &[d.mld.text_dim, d.cond_dim],
+            "denoiser.text_dim, cond_dim",
+        )?;
+        super::mld::check_stack(file, "denoiser.layers", d.mld.layers, "controlnet.encoder.")?;
+        if file.contains("controlnet.encoder.norm.weight") {
+            return Err(bad_file!(
+                "`controlnet.encoder.norm.weight`: a ControlNet's copy has no final norm"
+            ));
+        }
+        for (i, (n_in, n_out)) in self.embed_shapes(k).into_iter().enumerate() {
+            let name = format!(
+                "controlnet.controlnet_cond_embedding.{}.weight",
+                self.embed_key(k, i)
+            );
+            shape(
+                &name,
+                &[n_out, n_in],
+                "denoiser.latent_channels, control.embed_dim",
+            )?;
+        }
+        for i in 0..d.mld.layers {
+            shape(
+                &format!("controlnet.controlnet_down_mid_blocks.{i}.weight"),
+                &[e, e],
+                "denoiser.latent_dim",
+            )?;
+        }
+        if file.contains(&format!(
+            "controlnet.controlnet_down_mid_blocks.{}.weight",
+            d.mld.layers
+        )) {
+            return Err(bad_file!(
+                "the file has more `controlnet.controlnet_down_mid_blocks` than denoiser.layers ({})",
+                d.mld.layers
+            ));
+        }
+        shape(
+            "traj_encoder.skel_embedding.weight",
+            &[e, 3 * k.joints],
+            "denoiser.latent_dim, control.joints",
+        )?;
+        shape(
+            "traj_encoder.global_motion_token",
+            &[l, e],
+            "denoiser.latent_tokens, latent_dim",
+        )?;
+        shape(
+            "traj_encoder.query_pos_encoder.pe",
+            &[k.max_len, 1, e],
+            "control.max_len, denoiser.latent_dim",
+        )?;
+        super::mld::check_stack(file, "control.layers", k.layers, "traj_encoder.encoder.")?;
+        shape(
+            "traj_encoder.encoder.middle_block.linear1.weight",
+            &[k.ff_size, e],
+            "control.ff_size, denoiser.latent_dim",
+        )?;
+        match (
+            self.projected(),
+            file.contains("traj_encoder.latent_proj.weight"),
+        ) {
+            (true, _) => shape(
+                "traj_encoder.latent_proj.weight",
+                &[c, e],
+                "denoiser.latent_channels, latent_dim",
+            )?,
+            (false, true) => {
+                return Err(bad_file!(
+                    "the file has `traj_encoder.latent_proj.weight` (MotionLCM v2) but its config \
+                     says latent_channels = latent_dim (a v1 latent)"
+                ))
+            }
+            (false, false) => {}
+        }
+        shape("control.mean_raw", &[k.joints, 3], "control.joints")?;
+        shape("control.std_raw", &[k.joints, 3], "control.joints")
+    }
+
+    /// `(in, out)` of the condition embedding's three Linears.
+    fn embed_shapes(&self, k: &ControlConfig) -> [(usize, usize); 3] {
+        let (c, m) = (self.denoiser.latent_channels, k.embed_dim);
+        [(c, m), (m, m), (m, c)]
+    }
+
+    /// The official key of the condition embedding's Linear `i`: `Sequential` indices count
+    /// the activations between them (v2: 0, 2, 4; v1, without activations: 0, 1, 2).
+    fn embed_key(&self, k: &ControlConfig, i: usize) -> usize {
+        if k.embed_activation == "silu" {
+            2 * i
+        } else {
+            i
+        }
     }
 }
 
@@ -260,6 +458,8 @@ fn expect_shape_rows(file: &ModelFile, name: &str, rows: usize, fields: &str) ->
 /// MotionLCM's network: MLD's denoiser and VAE decoder with the distillation's additions.
 pub struct MotionLcmDenoiser {
     net: MldDenoiser,
+    /// The trajectory ControlNet, when the file has one.
+    control: Option<ControlNet>,
     text_dim: usize,
     /// The embedded scale of a plain [`Denoiser::forward`] (the file's default guidance − 1).
     default_w: f32,
@@ -272,8 +472,52 @@ impl MotionLcmDenoiser {
     }
 
     /// The VAE decoder.
-    pub fn vae(&self) -> &VaeDecoder {
+    pub fn vae(&self) -> Option<&VaeDecoder> {
         self.net.vae()
+    }
+
+    /// The trajectory encoder's output (`[latent_tokens, latent_channels]`, MotionLCM's
+    /// `controlnet_cond`) for normalised hint rows `[frames, 3·joints]` and the frames that
+    /// hold a followed value (`hinted`, one per frame).
+    pub fn control_condition(
+        &self,
+        hint: &[f32],
+        hinted: &[bool],
+        frames: usize,
+    ) -> Result<Vec<f32>> {
+        match &self.control {
+            Some(c) => c.encode(hint, hinted, frames),
+            None => Err(invalid_arg!("this MotionLCM file has no ControlNet")),
+        }
+    }
+
+    /// The normalised hint rows (`[frames, 3·joints]`) of positions and weights as
+    /// [`Denoiser::encode_control`] takes them.
+    pub fn control_hint(&self, positions: &[[f64; 3]], weights: &[[f64; 3]]) -> Result<Vec<f32>> {
+        match &self.control {
+            Some(c) => c.hint(positions, weights),
+            None => Err(invalid_arg!("this MotionLCM file has no ControlNet")),
+        }
+    }
+
+    /// The ControlNet's residuals (`[blocks, latent_tokens + 2, latent_dim]`, scaled) for one
+    /// sample `x`, for tests that compare them with the reference.
+    pub fn control_residuals(
+        &self,
+        x: &[f32],
+        t: f32,
+        w: f32,
+        text: &[f32],
+        control: &[f32],
+    ) -> Result<Vec<f32>> {
+        let c = self
+            .control
+            .as_ref()
+            .ok_or_else(|| invalid_arg!("this MotionLCM file has no ControlNet"))?;
+        let mut ws = MotionLcmWorkspace::default();
+        let rows = self.net.sample_rows(0);
+        c.residuals(x, rows, t, w, &[text], control, &mut ws, &Cancel::never())?;
+        Ok(ws.residuals)
     }
 }
 
@@ -315,7 +559,7 @@ impl Denoiser for MotionLcmDenoiser {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        self.forward_embedded(x, rows, t, self.default_w, conds, out, ws, cancel)
+        self.forward_embedded(x, rows, t, self.default_w, conds, None, out, ws, cancel)
     }
 
     fn forward_embedded(
@@ -325,13 +569,69 @@ impl Denoiser for MotionLcmDenoiser {
         t: f32,
         w: f32,
         conds: &[&Condition],
+        control: Option<&[f32]>,
         out: &mut [f32],
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
         let (texts, n) = text_vector_views(conds)?;
-        self.net
-            .forward_guided(x, rows, t, Some(w), &texts[..n], out, ws.get(), cancel)
+        let ws: &mut MotionLcmWorkspace = ws.get();
+        let residuals = match (control, &self.control) {
+            (None, _) => None,
+            (Some(cond), Some(net)) => {
+                net.residuals(x, rows, t, w, &texts[..n], cond, ws, cancel)?;
+                Some(&ws.residuals[..])
+            }
+            (Some(_), None) => {
+                return Err(invalid_arg!("this MotionLCM file has no ControlNet"));
+            }
+        };
+        self.net.forward_guided(
+            x,
+            rows,
+            t,
+            Some(w),
+            &texts[..n],
+            residuals,
+            out,
+            &mut ws.main,
+            cancel,
+        )
+    }
+
+    fn takes_control(&self) -> bool {
+        self.control.is_some()
+    }
+
+    fn encode_control(
+        &self,
+        frames: usize,
+        positions: &[[f64; 3]],
+        weights: &[[f64; 3]],
+    ) -> Result<Vec<f32>> {
+        let c = self.control.as_ref().ok_or_else(|| {
+            invalid_arg!(
+                "this MotionLCM file has no ControlNet: convert a trajectory-control checkpoint \
+                 (experiments_control/...) to follow joint positions"
+            )
+        })?;
+        let hint = c.hint(positions, weights)?;
+        let j = c.cfg.joints;
+        let hint_frames = positions.len() / j;
+        if hint_frames > frames {
+            return Err(invalid_arg!(
+                "the control covers {hint_frames} frames; the generation has {frames}"
+            ));
+        }
+        // Frames past the hint are free: zero rows, left out of the encoder's attention.
+        let mut rows = hint;
+        rows.resize(frames * 3 * j, 0.0);
+        let mut hinted: Vec<bool> = weights
+            .chunks_exact(j)
+            .map(|f| f.iter().flatten().any(|&w| w > 0.0))
+            .collect();
+        hinted.resize(frames, false);
+        c.encode(&rows, &hinted, frames)
     }
 
     fn decoder(&self) -> Option<&dyn MotionDecoder> {
@@ -339,10 +639,298 @@ impl Denoiser for MotionLcmDenoiser {
     }
 
     fn linear_weight_bytes(&self) -> usize {
-        self.net.linear_weight_bytes()
+        self.net.linear_weight_bytes() + self.control.as_ref().map_or(0, ControlNet::weight_bytes)
     }
 
     fn as_any(&self) -> &dyn Any {
         self
     }
+}
+
+/// Buffers of MotionLCM's forward pass: the denoiser's, the ControlNet copy's and the residuals.
+#[derive(Default)]
+pub struct MotionLcmWorkspace {
+    main: MldWorkspace,
+    copy: MldWorkspace,
+    x: Vec<f32>,
+    embed: [Vec<f32>; 2],
+    collect: Vec<f32>,
+    residuals: Vec<f32>,
+}
+
+/// MotionLCM's trajectory ControlNet (Dai-Wenxun/MotionLCM v1.0 f534a7f and v2.0 086f8db:
+/// `mld/models/architectures/mld_traj_encoder.py`, `mld_denoiser.py` with `is_controlnet`,
+/// `mld/models/operator/attention.py`, `mld/models/modeltype/mld.py`).
+///
+/// The hint (joint positions normalised with `Mean_raw`/`Std_raw`, zero where free) goes
+/// through the trajectory encoder once per control; at every step the ControlNet, a copy of
+/// the denoiser without its final norm, runs on the sample plus the embedded encoder output
+/// and hands one residual per block (through its own Linear) to the denoiser, which adds it
+/// right after that block.
+struct ControlNet {
+    cfg: ControlConfig,
+    copy: MldDenoiser,
+    /// The condition embedding's three Linears (v2: SiLU after the first two).
+    embed: [Linear; 3],
+    silu: bool,
+    down: Vec<Linear>,
+    traj: TrajEncoder,
+    mean_raw: Tensor,
+    std_raw: Tensor,
+}
+
+/// The trajectory encoder: per-frame Linear, global tokens, learned positions, a masked skip
+/// encoder with its final norm, the global tokens out (v2: through `latent_proj`).
+struct TrajEncoder {
+    skel: Linear,
+    tokens: Tensor,
+    pe: Tensor,
+    encoder: SkipStack<EncoderLayer>,
+    proj: Option<Linear>,
+}
+
+impl ControlNet {
+    fn load(
+        file: &ModelFile,
+        fam: &MotionLcmFamily,
+        k: &ControlConfig,
+        ty: WeightType,
+    ) -> Result<ControlNet> {
+        let d = &fam.denoiser;
+        let (e, c, l) = (d.mld.latent_dim, d.latent_channels, d.mld.latent_tokens);
+        let part = Part {
+            prefix: "controlnet.",
+            main: false,
+        };
+        let shapes = fam.embed_shapes(k);
+        let embed = |i: usize| {
+            let (n_in, n_out) = shapes[i];
+            let name = format!(
+                "controlnet.controlnet_cond_embedding.{}",
+                fam.embed_key(k, i)
+            );
+            Linear::load(file, &name, n_in, n_out, ty)
+        };
+        let shape = LayerShape {
+            width: e,
+            heads: k.heads,
+            ff: k.ff_size,
+            act: activation(&d.mld.activation),
+            eps: d.mld.layer_norm_eps,
+        };
+        Ok(ControlNet {
+            copy: MldDenoiser::load_part(file, &fam.mld, fam.parts(), part, ty)?,
+            embed: [embed(0)?, embed(1)?, embed(2)?],
+            silu: k.embed_activation == "silu",
+            down: (0..d.mld.layers)
+                .map(|i| {
+                    let name = format!("controlnet.controlnet_down_mid_blocks.{i}");
+                    Linear::load(file, &name, e, e, ty)
+                })
+                .collect::<Result<_>>()?,
+            traj: TrajEncoder {
+                skel: Linear::load(file, "traj_encoder.skel_embedding", 3 * k.joints, e, ty)?,
+                tokens: file.tensor("traj_encoder.global_motion_token", &[l, e])?,
+                pe: file.tensor("traj_encoder.query_pos_encoder.pe", &[k.max_len, 1, e])?,
+                encoder: SkipStack::load(file, "traj_encoder.encoder.", k.layers, true, shape, ty)?,
+                proj: if c != e {
+                    Some(Linear::load(file, "traj_encoder.latent_proj", e, c, ty)?)
+                } else {
+                    None
+                },
+            },
+            mean_raw: finite_stats(file.tensor("control.mean_raw", &[k.joints, 3])?, false)?,
+            std_raw: finite_stats(file.tensor("control.std_raw", &[k.joints, 3])?, true)?,
+            cfg: k.clone(),
+        })
+    }
+
+    fn weight_bytes(&self) -> usize {
+        self.copy.linear_weight_bytes()
+            + self.embed.iter().map(Linear::weight_bytes).sum::<usize>()
+            + self.down.iter().map(Linear::weight_bytes).sum::<usize>()
+            + self.traj.skel.weight_bytes()
+            + self.traj.encoder.weight_bytes()
+            + self.traj.proj.as_ref().map_or(0, Linear::weight_bytes)
+    }
+
+    /// The normalised hint rows `[frames, 3·joints]`: `(p − Mean_raw)/Std_raw` where the
+    /// weight is 1, 0 where it is 0 (the dataset's `random_mask`, v2.0
+    /// `mld/data/humanml/dataset.py`).
+    fn hint(&self, positions: &[[f64; 3]], weights: &[[f64; 3]]) -> Result<Vec<f32>> {
+        let j = self.cfg.joints;
+        if positions.is_empty()
+            || !positions.len().is_multiple_of(j)
+            || weights.len() != positions.len()
+        {
+            return Err(invalid_arg!(
+                "a control hint holds frames × {j} joints, got {} positions and {} weights",
+                positions.len(),
+                weights.len()
+            ));
+        }
+        let (mean, std) = (self.mean_raw.data(), self.std_raw.data());
+        let mut out = Vec::with_capacity(positions.len() * 3);
+        for (i, (p, w)) in positions.iter().zip(weights).enumerate() {
+            let joint = i % j;
+            for a in 0..3 {
+                let v = if w[a] > 0.0 {
+                    ((p[a] as f32 - mean[joint * 3 + a]) / std[joint * 3 + a]) * w[a] as f32
+                } else {
+                    0.0
+                };
+                if !v.is_finite() {
+                    return Err(invalid_arg!(
+                        "control hint frame {}, joint {joint}: not finite",
+                        i / j
+                    ));
+                }
+                out.push(v);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The trajectory encoder over hint rows `[frames, 3·joints]` (`hinted`: the frames with
+    /// a followed value): `[latent_tokens, C]`.
+    fn encode(&self, hint: &[f32], hinted: &[bool], frames: usize) -> Result<Vec<f32>> {
+        let width = 3 * self.cfg.joints;
+        if frames == 0 || hint.len() != frames * width || hinted.len() != frames {
+            return Err(invalid_arg!(
+                "control hint rows hold {} values and {} frame flags, expected {frames} frames \
+                 × {width}",
+                hint.len(),
+                hinted.len()
+            ));
+        }
+        let t = &self.traj;
+        let e = t.skel.outputs();
+        let l = t.tokens.data().len() / e;
+        let seq = l + frames;
+        if seq > self.cfg.max_len {
+            return Err(invalid_arg!(
+                "the trajectory encoder takes at most {} frames, got {frames}",
+                self.cfg.max_len - l
+            ));
+        }
+        // Which frames the encoder attends to (true = left out, PyTorch's key padding).
+        let padding: Vec<bool> = (0..seq)
+            .map(|i| {
+                if i < l {
+                    return false;
+                }
+                let f = i - l;
+                match self.cfg.frame_mask.as_str() {
+                    // v1: `hint.sum(-1) != 0` on the normalised rows, so a followed value
+                    // that normalises to 0 can drop its frame.
+                    "row_sum" => hint[f * width..(f + 1) * width].iter().sum::<f32>() == 0.0,
+                    // v2: the mask's frames.
+                    _ => !hinted[f],
+                }
+            })
+            .collect();
+        let mut x = vec![0f32; seq * e];
+        x[..l * e].copy_from_slice(t.tokens.data());
+        t.skel.forward(hint, frames, &mut x[l * e..]);
+        kernels::add_inplace(&mut x, &t.pe.data()[..seq * e]);
+        let taps = Taps {
+            key_padding: Some(&padding),
+            ..Taps::default()
+        };
+        let mut b = StackBuffers::default();
+        t.encoder
+            .forward_taps(&mut x, 1, seq, &[], 0, taps, &mut b, &Cancel::never())?;
+        let tokens = &x[..l * e];
+        Ok(match &t.proj {
+            Some(p) => {
+                let mut out = vec![0f32; l * p.outputs()];
+                p.forward(tokens, l, &mut out);
+                out
+            }
+            None => tokens.to_vec(),
+        })
+    }
+
+    /// The residuals of one step into `ws.residuals` (`[blocks, batch × seq, D]`): the copy
+    /// runs on `x + embed(control)` with the denoiser's time, guidance and text.
+    #[allow(clippy::too_many_arguments)]
+    fn residuals(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        w: f32,
+        texts: &[&[f32]],
+        control: &[f32],
+        ws: &mut MotionLcmWorkspace,
+        cancel: &Cancel,
+    ) -> Result<()> {
+        let c = self.embed[2].outputs();
+        if control.len() != rows * c || x.len() != texts.len() * rows * c {
+            return Err(invalid_arg!(
+                "the control value holds {} values, the ControlNet takes {rows} × {c}",
+                control.len()
+            ));
+        }
+        let [a, b] = &mut ws.embed;
+        let a = sized(a, rows * self.embed[0].outputs());
+        self.embed[0].forward(control, rows, a);
+        if self.silu {
+            kernels::silu(a);
+        }
+        let b = sized(b, rows * self.embed[1].outputs());
+        self.embed[1].forward(a, rows, b);
+        if self.silu {
+            kernels::silu(b);
+        }
+        let xin = sized(&mut ws.x, x.len());
+        let m = self.embed[1].outputs();
+        let [a, b] = &mut ws.embed;
+        let emb = sized(a, rows * c);
+        self.embed[2].forward(&b[..rows * m], rows, emb);
+        xin.copy_from_slice(x);
+        for sample in xin.chunks_exact_mut(rows * c) {
+            kernels::add_inplace(sample, emb);
+        }
+        let taps = Taps {
+            collect: Some(&mut ws.collect),
+            ..Taps::default()
+        };
+        self.copy
+            .sequence(&ws.x, rows, t, Some(w), texts, taps, &mut ws.copy, cancel)?;
+        let e = self.down[0].outputs();
+        let n = ws.collect.len() / self.down.len();
+        let r = sized(&mut ws.residuals, ws.collect.len());
+        for (i, lin) in self.down.iter().enumerate() {
+            lin.forward(
+                &ws.collect[i * n..(i + 1) * n],
+                n / e,
+                &mut r[i * n..(i + 1) * n],
+            );
+        }
+        if self.cfg.scale != 1.0 {
+            r.iter_mut().for_each(|v| *v *= self.cfg.scale);
+        }
+        Ok(())
+    }
+}
+
+/// A `[joints, 3]` statistics tensor, finite (and positive for the std), or a clear error.
+fn finite_stats(t: Tensor, std: bool) -> Result<Tensor> {
+    let name = if std {
+        "control.std_raw"
+    } else {
+        "control.mean_raw"
+    };
+    if let Some(v) = t
+        .data()
+        .iter()
+        .find(|v| !v.is_finite() || (std && **v <= 0.0))
+    {
+        return Err(bad_file!(
+            "`{name}` holds {v}; it must be finite{}",
+            if std { " and positive" } else { "" }
+        ));
+    }
+    Ok(t)
 }
