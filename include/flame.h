@@ -376,6 +376,9 @@ typedef struct FlameModelInfo {
   // Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
   // width of [`flame_session_set_noise`]'s rows.
   uint32_t sample_dim;
+  // Nonzero when the model has a trajectory ControlNet: [`flame_session_set_control`]
+  // makes its motion follow joint positions (MotionLCM control files).
+  uint32_t control;
 } FlameModelInfo;
 
 // Settings of one generation. Initialise with [`flame_session_params_default`]; zero (or a
@@ -778,6 +781,32 @@ enum FlameStatus flame_session_set_task_targets(struct FlameSession *session,
 // # Safety
 // `session` is a live session.
 enum FlameStatus flame_session_clear_position_targets(struct FlameSession *session);
+
+// Makes the following steps follow joint positions through the model's trajectory ControlNet
+// (MotionLCM files converted from a control checkpoint: [`FlameModelInfo::control`] is
+// nonzero). `positions` = `frames` × joints × 3 floats as for
+// [`flame_session_set_position_targets`] (frame-major, in `convention` and its unit, covering
+// the motion's first `frames` frames; later frames are free); `mask` = one byte per value
+// (nonzero = followed) or NULL (NaN = free). The positions are encoded once here; every later
+// network pass takes them. Allowed between steps. A model without a ControlNet, a wrong joint
+// count, more frames than the session's or nothing to follow is `FLAME_INVALID_ARGUMENT`;
+// on error the earlier control stays.
+//
+// # Safety
+// `session` is a live session; `positions` points to `positions_len` floats; `mask` is NULL
+// or points to `mask_len` bytes.
+enum FlameStatus flame_session_set_control(struct FlameSession *session,
+                                           const float *positions,
+                                           size_t positions_len,
+                                           const uint8_t *mask,
+                                           size_t mask_len,
+                                           int32_t convention);
+
+// Removes the trajectory control: the next steps follow the prompt alone.
+//
+// # Safety
+// `session` is a live session.
+enum FlameStatus flame_session_clear_control(struct FlameSession *session);
 
 // The position targets' loss (the sum of distances, in metres, over constrained joints and
 // frames) at the latest step's clean-motion estimate, before that step's guidance, in `*loss`.

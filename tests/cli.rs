@@ -1058,3 +1058,86 @@ fn motionlcm_generates_in_its_step_counts() {
     assert!(stderr(&o).contains("gradient"), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// `flame generate --control`: a MotionLCM control file follows a pelvis path (the same bits
+/// as the library's `Session::set_control_values`); files without a ControlNet and hints of
+/// the wrong joint count are refused before sampling.
+#[test]
+fn motionlcm_control_follows_a_pelvis_path() {
+    let d = scratch("motionlcm-control");
+    let path = |n: &str| d.join(n).display().to_string();
+    let control = repo("tests/fixtures/motionlcm_v2_control_tiny.safetensors")
+        .display()
+        .to_string();
+    // A pelvis path (HumanML3D's native frame: Y up, metres) on every frame; the rest free.
+    let mut hint = vec![f32::NAN; 24 * 22 * 3];
+    for f in 0..24 {
+        hint[f * 66..f * 66 + 3].copy_from_slice(&[0.05 * f as f32, 0.9, 0.02 * f as f32]);
+    }
+    let hint_path = path("hint.npy");
+    flame::npy::write_f32(Path::new(&hint_path), &[24, 22, 3], &hint).unwrap();
+    let run = |model: &str, extra: &[&str], out: &str| {
+        let mut args = vec![
+            "generate",
+            "--model",
+            model,
+            "--prompt",
+            "a person walks forward",
+            "--frames",
+            "24",
+            "--seed",
+            "5",
+            "--convention",
+            "native",
+            "--out",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        flame(&args)
+    };
+    let with = path("with.npy");
+    assert_ok(&run(&control, &["--control", &hint_path], &with));
+    let without = path("without.npy");
+    assert_ok(&run(&control, &[], &without));
+    let (_, a) = flame::npy::read_f32(Path::new(&with)).unwrap();
+    let (_, b) = flame::npy::read_f32(Path::new(&without)).unwrap();
+    assert!(a.iter().all(|v| v.is_finite()));
+    assert_ne!(a, b, "the control changes the motion");
+    let model = std::sync::Arc::new(flame::models::Model::load(&control).unwrap());
+    let params = flame::session::SessionParams {
+        frames: Some(24),
+        seed: 5,
+        ..Default::default()
+    };
+    let mut s = flame::session::Session::new(model, &params).unwrap();
+    s.set_prompt("a person walks forward").unwrap();
+    s.set_control_values(&hint, None, flame::motion::Convention::Native)
+        .unwrap();
+    s.run().unwrap();
+    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
+    assert_eq!(features, &a[..], "the CLI's bits are the library's");
+    // A file without a ControlNet.
+    let plain = repo("tests/fixtures/motionlcm_v2_tiny.safetensors")
+        .display()
+        .to_string();
+    let bad = path("bad.npy");
+    let o = run(&plain, &["--control", &hint_path], &bad);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("no trajectory ControlNet"),
+        "{}",
+        stderr(&o)
+    );
+    // The wrong joint count.
+    let short = path("short.npy");
+    flame::npy::write_f32(Path::new(&short), &[24, 21, 3], &hint[..24 * 63]).unwrap();
+    let o = run(&control, &["--control", &short], &bad);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("expected [frames, 22, 3]"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!Path::new(&bad).exists(), "nothing written");
+    let _ = std::fs::remove_dir_all(&d);
+}

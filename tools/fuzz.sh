@@ -67,9 +67,11 @@ max_len() {
     esac
 }
 
-# Fixture model files: the families (MotionLCM twice, v1 and v2), then the f16 FLAME.
+# Fixture model files: the families (MotionLCM v1 and v2, without and with a ControlNet), then
+# the f16 FLAME.
 fixtures=(flame_tiny mdm_tiny motionfm_tiny mld_tiny mola_tiny finemogen_tiny omg_tiny
-    motionlcm_v1_tiny motionlcm_v2_tiny flame_tiny_f16)
+    motionlcm_v1_tiny motionlcm_v2_tiny motionlcm_v1_control_tiny motionlcm_v2_control_tiny
+    flame_tiny_f16)
 
 # Fixture `$1`'s safetensors header (its first 8 bytes give the length).
 fixture_header() {
@@ -79,7 +81,7 @@ fixture_header() {
 }
 
 # Seeds that are too big to commit are made from the test fixtures: whole files for model_file;
-# for model_load each family's header after its pick byte (0 to 8, the order of
+# for model_load each family's header after its pick byte (0 to 10, the order of
 # MODEL_FIXTURES), for model_header the same without the `flame.tokenizer` entry (padded with
 # spaces to a multiple of 8, as safetensors writers pad, so f32 data stays aligned).
 extra_seeds() {
@@ -118,16 +120,16 @@ extra_seeds() {
         model_load)
             d=target/seeds/model_load
             mkdir -p "$d"
-            for i in 0 1 2 3 4 5 6 7 8; do
-                { printf "\\x0$i"; fixture_header "${fixtures[i]}"; } >"$d/${fixtures[i]}"
+            for i in 0 1 2 3 4 5 6 7 8 9 10; do
+                { printf "\\x$(printf %02x "$i")"; fixture_header "${fixtures[i]}"; } >"$d/${fixtures[i]}"
             done
             echo "$d"
             ;;
         model_header)
             d=target/seeds/model_header
             mkdir -p "$d"
-            for i in 0 1 2 3 4 5 6 7 8; do
-                { printf "\\x0$i"; fixture_header "${fixtures[i]}" | perl -0777 -pe '
+            for i in 0 1 2 3 4 5 6 7 8 9 10; do
+                { printf "\\x$(printf %02x "$i")"; fixture_header "${fixtures[i]}" | perl -0777 -pe '
                     s/,"flame\.tokenizer":"(?:[^"\\]|\\.)*"|"flame\.tokenizer":"(?:[^"\\]|\\.)*",?//;
                     s/ +$//; $_ .= " " x (-length() % 8)'; } >"$d/${fixtures[i]}"
             done

@@ -208,6 +208,8 @@ struct ModelInfo {
     bool latent = false;
     // Channels per row of the sampled space (feature_dim, or the latent's channels).
     uint32_t sample_dim = 0;
+    // The model has a trajectory ControlNet (MotionLCM control files): Session::set_control.
+    bool control = false;
 };
 
 // The shape of a session's sampled space, what Session::set_noise takes: rows x dim values
@@ -395,6 +397,7 @@ public:
         }
         info.latent = c.latent != 0;
         info.sample_dim = c.sample_dim;
+        info.control = c.control != 0;
         return info;
     }
 
@@ -598,6 +601,17 @@ public:
 
     // Removes the position targets: unguided from the next step on.
     void clear_position_targets() { detail::check(flame_session_clear_position_targets(handle_)); }
+
+    // Follows joint positions through the model's trajectory ControlNet (MotionLCM control
+    // files; ModelInfo::control): positions as for set_position_targets, NaN = free. On error
+    // the earlier control stays.
+    void set_control(const std::vector<float>& positions,
+                     FlameConvention convention = FLAME_CONVENTION_NATIVE) {
+        detail::check(flame_session_set_control(handle_, positions.data(), positions.size(),
+                                                nullptr, 0, convention));
+    }
+    // Removes the trajectory control.
+    void clear_control() { detail::check(flame_session_clear_control(handle_)); }
 
     // How strongly position targets steer: scale and schedule.
     void set_target_params(const TargetParams& params = TargetParams()) {

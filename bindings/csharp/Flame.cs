@@ -362,6 +362,9 @@ namespace Flame
         /// <summary>Channels per row of the sampled space (feature_dim, or the latent's
         /// channels): the width of flame_session_set_noise's rows.</summary>
         public uint sample_dim;
+        /// <summary>Nonzero when the model has a trajectory ControlNet (MotionLCM control files):
+        /// flame_session_set_control makes its motion follow joint positions.</summary>
+        public uint control;
 
         public string Architecture { get { return FlameNative.Utf8(architecture); } }
         public string MotionFormat { get { return FlameNative.Utf8(motion_format); } }
@@ -957,6 +960,13 @@ namespace Flame
         public static extern FlameStatus flame_session_clear_position_targets(FlameSessionHandle session);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_control(FlameSessionHandle session, float[] positions, UIntPtr positionsLen,
+                                                                   byte[] mask, UIntPtr maskLen, int convention);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_clear_control(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_target_loss(FlameSessionHandle session, out double loss);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
@@ -1361,10 +1371,13 @@ namespace Flame
         public bool Latent;
         /// <summary>Channels per row of the sampled space (FeatureDim, or the latent's channels).</summary>
         public int SampleDim;
+        /// <summary>The model has a trajectory ControlNet: FlameSession.SetControl applies.</summary>
+        public bool Control;
 
         internal ModelInfo(FlameModelInfo i)
         {
             Latent = i.latent != 0;
+            Control = i.control != 0;
             SampleDim = (int)i.sample_dim;
             FeatureDim = (int)i.feature_dim;
             JointCount = (int)i.joint_count;
@@ -1757,6 +1770,24 @@ namespace Flame
         public void ClearPositionTargets()
         {
             FlameException.Check(FlameNative.flame_session_clear_position_targets(Handle));
+        }
+
+        /// <summary>Makes the following steps follow joint positions through the model's
+        /// trajectory ControlNet (MotionLCM control files; ModelInfo.Control): positions as for
+        /// SetPositionTargets, mask one byte per value (nonzero = followed) or null (NaN = free).
+        /// On error the earlier control stays.</summary>
+        public void SetControl(float[] positions, byte[] mask, int convention)
+        {
+            if (positions == null)
+                throw new ArgumentNullException("positions");
+            FlameException.Check(FlameNative.flame_session_set_control(Handle, positions, (UIntPtr)positions.Length, mask,
+                                                                       (UIntPtr)(mask == null ? 0 : mask.Length), convention));
+        }
+
+        /// <summary>Removes the trajectory control: the prompt alone from the next step on.</summary>
+        public void ClearControl()
+        {
+            FlameException.Check(FlameNative.flame_session_clear_control(Handle));
         }
 
         /// <summary>How strongly position targets steer; start p from FlameTargetParams.Default().</summary>

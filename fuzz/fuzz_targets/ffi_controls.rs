@@ -222,6 +222,21 @@ fn targets(input: &mut Input, session: *mut FlameSession, m: &Model, frames: u32
     if input.u8() & 1 != 0 {
         ok(unsafe { flame_session_clear_position_targets(session) });
     }
+    // The same values as a trajectory control (MotionLCM control files follow them; every
+    // other model refuses).
+    ok(unsafe {
+        flame_session_set_control(
+            session,
+            values.as_ptr(),
+            values.len(),
+            mask_ptr,
+            mask_len,
+            convention,
+        )
+    });
+    if input.u8() & 1 != 0 {
+        ok(unsafe { flame_session_clear_control(session) });
+    }
 }
 
 fn stages(input: &mut Input, session: *mut FlameSession, texts: &Texts, frames: u32) {

@@ -9,9 +9,9 @@ pub static FIXTURES: [&[u8]; 3] = [
 ];
 
 /// Every fixture model family: [`FIXTURES`], the latent models (MLD, MoLA), FineMoGen, the
-/// OMG-style model and MotionLCM v1 and v2. The model header targets pick from these; the others keep [`FIXTURES`],
+/// OMG-style model and MotionLCM v1 and v2, without and with a trajectory ControlNet. The model header targets pick from these; the others keep [`FIXTURES`],
 /// which their seeds' pick bytes were made for.
-pub static MODEL_FIXTURES: [&[u8]; 9] = [
+pub static MODEL_FIXTURES: [&[u8]; 11] = [
     FIXTURES[0],
     FIXTURES[1],
     FIXTURES[2],
@@ -21,6 +21,8 @@ pub static MODEL_FIXTURES: [&[u8]; 9] = [
     include_bytes!("../../tests/fixtures/omg_tiny.safetensors"),
     include_bytes!("../../tests/fixtures/motionlcm_v1_tiny.safetensors"),
     include_bytes!("../../tests/fixtures/motionlcm_v2_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/motionlcm_v1_control_tiny.safetensors"),
+    include_bytes!("../../tests/fixtures/motionlcm_v2_control_tiny.safetensors"),
 ];
 
 /// A safetensors file's header JSON text and its tensor data.

@@ -90,6 +90,7 @@ impl FlameModel {
             },
             latent: m.is_latent() as u32,
             sample_dim: m.sample_dim() as u32,
+            control: u32::from(m.denoiser().takes_control()),
         }
     }
 }

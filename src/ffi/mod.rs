@@ -388,6 +388,9 @@ pub struct FlameModelInfo {
     /// Channels per row of the sampled space (`feature_dim`, or the latent's channels): the
     /// width of [`flame_session_set_noise`]'s rows.
     pub sample_dim: u32,
+    /// Nonzero when the model has a trajectory ControlNet: [`flame_session_set_control`]
+    /// makes its motion follow joint positions (MotionLCM control files).
+    pub control: u32,
 }
 
 /// What [`flame_session_prompt_info`] reports about the last prompt: how it fitted the text
@@ -973,6 +976,55 @@ pub unsafe extern "C" fn flame_session_clear_position_targets(
     guard(|| {
         session_ref(session)?.with(|st| {
             st.session.clear_position_targets();
+            Ok(())
+        })
+    })
+}
+
+/// Makes the following steps follow joint positions through the model's trajectory ControlNet
+/// (MotionLCM files converted from a control checkpoint: [`FlameModelInfo::control`] is
+/// nonzero). `positions` = `frames` × joints × 3 floats as for
+/// [`flame_session_set_position_targets`] (frame-major, in `convention` and its unit, covering
+/// the motion's first `frames` frames; later frames are free); `mask` = one byte per value
+/// (nonzero = followed) or NULL (NaN = free). The positions are encoded once here; every later
+/// network pass takes them. Allowed between steps. A model without a ControlNet, a wrong joint
+/// count, more frames than the session's or nothing to follow is `FLAME_INVALID_ARGUMENT`;
+/// on error the earlier control stays.
+///
+/// # Safety
+/// `session` is a live session; `positions` points to `positions_len` floats; `mask` is NULL
+/// or points to `mask_len` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_control(
+    session: *mut FlameSession,
+    positions: *const f32,
+    positions_len: usize,
+    mask: *const u8,
+    mask_len: usize,
+    convention: i32,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let values = slice_arg(positions, positions_len, "positions")?;
+        let mask = match mask.is_null() {
+            true if mask_len == 0 => None,
+            true => return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into()),
+            false => Some(slice_arg(mask, mask_len, "mask")?),
+        };
+        let convention = poses::convention(convention)?;
+        s.with(|st| Ok(st.session.set_control_values(values, mask, convention)?))
+    })
+}
+
+/// Removes the trajectory control: the next steps follow the prompt alone.
+///
+/// # Safety
+/// `session` is a live session.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_clear_control(session: *mut FlameSession) -> FlameStatus {
+    guard(|| {
+        session_ref(session)?.with(|st| {
+            st.session.clear_control();
             Ok(())
         })
     })

@@ -394,6 +394,7 @@ class _ModelInfo(ctypes.Structure):
         ("joint_parents", ctypes.POINTER(ctypes.c_int32)),
         ("latent", ctypes.c_uint32),
         ("sample_dim", ctypes.c_uint32),
+        ("control", ctypes.c_uint32),
     ]
 
 
@@ -554,6 +555,11 @@ def _core_signatures():
             [_P, pf32, size_t, ctypes.POINTER(ctypes.c_uint8), size_t, i32],
         ),
         "flame_session_clear_position_targets": (_status, [_P]),
+        "flame_session_set_control": (
+            _status,
+            [_P, pf32, size_t, ctypes.POINTER(ctypes.c_uint8), size_t, i32],
+        ),
+        "flame_session_clear_control": (_status, [_P]),
         "flame_session_target_loss": (_status, [_P, ctypes.POINTER(ctypes.c_double)]),
         "flame_session_new": (
             _status,
@@ -744,6 +750,9 @@ class ModelInfo:
     # Channels per row of the sampled space (feature_dim, or the latent's channels): the width
     # of Session.set_noise's rows.
     sample_dim: int
+    # True when the model has a trajectory ControlNet (MotionLCM control files):
+    # Session.set_control makes its motion follow joint positions.
+    control: bool = False
 
 
 def _text(p: Optional[bytes]) -> str:
@@ -864,6 +873,7 @@ class Model:
                 joint_parents=parents,
                 latent=bool(raw.latent),
                 sample_dim=raw.sample_dim,
+                control=bool(raw.control),
             )
         return self._info
 
@@ -1464,6 +1474,29 @@ class Session:
     def clear_position_targets(self) -> None:
         """Removes the position targets: unguided from the next step on."""
         self._call(_lib().flame_session_clear_position_targets)
+
+    def set_control(self, positions, mask=None, convention: int = Convention.NATIVE) -> None:
+        """Makes the following steps follow joint positions through the model's trajectory
+        ControlNet (MotionLCM control files; ModelInfo.control): `positions` [frames,
+        joint_count, 3] (or flat) in `convention` and its unit, covering the motion's first
+        frames (later ones are free); `mask` as for set_position_targets (without one, NaN is
+        free). Encoded once; every later step takes it. On error the earlier control stays."""
+        a = _f32(positions, "positions")
+        if a.ndim != 1 and (a.ndim != 3 or a.shape[1:] != (self.joint_count, 3)):
+            raise ValueError(f"positions must be shaped [frames, {self.joint_count}, 3], got {a.shape}")
+        m, m_ptr = None, None
+        if mask is not None:
+            m = np.asarray(mask)
+            m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
+            m_ptr = _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8)
+        self._call(
+            _lib().flame_session_set_control,
+            _ptr(a, ctypes.c_float), a.size, m_ptr, 0 if m is None else m.size, convention,
+        )
+
+    def clear_control(self) -> None:
+        """Removes the trajectory control: the prompt alone from the next step on."""
+        self._call(_lib().flame_session_clear_control)
 
     def set_target_params(self, scale: Optional[float] = None,
                           schedule: Union[None, int, str] = None) -> None:

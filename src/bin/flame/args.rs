@@ -422,6 +422,11 @@ pub struct GenerateArgs {
     /// cannot edit (latent ones) and time stages get the correction alone
     #[arg(long = "loop")]
     pub looped: bool,
+    /// Joint positions the motion follows through the model's trajectory ControlNet
+    /// (MotionLCM control files): float32 .npy [frames, joints, 3], metres, in the
+    /// --convention's axes, NaN = free; frames at most the motion's (later ones are free)
+    #[arg(long, value_name = "FILE.npy")]
+    pub control: Option<PathBuf>,
     #[command(flatten)]
     pub sampling: SamplingArgs,
     #[command(flatten)]

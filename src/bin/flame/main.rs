@@ -239,6 +239,25 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
     let mut params = session_params(&a.sampling);
     let loaded = load_model(&a.model)?;
     let model = &loaded.model;
+    // Read and checked before any sampling.
+    let control = match &a.control {
+        Some(path) => {
+            if !model.denoiser().takes_control() {
+                return Err(format!(
+                    "--control {}: this {} model has no trajectory ControlNet (MotionLCM \
+                     control files have one; position targets steer the models that take them)",
+                    path.display(),
+                    model.config().architecture
+                ));
+            }
+            Some(read_targets(
+                path,
+                model.motion_format(),
+                outputs.convention,
+            )?)
+        }
+        None => None,
+    };
     let stages = read_stages(a, model)?;
     if let Some(stages) = &stages {
         let total: usize = stages.iter().map(|s| s.frames).sum();
@@ -283,6 +302,11 @@ fn generate(a: &GenerateArgs) -> Result<(), String> {
             note_prompt_fit(&session);
         }
         (None, None) => unreachable!("clap requires --prompt, --stage or --prompt-file"),
+    }
+    if let (Some(c), Some(path)) = (&control, &a.control) {
+        session
+            .set_control(c)
+            .map_err(|e| format!("--control {}: {e}", path.display()))?;
     }
     // After the prompt: stages lay the noise out [stages, longest stage, features].
     if let Some(noise) = &a.sampling.noise {
