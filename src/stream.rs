@@ -365,12 +365,13 @@ impl Stream {
     /// whose decoder has no gradient, such as MLD's: latent models continue through position
     /// targets), or when the chunk and overlap do not fit its frame range.
     pub fn new(model: Arc<Model>, params: &StreamParams) -> Result<Stream> {
-        if model.is_latent() {
+        // A latent model continues through its trajectory ControlNet, else position targets.
+        if model.is_latent() && !model.denoiser().takes_control() {
             crate::targets::supported(&model).map_err(|e| {
                 invalid_arg!(
                     "a stream continues each chunk from the frames before it; this {} model \
-                     samples a latent, so it can only steer towards them with position targets, \
-                     and {}",
+                     samples a latent, so it can only steer towards them with position targets \
+                     or a trajectory ControlNet (a MotionLCM control file), and {}",
                     model.config().architecture,
                     e.to_string().trim_start_matches("invalid argument: ")
                 )
@@ -584,8 +585,10 @@ impl Stream {
         let mut frame = Rebase::IDENTITY;
         if kept > 0 && self.model.is_latent() {
             // A latent cannot keep frames: the chunk is steered towards the kept frames' joint
-            // positions (the family's position targets, MoLA's MPGD), and only its new frames
-            // are appended. humanml263 decodes from the canonical start, as the chunk does.
+            // positions (through the model's trajectory ControlNet when it has one, MotionLCM's
+            // temporal control; else the family's position targets, MoLA's MPGD), and only its
+            // new frames are appended. humanml263 decodes from the canonical start, as the
+            // chunk does.
             let reference = &self.features[(have - kept) * dim..];
             let format = self.model.motion_format();
             let poses =
@@ -597,7 +600,11 @@ impl Stream {
                 .map(|&v| v as f32)
                 .collect();
             let targets = PositionTargets::new(format, &values, None, Convention::Native)?;
-            session.set_position_targets(targets)?;
+            if self.model.denoiser().takes_control() {
+                session.set_control(&targets)?;
+            } else {
+                session.set_position_targets(targets)?;
+            }
         } else if kept > 0 {
             let mut reference = self.features[(have - kept) * dim..].to_vec();
             frame = self.to_canonical(&mut reference);

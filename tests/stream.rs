@@ -513,3 +513,38 @@ fn quaternion_tracks_keep_their_signs_across_reads_and_drops() {
         assert_eq!(before, after, "{name}");
     }
 }
+
+/// MotionLCM continues each chunk through its trajectory ControlNet: the kept frames' joint
+/// positions are the next chunk's control hint (the temporal-control route), and only its new
+/// frames are appended. Deterministic under any pump pattern; a MotionLCM file without a
+/// ControlNet is refused with the reason (MLD's decoder has no gradient either).
+#[test]
+fn motionlcm_streams_continue_through_the_controlnet() {
+    let m = model("motionlcm_v2_control_tiny");
+    let p = StreamParams {
+        chunk: 32,
+        overlap: 8,
+        session: SessionParams {
+            steps: Some(2),
+            sampler: Some(Sampler::Lcm),
+            seed: 5,
+            threads: 1,
+            ..Default::default()
+        },
+        ..params(1)
+    };
+    let mut a = Stream::new(Arc::clone(&m), &p).unwrap();
+    timeline(&mut a);
+    run(&mut a, 1);
+    let mut b = Stream::new(Arc::clone(&m), &p).unwrap();
+    timeline(&mut b);
+    run(&mut b, usize::MAX);
+    assert_eq!((a.ready(), b.ready()), (115, 115));
+    let (fa, fb) = (a.features(0, 115).unwrap(), b.features(0, 115).unwrap());
+    assert!(fa.iter().zip(fb).all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert!(fa.iter().all(|v| v.is_finite()));
+    let Err(e) = Stream::new(model("motionlcm_v2_tiny"), &p) else {
+        panic!("a MotionLCM file without a ControlNet made a stream");
+    };
+    assert!(e.to_string().contains("ControlNet"), "{e}");
+}

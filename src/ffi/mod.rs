@@ -893,6 +893,19 @@ pub unsafe extern "C" fn flame_session_target_params(
     })
 }
 
+/// A per-value mask argument: NULL with length 0 is "no mask" (NaN = free); NULL with a length
+/// is an error.
+///
+/// # Safety
+/// `mask` is NULL or points to `mask_len` bytes.
+unsafe fn optional_mask<'a>(mask: *const u8, mask_len: usize) -> Result<Option<&'a [u8]>, Fail> {
+    match mask.is_null() {
+        true if mask_len == 0 => Ok(None),
+        true => Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into()),
+        false => Ok(Some(slice_arg(mask, mask_len, "mask")?)),
+    }
+}
+
 /// Steers the following steps toward joint positions: `targets` = `frames` × joints × 3 floats
 /// (x, y, z per joint, the joints of the model's skeleton as [`FlameModelInfo::joint_count`] counts
 /// them, frame-major), in `convention` (a [`FlameConvention`]) and its unit (metres or
@@ -919,11 +932,7 @@ pub unsafe extern "C" fn flame_session_set_position_targets(
     guard(|| {
         let s = session_ref(session)?;
         let values = slice_arg(targets, targets_len, "targets")?;
-        let mask = match mask.is_null() {
-            true if mask_len == 0 => None,
-            true => return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into()),
-            false => Some(slice_arg(mask, mask_len, "mask")?),
-        };
+        let mask = optional_mask(mask, mask_len)?;
         let convention = poses::convention(convention)?;
         s.with(|st| {
             Ok(st
@@ -1006,11 +1015,7 @@ pub unsafe extern "C" fn flame_session_set_control(
     guard(|| {
         let s = session_ref(session)?;
         let values = slice_arg(positions, positions_len, "positions")?;
-        let mask = match mask.is_null() {
-            true if mask_len == 0 => None,
-            true => return Err(invalid_arg!("`mask` is NULL but its length is {mask_len}").into()),
-            false => Some(slice_arg(mask, mask_len, "mask")?),
-        };
+        let mask = optional_mask(mask, mask_len)?;
         let convention = poses::convention(convention)?;
         s.with(|st| Ok(st.session.set_control_values(values, mask, convention)?))
     })

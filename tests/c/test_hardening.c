@@ -344,7 +344,8 @@ static void test_flame_config(const Fixture *fx) {
     expect_bad(fx, "motion", "format", "\"humanml263\"", "motion.format");
     expect_bad(fx, "denoiser", "activation", "\"swish\"", "denoiser.activation");
     expect_bad(fx, "text_encoder", "hidden_act", "\"relu\"", "hidden_act");
-    expect_bad(fx, "text_encoder", "kind", "\"t5\"", "text_encoder.kind");
+    expect_bad(fx, "text_encoder", "kind", "\"t6\"", "text_encoder.kind");
+    expect_bad(fx, "text_encoder", "kind", "\"t5\"", "cannot use a `t5` text encoder");
     expect_bad(fx, "text_encoder", "kind", "\"clip\"", NULL);
     expect_bad(fx, NULL, "architecture", "\"unet\"", "architecture");
     /* The sampler's spellings (any case) are still accepted. */

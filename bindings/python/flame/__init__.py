@@ -755,6 +755,16 @@ class ModelInfo:
     control: bool = False
 
 
+def _mask_arg(mask):
+    """A per-value mask as (array kept alive, pointer, length): None for no mask (NULL, 0)."""
+    if mask is None:
+        return None, None, 0
+    m = np.asarray(mask)
+    m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
+    # An empty mask is still a mask (libflame refuses its length), not "no mask" (NULL).
+    return m, _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8), m.size
+
+
 def _text(p: Optional[bytes]) -> str:
     return p.decode("utf-8", "replace") if p else ""
 
@@ -1460,15 +1470,10 @@ class Session:
         a = _f32(targets, "targets")
         if a.ndim != 1 and (a.ndim != 3 or a.shape[1:] != (self.joint_count, 3)):
             raise ValueError(f"targets must be shaped [frames, {self.joint_count}, 3], got {a.shape}")
-        m, m_ptr = None, None
-        if mask is not None:
-            m = np.asarray(mask)
-            m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
-            # An empty mask is still a mask (libflame refuses its length), not "no mask" (NULL).
-            m_ptr = _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8)
+        m, m_ptr, m_len = _mask_arg(mask)
         self._call(
             _lib().flame_session_set_position_targets,
-            _ptr(a, ctypes.c_float), a.size, m_ptr, 0 if m is None else m.size, convention,
+            _ptr(a, ctypes.c_float), a.size, m_ptr, m_len, convention,
         )
 
     def clear_position_targets(self) -> None:
@@ -1484,14 +1489,10 @@ class Session:
         a = _f32(positions, "positions")
         if a.ndim != 1 and (a.ndim != 3 or a.shape[1:] != (self.joint_count, 3)):
             raise ValueError(f"positions must be shaped [frames, {self.joint_count}, 3], got {a.shape}")
-        m, m_ptr = None, None
-        if mask is not None:
-            m = np.asarray(mask)
-            m = np.ascontiguousarray((m != 0) if m.dtype != np.uint8 else m, dtype=np.uint8)
-            m_ptr = _ptr(m if m.size else np.zeros(1, dtype=np.uint8), ctypes.c_uint8)
+        m, m_ptr, m_len = _mask_arg(mask)
         self._call(
             _lib().flame_session_set_control,
-            _ptr(a, ctypes.c_float), a.size, m_ptr, 0 if m is None else m.size, convention,
+            _ptr(a, ctypes.c_float), a.size, m_ptr, m_len, convention,
         )
 
     def clear_control(self) -> None:

@@ -335,7 +335,8 @@ static class FlameTest
         // ABI 2: two uint32 after the five pointers (C on x86-64: offsetof latent 88, sizeof 96).
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "latent") == 88 || IntPtr.Size == 4, "offset of latent");
         Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "sample_dim") == 92 || IntPtr.Size == 4, "offset of sample_dim");
-        Check(Marshal.SizeOf(typeof(FlameModelInfo)) == 96 || IntPtr.Size == 4, "sizeof FlameModelInfo " + Marshal.SizeOf(typeof(FlameModelInfo)));
+        Check((int)Marshal.OffsetOf(typeof(FlameModelInfo), "control") == 96 || IntPtr.Size == 4, "offset of control");
+        Check(Marshal.SizeOf(typeof(FlameModelInfo)) == 104 || IntPtr.Size == 4, "sizeof FlameModelInfo " + Marshal.SizeOf(typeof(FlameModelInfo)));
         var ep = FlameEditParams.Default();
         Check(ep.struct_size == Marshal.SizeOf(typeof(FlameEditParams)) && ep.struct_size == 20, "sizeof FlameEditParams " + ep.struct_size);
         // FlamePromptInfo: six uint32 then a pointer, no padding (C: sizeof 32, offsetof dropped 24 on x86-64).
