@@ -191,7 +191,7 @@ fn gemm_bench(args: &[String]) {
 }
 
 /// Multiply-adds of MLD's skip transformer on `b` rows of `s` tokens each (latent tokens, time,
-/// text): the layers' in/out projections and feed-forward, the skip joins ([2D] -> D), and the
+/// text): the layers' in/out projections and feed-forward, the skip joins (2D -> D), and the
 /// attention products.
 fn mld_stack_macs(d: &MldConfig, b: f64) -> (f64, f64) {
     let (e, ff) = (d.latent_dim as f64, d.ff_size as f64);

@@ -56,7 +56,8 @@
 //! - `damping`: the solver's Tikhonov damping (default 0.5, GMR's `damping`).
 //!
 //! Keys starting with `_` are comments. Any other key is an error (a misspelt key would
-//! otherwise be silently ignored), as are negative or non-finite weights, scales, sizes, an
+//! otherwise be silently ignored), as are negative, non-finite or too large (above
+//! [`MAX_WEIGHT`]) weights, negative or non-finite scales and sizes, an
 //! unknown body or human joint (named in the message), and a zero rotation offset.
 
 use std::path::{Path, PathBuf};
@@ -208,6 +209,21 @@ fn non_negative(v: &Value, what: &str) -> Result<f64> {
     if x < 0.0 {
         return Err(invalid_arg!(
             "retarget config: {what} must not be negative, got {x}"
+        ));
+    }
+    Ok(x)
+}
+
+/// The largest IK weight a configuration may give (GMR's tables use up to 100): a weight near
+/// f64's range would square into infinities inside the solve.
+pub const MAX_WEIGHT: f64 = 1e6;
+
+/// A task weight: 0..=[`MAX_WEIGHT`].
+fn weight(v: &Value, what: &str) -> Result<f64> {
+    let x = non_negative(v, what)?;
+    if x > MAX_WEIGHT {
+        return Err(invalid_arg!(
+            "retarget config: {what} is {x}; it must be at most {MAX_WEIGHT}"
         ));
     }
     Ok(x)
@@ -498,8 +514,8 @@ fn entry(
     let body = body(robot, name, what)?;
     let human_name = string(&a[0], what)?;
     let human = human(human_name, what)?;
-    let position_weight = non_negative(&a[1], &format!("{what} position weight"))?;
-    let rotation_weight = non_negative(&a[2], &format!("{what} rotation weight"))?;
+    let position_weight = weight(&a[1], &format!("{what} position weight"))?;
+    let rotation_weight = weight(&a[2], &format!("{what} rotation weight"))?;
     let [x, y, z] = numbers::<3>(&a[3], &format!("{what} position offset"))?;
     let quat = numbers::<4>(&a[4], &format!("{what} rotation offset (w, x, y, z)"))?;
     let norm = quat.iter().map(|c| c * c).sum::<f64>().sqrt();
@@ -653,5 +669,19 @@ mod tests {
         let c = s.corners();
         assert_eq!(c[0], [0.15000000000000002, 0.03, -0.03]);
         assert_eq!(c[3], [-0.05, -0.05, -0.03]);
+    }
+
+    #[test]
+    fn task_weights_are_bounded() {
+        // A weight of 2.2e14 (a fuzz finding) squared into infinities inside the solve.
+        let w = |v: f64| weight(&serde_json::json!(v), "w").map_err(|e| e.to_string());
+        assert_eq!(w(0.0), Ok(0.0));
+        assert_eq!(w(MAX_WEIGHT), Ok(MAX_WEIGHT));
+        let e = w(2.2e14).unwrap_err();
+        assert!(
+            e.contains("w is 220000000000000; it must be at most 1000000"),
+            "{e}"
+        );
+        assert!(w(-1.0).is_err());
     }
 }
