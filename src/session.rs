@@ -637,20 +637,11 @@ impl Session {
         if self.staged.is_some() {
             return self.check_editable();
         }
-        let format = self.model.motion_format();
-        if targets.format() != format {
-            return Err(invalid_arg!(
-                "the position targets are for {} joints; this model's motion is {format}",
-                targets.format()
-            ));
-        }
-        if targets.frames() > self.frames {
-            return Err(invalid_arg!(
-                "position targets cover {} frames; the session has {}",
-                targets.frames(),
-                self.frames
-            ));
-        }
+        self.check_span(
+            &targets,
+            "the position targets are",
+            "position targets cover",
+        )?;
         self.targets = Some(targets);
         Ok(())
     }
@@ -667,26 +658,33 @@ impl Session {
         self.set_position_targets(t)
     }
 
+    /// Joint positions given to steer the session (targets or a control) are for this model's
+    /// skeleton and cover at most its frames; `is` and `covers` start the two messages.
+    fn check_span(&self, targets: &PositionTargets, is: &str, covers: &str) -> Result<()> {
+        let format = self.model.motion_format();
+        if targets.format() != format {
+            return Err(invalid_arg!(
+                "{is} for {} joints; this model's motion is {format}",
+                targets.format()
+            ));
+        }
+        if targets.frames() > self.frames {
+            return Err(invalid_arg!(
+                "{covers} {} frames; the session has {}",
+                targets.frames(),
+                self.frames
+            ));
+        }
+        Ok(())
+    }
+
     /// Follows joint positions with the model's trajectory ControlNet (MotionLCM's
     /// `--control`): `targets`' positions where their weight is 1, over the first
     /// `targets.frames()` frames (≤ the session's; later frames are free). Encoded once here;
     /// every later step's network pass takes it. Allowed between steps. Models without a
     /// ControlNet refuse (position targets steer those that take gradients).
     pub fn set_control(&mut self, targets: &PositionTargets) -> Result<()> {
-        let format = self.model.motion_format();
-        if targets.format() != format {
-            return Err(invalid_arg!(
-                "the control is for {} joints; this model's motion is {format}",
-                targets.format()
-            ));
-        }
-        if targets.frames() > self.frames {
-            return Err(invalid_arg!(
-                "the control covers {} frames; the session has {}",
-                targets.frames(),
-                self.frames
-            ));
-        }
+        self.check_span(targets, "the control is", "the control covers")?;
         let model = Arc::clone(&self.model);
         let frames = self.frames;
         let encoded = self.pool.install(|| {

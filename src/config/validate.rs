@@ -525,25 +525,28 @@ impl Config {
             diffusers_timesteps(spacing, dc.num_timesteps, df.steps, dc.steps_offset)
                 .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
         }
-        if spacing == Spacing::Lcm {
-            crate::diffusion::lcm::LcmTimesteps::from_config(dc)?
-                .timesteps(df.steps, dc.num_timesteps)
+        // `check_spacing` has read the rule of an `lcm` model already.
+        let lcm_rule = match spacing {
+            Spacing::Lcm => Some(crate::diffusion::lcm::LcmTimesteps::from_config(dc)?),
+            _ => None,
+        };
+        if let Some(rule) = lcm_rule {
+            rule.timesteps(df.steps, dc.num_timesteps)
                 .map_err(|e| bad_file!("config defaults.steps {}: {}", df.steps, inner(e)))?;
         }
         if let Some(map) = &df.guidance_by_steps {
-            if spacing != Spacing::Lcm {
+            let Some(rule) = lcm_rule else {
                 return Err(bad_file!(
                     "config defaults.guidance_by_steps is for latent consistency models \
                      (diffusion.spacing `lcm`)"
                 ));
-            }
+            };
             for (k, &g) in map {
                 let field = format!("defaults.guidance_by_steps.{k}");
                 let steps: usize = k
                     .parse()
                     .map_err(|_| bad_file!("config {field}: the key is not a step count"))?;
-                crate::diffusion::lcm::LcmTimesteps::from_config(dc)?
-                    .timesteps(steps, dc.num_timesteps)
+                rule.timesteps(steps, dc.num_timesteps)
                     .map_err(|e| bad_file!("config {field}: {}", inner(e)))?;
                 in_range_f32(&field, g, 0.0, MAX_GUIDANCE, false)?;
             }

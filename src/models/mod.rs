@@ -375,16 +375,22 @@ impl fmt::Debug for Condition {
     }
 }
 
-/// The family's views of a batch of conditions, on the stack (a step allocates nothing):
-/// `Err` when one was made for another family.
-pub fn condition_views<'a, T: Any>(conds: &[&'a Condition]) -> Result<([&'a T; MAX_BATCH], usize)> {
-    let wrong = || invalid_arg!("a condition was made for another architecture");
+/// A forward pass's batch: 1 to [`MAX_BATCH`] conditions.
+fn check_batch(conds: &[&Condition]) -> Result<()> {
     if conds.is_empty() || conds.len() > MAX_BATCH {
         return Err(invalid_arg!(
             "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
             conds.len()
         ));
     }
+    Ok(())
+}
+
+/// The family's views of a batch of conditions, on the stack (a step allocates nothing):
+/// `Err` when one was made for another family.
+pub fn condition_views<'a, T: Any>(conds: &[&'a Condition]) -> Result<([&'a T; MAX_BATCH], usize)> {
+    let wrong = || invalid_arg!("a condition was made for another architecture");
+    check_batch(conds)?;
     let first = conds[0].get::<T>().ok_or_else(wrong)?;
     let mut views = [first; MAX_BATCH];
     for (v, c) in views.iter_mut().zip(conds) {
@@ -486,14 +492,6 @@ impl TextModel {
                 encoder.sentence_embedding(&t.ids, &t.mask)
             }
             _ => Err(invalid_arg!("this model's text encoder is not T5")),
-        }
-    }
-
-    /// Width of [`TextModel::t5_vector`]'s vectors (0 for other encoders).
-    pub fn t5_dim(&self) -> usize {
-        match self {
-            TextModel::T5 { encoder, .. } => encoder.dims().out,
-            _ => 0,
         }
     }
 
@@ -862,12 +860,7 @@ impl Model {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        if conds.is_empty() || conds.len() > MAX_BATCH {
-            return Err(invalid_arg!(
-                "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
-                conds.len()
-            ));
-        }
+        check_batch(conds)?;
         self.denoiser.forward(x, rows, t, conds, out, ws, cancel)
     }
 
@@ -886,12 +879,7 @@ impl Model {
         ws: &mut Workspace,
         cancel: &Cancel,
     ) -> Result<()> {
-        if conds.is_empty() || conds.len() > MAX_BATCH {
-            return Err(invalid_arg!(
-                "a forward pass takes 1 to {MAX_BATCH} conditions, got {}",
-                conds.len()
-            ));
-        }
+        check_batch(conds)?;
         if !w.is_finite() {
             return Err(invalid_arg!(
                 "the embedded guidance must be finite, got {w}"

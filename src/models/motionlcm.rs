@@ -466,11 +466,6 @@ pub struct MotionLcmDenoiser {
 }
 
 impl MotionLcmDenoiser {
-    /// The underlying MLD network.
-    pub fn mld(&self) -> &MldDenoiser {
-        &self.net
-    }
-
     /// The VAE decoder.
     pub fn vae(&self) -> Option<&VaeDecoder> {
         self.net.vae()
