@@ -48,7 +48,7 @@ use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{PackedWeights, WeightType};
 use crate::models::calibrate::{record_while, RecordedLayer, Recorder};
 use crate::models::{LoadOptions, Model};
-use crate::session::{Session, SessionParams};
+use crate::session::{Session, SessionParams, Which};
 
 pub use crate::checkpoint::QUANTIZATION_KEY;
 
@@ -195,6 +195,10 @@ pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<Quan
             let mut session = Session::new(Arc::clone(&loaded), &params)?;
             session.set_prompt(prompt)?;
             session.run()?;
+            if loaded.is_latent() {
+                // A latent model's decoder runs when the motion is read: its layers record then.
+                session.motion(Which::Sample)?;
+            }
             runs += 1;
         }
     }
@@ -244,12 +248,23 @@ pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<Quan
     })
 }
 
-/// What stays f32: layers by input width, by output width (the sampled features in and out),
-/// and the caller's names or name prefixes.
+/// What stays f32: layers by input width, by output width (the sampled features in and out,
+/// and a latent decoder's motion features), and the caller's names or name prefixes. A network
+/// whose every layer reads the sampled width (MLD's, MotionLCM v1's 256-wide latent) has no
+/// projection to keep: its sampled width would keep everything.
 fn kept_widths(model: &Model, names: &[String]) -> (Vec<usize>, Vec<usize>, Vec<String>) {
-    let inputs = vec![model.sample_dim()];
-    let outputs = vec![model.sample_dim(), model.output_dim(), model.motion_dim()];
-    (inputs, outputs, names.to_vec())
+    let direct = model.denoiser().reads_sample_directly();
+    let sampled = if direct {
+        vec![]
+    } else {
+        vec![model.sample_dim()]
+    };
+    let mut outputs = sampled.clone();
+    if !direct || model.output_dim() != model.sample_dim() {
+        outputs.push(model.output_dim());
+    }
+    outputs.push(model.motion_dim());
+    (sampled, outputs, names.to_vec())
 }
 
 type Owned = BTreeMap<String, (Dtype, Vec<usize>, Vec<u8>)>;

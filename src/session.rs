@@ -722,7 +722,10 @@ impl Session {
     /// Position targets for an editing task from a reference motion (`[frames, feature_dim]`
     /// model-space features, what a session of this model produces; 1 ≤ frames ≤ the
     /// session's): its joint positions where the task keeps them (see
-    /// [`PositionTargets::from_task`]; MoLA's MPGD tasks).
+    /// [`PositionTargets::from_task`]; MoLA's MPGD tasks). A model with a trajectory ControlNet
+    /// (a MotionLCM control file) takes them as its control hint instead
+    /// ([`Session::set_control`]: the official route of MotionLCM's temporal and joint control),
+    /// replacing any control set before.
     pub fn set_task_targets(&mut self, features: &[f32], task: crate::motion::Task) -> Result<()> {
         let model = Arc::clone(&self.model);
         let format = model.motion_format();
@@ -739,6 +742,9 @@ impl Session {
             crate::motion::Poses::decode(format, features, frames, &model.read_options(0.0, true))?;
         let positions = poses.positions(crate::motion::Convention::Native);
         let t = PositionTargets::from_task(format, &positions, frames, task)?;
+        if model.denoiser().takes_control() {
+            return self.set_control(&t);
+        }
         self.set_position_targets(t)
     }
 

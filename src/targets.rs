@@ -528,8 +528,14 @@ fn denormalized(x: &[f32], dim: usize, opts: &crate::motion::ReadOptions, out: &
 pub fn supported(model: &Model) -> Result<()> {
     match model.denoiser().decoder() {
         Some(d) if !d.has_vjp() => Err(invalid_arg!(
-            "position targets need the gradient of this model's decoder ({}), which libflame does not implement",
-            d.summary()
+            "position targets need the gradient of this model's decoder ({}), which libflame does not implement{}",
+            d.summary(),
+            if model.denoiser().takes_control() {
+                "; this file follows joint positions through its trajectory ControlNet instead \
+                 (set_control, `flame generate --control`, `flame edit` with --method auto)"
+            } else {
+                ""
+            }
         )),
         _ => Ok(()),
     }

@@ -1141,3 +1141,80 @@ fn motionlcm_control_follows_a_pelvis_path() {
     assert!(!Path::new(&bad).exists(), "nothing written");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// `flame edit` on a MotionLCM control file: the task's kept joints become the ControlNet's
+/// hint (the same bits as the library's `Session::set_task_targets`); `--method mpgd` (position
+/// guidance, which needs a decoder gradient) and a file without a ControlNet are refused.
+#[test]
+fn motionlcm_control_files_edit_through_the_control_net() {
+    let d = scratch("motionlcm-edit");
+    let path = |n: &str| d.join(n).display().to_string();
+    let control = repo("tests/fixtures/motionlcm_v2_control_tiny.safetensors")
+        .display()
+        .to_string();
+    let prompt = "a person walks forward and waves.";
+    let reference = path("ref.npy");
+    assert_ok(&flame(&[
+        "generate", "--model", &control, "--prompt", prompt, "--steps", "2", "--frames", "24",
+        "--seed", "1", "--out", &reference,
+    ]));
+    let edit = |model: &str, out: &str, more: &[&str]| {
+        let mut args = vec![
+            "edit",
+            "--model",
+            model,
+            "--reference",
+            &reference,
+            "--task",
+            "predict",
+            "--prompt",
+            "then jumps.",
+            "--steps",
+            "2",
+            "--frames",
+            "24",
+            "--seed",
+            "3",
+            "--out",
+            out,
+        ];
+        args.extend_from_slice(more);
+        flame(&args)
+    };
+    let out = path("edited.npy");
+    let o = edit(&control, &out, &[]);
+    assert_ok(&o);
+    assert!(
+        stderr(&o).contains("trajectory ControlNet"),
+        "{}",
+        stderr(&o)
+    );
+    let (_, edited) = flame::npy::read_f32(Path::new(&out)).unwrap();
+    let (_, ref_features) = flame::npy::read_f32(Path::new(&reference)).unwrap();
+    let model = std::sync::Arc::new(flame::models::Model::load(&control).unwrap());
+    let params = flame::session::SessionParams {
+        frames: Some(24),
+        steps: Some(2),
+        seed: 3,
+        ..Default::default()
+    };
+    let mut s = flame::session::Session::new(model, &params).unwrap();
+    s.set_prompt("then jumps.").unwrap();
+    s.set_task_targets(&ref_features, flame::motion::Task::Predict)
+        .unwrap();
+    s.run().unwrap();
+    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
+    assert_eq!(features, &edited[..]);
+    let bad = path("bad.npy");
+    let o = edit(&control, &bad, &["--method", "mpgd"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("gradient"), "{}", stderr(&o));
+    let plain = repo("tests/fixtures/motionlcm_v2_tiny.safetensors")
+        .display()
+        .to_string();
+    let o = edit(&plain, &bad, &[]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("gradient"), "{}", stderr(&o));
+    assert!(!Path::new(&bad).exists(), "nothing written");
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -232,3 +232,58 @@ fn bad_controls_are_refused_with_the_reason() {
     };
     assert!(e.contains("no `control` section"), "{e}");
 }
+
+/// Editing on a control file goes through the ControlNet: `set_task_targets` with the
+/// prediction task gives the same run, bit for bit, as a hint kept here by hand from the
+/// task's definition (the reference's 22 joints on frames `[0, ⌊L/4⌋)`, nothing after), and that
+/// run differs from the uncontrolled one.
+#[test]
+fn editing_tasks_follow_the_reference_through_the_control_net() {
+    use flame::motion::{Poses, Task};
+    for release in ["v1", "v2"] {
+        let m = model(release);
+        let params = SessionParams {
+            frames: Some(FRAMES),
+            steps: Some(2),
+            seed: 7,
+            threads: 2,
+            ..Default::default()
+        };
+        let run = |set: &dyn Fn(&mut Session)| {
+            let mut s = Session::new(Arc::clone(&m), &params).unwrap();
+            s.set_prompt(&prompt()).unwrap();
+            set(&mut s);
+            s.run().unwrap();
+            s.motion(Which::Sample).unwrap().0.to_vec()
+        };
+        let reference = run(&|_| {});
+        let edited = run(&|s| {
+            s.set_task_targets(&reference, Task::Predict).unwrap();
+            assert!(
+                s.has_control(),
+                "{release}: the task became the control hint"
+            );
+        });
+        let poses = Poses::decode(
+            m.motion_format(),
+            &reference,
+            FRAMES,
+            &m.read_options(0.0, true),
+        )
+        .unwrap();
+        let positions = poses.positions(Convention::Native);
+        let keep: Vec<bool> = (0..FRAMES * 22).map(|i| i / 22 < FRAMES / 4).collect();
+        let hint =
+            PositionTargets::from_positions(m.motion_format(), &positions, FRAMES, &keep).unwrap();
+        let by_hand = run(&|s| s.set_control(&hint).unwrap());
+        assert_eq!(
+            edited, by_hand,
+            "{release}: the task's hint is the hand-written one"
+        );
+        let d = rel_diff(&edited, &reference);
+        assert!(
+            d > 1e-3,
+            "{release}: the control changes the motion ({d:e})"
+        );
+    }
+}

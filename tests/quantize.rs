@@ -10,7 +10,7 @@ mod common;
 
 use flame::models::{LoadOptions, Model, WeightType};
 use flame::quantize::{quantize, QuantizeOptions, QUANTIZATION_KEY};
-use flame::session::{Session, SessionParams};
+use flame::session::{Session, SessionParams, Which};
 use safetensors::tensor::{Dtype, TensorView};
 use safetensors::SafeTensors;
 
@@ -452,6 +452,83 @@ fn another_family_quantises_too() {
     };
     let model = Arc::new(Model::load_with(&out, &LoadOptions { weights }).unwrap());
     assert!(x0(&model).iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn latent_models_quantise_their_stack_and_their_decoder() {
+    // MotionLCM v1 samples a latent as wide as its skip stack, so no layer is told apart by
+    // width: all stay int8 but the decoder's last layer (263 motion features out). v2's latent
+    // has 32 channels against 256 (tiny: 8 against 32): its three latent projections stay f32
+    // as well. Every int8 layer saw calibration rows, the VAE decoder's too (the decode runs
+    // after each calibration run).
+    for (release, f32_layers) in [
+        ("v1", &["vae.final_layer.weight"][..]),
+        (
+            "v2",
+            &[
+                "denoiser.latent_pre.weight",
+                "denoiser.latent_post.weight",
+                "vae.latent_post.weight",
+                "vae.final_layer.weight",
+            ][..],
+        ),
+    ] {
+        let out = tmp(&format!("motionlcm_{release}.safetensors"));
+        let opts = QuantizeOptions {
+            frames: Some(24),
+            steps: Some(1),
+            ..small()
+        };
+        let r = quantize(
+            &fixture(&format!("motionlcm_{release}_tiny.safetensors")),
+            &out,
+            &opts,
+        )
+        .unwrap();
+        let kept: Vec<&str> = r
+            .layers
+            .iter()
+            .filter(|l| !l.int8)
+            .map(|l| l.tensor.as_str())
+            .collect();
+        let mut want = f32_layers.to_vec();
+        want.sort_unstable();
+        let mut got = kept.clone();
+        got.sort_unstable();
+        assert_eq!(got, want, "{release}");
+        assert!(r
+            .layers
+            .iter()
+            .any(|l| l.tensor.starts_with("vae.decoder.") && l.int8));
+        for l in r.layers.iter().filter(|l| l.int8) {
+            assert!(
+                l.rows_seen > 0,
+                "{release}: {} saw no calibration rows",
+                l.tensor
+            );
+            assert!(l.error_written <= l.error_rounded, "{release}: {l:?}");
+        }
+        let weights = if WeightType::Int8.native_on_this_cpu() {
+            WeightType::Int8
+        } else {
+            WeightType::F32
+        };
+        let model = Arc::new(Model::load_with(&out, &LoadOptions { weights }).unwrap());
+        let mut s = Session::new(
+            Arc::clone(&model),
+            &SessionParams {
+                frames: Some(24),
+                steps: Some(1),
+                threads: 1,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        s.set_prompt("a person waves.").unwrap();
+        s.run().unwrap();
+        let (features, _) = s.motion(Which::Sample).unwrap();
+        assert!(features.iter().all(|v| v.is_finite()), "{release}");
+    }
 }
 
 #[test]

@@ -4,14 +4,17 @@
 #   tools/bench_motionlcm.sh [ROUNDS (default 5)]
 # Per round, for v1 and v2 and for 1 and 4 steps: `flame-bench` and `tools/bench_torch.py`
 # (the order alternates round by round), plus `flame-bench --weights W` at 1 step for each W in
-# EXTRA_WEIGHTS (default f16; e.g. "f16 bf16-compute", "" for none); each invocation reports
+# EXTRA_WEIGHTS (default "bf16-compute int8 int8-file"; "" for none; `int8-file` runs the file
+# `flame quantize --steps 1` writes, models/motionlcm_{v1,v2}_int8.safetensors, made first if
+# missing) and, when TORCH_INT8=1 (the default), PyTorch's own int8 route at 1 step
+# (`bench_torch.py --int8`: dynamic quantisation of every nn.Linear); each invocation reports
 # the medians of its RUNS runs (bench_torch.py after one warm-up generation). Then a table of the
 # medians over the rounds: prompt encoding (sentence-t5-large), one step, the VAE decode, the
 # whole motion (steps + decode, prompt already encoded: the binaries' `gen_ms`), libflame /
 # PyTorch time ratios, and whether the 1-step target (<= 16 ms and >= 2x PyTorch) is met.
 # Environment: PYTHON (default target/bench-venv/bin/python if present, else python3),
 # FLAME_BENCH (default target/release/flame-bench, built if missing), THREADS (2), FRAMES (196),
-# RUNS (5), STEPS ("1 4"), MODELS ("v1 v2"), EXTRA_WEIGHTS ("f16"), OUT (results file,
+# RUNS (5), STEPS ("1 4"), MODELS ("v1 v2"), EXTRA_WEIGHTS, TORCH_INT8 (1), OUT (results file,
 # default target/bench_motionlcm.tsv).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,7 +28,8 @@ FRAMES=${FRAMES:-196}
 RUNS=${RUNS:-5}
 STEPS=${STEPS:-"1 4"}
 MODELS=${MODELS:-"v1 v2"}
-EXTRA_WEIGHTS=${EXTRA_WEIGHTS-f16}
+EXTRA_WEIGHTS=${EXTRA_WEIGHTS-"bf16-compute int8 int8-file"}
+TORCH_INT8=${TORCH_INT8:-1}
 OUT=${OUT:-target/bench_motionlcm.tsv}
 
 for m in $MODELS; do
@@ -36,6 +40,20 @@ for m in $MODELS; do
     fi
 done
 if [ ! -x "$FLAME_BENCH" ]; then cargo build --release --bin flame-bench; fi
+FLAME=${FLAME:-target/release/flame}
+case " $EXTRA_WEIGHTS " in
+*" int8-file "*)
+    for m in $MODELS; do
+        q=models/motionlcm_${m}_int8.safetensors
+        if [ ! -f "$q" ]; then
+            if [ ! -x "$FLAME" ]; then cargo build --release --bin flame; fi
+            echo "making $q (flame quantize, 16 calibration prompts at 1 step)"
+            "$FLAME" quantize --model "models/motionlcm_${m}_base_random.safetensors" --out "$q" \
+                --steps 1 --threads "$THREADS"
+        fi
+    done
+    ;;
+esac
 
 mkdir -p "$(dirname "$OUT")"
 printf 'round\tmodel\timpl\tsteps\ttext_ms\tstep_ms\tgen_ms\tdecode_ms\n' > "$OUT"
@@ -60,12 +78,15 @@ record() { # round model impl steps command...
     printf '  %-3s %-12s %s steps: %s\n' "$model" "$impl" "$steps" "${line#RESULT }"
 }
 flame() { # round model steps weights
-    record "$1" "$2" "libflame-$4" "$3" "$FLAME_BENCH" --model "models/motionlcm_$2_base_random.safetensors" \
-        --frames "$FRAMES" --steps "$3" --threads "$THREADS" --runs "$RUNS" --weights "$4"
+    local file=models/motionlcm_$2_base_random.safetensors weights=$4
+    if [ "$4" = int8-file ]; then file=models/motionlcm_$2_int8.safetensors weights=int8; fi
+    record "$1" "$2" "libflame-$4" "$3" "$FLAME_BENCH" --model "$file" \
+        --frames "$FRAMES" --steps "$3" --threads "$THREADS" --runs "$RUNS" --weights "$weights"
 }
-torch() { # round model steps
-    record "$1" "$2" pytorch "$3" "$PYTHON" tools/bench_torch.py --model "models/motionlcm_$2_base_random.safetensors" \
-        --frames "$FRAMES" --steps "$3" --threads "$THREADS" --runs "$RUNS"
+torch() { # round model steps [--int8]
+    record "$1" "$2" "pytorch${4:+-int8}" "$3" "$PYTHON" tools/bench_torch.py \
+        --model "models/motionlcm_$2_base_random.safetensors" \
+        --frames "$FRAMES" --steps "$3" --threads "$THREADS" --runs "$RUNS" ${4:+"$4"}
 }
 
 echo "bench_motionlcm: $ROUNDS rounds, $FRAMES frames, $THREADS threads, $RUNS runs per invocation, steps $STEPS"
@@ -87,6 +108,7 @@ for round in $(seq 1 "$ROUNDS"); do
             fi
         done
         for w in $EXTRA_WEIGHTS; do flame "$round" "$m" 1 "$w"; done
+        if [ "$TORCH_INT8" = 1 ]; then torch "$round" "$m" 1 --int8; fi
     done
 done
 echo "done in $(( $(date +%s) - start )) s; load average at the end: $(cut -d' ' -f1-3 /proc/loadavg); raw values in $OUT"
@@ -110,8 +132,10 @@ def med(model, impl, steps, key):
 models = sorted({r["model"] for r in rows})
 steps = sorted({r["steps"] for r in rows}, key=int)
 seen = list(dict.fromkeys(r["impl"] for r in rows))
-impls = [i for i in seen if i.startswith("libflame")] + [i for i in seen if i == "pytorch"]
-impls.sort(key=lambda i: (i != "libflame-f32", i == "pytorch"))
+impls = [i for i in seen if i.startswith("libflame")] + [i for i in seen if i == "pytorch-int8"] \
+    + [i for i in seen if i == "pytorch"]
+impls.sort(key=lambda i: (i != "libflame-f32", i.startswith("pytorch"), i == "pytorch"))
+ours = [i for i in impls if i.startswith("libflame")]
 print(f"\nMotionLCM, {frames} frames, {threads} threads: medians over {rounds} rounds "
       "(each the median of its runs), ms")
 print("(whole = steps + decode with the prompt already encoded; ratio = libflame time / PyTorch "
@@ -127,7 +151,7 @@ for m in models:
         for s in steps:
             line += f" {med(m, impl, s, 'gen_ms'):13.2f}"
         print(line)
-    for impl in impls[:-1] if impls[-1] == "pytorch" else []:
+    for impl in ours if "pytorch" in impls else []:
         line = f"{m:<5} {'ratio ' + impl[9:] + '/pytorch':<22}"
         for key in ("text_ms", "step_ms", "decode_ms"):
             width = {"text_ms": 13, "step_ms": 9, "decode_ms": 8}[key]
@@ -136,12 +160,15 @@ for m in models:
             line += f" {med(m, impl, s, 'gen_ms') / med(m, 'pytorch', s, 'gen_ms'):13.2f}"
         print(line)
     if "pytorch" in impls and "1" in steps:
-        for impl in impls[:-1]:
+        for impl in ours:
             whole = med(m, impl, "1", "gen_ms")
             speed = med(m, "pytorch", "1", "gen_ms") / whole
             ok = whole <= 16.0 and speed >= 2.0
-            print(f"{m:<5} target (whole 1-step <= 16 ms and >= 2x PyTorch), {impl[9:]}: "
-                  f"{whole:.2f} ms, {speed:.2f}x -> {'met' if ok else 'NOT met'}")
+            also = ""
+            if impl.startswith("libflame-int8") and "pytorch-int8" in impls:
+                also = f" ({med(m, 'pytorch-int8', '1', 'gen_ms') / whole:.2f}x PyTorch's int8)"
+            print(f"{m:<5} target (whole 1-step <= 16 ms and >= 2x PyTorch f32), {impl[9:]}: "
+                  f"{whole:.2f} ms, {speed:.2f}x{also} -> {'met' if ok else 'NOT met'}")
 more = [f"{m} {impl} {s} steps {med(m, impl, s, 'step_ms'):.2f} ms/step"
         for m in models for impl in impls for s in steps
         if s != "1" and not math.isnan(med(m, impl, s, "step_ms"))]

@@ -243,6 +243,17 @@ def motionlcm_bench(a):
     diffusers_logging.set_verbosity_error()
     with torch.inference_mode():
         den, dec, t5, tok, cfg = ref_lcm.load_libflame(a.model)
+        if a.int8:
+            # PyTorch's own int8 CPU route: dynamic quantisation swaps every nn.Linear for an
+            # int8 one (weights per tensor, activations quantised per call). nn.MultiheadAttention
+            # keeps its in_proj and out_proj float (its out_proj is a
+            # NonDynamicallyQuantizableLinear).
+            import warnings
+            from torch.ao.quantization import quantize_dynamic
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                den = quantize_dynamic(den, {torch.nn.Linear}, dtype=torch.qint8)
+                dec = quantize_dynamic(dec, {torch.nn.Linear}, dtype=torch.qint8)
         d = cfg["denoiser"]
         release = "v2" if cfg["diffusion"]["lcm_timesteps"] == "motionlcm_v2" else "v1"
         guidance = ref_lcm.guidance_for(cfg, a.steps)
@@ -284,7 +295,7 @@ def motionlcm_bench(a):
             decodes.append((time.perf_counter() - td) * 1e3)
             gens.append((time.perf_counter() - t0) * 1e3)
     med = statistics.median
-    print(f"torch {torch.__version__} eager, motionlcm {release}, frames {a.frames}, {a.steps} "
+    print(f"torch {torch.__version__} eager{' int8 dynamic' if a.int8 else ''}, motionlcm {release}, frames {a.frames}, {a.steps} "
           f"LCM steps {[int(t) for t in timesteps]} (diffusers), guidance {guidance} embedded "
           f"(one pass per step), prompt {len(ids)} tokens, {a.threads} threads, {a.runs} runs "
           f"(medians):")
@@ -562,6 +573,9 @@ def main():
                     help="FineMoGen: the MoE's expert dispatch (see above)")
     ap.add_argument("--text-moe-once", action="store_true",
                     help="FineMoGen: the text MoE once per prompt instead of every step")
+    ap.add_argument("--int8", action="store_true",
+                    help="MotionLCM: the denoiser and decoder dynamically quantised to int8 "
+                         "(torch.ao.quantization.quantize_dynamic on nn.Linear)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.set_num_interop_threads(1)

@@ -37,6 +37,12 @@ Dai-Wenxun/MotionLCM v1.0 / v2.0, and sentence-transformers/sentence-t5-large):
   gives), then made reproducible by
   make_motionlcm_fixtures' `canonical_tokenizer`, then filler pieces of a score below every
   trained one up to 32028 pieces.
+- With --control: DIR/motionlcm_vN_control.ckpt as well, the checkpoint plus a full-size random
+  ControlNet (`controlnet.*`: a copy of the denoiser, the condition embedding and the 9
+  zero-initialised-in-training Linear(256, 256) down blocks, here random) and trajectory encoder
+  (`traj_encoder.*`: Linear 66 -> 256, 9-layer skip encoder 256 wide, 4 heads, ff 1024, 500
+  position rows), built by tools/reference/motionlcm_control.py's modules as the tiny control
+  fixtures are; DIR/mean_raw.npy and DIR/std_raw.npy ([22, 3]) for --control-mean/--control-std.
 """
 import argparse
 import json
@@ -193,11 +199,36 @@ def write_t5(folder, seed):
             f"{spread:.3f}, max |h| {float(hidden.abs().max()):.3g}")
 
 
+def control_checkpoint(ckpt, release, seed):
+    """`ckpt` plus a full-size random ControlNet and trajectory encoder (module docstring)."""
+    from make_latent_fixtures import randomize
+    from reference import motionlcm_control as mc
+    tokens, channels = LATENT[release]
+    v2 = release == "v2"
+    d = DEN
+    torch.manual_seed(seed)
+    cn = mc.ControlNet(d["latent_dim"], tokens, channels, d["text_dim"], d["cond_dim"],
+                       d["layers"], d["heads"], d["ff_size"], d["max_len"],
+                       "none" if v2 else "relu", v2, 32 if v2 else d["latent_dim"],
+                       "silu" if v2 else "none")
+    traj = mc.TrajEncoder(d["latent_dim"], tokens, channels, d["layers"], d["heads"],
+                          d["ff_size"], d["max_len"], v2)
+    gen = torch.Generator().manual_seed(seed)
+    randomize(cn, gen)
+    randomize(traj, gen)
+    state = dict(ckpt["state_dict"])
+    state.update({"controlnet." + k: v.clone() for k, v in cn.state_dict().items()})
+    state.update({"traj_encoder." + k: v.clone() for k, v in traj.state_dict().items()})
+    return {"state_dict": state}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--release", choices=["v1", "v2", "both"], default="both")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--control", action="store_true",
+                    help="also write motionlcm_vN_control.ckpt, mean_raw.npy and std_raw.npy")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     os.makedirs(args.out, exist_ok=True)
@@ -209,6 +240,13 @@ def main(argv=None):
         n_den = sum(v.numel() for k, v in state.items() if k.startswith("denoiser."))
         n_vae = sum(v.numel() for k, v in state.items() if k.startswith("vae."))
         torch.save(ckpt, os.path.join(args.out, f"motionlcm_{r}.ckpt"))
+        if args.control:
+            control = control_checkpoint(ckpt, r, args.seed + {"v1": 21, "v2": 22}[r])
+            torch.save(control, os.path.join(args.out, f"motionlcm_{r}_control.ckpt"))
+            n = sum(v.numel() for k, v in control["state_dict"].items()
+                    if k.startswith(("controlnet.", "traj_encoder.")))
+            print(f"{r} control: controlnet.* and traj_encoder.* {n / 1e6:.2f} M values",
+                  flush=True)
         print(f"{r}: latent {list(LATENT[r])}, denoiser.* {n_den / 1e6:.2f} M values, vae.* "
               f"{n_vae / 1e6:.2f} M (with the skipped encoder stand-ins)", flush=True)
     t1 = time.perf_counter()
@@ -220,6 +258,12 @@ def main(argv=None):
     rng = np.random.default_rng(args.seed)
     np.save(os.path.join(args.out, "mean.npy"), rng.normal(0, 0.5, 263).astype(np.float32))
     np.save(os.path.join(args.out, "std.npy"), rng.uniform(0.05, 1.0, 263).astype(np.float32))
+    if args.control:
+        # Joint positions in metres: mean within a body's reach, spread 0.05..0.5 m.
+        np.save(os.path.join(args.out, "mean_raw.npy"),
+                rng.normal(0, 0.3, (22, 3)).astype(np.float32))
+        np.save(os.path.join(args.out, "std_raw.npy"),
+                rng.uniform(0.05, 0.5, (22, 3)).astype(np.float32))
     t2 = time.perf_counter()
     print(f"wrote {args.out}: checkpoints {t1 - t0:.1f} s, sentence-t5-large {t2 - t1:.1f} s")
     return 0

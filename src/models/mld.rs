@@ -878,6 +878,10 @@ impl Denoiser for MldDenoiser {
         self.parts.channels
     }
 
+    fn reads_sample_directly(&self) -> bool {
+        self.parts.channels == self.cfg.denoiser.latent_dim
+    }
+
     /// The latent's tokens, whatever the length.
     fn sample_rows(&self, _frames: usize) -> usize {
         self.cfg.denoiser.latent_tokens

@@ -169,6 +169,13 @@ pub trait Denoiser: Send + Sync {
     fn sample_rows(&self, frames: usize) -> usize {
         frames
     }
+    /// Whether the network's own layers read the sampled rows with no projection in between
+    /// (MLD's and MotionLCM v1's latent is as wide as the skip stack). A quantiser tells the
+    /// projections from and to the sampled space by their width, which such a network's every
+    /// layer shares.
+    fn reads_sample_directly(&self) -> bool {
+        false
+    }
     /// Channels per row of the network's output (more than [`Denoiser::sample_dim`] when the
     /// network also predicts variance values, which follow the prediction in each row).
     fn output_dim(&self) -> usize {

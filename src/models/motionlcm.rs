@@ -521,6 +521,10 @@ impl Denoiser for MotionLcmDenoiser {
         self.net.sample_dim()
     }
 
+    fn reads_sample_directly(&self) -> bool {
+        self.net.reads_sample_directly()
+    }
+
     fn sample_rows(&self, frames: usize) -> usize {
         self.net.sample_rows(frames)
     }
