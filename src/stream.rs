@@ -107,13 +107,14 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use crate::error::{invalid_arg, Error, Result};
-use crate::models::Model;
+use crate::models::{Condition, Model};
 use crate::motion::humanml263::RootStart;
 use crate::motion::{contacts, feet, resample, root_motion};
 use crate::motion::{Convention, Feet, Finish, Format, Layout, Poses, RootMotion};
 use crate::session::{Session, SessionParams, Which};
 use crate::stages::{Stage, PART_COUNT};
 use crate::targets::PositionTargets;
+use crate::text::PromptInfo;
 
 /// One prompt on the timeline, how many frames it lasts and, for families that read them
 /// (FineMoGen), what single body parts do (`parts[BodyPart as usize]`, `None` = the part
@@ -338,6 +339,10 @@ pub struct Stream {
     loop_end: Option<Vec<f32>>,
     /// The prompt of the last segment generated (a bridge's).
     last_prompt: String,
+    /// The last plain prompt a chunk encoded, with its condition and report: the next chunk of
+    /// the same segment reuses them (a prompt is the same condition every time, and a large
+    /// text encoder such as MotionLCM's T5-large costs as much as the chunk's sampling).
+    encoded: Option<(String, Condition, Option<PromptInfo>)>,
 }
 
 /// Sign-continuous quaternion tracks of the held frames, one per (local or world rotations,
@@ -413,6 +418,7 @@ impl Stream {
             first: 0,
             playhead: 0,
             chunks: 0,
+            encoded: None,
             current: None,
             anchor: RootStart::ORIGIN,
             decoded: Default::default(),
@@ -580,7 +586,17 @@ impl Stream {
                 parts: seg.parts.clone(),
             }])?;
         } else {
-            session.set_prompt(&seg.prompt)?;
+            match &self.encoded {
+                Some((prompt, cond, info)) if *prompt == seg.prompt => {
+                    session.set_encoded_prompt(cond.clone(), info.clone())?;
+                }
+                _ => {
+                    session.set_prompt(&seg.prompt)?;
+                    self.encoded = session
+                        .encoded_prompt()
+                        .map(|(cond, info)| (seg.prompt.clone(), cond, info));
+                }
+            }
         }
         let mut frame = Rebase::IDENTITY;
         if kept > 0 && self.model.is_latent() {

@@ -559,7 +559,8 @@ public:
     }
 
     // Position targets for an editing task from a reference motion (frames x dim model-space
-    // features): its joint positions where the task keeps them (MoLA's MPGD tasks).
+    // features): its joint positions where the task keeps them (MoLA's MPGD tasks). On a model
+    // with a trajectory ControlNet (a MotionLCM control file) they become the control hint.
     void set_task_targets(const std::vector<float>& features, uint32_t frames, uint32_t dim,
                           FlameEditTask task) {
         check_size(features.size(), frames, dim, "features");

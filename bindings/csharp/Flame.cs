@@ -1650,7 +1650,8 @@ namespace Flame
 
         /// <summary>Position targets for an editing task from a reference motion (frames ×
         /// FeatureDim model-space features): its joint positions where the task keeps them
-        /// (MoLA's MPGD tasks; how a latent model edits).</summary>
+        /// (MoLA's MPGD tasks; how a latent model edits). On a model with a trajectory
+        /// ControlNet (a MotionLCM control file) they become the control hint instead.</summary>
         public void SetTaskTargets(float[] features, int frames, FlameEditTask task)
         {
             CheckLength(features, features == null ? 0 : features.Length, frames, FeatureDim, "features");

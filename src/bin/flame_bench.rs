@@ -44,7 +44,7 @@
 //!
 //! `flame-bench stream --model M [--chunk N (default: the model's default frames)] [--overlap 20]
 //!  [--steps S (default: the model's)] [--threads 2] [--runs 5] [--seconds 30]
-//!  [--segment-seconds T (default: one chunk's new frames)]`: a [`flame::stream::Stream`]'s
+//!  [--segment-seconds T (default: one chunk's new frames)] [--weights W]`: a [`flame::stream::Stream`]'s
 //! latency and steady-state cost.
 //! Latency: per run a fresh stream (seed = run index), the time from just before `push` of
 //! the first segment to 20 frames ready, pumping one step at a time. The first chunk has nothing
@@ -752,7 +752,11 @@ fn stream_bench(args: &[String]) {
     let runs: usize = arg(args, "--runs", 5);
     let seconds: f64 = arg(args, "--seconds", 30.0);
     let segment_seconds: f64 = arg(args, "--segment-seconds", 0.0);
-    let model = Arc::new(Model::load(&path).unwrap_or_else(|e| panic!("cannot load {path}: {e}")));
+    let weights: WeightType = arg(args, "--weights", WeightType::F32);
+    let model = Arc::new(
+        Model::load_with(&path, &LoadOptions { weights })
+            .unwrap_or_else(|e| panic!("cannot load {path}: {e}")),
+    );
     let fps = model.config().motion.fps as f64;
     let total = (seconds * fps).round() as usize;
     if total == 0 {
@@ -879,8 +883,9 @@ fn stream_bench(args: &[String]) {
     };
 
     println!(
-        "model {path}: stream, {fps} fps, {} kernel, {threads} threads, chunk {chunk} frames, \
-         overlap {overlap}, {chunk_steps} steps per chunk{}, {runs} runs (medians)",
+        "model {path}: stream, {} weights, {fps} fps, {} kernel, {threads} threads, chunk {chunk} \
+         frames, overlap {overlap}, {chunk_steps} steps per chunk{}, {runs} runs (medians)",
+        weights.name(),
         kernels::kernel_name(),
         if steps.is_none() {
             " (model default)"

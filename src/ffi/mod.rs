@@ -948,7 +948,9 @@ pub unsafe extern "C" fn flame_session_set_position_targets(
 /// targets where the task keeps them: `path` the pelvis on every frame, `upper-body` the pelvis
 /// and legs on every frame, `inbetween` and `predict` every joint on the frames their masks
 /// keep (MoLA's MPGD tasks; for latent models, whose sample is not the motion, this is how a
-/// reference edits). Replaces earlier targets.
+/// reference edits). Replaces earlier targets. On a model with a trajectory ControlNet
+/// (`FlameModelInfo.control`: a MotionLCM control file) the same joints become the control
+/// hint instead, replacing one set by [`flame_session_set_control`].
 ///
 /// # Safety
 /// `session` is a live session; `features` points to `frames * dim` floats.

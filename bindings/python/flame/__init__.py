@@ -1423,7 +1423,9 @@ class Session:
         """Position targets for an editing task (an EditTask value or name) from a reference
         motion, [frames, feature_dim] model-space features: its joint positions where the task
         keeps them (path: the pelvis; upper-body: pelvis and legs; inbetween/predict: every
-        joint on the kept frames). MoLA's MPGD tasks; how a latent model edits."""
+        joint on the kept frames). MoLA's MPGD tasks; how a latent model edits. On a model with
+        a trajectory ControlNet (ModelInfo.control: a MotionLCM control file) the same joints
+        become the control hint instead, replacing one set by set_control."""
         a = _f32(features, "features")
         frames, dim = _frames_by_dim(a, self.feature_dim, "features")
         self._call(_lib().flame_session_set_task_targets, _ptr(a, ctypes.c_float), frames, dim,

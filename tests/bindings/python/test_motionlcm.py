@@ -66,3 +66,25 @@ def test_control_refusals():
         with pytest.raises(FlameError) as e:
             m.session(frames=FRAMES, steps=3)
         assert "1, 2, 4" in e.value.message
+
+
+def test_editing_tasks_go_through_the_control_net_as_the_cli_does(tmp_path):
+    ref = tmp_path / "ref.npy"
+    subprocess.run([cli_path(), "generate", "--model", CONTROL, "--prompt", PROMPT,
+                    "--frames", str(FRAMES), "--steps", "2", "--seed", "1", "--threads", "1",
+                    "--out", str(ref)], check=True, capture_output=True)
+    reference = np.load(ref)
+    with flame.Model.load(CONTROL) as m, \
+            m.session(frames=FRAMES, steps=2, seed=3, threads=1) as s:
+        s.set_prompt("then jumps")
+        s.set_task_targets(reference, "predict")
+        edited = s.run().copy()
+    out = tmp_path / "edited.npy"
+    subprocess.run([cli_path(), "edit", "--model", CONTROL, "--reference", str(ref), "--task",
+                    "predict", "--prompt", "then jumps", "--frames", str(FRAMES), "--steps", "2",
+                    "--seed", "3", "--threads", "1", "--out", str(out)],
+                   check=True, capture_output=True)
+    assert np.load(out).tobytes() == edited.tobytes()
+    with flame.Model.load(PLAIN) as m, m.session(frames=FRAMES, steps=2) as s:
+        expect_error(Status.INVALID_ARGUMENT, "gradient", s.set_task_targets, reference,
+                     "predict")
