@@ -14,6 +14,13 @@
 //! int8's error comes from"): with f32 activations, the features after 10 steps move 0.26 from
 //! f32 with weights rounded per row at load, 0.11 with this file's weights.
 //!
+//! A latent model (MoLA, MLD, MotionLCM) decodes each calibration run, so that its VAE
+//! decoder's layers record too; a model with a trajectory ControlNet (a MotionLCM control file)
+//! runs each prompt a second time following its own pelvis path, so that the ControlNet and
+//! its trajectory encoder do. Where the network reads the latent at its own width (MLD's and
+//! MotionLCM v1's 256 channels) no layer is a projection from the sampled space, and none is
+//! kept for it.
+//!
 //! The projections from and to the sampled features (FLAME's `input_projection` and
 //! `last_projection`, MDM's pose embedding and output) stay f32: their inputs are the noisy
 //! sample itself and their outputs are the step's result. Rounding `last_projection`'s input
@@ -48,6 +55,7 @@ use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{PackedWeights, WeightType};
 use crate::models::calibrate::{record_while, RecordedLayer, Recorder};
 use crate::models::{LoadOptions, Model};
+use crate::motion::Task;
 use crate::session::{Session, SessionParams, Which};
 
 pub use crate::checkpoint::QUANTIZATION_KEY;
@@ -197,7 +205,18 @@ pub fn quantize(model: &Path, out: &Path, opts: &QuantizeOptions) -> Result<Quan
             session.run()?;
             if loaded.is_latent() {
                 // A latent model's decoder runs when the motion is read: its layers record then.
-                session.motion(Which::Sample)?;
+                let (features, _) = session.motion(Which::Sample)?;
+                if loaded.denoiser().takes_control() {
+                    // A trajectory ControlNet and its encoder run only under a control: the
+                    // same run again, following its own pelvis path (MotionLCM's v1 control
+                    // task, every frame), so that they record inputs of a real hint.
+                    let features = features.to_vec();
+                    let mut controlled = Session::new(Arc::clone(&loaded), &params)?;
+                    controlled.set_prompt(prompt)?;
+                    controlled.set_task_targets(&features, Task::Path)?;
+                    controlled.run()?;
+                    controlled.motion(Which::Sample)?;
+                }
             }
             runs += 1;
         }

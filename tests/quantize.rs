@@ -460,7 +460,9 @@ fn latent_models_quantise_their_stack_and_their_decoder() {
     // width: all stay int8 but the decoder's last layer (263 motion features out). v2's latent
     // has 32 channels against 256 (tiny: 8 against 32): its three latent projections stay f32
     // as well. Every int8 layer saw calibration rows, the VAE decoder's too (the decode runs
-    // after each calibration run).
+    // after each calibration run). A control file's ControlNet and trajectory encoder record
+    // too (each run is repeated following its own pelvis path); v2's keeps the ControlNet's
+    // projections from and to the 32 channels as well.
     for (release, f32_layers) in [
         ("v1", &["vae.final_layer.weight"][..]),
         (
@@ -470,6 +472,20 @@ fn latent_models_quantise_their_stack_and_their_decoder() {
                 "denoiser.latent_post.weight",
                 "vae.latent_post.weight",
                 "vae.final_layer.weight",
+            ][..],
+        ),
+        ("v1_control", &["vae.final_layer.weight"][..]),
+        (
+            "v2_control",
+            &[
+                "denoiser.latent_pre.weight",
+                "denoiser.latent_post.weight",
+                "vae.latent_post.weight",
+                "vae.final_layer.weight",
+                "controlnet.latent_pre.weight",
+                "controlnet.controlnet_cond_embedding.0.weight",
+                "controlnet.controlnet_cond_embedding.4.weight",
+                "traj_encoder.latent_proj.weight",
             ][..],
         ),
     ] {
@@ -500,6 +516,14 @@ fn latent_models_quantise_their_stack_and_their_decoder() {
             .layers
             .iter()
             .any(|l| l.tensor.starts_with("vae.decoder.") && l.int8));
+        if release.ends_with("control") {
+            for part in ["controlnet.encoder.", "traj_encoder."] {
+                assert!(r
+                    .layers
+                    .iter()
+                    .any(|l| l.tensor.starts_with(part) && l.int8));
+            }
+        }
         for l in r.layers.iter().filter(|l| l.int8) {
             assert!(
                 l.rows_seen > 0,
