@@ -848,6 +848,18 @@ enum FlameStatus flame_session_reset(struct FlameSession *session);
 // `session` is a live session; `prompt` a NUL-terminated string.
 enum FlameStatus flame_session_set_prompt(struct FlameSession *session, const char *prompt);
 
+// Sets the prompt `source` was given, as encoded there, without running the text encoder
+// again: a game that makes many motions from one prompt encodes it once (MotionLCM's
+// T5-large takes 75–85 ms a prompt on 2 cores; a whole 1-step motion 12–28 ms). `source` must
+// be a session of the same `FlameModel` with a prompt (WRONG_STATE without one,
+// INVALID_ARGUMENT for another model); `session` may be `source` itself. The prompt report
+// (`flame_session_prompt_info`) and the export metadata follow the prompt.
+//
+// # Safety
+// `session` and `source` are live sessions.
+enum FlameStatus flame_session_set_prompt_from(struct FlameSession *session,
+                                               const struct FlameSession *source);
+
 // Sets prompts per time stage (and body part): `count` stages in order, their frames adding
 // up to the session's. FineMoGen composes them (the sample is then laid out
 // `[count, longest stage, motion_dim]`: see [`flame_session_sample_shape`]); other families

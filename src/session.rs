@@ -496,6 +496,32 @@ impl Session {
 
     /// Makes `cond` the session's condition, resizing the sample to its layout (only before
     /// the first step, and only when no edit is set).
+    /// Sets the prompt `other` was given, as encoded there (its condition and prompt report),
+    /// without running the text encoder again: a large text encoder (MotionLCM's T5-large:
+    /// 75–85 ms) is then paid once per prompt, not once per generation. `other` must run the
+    /// same loaded model (the same `Arc`) and have a prompt; its stage frame counts, if any,
+    /// must fit this session's frames.
+    pub fn set_prompt_from(&mut self, other: &Session) -> Result<()> {
+        self.take_prompt(&other.model, other.encoded_prompt())
+    }
+
+    /// [`Session::set_prompt_from`] with what [`Session::encoded_prompt`] gave on a session of
+    /// `model`.
+    pub(crate) fn take_prompt(
+        &mut self,
+        model: &Arc<Model>,
+        encoded: Option<(Condition, Option<PromptInfo>)>,
+    ) -> Result<()> {
+        if !Arc::ptr_eq(&self.model, model) {
+            return Err(invalid_arg!(
+                "the other session runs another model: an encoded prompt is the model's own"
+            ));
+        }
+        let (cond, info) = encoded
+            .ok_or_else(|| Error::WrongState("the other session has no prompt to take".into()))?;
+        self.use_condition(cond, info)
+    }
+
     /// The condition the last prompt was encoded to and its report, for a caller that sets the
     /// same prompt again ([`Session::set_encoded_prompt`]).
     pub(crate) fn encoded_prompt(&self) -> Option<(Condition, Option<PromptInfo>)> {

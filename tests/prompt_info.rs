@@ -107,3 +107,36 @@ fn a_blank_prompt_is_unconditional_generation() {
         );
     }
 }
+
+/// `set_prompt_from` takes another session's encoded prompt: the same run, bit for bit, and the
+/// same report, as encoding the prompt again (FLAME with RoBERTa, MotionLCM with T5); another
+/// model's session and a session without a prompt are refused.
+#[test]
+fn a_prompt_encoded_once_serves_other_sessions() {
+    for (name, sampler) in [
+        ("flame_tiny", Sampler::Ddim),
+        ("motionlcm_v2_tiny", Sampler::Lcm),
+    ] {
+        let m = model(name);
+        let p = SessionParams {
+            steps: Some(2),
+            ..params(sampler)
+        };
+        let mut first = Session::new(Arc::clone(&m), &p).unwrap();
+        first.set_prompt(LONG).unwrap();
+        let encoded = first.run().unwrap().to_vec();
+        let mut second = Session::new(Arc::clone(&m), &p).unwrap();
+        second.set_prompt_from(&first).unwrap();
+        assert_eq!(second.prompt_info(), first.prompt_info(), "{name}");
+        assert_eq!(second.run().unwrap(), &encoded[..], "{name}");
+        // Another loaded copy of the same file is another model.
+        let other = model(name);
+        let mut third = Session::new(other, &p).unwrap();
+        let e = third.set_prompt_from(&first).unwrap_err().to_string();
+        assert!(e.contains("another model"), "{name}: {e}");
+        let empty = Session::new(Arc::clone(&m), &p).unwrap();
+        let mut fourth = Session::new(Arc::clone(&m), &p).unwrap();
+        let e = fourth.set_prompt_from(&empty).unwrap_err().to_string();
+        assert!(e.contains("no prompt"), "{name}: {e}");
+    }
+}

@@ -453,6 +453,12 @@ public:
         detail::check(flame_session_set_prompt(handle_, prompt.c_str()));
     }
 
+    // The prompt `source` was given, as encoded there: no second run of the text encoder (a
+    // prompt used for many generations is encoded once). `source` runs the same Model.
+    void set_prompt_from(const Session& source) {
+        detail::check(flame_session_set_prompt_from(handle_, source.handle_));
+    }
+
     // Prompts per time stage, in order; their frames must add up to the session's. A FineMoGen
     // model composes them: its sample is then laid out stages x the longest stage rows
     // (sample_shape(), and what set_noise takes), while read() still returns the session's

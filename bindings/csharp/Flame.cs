@@ -981,6 +981,9 @@ namespace Flame
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_prompt(FlameSessionHandle session, byte[] prompt);
 
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_set_prompt_from(FlameSessionHandle session, FlameSessionHandle source);
+
         /// <param name="stages">count FlameStage values, their strings valid for the call.</param>
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_set_prompt_stages(FlameSessionHandle session, [In] FlameStage[] stages, UIntPtr count);
@@ -1548,6 +1551,17 @@ namespace Flame
             if (prompt == null)
                 throw new ArgumentNullException("prompt");
             FlameException.Check(FlameNative.flame_session_set_prompt(Handle, FlameNative.Utf8Z(prompt)));
+        }
+
+        /// <summary>Sets the prompt <paramref name="source"/> was given, as encoded there, without
+        /// running the text encoder again: a prompt used for many generations is encoded once
+        /// (MotionLCM's T5-large takes 75–85 ms a prompt on 2 cores). The source must be a
+        /// session of the same FlameModel with a prompt.</summary>
+        public void SetPromptFrom(FlameSession source)
+        {
+            if (source == null)
+                throw new ArgumentNullException("source");
+            FlameException.Check(FlameNative.flame_session_set_prompt_from(Handle, source.Handle));
         }
 
         /// <summary>Sets prompts per time stage, in order; their Frames must add up to Frames. A

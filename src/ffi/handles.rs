@@ -109,6 +109,16 @@ pub(crate) struct Progress {
     user_data: *mut c_void,
 }
 
+/// A session's prompt as encoded, taken out of its lock ([`flame_session_set_prompt_from`]).
+///
+/// [`flame_session_set_prompt_from`]: crate::ffi::flame_session_set_prompt_from
+pub(crate) struct PromptSnapshot {
+    model: Arc<crate::models::Model>,
+    encoded: Option<(crate::models::Condition, Option<crate::text::PromptInfo>)>,
+    dropped: CString,
+    prompt: String,
+}
+
 pub(crate) struct SessionState {
     pub(crate) session: Session,
     progress: Option<Progress>,
@@ -250,6 +260,25 @@ impl SessionState {
         let dropped = self.session.prompt_info().map_or("", |p| &p.dropped);
         self.dropped = cstring(dropped);
         self.prompt = text.to_string();
+        Ok(())
+    }
+
+    /// The prompt as encoded here, with its text and dropped part, for
+    /// [`SessionState::take_prompt`] on another session.
+    pub(crate) fn prompt_snapshot(&self) -> PromptSnapshot {
+        PromptSnapshot {
+            model: Arc::clone(self.session.model()),
+            encoded: self.session.encoded_prompt(),
+            dropped: self.dropped.clone(),
+            prompt: self.prompt.clone(),
+        }
+    }
+
+    /// Sets the prompt of [`SessionState::prompt_snapshot`] ([`Session::set_prompt_from`]).
+    pub(crate) fn take_prompt(&mut self, p: PromptSnapshot) -> Result<(), Fail> {
+        self.session.take_prompt(&p.model, p.encoded)?;
+        self.dropped = p.dropped;
+        self.prompt = p.prompt;
         Ok(())
     }
 

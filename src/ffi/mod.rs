@@ -1135,6 +1135,33 @@ pub unsafe extern "C" fn flame_session_set_prompt(
     })
 }
 
+/// Sets the prompt `source` was given, as encoded there, without running the text encoder
+/// again: a game that makes many motions from one prompt encodes it once (MotionLCM's
+/// T5-large takes 75–85 ms a prompt on 2 cores; a whole 1-step motion 12–28 ms). `source` must
+/// be a session of the same `FlameModel` with a prompt (WRONG_STATE without one,
+/// INVALID_ARGUMENT for another model); `session` may be `source` itself. The prompt report
+/// (`flame_session_prompt_info`) and the export metadata follow the prompt.
+///
+/// # Safety
+/// `session` and `source` are live sessions.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_set_prompt_from(
+    session: *mut FlameSession,
+    source: *const FlameSession,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        let src = source
+            .as_ref()
+            .ok_or_else(|| Fail::from(invalid_arg!("`source` is NULL")))?;
+        // The source is locked, read and released before the session is locked (the same
+        // session twice, or two threads copying in opposite directions, never wait on each
+        // other).
+        let taken = src.with(|st| Ok(st.prompt_snapshot()))?;
+        s.with(|st| st.take_prompt(taken))
+    })
+}
+
 /// Sets prompts per time stage (and body part): `count` stages in order, their frames adding
 /// up to the session's. FineMoGen composes them (the sample is then laid out
 /// `[count, longest stage, motion_dim]`: see [`flame_session_sample_shape`]); other families

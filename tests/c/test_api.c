@@ -847,6 +847,50 @@ static void test_prompt_info(const FlameModel *m) {
     flame_session_free(s);
 }
 
+/* A prompt encoded once serves another session of the same model: the same bits as the CLI's
+ * reference run; the prompt report follows; NULLs, a source without a prompt and another model's
+ * session are refused. */
+static void test_prompt_from(const FlameModel *m) {
+    FlameSession *a = ref_session(m), *b = ref_session(m);
+    CHECK_ERROR_MENTIONS(flame_session_set_prompt_from(b, a), FLAME_STATUS_WRONG_STATE,
+                         "no prompt");
+    CHECK_ERROR_MENTIONS(flame_session_set_prompt_from(NULL, a), FLAME_STATUS_INVALID_ARGUMENT,
+                         "session");
+    CHECK_ERROR_MENTIONS(flame_session_set_prompt_from(b, NULL), FLAME_STATUS_INVALID_ARGUMENT,
+                         "source");
+    CHECK_OK(flame_session_set_prompt(a, REF_PROMPT));
+    CHECK_OK(flame_session_set_prompt_from(a, a));
+    CHECK_OK(flame_session_set_prompt_from(b, a));
+    FlamePromptInfo ia, ib;
+    memset(&ia, 0, sizeof ia);
+    memset(&ib, 0, sizeof ib);
+    ia.struct_size = ib.struct_size = sizeof ia;
+    CHECK_OK(flame_session_prompt_info(a, &ia));
+    CHECK_OK(flame_session_prompt_info(b, &ib));
+    CHECK(ia.tokens == ib.tokens && ia.kept == ib.kept && ia.truncated == ib.truncated);
+    uint32_t left = 1;
+    FlameStatus st = FLAME_STATUS_OK;
+    while (st == FLAME_STATUS_OK && left > 0) {
+        st = flame_session_step(b, &left);
+    }
+    CHECK_OK(st);
+    size_t n = 0;
+    float *x = read_features(b, FLAME_WHICH_SAMPLE, &n, &st);
+    CHECK(same_bits(x, n, g_ref, g_ref_n));
+    free(x);
+    FlameModel *other = load_or_die(g_model_path);
+    FlameSessionParams p;
+    ref_params(&p);
+    FlameSession *c = NULL;
+    CHECK_OK(flame_session_new(other, &p, &c));
+    CHECK_ERROR_MENTIONS(flame_session_set_prompt_from(c, a), FLAME_STATUS_INVALID_ARGUMENT,
+                         "another model");
+    flame_session_free(c);
+    flame_model_free(other);
+    flame_session_free(a);
+    flame_session_free(b);
+}
+
 /* ---- reading ----------------------------------------------------------------------------- */
 
 static void test_read(const FlameModel *m) {
@@ -2564,6 +2608,7 @@ int main(int argc, char **argv) {
     TIMED(test_read_frames_and_sample_shape(m));
     TIMED(test_reset(m));
     TIMED(test_prompt_info(m));
+    TIMED(test_prompt_from(m));
     TIMED(test_read(m));
     TIMED(test_gltf(m));
     TIMED(test_layouts(m));

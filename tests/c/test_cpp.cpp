@@ -252,6 +252,23 @@ static void test_prompt_info() {
     CHECK(moved.prompt_info().unconditional);
 }
 
+// A prompt encoded once serves another session of the same model: the CLI's bits.
+static void test_prompt_from() {
+    flame::Model model = flame::Model::load(g_model_path);
+    flame::Session a = model.session(reference_params());
+    flame::Session b = model.session(reference_params());
+    CHECK_THROWS(b.set_prompt_from(a), FLAME_STATUS_WRONG_STATE, "no prompt");
+    a.set_prompt(REF_PROMPT);
+    b.set_prompt_from(a);
+    CHECK(b.prompt_info().tokens == a.prompt_info().tokens);
+    while (b.step() > 0) {
+    }
+    CHECK(same(b.read(), g_cli));
+    flame::Model other = flame::Model::load(g_model_path);
+    flame::Session c = other.session(reference_params());
+    CHECK_THROWS(c.set_prompt_from(a), FLAME_STATUS_INVALID_ARGUMENT, "another model");
+}
+
 static void test_editing() {
     flame::Model model = flame::Model::load(g_model_path);
     flame::Session s = model.session(reference_params());
@@ -985,6 +1002,7 @@ int main(int argc, char **argv) {
         test_load_from_memory();
         test_errors();
         test_prompt_info();
+        test_prompt_from();
         test_editing();
         test_edit_params_tasks_parts();
         test_reference_poses();

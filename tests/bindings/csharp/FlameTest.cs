@@ -65,6 +65,7 @@ static class FlameTest
             Run("LoopSession", TestLoopSession);
             Run("LoopRefusals", TestLoopRefusals);
             Run("PromptInfo", TestPromptInfo);
+            Run("PromptFrom", TestPromptFrom);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
             Run("PoseLayouts", TestPoseLayouts);
@@ -427,6 +428,24 @@ static class FlameTest
         {
             s.SetPrompt(RefPrompt);
             Check(BitEqual(RunAll(s), reference), "two threads give the same bits");
+        }
+    }
+
+    static void TestPromptFrom()
+    {
+        // A prompt encoded once serves another session of the same model: the CLI's bits.
+        using (var a = model.NewSession(RefParams()))
+        using (var b = model.NewSession(RefParams()))
+        {
+            Throws(FlameStatus.WrongState, "no prompt", () => b.SetPromptFrom(a));
+            a.SetPrompt(RefPrompt);
+            b.SetPromptFrom(a);
+            Check(b.PromptInfo().Tokens == a.PromptInfo().Tokens, "the prompt report follows");
+            Check(BitEqual(RunAll(b), reference), "features equal the CLI's bit for bit");
+            ThrowsManaged<ArgumentNullException>(() => b.SetPromptFrom(null));
+            using (var other = FlameModel.Load(modelPath, 1))
+            using (var c = other.NewSession(RefParams()))
+                Throws(FlameStatus.InvalidArgument, "another model", () => c.SetPromptFrom(a));
         }
     }
 

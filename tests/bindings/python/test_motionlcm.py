@@ -88,3 +88,21 @@ def test_editing_tasks_go_through_the_control_net_as_the_cli_does(tmp_path):
     with flame.Model.load(PLAIN) as m, m.session(frames=FRAMES, steps=2) as s:
         expect_error(Status.INVALID_ARGUMENT, "gradient", s.set_task_targets, reference,
                      "predict")
+
+
+def test_a_prompt_encoded_once_serves_other_sessions():
+    with flame.Model.load(PLAIN) as m:
+        with m.session(frames=FRAMES, steps=2, seed=4, threads=1) as a, \
+                m.session(frames=FRAMES, steps=2, seed=4, threads=1) as b:
+            a.set_prompt(PROMPT)
+            first = a.run().copy()
+            b.set_prompt_from(a)
+            assert b.prompt_info().tokens == a.prompt_info().tokens
+            assert b.run().tobytes() == first.tobytes()
+        with m.session(frames=FRAMES) as empty, m.session(frames=FRAMES) as c:
+            expect_error(Status.WRONG_STATE, "no prompt", c.set_prompt_from, empty)
+            with pytest.raises(TypeError):
+                c.set_prompt_from("a person walks")
+            with flame.Model.load(PLAIN) as other, other.session(frames=FRAMES) as d:
+                empty.set_prompt(PROMPT)
+                expect_error(Status.INVALID_ARGUMENT, "another model", d.set_prompt_from, empty)
