@@ -147,6 +147,12 @@ fuzz_target!(|data: &[u8]| {
             ok(unsafe { flame_session_step(session, &mut left) });
         }
     }
+    if actions & 128 != 0 {
+        // The session's prompt taken from itself, in whatever state it is (WRONG_STATE
+        // without one); NULL sources.
+        ok(unsafe { flame_session_set_prompt_from(session, session) });
+        ok(unsafe { flame_session_set_prompt_from(session, ptr::null()) });
+    }
 
     // Reads: first the length query, then into a buffer of exactly the declared length.
     let (which, layout, convention, flags) = (input.i32(), input.i32(), input.i32(), input.u32());
