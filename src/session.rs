@@ -523,22 +523,11 @@ impl Session {
     }
 
     /// The condition the last prompt was encoded to and its report, for a caller that sets the
-    /// same prompt again ([`Session::set_encoded_prompt`]).
+    /// same prompt again ([`Session::take_prompt`]).
     pub(crate) fn encoded_prompt(&self) -> Option<(Condition, Option<PromptInfo>)> {
         self.cond
             .as_ref()
             .map(|c| (c.clone(), self.prompt_info.clone()))
-    }
-
-    /// [`Session::set_prompt`] with the prompt's condition and report already made by
-    /// [`Session::encoded_prompt`] (of a session of the same model): the same state, without
-    /// running the text encoder again.
-    pub(crate) fn set_encoded_prompt(
-        &mut self,
-        cond: Condition,
-        info: Option<PromptInfo>,
-    ) -> Result<()> {
-        self.use_condition(cond, info)
     }
 
     fn use_condition(&mut self, cond: Condition, info: Option<PromptInfo>) -> Result<()> {

@@ -588,7 +588,7 @@ impl Stream {
         } else {
             match &self.encoded {
                 Some((prompt, cond, info)) if *prompt == seg.prompt => {
-                    session.set_encoded_prompt(cond.clone(), info.clone())?;
+                    session.take_prompt(&self.model, Some((cond.clone(), info.clone())))?;
                 }
                 _ => {
                     session.set_prompt(&seg.prompt)?;

@@ -985,6 +985,31 @@ fn stream_takes_segments_with_part_texts_from_a_prompt_file() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
+/// The latent model at `model` run through the library: `frames` frames, `steps` steps (the
+/// model's default when `None`), `seed`, the prompt, then `setup` (a control, a task); the
+/// decoded features, to compare with what the CLI wrote.
+fn library_motion(
+    model: &str,
+    frames: usize,
+    steps: Option<usize>,
+    seed: u64,
+    prompt: &str,
+    setup: impl FnOnce(&mut flame::session::Session),
+) -> Vec<f32> {
+    let model = std::sync::Arc::new(flame::models::Model::load(model).unwrap());
+    let params = flame::session::SessionParams {
+        frames: Some(frames),
+        steps,
+        seed,
+        ..Default::default()
+    };
+    let mut s = flame::session::Session::new(model, &params).unwrap();
+    s.set_prompt(prompt).unwrap();
+    setup(&mut s);
+    s.run().unwrap();
+    s.motion(flame::session::Which::Sample).unwrap().0.to_vec()
+}
+
 /// `flame generate` on a MotionLCM file: the file's sampler (lcm) and v2's guidance for the step
 /// count, a step count the release has no table for refused with the counts it has, and
 /// `flame info` naming the T5 text encoder. A stream is refused (MLD's VAE has no gradient).
@@ -1018,18 +1043,15 @@ fn motionlcm_generates_in_its_step_counts() {
     assert_eq!(shape, vec![24, 263]);
     assert!(x.iter().all(|v| v.is_finite()));
     // The same run through the library: same bits.
-    let model = std::sync::Arc::new(flame::models::Model::load(&v2).unwrap());
-    let params = flame::session::SessionParams {
-        frames: Some(24),
-        steps: Some(2),
-        seed: 3,
-        ..Default::default()
-    };
-    let mut s = flame::session::Session::new(model, &params).unwrap();
-    s.set_prompt("a person walks forward and waves.").unwrap();
-    s.run().unwrap();
-    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
-    assert_eq!(features, &x[..]);
+    let features = library_motion(
+        &v2,
+        24,
+        Some(2),
+        3,
+        "a person walks forward and waves.",
+        |_| {},
+    );
+    assert_eq!(features, x);
     let bad = path("bad.npy");
     let o = generate("3", &bad);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
@@ -1103,19 +1125,11 @@ fn motionlcm_control_follows_a_pelvis_path() {
     let (_, b) = flame::npy::read_f32(Path::new(&without)).unwrap();
     assert!(a.iter().all(|v| v.is_finite()));
     assert_ne!(a, b, "the control changes the motion");
-    let model = std::sync::Arc::new(flame::models::Model::load(&control).unwrap());
-    let params = flame::session::SessionParams {
-        frames: Some(24),
-        seed: 5,
-        ..Default::default()
-    };
-    let mut s = flame::session::Session::new(model, &params).unwrap();
-    s.set_prompt("a person walks forward").unwrap();
-    s.set_control_values(&hint, None, flame::motion::Convention::Native)
-        .unwrap();
-    s.run().unwrap();
-    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
-    assert_eq!(features, &a[..], "the CLI's bits are the library's");
+    let features = library_motion(&control, 24, None, 5, "a person walks forward", |s| {
+        s.set_control_values(&hint, None, flame::motion::Convention::Native)
+            .unwrap()
+    });
+    assert_eq!(features, a, "the CLI's bits are the library's");
     // A file without a ControlNet.
     let plain = repo("tests/fixtures/motionlcm_v2_tiny.safetensors")
         .display()
@@ -1191,20 +1205,11 @@ fn motionlcm_control_files_edit_through_the_control_net() {
     );
     let (_, edited) = flame::npy::read_f32(Path::new(&out)).unwrap();
     let (_, ref_features) = flame::npy::read_f32(Path::new(&reference)).unwrap();
-    let model = std::sync::Arc::new(flame::models::Model::load(&control).unwrap());
-    let params = flame::session::SessionParams {
-        frames: Some(24),
-        steps: Some(2),
-        seed: 3,
-        ..Default::default()
-    };
-    let mut s = flame::session::Session::new(model, &params).unwrap();
-    s.set_prompt("then jumps.").unwrap();
-    s.set_task_targets(&ref_features, flame::motion::Task::Predict)
-        .unwrap();
-    s.run().unwrap();
-    let (features, _) = s.motion(flame::session::Which::Sample).unwrap();
-    assert_eq!(features, &edited[..]);
+    let features = library_motion(&control, 24, Some(2), 3, "then jumps.", |s| {
+        s.set_task_targets(&ref_features, flame::motion::Task::Predict)
+            .unwrap()
+    });
+    assert_eq!(features, edited);
     let bad = path("bad.npy");
     let o = edit(&control, &bad, &["--method", "mpgd"]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));

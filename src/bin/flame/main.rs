@@ -584,28 +584,30 @@ fn edit(a: &EditArgs) -> Result<(), String> {
             ));
         }
         let mask = edit_mask(a, model.motion_format(), frames, reference.frames)?;
-        let auto = matches!(a.method, Some(EditChoice::Method(EditMethod::Auto)) | None);
-        if auto && model.denoiser().takes_control() {
-            // A MotionLCM control file: the kept joints are the ControlNet's hint (MotionLCM's
-            // own editing route; `--method mpgd` asks for position guidance, which it refuses).
+        if mpgd {
             let t = reference_targets(model, reference, &mask)?;
-            eprintln!(
-                "following {} joint coordinates over {} frames of the reference through the \
-                 trajectory ControlNet",
-                t.constrained(),
-                t.frames()
-            );
-            session.set_control(&t).map_err(e)?;
-        } else if mpgd {
-            let t = reference_targets(model, reference, &mask)?;
-            eprintln!(
-                "steering {} joint coordinates over {} frames toward the reference (MPGD, scale {}, {} schedule)",
-                t.constrained(),
-                t.frames(),
-                target_params.scale,
-                target_params.schedule.name()
-            );
-            session.set_position_targets(t).map_err(e)?;
+            let auto = matches!(a.method, Some(EditChoice::Method(EditMethod::Auto)) | None);
+            if auto && model.denoiser().takes_control() {
+                // A MotionLCM control file: the kept joints are the ControlNet's hint
+                // (MotionLCM's own editing route; `--method mpgd` asks for position guidance,
+                // which it refuses).
+                eprintln!(
+                    "following {} joint coordinates over {} frames of the reference through the \
+                     trajectory ControlNet",
+                    t.constrained(),
+                    t.frames()
+                );
+                session.set_control(&t).map_err(e)?;
+            } else {
+                eprintln!(
+                    "steering {} joint coordinates over {} frames toward the reference (MPGD, scale {}, {} schedule)",
+                    t.constrained(),
+                    t.frames(),
+                    target_params.scale,
+                    target_params.schedule.name()
+                );
+                session.set_position_targets(t).map_err(e)?;
+            }
         } else {
             eprintln!(
                 "keeping {} of {} values ({:.0}%)",
