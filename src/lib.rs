@@ -64,6 +64,8 @@ pub mod stream;
 pub mod targets;
 /// cbindgen:ignore
 pub mod text;
+/// cbindgen:ignore
+pub mod tuning;
 
 pub use error::{Error, Result};
 

@@ -20,6 +20,7 @@ use crate::rng::{GaussianRng, NoiseSource};
 use crate::stages::Stage;
 use crate::targets::{self, PositionTargets, TargetParams, TargetScratch};
 use crate::text::PromptInfo;
+use crate::tuning::{self, TuningParams, TuningReport};
 
 /// The largest classifier-free guidance scale a session (and a model file's default) accepts.
 /// Guidance runs from 0 (the unconditional model alone) through 1 (the prompt alone, one network
@@ -139,6 +140,8 @@ pub struct Session {
     /// The encoded trajectory control ([`Session::set_control`]), which every step's network
     /// pass takes.
     control: Option<Vec<f32>>,
+    /// The positions the control was encoded from (what latent tuning's loss reads).
+    control_targets: Option<PositionTargets>,
     /// The frames of each stage when the condition has several: the sample is
     /// `[stages, longest stage, dim]` and the motion their concatenation.
     staged: Option<Vec<usize>>,
@@ -395,6 +398,7 @@ impl Session {
             target_params,
             target_loss: None,
             control: None,
+            control_targets: None,
             staged: None,
             looping,
         })
@@ -727,6 +731,7 @@ impl Session {
                 .encode_control(frames, targets.positions(), targets.weights())
         })?;
         self.control = Some(encoded);
+        self.control_targets = Some(targets.clone());
         Ok(())
     }
 
@@ -746,6 +751,117 @@ impl Session {
     /// Removes the trajectory control: the next steps follow the prompt alone.
     pub fn clear_control(&mut self) {
         self.control = None;
+        self.control_targets = None;
+    }
+
+    /// Consistency latent tuning (MotionLCM v2's `--optimize`, [`crate::tuning`]): before the
+    /// first step, moves the initial latent z_T (the seed's draw, or the one set by
+    /// [`Session::set_initial_noise`]) so that the motion the 1-step sampler makes from it
+    /// follows the control ([`Session::set_control`]) more closely; the tuned latent becomes
+    /// the session's initial noise, kept by [`Session::reset`] as a set one is. Needs a prompt,
+    /// a control and a 1-step MotionLCM session. Costs `params.iterations` forward and backward
+    /// passes of the denoiser, its ControlNet and the VAE decoder. The cancel flag is seen
+    /// before every iteration ([`Error::Cancelled`]: the session is left as it was).
+    pub fn tune_latent(&mut self, params: &TuningParams) -> Result<TuningReport> {
+        if self.started {
+            return Err(Error::WrongState(
+                "latent tuning sets the initial latent: call it before the first step (reset \
+                 first)"
+                    .into(),
+            ));
+        }
+        let mut z = match &self.initial_noise {
+            Some(x) => x.clone(),
+            None => {
+                self.check_tuning()?;
+                // Drawn as the first step would draw it, and kept as the initial noise at once:
+                // a cancelled or failed tuning leaves the session with the latent it would have
+                // sampled from anyway.
+                let mut z = vec![0.0; self.x.len()];
+                self.noise.fill(&mut z);
+                self.initial_noise = Some(z.clone());
+                z
+            }
+        };
+        let pool = Arc::clone(&self.pool);
+        let flag = Arc::clone(&self.cancel);
+        let cancel = Cancel::new(&flag, self.cancel_at.take());
+        let report = {
+            let problem = self.tuning_problem()?;
+            pool.install(|| tuning::tune(&problem, &mut z, params, &cancel))?
+        };
+        self.initial_noise = Some(z);
+        self.decoded = Default::default();
+        Ok(report)
+    }
+
+    /// The loss latent tuning minimises at the latent `z` (`[rows, sample_dim]`) and its
+    /// gradient with respect to `z` (before the tuning normalises it): what each iteration of
+    /// [`Session::tune_latent`] follows, for callers with an optimiser of their own.
+    pub fn tuning_gradient(&self, z: &[f32], params: &TuningParams) -> Result<(f64, Vec<f64>)> {
+        if z.len() != self.x.len() || z.iter().any(|v| !v.is_finite()) {
+            return Err(invalid_arg!(
+                "a latent of this session holds {} finite values, got {}",
+                self.x.len(),
+                z.len()
+            ));
+        }
+        let problem = self.tuning_problem()?;
+        self.pool
+            .install(|| tuning::loss_gradient(&problem, z, params))
+    }
+
+    /// Refuses what latent tuning cannot run on.
+    fn check_tuning(&self) -> Result<()> {
+        self.tuning_problem().map(|_| ())
+    }
+
+    fn tuning_problem(&self) -> Result<tuning::Problem<'_>> {
+        let StepRule::Lcm(sampler) = &self.rule else {
+            return Err(invalid_arg!(
+                "latent tuning differentiates a latent consistency model's 1-step sampler; this \
+                 {} model has none",
+                self.model.config().architecture
+            ));
+        };
+        if sampler.len() != 1 {
+            return Err(invalid_arg!(
+                "latent tuning differentiates the 1-step sampler (the release's setting); this \
+                 session runs {} steps",
+                sampler.len()
+            ));
+        }
+        let cond = self
+            .cond
+            .as_ref()
+            .ok_or_else(|| Error::WrongState("set a prompt before tuning the latent".into()))?;
+        let (Some(control), Some(targets)) = (&self.control, &self.control_targets) else {
+            return Err(Error::WrongState(
+                "latent tuning follows the control: set one first (set_control, `--control`)"
+                    .into(),
+            ));
+        };
+        if self.staged.is_some() {
+            return Err(invalid_arg!(
+                "latent tuning runs one prompt; this session has stages"
+            ));
+        }
+        let t = sampler.timesteps()[0] as f32;
+        let Guidance::Embedded(w) = self.model.denoiser().guidance(self.guidance, t) else {
+            return Err(invalid_arg!(
+                "latent tuning needs a network that takes the guidance as an input"
+            ));
+        };
+        Ok(tuning::Problem {
+            model: &self.model,
+            sampler,
+            rows: self.rows,
+            frames: self.frames,
+            w,
+            cond,
+            control: Some(control),
+            targets,
+        })
     }
 
     /// Whether a trajectory control is set.
@@ -826,6 +942,12 @@ impl Session {
     /// result at the end). [`Session::motion`] gives the motion for every model.
     pub fn sample(&self) -> Option<&[f32]> {
         self.started.then_some(&self.x[..])
+    }
+
+    /// The initial noise x_T set by [`Session::set_initial_noise`] or made by
+    /// [`Session::tune_latent`] (`None`: the seed's draw at the first step).
+    pub fn initial_noise(&self) -> Option<&[f32]> {
+        self.initial_noise.as_deref()
     }
 
     /// The model's latest estimate of the clean sample x0, in the sampled space (after at

@@ -219,6 +219,17 @@ impl LcmSampler {
         }
     }
 
+    /// `(a_z, a_ε)` with [`LcmSampler::denoise`]'s result `= a_z·z + a_ε·ε̂` at step `i`
+    /// (`c_skip + c_out/√ᾱ` and `−c_out·√(1 − ᾱ)/√ᾱ`): the step's derivatives, for a backward
+    /// through it.
+    pub fn denoise_coefficients(&self, i: usize) -> (f32, f32) {
+        let t = self.timesteps[i];
+        let a = self.alphas_cumprod[t];
+        let (sqrt_a, sqrt_b) = (a.sqrt(), (1.0 - a).sqrt());
+        let (c_skip, c_out) = self.boundary_scalings(t);
+        (c_skip + c_out / sqrt_a, -c_out * sqrt_b / sqrt_a)
+    }
+
     /// After step `i` (not the last): the next sample, `denoised` re-noised to the next
     /// timestep with the Gaussian `noise`.
     pub fn renoise(&self, i: usize, denoised: &[f32], noise: &[f32], z: &mut [f32]) {

@@ -22,6 +22,7 @@ pub mod profile;
 #[cfg(test)]
 mod testutil;
 
+pub(crate) use activation::erf;
 pub use activation::{gelu_erf, gelu_tanh, quick_gelu, relu, silu, softmax_rows, tanh};
 pub use attention::{multi_head_attention, AttentionScratch};
 pub use elementwise::{add_bias, add_inplace, scale_inplace};

@@ -242,8 +242,8 @@ fn in_proj<const N: usize>(
 
 /// `nn.MultiheadAttention` used as self-attention: q, k and v projected in one GEMM.
 pub(crate) struct Attention {
-    qkv: Linear,
-    out_proj: Linear,
+    pub(crate) qkv: Linear,
+    pub(crate) out_proj: Linear,
 }
 
 impl Attention {
@@ -506,11 +506,11 @@ pub(crate) struct LayerShape {
 
 /// One `nn.TransformerEncoderLayer` (post-LN): self-attention, then the feed-forward.
 pub(crate) struct EncoderLayer {
-    self_attn: Attention,
-    linear1: Linear,
-    linear2: Linear,
-    norm1: LayerNorm,
-    norm2: LayerNorm,
+    pub(crate) self_attn: Attention,
+    pub(crate) linear1: Linear,
+    pub(crate) linear2: Linear,
+    pub(crate) norm1: LayerNorm,
+    pub(crate) norm2: LayerNorm,
 }
 
 impl EncoderLayer {
@@ -596,13 +596,13 @@ fn feed_forward(
 /// One `nn.TransformerDecoderLayer` (post-LN): self-attention, cross-attention to a memory,
 /// then the feed-forward.
 pub(crate) struct DecoderLayer {
-    self_attn: Attention,
-    cross_attn: CrossAttention,
-    linear1: Linear,
-    linear2: Linear,
-    norm1: LayerNorm,
-    norm2: LayerNorm,
-    norm3: LayerNorm,
+    pub(crate) self_attn: Attention,
+    pub(crate) cross_attn: CrossAttention,
+    pub(crate) linear1: Linear,
+    pub(crate) linear2: Linear,
+    pub(crate) norm1: LayerNorm,
+    pub(crate) norm2: LayerNorm,
+    pub(crate) norm3: LayerNorm,
 }
 
 impl DecoderLayer {

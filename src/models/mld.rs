@@ -32,6 +32,7 @@ use crate::config::{
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, WeightType};
 
+use super::backward::VaeTape;
 use super::layers::{
     activation, sized, DecoderLayer, EncoderLayer, LayerBuffers, LayerNorm, LayerShape, Linear,
 };
@@ -380,12 +381,12 @@ impl StackLayer for DecoderLayer {
 /// MLD's U-shaped stack (`input_blocks`, `middle_block`, `output_blocks`, `linear_blocks`,
 /// `norm`).
 pub(crate) struct SkipStack<L> {
-    input: Vec<L>,
-    middle: L,
-    output: Vec<L>,
-    joins: Vec<Linear>,
-    norm: Option<LayerNorm>,
-    shape: LayerShape,
+    pub(crate) input: Vec<L>,
+    pub(crate) middle: L,
+    pub(crate) output: Vec<L>,
+    pub(crate) joins: Vec<Linear>,
+    pub(crate) norm: Option<LayerNorm>,
+    pub(crate) shape: LayerShape,
 }
 
 /// What [`SkipStack::forward_taps`] adds to a plain pass.
@@ -533,7 +534,7 @@ impl<L: StackLayer> SkipStack<L> {
     }
 
     /// Blocks of the stack (the residuals a ControlNet provides, one per block).
-    fn blocks(&self) -> usize {
+    pub(crate) fn blocks(&self) -> usize {
         2 * self.input.len() + 1
     }
 }
@@ -565,11 +566,11 @@ impl LatentParts {
 }
 
 /// MotionLCM v2's projections between the latent's channels and the width.
-struct LatentIo {
+pub(crate) struct LatentIo {
     /// `latent_pre` (C → D).
-    pre: Linear,
+    pub(crate) pre: Linear,
     /// `latent_post` (D → C); none in a ControlNet's copy.
-    post: Option<Linear>,
+    pub(crate) post: Option<Linear>,
 }
 
 impl LatentIo {
@@ -580,17 +581,17 @@ impl LatentIo {
 
 /// MLD's denoiser and VAE decoder.
 pub struct MldDenoiser {
-    cfg: MldFamily,
-    parts: LatentParts,
+    pub(crate) cfg: MldFamily,
+    pub(crate) parts: LatentParts,
     time: [Linear; 2],
     /// `time_embedding.cond_proj` (no bias): the guidance embedding into the time sinusoid.
     cond_proj: Option<Linear>,
     /// `latent_pre` (C → D) and `latent_post` (D → C) around the stack.
-    latent_io: Option<LatentIo>,
+    pub(crate) latent_io: Option<LatentIo>,
     emb_proj: Linear,
     /// `query_pos.pe` `[max_len, D]`.
     pe: Tensor,
-    encoder: SkipStack<EncoderLayer>,
+    pub(crate) encoder: SkipStack<EncoderLayer>,
     /// The VAE decoder (none in a ControlNet's copy of the denoiser).
     vae: Option<VaeDecoder>,
 }
@@ -616,7 +617,7 @@ pub struct MldWorkspace {
     time: Vec<f32>,
     text: Vec<f32>,
     texts: Vec<f32>,
-    x: Vec<f32>,
+    pub(crate) x: Vec<f32>,
     stack: StackBuffers,
 }
 
@@ -797,6 +798,38 @@ impl MldDenoiser {
         ws: &mut MldWorkspace,
         cancel: &Cancel,
     ) -> Result<()> {
+        self.embed_sequence(x, rows, t, w, texts, ws)?;
+        let (batch, seq, e) = (
+            texts.len(),
+            self.cfg.denoiser.latent_tokens + 2,
+            self.cfg.denoiser.latent_dim,
+        );
+        if let Some(r) = taps.residuals {
+            let need = self.encoder.blocks() * batch * seq * e;
+            if r.len() != need {
+                return Err(invalid_arg!(
+                    "ControlNet residuals hold {} values, the stack takes {need}",
+                    r.len()
+                ));
+            }
+        }
+        let xs = &mut ws.x[..batch * seq * e];
+        self.encoder
+            .forward_taps(xs, batch, seq, &[], 0, taps, &mut ws.stack, cancel)
+    }
+
+    /// The stack's input sequence `[batch, latent_tokens + 2, latent_dim]` into `ws.x`: the
+    /// latent's tokens (through `latent_pre`), the time token (with the guidance embedding of
+    /// `w`) and the text token, plus the learned positions.
+    pub(crate) fn embed_sequence(
+        &self,
+        x: &[f32],
+        rows: usize,
+        t: f32,
+        w: Option<f32>,
+        texts: &[&[f32]],
+        ws: &mut MldWorkspace,
+    ) -> Result<()> {
         let d = &self.cfg.denoiser;
         let (e, l, batch) = (d.latent_dim, d.latent_tokens, texts.len());
         let c = self.parts.channels;
@@ -859,17 +892,7 @@ impl MldDenoiser {
             blk[(l + 1) * e..].copy_from_slice(&text[b * e..(b + 1) * e]);
             kernels::add_inplace(blk, pe);
         }
-        if let Some(r) = taps.residuals {
-            let need = self.encoder.blocks() * batch * seq * e;
-            if r.len() != need {
-                return Err(invalid_arg!(
-                    "ControlNet residuals hold {} values, the stack takes {need}",
-                    r.len()
-                ));
-            }
-        }
-        self.encoder
-            .forward_taps(xs, batch, seq, &[], 0, taps, &mut ws.stack, cancel)
+        Ok(())
     }
 }
 
@@ -943,14 +966,14 @@ impl Denoiser for MldDenoiser {
 
 /// MLD's VAE decoder.
 pub struct VaeDecoder {
-    cfg: MldVaeConfig,
+    pub(crate) cfg: MldVaeConfig,
     /// `latent_post` (C → D), applied to the latent first (MotionLCM v2).
-    latent_post: Option<Linear>,
-    channels: usize,
+    pub(crate) latent_post: Option<Linear>,
+    pub(crate) channels: usize,
     /// `query_pos_decoder.pe` `[max_len, D]`.
-    pe: Tensor,
-    decoder: SkipStack<DecoderLayer>,
-    final_layer: Linear,
+    pub(crate) pe: Tensor,
+    pub(crate) decoder: SkipStack<DecoderLayer>,
+    pub(crate) final_layer: Linear,
 }
 
 /// Reusable buffers of the decoder.
@@ -997,16 +1020,8 @@ impl VaeDecoder {
             + self.latent_post.as_ref().map_or(0, |l| l.weight_bytes())
     }
 
-    /// Decodes a latent of `rows` tokens into `frames` frames of features.
-    pub fn decode_frames(
-        &self,
-        latent: &[f32],
-        rows: usize,
-        frames: usize,
-        out: &mut Vec<f32>,
-        ws: &mut VaeWorkspace,
-    ) -> Result<()> {
-        let e = self.cfg.latent_dim;
+    /// Whether a latent of `rows` tokens can be decoded into `frames` frames.
+    pub(crate) fn check_decode(&self, latent: &[f32], rows: usize, frames: usize) -> Result<()> {
         if frames == 0 || frames > self.cfg.max_len {
             return Err(invalid_arg!(
                 "frames must be between 1 and {} for this model, got {frames}",
@@ -1021,6 +1036,20 @@ impl VaeDecoder {
                 latent.len()
             ));
         }
+        Ok(())
+    }
+
+    /// Decodes a latent of `rows` tokens into `frames` frames of features.
+    pub fn decode_frames(
+        &self,
+        latent: &[f32],
+        rows: usize,
+        frames: usize,
+        out: &mut Vec<f32>,
+        ws: &mut VaeWorkspace,
+    ) -> Result<()> {
+        let e = self.cfg.latent_dim;
+        self.check_decode(latent, rows, frames)?;
         let memory = match &self.latent_post {
             Some(post) => {
                 let m = sized(&mut ws.memory, rows * e);
@@ -1050,6 +1079,28 @@ impl MotionDecoder for VaeDecoder {
     ) -> Result<usize> {
         self.decode_frames(sample, rows, frames, out, ws.get())?;
         Ok(frames)
+    }
+
+    fn decode_recorded(
+        &self,
+        sample: &[f32],
+        rows: usize,
+        frames: usize,
+        out: &mut Vec<f32>,
+        tape: &mut Workspace,
+    ) -> Result<()> {
+        let tape: &mut VaeTape = tape.get();
+        self.decode_recorded_into(sample, rows, frames, out, tape)
+    }
+
+    fn decode_vjp(
+        &self,
+        d_features: &[f32],
+        d_sample: &mut [f32],
+        tape: &mut Workspace,
+    ) -> Result<()> {
+        let tape: &mut VaeTape = tape.get();
+        self.decode_backward(tape, d_features, d_sample)
     }
 
     fn summary(&self) -> String {

@@ -40,6 +40,7 @@
 //! [`FAMILIES`]: crate::models::FAMILIES
 //! [`TextModel`]: crate::models::TextModel
 
+mod backward;
 pub mod calibrate;
 pub mod finemogen;
 pub mod flame;
@@ -266,6 +267,35 @@ pub trait Denoiser: Send + Sync {
             "this model's network does not take the guidance scale as an input"
         ))
     }
+    /// Consistency latent tuning ([`crate::tuning`]): ε̂ of the network with the guidance
+    /// embedded as `w` and `control` (as [`Denoiser::forward_embedded`], one sample of `rows`
+    /// rows), with what [`Denoiser::eps_vjp`] reads kept in `tape`. Families without a
+    /// backward through their network refuse.
+    #[allow(clippy::too_many_arguments)]
+    fn eps_recorded(
+        &self,
+        _z: &[f32],
+        _rows: usize,
+        _t: f32,
+        _w: f32,
+        _cond: &Condition,
+        _control: Option<&[f32]>,
+        _eps: &mut [f32],
+        _tape: &mut Workspace,
+    ) -> Result<()> {
+        Err(invalid_arg!(
+            "latent tuning differentiates the network, and libflame has no backward through this \
+             model's"
+        ))
+    }
+    /// `d_z = (∂ε̂/∂z)ᵀ d_eps` at the pass [`Denoiser::eps_recorded`] kept in `tape`
+    /// (overwritten).
+    fn eps_vjp(&self, _d_eps: &[f32], _d_z: &mut [f32], _tape: &mut Workspace) -> Result<()> {
+        Err(invalid_arg!(
+            "latent tuning differentiates the network, and libflame has no backward through this \
+             model's"
+        ))
+    }
     /// For latent families: what turns the sample into motion features. `None`: the sample
     /// is the motion.
     fn decoder(&self) -> Option<&dyn MotionDecoder> {
@@ -300,6 +330,35 @@ pub trait MotionDecoder: Send + Sync {
     ) -> Result<usize>;
     /// One line describing the decoder (`flame info`).
     fn summary(&self) -> String;
+    /// [`MotionDecoder::decode`] into `frames` frames (every one, `[frames, feature_dim]`),
+    /// with what [`MotionDecoder::decode_vjp`] reads kept in `tape`. Decoders without that
+    /// backward refuse.
+    fn decode_recorded(
+        &self,
+        _sample: &[f32],
+        _rows: usize,
+        _frames: usize,
+        _out: &mut Vec<f32>,
+        _tape: &mut Workspace,
+    ) -> Result<()> {
+        Err(crate::error::invalid_arg!(
+            "latent tuning differentiates the decoder, and libflame has no recorded backward \
+             through this one"
+        ))
+    }
+    /// `d_sample = (∂features/∂sample)ᵀ d_features` at the decode kept in `tape`
+    /// (overwritten).
+    fn decode_vjp(
+        &self,
+        _d_features: &[f32],
+        _d_sample: &mut [f32],
+        _tape: &mut Workspace,
+    ) -> Result<()> {
+        Err(crate::error::invalid_arg!(
+            "latent tuning differentiates the decoder, and libflame has no recorded backward \
+             through this one"
+        ))
+    }
     /// Whether [`MotionDecoder::vjp`] is implemented.
     fn has_vjp(&self) -> bool {
         false

@@ -37,6 +37,7 @@ use crate::diffusion::Spacing;
 use crate::error::{bad_file, invalid_arg, Result};
 use crate::kernels::{self, WeightType};
 
+use super::backward::DenoiserTape;
 use super::layers::{activation, sized, EncoderLayer, LayerShape, Linear};
 use super::mld::{
     LatentParts, MldConfig, MldVaeConfig, MldWorkspace, Part, SkipStack, StackBuffers, Taps,
@@ -602,6 +603,76 @@ impl Denoiser for MotionLcmDenoiser {
         self.control.is_some()
     }
 
+    fn eps_recorded(
+        &self,
+        z: &[f32],
+        rows: usize,
+        t: f32,
+        w: f32,
+        cond: &Condition,
+        control: Option<&[f32]>,
+        eps: &mut [f32],
+        tape: &mut Workspace,
+    ) -> Result<()> {
+        let (texts, _) = text_vector_views(&[cond])?;
+        let text = texts[0];
+        let MotionLcmTape {
+            main,
+            copy,
+            ws,
+            recorded,
+        } = tape.get();
+        *recorded = None;
+        if rows != self.net.sample_rows(0) || eps.len() != z.len() {
+            return Err(invalid_arg!(
+                "latent tuning runs one sample of {} rows, got {rows} rows and {} ε values for \
+                 {} sample values",
+                self.net.sample_rows(0),
+                eps.len(),
+                z.len()
+            ));
+        }
+        let residuals = match (control, &self.control) {
+            (None, _) => None,
+            (Some(c), Some(net)) => {
+                net.residuals_recorded(z, t, w, text, c, copy, ws)?;
+                Some(&ws.residuals[..])
+            }
+            (Some(_), None) => return Err(invalid_arg!("this MotionLCM file has no ControlNet")),
+        };
+        self.net
+            .eps_recorded(z, t, Some(w), text, residuals, eps, main)?;
+        *recorded = Some((z.len(), residuals.is_some()));
+        Ok(())
+    }
+
+    fn eps_vjp(&self, d_eps: &[f32], d_z: &mut [f32], tape: &mut Workspace) -> Result<()> {
+        let tape: &mut MotionLcmTape = tape.get();
+        let Some((len, controlled)) = tape.recorded else {
+            return Err(invalid_arg!(
+                "the network's backward needs a recorded pass first (eps_recorded)"
+            ));
+        };
+        if d_eps.len() != len || d_z.len() != len {
+            return Err(invalid_arg!(
+                "the recorded pass has {len} sample values; got gradients of {} and {}",
+                d_eps.len(),
+                d_z.len()
+            ));
+        }
+        d_z.fill(0.0);
+        match (&self.control, controlled) {
+            (Some(net), true) => {
+                let mut d_residuals = Vec::new();
+                self.net
+                    .eps_backward(&tape.main, d_eps, Some(&mut d_residuals), d_z);
+                net.residuals_backward(&tape.copy, &d_residuals, d_z);
+            }
+            _ => self.net.eps_backward(&tape.main, d_eps, None, d_z),
+        }
+        Ok(())
+    }
+
     fn encode_control(
         &self,
         frames: usize,
@@ -655,6 +726,16 @@ pub struct MotionLcmWorkspace {
     embed: [Vec<f32>; 2],
     collect: Vec<f32>,
     residuals: Vec<f32>,
+}
+
+/// What [`Denoiser::eps_recorded`] keeps for [`Denoiser::eps_vjp`]: the denoiser's pass, the
+/// ControlNet copy's and, once recorded, the sample's length and whether control was on.
+#[derive(Default)]
+struct MotionLcmTape {
+    main: DenoiserTape,
+    copy: DenoiserTape,
+    ws: MotionLcmWorkspace,
+    recorded: Option<(usize, bool)>,
 }
 
 /// MotionLCM's trajectory ControlNet (Dai-Wenxun/MotionLCM v1.0 f534a7f and v2.0 086f8db:
@@ -864,8 +945,28 @@ impl ControlNet {
         ws: &mut MotionLcmWorkspace,
         cancel: &Cancel,
     ) -> Result<()> {
+        self.conditioned_input(x, rows, texts.len(), control, ws)?;
+        let taps = Taps {
+            collect: Some(&mut ws.collect),
+            ..Taps::default()
+        };
+        self.copy
+            .sequence(&ws.x, rows, t, Some(w), texts, taps, &mut ws.copy, cancel)?;
+        self.project_down(&ws.collect, &mut ws.residuals);
+        Ok(())
+    }
+
+    /// The copy's input `x + embed(control)` (`batch` samples) into `ws.x`.
+    fn conditioned_input(
+        &self,
+        x: &[f32],
+        rows: usize,
+        batch: usize,
+        control: &[f32],
+        ws: &mut MotionLcmWorkspace,
+    ) -> Result<()> {
         let c = self.embed[2].outputs();
-        if control.len() != rows * c || x.len() != texts.len() * rows * c {
+        if control.len() != rows * c || x.len() != batch * rows * c {
             return Err(invalid_arg!(
                 "the control value holds {} values, the ControlNet takes {rows} × {c}",
                 control.len()
@@ -891,18 +992,18 @@ impl ControlNet {
         for sample in xin.chunks_exact_mut(rows * c) {
             kernels::add_inplace(sample, emb);
         }
-        let taps = Taps {
-            collect: Some(&mut ws.collect),
-            ..Taps::default()
-        };
-        self.copy
-            .sequence(&ws.x, rows, t, Some(w), texts, taps, &mut ws.copy, cancel)?;
+        Ok(())
+    }
+
+    /// Every block's collected output through its own `controlnet_down_mid_blocks` Linear,
+    /// times the scale: the residuals (`[blocks, rows, D]`).
+    fn project_down(&self, collect: &[f32], residuals: &mut Vec<f32>) {
         let e = self.down[0].outputs();
-        let n = ws.collect.len() / self.down.len();
-        let r = sized(&mut ws.residuals, ws.collect.len());
+        let n = collect.len() / self.down.len();
+        let r = sized(residuals, collect.len());
         for (i, lin) in self.down.iter().enumerate() {
             lin.forward(
-                &ws.collect[i * n..(i + 1) * n],
+                &collect[i * n..(i + 1) * n],
                 n / e,
                 &mut r[i * n..(i + 1) * n],
             );
@@ -910,7 +1011,51 @@ impl ControlNet {
         if self.cfg.scale != 1.0 {
             r.iter_mut().for_each(|v| *v *= self.cfg.scale);
         }
+    }
+
+    /// [`ControlNet::residuals`] for one sample `z`, recorded into `copy` (the residuals in
+    /// `ws.residuals`).
+    #[allow(clippy::too_many_arguments)]
+    fn residuals_recorded(
+        &self,
+        z: &[f32],
+        t: f32,
+        w: f32,
+        text: &[f32],
+        control: &[f32],
+        copy: &mut DenoiserTape,
+        ws: &mut MotionLcmWorkspace,
+    ) -> Result<()> {
+        let rows = self.copy.sample_rows(0);
+        self.conditioned_input(z, rows, 1, control, ws)?;
+        self.copy
+            .sequence_recorded(&ws.x, t, Some(w), text, None, Some(&mut ws.collect), copy)?;
+        self.project_down(&ws.collect, &mut ws.residuals);
         Ok(())
+    }
+
+    /// The backward of [`ControlNet::residuals_recorded`]: ADDS to `d_z` the gradient of the
+    /// residuals' gradients `d_residuals` (the condition embedding does not depend on `z`, so
+    /// the copy's input gradient is `z`'s).
+    fn residuals_backward(&self, copy: &DenoiserTape, d_residuals: &[f32], d_z: &mut [f32]) {
+        let e = self.down[0].outputs();
+        let n = d_residuals.len() / self.down.len();
+        let mut scaled = d_residuals.to_vec();
+        if self.cfg.scale != 1.0 {
+            scaled.iter_mut().for_each(|v| *v *= self.cfg.scale);
+        }
+        let mut d_collect = vec![0.0; scaled.len()];
+        for (i, lin) in self.down.iter().enumerate() {
+            lin.backward_input(
+                &scaled[i * n..(i + 1) * n],
+                n / e,
+                &mut d_collect[i * n..(i + 1) * n],
+            );
+        }
+        // The copy's own output (its last sequence) is not used: only its blocks' outputs.
+        let mut d_seq = vec![0.0; n];
+        self.copy
+            .sequence_backward(copy, &mut d_seq, Some(&d_collect), None, d_z);
     }
 }
 
