@@ -1082,8 +1082,9 @@ fn motionlcm_generates_in_its_step_counts() {
 }
 
 /// `flame generate --control`: a MotionLCM control file follows a pelvis path (the same bits
-/// as the library's `Session::set_control_values`); files without a ControlNet and hints of
-/// the wrong joint count are refused before sampling.
+/// as the library's `Session::set_control_values`), with `--optimize` the tuned latent's (the
+/// library's `Session::tune_latent`); files without a ControlNet, hints of the wrong joint
+/// count and tuning a 2-step run are refused before sampling.
 #[test]
 fn motionlcm_control_follows_a_pelvis_path() {
     let d = scratch("motionlcm-control");
@@ -1130,6 +1131,41 @@ fn motionlcm_control_follows_a_pelvis_path() {
             .unwrap()
     });
     assert_eq!(features, a, "the CLI's bits are the library's");
+    // Consistency latent tuning first: the library's bits too, and the hint followed closer.
+    let tuned = path("tuned.npy");
+    let o = run(
+        &control,
+        &["--control", &hint_path, "--optimize", "20", "--steps", "1"],
+        &tuned,
+    );
+    assert_ok(&o);
+    assert!(
+        stderr(&o).contains("latent tuning: 20 iterations"),
+        "{}",
+        stderr(&o)
+    );
+    let (_, t) = flame::npy::read_f32(Path::new(&tuned)).unwrap();
+    let mut report = None;
+    let features = library_motion(&control, 24, Some(1), 5, "a person walks forward", |s| {
+        s.set_control_values(&hint, None, flame::motion::Convention::Native)
+            .unwrap();
+        report = Some(
+            s.tune_latent(&flame::tuning::TuningParams::new(20))
+                .unwrap(),
+        );
+    });
+    assert_eq!(features, t, "the CLI's bits are the library's");
+    let r = report.unwrap();
+    assert!(r.control_error[1] < r.control_error[0], "{r:?}");
+    let o = run(
+        &control,
+        &["--control", &hint_path, "--optimize", "5", "--steps", "2"],
+        &path("bad.npy"),
+    );
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("1-step sampler"), "{}", stderr(&o));
+    let o = run(&control, &["--optimize", "5"], &path("bad.npy"));
+    assert_eq!(o.status.code(), Some(2), "clap: --optimize needs --control");
     // A file without a ControlNet.
     let plain = repo("tests/fixtures/motionlcm_v2_tiny.safetensors")
         .display()

@@ -427,6 +427,11 @@ pub struct GenerateArgs {
     /// --convention's axes, NaN = free; frames at most the motion's (later ones are free)
     #[arg(long, value_name = "FILE.npy")]
     pub control: Option<PathBuf>,
+    /// Consistency latent tuning (MotionLCM's --optimize): N Adam iterations on the initial
+    /// latent, through the 1-step sampler, the decoder and the joints, toward the --control,
+    /// before sampling (the release runs 400; --steps 1)
+    #[arg(long, value_name = "N", requires = "control")]
+    pub optimize: Option<usize>,
     #[command(flatten)]
     pub sampling: SamplingArgs,
     #[command(flatten)]
