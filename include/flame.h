@@ -453,6 +453,21 @@ typedef struct FlameTargetParams {
   int32_t schedule;
 } FlameTargetParams;
 
+// What [`flame_session_tune_latent`] did.
+typedef struct FlameTuningReport {
+  // Set by the caller to `sizeof(FlameTuningReport)`.
+  uint32_t struct_size;
+  // Iterations run.
+  uint32_t iterations;
+  // The hint loss Σ m (J − H)² / Σ m (m²) at the first latent and at the tuned one.
+  double hint_loss_before;
+  double hint_loss_after;
+  // The mean distance (m) of a hinted joint from its target, at the first latent and at the
+  // tuned one.
+  double control_error_before;
+  double control_error_after;
+} FlameTuningReport;
+
 // One time stage of a prompt for [`flame_session_set_prompt_stages`]: a whole-body text, a
 // frame count, and optionally a text per body part (NULL or empty: the part follows `text`).
 // The part fields are the HuMMan-MoGen annotation's; FineMoGen reads them, other families take
@@ -809,6 +824,23 @@ enum FlameStatus flame_session_set_control(struct FlameSession *session,
 // # Safety
 // `session` is a live session.
 enum FlameStatus flame_session_clear_control(struct FlameSession *session);
+
+// Consistency latent tuning (MotionLCM's `--optimize`): before the first step, `iterations`
+// Adam iterations (the release runs 400) move the initial latent so that the 1-step motion
+// made from it follows the control ([`flame_session_set_control`]) more closely; the tuned
+// latent becomes the session's initial noise (kept by a reset, as one set with
+// [`flame_session_set_noise`]). Needs a prompt, a control and a 1-step MotionLCM session
+// (`FLAME_STATUS_WRONG_STATE` without a prompt or a control or after the first step,
+// `FLAME_STATUS_INVALID_ARGUMENT` for another sampler, another step count or 0 iterations).
+// [`flame_session_cancel`] is seen before every iteration (`FLAME_STATUS_CANCELLED`: the
+// session keeps the latent it would have sampled from). `report` is NULL or a writable
+// `FlameTuningReport` whose `struct_size` is set.
+//
+// # Safety
+// `session` is a live session; `report` is NULL or points to a writable `FlameTuningReport`.
+enum FlameStatus flame_session_tune_latent(struct FlameSession *session,
+                                           uint32_t iterations,
+                                           struct FlameTuningReport *report);
 
 // The position targets' loss (the sum of distances, in metres, over constrained joints and
 // frames) at the latest step's clean-motion estimate, before that step's guidance, in `*loss`.

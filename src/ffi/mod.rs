@@ -1037,6 +1037,68 @@ pub unsafe extern "C" fn flame_session_clear_control(session: *mut FlameSession)
     })
 }
 
+/// What [`flame_session_tune_latent`] did.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FlameTuningReport {
+    /// Set by the caller to `sizeof(FlameTuningReport)`.
+    pub struct_size: u32,
+    /// Iterations run.
+    pub iterations: u32,
+    /// The hint loss Σ m (J − H)² / Σ m (m²) at the first latent.
+    pub hint_loss_before: f64,
+    /// The hint loss at the tuned latent.
+    pub hint_loss_after: f64,
+    /// The mean distance (m) of a hinted joint from its target at the first latent.
+    pub control_error_before: f64,
+    /// The same at the tuned latent.
+    pub control_error_after: f64,
+}
+
+/// Consistency latent tuning (MotionLCM's `--optimize`): before the first step, `iterations`
+/// Adam iterations (the release runs 400) move the initial latent so that the 1-step motion
+/// made from it follows the control ([`flame_session_set_control`]) more closely; the tuned
+/// latent becomes the session's initial noise (kept by a reset, as one set with
+/// [`flame_session_set_noise`]). Needs a prompt, a control and a 1-step MotionLCM session
+/// (`FLAME_STATUS_WRONG_STATE` without a prompt or a control or after the first step,
+/// `FLAME_STATUS_INVALID_ARGUMENT` for another sampler, another step count or 0 iterations).
+/// [`flame_session_cancel`] is seen before every iteration (`FLAME_STATUS_CANCELLED`: the
+/// session keeps the latent it would have sampled from). `report` is NULL or a writable
+/// `FlameTuningReport` whose `struct_size` is set.
+///
+/// # Safety
+/// `session` is a live session; `report` is NULL or points to a writable `FlameTuningReport`.
+#[no_mangle]
+pub unsafe extern "C" fn flame_session_tune_latent(
+    session: *mut FlameSession,
+    iterations: u32,
+    report: *mut FlameTuningReport,
+) -> FlameStatus {
+    guard(|| {
+        let s = session_ref(session)?;
+        if !report.is_null() {
+            check_size(
+                (*report).struct_size,
+                std::mem::size_of::<FlameTuningReport>(),
+                "report",
+            )?;
+        }
+        let params = crate::tuning::TuningParams::new(iterations as usize);
+        let r = s.with(|st| Ok(st.session.tune_latent(&params)?))?;
+        if !report.is_null() {
+            report.write(FlameTuningReport {
+                struct_size: std::mem::size_of::<FlameTuningReport>() as u32,
+                iterations: r.iterations as u32,
+                hint_loss_before: r.hint_loss[0],
+                hint_loss_after: r.hint_loss[1],
+                control_error_before: r.control_error[0],
+                control_error_after: r.control_error[1],
+            });
+        }
+        Ok(())
+    })
+}
+
 /// The position targets' loss (the sum of distances, in metres, over constrained joints and
 /// frames) at the latest step's clean-motion estimate, before that step's guidance, in `*loss`.
 /// FLAME_STATUS_WRONG_STATE before a guided step.

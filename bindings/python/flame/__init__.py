@@ -35,6 +35,7 @@ __all__ = [
     "Model",
     "ModelInfo",
     "PromptInfo",
+    "TuningReport",
     "PromptTruncatedWarning",
     "Session",
     "Stage",
@@ -425,6 +426,17 @@ class _PromptInfo(ctypes.Structure):
     ]
 
 
+class _TuningReport(ctypes.Structure):
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("iterations", ctypes.c_uint32),
+        ("hint_loss_before", ctypes.c_double),
+        ("hint_loss_after", ctypes.c_double),
+        ("control_error_before", ctypes.c_double),
+        ("control_error_after", ctypes.c_double),
+    ]
+
+
 class _SessionParams(ctypes.Structure):
     _fields_ = [
         ("struct_size", ctypes.c_uint32),
@@ -560,6 +572,10 @@ def _core_signatures():
             [_P, pf32, size_t, ctypes.POINTER(ctypes.c_uint8), size_t, i32],
         ),
         "flame_session_clear_control": (_status, [_P]),
+        "flame_session_tune_latent": (
+            _status,
+            [_P, ctypes.c_uint32, ctypes.POINTER(_TuningReport)],
+        ),
         "flame_session_target_loss": (_status, [_P, ctypes.POINTER(ctypes.c_double)]),
         "flame_session_new": (
             _status,
@@ -783,6 +799,17 @@ class PromptInfo:
     truncated: bool
     unconditional: bool
     dropped: str
+
+
+@dataclass(frozen=True)
+class TuningReport:
+    """What Session.tune_latent did: the `iterations` run, the hint loss (mean squared distance
+    over the hinted coordinates, m²) and the control error (mean distance of a hinted joint from
+    its target, m), each (at the first latent, at the tuned one)."""
+
+    iterations: int
+    hint_loss: Tuple[float, float]
+    control_error: Tuple[float, float]
 
 
 def _uint32(name: str, value: int) -> int:
@@ -1510,6 +1537,22 @@ class Session:
     def clear_control(self) -> None:
         """Removes the trajectory control: the prompt alone from the next step on."""
         self._call(_lib().flame_session_clear_control)
+
+    def tune_latent(self, iterations: int = 400) -> TuningReport:
+        """Consistency latent tuning (MotionLCM's --optimize): before the first step,
+        `iterations` Adam iterations (the release runs 400) move the initial latent so that the
+        1-step motion made from it follows the control (set_control) more closely; the tuned
+        latent becomes the session's initial noise. Needs a prompt, a control and a 1-step
+        MotionLCM session; cancel() is seen before every iteration."""
+        raw = _TuningReport()
+        raw.struct_size = ctypes.sizeof(_TuningReport)
+        self._call(_lib().flame_session_tune_latent,
+                   _uint32("iterations", iterations), ctypes.byref(raw))
+        return TuningReport(
+            iterations=raw.iterations,
+            hint_loss=(raw.hint_loss_before, raw.hint_loss_after),
+            control_error=(raw.control_error_before, raw.control_error_after),
+        )
 
     def set_target_params(self, scale: Optional[float] = None,
                           schedule: Union[None, int, str] = None) -> None:

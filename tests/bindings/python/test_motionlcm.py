@@ -50,6 +50,36 @@ def test_control_follows_a_path_as_the_cli_does(tmp_path):
     assert np.load(out).tobytes() == controlled.tobytes()
 
 
+def test_latent_tuning_as_the_cli_does(tmp_path):
+    hint = pelvis_path()
+    with flame.Model.load(CONTROL) as m:
+        with m.session(frames=FRAMES, steps=1, seed=5, threads=1) as s:
+            s.set_prompt(PROMPT)
+            s.set_control(hint)
+            r = s.tune_latent(20)
+            tuned = s.run().copy()
+        assert r.iterations == 20
+        assert r.control_error[1] < r.control_error[0], r
+        assert r.hint_loss[1] < r.hint_loss[0], r
+        with m.session(frames=FRAMES, steps=1, seed=5) as s:
+            s.set_prompt(PROMPT)
+            expect_error(Status.WRONG_STATE, "set one first", s.tune_latent, 5)
+        with m.session(frames=FRAMES, steps=2, seed=5) as s:
+            s.set_prompt(PROMPT)
+            s.set_control(hint)
+            expect_error(Status.INVALID_ARGUMENT, "1-step sampler", s.tune_latent, 5)
+        with pytest.raises(ValueError):
+            s.tune_latent(-1)
+    np.save(tmp_path / "hint.npy", hint)
+    out = tmp_path / "cli.npy"
+    subprocess.run([cli_path(), "generate", "--model", CONTROL, "--prompt", PROMPT,
+                    "--frames", str(FRAMES), "--steps", "1", "--seed", "5", "--threads", "1",
+                    "--convention", "native", "--control", str(tmp_path / "hint.npy"),
+                    "--optimize", "20", "--out", str(out)],
+                   check=True, capture_output=True)
+    assert np.load(out).tobytes() == tuned.tobytes()
+
+
 def test_control_refusals():
     with flame.Model.load(PLAIN) as m:
         assert not m.info.control
