@@ -620,6 +620,18 @@ public:
     // Removes the trajectory control.
     void clear_control() { detail::check(flame_session_clear_control(handle_)); }
 
+    // Consistency latent tuning (MotionLCM's --optimize): before the first step, `iterations`
+    // Adam iterations (the release runs 400) move the initial latent so that the 1-step motion
+    // made from it follows the control more closely; it becomes the session's initial noise.
+    // Needs a prompt, a control and a 1-step MotionLCM session; cancel() is seen before every
+    // iteration. The report's before/after values: hint loss (m²) and control error (m).
+    FlameTuningReport tune_latent(uint32_t iterations = 400) {
+        FlameTuningReport r{};
+        r.struct_size = sizeof r;
+        detail::check(flame_session_tune_latent(handle_, iterations, &r));
+        return r;
+    }
+
     // How strongly position targets steer: scale and schedule.
     void set_target_params(const TargetParams& params = TargetParams()) {
         detail::check(flame_session_set_target_params(handle_, &params));

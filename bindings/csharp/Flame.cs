@@ -563,6 +563,26 @@ namespace Flame
         public IntPtr dropped;
     }
 
+    /// <summary>Mirror of the C struct FlameTuningReport: what FlameSession.TuneLatent did (two
+    /// uint then four doubles, 40 bytes).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameTuningReport
+    {
+        public uint struct_size;
+        /// <summary>Iterations run.</summary>
+        public uint iterations;
+        /// <summary>The hint loss (mean squared distance over the hinted coordinates, m²) at
+        /// the first latent.</summary>
+        public double hint_loss_before;
+        /// <summary>The hint loss at the tuned latent.</summary>
+        public double hint_loss_after;
+        /// <summary>The mean distance (m) of a hinted joint from its target at the first
+        /// latent.</summary>
+        public double control_error_before;
+        /// <summary>The same at the tuned latent.</summary>
+        public double control_error_after;
+    }
+
     /// <summary>Mirror of the C struct FlameStage: one time stage of a prompt, its texts as
     /// NUL-terminated UTF-8 pointers (IntPtr.Zero = none). Two uint then eight pointers (72
     /// bytes on 64-bit targets, 40 on 32-bit). Use FlameSession.SetPromptStages with Stage
@@ -965,6 +985,10 @@ namespace Flame
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_clear_control(FlameSessionHandle session);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_session_tune_latent(FlameSessionHandle session, uint iterations,
+                                                                   ref FlameTuningReport report);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_session_target_loss(FlameSessionHandle session, out double loss);
@@ -1803,6 +1827,20 @@ namespace Flame
         public void ClearControl()
         {
             FlameException.Check(FlameNative.flame_session_clear_control(Handle));
+        }
+
+        /// <summary>Consistency latent tuning (MotionLCM's --optimize): before the first step,
+        /// `iterations` Adam iterations (the release runs 400) move the initial latent so that
+        /// the 1-step motion made from it follows the control (SetControl) more closely; the
+        /// tuned latent becomes the session's initial noise. Needs a prompt, a control and a
+        /// 1-step MotionLCM session; Cancel() is seen before every iteration. Costs one forward
+        /// and backward pass of the networks per iteration: run it off the game thread.</summary>
+        public FlameTuningReport TuneLatent(uint iterations)
+        {
+            var r = new FlameTuningReport();
+            r.struct_size = (uint)Marshal.SizeOf(typeof(FlameTuningReport));
+            FlameException.Check(FlameNative.flame_session_tune_latent(Handle, iterations, ref r));
+            return r;
         }
 
         /// <summary>How strongly position targets steer; start p from FlameTargetParams.Default().</summary>

@@ -1766,6 +1766,71 @@ static FlameModel *load_fixture(const char *name) {
     return load_or_die(path);
 }
 
+/* MotionLCM's consistency latent tuning (tests/fixtures/motionlcm_v2_control_tiny): a pelvis path
+ * followed through the ControlNet; the report says the hint is followed closer; the same bits
+ * with and without a report; the wrong states, a short report and NULLs refused. (Python and C#
+ * compare the tuned motion with the CLI's `generate --optimize`.) */
+static FlameSession *tuning_session(const FlameModel *m) {
+    FlameSessionParams p;
+    CHECK_OK(flame_session_params_default(&p));
+    p.frames = 24;
+    p.steps = 1;
+    p.seed = 5;
+    p.threads = 1;
+    FlameSession *s = NULL;
+    CHECK_OK(flame_session_new(m, &p, &s));
+    CHECK_OK(flame_session_set_prompt(s, "a person walks forward"));
+    return s;
+}
+
+static void test_latent_tuning(void) {
+    FlameModel *m = load_fixture("motionlcm_v2_control_tiny.safetensors");
+    float hint[24 * 22 * 3];
+    for (size_t i = 0; i < 24 * 22 * 3; i++) {
+        hint[i] = NAN;
+    }
+    for (int f = 0; f < 24; f++) {
+        hint[f * 66] = 0.05f * (float)f;
+        hint[f * 66 + 1] = 0.9f;
+        hint[f * 66 + 2] = 0.02f * (float)f;
+    }
+    FlameSession *a = tuning_session(m), *b = tuning_session(m);
+    FlameTuningReport r;
+    memset(&r, 0, sizeof r);
+    r.struct_size = sizeof r;
+    CHECK_ERROR_MENTIONS(flame_session_tune_latent(a, 5, &r), FLAME_STATUS_WRONG_STATE,
+                         "set one first");
+    CHECK_OK(flame_session_set_control(a, hint, 24 * 22 * 3, NULL, 0, FLAME_CONVENTION_NATIVE));
+    CHECK_OK(flame_session_set_control(b, hint, 24 * 22 * 3, NULL, 0, FLAME_CONVENTION_NATIVE));
+    CHECK_ERROR_MENTIONS(flame_session_tune_latent(NULL, 5, &r), FLAME_STATUS_INVALID_ARGUMENT,
+                         "session");
+    r.struct_size = 8;
+    CHECK_ERROR_MENTIONS(flame_session_tune_latent(a, 5, &r), FLAME_STATUS_INVALID_ARGUMENT,
+                         "struct_size");
+    CHECK_ERROR_MENTIONS(flame_session_tune_latent(a, 0, NULL), FLAME_STATUS_INVALID_ARGUMENT,
+                         "iterations");
+    r.struct_size = sizeof r;
+    CHECK_OK(flame_session_tune_latent(a, 20, &r));
+    CHECK(r.iterations == 20 && r.struct_size == sizeof r);
+    CHECK(r.control_error_after < r.control_error_before);
+    CHECK(r.hint_loss_after < r.hint_loss_before);
+    CHECK_OK(flame_session_tune_latent(b, 20, NULL));
+    FlameStatus st = FLAME_STATUS_OK;
+    CHECK_OK(flame_session_step(a, NULL));
+    CHECK_OK(flame_session_step(b, NULL));
+    size_t na = 0, nb = 0;
+    float *xa = read_features(a, FLAME_WHICH_SAMPLE, &na, &st);
+    float *xb = read_features(b, FLAME_WHICH_SAMPLE, &nb, &st);
+    CHECK(xa && xb && same_bits(xa, na, xb, nb));
+    free(xa);
+    free(xb);
+    CHECK_ERROR_MENTIONS(flame_session_tune_latent(a, 5, NULL), FLAME_STATUS_WRONG_STATE,
+                         "before the first step");
+    flame_session_free(a);
+    flame_session_free(b);
+    flame_model_free(m);
+}
+
 /* ---- read frames and sample shape ------------------------------------------------------- */
 
 /* flame_session_read_frames and flame_session_sample_shape on a non-latent model of
@@ -2609,6 +2674,7 @@ int main(int argc, char **argv) {
     TIMED(test_reset(m));
     TIMED(test_prompt_info(m));
     TIMED(test_prompt_from(m));
+    TIMED(test_latent_tuning());
     TIMED(test_read(m));
     TIMED(test_gltf(m));
     TIMED(test_layouts(m));

@@ -269,6 +269,38 @@ static void test_prompt_from() {
     CHECK_THROWS(c.set_prompt_from(a), FLAME_STATUS_INVALID_ARGUMENT, "another model");
 }
 
+// MotionLCM's consistency latent tuning (tests/fixtures/motionlcm_v2_control_tiny, next to the
+// FLAME model): the report says a pelvis path is followed closer; tuning twice gives the same
+// bits; after the first step it is refused.
+static void test_latent_tuning() {
+    std::string dir = g_model_path.substr(0, g_model_path.find_last_of('/'));
+    flame::Model model = flame::Model::load(dir + "/motionlcm_v2_control_tiny.safetensors");
+    std::vector<float> hint(24 * 22 * 3, NAN);
+    for (int f = 0; f < 24; f++) {
+        hint[f * 66] = 0.05f * static_cast<float>(f);
+        hint[f * 66 + 1] = 0.9f;
+        hint[f * 66 + 2] = 0.02f * static_cast<float>(f);
+    }
+    std::vector<float> runs[2];
+    for (auto& out : runs) {
+        flame::SessionParams p;
+        p.frames = 24;
+        p.steps = 1;
+        p.seed = 5;
+        p.threads = 1;
+        flame::Session s = model.session(p);
+        s.set_prompt("a person walks forward");
+        s.set_control(hint);
+        FlameTuningReport r = s.tune_latent(20);
+        CHECK(r.iterations == 20 && r.control_error_after < r.control_error_before);
+        while (s.step() > 0) {
+        }
+        out = s.read();
+        CHECK_THROWS(s.tune_latent(5), FLAME_STATUS_WRONG_STATE, "before the first step");
+    }
+    CHECK(same(runs[0], runs[1]));
+}
+
 static void test_editing() {
     flame::Model model = flame::Model::load(g_model_path);
     flame::Session s = model.session(reference_params());
@@ -1003,6 +1035,7 @@ int main(int argc, char **argv) {
         test_errors();
         test_prompt_info();
         test_prompt_from();
+        test_latent_tuning();
         test_editing();
         test_edit_params_tasks_parts();
         test_reference_poses();

@@ -66,6 +66,7 @@ static class FlameTest
             Run("LoopRefusals", TestLoopRefusals);
             Run("PromptInfo", TestPromptInfo);
             Run("PromptFrom", TestPromptFrom);
+            Run("LatentTuning", TestLatentTuning);
             Run("NullArguments", TestNullArguments);
             Run("ReadInto", TestReadInto);
             Run("PoseLayouts", TestPoseLayouts);
@@ -446,6 +447,62 @@ static class FlameTest
             using (var other = FlameModel.Load(modelPath, 1))
             using (var c = other.NewSession(RefParams()))
                 Throws(FlameStatus.InvalidArgument, "another model", () => c.SetPromptFrom(a));
+        }
+    }
+
+    // MotionLCM's consistency latent tuning (tests/fixtures/motionlcm_v2_control_tiny): a pelvis
+    // path followed through the ControlNet after 20 iterations, bit for bit the CLI's
+    // `generate --control --optimize 20`; the hint is followed closer; refusals.
+    static void TestLatentTuning()
+    {
+        string dir = Path.GetDirectoryName(Path.GetFullPath(modelPath));
+        string control = Path.Combine(dir, "motionlcm_v2_control_tiny.safetensors");
+        const int frames = 24;
+        var hint = new float[frames * 22 * 3];
+        for (int i = 0; i < hint.Length; i++)
+            hint[i] = float.NaN;
+        for (int f = 0; f < frames; f++)
+        {
+            hint[f * 66] = 0.05f * f;
+            hint[f * 66 + 1] = 0.9f;
+            hint[f * 66 + 2] = 0.02f * f;
+        }
+        string hintPath = Path.Combine(tmpDir, "tuning_hint.npy"), outPath = Path.Combine(tmpDir, "tuning_out.npy");
+        Npy.WriteShape(hintPath, hint, frames + ", 22, 3");
+        string prompt = "a person walks forward";
+        var psi = new ProcessStartInfo(cliPath,
+            "generate --model \"" + control + "\" --prompt \"" + prompt + "\" --frames 24 --steps 1 --seed 5 --threads 1 " +
+            "--convention native --control \"" + hintPath + "\" --optimize 20 --out \"" + outPath + "\"");
+        psi.UseShellExecute = false;
+        psi.RedirectStandardOutput = true;
+        psi.RedirectStandardError = true;
+        using (var proc = Process.Start(psi))
+        {
+            proc.StandardOutput.ReadToEnd();
+            string err = proc.StandardError.ReadToEnd();
+            proc.WaitForExit();
+            Check(proc.ExitCode == 0, "CLI --optimize: exit code " + proc.ExitCode + " " + err);
+        }
+        int[] shape;
+        var expected = Npy.Read(outPath, out shape);
+        using (var m = FlameModel.Load(control, 1))
+        {
+            var p = FlameSessionParams.Default();
+            p.frames = frames;
+            p.steps = 1;
+            p.seed = 5;
+            p.threads = 1;
+            using (var s = m.NewSession(p))
+            {
+                s.SetPrompt(prompt);
+                Throws(FlameStatus.WrongState, "set one first", () => s.TuneLatent(5));
+                s.SetControl(hint, null, FlameConvention.Native);
+                var r = s.TuneLatent(20);
+                Check(r.iterations == 20 && r.control_error_after < r.control_error_before,
+                      "tuning follows the hint closer: " + r.control_error_before + " -> " + r.control_error_after);
+                Check(BitEqual(RunAll(s), expected), "tuned motion = CLI --optimize");
+                Throws(FlameStatus.WrongState, "before the first step", () => s.TuneLatent(5));
+            }
         }
     }
 
@@ -3260,7 +3317,13 @@ static class Npy
 
     public static void Write(string path, float[] data, int rows, int cols)
     {
-        string header = "{'descr': '<f4', 'fortran_order': False, 'shape': (" + rows + ", " + cols + "), }";
+        WriteShape(path, data, rows + ", " + cols);
+    }
+
+    /// <summary>A float32 .npy of the given shape, written as numpy's tuple ("24, 22, 3").</summary>
+    public static void WriteShape(string path, float[] data, string shape)
+    {
+        string header = "{'descr': '<f4', 'fortran_order': False, 'shape': (" + shape + "), }";
         int total = 10 + header.Length + 1;
         header += new string(' ', (64 - total % 64) % 64) + "\n";
         using (var f = new BinaryWriter(File.Create(path)))
