@@ -234,6 +234,17 @@ fn targets(input: &mut Input, session: *mut FlameSession, m: &Model, frames: u32
             convention,
         )
     });
+    // Consistency latent tuning on what is set (a 1-step MotionLCM control session with a prompt
+    // and a control tunes; everything else refuses), 0 to 2 iterations, with a report of any
+    // declared size or none.
+    let iterations = u32::from(input.u8() % 3);
+    let mut report = Declared::new::<FlameTuningReport>(struct_size::<FlameTuningReport>(input));
+    let report_ptr = if input.u8() & 1 != 0 {
+        report.0.as_mut_ptr() as *mut FlameTuningReport
+    } else {
+        ptr::null_mut()
+    };
+    ok(unsafe { flame_session_tune_latent(session, iterations, report_ptr) });
     if input.u8() & 1 != 0 {
         ok(unsafe { flame_session_clear_control(session) });
     }
