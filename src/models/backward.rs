@@ -842,14 +842,8 @@ impl VaeDecoder {
     ) -> Result<()> {
         let e = self.cfg.latent_dim;
         self.check_decode(latent, rows, frames)?;
-        let memory = match &self.latent_post {
-            Some(post) => {
-                let mut m = vec![0.0; rows * e];
-                post.forward(latent, rows, &mut m);
-                m
-            }
-            None => latent.to_vec(),
-        };
+        let mut buf = Vec::new();
+        let memory = self.memory(latent, rows, &mut buf);
         let mut x = self.pe.data()[..frames * e].to_vec();
         let n = Blocks {
             batch: 1,
@@ -857,7 +851,7 @@ impl VaeDecoder {
             mem_len: rows,
         };
         self.decoder
-            .forward_recorded(&mut x, n, &memory, None, None, None, &mut tape.stack);
+            .forward_recorded(&mut x, n, memory, None, None, None, &mut tape.stack);
         out.resize(frames * self.cfg.nfeats, 0.0);
         self.final_layer.forward(&x, frames, out);
         (tape.rows, tape.frames) = (rows, frames);

@@ -1039,6 +1039,24 @@ impl VaeDecoder {
         Ok(())
     }
 
+    /// The rows the decoder attends to: the latent through `latent_post` (into `buf`), or the
+    /// latent itself.
+    pub(crate) fn memory<'a>(
+        &self,
+        latent: &'a [f32],
+        rows: usize,
+        buf: &'a mut Vec<f32>,
+    ) -> &'a [f32] {
+        match &self.latent_post {
+            Some(post) => {
+                let m = sized(buf, rows * self.cfg.latent_dim);
+                post.forward(latent, rows, m);
+                &*m
+            }
+            None => latent,
+        }
+    }
+
     /// Decodes a latent of `rows` tokens into `frames` frames of features.
     pub fn decode_frames(
         &self,
@@ -1050,14 +1068,7 @@ impl VaeDecoder {
     ) -> Result<()> {
         let e = self.cfg.latent_dim;
         self.check_decode(latent, rows, frames)?;
-        let memory = match &self.latent_post {
-            Some(post) => {
-                let m = sized(&mut ws.memory, rows * e);
-                post.forward(latent, rows, m);
-                &*m
-            }
-            None => latent,
-        };
+        let memory = self.memory(latent, rows, &mut ws.memory);
         let x = sized(&mut ws.x, frames * e);
         x.copy_from_slice(&self.pe.data()[..frames * e]);
         self.decoder
