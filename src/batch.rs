@@ -972,7 +972,7 @@ mod tests {
         assert_eq!(e[0].job.as_ref().unwrap().prompt.as_deref(), Some("a"));
         assert_eq!(e[1].line, 3);
         let err = e[1].job.as_ref().unwrap_err();
-        assert_eq!(err, "line 3: EOF while parsing an object at column 15");
+        assert_eq!(err, "line 3: EOF while parsing a value at column 15");
         let err = e[2].job.as_ref().unwrap_err();
         assert!(err.starts_with("line 4: unknown field `sed`"), "{err}");
         assert_eq!(
