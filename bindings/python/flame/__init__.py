@@ -69,6 +69,8 @@ __all__ = [
     "RobotState",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
+    "batch",
+    "read_manifest",
     "edit_params_default",
     "library_path",
     "version",
@@ -828,7 +830,10 @@ class Model:
         out = _P()
         params = _model_params(threads, weights)
         _check(_lib().flame_model_load(os.fsencode(path), ctypes.byref(params), ctypes.byref(out)))
-        return cls(out.value)
+        m = cls(out.value)
+        # What `flame.batch` records in glTF outputs, as `flame batch` records the file's name.
+        m._file_name = Path(path).name
+        return m
 
     @classmethod
     def from_bytes(
@@ -1806,3 +1811,4 @@ class Session:
 # Retargeting lives in its own module; imported last, as it builds on the names above.
 from .retarget import BoneMap, Retarget, Rig, RigBone, RigFormat  # noqa: E402
 from .robot import Robot, RobotFile, RobotRetarget, RobotState  # noqa: E402
+from ._batch import batch, read_manifest  # noqa: E402
