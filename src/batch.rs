@@ -142,7 +142,12 @@ fn parse_line(
     for (k, v) in defaults.into_iter().flatten() {
         map.entry(k.clone()).or_insert_with(|| v.clone());
     }
-    serde_json::from_value(serde_json::Value::Object(map)).map_err(|e| e.to_string())
+    let job: Job =
+        serde_json::from_value(serde_json::Value::Object(map)).map_err(|e| e.to_string())?;
+    if job.id.as_deref().is_some_and(|id| id.trim().is_empty()) {
+        return Err("`id` is blank".into());
+    }
+    Ok(job)
 }
 
 /// Jobs from a text of prompts (one a line; blank lines and lines starting with `#` skipped),

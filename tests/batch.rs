@@ -133,12 +133,15 @@ fn assert_same_as_generate(model: &str, cases: &[Case], dir: &Path) {
     }
 }
 
+/// A job's name, its keys (`key`, value as on the command line) and its output's extension.
+type Spec<'a> = (&'a str, Vec<(&'a str, &'a str)>, &'a str);
+
 #[test]
 fn every_output_is_the_bytes_flame_generate_writes() {
     let dir = scratch("same");
     let model = fixture("flame_tiny.safetensors");
     let base = [("frames", "16"), ("steps", "3")];
-    let specs: Vec<(&str, Vec<(&str, &str)>, &str)> = vec![
+    let specs: Vec<Spec> = vec![
         (
             "walk",
             vec![("prompt", "a person walks"), ("seed", "1")],
