@@ -494,3 +494,84 @@ fn a_cancelled_run_leaves_only_whole_outputs() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Ctrl-C (SIGINT) once the first job is recorded: the run stops, and whatever it wrote is
+/// whole (the bytes of an uninterrupted run), recorded `ok` in the manifest, with no temporary
+/// file left. Should every job finish before the signal lands, the same holds of all of them.
+#[cfg(unix)]
+#[test]
+fn ctrl_c_leaves_only_whole_recorded_outputs() {
+    let dir = scratch("sigint");
+    let model = fixture("flame_tiny.safetensors");
+    let jobs_text: Vec<String> = (0..12)
+        .map(|i| {
+            format!(
+                "{{\"prompt\": \"walks\", \"seed\": {i}, \"out\": \"{i}.bvh\", \"frames\": 120, \
+                 \"steps\": 100}}"
+            )
+        })
+        .collect();
+    for sub in ["whole", "cut"] {
+        std::fs::create_dir_all(dir.join(sub)).unwrap();
+        std::fs::write(dir.join(sub).join("jobs.jsonl"), jobs_text.join("\n")).unwrap();
+    }
+    let run = |sub: &str| {
+        Command::new(env!("CARGO_BIN_EXE_flame"))
+            .args(["batch", "--model", &model, "--jobs", "jobs.jsonl", "--workers", "1"])
+            .current_dir(dir.join(sub))
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    assert!(run("whole").wait().unwrap().success());
+    let mut child = run("cut");
+    let manifest = dir.join("cut/jobs.jsonl.manifest.jsonl");
+    // Waits for the first record (the handler is in place by then); a bounded wait, not a
+    // timing assertion.
+    for _ in 0..6000 {
+        let started = std::fs::read_to_string(&manifest).is_ok_and(|t| !t.is_empty());
+        if started || child.try_wait().unwrap().is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let _ = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let out = child.wait_with_output().unwrap();
+    let err = stderr(&out);
+    let m = manifest_records(&manifest);
+    let ok: Vec<&serde_json::Value> = m.iter().filter(|r| r["status"] == "ok").collect();
+    if out.status.success() {
+        assert_eq!(ok.len(), 12, "{err}");
+    } else {
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains("not written"), "{err}");
+    }
+    let mut names: Vec<String> = std::fs::read_dir(dir.join("cut"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".bvh") || n.starts_with('.'))
+        .collect();
+    names.sort();
+    let mut recorded: Vec<String> = ok
+        .iter()
+        .map(|r| r["outputs"][0].as_str().unwrap().to_string())
+        .collect();
+    recorded.sort();
+    assert_eq!(names, recorded, "every file is a recorded output; no temporary file");
+    for n in &names {
+        let got = std::fs::read(dir.join("cut").join(n)).unwrap();
+        assert!(got == std::fs::read(dir.join("whole").join(n)).unwrap(), "{n}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The manifest's lines, an empty list when there is none.
+fn manifest_records(path: &Path) -> Vec<serde_json::Value> {
+    if path.is_file() {
+        manifest(path)
+    } else {
+        Vec::new()
+    }
+}
