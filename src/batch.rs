@@ -1,14 +1,17 @@
-//! Bulk generation: many jobs, one model. [`parse_jobs`] reads a JSONL file of jobs (one JSON
-//! object a line whose keys are `flame generate`'s options, see [`Job`]) or
-//! [`jobs_from_prompts`] makes them from a list of prompts; a [`Runner`] runs them on sessions
-//! over one shared [`Model`], writes every output through a temporary file renamed into place
-//! (no half-written file ever carries an output's name), and appends one manifest line per job
-//! as it finishes ([`Record`]). A job renders its files exactly as `flame generate` does, so
-//! each output is the same bytes as that job run alone.
+//! Bulk generation: many jobs, one model. [`parse_jobs`](crate::batch::parse_jobs) reads a
+//! JSONL file of jobs (one JSON object a line whose keys are `flame generate`'s options, see
+//! [`Job`](crate::batch::Job)) or [`jobs_from_prompts`](crate::batch::jobs_from_prompts) makes
+//! them from a list of prompts; a [`Runner`](crate::batch::Runner) runs them on sessions over
+//! one shared [`Model`](crate::models::Model), writes every output through a temporary file
+//! renamed into place (no half-written file ever carries an output's name), and appends one
+//! manifest line per job as it finishes ([`Record`](crate::batch::Record)). A job renders its
+//! files exactly as `flame generate` does, so each output is the same bytes as that job run
+//! alone.
 //!
 //! This module holds the runner shared by the CLI (`flame batch`), the C ABI
 //! (`flame_batch_run`) and through it the Python package; it has no terminal display and no
-//! signal handling, which are the fronts' (they raise [`Runner::cancel_flag`]).
+//! signal handling, which are the fronts' (they raise
+//! [`Runner::cancel_flag`](crate::batch::Runner::cancel_flag)).
 
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
@@ -468,8 +471,14 @@ impl Runner {
         }
         let plan = Plan::new(entry, job, &opts.base_dir, &self.model)
             .map_err(|e| format!("line {}: {e}", entry.line))?;
+        // `out/a.bvh` and `./out/a.bvh` are one file: compared without `.` components.
+        let same = |p: &PathBuf| -> PathBuf {
+            p.components()
+                .filter(|c| *c != std::path::Component::CurDir)
+                .collect()
+        };
         for p in plan.paths() {
-            if let Some(other) = claimed.get(p) {
+            if let Some(other) = claimed.get(&same(p)) {
                 return Err(format!(
                     "line {}: {} is also an output of job {other}",
                     entry.line,
@@ -478,7 +487,7 @@ impl Runner {
             }
         }
         for p in plan.paths() {
-            claimed.insert(p.clone(), entry.key.clone());
+            claimed.insert(same(p), entry.key.clone());
         }
         Ok(plan)
     }

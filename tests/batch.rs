@@ -286,7 +286,10 @@ fn bad_jobs_are_reported_and_the_others_run() {
             "{{\"prompt\": \"walks\", \"out\": \"{}\"}}",
             dir.join("nowhere/m.bvh").display()
         ),
-        format!("{{\"prompt\": \"runs\", \"out\": \"{}\"}}", good.display()),
+        format!(
+            "{{\"prompt\": \"runs\", \"out\": \"{}/./good.bvh\"}}",
+            dir.display()
+        ),
         format!(
             "{{\"prompt\": \"runs\", \"out\": \"{}\", \"frames\": 100000}}",
             dir.join("long.bvh").display()
@@ -517,7 +520,15 @@ fn ctrl_c_leaves_only_whole_recorded_outputs() {
     }
     let run = |sub: &str| {
         Command::new(env!("CARGO_BIN_EXE_flame"))
-            .args(["batch", "--model", &model, "--jobs", "jobs.jsonl", "--workers", "1"])
+            .args([
+                "batch",
+                "--model",
+                &model,
+                "--jobs",
+                "jobs.jsonl",
+                "--workers",
+                "1",
+            ])
             .current_dir(dir.join(sub))
             .stderr(std::process::Stdio::piped())
             .spawn()
@@ -559,10 +570,16 @@ fn ctrl_c_leaves_only_whole_recorded_outputs() {
         .map(|r| r["outputs"][0].as_str().unwrap().to_string())
         .collect();
     recorded.sort();
-    assert_eq!(names, recorded, "every file is a recorded output; no temporary file");
+    assert_eq!(
+        names, recorded,
+        "every file is a recorded output; no temporary file"
+    );
     for n in &names {
         let got = std::fs::read(dir.join("cut").join(n)).unwrap();
-        assert!(got == std::fs::read(dir.join("whole").join(n)).unwrap(), "{n}");
+        assert!(
+            got == std::fs::read(dir.join("whole").join(n)).unwrap(),
+            "{n}"
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
