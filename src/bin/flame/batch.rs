@@ -69,9 +69,12 @@ pub fn batch(a: &BatchArgs) -> Result<(), String> {
     };
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let (workers, threads) = batch::thread_policy(jobs.len(), a.workers, a.threads, cores);
+    let plural = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
     eprintln!(
-        "{} jobs, {workers} sessions at once with {threads} threads each",
-        jobs.len()
+        "{}, {} at once with {} each",
+        plural(jobs.len(), "job"),
+        plural(workers.min(jobs.len()), "session"),
+        plural(threads, "thread")
     );
     let mut progress = Progress::new(jobs.len());
     let mut failures = Vec::new();
