@@ -565,7 +565,8 @@ typedef struct FlameGltfParams {
 typedef struct FlameBatchParams {
   // `sizeof(FlameBatchParams)`.
   uint32_t struct_size;
-  // Sessions run at once; 0 = one per core, at most one per job.
+  // Sessions run at once; 0 = one per core, at most one per job; at most
+  // `FLAME_MAX_THREADS`.
   uint32_t workers;
   // Kernel threads of each session; 0 = the cores shared among the sessions.
   uint32_t threads;

@@ -219,13 +219,16 @@ pub struct RunOptions {
 /// `jobs` jobs: one session per core (no more than there are jobs), and the cores left over
 /// shared among the sessions' kernels. Small models scale poorly inside one step (the matrices
 /// are narrow), so overlapping whole jobs uses the cores better than wide sessions. An explicit
-/// `workers` or `threads` (non-zero) is kept.
+/// `workers` or `threads` (non-zero) is kept, workers at most [`crate::pool::MAX_THREADS`] (a
+/// session refuses more threads than that itself).
 pub fn thread_policy(jobs: usize, workers: usize, threads: usize, cores: usize) -> (usize, usize) {
     let cores = cores.max(1);
+    // Each worker is a thread of ours: bounded as a session's pool is.
     let workers = match workers {
         0 => cores.min(jobs).max(1),
         w => w,
-    };
+    }
+    .min(crate::pool::MAX_THREADS);
     let threads = match threads {
         0 => (cores / workers).max(1),
         t => t,
@@ -1036,6 +1039,10 @@ mod tests {
         assert_eq!(thread_policy(3, 0, 0, 8), (3, 2));
         assert_eq!(thread_policy(200, 1, 0, 4), (1, 4));
         assert_eq!(thread_policy(200, 0, 3, 2), (2, 3));
+        assert_eq!(
+            thread_policy(10_000, 1 << 30, 1, 2).0,
+            crate::pool::MAX_THREADS
+        );
     }
 
     #[test]

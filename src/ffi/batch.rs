@@ -26,7 +26,8 @@ pub struct FlameBatch {
 pub struct FlameBatchParams {
     /// `sizeof(FlameBatchParams)`.
     pub struct_size: u32,
-    /// Sessions run at once; 0 = one per core, at most one per job.
+    /// Sessions run at once; 0 = one per core, at most one per job; at most
+    /// `FLAME_MAX_THREADS`.
     pub workers: u32,
     /// Kernel threads of each session; 0 = the cores shared among the sessions.
     pub threads: u32,
