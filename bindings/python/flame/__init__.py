@@ -521,11 +521,13 @@ _status = ctypes.c_int  # enum FlameStatus
 
 def _signatures():
     """(restype, argtypes) of every function of flame.h, by name (the retarget functions'
-    from flame.retarget, the robot ones' from flame.robot)."""
+    from flame.retarget, the robot ones' from flame.robot, the batch ones' from flame._batch)."""
+    from . import _batch
     from . import retarget as _retarget
     from . import robot as _robot
 
-    return {**_core_signatures(), **_retarget._signatures(), **_robot._signatures()}
+    return {**_core_signatures(), **_retarget._signatures(), **_robot._signatures(),
+            **_batch._signatures()}
 
 
 def _core_signatures():

@@ -62,8 +62,10 @@ def test_the_package_writes_what_the_cli_writes(tmp_path):
     with flame.Model.load(MODEL) as m:
         records = flame.batch(job_list, py / "manifest.jsonl", m, base_dir=py, workers=2)
     assert [r["status"] for r in records] == ["ok"] * 6
-    assert records[0]["job"] == "1" and records[0]["outputs"] == [str(py / "out/0.bvh")]
-    assert records[0]["prompt"]["unconditional"] is False
+    by_job = {r["job"]: r for r in records}  # in the order jobs finished
+    assert sorted(by_job) == ["1", "2", "3", "4", "5", "6"]
+    assert by_job["1"]["outputs"] == [str(py / "out/0.bvh")] and by_job["1"]["line"] == 1
+    assert by_job["1"]["prompt"]["unconditional"] is False
     assert_same_outputs(py, cli, job_list)
     # The jobs file given by path, the model by path: the same.
     again = tmp_path / "again"
