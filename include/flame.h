@@ -282,6 +282,10 @@ typedef enum FlameGltfContainer {
   FLAME_GLTF_CONTAINER_GLTF = 1,
 } FlameGltfContainer;
 
+// A batch runner over one model. [`flame_batch_run`] is used by one thread at a time;
+// [`flame_batch_cancel`] may run on any thread. The runner keeps its model alive.
+typedef struct FlameBatch FlameBatch;
+
 // A bone map: which bone of one rig is which humanoid bone (hips, spine, upper arms...).
 // Immutable; only usable with the rig it was made for.
 typedef struct FlameBoneMap FlameBoneMap;
@@ -571,6 +575,39 @@ typedef struct FlameGltfParams {
   // `root` bone to the skeleton.
   const struct FlameCleanupParams *cleanup;
 } FlameGltfParams;
+
+// Settings of one run. Initialise with [`flame_batch_params_default`].
+typedef struct FlameBatchParams {
+  // `sizeof(FlameBatchParams)`.
+  uint32_t struct_size;
+  // Sessions run at once; 0 = one per core, at most one per job; at most
+  // `FLAME_MAX_THREADS`.
+  uint32_t workers;
+  // Kernel threads of each session; 0 = the cores shared among the sessions.
+  uint32_t threads;
+  // Nonzero: skip the jobs the manifest records as done whose outputs exist, and append to
+  // the manifest; zero: start the manifest afresh.
+  uint32_t resume;
+  // The folder relative job paths start from (UTF-8); NULL = the current folder.
+  const char *base_dir;
+  // The model's name recorded in glTF outputs (`flame batch` records the file's name);
+  // NULL = none.
+  const char *model_name;
+} FlameBatchParams;
+
+// The counts of a finished run. Set `struct_size = sizeof(FlameBatchSummary)` first.
+typedef struct FlameBatchSummary {
+  // `sizeof(FlameBatchSummary)`.
+  uint32_t struct_size;
+  // Jobs in the file.
+  uint64_t total;
+  // Jobs written by this run.
+  uint64_t ok;
+  // Jobs that failed (their manifest lines say why).
+  uint64_t failed;
+  // Jobs found done by an earlier run (`resume`).
+  uint64_t skipped;
+} FlameBatchSummary;
 
 // One bone of [`flame_rig_from_bones`]: its rest transform relative to its parent (`T · R ·
 // S`, what Unity's `localPosition`/`localRotation`/`localScale` and Unreal's reference pose
@@ -1135,6 +1172,51 @@ enum FlameStatus flame_session_write_amass(const struct FlameSession *session,
                                            uint8_t *out,
                                            size_t len,
                                            size_t *out_len);
+
+// Fills `*params` with the defaults (workers and threads from the cores, no resume, paths
+// relative to the current folder).
+//
+// # Safety
+// `params` points to writable memory for a `FlameBatchParams`.
+enum FlameStatus flame_batch_params_default(struct FlameBatchParams *params);
+
+// Creates a batch runner over `model`; free it with [`flame_batch_free`].
+//
+// # Safety
+// `model` is a live model; `batch` points to writable memory for a pointer.
+enum FlameStatus flame_batch_new(const struct FlameModel *model, struct FlameBatch **batch);
+
+// Frees a runner; NULL is ignored.
+//
+// # Safety
+// `batch` is NULL or a live runner not in use by another thread.
+void flame_batch_free(struct FlameBatch *batch);
+
+// Runs the jobs of `jobs_path` (JSONL, the keys of `flame batch`'s job format) and appends a
+// line per job to `manifest_path` as each finishes. Returns `FLAME_STATUS_OK` when every job
+// was decided, even if some failed (`summary->failed`, and their manifest lines say why);
+// `FLAME_STATUS_CANCELLED` when [`flame_batch_cancel`] stopped the run (the running jobs
+// write nothing; the manifest records what finished); `IO` or `INVALID_ARGUMENT` when the
+// jobs file cannot be read (larger than 256 MiB, or not UTF-8) or the manifest cannot be
+// written. `summary` may be NULL; it is written only on `FLAME_STATUS_OK`.
+//
+// # Safety
+// `batch` is a live runner; `jobs_path` and `manifest_path` NUL-terminated strings; `params`
+// NULL or a valid `FlameBatchParams` whose strings are NULL or NUL-terminated; `summary` NULL
+// or a writable `FlameBatchSummary` with its `struct_size` set.
+enum FlameStatus flame_batch_run(const struct FlameBatch *batch,
+                                 const char *jobs_path,
+                                 const char *manifest_path,
+                                 const struct FlameBatchParams *params,
+                                 struct FlameBatchSummary *summary);
+
+// Stops the [`flame_batch_run`] running on another thread: no further job starts, the running
+// ones stop at their next step without writing, and the run returns
+// `FLAME_STATUS_CANCELLED`. With no run going, the next run is cancelled. Any thread.
+//
+// # Safety
+// `batch` is a live runner.
+enum FlameStatus flame_batch_cancel(const struct FlameBatch *batch);
 
 // Fills `*params` with the game-ready defaults: feet locked, the floor at 0, root motion kept,
 // no wrap, the model's frame rate, the default contact detection.

@@ -20,6 +20,8 @@
 /// cbindgen:ignore
 pub mod assemble;
 /// cbindgen:ignore
+pub mod batch;
+/// cbindgen:ignore
 pub mod checkpoint;
 /// cbindgen:ignore
 pub mod config;

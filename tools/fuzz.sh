@@ -19,7 +19,7 @@
 set -euo pipefail
 
 CARGO_FUZZ_VERSION=0.13.2
-ALL_TARGETS=(npy bvh pose_reference prompt ffi_params ffi_controls model_config model_header model_load model_file rig_gltf rig_bvh bone_map urdf robot_config t5_file)
+ALL_TARGETS=(npy batch_jobs bvh pose_reference prompt ffi_params ffi_controls model_config model_header model_load model_file rig_gltf rig_bvh bone_map urdf robot_config t5_file)
 
 cd "$(dirname "$0")/.."
 root=$(pwd)

@@ -387,6 +387,30 @@ namespace Flame
         }
     }
 
+    /// <summary>How a batch runs (flame_batch_params_default); the strings are UTF-8 pointers
+    /// the caller keeps alive for the call (IntPtr.Zero: the default).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameBatchParams
+    {
+        public uint struct_size;
+        public uint workers;
+        public uint threads;
+        public uint resume;
+        public IntPtr base_dir;
+        public IntPtr model_name;
+    }
+
+    /// <summary>The counts of a finished batch run (flame_batch_run).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct FlameBatchSummary
+    {
+        public uint struct_size;
+        public ulong total;
+        public ulong ok;
+        public ulong failed;
+        public ulong skipped;
+    }
+
     /// <summary>How a stream generates (flame_stream_params_default): 0 = the default for every
     /// count, a negative guidance = the model's.</summary>
     [StructLayout(LayoutKind.Sequential)]
@@ -1090,6 +1114,27 @@ namespace Flame
         /// <summary>Any thread, even while another is inside flame_stream_pump.</summary>
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_cancel(FlameStreamHandle stream);
+
+        // The batch runner (docs/batch.md): declared so that every function of flame.h is
+        // reachable; the C# wrapper has no class over it yet. FlameBatch* is an IntPtr here.
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_batch_params_default(out FlameBatchParams p);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_batch_new(FlameModelHandle model, out IntPtr batch);
+
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern void flame_batch_free(IntPtr batch);
+
+        /// <param name="jobsPath">UTF-8, NUL-terminated (Utf8Z).</param>
+        /// <param name="manifestPath">UTF-8, NUL-terminated (Utf8Z).</param>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_batch_run(IntPtr batch, byte[] jobsPath, byte[] manifestPath,
+                                                         ref FlameBatchParams p, ref FlameBatchSummary summary);
+
+        /// <summary>Any thread, even while another is inside flame_batch_run.</summary>
+        [DllImport(Lib, CallingConvention = Cdecl)]
+        public static extern FlameStatus flame_batch_cancel(IntPtr batch);
 
         [DllImport(Lib, CallingConvention = Cdecl)]
         public static extern FlameStatus flame_stream_set_playhead(FlameStreamHandle stream, ulong frame);

@@ -7,6 +7,7 @@
 //! pointers and catches panics, so no panic crosses into the host.
 
 mod amass;
+mod batch;
 mod cleanup;
 mod errors;
 mod handles;
@@ -26,6 +27,10 @@ use crate::session::{EditMethod, EditParams, Sampler, Session, SessionParams};
 use crate::targets::{TargetParams, TargetSchedule};
 
 pub use amass::{flame_session_write_amass, FLAME_AMASS_SMPLH, FLAME_AMASS_SMPLX};
+pub use batch::{
+    flame_batch_cancel, flame_batch_free, flame_batch_new, flame_batch_params_default,
+    flame_batch_run, FlameBatch, FlameBatchParams, FlameBatchSummary,
+};
 use cleanup::finish_arg;
 pub use cleanup::{
     flame_cleanup_params_default, flame_session_read_cleaned, FlameCleanupParams, FlameFeet,

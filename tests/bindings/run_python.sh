@@ -63,10 +63,13 @@ case "$(basename "$whl")" in
 esac
 echo "run_python.sh: $(basename "$whl")"
 
-# Test-only requirements, pinned where a test depends on a reader's behaviour.
-quiet_pip install --quiet "$whl" pytest pygltflib==1.16.5
+# Test-only requirements, pinned where a test depends on a reader's behaviour; Ray for
+# test_batch.py's run of bindings/python/examples/ray_batch.py on a local instance (about 25 s
+# to install on a fresh venv from PyPI, less from pip's cache).
+quiet_pip install --quiet "$whl" pytest pygltflib==1.16.5 ray==2.60.0
 [ -x "$venv/bin/pytest" ] || fail "pip install of the wheel and pytest failed"
 "$py" -c 'import pygltflib' 2>/dev/null || fail "pip install of pygltflib failed"
+"$py" -c 'import ray' 2>/dev/null || fail "pip install of ray failed"
 
 # Outside the checkout, with no FLAME_LIBRARY: the installed package and its own library.
 site="$(cd /tmp && env -u FLAME_LIBRARY -u PYTHONPATH "$py" -c \

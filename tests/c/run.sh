@@ -6,8 +6,8 @@
 # 1. cargo build (debug: target/debug/libflame.{so,a} and the flame CLI);
 # 2. the CLI writes the reference features the tests must match bit for bit;
 # 3. test_api, test_threads, test_hardening, test_targets and test_stages (C11), each linked
-#    against the shared and the static library, test_cancel, test_stream and test_cleanup (C11,
-#    shared), test_robot (C11, shared; the GR1T2 URDF from tools/fetch_robots.sh),
+#    against the shared and the static library, test_cancel, test_stream, test_batch and
+#    test_cleanup (C11, shared), test_robot (C11, shared; the GR1T2 URDF from tools/fetch_robots.sh),
 #    test_cpp, test_cpp_gltf, test_cpp_stream and test_cpp_robot (C++17, shared; test_cpp_robot
 #    with the GR1T2 URDF), all with -Wall -Wextra
 #    -Werror, are built and run;
@@ -190,6 +190,7 @@ compile test_stages_shared gcc "${CFLAGS[@]}" tests/c/test_stages.c "${SHARED_LI
 compile test_stages_static gcc "${CFLAGS[@]}" tests/c/test_stages.c "${STATIC_LIBS[@]}"
 compile test_cancel_shared gcc "${CFLAGS[@]}" tests/c/test_cancel.c "${SHARED_LIBS[@]}"
 compile test_stream_shared gcc "${CFLAGS[@]}" tests/c/test_stream.c "${SHARED_LIBS[@]}"
+compile test_batch_shared gcc "${CFLAGS[@]}" tests/c/test_batch.c "${SHARED_LIBS[@]}"
 compile test_cleanup_shared gcc "${CFLAGS[@]}" tests/c/test_cleanup.c "${SHARED_LIBS[@]}"
 compile test_retarget_shared gcc "${CFLAGS[@]}" tests/c/test_retarget.c "${SHARED_LIBS[@]}"
 compile test_amass_shared gcc "${CFLAGS[@]}" tests/c/test_amass.c "${SHARED_LIBS[@]}"
@@ -217,6 +218,9 @@ built test_cancel_shared && run_test "test_cancel (shared)" "$OUT/test_cancel_sh
     "$OUT/test_cancel_shared" "$MODEL"
 built test_stream_shared && run_test "test_stream (shared)" "$OUT/test_stream_shared.log" \
     "$OUT/test_stream_shared" "$ROOT/tests/fixtures"
+mkdir -p "$WORK/batch"
+built test_batch_shared && run_test "test_batch (shared)" "$OUT/test_batch_shared.log" \
+    "$OUT/test_batch_shared" "$MODEL" "$WORK/batch"
 built test_cleanup_shared && run_test "test_cleanup (shared)" "$OUT/test_cleanup_shared.log" \
     "$OUT/test_cleanup_shared" "$ROOT/tests/fixtures" "$OUT/loop_positions.npy"
 built test_retarget_shared && run_test "test_retarget (shared)" \
@@ -284,6 +288,10 @@ if [ "$use_valgrind" = 1 ]; then
         built test_stream_shared && run_test "test_stream (shared, valgrind)" \
             "$OUT/test_stream_valgrind.log" "${VALGRIND[@]}" "$OUT/test_stream_shared" \
             "$ROOT/tests/fixtures"
+        mkdir -p "$WORK/batch_valgrind"
+        built test_batch_shared && run_test "test_batch (shared, valgrind)" \
+            "$OUT/test_batch_valgrind.log" "${VALGRIND[@]}" "$OUT/test_batch_shared" "$MODEL" \
+            "$WORK/batch_valgrind"
         built test_cleanup_shared && run_test "test_cleanup (shared, valgrind)" \
             "$OUT/test_cleanup_valgrind.log" "${VALGRIND[@]}" "$OUT/test_cleanup_shared" \
             "$ROOT/tests/fixtures"

@@ -70,6 +70,8 @@ __all__ = [
     "RobotState",
     "MAX_THREADS",
     "ROOT_TRANSLATION",
+    "batch",
+    "read_manifest",
     "edit_params_default",
     "library_path",
     "version",
@@ -531,11 +533,13 @@ _status = ctypes.c_int  # enum FlameStatus
 
 def _signatures():
     """(restype, argtypes) of every function of flame.h, by name (the retarget functions'
-    from flame.retarget, the robot ones' from flame.robot)."""
+    from flame.retarget, the robot ones' from flame.robot, the batch ones' from flame._batch)."""
+    from . import _batch
     from . import retarget as _retarget
     from . import robot as _robot
 
-    return {**_core_signatures(), **_retarget._signatures(), **_robot._signatures()}
+    return {**_core_signatures(), **_retarget._signatures(), **_robot._signatures(),
+            **_batch._signatures()}
 
 
 def _core_signatures():
@@ -855,7 +859,10 @@ class Model:
         out = _P()
         params = _model_params(threads, weights)
         _check(_lib().flame_model_load(os.fsencode(path), ctypes.byref(params), ctypes.byref(out)))
-        return cls(out.value)
+        m = cls(out.value)
+        # What `flame.batch` records in glTF outputs, as `flame batch` records the file's name.
+        m._file_name = Path(path).name
+        return m
 
     @classmethod
     def from_bytes(
@@ -1849,3 +1856,4 @@ class Session:
 # Retargeting lives in its own module; imported last, as it builds on the names above.
 from .retarget import BoneMap, Retarget, Rig, RigBone, RigFormat  # noqa: E402
 from .robot import Robot, RobotFile, RobotRetarget, RobotState  # noqa: E402
+from ._batch import batch, read_manifest  # noqa: E402

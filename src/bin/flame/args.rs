@@ -145,7 +145,30 @@ pub enum Command {
     /// Write an int8 model file calibrated on the model's own runs (GPTQ)
     #[command(long_about = QUANTIZE_LONG)]
     Quantize(QuantizeArgs),
+    /// Run many generations with one model load: a JSONL file of jobs or a list of prompts
+    #[command(long_about = BATCH_LONG, after_help = AFTER_HELP)]
+    Batch(BatchArgs),
 }
+
+const BATCH_LONG: &str = "\
+Run many generations with one model load.
+
+--jobs FILE.jsonl holds one job a line: a JSON object whose keys are generate's options
+(prompt or stages, frames, seed, steps, sampler, respacing, eta, guidance, out, positions,
+amass, convention, smooth, quat, feet, ground, fps, root_motion, remove_yaw, contact_height,
+contact_speed; id names the job in the manifest). Unknown keys are refused. --prompts FILE
+takes one prompt a line instead, each run with --seeds seeds and written to --out-pattern
+({line} = the prompt's line, {seed}, {n} = the job's number). --defaults gives keys every job
+takes unless it sets them. Paths are relative to the current folder.
+
+Jobs run at once on sessions over the one model: by default one session per core, the cores
+left over shared among the sessions' threads (--workers, --threads). Every output is the same
+bytes as `flame generate` gives for that job, written under a temporary name and renamed, so a
+file never exists half-written. The manifest (JSONL: job, line, status, outputs, seconds,
+prompt, error) gets a line as each job finishes; --resume skips the jobs it records as done
+whose outputs exist. A job that fails is reported and the others run; Ctrl-C stops the
+running jobs without writing their files (a second Ctrl-C ends at once). The exit status is 1
+when any job failed or was not run.";
 
 const QUANTIZE_LONG: &str = "Write an int8 model file calibrated on the model's own runs. The \
 f32 model samples the calibration prompts while each linear layer records its inputs; each \
@@ -559,6 +582,44 @@ pub struct AssembleArgs {
     /// Record the demo corpus's action families (for the demo denoiser, see docs/demo_corpus.md)
     #[arg(long)]
     pub demo_actions: bool,
+}
+
+#[derive(Args)]
+pub struct BatchArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// The jobs: one JSON object a line (keys: generate's options, see above)
+    #[arg(
+        long,
+        value_name = "FILE.jsonl",
+        required_unless_present = "prompts",
+        conflicts_with = "prompts"
+    )]
+    pub jobs: Option<PathBuf>,
+    /// Prompts, one a line (blank lines and `#` lines skipped), with --seeds and --out-pattern
+    #[arg(long, value_name = "FILE", requires = "out_pattern")]
+    pub prompts: Option<PathBuf>,
+    /// Seeds per prompt of --prompts (0..N)
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "prompts")]
+    pub seeds: u64,
+    /// Output of each --prompts job: {line}, {seed} and {n} are replaced
+    #[arg(long, value_name = "PATTERN", requires = "prompts")]
+    pub out_pattern: Option<String>,
+    /// Keys every job takes unless it sets them: a JSON object (`{"steps": 10, "feet": "off"}`)
+    #[arg(long, value_name = "JSON")]
+    pub defaults: Option<String>,
+    /// The manifest to write [default: the jobs or prompts file with .manifest.jsonl added]
+    #[arg(long, value_name = "FILE.jsonl")]
+    pub manifest: Option<PathBuf>,
+    /// Skip the jobs the manifest records as done whose outputs exist; append to it
+    #[arg(long)]
+    pub resume: bool,
+    /// Sessions run at once (0 = one per core, at most one per job)
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub workers: usize,
+    /// Kernel threads of each session (0 = the cores shared among the sessions)
+    #[arg(long, value_name = "T", default_value_t = 0)]
+    pub threads: usize,
 }
 
 #[derive(Args)]

@@ -1,9 +1,10 @@
-//! The `flame` command line: generate or edit a motion from a sentence, describe a model file,
-//! assemble the demo model. The grammar is in `args.rs` (clap); files are checked before any
+//! The `flame` command line: generate or edit a motion from a sentence (or many, `batch`),
+//! describe a model file, assemble the demo model. The grammar is in `args.rs` (clap); files are checked before any
 //! model is loaded (`paths.rs`).
 
 mod actions;
 mod args;
+mod batch;
 mod paths;
 mod rig;
 mod robot;
@@ -43,6 +44,7 @@ fn main() -> ExitCode {
         Command::Info(a) => info(&a),
         Command::Assemble(a) => assemble(&a),
         Command::Quantize(a) => quantize(&a),
+        Command::Batch(a) => batch::batch(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
