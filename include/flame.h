@@ -463,12 +463,13 @@ typedef struct FlameTuningReport {
   uint32_t struct_size;
   // Iterations run.
   uint32_t iterations;
-  // The hint loss Σ m (J − H)² / Σ m (m²) at the first latent and at the tuned one.
+  // The hint loss Σ m (J − H)² / Σ m (m²) at the first latent.
   double hint_loss_before;
+  // The hint loss at the tuned latent.
   double hint_loss_after;
-  // The mean distance (m) of a hinted joint from its target, at the first latent and at the
-  // tuned one.
+  // The mean distance (m) of a hinted joint from its target at the first latent.
   double control_error_before;
+  // The same at the tuned latent.
   double control_error_after;
 } FlameTuningReport;
 
