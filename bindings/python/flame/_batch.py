@@ -60,23 +60,6 @@ def _signatures() -> dict:
     }
 
 
-_bound = False
-_bind_lock = threading.Lock()
-
-
-def _L() -> ctypes.CDLL:
-    """The library with the batch functions' signatures set (once)."""
-    global _bound
-    lib = _lib()
-    with _bind_lock:
-        if not _bound:
-            for name, (restype, argtypes) in _signatures().items():
-                fn = getattr(lib, name)
-                fn.restype, fn.argtypes = restype, argtypes
-            _bound = True
-    return lib
-
-
 def _write_jobs(jobs: Iterable, path: Path) -> None:
     with open(path, "w", encoding="utf-8") as f:
         for job in jobs:
@@ -139,7 +122,7 @@ def batch(jobs: Union[str, os.PathLike, Iterable], manifest: Union[str, os.PathL
 
 def _run(m: Model, jobs_path: Path, manifest: Path, workers: int, threads: int, resume: bool,
          base_dir, model_name: str) -> None:
-    lib = _L()
+    lib = _lib()  # bound with every signature, these included (flame._signatures)
     p = _BatchParams()
     _check(lib.flame_batch_params_default(ctypes.byref(p)))
     p.workers, p.threads, p.resume = workers, threads, int(bool(resume))

@@ -119,7 +119,7 @@ def test_a_cancel_before_a_run_stops_that_run_only(tmp_path, monkeypatch):
     # Cancel before the run: the runner starts no job and says so.
     from flame import _batch
 
-    lib = _batch._L()
+    lib = flame._lib()
     h = _batch._P()
     flame._check(lib.flame_batch_new(m._h(), _batch.ctypes.byref(h)))
     flame._check(lib.flame_batch_cancel(h))
